@@ -1,0 +1,229 @@
+//! The crate's error type and the argument checks every public function runs first.
+//!
+//! Every check names the argument it inspected and says what was expected, so that a
+//! wrong shape deep inside a training loop reads as `points: expected shape [N, 3], got
+//! [4096, 2]` rather than as a candle broadcast error three calls later.
+
+use candle_core::{DType, Tensor};
+use std::fmt;
+
+/// Errors returned by this crate.
+#[derive(Debug)]
+pub enum Error {
+    /// An argument failed validation: `arg` names it, `expected` says what was wanted and
+    /// `got` what was passed.
+    InvalidArgument {
+        /// The name of the offending argument, as it appears in the function signature.
+        arg: &'static str,
+        /// What the function expected of it.
+        expected: String,
+        /// What it received.
+        got: String,
+    },
+    /// An error raised by candle while evaluating an operation.
+    Candle(candle_core::Error),
+    /// An I/O error, with the path or stream it concerns.
+    Io {
+        /// The file or stream the error concerns.
+        path: String,
+        /// The underlying error.
+        source: std::io::Error,
+    },
+}
+
+/// `Result` with this crate's [`Error`].
+pub type Result<T> = std::result::Result<T, Error>;
+
+impl Error {
+    /// Builds an [`Error::InvalidArgument`].
+    #[must_use]
+    pub fn invalid(arg: &'static str, expected: impl Into<String>, got: impl Into<String>) -> Self {
+        Error::InvalidArgument {
+            arg,
+            expected: expected.into(),
+            got: got.into(),
+        }
+    }
+}
+
+impl fmt::Display for Error {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Error::InvalidArgument { arg, expected, got } => {
+                write!(f, "{arg}: expected {expected}, got {got}")
+            }
+            Error::Candle(e) => write!(f, "candle: {e}"),
+            Error::Io { path, source } => write!(f, "{path}: {source}"),
+        }
+    }
+}
+
+impl std::error::Error for Error {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            Error::Candle(e) => Some(e),
+            Error::Io { source, .. } => Some(source),
+            Error::InvalidArgument { .. } => None,
+        }
+    }
+}
+
+impl From<candle_core::Error> for Error {
+    fn from(e: candle_core::Error) -> Self {
+        Error::Candle(e)
+    }
+}
+
+/// One expected dimension in a shape pattern: a fixed size or any size.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Dim {
+    /// Any size (printed with the given symbol, e.g. `N`).
+    Any(&'static str),
+    /// Exactly this size.
+    Is(usize),
+}
+
+fn pattern_string(pattern: &[Dim]) -> String {
+    let parts: Vec<String> = pattern
+        .iter()
+        .map(|d| match d {
+            Dim::Any(s) => (*s).to_string(),
+            Dim::Is(n) => n.to_string(),
+        })
+        .collect();
+    format!("shape [{}]", parts.join(", "))
+}
+
+/// Checks that `t` has the given shape pattern and returns its dims.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `arg` when the rank or a fixed dimension differs.
+pub fn check_shape(t: &Tensor, arg: &'static str, pattern: &[Dim]) -> Result<Vec<usize>> {
+    let dims = t.dims();
+    let ok = dims.len() == pattern.len()
+        && dims.iter().zip(pattern).all(|(&d, p)| match p {
+            Dim::Any(_) => true,
+            Dim::Is(n) => d == *n,
+        });
+    if ok {
+        Ok(dims.to_vec())
+    } else {
+        Err(Error::invalid(arg, pattern_string(pattern), format!("shape {dims:?}")))
+    }
+}
+
+/// Checks that `t` is a floating-point tensor this crate computes in (f32 or f64).
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `arg` for any other dtype.
+pub fn check_float(t: &Tensor, arg: &'static str) -> Result<DType> {
+    match t.dtype() {
+        DType::F32 | DType::F64 => Ok(t.dtype()),
+        other => Err(Error::invalid(arg, "dtype f32 or f64", format!("{other:?}"))),
+    }
+}
+
+/// Checks that `t` has the same dtype and device as `reference` (named `ref_arg`).
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `arg` when either differs.
+pub fn check_same(t: &Tensor, arg: &'static str, reference: &Tensor, ref_arg: &str) -> Result<()> {
+    if t.dtype() != reference.dtype() {
+        return Err(Error::invalid(
+            arg,
+            format!("dtype {:?} (that of {ref_arg})", reference.dtype()),
+            format!("{:?}", t.dtype()),
+        ));
+    }
+    if !t.device().same_device(reference.device()) {
+        return Err(Error::invalid(
+            arg,
+            format!("device {:?} (that of {ref_arg})", reference.device()),
+            format!("{:?}", t.device()),
+        ));
+    }
+    Ok(())
+}
+
+/// Checks that every element of `t` is finite (no NaN, no ±∞).
+///
+/// This reads one scalar back from the device (a reduction), so it synchronises with
+/// an accelerator.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `arg` when some element is not finite.
+pub fn check_finite(t: &Tensor, arg: &'static str) -> Result<()> {
+    if t.elem_count() == 0 {
+        return Ok(());
+    }
+    // x - x is 0 for finite x and NaN for NaN and ±∞, so the sum is NaN iff one is.
+    let x = t.detach().to_dtype(DType::F64)?.flatten_all()?;
+    let probe = (&x - &x)?.sum_all()?.to_scalar::<f64>()?;
+    if probe.is_finite() {
+        Ok(())
+    } else {
+        Err(Error::invalid(arg, "finite values", "NaN or infinity"))
+    }
+}
+
+/// Checks that a tensor has at least one row (dimension 0 is non-empty).
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `arg` for an empty batch.
+pub fn check_nonempty(t: &Tensor, arg: &'static str) -> Result<()> {
+    match t.dims().first() {
+        Some(&n) if n > 0 => Ok(()),
+        _ => Err(Error::invalid(arg, "a non-empty batch", format!("shape {:?}", t.dims()))),
+    }
+}
+
+/// Checks a plain scalar argument: finite, and strictly positive if `positive`.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `arg` otherwise.
+pub fn check_scalar(x: f64, arg: &'static str, positive: bool) -> Result<()> {
+    if !x.is_finite() {
+        return Err(Error::invalid(arg, "a finite number", format!("{x}")));
+    }
+    if positive && x <= 0.0 {
+        return Err(Error::invalid(arg, "a number > 0", format!("{x}")));
+    }
+    Ok(())
+}
+
+/// Checks `[N, 3]` float points: shape, dtype and that `N > 0`. Returns `N`.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `arg`.
+pub fn check_points(t: &Tensor, arg: &'static str) -> Result<usize> {
+    check_float(t, arg)?;
+    let dims = check_shape(t, arg, &[Dim::Any("N"), Dim::Is(3)])?;
+    Ok(dims[0])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::Device;
+
+    #[test]
+    fn messages_name_the_argument_and_the_expectation() {
+        let t = Tensor::zeros((4, 2), DType::F32, &Device::Cpu).unwrap();
+        let e = check_points(&t, "points").unwrap_err().to_string();
+        assert_eq!(e, "points: expected shape [N, 3], got shape [4, 2]");
+        let t = Tensor::zeros((4, 3), DType::U32, &Device::Cpu).unwrap();
+        let e = check_points(&t, "points").unwrap_err().to_string();
+        assert!(e.starts_with("points: expected dtype f32 or f64"), "{e}");
+    }
+
+    #[test]
+    fn finite_check_catches_nan_and_inf_but_not_large_values() {
+        let d = Device::Cpu;
+        let ok = Tensor::new(&[1e38f32, -3.0, 0.0], &d).unwrap();
+        assert!(check_finite(&ok, "x").is_ok());
+        for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+            let t = Tensor::new(&[1.0f32, bad], &d).unwrap();
+            assert!(check_finite(&t, "x").is_err());
+        }
+    }
+}

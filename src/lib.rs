@@ -1,0 +1,6 @@
+//! Differentiable neural-field primitives on candle.
+#![deny(missing_docs)]
+
+pub mod error;
+
+pub use error::{Error, Result};
