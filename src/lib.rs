@@ -1,6 +1,11 @@
 //! Differentiable neural-field primitives on candle.
 #![deny(missing_docs)]
 
+pub mod encoding;
 pub mod error;
+pub mod field;
+pub mod nn;
+pub mod numerics;
+pub mod rng;
 
 pub use error::{Error, Result};
