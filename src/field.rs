@@ -481,7 +481,7 @@ impl Plane {
     /// Non-finite parameters or a zero normal.
     pub fn new(normal: [f64; 3], offset: f64, device: &Device, dtype: DType) -> Result<Self> {
         let n2: f64 = normal.iter().map(|v| v * v).sum();
-        if !(n2 > 0.0) || !n2.is_finite() {
+        if n2.is_nan() || n2 <= 0.0 || n2.is_infinite() {
             return Err(Error::invalid(
                 "normal",
                 "a finite non-zero vector",

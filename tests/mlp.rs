@@ -152,7 +152,7 @@ fn jacobian_covers_every_output_channel_and_fourier_inputs() {
     assert_eq!(j.dims(), &[1, 3, 3]);
     let (y, j) = (v64(&y), v64(&j));
     for axis in 0..3 {
-        let mut shifted = vec![0.1f64, -0.3, 0.2];
+        let mut shifted = [0.1f64, -0.3, 0.2];
         shifted[axis] += 1e-6;
         let yp = v64(&net
             .forward(&Tensor::new(&[[shifted[0], shifted[1], shifted[2]]], &Device::Cpu).unwrap())

@@ -318,13 +318,15 @@ impl Mlp {
         )?[0];
         match (codes, self.config.code_dim) {
             (None, 0) => {}
-            (None, d) => return Err(Error::invalid(
-                "codes",
-                format!(
+            (None, d) => {
+                return Err(Error::invalid(
+                    "codes",
+                    format!(
                     "[N, {d}] latent codes for this conditional network (see field::Conditioned)"
                 ),
-                "none",
-            )),
+                    "none",
+                ))
+            }
             (Some(c), d) => {
                 check_same(c, "codes", points, "points")?;
                 check_shape(c, "codes", &[Dim::Is(n), Dim::Is(d)])?;
