@@ -170,12 +170,8 @@ impl Intrinsics {
             Convention::OpenCv => (1.0, 1.0),
             Convention::OpenGl => (-1.0, -1.0),
         };
-        let x = pixels
-            .narrow(1, 0, 1)?
-            .affine(1.0 / self.fx, -self.cx / self.fx)?;
-        let y = pixels
-            .narrow(1, 1, 1)?
-            .affine(sy / self.fy, -sy * self.cy / self.fy)?;
+        let x = ((pixels.narrow(1, 0, 1)? - self.cx)? / self.fx)?;
+        let y = ((pixels.narrow(1, 1, 1)? - self.cy)? / (sy * self.fy))?;
         let z = Tensor::full(sz, (n, 1), pixels.device())?.to_dtype(pixels.dtype())?;
         Ok(Tensor::cat(&[&x, &y, &z], 1)?)
     }
@@ -499,7 +495,7 @@ impl Rays {
             return Ok(self.clone());
         }
         let m = self.directions.detach().abs()?.max_keepdim(1)?;
-        if !(scalar_f64(&m.min_all()?)? > 0.0) {
+        if scalar_f64(&m.min_all()?)?.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
             return Err(Error::invalid(
                 "directions",
                 "non-zero rows",
@@ -569,7 +565,7 @@ fn check_ray_inputs(origins: &Tensor, directions: &Tensor) -> Result<(usize, Ten
     check_finite(origins, "origins")?;
     check_finite(directions, "directions")?;
     let m = directions.detach().abs()?.max_keepdim(1)?;
-    if n > 0 && !(scalar_f64(&m.min_all()?)? > 0.0) {
+    if n > 0 && scalar_f64(&m.min_all()?)?.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
         return Err(Error::invalid(
             "directions",
             "non-zero rows",
@@ -783,7 +779,7 @@ impl PoseParam {
         self.check()?;
         let q = self.rotation.as_tensor();
         let m = q.detach().abs()?.max_keepdim(0)?;
-        if !(scalar_f64(&m.squeeze(0)?)? > 0.0) {
+        if scalar_f64(&m.squeeze(0)?)?.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
             return Err(Error::invalid("rotation", "a non-zero quaternion", "0"));
         }
         let q = q.broadcast_div(&m)?;
