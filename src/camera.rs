@@ -835,6 +835,27 @@ impl PoseParam {
         ))
     }
 
+    /// Rescales `rotation` in place to unit length, `q ← q/|q|`, which leaves the
+    /// rotation unchanged. Unconstrained optimisers let `|q|` drift up slowly, and the
+    /// effective step size falls as `1/|q|²` (see `docs/math.md`); calling this now and
+    /// then undoes that.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `rotation` if it is zero or non-finite, or
+    /// either variable has a wrong shape or dtype.
+    pub fn renormalize(&self) -> Result<()> {
+        self.check()?;
+        let q = self.rotation.as_tensor().detach();
+        let m = q.abs()?.max_keepdim(0)?;
+        if scalar_f64(&m.squeeze(0)?)?.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+            return Err(Error::invalid("rotation", "a non-zero quaternion", "0"));
+        }
+        let q = q.broadcast_div(&m)?;
+        let norm = q.sqr()?.sum_keepdim(0)?.sqrt()?;
+        self.rotation.set(&q.broadcast_div(&norm)?)?;
+        Ok(())
+    }
+
     /// Both variables, `[rotation, translation]`, for an optimiser.
     #[must_use]
     pub fn vars(&self) -> Vec<Var> {

@@ -626,9 +626,9 @@ fn rotation_matrix_is_that_of_the_normalised_quaternion() {
     let r = v2(&p.rotation_matrix().unwrap());
     let q = DQuat::from_xyzw(raw[1], raw[2], raw[3], raw[0]).normalize();
     let m = DMat3::from_quat(q);
-    for i in 0..3 {
-        for j in 0..3 {
-            assert!(close(r[i][j], m.col(j)[i], 1e-14));
+    for (i, row) in r.iter().enumerate() {
+        for (j, x) in row.iter().enumerate() {
+            assert!(close(*x, m.col(j)[i], 1e-14));
         }
     }
     // scale invariance, including tiny quaternions whose square underflows
@@ -637,7 +637,18 @@ fn rotation_matrix_is_that_of_the_normalised_quaternion() {
     for (a, b) in r.iter().flatten().zip(r2.iter().flatten()) {
         assert!(close(*a, *b, 1e-14));
     }
+    p.renormalize().unwrap();
+    let unit = v1(&p.rotation);
+    assert!(
+        close(unit.iter().map(|x| x * x).sum::<f64>(), 1.0, 1e-15),
+        "{unit:?}"
+    );
+    let r3 = v2(&p.rotation_matrix().unwrap());
+    for (a, b) in r.iter().flatten().zip(r3.iter().flatten()) {
+        assert!(close(*a, *b, 1e-14));
+    }
     set_var(&p.rotation, &[0.0; 4]);
+    assert_eq!(arg_of(p.renormalize()), "rotation");
     assert_eq!(arg_of(p.rotation_matrix()), "rotation");
     assert_eq!(arg_of(p.to_affine()), "rotation");
 }
