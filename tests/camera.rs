@@ -929,3 +929,93 @@ fn pose_param_rejects_bad_arguments() {
     };
     assert_eq!(arg_of(wrong_shape_tr.to_affine()), "translation");
 }
+
+// ---------------------------------------------------------------- stiff batches
+
+/// A deterministic batch of rays over extreme ranges: origins up to 1e6, direction scales
+/// 1e-10 … 1e10, some components exactly 0.
+fn stiff_batch(n: usize) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+    let mut s = 12345u64;
+    let mut next = || {
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (s >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let (mut o, mut d) = (Vec::new(), Vec::new());
+    for i in 0..n {
+        let scale_o = 10f64.powf(6.0 * next() - 1.0);
+        let oi = [
+            (next() - 0.5) * scale_o,
+            (next() - 0.5) * scale_o,
+            (next() - 0.5) * scale_o,
+        ];
+        let target = [next() - 0.5, next() - 0.5, next() - 0.5];
+        let scale_d = 10f64.powf(20.0 * next() - 10.0);
+        let mut di = [0.0; 3];
+        for k in 0..3 {
+            di[k] = (target[k] - oi[k]) * scale_d;
+        }
+        if i % 7 == 0 {
+            di[i % 3] = 0.0;
+        }
+        if di.iter().all(|x| *x == 0.0) {
+            di[0] = 1.0;
+        }
+        o.push(oi);
+        d.push(di);
+    }
+    (o, d)
+}
+
+#[test]
+fn stiff_batches_give_finite_values_and_gradients_and_f32_agrees_with_f64() {
+    let (o, d) = stiff_batch(2000);
+    let mut results = Vec::new();
+    for dtype in DTYPES {
+        let ov = Var::from_tensor(&rows(&o, dtype)).unwrap();
+        let dv = Var::from_tensor(&rows(&d, dtype)).unwrap();
+        for sphere in [false, true] {
+            let x = if sphere {
+                ray_sphere(&ov, &dv, [0.0; 3], 0.5).unwrap()
+            } else {
+                ray_aabb(&ov, &dv, [-0.5; 3], [0.5; 3]).unwrap()
+            };
+            let (go, gd) = grads_of(&x, &ov, &dv, 1.0, 1.0);
+            for g in go.iter().chain(&gd).flatten() {
+                assert!(g.is_finite(), "{dtype:?} sphere={sphere}");
+            }
+            let (n, f, h) = (v1(&x.near), v1(&x.far), mask(&x.hit));
+            assert!(n.iter().chain(&f).all(|v| v.is_finite()));
+            results.push((n, f, h));
+        }
+    }
+    // f32 (first two) against f64 (last two): hits agree, near/far relative 1e-4
+    for s in 0..2 {
+        let (n32, f32_, h32) = &results[s];
+        let (n64, f64_, h64) = &results[s + 2];
+        let agree = h32.iter().zip(h64).filter(|(a, b)| a == b).count();
+        assert!(
+            agree >= h32.len() - 2,
+            "sphere={s}: {agree} of {}",
+            h32.len()
+        );
+        assert!(
+            h64.iter().filter(|h| **h == 1).count() > 500,
+            "the batch should mostly hit"
+        );
+        for i in 0..h32.len() {
+            if h32[i] == 1 && h64[i] == 1 {
+                let rel = |a: f64, b: f64| (a - b).abs() / b.abs().max(f64::MIN_POSITIVE);
+                let near_ok = (n64[i] == 0.0 && n32[i] == 0.0) || rel(n32[i], n64[i]) < 1e-4;
+                assert!(near_ok, "{i}: near {} vs {}", n32[i], n64[i]);
+                assert!(
+                    rel(f32_[i], f64_[i]) < 1e-4,
+                    "{i}: far {} vs {}",
+                    f32_[i],
+                    f64_[i]
+                );
+            }
+        }
+    }
+}
