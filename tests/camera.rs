@@ -1019,3 +1019,50 @@ fn stiff_batches_give_finite_values_and_gradients_and_f32_agrees_with_f64() {
         }
     }
 }
+
+#[test]
+fn normalized_and_camera_directions_gradients_match_finite_differences() {
+    let w = Tensor::new(&[[0.3f64, -0.8, 0.5]], &dev()).unwrap();
+    for d0 in [
+        [0.3f64, -1.2, 2.0],
+        [3e-200, -1e-200, 2e-200],
+        [0.0, 0.0, -4.0],
+    ] {
+        let dv = Var::new(&[d0], &dev()).unwrap();
+        let o = Tensor::zeros((1, 3), DType::F64, &dev()).unwrap();
+        let f = |d: &Tensor| {
+            let r = Rays::new(o.clone(), d.clone())
+                .unwrap()
+                .normalized()
+                .unwrap();
+            (r.directions * &w).unwrap().sum_all().unwrap()
+        };
+        let g = v2(f(&dv).backward().unwrap().get(&dv).unwrap())[0].clone();
+        let h = 1e-6 * d0.iter().fold(0.0f64, |a, b| a.max(b.abs()));
+        let gmax = g.iter().fold(0.0f64, |a, b| a.max(b.abs()));
+        for k in 0..3 {
+            let (mut a, mut b) = (d0, d0);
+            a[k] += h;
+            b[k] -= h;
+            let fa = f(&rows(&[a], DType::F64)).to_scalar::<f64>().unwrap();
+            let fb = f(&rows(&[b], DType::F64)).to_scalar::<f64>().unwrap();
+            let fd = (fa - fb) / (2.0 * h);
+            assert!(
+                (g[k] - fd).abs() <= 1e-6 * gmax,
+                "{d0:?} k={k}: {} vs {fd}",
+                g[k]
+            );
+        }
+    }
+    // d_cam is affine in the pixel coordinates: ∂x/∂px = 1/fx, ∂y/∂py = ±1/fy
+    let i = intr();
+    for (conv, sy) in [(Convention::OpenCv, 1.0), (Convention::OpenGl, -1.0)] {
+        let px = Var::new(&[[3.0f64, 4.0]], &dev()).unwrap();
+        let d = i.camera_directions(&px, conv).unwrap();
+        let g = v2(d.sum_all().unwrap().backward().unwrap().get(&px).unwrap());
+        assert!(
+            close(g[0][0], 1.0 / i.fx, 1e-15) && close(g[0][1], sy / i.fy, 1e-15),
+            "{g:?}"
+        );
+    }
+}
