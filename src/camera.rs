@@ -217,14 +217,6 @@ fn rotation_t(m: &DMat3, like: &Tensor) -> Result<Tensor> {
     Ok(Tensor::new(&rows, like.device())?.to_dtype(like.dtype())?)
 }
 
-fn splitmix64(state: &mut u64) -> u64 {
-    *state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-    let mut z = *state;
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
-
 /// A pinhole camera: intrinsics, a camera-to-world rigid pose, and an axis convention.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Camera {
@@ -383,7 +375,7 @@ impl Camera {
     }
 
     /// `n` rays through pixel centres drawn uniformly with replacement, reproducibly from
-    /// `seed` (splitmix64; an index is `⌊s · W·H / 2⁶⁴⌋` for a 64-bit draw `s`, whose
+    /// `seed` ([`SplitMix64::below`](crate::rng::SplitMix64::below): an index is `⌊s · W·H / 2⁶⁴⌋` for a 64-bit draw `s`, whose
     /// bias is below `W·H / 2⁶⁴`). Returns the rays and the linear pixel indices
     /// `v · width + u` as a `[n]` u32 tensor on `device`.
     ///
@@ -401,12 +393,12 @@ impl Camera {
             return Err(Error::invalid("n", "at least one ray", "0"));
         }
         let w = self.intrinsics.width;
-        let total = self.intrinsics.num_pixels() as u128;
-        let mut state = seed;
+        let total = self.intrinsics.num_pixels() as u64;
+        let mut rng = crate::rng::SplitMix64::new(seed);
         let mut idx = Vec::with_capacity(n);
         let mut pix = Vec::with_capacity(2 * n);
         for _ in 0..n {
-            let i = ((u128::from(splitmix64(&mut state)) * total) >> 64) as usize;
+            let i = rng.below(total) as usize;
             idx.push(i as u32); // invariant: total ≤ u32::MAX (checked in Intrinsics::new)
             pix.push((i % w) as f64 + 0.5);
             pix.push((i / w) as f64 + 0.5);

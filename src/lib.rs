@@ -2,6 +2,11 @@
 #![deny(missing_docs)]
 
 pub mod camera;
+pub mod encoding;
 pub mod error;
+pub mod field;
+pub mod nn;
+pub mod numerics;
+pub mod rng;
 
 pub use error::{Error, Result};
