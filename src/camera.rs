@@ -375,8 +375,9 @@ impl Camera {
     }
 
     /// `n` rays through pixel centres drawn uniformly with replacement, reproducibly from
-    /// `seed` ([`SplitMix64::below`](crate::rng::SplitMix64::below): an index is `⌊s · W·H / 2⁶⁴⌋` for a 64-bit draw `s`, whose
-    /// bias is below `W·H / 2⁶⁴`). Returns the rays and the linear pixel indices
+    /// `seed` by [`SplitMix64::below`](crate::rng::SplitMix64::below): an index is
+    /// `⌊s · W·H / 2⁶⁴⌋` for a 64-bit draw `s`, whose bias is below `W·H / 2⁶⁴`. Returns
+    /// the rays and the linear pixel indices
     /// `v · width + u` as a `[n]` u32 tensor on `device`.
     ///
     /// # Errors
