@@ -1,6 +1,7 @@
 //! Differentiable neural-field primitives on candle.
 #![deny(missing_docs)]
 
+pub mod camera;
 pub mod encoding;
 pub mod error;
 pub mod field;
