@@ -18,7 +18,7 @@ fn check_grad(op: Op, x: f64) -> Result<(), TestCaseError> {
     let g = v64(y.sum_all().unwrap().backward().unwrap().get(&v).unwrap())[0];
     prop_assert!(g.is_finite(), "gradient at {} is {}", x, g);
     let mut f = |s: f64| v64(&op(&Tensor::new(&[s], &Device::Cpu).unwrap()))[0];
-    let h = 1e-4 * x.abs().max(1e-3).min(1.0);
+    let h = 1e-4 * x.abs().clamp(1e-3, 1.0);
     if let Some(fd) = central_diff(&mut f, x, h, 1.0) {
         prop_assert!(
             (g - fd).abs() <= 1e-6 * g.abs().max(fd.abs()).max(1e-3),
