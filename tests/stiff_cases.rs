@@ -444,7 +444,7 @@ fn sweep_camera(s: &mut Suite) {
                 )?])
             },
         );
-        for fov in [1e-12, 1.0, 3.14159] {
+        for fov in [1e-12, 1.0, 3.141] {
             s.case(
                 "camera::Intrinsics::from_fov_y",
                 format!("{tag}, fov = {fov}"),
@@ -968,7 +968,7 @@ fn public_items() -> BTreeSet<String> {
                 let indent = line.len() - trimmed.len();
                 let name_after = |prefix: &str| {
                     trimmed.strip_prefix(prefix).map(|r| {
-                        r.split(|c: char| c == '(' || c == '<')
+                        r.split(['(', '<'])
                             .next()
                             .unwrap()
                             .to_string()
