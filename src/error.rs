@@ -108,7 +108,11 @@ pub fn check_shape(t: &Tensor, arg: &'static str, pattern: &[Dim]) -> Result<Vec
     if ok {
         Ok(dims.to_vec())
     } else {
-        Err(Error::invalid(arg, pattern_string(pattern), format!("shape {dims:?}")))
+        Err(Error::invalid(
+            arg,
+            pattern_string(pattern),
+            format!("shape {dims:?}"),
+        ))
     }
 }
 
@@ -119,7 +123,11 @@ pub fn check_shape(t: &Tensor, arg: &'static str, pattern: &[Dim]) -> Result<Vec
 pub fn check_float(t: &Tensor, arg: &'static str) -> Result<DType> {
     match t.dtype() {
         DType::F32 | DType::F64 => Ok(t.dtype()),
-        other => Err(Error::invalid(arg, "dtype f32 or f64", format!("{other:?}"))),
+        other => Err(Error::invalid(
+            arg,
+            "dtype f32 or f64",
+            format!("{other:?}"),
+        )),
     }
 }
 
@@ -173,7 +181,11 @@ pub fn check_finite(t: &Tensor, arg: &'static str) -> Result<()> {
 pub fn check_nonempty(t: &Tensor, arg: &'static str) -> Result<()> {
     match t.dims().first() {
         Some(&n) if n > 0 => Ok(()),
-        _ => Err(Error::invalid(arg, "a non-empty batch", format!("shape {:?}", t.dims()))),
+        _ => Err(Error::invalid(
+            arg,
+            "a non-empty batch",
+            format!("shape {:?}", t.dims()),
+        )),
     }
 }
 

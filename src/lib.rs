@@ -2,5 +2,7 @@
 #![deny(missing_docs)]
 
 pub mod error;
+#[cfg(feature = "volume")]
+pub mod volume;
 
 pub use error::{Error, Result};
