@@ -164,9 +164,13 @@ pub fn check_finite(t: &Tensor, arg: &'static str) -> Result<()> {
     if t.elem_count() == 0 {
         return Ok(());
     }
-    // x - x is 0 for finite x and NaN for NaN and ±∞, so the sum is NaN iff one is.
-    let x = t.detach().to_dtype(DType::F64)?.flatten_all()?;
-    let probe = (&x - &x)?.sum_all()?.to_scalar::<f64>()?;
+    // 0·x is 0 for finite x and NaN for NaN and ±∞, so the sum is NaN iff one is.
+    let probe = t
+        .detach()
+        .to_dtype(DType::F64)?
+        .affine(0.0, 0.0)?
+        .sum_all()?
+        .to_scalar::<f64>()?;
     if probe.is_finite() {
         Ok(())
     } else {

@@ -1,0 +1,75 @@
+//! Helpers shared by the integration tests: tensor extraction, seeded parameters and
+//! central finite differences with kink detection.
+#![allow(dead_code)]
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::VarMap;
+use neural_fields::rng::SplitMix64;
+
+/// Flattens any float tensor into a `Vec<f64>`.
+pub fn v64(t: &Tensor) -> Vec<f64> {
+    t.to_dtype(DType::F64)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap()
+}
+
+/// A `[rows, cols]` tensor of uniform numbers in `[lo, hi)`.
+pub fn uniform(
+    rng: &mut SplitMix64,
+    rows: usize,
+    cols: usize,
+    lo: f64,
+    hi: f64,
+    dtype: DType,
+) -> Tensor {
+    rng.uniform_tensor(&[rows, cols], lo, hi, dtype, &Device::Cpu)
+        .unwrap()
+}
+
+/// Overwrites every variable of `varmap` with seeded normal values: weights `[out, in]`
+/// with std `gain·√(2/in)`, biases with std 0.3. Deterministic in `seed`.
+pub fn reseed(varmap: &VarMap, seed: u64, gain: f64) {
+    let data = varmap.data().lock().unwrap();
+    let mut names: Vec<&String> = data.keys().collect();
+    names.sort();
+    let mut rng = SplitMix64::new(seed);
+    for name in names {
+        let var = &data[name];
+        let dims = var.dims().to_vec();
+        let std = if dims.len() == 2 {
+            gain * (2.0 / dims[1] as f64).sqrt()
+        } else {
+            0.3
+        };
+        let t = rng
+            .normal_tensor(&dims, 0.0, std, var.dtype(), var.device())
+            .unwrap();
+        var.set(&t).unwrap();
+    }
+}
+
+/// Central difference of a scalar function along one coordinate, Richardson-extrapolated
+/// (`(4·D(h/2) − D(h))/3`, error O(h⁴)), with a smoothness check: returns `None` when the
+/// one-sided differences disagree (the step crossed a kink, e.g. a ReLU boundary), where
+/// finite differences say nothing about the derivative.
+pub fn central_diff(f: &mut dyn FnMut(f64) -> f64, x: f64, h: f64, scale: f64) -> Option<f64> {
+    let f0 = f(x);
+    let fp = f(x + h);
+    let fm = f(x - h);
+    let fwd = (fp - f0) / h;
+    let bwd = (f0 - fm) / h;
+    let d_h = (fp - fm) / (2.0 * h);
+    if (fwd - bwd).abs() > 1e-3 * (d_h.abs() + scale) {
+        return None;
+    }
+    let d_half = (f(x + h / 2.0) - f(x - h / 2.0)) / h;
+    Some((4.0 * d_half - d_h) / 3.0)
+}
+
+/// `|a − b| ≤ tol·max(|a|, |b|, floor)`.
+pub fn close(a: f64, b: f64, tol: f64, floor: f64) -> bool {
+    (a - b).abs() <= tol * a.abs().max(b.abs()).max(floor)
+}
