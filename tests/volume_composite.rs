@@ -74,7 +74,7 @@ fn one_slab_is_exact_for_aligned_bins() {
                 let (del, mids, _) = bins(0.0, l, n);
                 let c = 0.8;
                 let (col, op, _) = one_ray(f, &vec![sigma; n], &del, &vec![c; n], &mids, dt);
-                let exact_op = 1.0 - (-sigma * l as f64).exp();
+                let exact_op = 1.0 - (-sigma * l).exp();
                 assert!(
                     (op - exact_op).abs() <= tol,
                     "{name} {dt:?}: opacity {op} vs {exact_op}"
@@ -134,8 +134,8 @@ const NS: [usize; 5] = [8, 16, 32, 64, 128];
 
 #[test]
 fn expected_depth_in_a_slab_converges_to_the_closed_form() {
-    let (a, l, sigma) = (2.0, 1.5, 1.7);
-    let el = (-sigma * l as f64).exp();
+    let (a, l, sigma) = (2.0, 1.5, 1.7f64);
+    let el = (-sigma * l).exp();
     let exact = a + 1.0 / sigma - l * el / (1.0 - el);
     let mut errs = vec![];
     for &n in &NS {
@@ -180,8 +180,8 @@ fn linear_density_midpoint_is_exact_and_left_endpoint_is_first_order() {
 
 #[test]
 fn colour_equal_to_depth_converges_second_order_with_midpoints() {
-    let (sigma, l) = (2.5, 1.0);
-    let exact = (1.0 - (-sigma * l as f64).exp() * (1.0 + sigma * l)) / sigma;
+    let (sigma, l) = (2.5f64, 1.0);
+    let exact = (1.0 - (-sigma * l).exp() * (1.0 + sigma * l)) / sigma;
     let mut errs = vec![];
     for &n in &NS {
         let (del, mids, _) = bins(0.0, l, n);
