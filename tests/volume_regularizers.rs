@@ -50,7 +50,13 @@ fn intervals(lengths: &[f64], gaps: &[f64], origin: f64) -> (Vec<f64>, Vec<f64>)
 
 fn loss_host(w: &[f64], s: &[f64], e: &[f64], r: usize, n: usize) -> f64 {
     (0..r)
-        .map(|k| direct(&w[k * n..(k + 1) * n], &s[k * n..(k + 1) * n], &e[k * n..(k + 1) * n]))
+        .map(|k| {
+            direct(
+                &w[k * n..(k + 1) * n],
+                &s[k * n..(k + 1) * n],
+                &e[k * n..(k + 1) * n],
+            )
+        })
         .sum()
 }
 
@@ -171,10 +177,18 @@ proptest! {
 
 #[test]
 fn extreme_weights_and_lengths_give_finite_values_and_gradients() {
-    for (wscale, lscale) in [(1e-30, 1e-30), (1e-30, 1e10), (1.0, 1e-30), (1e10, 1e-10), (1.0, 1e10)] {
+    for (wscale, lscale) in [
+        (1e-30, 1e-30),
+        (1e-30, 1e10),
+        (1.0, 1e-30),
+        (1e10, 1e-10),
+        (1.0, 1e10),
+    ] {
         for dt in [DType::F32, DType::F64] {
             let n = 64;
-            let w: Vec<f64> = (0..n).map(|i| wscale * ((i % 7) as f64 + 0.5) / 64.0).collect();
+            let w: Vec<f64> = (0..n)
+                .map(|i| wscale * ((i % 7) as f64 + 0.5) / 64.0)
+                .collect();
             let s: Vec<f64> = (0..n).map(|i| lscale * i as f64).collect();
             let e: Vec<f64> = (0..n).map(|i| lscale * (i as f64 + 0.9)).collect();
             let wv = Var::from_tensor(&t2(&w, 1, n).to_dtype(dt).unwrap()).unwrap();
@@ -183,12 +197,22 @@ fn extreme_weights_and_lengths_give_finite_values_and_gradients() {
             let l = distortion_loss(wv.as_tensor(), sv.as_tensor(), ev.as_tensor()).unwrap();
             let g = l.sum_all().unwrap().backward().unwrap();
             let all_finite = |t: &Tensor| {
-                t.to_dtype(DType::F64).unwrap().flatten_all().unwrap().to_vec1::<f64>().unwrap().iter().all(|x| x.is_finite())
+                t.to_dtype(DType::F64)
+                    .unwrap()
+                    .flatten_all()
+                    .unwrap()
+                    .to_vec1::<f64>()
+                    .unwrap()
+                    .iter()
+                    .all(|x| x.is_finite())
             };
             if dt == DType::F64 || wscale * wscale * lscale < 1e30 {
                 assert!(all_finite(&l), "{dt:?} {wscale} {lscale}");
                 for v in [&wv, &sv, &ev] {
-                    assert!(all_finite(g.get(v.as_tensor()).unwrap()), "{dt:?} {wscale} {lscale}");
+                    assert!(
+                        all_finite(g.get(v.as_tensor()).unwrap()),
+                        "{dt:?} {wscale} {lscale}"
+                    );
                 }
             }
         }
@@ -201,7 +225,12 @@ fn distortion_of_a_single_interval_and_of_two_point_masses() {
     let l = distortion_loss(&t2(&[0.6], 1, 1), &t2(&[0.2], 1, 1), &t2(&[0.5], 1, 1)).unwrap();
     assert!((l.to_vec1::<f64>().unwrap()[0] - 0.36 * 0.3 / 3.0).abs() < 1e-15);
     // Two zero-length intervals at 0 and 1 with weights a, b: 2ab.
-    let l = distortion_loss(&t2(&[0.3, 0.5], 1, 2), &t2(&[0.0, 1.0], 1, 2), &t2(&[0.0, 1.0], 1, 2)).unwrap();
+    let l = distortion_loss(
+        &t2(&[0.3, 0.5], 1, 2),
+        &t2(&[0.0, 1.0], 1, 2),
+        &t2(&[0.0, 1.0], 1, 2),
+    )
+    .unwrap();
     assert!((l.to_vec1::<f64>().unwrap()[0] - 0.3).abs() < 1e-15);
 }
 
@@ -211,11 +240,23 @@ fn distortion_bad_input_errs_naming_the_argument() {
     let s = t2(&[0.0, 0.5], 1, 2);
     let e = t2(&[0.4, 0.9], 1, 2);
     assert!(distortion_loss(&w, &s, &e).is_ok());
-    assert_eq!(arg_of(distortion_loss(&t2(&[0.1, 0.2, 0.3], 1, 3), &s, &e).unwrap_err()), "starts");
-    assert_eq!(arg_of(distortion_loss(&w, &s, &t2(&[0.4], 1, 1)).unwrap_err()), "ends");
-    assert_eq!(arg_of(distortion_loss(&w, &t2(&[0.5, 0.0], 1, 2), &e).unwrap_err()), "starts");
+    assert_eq!(
+        arg_of(distortion_loss(&t2(&[0.1, 0.2, 0.3], 1, 3), &s, &e).unwrap_err()),
+        "starts"
+    );
+    assert_eq!(
+        arg_of(distortion_loss(&w, &s, &t2(&[0.4], 1, 1)).unwrap_err()),
+        "ends"
+    );
+    assert_eq!(
+        arg_of(distortion_loss(&w, &t2(&[0.5, 0.0], 1, 2), &e).unwrap_err()),
+        "starts"
+    );
     assert_eq!(arg_of(distortion_loss(&w, &e, &s).unwrap_err()), "starts");
-    assert_eq!(arg_of(distortion_loss(&w, &s.to_dtype(DType::F32).unwrap(), &e).unwrap_err()), "starts");
+    assert_eq!(
+        arg_of(distortion_loss(&w, &s.to_dtype(DType::F32).unwrap(), &e).unwrap_err()),
+        "starts"
+    );
 }
 
 #[test]
@@ -233,15 +274,35 @@ fn depth_smoothness_matches_a_hand_computed_patch() {
     // Pixel (0,0): (1−2)² + (1−0)² = 2; (0,1): (2−4)² + (2−3)² = 5;
     // (1,0): (0−3)² + (0−5)² = 34; (1,1): (3−3)² + (3−5)² = 4. Sum 45.
     for dt in [DType::F32, DType::F64] {
-        let t = Tensor::from_vec(d.to_vec(), (2, 3, 3), &Device::Cpu).unwrap().to_dtype(dt).unwrap();
-        let l = depth_smoothness(&t).unwrap().to_dtype(DType::F64).unwrap().to_vec1::<f64>().unwrap();
+        let t = Tensor::from_vec(d.to_vec(), (2, 3, 3), &Device::Cpu)
+            .unwrap()
+            .to_dtype(dt)
+            .unwrap();
+        let l = depth_smoothness(&t)
+            .unwrap()
+            .to_dtype(DType::F64)
+            .unwrap()
+            .to_vec1::<f64>()
+            .unwrap();
         assert_eq!(l, vec![45.0, 0.0]);
     }
     // Gradient of the first patch at pixel (1,1): from its own term 2(3−3) + 2(3−5) = −4,
     // from (0,1)'s vertical term −2(2−3) = 2 and (1,0)'s horizontal term −2(0−3) = 6: 4.
-    let v = Var::from_tensor(&Tensor::from_vec(d.to_vec(), (2, 3, 3), &Device::Cpu).unwrap()).unwrap();
-    let g = depth_smoothness(v.as_tensor()).unwrap().sum_all().unwrap().backward().unwrap();
-    let gv = g.get(v.as_tensor()).unwrap().flatten_all().unwrap().to_vec1::<f64>().unwrap();
+    let v =
+        Var::from_tensor(&Tensor::from_vec(d.to_vec(), (2, 3, 3), &Device::Cpu).unwrap()).unwrap();
+    let g = depth_smoothness(v.as_tensor())
+        .unwrap()
+        .sum_all()
+        .unwrap()
+        .backward()
+        .unwrap();
+    let gv = g
+        .get(v.as_tensor())
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f64>()
+        .unwrap();
     assert_eq!(gv[4], 4.0);
     // Central differences everywhere (the loss is quadratic: exact up to rounding).
     for idx in 0..18 {
@@ -249,10 +310,19 @@ fn depth_smoothness_matches_a_hand_computed_patch() {
             let mut d2 = d.to_vec();
             d2[idx] += h;
             let t = Tensor::from_vec(d2, (2, 3, 3), &Device::Cpu).unwrap();
-            depth_smoothness(&t).unwrap().sum_all().unwrap().to_scalar::<f64>().unwrap()
+            depth_smoothness(&t)
+                .unwrap()
+                .sum_all()
+                .unwrap()
+                .to_scalar::<f64>()
+                .unwrap()
         };
         let want = (f(1e-3) - f(-1e-3)) / 2e-3;
-        assert!((gv[idx] - want).abs() < 1e-8, "{idx}: {} vs {want}", gv[idx]);
+        assert!(
+            (gv[idx] - want).abs() < 1e-8,
+            "{idx}: {} vs {want}",
+            gv[idx]
+        );
     }
     let bad = Tensor::zeros((2, 1, 1), DType::F32, &Device::Cpu).unwrap();
     assert_eq!(arg_of(depth_smoothness(&bad).unwrap_err()), "depth");
