@@ -518,3 +518,52 @@ fn bad_input_errs_naming_the_argument() {
     let overlapping = Intervals::new(t2(&[0.0, 0.5], 1, 2, dt), t2(&[0.6, 0.7], 1, 2, dt));
     assert_eq!(arg_of(overlapping.unwrap_err()), "starts");
 }
+
+fn pdf_case() -> impl Strategy<Value = (Vec<f64>, Vec<f64>)> {
+    (1usize..20).prop_flat_map(|s| {
+        (
+            // Bin widths, zero-width bins included, over scales 1e-6…1e6.
+            prop::collection::vec(
+                prop_oneof![Just(0.0), 1e-6f64..1e-3, 1e-3f64..1.0, 1.0f64..1e6],
+                s,
+            ),
+            // Weights with exact zeros (zero-mass bins must never be drawn from).
+            prop::collection::vec(
+                prop_oneof![Just(0.0), Just(0.0), 1e-20f64..1e-10, 1e-3f64..10.0],
+                s,
+            ),
+        )
+    })
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(128))]
+    #[test]
+    fn importance_samples_stay_in_bins_of_positive_mass_and_are_sorted(
+        (widths, w) in pdf_case(),
+        origin in -1e3f64..1e3,
+        n in 1usize..64,
+        deterministic in any::<bool>(),
+        f32_mode in any::<bool>(),
+        seed in any::<u64>(),
+    ) {
+        let dt = if f32_mode { DType::F32 } else { DType::F64 };
+        let s = w.len();
+        let mut edges = vec![origin];
+        for x in &widths {
+            edges.push(edges.last().unwrap() + x);
+        }
+        // The edges as the dtype holds them (rounding keeps them sorted).
+        let bins = t2(&edges, 1, s + 1, dt);
+        let eh = rows(&bins)[0].clone();
+        let t = sample_pdf(&bins, &t2(&w, 1, s, dt), n, deterministic, seed, 0.0).unwrap();
+        let row = &rows(&t)[0];
+        let wh = rows(&t2(&w, 1, s, dt))[0].clone();
+        let all_zero = wh.iter().all(|x| *x == 0.0);
+        prop_assert!(row.windows(2).all(|p| p[0] <= p[1]), "not sorted");
+        for x in row {
+            let ok = (0..s).any(|i| eh[i] <= *x && *x <= eh[i + 1] && (all_zero || wh[i] > 0.0));
+            prop_assert!(ok, "sample {} not in a bin of positive mass; edges {:?}, weights {:?}", x, eh, wh);
+        }
+    }
+}

@@ -54,6 +54,16 @@ pub(crate) fn from_host(
     Ok(t)
 }
 
+/// NeRF's padding of the weights in [`sample_pdf`] (added before normalising).
+pub const PDF_PADDING: f64 = 1e-5;
+
+/// RegNeRF's initial fraction `p` of the annealed range in [`anneal_near_far`].
+pub const ANNEAL_P_START: f64 = 0.5;
+
+/// RegNeRF's position `m` of the annealing centre between near and far in
+/// [`anneal_near_far`].
+pub const ANNEAL_MID_RATIO: f64 = 0.5;
+
 /// How stratified samples are placed inside their strata.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub enum Jitter {
@@ -451,7 +461,7 @@ pub fn step_cdf(weights: &Tensor, padding: f64) -> Result<Tensor> {
 /// drawn from (with `padding = 0`, samples of a one-hot PDF lie exactly in that bin).
 ///
 /// * `bins`: `[R, S + 1]` sorted bin edges; `weights`: `[R, S]`, `≥ 0`; f32 or f64,
-///   same device. `padding ≥ 0` (NeRF uses `1e-5`).
+///   same device. `padding ≥ 0` (NeRF uses `1e-5`, [`PDF_PADDING`]).
 /// * returns `[R, n]`, sorted along each ray, same device and dtype, **detached**: no
 ///   gradient flows to `bins` or `weights` (NeRF's stop-gradient on resampled points).
 ///
@@ -551,7 +561,8 @@ pub fn merge_sorted(coarse: &Tensor, fine: &Tensor) -> Result<Tensor> {
 /// `near' = mid + s·(near − mid)`, `far' = mid + s·(far − mid)` with
 /// `s = p + w·(1 − p)` (`p = p_start`): it starts at
 /// `[mid + p(near − mid), mid + p(far − mid)]` and grows linearly to `[near, far]`
-/// over `n_t` steps (RegNeRF on DTU: `n_t = 256`, `p = 0.5`, `m = 0.5`). Once `w = 1`
+/// over `n_t` steps (RegNeRF on DTU: `n_t = 256`, `p = 0.5`, `m = 0.5`: [`ANNEAL_P_START`],
+/// [`ANNEAL_MID_RATIO`]). Once `w = 1`
 /// the inputs are returned unchanged; before, the result is clamped to `[near, far]`
 /// against rounding.
 ///
