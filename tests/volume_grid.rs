@@ -7,6 +7,7 @@ use candle_core::{DType, Device, Tensor};
 use neural_fields::volume::composite::{composite_packed, CompositeOptions};
 use neural_fields::volume::grid::{GridConfig, GridSamples, MarchOptions, OccupancyGrid};
 use neural_fields::{Error, Result};
+use std::time::Instant;
 
 const BALL_R: f64 = 0.3;
 const BALL_D: f64 = 20.0;
@@ -116,18 +117,26 @@ fn skipping_empty_space_matches_the_full_render_with_ten_times_fewer_samples() {
         .unwrap();
         // Warm-up updates: every cell, a fresh jitter each time (16, as many as
         // nerfacc's schedule of one update every 16 steps over 256 warm-up steps).
+        let clock = Instant::now();
         for step in 0..UPDATES {
             assert!(grid.update(step, 1, &Device::Cpu, dt, ball_sigma).unwrap());
+        }
+        let t_update = clock.elapsed().as_secs_f64() / UPDATES as f64;
+        for step in 0..UPDATES {
             assert!(plain.update(step, 1, &Device::Cpu, dt, ball_sigma).unwrap());
         }
         let occ = grid.occupied_fraction();
         let step = 4.0 / 512.0; // in t (|d| ≈ 1): 512 steps across the level-1 box
+        let clock = Instant::now();
         let full = full_grid
             .sample(&o, &d, &MarchOptions::new(0.0, f64::INFINITY, step))
             .unwrap();
+        let t_march_full = clock.elapsed().as_secs_f64();
+        let clock = Instant::now();
         let skip = grid
             .sample(&o, &d, &MarchOptions::new(0.0, f64::INFINITY, step))
             .unwrap();
+        let t_march_skip = clock.elapsed().as_secs_f64();
         assert_eq!(full.n_marched, skip.n_marched);
         assert_eq!(
             full.starts.dims()[0],
@@ -136,8 +145,12 @@ fn skipping_empty_space_matches_the_full_render_with_ten_times_fewer_samples() {
         );
         let m_full = full.starts.dims()[0];
         let m_skip = skip.starts.dims()[0];
+        let clock = Instant::now();
         let c_full = render(&full, &o, &d);
+        let t_render_full = clock.elapsed().as_secs_f64();
+        let clock = Instant::now();
         let c_skip = render(&skip, &o, &d);
+        let t_render_skip = clock.elapsed().as_secs_f64();
         let err = max_abs_diff(&c_full, &c_skip);
         let max_c = c_skip
             .flatten_all()
@@ -154,16 +167,25 @@ fn skipping_empty_space_matches_the_full_render_with_ten_times_fewer_samples() {
             .unwrap();
         let err_plain = max_abs_diff(&c_full, &render(&undilated, &o, &d));
         println!(
-            "  without dilation: {} samples ({:.1}x fewer), max |colour error| vs full {:.3e}",
+            "grid skipping ({dt:?}, 48x48 rays, 2 levels of 32^3, occupied {:.2}% of cells): \
+             {m_full} samples without skipping, {m_skip} with ({ratio:.1}x fewer); \
+             max |colour error| {err:.3e} (max colour {max_c:.3})",
+            100.0 * occ
+        );
+        println!(
+            "  nerfacc rule (no dilation): {} samples ({:.1}x fewer), max |colour error| {:.3e}",
             undilated.starts.dims()[0],
             m_full as f64 / undilated.starts.dims()[0] as f64,
             err_plain,
         );
         println!(
-            "grid skipping ({dt:?}, 48x48 rays, 2 levels of 32^3, occupied {:.2}% of cells): \
-             {m_full} samples without skipping, {m_skip} with ({ratio:.1}x fewer); \
-             max |colour error| {err:.3e} (max colour {max_c:.3})",
-            100.0 * occ
+            "  times: march {:.1} ms full / {:.1} ms skip; field + composite {:.1} ms full / \
+             {:.1} ms skip; one warm-up update (65536 cells) {:.1} ms",
+            1e3 * t_march_full,
+            1e3 * t_march_skip,
+            1e3 * t_render_full,
+            1e3 * t_render_skip,
+            1e3 * t_update
         );
         assert!(max_c > 0.3, "the ball must be visible");
         assert!(err <= 1e-3, "{dt:?}: max colour error {err}");
