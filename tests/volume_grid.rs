@@ -410,6 +410,12 @@ fn grid_bad_input_errs_naming_the_argument() {
         ),
         "step_size"
     );
+    let zero = Tensor::zeros((2, 3), DType::F32, &dev).unwrap();
+    let inf = MarchOptions::new(0.0, f64::INFINITY, 0.1);
+    assert_eq!(
+        arg_of(grid.sample(&o, &zero, &inf).unwrap_err()),
+        "directions"
+    );
     let d3 = Tensor::ones((3, 3), DType::F32, &dev).unwrap();
     assert_eq!(
         arg_of(

@@ -537,8 +537,8 @@ impl OccupancyGrid {
     /// directions through [`GridSamples::positions`]).
     ///
     /// # Errors
-    /// Naming `origins`/`directions` for wrong shapes, dtypes, devices or non-finite
-    /// values; `near`, `far`, `step_size`, `cone_angle`, `max_step` for bad scalars;
+    /// Naming `origins`/`directions` for wrong shapes, dtypes, devices, non-finite
+    /// values or a zero direction; `near`, `far`, `step_size`, `cone_angle`, `max_step` for bad scalars;
     /// `step_size` when a single ray would take more than 2²⁴ steps.
     pub fn sample(
         &self,
@@ -590,6 +590,13 @@ impl OccupancyGrid {
                 "directions",
                 "finite values",
                 "NaN or infinity",
+            ));
+        }
+        if let Some(ray) = d.chunks(3).position(|v| v.iter().all(|&x| x == 0.0)) {
+            return Err(Error::invalid(
+                "directions",
+                "non-zero direction vectors",
+                format!("0 at ray {ray}"),
             ));
         }
         let (c, h) = self.centre_half();
