@@ -28,6 +28,7 @@
 
 use crate::error::{check_float, check_same, check_scalar, check_shape, Dim, Error, Result};
 use candle_core::{DType, Device, Storage, Tensor};
+use std::sync::Arc;
 
 /// Optical thickness above which xᵢ = σᵢδᵢ is clamped. `exp(−1000)` is exactly zero in
 /// f32 and f64, so clamping changes no weight or gradient; it only keeps `+∞` (from
@@ -70,7 +71,7 @@ pub struct Packed {
     pub offsets: Tensor,
     /// Number of rays `R`.
     pub n_rays: usize,
-    offsets_host: Vec<usize>,
+    offsets_host: Arc<[usize]>,
 }
 
 impl Packed {
@@ -103,7 +104,7 @@ impl Packed {
             ray_indices: Tensor::from_vec(ray_idx, acc, device)?,
             offsets: Tensor::from_vec(off_u32, counts.len() + 1, device)?,
             n_rays: counts.len(),
-            offsets_host,
+            offsets_host: offsets_host.into(),
         })
     }
 
@@ -148,6 +149,11 @@ impl Packed {
     #[must_use]
     pub fn offsets_host(&self) -> &[usize] {
         &self.offsets_host
+    }
+
+    /// Shared host copy of the offsets (cheap to clone).
+    pub(crate) fn offsets_arc(&self) -> Arc<[usize]> {
+        self.offsets_host.clone()
     }
 
     /// Largest per-ray sample count.
