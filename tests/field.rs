@@ -11,7 +11,9 @@ use neural_fields::field::{
 use neural_fields::rng::SplitMix64;
 use proptest::prelude::*;
 
-fn shapes(seed: u64) -> Vec<(&'static str, Box<dyn Fn(&Tensor) -> (Tensor, Tensor)>)> {
+type DistanceFn = Box<dyn Fn(&Tensor) -> (Tensor, Tensor)>;
+
+fn shapes(seed: u64) -> Vec<(&'static str, DistanceFn)> {
     let mut rng = SplitMix64::new(seed);
     let mut u = |lo: f64, hi: f64| lo + (hi - lo) * rng.uniform();
     let d = Device::Cpu;

@@ -1,0 +1,86 @@
+//! The front door: fit a small MLP occupancy field to an analytic torus.
+//!
+//! ```text
+//! cargo run --release --example quickstart
+//! ```
+//!
+//! Samples points uniformly in the padded cube [−0.55, 0.55]³ (ONet's box), labels them
+//! with the exact torus, trains a 4 × 64 ReLU MLP on frequency-encoded points with the
+//! stable BCE-with-logits and Adam, and prints the loss and the volumetric IoU on 100 000
+//! held-out points as it goes. Finishes in well under a minute on 2 cores.
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
+use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
+use neural_fields::field::{ImplicitSurface, SignedDistance, Torus};
+use neural_fields::nn::{build_seeded, mlp, Activation, MlpConfig};
+use neural_fields::numerics::bce_with_logits;
+use neural_fields::rng::SplitMix64;
+use std::time::Instant;
+
+const BOX: f64 = 0.55;
+
+/// Volumetric IoU between `predicted > 0` and `truth > 0` (both logits, `[N]`).
+fn iou(predicted: &Tensor, truth: &Tensor) -> neural_fields::Result<f64> {
+    let p = predicted.gt(0.0)?;
+    let t = truth.gt(0.0)?;
+    let inter = (&p * &t)?
+        .to_dtype(DType::F64)?
+        .sum_all()?
+        .to_scalar::<f64>()?;
+    let union = p
+        .maximum(&t)?
+        .to_dtype(DType::F64)?
+        .sum_all()?
+        .to_scalar::<f64>()?;
+    Ok(if union > 0.0 { inter / union } else { 1.0 })
+}
+
+fn main() -> neural_fields::Result<()> {
+    let device = Device::Cpu;
+    let dtype = DType::F32;
+    // The shape to learn: occupancy logits of a torus (inside positive).
+    let shape = Torus::new([0.0, 0.0, 0.0], 0.3, 0.12, &device, dtype)?.occupancy(1.0);
+
+    // The model: points → PE(L = 4) → 4 × 64 ReLU → one occupancy logit.
+    let config = MlpConfig {
+        hidden: 64,
+        depth: 4,
+        activation: Activation::Relu,
+        encoding: PointEncoding::Frequency(FrequencyEncoding::new(3, 4)?),
+        ..MlpConfig::default()
+    };
+    let varmap = VarMap::new();
+    let net = build_seeded(&varmap, dtype, &device, 0, |vb| mlp(&config, vb))?;
+    let mut opt = AdamW::new(
+        varmap.all_vars(),
+        ParamsAdamW {
+            lr: 2e-3,
+            weight_decay: 0.0,
+            ..Default::default()
+        },
+    )?;
+
+    let mut rng = SplitMix64::new(1);
+    let eval_points = rng.uniform_tensor(&[100_000, 3], -BOX, BOX, dtype, &device)?;
+    let eval_truth = shape.value(&eval_points)?;
+
+    let start = Instant::now();
+    println!("{:>6} {:>10} {:>8} {:>8}", "step", "bce", "IoU", "time/s");
+    for step in 0..=600 {
+        let points = rng.uniform_tensor(&[4096, 3], -BOX, BOX, dtype, &device)?;
+        let labels = shape.value(&points)?.gt(0.0)?.to_dtype(dtype)?;
+        let logits = net.value(&points)?;
+        let loss = bce_with_logits(&logits, &labels)?.mean_all()?;
+        opt.backward_step(&loss)?;
+        if step % 100 == 0 {
+            let iou = iou(&net.value(&eval_points)?, &eval_truth)?;
+            let loss = loss.to_scalar::<f32>()?;
+            println!(
+                "{step:>6} {loss:>10.5} {iou:>8.4} {:>8.1}",
+                start.elapsed().as_secs_f64()
+            );
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,885 @@
+//! Pinhole cameras, rays, ray–box and ray–sphere intersection, and a differentiable pose.
+//!
+//! # Conventions
+//!
+//! **Pixels.** Pixel coordinates are continuous image coordinates `(x, y)` with `x` the
+//! column and `y` the row, the origin at the top-left corner of the top-left pixel. The
+//! integer pixel `(u, v)` covers `[u, u + 1) × [v, v + 1)`, so its **centre is
+//! `(u + 0.5, v + 0.5)`**. Functions that take a `pixels: [N, 2]` tensor use these
+//! coordinates as given (no half-pixel offset is added); [`Camera::pixel_grid`] and
+//! [`Camera::random_rays`] produce pixel centres.
+//!
+//! **Camera axes** ([`Convention`]). With intrinsics `fx, fy, cx, cy`:
+//!
+//! | convention | axes | camera-space direction of pixel coordinate `(x, y)` |
+//! |---|---|---|
+//! | [`Convention::OpenCv`] (OpenCV, COLMAP) | x right, y down, z forward | `((x − cx)/fx, (y − cy)/fy, 1)` |
+//! | [`Convention::OpenGl`] (OpenGL, Blender, NeRF synthetic) | x right, y up, looking down −z | `((x − cx)/fx, −(y − cy)/fy, −1)` |
+//!
+//! **Directions are not normalised.** Their camera-space z-component is ±1, so the ray
+//! parameter `t` of a point `o + t·d` equals its z-depth in the camera frame (the
+//! "depth" of DVR, whose issue #38 is users reading it as Euclidean distance). Call
+//! [`Rays::normalized`] for unit directions, in which case `t` is the Euclidean distance.
+//!
+//! **Poses** are camera-to-world rigid transforms ([`glam::DAffine3`]): a camera-space
+//! point `p_c` maps to `R p_c + t`; the ray origin is `t`, the camera centre.
+
+use crate::error::{check_finite, check_float, check_points, check_same, check_shape, Dim};
+use crate::error::{Error, Result};
+use candle_core::{DType, Device, Tensor, Var};
+use glam::{DAffine3, DMat3, DQuat, DVec3};
+
+/// Camera axis convention; see the [module docs](self) for the pixel → direction formulas.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum Convention {
+    /// OpenCV / COLMAP: x right, y down, z forward; the image plane is at z = +1.
+    /// Direction of pixel coordinate `(x, y)`: `((x − cx)/fx, (y − cy)/fy, 1)`.
+    #[default]
+    OpenCv,
+    /// OpenGL / Blender: x right, y up, the camera looks down −z; the image plane is at
+    /// z = −1. Direction of pixel coordinate `(x, y)`: `((x − cx)/fx, −(y − cy)/fy, −1)`.
+    OpenGl,
+}
+
+/// Pinhole intrinsics: focal lengths and principal point in pixels, image size.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Intrinsics {
+    /// Focal length along x (columns), in pixels; > 0.
+    pub fx: f64,
+    /// Focal length along y (rows), in pixels; > 0.
+    pub fy: f64,
+    /// Principal point x (column coordinate; the image centre is `width / 2`).
+    pub cx: f64,
+    /// Principal point y (row coordinate; the image centre is `height / 2`).
+    pub cy: f64,
+    /// Image width in pixels; > 0.
+    pub width: usize,
+    /// Image height in pixels; > 0.
+    pub height: usize,
+}
+
+fn check_dtype_arg(dtype: DType) -> Result<()> {
+    match dtype {
+        DType::F32 | DType::F64 => Ok(()),
+        other => Err(Error::invalid("dtype", "f32 or f64", format!("{other:?}"))),
+    }
+}
+
+/// The smallest magnitude whose square is still a normal number in `dtype`: below it a
+/// direction component is treated as exactly 0, so that no `x / d²` underflows to `0/0`.
+fn tiny(dtype: DType) -> f64 {
+    match dtype {
+        DType::F32 => f64::from(f32::MIN_POSITIVE).sqrt(),
+        _ => f64::MIN_POSITIVE.sqrt(),
+    }
+}
+
+fn scalar_f64(t: &Tensor) -> Result<f64> {
+    Ok(t.to_dtype(DType::F64)?.to_scalar::<f64>()?)
+}
+
+/// A `[1, 3]` constant in the dtype and device of `like`.
+fn row3(v: [f64; 3], like: &Tensor) -> Result<Tensor> {
+    Ok(Tensor::new(&[v], like.device())?.to_dtype(like.dtype())?)
+}
+
+fn full_like(like: &Tensor, v: f64) -> Result<Tensor> {
+    Ok(Tensor::full(v, like.shape(), like.device())?.to_dtype(like.dtype())?)
+}
+
+impl Intrinsics {
+    /// Pinhole intrinsics from focal lengths `fx, fy` and principal point `cx, cy` (all in
+    /// pixels) and the image size.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `fx` / `fy` unless finite and > 0, `cx` / `cy`
+    /// unless finite, `width` / `height` if 0, and `width` if `width · height` exceeds
+    /// `u32::MAX` (pixel indices are returned as u32).
+    pub fn new(fx: f64, fy: f64, cx: f64, cy: f64, width: usize, height: usize) -> Result<Self> {
+        crate::error::check_scalar(fx, "fx", true)?;
+        crate::error::check_scalar(fy, "fy", true)?;
+        crate::error::check_scalar(cx, "cx", false)?;
+        crate::error::check_scalar(cy, "cy", false)?;
+        if width == 0 {
+            return Err(Error::invalid("width", "> 0", "0"));
+        }
+        if height == 0 {
+            return Err(Error::invalid("height", "> 0", "0"));
+        }
+        match width.checked_mul(height) {
+            Some(n) if n <= u32::MAX as usize => {}
+            _ => {
+                return Err(Error::invalid(
+                    "width",
+                    "width · height ≤ u32::MAX",
+                    format!("{width} × {height}"),
+                ))
+            }
+        }
+        Ok(Self {
+            fx,
+            fy,
+            cx,
+            cy,
+            width,
+            height,
+        })
+    }
+
+    /// Square-pixel intrinsics from a vertical field of view: `fy = fx = (height / 2) /
+    /// tan(fov_y / 2)`, principal point at the image centre `(width / 2, height / 2)`.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `fov_y` unless `0 < fov_y < π`, and those of
+    /// [`Intrinsics::new`].
+    pub fn from_fov_y(width: usize, height: usize, fov_y: f64) -> Result<Self> {
+        if !(fov_y > 0.0 && fov_y < std::f64::consts::PI) {
+            return Err(Error::invalid(
+                "fov_y",
+                "radians in (0, π)",
+                format!("{fov_y}"),
+            ));
+        }
+        let f = 0.5 * height as f64 / (0.5 * fov_y).tan();
+        Self::new(f, f, 0.5 * width as f64, 0.5 * height as f64, width, height)
+    }
+
+    /// Number of pixels, `width · height`.
+    #[must_use]
+    pub fn num_pixels(&self) -> usize {
+        self.width * self.height
+    }
+
+    /// Camera-space ray directions for pixel coordinates.
+    ///
+    /// `pixels: [N, 2]` (f32 or f64) holds continuous coordinates `(x, y)` = (column, row);
+    /// no half-pixel offset is added, so the centre of integer pixel `(u, v)` is
+    /// `(u + 0.5, v + 0.5)`. Coordinates outside the image are allowed. Returns `[N, 3]` in
+    /// the dtype and on the device of `pixels`:
+    /// OpenCV `((x − cx)/fx, (y − cy)/fy, 1)`, OpenGL `((x − cx)/fx, −(y − cy)/fy, −1)`.
+    /// Not normalised (see the module docs). Differentiable with respect to `pixels`.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `pixels` for a wrong shape or dtype, or non-finite
+    /// values.
+    pub fn camera_directions(&self, pixels: &Tensor, convention: Convention) -> Result<Tensor> {
+        check_float(pixels, "pixels")?;
+        let n = check_shape(pixels, "pixels", &[Dim::Any("N"), Dim::Is(2)])?[0];
+        check_finite(pixels, "pixels")?;
+        let (sy, sz) = match convention {
+            Convention::OpenCv => (1.0, 1.0),
+            Convention::OpenGl => (-1.0, -1.0),
+        };
+        let x = ((pixels.narrow(1, 0, 1)? - self.cx)? / self.fx)?;
+        let y = ((pixels.narrow(1, 1, 1)? - self.cy)? / (sy * self.fy))?;
+        let z = Tensor::full(sz, (n, 1), pixels.device())?.to_dtype(pixels.dtype())?;
+        Ok(Tensor::cat(&[&x, &y, &z], 1)?)
+    }
+}
+
+/// Checks that `pose` is a finite rigid transform: `RᵀR = I` within 1e-6 (max abs entry)
+/// and `det R = +1` within 1e-6.
+fn check_pose(pose: &DAffine3, arg: &'static str) -> Result<()> {
+    let m = pose.matrix3;
+    if !m.is_finite() || !pose.translation.is_finite() {
+        return Err(Error::invalid(arg, "finite entries", format!("{pose:?}")));
+    }
+    let dev = (m.transpose() * m - DMat3::IDENTITY)
+        .to_cols_array()
+        .iter()
+        .fold(0.0f64, |a, &b| a.max(b.abs()));
+    if dev > 1e-6 {
+        return Err(Error::invalid(
+            arg,
+            "an orthonormal rotation part (|RᵀR − I| ≤ 1e-6)",
+            format!("max |RᵀR − I| = {dev:e}"),
+        ));
+    }
+    let det = m.determinant();
+    if (det - 1.0).abs() > 1e-6 {
+        return Err(Error::invalid(
+            arg,
+            "a proper rotation (det R = +1)",
+            format!("det R = {det}"),
+        ));
+    }
+    Ok(())
+}
+
+/// `R` as a `[3, 3]` tensor transposed (`Rᵀ`, rows = columns of `R`), so that world
+/// directions are `d_cam · Rᵀ` for row vectors.
+fn rotation_t(m: &DMat3, like: &Tensor) -> Result<Tensor> {
+    let rows = [
+        m.x_axis.to_array(),
+        m.y_axis.to_array(),
+        m.z_axis.to_array(),
+    ];
+    Ok(Tensor::new(&rows, like.device())?.to_dtype(like.dtype())?)
+}
+
+/// A pinhole camera: intrinsics, a camera-to-world rigid pose, and an axis convention.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Camera {
+    intrinsics: Intrinsics,
+    cam_to_world: DAffine3,
+    convention: Convention,
+}
+
+impl Camera {
+    /// A camera from intrinsics and a camera-to-world pose `x_world = R x_cam + t`.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `cam_to_world` if it has non-finite entries, if
+    /// its rotation part is not orthonormal (max |RᵀR − I| > 1e-6) or if `det R ≠ +1`
+    /// (a reflection).
+    pub fn new(
+        intrinsics: Intrinsics,
+        cam_to_world: DAffine3,
+        convention: Convention,
+    ) -> Result<Self> {
+        check_pose(&cam_to_world, "cam_to_world")?;
+        Ok(Self {
+            intrinsics,
+            cam_to_world,
+            convention,
+        })
+    }
+
+    /// A camera at `eye` looking at `target`, with `up` giving the world's up direction
+    /// (it need not be orthogonal to the view direction). The principal-point ray passes
+    /// through `target`; image "up" is the projection of `up`.
+    ///
+    /// With `f = (target − eye)/|target − eye|`, `r = (f × up)/|f × up|` and `u = r × f`,
+    /// the camera-to-world rotation has columns `[r, −u, f]` (OpenCV) or `[r, u, −f]`
+    /// (OpenGL); the translation is `eye`.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `eye` / `target` / `up` if not finite, `target` if
+    /// it equals `eye`, `up` if it is zero or parallel to `target − eye`.
+    pub fn look_at(
+        intrinsics: Intrinsics,
+        eye: DVec3,
+        target: DVec3,
+        up: DVec3,
+        convention: Convention,
+    ) -> Result<Self> {
+        for (v, name) in [(eye, "eye"), (target, "target"), (up, "up")] {
+            if !v.is_finite() {
+                return Err(Error::invalid(name, "a finite vector", format!("{v:?}")));
+            }
+        }
+        let view = target - eye;
+        let len = view.length();
+        if !(len > 0.0 && len.is_finite()) {
+            return Err(Error::invalid(
+                "target",
+                "a point different from eye",
+                format!("target = eye = {eye:?}"),
+            ));
+        }
+        let f = view / len;
+        let up_len = up.length();
+        if !(up_len > 0.0 && up_len.is_finite()) {
+            return Err(Error::invalid("up", "a non-zero vector", format!("{up:?}")));
+        }
+        let r = f.cross(up / up_len);
+        let r_len = r.length();
+        if r_len < 1e-9 {
+            return Err(Error::invalid(
+                "up",
+                "a vector not parallel to target − eye",
+                format!("up = {up:?}, target − eye = {view:?}"),
+            ));
+        }
+        let r = r / r_len;
+        let u = r.cross(f);
+        let m = match convention {
+            Convention::OpenCv => DMat3::from_cols(r, -u, f),
+            Convention::OpenGl => DMat3::from_cols(r, u, -f),
+        };
+        Self::new(
+            intrinsics,
+            DAffine3::from_mat3_translation(m, eye),
+            convention,
+        )
+    }
+
+    /// The intrinsics.
+    #[must_use]
+    pub fn intrinsics(&self) -> &Intrinsics {
+        &self.intrinsics
+    }
+
+    /// The camera-to-world pose.
+    #[must_use]
+    pub fn cam_to_world(&self) -> DAffine3 {
+        self.cam_to_world
+    }
+
+    /// The axis convention.
+    #[must_use]
+    pub fn convention(&self) -> Convention {
+        self.convention
+    }
+
+    /// The camera centre in world space (the translation of the pose; every ray's origin).
+    #[must_use]
+    pub fn center(&self) -> DVec3 {
+        self.cam_to_world.translation
+    }
+
+    /// Centres of all pixels, row-major: row `i = v · width + u` is `(u + 0.5, v + 0.5)`.
+    /// Shape `[height · width, 2]`, in `dtype` on `device`.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64.
+    pub fn pixel_grid(&self, device: &Device, dtype: DType) -> Result<Tensor> {
+        check_dtype_arg(dtype)?;
+        let (w, h) = (self.intrinsics.width, self.intrinsics.height);
+        let mut data = Vec::with_capacity(2 * w * h);
+        for v in 0..h {
+            for u in 0..w {
+                data.push(u as f64 + 0.5);
+                data.push(v as f64 + 0.5);
+            }
+        }
+        Ok(Tensor::from_vec(data, (w * h, 2), device)?.to_dtype(dtype)?)
+    }
+
+    /// Rays through all pixel centres, row-major (ray `v · width + u` passes through
+    /// pixel `(u, v)`), `N = width · height`. See [`Camera::rays_for_pixels`].
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64.
+    pub fn rays(&self, device: &Device, dtype: DType) -> Result<Rays> {
+        let pixels = self.pixel_grid(device, dtype)?;
+        self.rays_for_pixels(&pixels)
+    }
+
+    /// World-space rays for pixel coordinates `pixels: [N, 2]` (column, row; the centre of
+    /// pixel `(u, v)` is `(u + 0.5, v + 0.5)`): origin `t` (the camera centre), direction
+    /// `R · d_cam` with `d_cam` from [`Intrinsics::camera_directions`] (not normalised).
+    /// Dtype and device follow `pixels`; directions are differentiable w.r.t. `pixels`.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `pixels` for a wrong shape or dtype, or
+    /// non-finite values.
+    pub fn rays_for_pixels(&self, pixels: &Tensor) -> Result<Rays> {
+        let d_cam = self.intrinsics.camera_directions(pixels, self.convention)?;
+        let n = d_cam.dim(0)?;
+        let directions = d_cam.matmul(&rotation_t(&self.cam_to_world.matrix3, pixels)?)?;
+        let origins = row3(self.cam_to_world.translation.to_array(), pixels)?
+            .broadcast_as((n, 3))?
+            .contiguous()?;
+        Rays::new(origins, directions)
+    }
+
+    /// `n` rays through pixel centres drawn uniformly with replacement, reproducibly from
+    /// `seed` by [`SplitMix64::below`](crate::rng::SplitMix64::below): an index is
+    /// `⌊s · W·H / 2⁶⁴⌋` for a 64-bit draw `s`, whose bias is below `W·H / 2⁶⁴`. Returns
+    /// the rays and the linear pixel indices
+    /// `v · width + u` as a `[n]` u32 tensor on `device`.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `n` if 0 and `dtype` unless f32 or f64.
+    pub fn random_rays(
+        &self,
+        n: usize,
+        seed: u64,
+        device: &Device,
+        dtype: DType,
+    ) -> Result<(Rays, Tensor)> {
+        check_dtype_arg(dtype)?;
+        if n == 0 {
+            return Err(Error::invalid("n", "at least one ray", "0"));
+        }
+        let w = self.intrinsics.width;
+        let total = self.intrinsics.num_pixels() as u64;
+        let mut rng = crate::rng::SplitMix64::new(seed);
+        let mut idx = Vec::with_capacity(n);
+        let mut pix = Vec::with_capacity(2 * n);
+        for _ in 0..n {
+            let i = rng.below(total) as usize;
+            idx.push(i as u32); // invariant: total ≤ u32::MAX (checked in Intrinsics::new)
+            pix.push((i % w) as f64 + 0.5);
+            pix.push((i / w) as f64 + 0.5);
+        }
+        let pixels = Tensor::from_vec(pix, (n, 2), device)?.to_dtype(dtype)?;
+        let rays = self.rays_for_pixels(&pixels)?;
+        Ok((rays, Tensor::from_vec(idx, n, device)?))
+    }
+
+    /// A differentiable copy of this camera's pose ([`PoseParam::from_affine`]).
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64.
+    pub fn pose_param(&self, device: &Device, dtype: DType) -> Result<PoseParam> {
+        PoseParam::from_affine(&self.cam_to_world, device, dtype)
+    }
+}
+
+/// A batch of rays `o + t·d`: `origins: [N, 3]`, `directions: [N, 3]`, same float dtype
+/// and device. Directions are whatever the producer made them (camera rays have unit
+/// camera-space z, see the module docs).
+#[derive(Clone, Debug)]
+pub struct Rays {
+    /// Ray origins, `[N, 3]`.
+    pub origins: Tensor,
+    /// Ray directions, `[N, 3]` (not necessarily unit length).
+    pub directions: Tensor,
+}
+
+impl Rays {
+    /// Bundles origins and directions.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `origins` unless it is `[N, 3]` f32/f64, and
+    /// `directions` unless it has the same shape, dtype and device.
+    pub fn new(origins: Tensor, directions: Tensor) -> Result<Self> {
+        let n = check_points(&origins, "origins")?;
+        check_points(&directions, "directions")?;
+        if directions.dim(0)? != n {
+            return Err(Error::invalid(
+                "directions",
+                format!("shape [{n}, 3] (that of origins)"),
+                format!("shape {:?}", directions.dims()),
+            ));
+        }
+        check_same(&directions, "directions", &origins, "origins")?;
+        Ok(Self {
+            origins,
+            directions,
+        })
+    }
+
+    /// Number of rays `N`.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.origins.dims().first().copied().unwrap_or(0)
+    }
+
+    /// Whether there are no rays.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Points `o + t·d` for `t: [N]` (same dtype and device): `[N, 3]`. Differentiable
+    /// w.r.t. `t`, origins and directions.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `t` for a wrong shape, dtype or device.
+    pub fn at(&self, t: &Tensor) -> Result<Tensor> {
+        check_float(t, "t")?;
+        check_shape(t, "t", &[Dim::Is(self.len())])?;
+        check_same(t, "t", &self.origins, "origins")?;
+        Ok((&self.origins + t.unsqueeze(1)?.broadcast_mul(&self.directions)?)?)
+    }
+
+    /// The same rays with unit directions `d / |d|` (origins shared). Computed as
+    /// `d' / |d'|` with `d' = d / max|dᵢ|` (a detached per-ray scale, exact because
+    /// `d/|d|` is scale-invariant), so tiny directions do not underflow. Differentiable
+    /// w.r.t. the directions.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `directions` if a direction is zero.
+    pub fn normalized(&self) -> Result<Rays> {
+        if self.is_empty() {
+            return Ok(self.clone());
+        }
+        let m = self.directions.detach().abs()?.max_keepdim(1)?;
+        if scalar_f64(&m.min_all()?)?.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+            return Err(Error::invalid(
+                "directions",
+                "non-zero rows",
+                "a zero direction",
+            ));
+        }
+        let dn = self.directions.broadcast_div(&m)?;
+        let norm = dn.sqr()?.sum_keepdim(1)?.sqrt()?;
+        Rays::new(self.origins.clone(), dn.broadcast_div(&norm)?)
+    }
+
+    /// Rays `start .. start + len` (a view, for processing in chunks).
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `start` if `start > N` and `len` if
+    /// `start + len > N`.
+    pub fn narrow(&self, start: usize, len: usize) -> Result<Rays> {
+        let n = self.len();
+        if start > n {
+            return Err(Error::invalid(
+                "start",
+                format!("≤ {n}"),
+                format!("{start}"),
+            ));
+        }
+        if len > n - start {
+            return Err(Error::invalid(
+                "len",
+                format!("≤ {} (N − start)", n - start),
+                format!("{len}"),
+            ));
+        }
+        Ok(Rays {
+            origins: self.origins.narrow(0, start, len)?,
+            directions: self.directions.narrow(0, start, len)?,
+        })
+    }
+}
+
+/// The result of a ray–shape intersection, per ray.
+///
+/// `near = max(t_enter, 0)` (0 when the origin is inside), `far = t_exit`,
+/// `hit = (far ≥ near) ∧ (far > 0)`; for a missed ray `near = far = 0`. Values are ray
+/// parameters in units of the given directions. All outputs are finite.
+#[derive(Clone, Debug)]
+pub struct Intersection {
+    /// Entry parameter `[N]`, clamped at 0; 0 for misses.
+    pub near: Tensor,
+    /// Exit parameter `[N]`; 0 for misses.
+    pub far: Tensor,
+    /// Hit mask `[N]`, u8 (1 = hit).
+    pub hit: Tensor,
+}
+
+/// Validates ray inputs; returns `N` and the detached per-ray scale `m = max|dᵢ|`, `[N, 1]`.
+fn check_ray_inputs(origins: &Tensor, directions: &Tensor) -> Result<(usize, Tensor)> {
+    let n = check_points(origins, "origins")?;
+    check_points(directions, "directions")?;
+    if directions.dim(0)? != n {
+        return Err(Error::invalid(
+            "directions",
+            format!("shape [{n}, 3] (that of origins)"),
+            format!("shape {:?}", directions.dims()),
+        ));
+    }
+    check_same(directions, "directions", origins, "origins")?;
+    check_finite(origins, "origins")?;
+    check_finite(directions, "directions")?;
+    let m = directions.detach().abs()?.max_keepdim(1)?;
+    if n > 0 && scalar_f64(&m.min_all()?)?.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+        return Err(Error::invalid(
+            "directions",
+            "non-zero rows",
+            "a zero direction",
+        ));
+    }
+    Ok((n, m))
+}
+
+/// Shared tail: clamp, mask, rescale by `1/m`, and check that nothing overflowed.
+fn finish(
+    t_enter: &Tensor,
+    t_exit: &Tensor,
+    valid: Option<&Tensor>,
+    m: &Tensor,
+) -> Result<Intersection> {
+    let zero = t_enter.zeros_like()?;
+    let near = t_enter.maximum(&zero)?;
+    let mut hit = (near.le(t_exit)? * t_exit.gt(&zero)?)?;
+    if let Some(v) = valid {
+        hit = (hit * v)?;
+    }
+    let m = m.squeeze(1)?;
+    let near = hit.where_cond(&near, &zero)?.div(&m)?;
+    let far = hit.where_cond(t_exit, &zero)?.div(&m)?;
+    check_finite(&near, "directions")?;
+    check_finite(&far, "directions")?;
+    Ok(Intersection { near, far, hit })
+}
+
+fn check_center(v: [f64; 3], arg: &'static str) -> Result<()> {
+    if v.iter().all(|x| x.is_finite()) {
+        Ok(())
+    } else {
+        Err(Error::invalid(arg, "finite coordinates", format!("{v:?}")))
+    }
+}
+
+/// Ray–axis-aligned-box intersection by the slab method.
+///
+/// For each axis `i` with `dᵢ ≠ 0`, the slab `[minᵢ, maxᵢ]` is crossed for
+/// `t ∈ [min(t₁, t₂), max(t₁, t₂)]`, `t₁ = (minᵢ − oᵢ)/dᵢ`, `t₂ = (maxᵢ − oᵢ)/dᵢ`;
+/// `t_enter` is the largest entry and `t_exit` the smallest exit. An axis with `dᵢ = 0`
+/// (in practice `|dᵢ| < √(smallest normal) · max|d|`; no `0·∞` is ever formed) gives no
+/// constraint if `minᵢ ≤ oᵢ ≤ maxᵢ` and a miss otherwise. The box is **closed**: a ray
+/// lying in a face plane (`oᵢ = minᵢ`, `dᵢ = 0`) and crossing the face hits, and a ray
+/// grazing an edge or corner hits with `near = far`. See [`Intersection`] for
+/// `near/far/hit`.
+///
+/// `origins, directions: [N, 3]`, same float dtype and device; outputs on it.
+/// Differentiable w.r.t. origins and directions (gradients are zero, never NaN, for
+/// missed rays and where `near` is clamped at 0).
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `origins` / `directions` for wrong shapes, dtypes,
+/// devices or non-finite values; `directions` for a zero direction (or one so short that
+/// the parameter overflows); `min` / `max` if not finite, `max` if `minᵢ > maxᵢ`.
+pub fn ray_aabb(
+    origins: &Tensor,
+    directions: &Tensor,
+    min: [f64; 3],
+    max: [f64; 3],
+) -> Result<Intersection> {
+    let (_, m) = check_ray_inputs(origins, directions)?;
+    check_center(min, "min")?;
+    check_center(max, "max")?;
+    if min.iter().zip(&max).any(|(a, b)| a > b) {
+        return Err(Error::invalid(
+            "max",
+            format!("≥ min = {min:?} componentwise"),
+            format!("{max:?}"),
+        ));
+    }
+    let dn = directions.broadcast_div(&m)?;
+    let lo = row3(min, origins)?;
+    let hi = row3(max, origins)?;
+    let parallel = dn.detach().abs()?.lt(tiny(dn.dtype()))?;
+    let d_safe = parallel.where_cond(&dn.ones_like()?, &dn)?;
+    let t1 = lo.broadcast_sub(origins)?.div(&d_safe)?;
+    let t2 = hi.broadcast_sub(origins)?.div(&d_safe)?;
+    let t_lo = t1.minimum(&t2)?;
+    let t_hi = t1.maximum(&t2)?;
+    let o = origins.detach();
+    let inside = (o.broadcast_ge(&lo)? * o.broadcast_le(&hi)?)?;
+    let pos_inf = full_like(&dn, f64::INFINITY)?;
+    let neg_inf = full_like(&dn, f64::NEG_INFINITY)?;
+    let par_lo = inside.where_cond(&neg_inf, &pos_inf)?;
+    let par_hi = inside.where_cond(&pos_inf, &neg_inf)?;
+    let t_lo = parallel.where_cond(&par_lo, &t_lo)?;
+    let t_hi = parallel.where_cond(&par_hi, &t_hi)?;
+    let t_enter = t_lo.max_keepdim(1)?.squeeze(1)?;
+    let t_exit = t_hi.min_keepdim(1)?.squeeze(1)?;
+    finish(&t_enter, &t_exit, None, &m)
+}
+
+/// Ray–sphere intersection.
+///
+/// With `d' = d / max|dᵢ|` (a detached per-ray scale; the result is divided by it again,
+/// which is exact since `t(o, d) = t(o, d/s)/s` for every `s > 0`), `oc = o − c`,
+/// `a = d'·d'`, `b = d'·oc`, `c₀ = oc·oc − r²`, `l = oc − (b/a) d'` and the discriminant
+/// `Δ = a (r² − l·l)` (the perpendicular form, accurate near tangency). For `Δ ≥ 0`, the
+/// roots are `t₁ = q/a` and `t₂ = c₀/q` with `q = −(b + sign(b)√Δ)` (no cancellation).
+/// A **tangent** ray (`Δ = 0`) hits with `near = far = −b/a`, and the `√Δ` term is given
+/// zero gradient there (its true derivative is infinite). See [`Intersection`] for
+/// `near/far/hit`; the origin inside gives `near = 0`.
+///
+/// `origins, directions: [N, 3]`, same float dtype and device; outputs on it.
+/// Differentiable w.r.t. origins and directions (zero, never NaN, for misses).
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `origins` / `directions` for wrong shapes, dtypes,
+/// devices or non-finite values; `directions` for a zero direction; `center` if not
+/// finite; `radius` unless finite and > 0.
+pub fn ray_sphere(
+    origins: &Tensor,
+    directions: &Tensor,
+    center: [f64; 3],
+    radius: f64,
+) -> Result<Intersection> {
+    let (_, m) = check_ray_inputs(origins, directions)?;
+    check_center(center, "center")?;
+    crate::error::check_scalar(radius, "radius", true)?;
+    let r2 = radius * radius;
+    let dn = directions.broadcast_div(&m)?;
+    let oc = origins.broadcast_sub(&row3(center, origins)?)?;
+    let a = dn.sqr()?.sum(1)?;
+    let b = (&dn * &oc)?.sum(1)?;
+    let c0 = (oc.sqr()?.sum(1)? - r2)?;
+    let l = (&oc - dn.broadcast_mul(&(&b / &a)?.unsqueeze(1)?)?)?;
+    let disc = ((l.sqr()?.sum(1)?.neg()? + r2)? * &a)?;
+    let ones = a.ones_like()?;
+    let zero = a.zeros_like()?;
+    let pos = disc.gt(&zero)?;
+    let sq = pos.where_cond(&pos.where_cond(&disc, &ones)?.sqrt()?, &zero)?;
+    let sign = b.detach().ge(&zero)?.where_cond(&ones, &ones.neg()?)?;
+    let s_sq = (&sign * &sq)?;
+    let q = (&b + &s_sq)?.neg()?;
+    let q_big = q.detach().abs()?.ge(tiny(q.dtype()))?;
+    let q_safe = q_big.where_cond(&q, &ones)?;
+    let t1 = (&q / &a)?;
+    let t2_stable = (&c0 / &q_safe)?;
+    let t2_direct = ((&s_sq - &b)? / &a)?;
+    let t2 = pos.where_cond(&q_big.where_cond(&t2_stable, &t2_direct)?, &t1)?;
+    let t_enter = t1.minimum(&t2)?;
+    let t_exit = t1.maximum(&t2)?;
+    let valid = disc.ge(&zero)?;
+    finish(&t_enter, &t_exit, Some(&valid), &m)
+}
+
+/// A differentiable camera-to-world pose: a quaternion `q = (w, x, y, z)` (any non-zero
+/// scale; the rotation is that of `q/|q|`) and a translation `t`, as candle variables for
+/// an optimiser.
+///
+/// `R(q) = M(q) / |q|²` with `M` the homogeneous quaternion matrix (see
+/// `docs/math.md`), so unconstrained steps on `q` always give a valid rotation.
+#[derive(Clone, Debug)]
+pub struct PoseParam {
+    /// Quaternion `[4]`, order `(w, x, y, z)`; need not be unit length, must be non-zero.
+    pub rotation: Var,
+    /// Translation (camera centre) `[3]`.
+    pub translation: Var,
+}
+
+impl PoseParam {
+    /// Variables initialised to the rigid transform `pose` (unit quaternion, translation).
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `pose` unless it is a finite rigid transform
+    /// (as in [`Camera::new`]), `dtype` unless f32 or f64.
+    pub fn from_affine(pose: &DAffine3, device: &Device, dtype: DType) -> Result<Self> {
+        check_pose(pose, "pose")?;
+        check_dtype_arg(dtype)?;
+        let q = DQuat::from_mat3(&pose.matrix3).normalize();
+        let t = pose.translation;
+        let rotation =
+            Var::from_tensor(&Tensor::new(&[q.w, q.x, q.y, q.z], device)?.to_dtype(dtype)?)?;
+        let translation =
+            Var::from_tensor(&Tensor::new(&[t.x, t.y, t.z], device)?.to_dtype(dtype)?)?;
+        Ok(Self {
+            rotation,
+            translation,
+        })
+    }
+
+    fn check(&self) -> Result<()> {
+        check_float(&self.rotation, "rotation")?;
+        check_shape(&self.rotation, "rotation", &[Dim::Is(4)])?;
+        check_float(&self.translation, "translation")?;
+        check_shape(&self.translation, "translation", &[Dim::Is(3)])?;
+        check_same(&self.translation, "translation", &self.rotation, "rotation")?;
+        check_finite(&self.rotation, "rotation")?;
+        check_finite(&self.translation, "translation")
+    }
+
+    /// The rotation `R(q/|q|)` as a `[3, 3]` tensor (dtype and device of the variables),
+    /// computed as `M(q')/|q'|²` with `q' = q / max|qᵢ|` (a detached scale; `R` is
+    /// invariant to it) and
+    ///
+    /// ```text
+    /// M = [[w²+x²−y²−z², 2(xy−wz),    2(xz+wy)   ],
+    ///      [2(xy+wz),    w²−x²+y²−z², 2(yz−wx)   ],
+    ///      [2(xz−wy),    2(yz+wx),    w²−x²−y²+z²]]
+    /// ```
+    ///
+    /// Differentiable w.r.t. `rotation`.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `rotation` if it is zero, non-finite or not a
+    /// float `[4]`, or `translation` if it is not a float `[3]` of the same dtype/device.
+    pub fn rotation_matrix(&self) -> Result<Tensor> {
+        self.check()?;
+        let q = self.rotation.as_tensor();
+        let m = q.detach().abs()?.max_keepdim(0)?;
+        if scalar_f64(&m.squeeze(0)?)?.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+            return Err(Error::invalid("rotation", "a non-zero quaternion", "0"));
+        }
+        let q = q.broadcast_div(&m)?;
+        let c = |i: usize| q.narrow(0, i, 1);
+        let (w, x, y, z) = (c(0)?, c(1)?, c(2)?, c(3)?);
+        let (ww, xx, yy, zz) = (w.sqr()?, x.sqr()?, y.sqr()?, z.sqr()?);
+        let two = |a: &Tensor, b: &Tensor| -> Result<Tensor> { Ok((a * b)?.affine(2.0, 0.0)?) };
+        let entries = [
+            ((&ww + &xx)? - (&yy + &zz)?)?,
+            (two(&x, &y)? - two(&w, &z)?)?,
+            (two(&x, &z)? + two(&w, &y)?)?,
+            (two(&x, &y)? + two(&w, &z)?)?,
+            ((&ww + &yy)? - (&xx + &zz)?)?,
+            (two(&y, &z)? - two(&w, &x)?)?,
+            (two(&x, &z)? - two(&w, &y)?)?,
+            (two(&y, &z)? + two(&w, &x)?)?,
+            ((&ww + &zz)? - (&xx + &yy)?)?,
+        ];
+        let s = (((&ww + &xx)? + &yy)? + &zz)?;
+        let mat = Tensor::cat(&entries, 0)?.broadcast_div(&s)?;
+        Ok(mat.reshape((3, 3))?)
+    }
+
+    /// The current value as a rigid transform (rotation of the normalised quaternion).
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `rotation` if it is zero or non-finite, or
+    /// `translation` if non-finite (or either has a wrong shape/dtype).
+    pub fn to_affine(&self) -> Result<DAffine3> {
+        self.check()?;
+        let q = self
+            .rotation
+            .as_tensor()
+            .to_dtype(DType::F64)?
+            .to_vec1::<f64>()?;
+        let t = self
+            .translation
+            .as_tensor()
+            .to_dtype(DType::F64)?
+            .to_vec1::<f64>()?;
+        let quat = DQuat::from_xyzw(q[1], q[2], q[3], q[0]);
+        let len = quat.length();
+        if !(len > 0.0 && len.is_finite()) {
+            return Err(Error::invalid(
+                "rotation",
+                "a non-zero quaternion",
+                format!("{q:?}"),
+            ));
+        }
+        Ok(DAffine3::from_rotation_translation(
+            quat / len,
+            DVec3::new(t[0], t[1], t[2]),
+        ))
+    }
+
+    /// Rescales `rotation` in place to unit length, `q ← q/|q|`, which leaves the
+    /// rotation unchanged. Unconstrained optimisers let `|q|` drift up slowly, and the
+    /// effective step size falls as `1/|q|²` (see `docs/math.md`); calling this now and
+    /// then undoes that.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `rotation` if it is zero or non-finite, or
+    /// either variable has a wrong shape or dtype.
+    pub fn renormalize(&self) -> Result<()> {
+        self.check()?;
+        let q = self.rotation.as_tensor().detach();
+        let m = q.abs()?.max_keepdim(0)?;
+        if scalar_f64(&m.squeeze(0)?)?.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+            return Err(Error::invalid("rotation", "a non-zero quaternion", "0"));
+        }
+        let q = q.broadcast_div(&m)?;
+        let norm = q.sqr()?.sum_keepdim(0)?.sqrt()?;
+        self.rotation.set(&q.broadcast_div(&norm)?)?;
+        Ok(())
+    }
+
+    /// Both variables, `[rotation, translation]`, for an optimiser.
+    #[must_use]
+    pub fn vars(&self) -> Vec<Var> {
+        vec![self.rotation.clone(), self.translation.clone()]
+    }
+
+    /// World rays for `pixels: [N, 2]` (as in [`Camera::rays_for_pixels`]): origins `t`
+    /// (broadcast to `[N, 3]`), directions `R(q/|q|) · d_cam`. Differentiable w.r.t.
+    /// `rotation`, `translation` and `pixels`.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `pixels` for a wrong shape, dtype or device
+    /// (it must match the variables'), and those of [`PoseParam::rotation_matrix`].
+    pub fn rays(
+        &self,
+        intrinsics: &Intrinsics,
+        convention: Convention,
+        pixels: &Tensor,
+    ) -> Result<Rays> {
+        let rot = self.rotation_matrix()?;
+        check_float(pixels, "pixels")?;
+        check_same(pixels, "pixels", &self.translation, "translation")?;
+        let d_cam = intrinsics.camera_directions(pixels, convention)?;
+        let n = d_cam.dim(0)?;
+        let directions = d_cam.matmul(&rot.t()?)?;
+        let origins = self
+            .translation
+            .as_tensor()
+            .unsqueeze(0)?
+            .broadcast_as((n, 3))?
+            .contiguous()?;
+        Rays::new(origins, directions)
+    }
+}

@@ -1,0 +1,1068 @@
+//! Tests for `neural_fields::camera`: conventions, ray generation, intersections, pose
+//! gradients and argument validation.
+
+use candle_core::{DType, Device, Tensor, Var};
+use glam::{DAffine3, DMat3, DQuat, DVec3};
+use neural_fields::camera::{
+    ray_aabb, ray_sphere, Camera, Convention, Intersection, Intrinsics, PoseParam, Rays,
+};
+use neural_fields::Error;
+use proptest::prelude::*;
+
+const CONVENTIONS: [Convention; 2] = [Convention::OpenCv, Convention::OpenGl];
+const DTYPES: [DType; 2] = [DType::F32, DType::F64];
+
+fn dev() -> Device {
+    Device::Cpu
+}
+
+fn v2(t: &Tensor) -> Vec<Vec<f64>> {
+    t.to_dtype(DType::F64).unwrap().to_vec2::<f64>().unwrap()
+}
+
+fn v1(t: &Tensor) -> Vec<f64> {
+    t.to_dtype(DType::F64).unwrap().to_vec1::<f64>().unwrap()
+}
+
+fn mask(t: &Tensor) -> Vec<u8> {
+    t.to_vec1::<u8>().unwrap()
+}
+
+fn rows(data: &[[f64; 3]], dtype: DType) -> Tensor {
+    let flat: Vec<f64> = data.iter().flatten().copied().collect();
+    Tensor::from_vec(flat, (data.len(), 3), &dev())
+        .unwrap()
+        .to_dtype(dtype)
+        .unwrap()
+}
+
+/// The argument an `Err` names.
+fn arg_of<T: std::fmt::Debug>(r: Result<T, Error>) -> &'static str {
+    match r {
+        Err(Error::InvalidArgument { arg, .. }) => arg,
+        other => panic!("expected InvalidArgument, got {other:?}"),
+    }
+}
+
+fn intr() -> Intrinsics {
+    Intrinsics::new(50.0, 40.0, 32.0, 24.0, 64, 48).unwrap()
+}
+
+fn tol(dtype: DType) -> f64 {
+    if dtype == DType::F32 {
+        1e-5
+    } else {
+        1e-12
+    }
+}
+
+fn close(a: f64, b: f64, eps: f64) -> bool {
+    (a - b).abs() <= eps * (1.0 + a.abs().max(b.abs()))
+}
+
+// ---------------------------------------------------------------- conventions and rays
+
+#[test]
+fn principal_point_ray_is_the_optical_axis_in_both_conventions() {
+    let pose = DAffine3::from_rotation_translation(
+        DQuat::from_axis_angle(DVec3::new(1.0, 2.0, -0.5).normalize(), 0.7),
+        DVec3::new(0.3, -1.0, 2.0),
+    );
+    for dtype in DTYPES {
+        for conv in CONVENTIONS {
+            let i = intr();
+            let px = Tensor::new(&[[i.cx, i.cy]], &dev())
+                .unwrap()
+                .to_dtype(dtype)
+                .unwrap();
+            let dc = v2(&i.camera_directions(&px, conv).unwrap())[0].clone();
+            let z = if conv == Convention::OpenCv {
+                1.0
+            } else {
+                -1.0
+            };
+            assert_eq!(dc, vec![0.0, 0.0, z], "{conv:?} {dtype:?}");
+            let cam = Camera::new(i, pose, conv).unwrap();
+            let rays = cam.rays_for_pixels(&px).unwrap();
+            let axis = pose.matrix3.z_axis * z;
+            let d = &v2(&rays.directions)[0];
+            let o = &v2(&rays.origins)[0];
+            for k in 0..3 {
+                assert!(
+                    close(d[k], axis[k], tol(dtype)),
+                    "{conv:?} {dtype:?}: {d:?} vs {axis:?}"
+                );
+                assert!(close(o[k], pose.translation[k], tol(dtype)));
+            }
+        }
+    }
+}
+
+#[test]
+fn pixel_directions_follow_the_documented_formulas() {
+    let i = intr();
+    let px = Tensor::new(&[[10.25f64, 3.5], [63.0, 47.75]], &dev()).unwrap();
+    for conv in CONVENTIONS {
+        let d = v2(&i.camera_directions(&px, conv).unwrap());
+        for (row, p) in d.iter().zip([[10.25, 3.5], [63.0, 47.75]]) {
+            let x = (p[0] - i.cx) / i.fx;
+            let y = (p[1] - i.cy) / i.fy;
+            let want = match conv {
+                Convention::OpenCv => [x, y, 1.0],
+                Convention::OpenGl => [x, -y, -1.0],
+            };
+            for k in 0..3 {
+                assert!(
+                    close(row[k], want[k], 1e-14),
+                    "{conv:?}: {row:?} vs {want:?}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn look_at_centre_ray_hits_the_target_and_image_up_is_world_up() {
+    let eye = DVec3::new(3.0, 1.0, -2.0);
+    let target = DVec3::new(-0.5, 0.25, 0.75);
+    let up = DVec3::new(0.0, 1.0, 0.0);
+    for dtype in DTYPES {
+        for conv in CONVENTIONS {
+            let i = Intrinsics::new(60.0, 60.0, 32.0, 24.0, 64, 48).unwrap();
+            let cam = Camera::look_at(i, eye, target, up, conv).unwrap();
+            // centre ray: unit z in camera space, so t = distance hits the target
+            let px = Tensor::new(&[[32.0f64, 24.0], [32.0, 4.0]], &dev())
+                .unwrap()
+                .to_dtype(dtype)
+                .unwrap();
+            let rays = cam.rays_for_pixels(&px).unwrap();
+            let dist = (target - eye).length();
+            let t = Tensor::new(&[dist, dist], &dev())
+                .unwrap()
+                .to_dtype(dtype)
+                .unwrap();
+            let p = v2(&rays.at(&t).unwrap());
+            for k in 0..3 {
+                assert!(
+                    close(p[0][k], target[k], 10.0 * tol(dtype)),
+                    "{conv:?}: {:?} vs {target}",
+                    p[0]
+                );
+            }
+            // a pixel in the upper half of the image (smaller row) looks more upwards
+            let d = v2(&rays.directions);
+            let up_component = |r: &Vec<f64>| DVec3::new(r[0], r[1], r[2]).normalize().dot(up);
+            assert!(up_component(&d[1]) > up_component(&d[0]) + 0.1, "{conv:?}");
+        }
+    }
+}
+
+#[test]
+fn rays_cover_all_pixels_row_major() {
+    let i = Intrinsics::new(5.0, 7.0, 2.0, 1.5, 4, 3).unwrap();
+    let cam = Camera::look_at(i, DVec3::ZERO, DVec3::Z, DVec3::Y, Convention::OpenCv).unwrap();
+    for dtype in DTYPES {
+        let rays = cam.rays(&dev(), dtype).unwrap();
+        assert_eq!(rays.len(), 12);
+        assert!(!rays.is_empty());
+        assert_eq!(rays.directions.dtype(), dtype);
+        let grid = v2(&cam.pixel_grid(&dev(), dtype).unwrap());
+        assert_eq!(grid.len(), 12);
+        for (idx, g) in grid.iter().enumerate() {
+            assert_eq!(g, &vec![(idx % 4) as f64 + 0.5, (idx / 4) as f64 + 0.5]);
+        }
+        let manual = cam
+            .rays_for_pixels(
+                &Tensor::new(&[[1.5f64, 1.5]], &dev())
+                    .unwrap()
+                    .to_dtype(dtype)
+                    .unwrap(),
+            )
+            .unwrap();
+        assert_eq!(v2(&rays.directions)[5], v2(&manual.directions)[0]);
+        let chunk = rays.narrow(4, 4).unwrap();
+        assert_eq!(chunk.len(), 4);
+        assert_eq!(v2(&chunk.directions)[1], v2(&rays.directions)[5]);
+    }
+}
+
+#[test]
+fn random_rays_are_seeded_uniform_and_match_the_full_image() {
+    let i = Intrinsics::new(5.0, 5.0, 1.0, 1.0, 2, 2).unwrap();
+    let cam = Camera::look_at(i, DVec3::ZERO, DVec3::Z, DVec3::Y, Convention::OpenGl).unwrap();
+    let (rays, idx) = cam.random_rays(40_000, 7, &dev(), DType::F64).unwrap();
+    let (_, idx2) = cam.random_rays(40_000, 7, &dev(), DType::F64).unwrap();
+    let (_, idx3) = cam.random_rays(40_000, 8, &dev(), DType::F64).unwrap();
+    assert_eq!(idx.dtype(), DType::U32);
+    let a = idx.to_vec1::<u32>().unwrap();
+    assert_eq!(a, idx2.to_vec1::<u32>().unwrap());
+    assert_ne!(a, idx3.to_vec1::<u32>().unwrap());
+    let mut counts = [0usize; 4];
+    for &k in &a {
+        counts[k as usize] += 1;
+    }
+    for c in counts {
+        // expected 10000, sd ≈ 87
+        assert!((9_600..10_400).contains(&c), "{counts:?}");
+    }
+    let all = cam.rays(&dev(), DType::F64).unwrap();
+    let picked = all.directions.index_select(&idx, 0).unwrap();
+    assert_eq!(v2(&picked), v2(&rays.directions));
+}
+
+// ---------------------------------------------------------------- ray–box
+
+fn aabb1(o: [f64; 3], d: [f64; 3], dtype: DType) -> Intersection {
+    ray_aabb(&rows(&[o], dtype), &rows(&[d], dtype), [-1.0; 3], [1.0; 3]).unwrap()
+}
+
+fn nfh(x: &Intersection) -> (f64, f64, u8) {
+    (v1(&x.near)[0], v1(&x.far)[0], mask(&x.hit)[0])
+}
+
+#[test]
+fn aabb_simple_hit_through_the_box() {
+    for dtype in DTYPES {
+        let (n, f, h) = nfh(&aabb1([-3.0, 0.2, -0.1], [2.0, 0.0, 0.0], dtype));
+        assert_eq!((n, f, h), (1.0, 2.0, 1)); // t in units of d: |d| = 2
+    }
+}
+
+#[test]
+fn aabb_origin_inside_gives_near_zero() {
+    for dtype in DTYPES {
+        let (n, f, h) = nfh(&aabb1([0.5, 0.0, 0.0], [1.0, 0.0, 0.0], dtype));
+        assert_eq!((n, f, h), (0.0, 0.5, 1));
+    }
+}
+
+#[test]
+fn aabb_ray_parallel_to_a_slab_inside_it_hits() {
+    for dtype in DTYPES {
+        // d_y = d_z = 0, origin inside the y and z slabs
+        let (n, f, h) = nfh(&aabb1([-2.0, 0.5, -0.25], [1.0, 0.0, 0.0], dtype));
+        assert_eq!((n, f, h), (1.0, 3.0, 1));
+    }
+}
+
+#[test]
+fn aabb_ray_parallel_to_a_slab_outside_it_misses() {
+    for dtype in DTYPES {
+        let (n, f, h) = nfh(&aabb1([-2.0, 1.5, 0.0], [1.0, 0.0, 0.0], dtype));
+        assert_eq!((n, f, h), (0.0, 0.0, 0));
+    }
+}
+
+#[test]
+fn aabb_ray_exactly_along_a_face_hits_because_the_box_is_closed() {
+    for dtype in DTYPES {
+        let (n, f, h) = nfh(&aabb1([-2.0, 1.0, 0.0], [1.0, 0.0, 0.0], dtype));
+        assert_eq!((n, f, h), (1.0, 3.0, 1));
+        // along an edge too
+        let (n, f, h) = nfh(&aabb1([-2.0, 1.0, -1.0], [1.0, 0.0, 0.0], dtype));
+        assert_eq!((n, f, h), (1.0, 3.0, 1));
+    }
+}
+
+#[test]
+fn aabb_ray_grazing_a_corner_hits_with_near_equal_far() {
+    for dtype in DTYPES {
+        // passes through (1, 1, 0) only
+        let (n, f, h) = nfh(&aabb1([0.0, 2.0, 0.0], [1.0, -1.0, 0.0], dtype));
+        assert_eq!((n, f, h), (1.0, 1.0, 1));
+    }
+}
+
+#[test]
+fn aabb_miss_and_box_behind_give_zero_near_far() {
+    for dtype in DTYPES {
+        for (o, d) in [
+            ([-2.0, 0.0, 0.0], [1.0, 2.0, 0.0]),  // passes above
+            ([-2.0, 0.0, 0.0], [-1.0, 0.0, 0.0]), // box behind
+            ([2.0, 0.0, 0.0], [1.0, 0.0, 0.0]),   // leaving, box behind
+            ([1.0, 0.0, 0.0], [1.0, 0.0, 0.0]),   // on the exit face, leaving: far = 0
+        ] {
+            let (n, f, h) = nfh(&aabb1(o, d, dtype));
+            assert_eq!((n, f, h), (0.0, 0.0, 0), "{o:?} {d:?}");
+        }
+    }
+}
+
+#[test]
+fn aabb_tiny_directions_are_scale_invariant() {
+    for dtype in DTYPES {
+        let s = if dtype == DType::F32 { 1e-20 } else { 1e-200 };
+        let (n, f, h) = nfh(&aabb1([-2.0, 0.5, 0.0], [s, 0.0, 0.0], dtype));
+        assert_eq!(h, 1);
+        assert!(
+            close(n * s, 1.0, tol(dtype)) && close(f * s, 3.0, tol(dtype)),
+            "{n} {f}"
+        );
+    }
+}
+
+#[test]
+fn aabb_parameter_overflow_is_an_error_not_infinity() {
+    let r = ray_aabb(
+        &rows(&[[-2.0, 0.0, 0.0]], DType::F32),
+        &rows(&[[1e-40, 0.0, 0.0]], DType::F32),
+        [-1.0; 3],
+        [1.0; 3],
+    );
+    assert_eq!(arg_of(r), "directions");
+}
+
+#[test]
+fn zero_direction_is_an_error() {
+    for dtype in DTYPES {
+        let o = rows(&[[0.0, 0.0, -3.0], [0.0, 0.0, -3.0]], dtype);
+        let d = rows(&[[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]], dtype);
+        assert_eq!(arg_of(ray_aabb(&o, &d, [-1.0; 3], [1.0; 3])), "directions");
+        assert_eq!(arg_of(ray_sphere(&o, &d, [0.0; 3], 1.0)), "directions");
+        let rays = Rays::new(o, d).unwrap();
+        assert_eq!(arg_of(rays.normalized()), "directions");
+    }
+}
+
+#[test]
+fn nan_or_infinite_inputs_are_errors() {
+    for dtype in DTYPES {
+        let good = rows(&[[0.0, 0.0, 1.0]], dtype);
+        for bad in [f64::NAN, f64::INFINITY] {
+            let b = rows(&[[0.0, bad, 1.0]], dtype);
+            assert_eq!(arg_of(ray_aabb(&b, &good, [-1.0; 3], [1.0; 3])), "origins");
+            assert_eq!(arg_of(ray_sphere(&b, &good, [0.0; 3], 1.0)), "origins");
+            assert_eq!(
+                arg_of(ray_aabb(&good, &b, [-1.0; 3], [1.0; 3])),
+                "directions"
+            );
+            assert_eq!(arg_of(ray_sphere(&good, &b, [0.0; 3], 1.0)), "directions");
+        }
+    }
+}
+
+#[test]
+fn bad_box_and_sphere_parameters_are_errors() {
+    let o = rows(&[[0.0, 0.0, -3.0]], DType::F64);
+    let d = rows(&[[0.0, 0.0, 1.0]], DType::F64);
+    assert_eq!(arg_of(ray_aabb(&o, &d, [0.0, 2.0, 0.0], [1.0; 3])), "max");
+    assert_eq!(
+        arg_of(ray_aabb(&o, &d, [f64::NAN, 0.0, 0.0], [1.0; 3])),
+        "min"
+    );
+    assert_eq!(
+        arg_of(ray_aabb(&o, &d, [0.0; 3], [f64::INFINITY, 1.0, 1.0])),
+        "max"
+    );
+    assert_eq!(arg_of(ray_sphere(&o, &d, [0.0; 3], 0.0)), "radius");
+    assert_eq!(arg_of(ray_sphere(&o, &d, [0.0; 3], -1.0)), "radius");
+    assert_eq!(arg_of(ray_sphere(&o, &d, [0.0; 3], f64::NAN)), "radius");
+    assert_eq!(
+        arg_of(ray_sphere(&o, &d, [0.0, f64::NAN, 0.0], 1.0)),
+        "center"
+    );
+}
+
+// ---------------------------------------------------------------- ray–sphere
+
+fn sphere1(o: [f64; 3], d: [f64; 3], dtype: DType) -> (f64, f64, u8) {
+    nfh(&ray_sphere(&rows(&[o], dtype), &rows(&[d], dtype), [1.0, 2.0, 3.0], 1.0).unwrap())
+}
+
+fn shift(p: [f64; 3]) -> [f64; 3] {
+    [p[0] + 1.0, p[1] + 2.0, p[2] + 3.0]
+}
+
+#[test]
+fn sphere_simple_hit() {
+    for dtype in DTYPES {
+        let (n, f, h) = sphere1(shift([-5.0, 0.0, 0.0]), [2.0, 0.0, 0.0], dtype);
+        assert_eq!(h, 1);
+        assert!(
+            close(n, 2.0, tol(dtype)) && close(f, 3.0, tol(dtype)),
+            "{n} {f}"
+        );
+    }
+}
+
+#[test]
+fn sphere_tangent_ray_hits_with_near_equal_far() {
+    for dtype in DTYPES {
+        let (n, f, h) = sphere1(shift([-5.0, 1.0, 0.0]), [1.0, 0.0, 0.0], dtype);
+        assert_eq!(h, 1);
+        assert_eq!(n, f);
+        assert!(close(n, 5.0, tol(dtype)));
+    }
+}
+
+#[test]
+fn sphere_miss_gives_zero_near_far() {
+    for dtype in DTYPES {
+        for (o, d) in [
+            ([-5.0, 1.5, 0.0], [1.0, 0.0, 0.0]),  // passes beside
+            ([-5.0, 0.0, 0.0], [-1.0, 0.0, 0.0]), // sphere behind
+            ([1.0, 0.0, 0.0], [1.0, 0.0, 0.0]),   // on the surface, leaving
+        ] {
+            assert_eq!(sphere1(shift(o), d, dtype), (0.0, 0.0, 0), "{o:?} {d:?}");
+        }
+    }
+}
+
+#[test]
+fn sphere_origin_inside_gives_near_zero() {
+    for dtype in DTYPES {
+        let (n, f, h) = sphere1(shift([0.0, 0.5, 0.0]), [0.0, 0.0, 2.0], dtype);
+        assert_eq!(h, 1);
+        assert_eq!(n, 0.0);
+        assert!(close(f, 0.75f64.sqrt() / 2.0, tol(dtype)), "{f}");
+    }
+}
+
+#[test]
+fn sphere_far_away_origin_is_accurate_in_f32() {
+    // the stable root: the near root of a distant sphere keeps its relative accuracy
+    let (n, f, h) = sphere1(shift([-1e4, 0.0, 0.0]), [1.0, 0.0, 0.0], DType::F32);
+    assert_eq!(h, 1);
+    assert!(
+        close(n, 1e4 - 1.0, 1e-6) && close(f, 1e4 + 1.0, 1e-6),
+        "{n} {f}"
+    );
+}
+
+fn grads_of(
+    x: &Intersection,
+    o: &Var,
+    d: &Var,
+    wn: f64,
+    wf: f64,
+) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
+    let loss = ((&x.near * wn).unwrap() + (&x.far * wf).unwrap())
+        .unwrap()
+        .sum_all()
+        .unwrap();
+    let g = loss.backward().unwrap();
+    let go = g
+        .get(o)
+        .map(v2)
+        .unwrap_or_else(|| vec![vec![0.0; 3]; o.dim(0).unwrap()]);
+    let gd = g
+        .get(d)
+        .map(v2)
+        .unwrap_or_else(|| vec![vec![0.0; 3]; d.dim(0).unwrap()]);
+    (go, gd)
+}
+
+#[test]
+fn missed_parallel_and_tangent_rays_have_finite_gradients() {
+    let o = Var::new(
+        &[
+            [-5.0f64, 1.5, 0.0],
+            [-5.0, 1.0, 0.0],
+            [-2.0, 1.5, 0.0],
+            [-2.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0],
+        ],
+        &dev(),
+    )
+    .unwrap();
+    let d = Var::new(
+        &[
+            [1.0f64, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [-1.0, 1e-300, 0.0],
+            [0.0, 0.0, 1.0],
+        ],
+        &dev(),
+    )
+    .unwrap();
+    for x in [
+        ray_sphere(&o, &d, [0.0; 3], 1.0).unwrap(),
+        ray_aabb(&o, &d, [-1.0; 3], [1.0; 3]).unwrap(),
+    ] {
+        let (go, gd) = grads_of(&x, &o, &d, 1.0, 1.0);
+        for g in go.iter().chain(&gd).flatten() {
+            assert!(g.is_finite(), "{go:?} {gd:?}");
+        }
+    }
+}
+
+fn near_far_f64(o: [f64; 3], d: [f64; 3], sphere: bool) -> (f64, f64) {
+    let (ot, dt) = (rows(&[o], DType::F64), rows(&[d], DType::F64));
+    let x = if sphere {
+        ray_sphere(&ot, &dt, [0.1, -0.2, 0.3], 0.9).unwrap()
+    } else {
+        ray_aabb(&ot, &dt, [-0.5, -0.7, -0.6], [0.8, 0.5, 0.4]).unwrap()
+    };
+    let (n, f, h) = nfh(&x);
+    assert_eq!(h, 1);
+    (n, f)
+}
+
+/// Checks the gradient of `wn·near + wf·far` w.r.t. origin and direction against central
+/// finite differences.
+fn check_fd(o: [f64; 3], d: [f64; 3], sphere: bool) -> Result<(), TestCaseError> {
+    let (wn, wf) = (0.7, -1.3);
+    let ov = Var::new(&[o], &dev()).unwrap();
+    let dv = Var::new(&[d], &dev()).unwrap();
+    let x = if sphere {
+        ray_sphere(&ov, &dv, [0.1, -0.2, 0.3], 0.9).unwrap()
+    } else {
+        ray_aabb(&ov, &dv, [-0.5, -0.7, -0.6], [0.8, 0.5, 0.4]).unwrap()
+    };
+    prop_assume!(mask(&x.hit)[0] == 1);
+    let (go, gd) = grads_of(&x, &ov, &dv, wn, wf);
+    let f = |o: [f64; 3], d: [f64; 3]| {
+        let (n, f) = near_far_f64(o, d, sphere);
+        wn * n + wf * f
+    };
+    for which in 0..2 {
+        let (base, g) = if which == 0 { (o, &go[0]) } else { (d, &gd[0]) };
+        // step and error relative to the whole vector: components are compared against
+        // the gradient's largest entry, as FD noise scales with it
+        let h = 1e-6 * DVec3::from_array(base).length().max(1e-3);
+        let gmax = g.iter().fold(0.0f64, |a, b| a.max(b.abs()));
+        for k in 0..3 {
+            let (mut p, mut m) = (base, base);
+            p[k] += h;
+            m[k] -= h;
+            let fd = if which == 0 {
+                (f(p, d) - f(m, d)) / (2.0 * h)
+            } else {
+                (f(o, p) - f(o, m)) / (2.0 * h)
+            };
+            let err = (g[k] - fd).abs() / gmax.max(1e-12);
+            prop_assert!(
+                err <= 1e-5,
+                "k={k} which={which}: grad {} fd {fd} (o={o:?} d={d:?})",
+                g[k]
+            );
+        }
+    }
+    Ok(())
+}
+
+fn unit(v: [f64; 3]) -> DVec3 {
+    let v = DVec3::from_array(v);
+    if v.length() < 1e-3 {
+        DVec3::X
+    } else {
+        v.normalize()
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(128))]
+
+    #[test]
+    fn ray_sphere_gradients_match_finite_differences(
+        dir_o in prop::array::uniform3(-1.0f64..1.0),
+        dist in 1.2f64..50.0,
+        aim in prop::array::uniform3(-0.6f64..0.6),
+        scale in -3.0f64..3.0,
+        inside in proptest::bool::ANY,
+    ) {
+        let c = DVec3::new(0.1, -0.2, 0.3);
+        // origin outside (or inside at 0.5 r), aimed at a point well inside the sphere
+        let o = if inside { c + unit(dir_o) * 0.45 } else { c + unit(dir_o) * 0.9 * dist };
+        let d = (c + DVec3::from_array(aim) - o) * 10f64.powf(scale);
+        check_fd(o.to_array(), d.to_array(), true)?;
+    }
+
+    #[test]
+    fn ray_aabb_gradients_match_finite_differences(
+        o in prop::array::uniform3(-5.0f64..5.0),
+        aim in prop::array::uniform3(-0.3f64..0.3),
+        scale in -3.0f64..3.0,
+    ) {
+        let centre = DVec3::new(0.15, -0.1, -0.1);
+        let d = (centre + DVec3::from_array(aim) - DVec3::from_array(o)) * 10f64.powf(scale);
+        check_fd(o, d.to_array(), false)?;
+    }
+}
+
+// ---------------------------------------------------------------- differentiable pose
+
+fn set_var(v: &Var, data: &[f64]) {
+    v.set(&Tensor::new(data, &dev()).unwrap()).unwrap();
+}
+
+#[test]
+fn pose_param_round_trips_and_matches_camera_rays() {
+    let pose = DAffine3::from_rotation_translation(
+        DQuat::from_axis_angle(DVec3::new(-0.3, 0.2, 1.0).normalize(), 2.9),
+        DVec3::new(1.0, 2.0, -3.0),
+    );
+    for dtype in DTYPES {
+        for conv in CONVENTIONS {
+            let cam = Camera::new(intr(), pose, conv).unwrap();
+            let p = cam.pose_param(&dev(), dtype).unwrap();
+            assert_eq!(p.vars().len(), 2);
+            let back = p.to_affine().unwrap();
+            assert!(back.abs_diff_eq(pose, 10.0 * tol(dtype)), "{back:?}");
+            let px = Tensor::new(&[[0.5f64, 0.5], [40.0, 7.25]], &dev())
+                .unwrap()
+                .to_dtype(dtype)
+                .unwrap();
+            let a = cam.rays_for_pixels(&px).unwrap();
+            let b = p.rays(cam.intrinsics(), conv, &px).unwrap();
+            for (x, y) in v2(&a.directions)
+                .iter()
+                .flatten()
+                .zip(v2(&b.directions).iter().flatten())
+            {
+                assert!(close(*x, *y, 10.0 * tol(dtype)));
+            }
+            assert_eq!(v2(&a.origins), v2(&b.origins));
+        }
+    }
+}
+
+#[test]
+fn rotation_matrix_is_that_of_the_normalised_quaternion() {
+    let p = PoseParam::from_affine(&DAffine3::IDENTITY, &dev(), DType::F64).unwrap();
+    let raw = [0.3, -1.7, 0.4, 2.2];
+    set_var(&p.rotation, &raw);
+    let r = v2(&p.rotation_matrix().unwrap());
+    let q = DQuat::from_xyzw(raw[1], raw[2], raw[3], raw[0]).normalize();
+    let m = DMat3::from_quat(q);
+    for (i, row) in r.iter().enumerate() {
+        for (j, x) in row.iter().enumerate() {
+            assert!(close(*x, m.col(j)[i], 1e-14));
+        }
+    }
+    // scale invariance, including tiny quaternions whose square underflows
+    set_var(&p.rotation, &raw.map(|x| x * 1e-200));
+    let r2 = v2(&p.rotation_matrix().unwrap());
+    for (a, b) in r.iter().flatten().zip(r2.iter().flatten()) {
+        assert!(close(*a, *b, 1e-14));
+    }
+    p.renormalize().unwrap();
+    let unit = v1(&p.rotation);
+    assert!(
+        close(unit.iter().map(|x| x * x).sum::<f64>(), 1.0, 1e-15),
+        "{unit:?}"
+    );
+    let r3 = v2(&p.rotation_matrix().unwrap());
+    for (a, b) in r.iter().flatten().zip(r3.iter().flatten()) {
+        assert!(close(*a, *b, 1e-14));
+    }
+    set_var(&p.rotation, &[0.0; 4]);
+    assert_eq!(arg_of(p.renormalize()), "rotation");
+    assert_eq!(arg_of(p.rotation_matrix()), "rotation");
+    assert_eq!(arg_of(p.to_affine()), "rotation");
+}
+
+/// `Σ w·(o + t·d)` for rays from `p`, as a function of the variables.
+fn pose_objective(p: &PoseParam, px: &Tensor, t: &Tensor, w: &Tensor, conv: Convention) -> Tensor {
+    let rays = p.rays(&intr(), conv, px).unwrap();
+    (rays.at(t).unwrap() * w).unwrap().sum_all().unwrap()
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+
+    #[test]
+    fn ray_point_gradient_wrt_pose_matches_finite_differences(
+        q in prop::array::uniform4(-1.0f64..1.0),
+        tr in prop::array::uniform3(-10.0f64..10.0),
+        px in prop::array::uniform2(0.0f64..64.0),
+        t in 0.0f64..20.0,
+        w in prop::array::uniform3(-1.0f64..1.0),
+        qscale in -3.0f64..3.0,
+        gl in proptest::bool::ANY,
+    ) {
+        let norm = q.iter().map(|x| x * x).sum::<f64>().sqrt();
+        prop_assume!(norm > 0.1);
+        let q = q.map(|x| x * 10f64.powf(qscale));
+        let conv = if gl { Convention::OpenGl } else { Convention::OpenCv };
+        let p = PoseParam::from_affine(&DAffine3::IDENTITY, &dev(), DType::F64).unwrap();
+        set_var(&p.rotation, &q);
+        set_var(&p.translation, &tr);
+        let pxt = Tensor::new(&[px], &dev()).unwrap();
+        let tt = Tensor::new(&[t], &dev()).unwrap();
+        let wt = Tensor::new(&[w], &dev()).unwrap();
+        let g = pose_objective(&p, &pxt, &tt, &wt, conv).backward().unwrap();
+        let gq = v1(g.get(&p.rotation).unwrap());
+        let gt = v1(g.get(&p.translation).unwrap());
+        let eval = |q: &[f64], tr: &[f64]| {
+            set_var(&p.rotation, q);
+            set_var(&p.translation, tr);
+            pose_objective(&p, &pxt, &tt, &wt, conv).to_scalar::<f64>().unwrap()
+        };
+        // relative error against the gradient's largest entry (FD noise scales with it)
+        let fd_check = |g: &[f64], k: usize, fd: f64, what: &str| -> Result<(), TestCaseError> {
+            let gmax = g.iter().fold(1e-300f64, |a, b| a.max(b.abs()));
+            prop_assert!((g[k] - fd).abs() / gmax <= 1e-6, "{what}: grad {} fd {fd}", g[k]);
+            Ok(())
+        };
+        let qnorm = q.iter().map(|x| x * x).sum::<f64>().sqrt();
+        for k in 0..4 {
+            let h = 1e-5 * qnorm;
+            let (mut a, mut b) = (q, q);
+            a[k] += h;
+            b[k] -= h;
+            let fd = (eval(&a, &tr) - eval(&b, &tr)) / (2.0 * h);
+            fd_check(&gq, k, fd, &format!("q[{k}]"))?;
+        }
+        for k in 0..3 {
+            let h = 1e-5 * tr[k].abs().max(1.0);
+            let (mut a, mut b) = (tr, tr);
+            a[k] += h;
+            b[k] -= h;
+            let fd = (eval(&q, &a) - eval(&q, &b)) / (2.0 * h);
+            fd_check(&gt, k, fd, &format!("t[{k}]"))?;
+        }
+    }
+}
+
+// ---------------------------------------------------------------- degenerate cameras
+
+#[test]
+fn degenerate_cameras_are_errors() {
+    let i = intr();
+    let skew = DAffine3::from_mat3_translation(
+        DMat3::from_diagonal(DVec3::new(1.0, 1.0, 1.001)),
+        DVec3::ZERO,
+    );
+    assert_eq!(
+        arg_of(Camera::new(i, skew, Convention::OpenCv)),
+        "cam_to_world"
+    );
+    let mirror = DAffine3::from_mat3_translation(
+        DMat3::from_diagonal(DVec3::new(1.0, 1.0, -1.0)),
+        DVec3::ZERO,
+    );
+    assert_eq!(
+        arg_of(Camera::new(i, mirror, Convention::OpenCv)),
+        "cam_to_world"
+    );
+    let nan = DAffine3::from_translation(DVec3::new(f64::NAN, 0.0, 0.0));
+    assert_eq!(
+        arg_of(Camera::new(i, nan, Convention::OpenGl)),
+        "cam_to_world"
+    );
+    let p = DVec3::new(1.0, 2.0, 3.0);
+    assert_eq!(
+        arg_of(Camera::look_at(i, p, p, DVec3::Y, Convention::OpenCv)),
+        "target"
+    );
+    assert_eq!(
+        arg_of(Camera::look_at(
+            i,
+            p,
+            p + DVec3::Y,
+            DVec3::Y * -2.0,
+            Convention::OpenCv
+        )),
+        "up"
+    );
+    assert_eq!(
+        arg_of(Camera::look_at(
+            i,
+            p,
+            DVec3::ZERO,
+            DVec3::ZERO,
+            Convention::OpenCv
+        )),
+        "up"
+    );
+    assert_eq!(
+        arg_of(Camera::look_at(
+            i,
+            DVec3::NAN,
+            DVec3::ZERO,
+            DVec3::Y,
+            Convention::OpenCv
+        )),
+        "eye"
+    );
+    assert_eq!(arg_of(Intrinsics::new(0.0, 1.0, 0.0, 0.0, 4, 4)), "fx");
+    assert_eq!(arg_of(Intrinsics::new(-1.0, 1.0, 0.0, 0.0, 4, 4)), "fx");
+    assert_eq!(
+        arg_of(Intrinsics::new(1.0, f64::INFINITY, 0.0, 0.0, 4, 4)),
+        "fy"
+    );
+    assert_eq!(arg_of(Intrinsics::new(1.0, 1.0, f64::NAN, 0.0, 4, 4)), "cx");
+    assert_eq!(arg_of(Intrinsics::new(1.0, 1.0, 0.0, f64::NAN, 4, 4)), "cy");
+    assert_eq!(arg_of(Intrinsics::new(1.0, 1.0, 0.0, 0.0, 0, 4)), "width");
+    assert_eq!(arg_of(Intrinsics::new(1.0, 1.0, 0.0, 0.0, 4, 0)), "height");
+    assert_eq!(
+        arg_of(Intrinsics::new(1.0, 1.0, 0.0, 0.0, 1 << 20, 1 << 20)),
+        "width"
+    );
+    for fov in [0.0, std::f64::consts::PI, -1.0, f64::NAN] {
+        assert_eq!(arg_of(Intrinsics::from_fov_y(4, 4, fov)), "fov_y");
+    }
+    let f = Intrinsics::from_fov_y(64, 48, std::f64::consts::FRAC_PI_2).unwrap();
+    assert!(close(f.fy, 24.0, 1e-12) && f.fx == f.fy && f.cx == 32.0 && f.cy == 24.0);
+    assert_eq!(
+        arg_of(PoseParam::from_affine(&skew, &dev(), DType::F64)),
+        "pose"
+    );
+}
+
+// ---------------------------------------------------------------- argument validation
+
+#[test]
+fn camera_directions_rejects_bad_pixels() {
+    let i = intr();
+    let bad_shape = Tensor::zeros((4, 3), DType::F32, &dev()).unwrap();
+    let bad_rank = Tensor::zeros(4, DType::F32, &dev()).unwrap();
+    let bad_dtype = Tensor::zeros((4, 2), DType::U32, &dev()).unwrap();
+    let nan = Tensor::new(&[[f32::NAN, 0.0]], &dev()).unwrap();
+    for t in [&bad_shape, &bad_rank, &bad_dtype, &nan] {
+        assert_eq!(arg_of(i.camera_directions(t, Convention::OpenCv)), "pixels");
+    }
+    let cam = Camera::look_at(i, DVec3::ZERO, DVec3::Z, DVec3::Y, Convention::OpenCv).unwrap();
+    for t in [&bad_shape, &bad_rank, &bad_dtype, &nan] {
+        assert_eq!(arg_of(cam.rays_for_pixels(t)), "pixels");
+    }
+}
+
+#[test]
+fn camera_methods_reject_bad_dtype_and_n() {
+    let cam = Camera::look_at(intr(), DVec3::ZERO, DVec3::Z, DVec3::Y, Convention::OpenCv).unwrap();
+    for dt in [DType::U8, DType::U32, DType::I64, DType::BF16] {
+        assert_eq!(arg_of(cam.rays(&dev(), dt)), "dtype");
+        assert_eq!(arg_of(cam.pixel_grid(&dev(), dt)), "dtype");
+        assert_eq!(arg_of(cam.random_rays(4, 0, &dev(), dt)), "dtype");
+        assert_eq!(arg_of(cam.pose_param(&dev(), dt)), "dtype");
+    }
+    assert_eq!(arg_of(cam.random_rays(0, 0, &dev(), DType::F32)), "n");
+}
+
+#[test]
+fn rays_new_rejects_bad_origins_and_directions() {
+    let ok = Tensor::zeros((4, 3), DType::F32, &dev()).unwrap();
+    let ok64 = Tensor::zeros((4, 3), DType::F64, &dev()).unwrap();
+    let short = Tensor::zeros((3, 3), DType::F32, &dev()).unwrap();
+    let two = Tensor::zeros((4, 2), DType::F32, &dev()).unwrap();
+    let ints = Tensor::zeros((4, 3), DType::U32, &dev()).unwrap();
+    assert_eq!(arg_of(Rays::new(two.clone(), ok.clone())), "origins");
+    assert_eq!(arg_of(Rays::new(ints.clone(), ok.clone())), "origins");
+    assert_eq!(arg_of(Rays::new(ok.clone(), two.clone())), "directions");
+    assert_eq!(arg_of(Rays::new(ok.clone(), short.clone())), "directions");
+    assert_eq!(arg_of(Rays::new(ok.clone(), ok64.clone())), "directions");
+    assert_eq!(arg_of(Rays::new(ok.clone(), ints.clone())), "directions");
+}
+
+type Intersect = fn(&Tensor, &Tensor) -> neural_fields::Result<Intersection>;
+
+#[test]
+fn intersections_reject_bad_shapes_and_dtypes() {
+    let aabb: Intersect = |o, d| ray_aabb(o, d, [-1.0; 3], [1.0; 3]);
+    let sphere: Intersect = |o, d| ray_sphere(o, d, [0.0; 3], 1.0);
+    let ok = rows(&[[0.0, 0.0, -3.0], [0.0, 0.0, -3.0]], DType::F32);
+    let ok64 = rows(&[[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]], DType::F64);
+    let dir = rows(&[[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]], DType::F32);
+    let short = rows(&[[0.0, 0.0, 1.0]], DType::F32);
+    let two = Tensor::ones((2, 2), DType::F32, &dev()).unwrap();
+    let ints = Tensor::ones((2, 3), DType::U32, &dev()).unwrap();
+    for f in [aabb, sphere] {
+        assert!(f(&ok, &dir).is_ok());
+        assert_eq!(arg_of(f(&two, &dir)), "origins");
+        assert_eq!(arg_of(f(&ints, &dir)), "origins");
+        assert_eq!(arg_of(f(&ok, &two)), "directions");
+        assert_eq!(arg_of(f(&ok, &ints)), "directions");
+        assert_eq!(arg_of(f(&ok, &short)), "directions");
+        assert_eq!(arg_of(f(&ok, &ok64)), "directions");
+    }
+}
+
+#[test]
+fn rays_methods_reject_bad_arguments() {
+    let o = rows(&[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], DType::F32);
+    let d = rows(&[[0.0, 0.0, 1.0], [0.0, 2.0, 0.0]], DType::F32);
+    let rays = Rays::new(o, d).unwrap();
+    assert_eq!(
+        arg_of(rays.at(&Tensor::zeros(3, DType::F32, &dev()).unwrap())),
+        "t"
+    );
+    assert_eq!(
+        arg_of(rays.at(&Tensor::zeros((2, 1), DType::F32, &dev()).unwrap())),
+        "t"
+    );
+    assert_eq!(
+        arg_of(rays.at(&Tensor::zeros(2, DType::F64, &dev()).unwrap())),
+        "t"
+    );
+    assert_eq!(
+        arg_of(rays.at(&Tensor::zeros(2, DType::U32, &dev()).unwrap())),
+        "t"
+    );
+    assert_eq!(arg_of(rays.narrow(3, 0)), "start");
+    assert_eq!(arg_of(rays.narrow(1, 2)), "len");
+    assert!(rays.narrow(2, 0).unwrap().is_empty());
+    let p = v2(&rays
+        .at(&Tensor::new(&[2.0f32, 0.5], &dev()).unwrap())
+        .unwrap());
+    assert_eq!(p, vec![vec![0.0, 0.0, 2.0], vec![1.0, 1.0, 0.0]]);
+    let n = v2(&rays.normalized().unwrap().directions);
+    assert_eq!(n, vec![vec![0.0, 0.0, 1.0], vec![0.0, 1.0, 0.0]]);
+}
+
+#[test]
+fn pose_param_rejects_bad_arguments() {
+    let p = PoseParam::from_affine(&DAffine3::IDENTITY, &dev(), DType::F32).unwrap();
+    let i = intr();
+    let px64 = Tensor::zeros((2, 2), DType::F64, &dev()).unwrap();
+    let px3 = Tensor::zeros((2, 3), DType::F32, &dev()).unwrap();
+    let pxu = Tensor::zeros((2, 2), DType::U32, &dev()).unwrap();
+    for px in [&px64, &px3, &pxu] {
+        assert_eq!(arg_of(p.rays(&i, Convention::OpenCv, px)), "pixels");
+    }
+    let wrong_rot = PoseParam {
+        rotation: Var::zeros(3, DType::F32, &dev()).unwrap(),
+        translation: p.translation.clone(),
+    };
+    assert_eq!(arg_of(wrong_rot.rotation_matrix()), "rotation");
+    assert_eq!(arg_of(wrong_rot.to_affine()), "rotation");
+    let wrong_tr = PoseParam {
+        rotation: p.rotation.clone(),
+        translation: Var::zeros(3, DType::F64, &dev()).unwrap(),
+    };
+    assert_eq!(arg_of(wrong_tr.rotation_matrix()), "translation");
+    let wrong_shape_tr = PoseParam {
+        rotation: p.rotation.clone(),
+        translation: Var::zeros(4, DType::F32, &dev()).unwrap(),
+    };
+    assert_eq!(arg_of(wrong_shape_tr.to_affine()), "translation");
+}
+
+// ---------------------------------------------------------------- stiff batches
+
+/// A deterministic batch of rays over extreme ranges: origins up to 1e6, direction scales
+/// 1e-10 … 1e10, some components exactly 0.
+fn stiff_batch(n: usize) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+    let mut s = 12345u64;
+    let mut next = || {
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (s >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let (mut o, mut d) = (Vec::new(), Vec::new());
+    for i in 0..n {
+        let scale_o = 10f64.powf(6.0 * next() - 1.0);
+        let oi = [
+            (next() - 0.5) * scale_o,
+            (next() - 0.5) * scale_o,
+            (next() - 0.5) * scale_o,
+        ];
+        let target = [next() - 0.5, next() - 0.5, next() - 0.5];
+        let scale_d = 10f64.powf(20.0 * next() - 10.0);
+        let mut di = [0.0; 3];
+        for k in 0..3 {
+            di[k] = (target[k] - oi[k]) * scale_d;
+        }
+        if i % 7 == 0 {
+            di[i % 3] = 0.0;
+        }
+        if di.iter().all(|x| *x == 0.0) {
+            di[0] = 1.0;
+        }
+        o.push(oi);
+        d.push(di);
+    }
+    (o, d)
+}
+
+#[test]
+fn stiff_batches_give_finite_values_and_gradients_and_f32_agrees_with_f64() {
+    let (o, d) = stiff_batch(2000);
+    let mut results = Vec::new();
+    for dtype in DTYPES {
+        let ov = Var::from_tensor(&rows(&o, dtype)).unwrap();
+        let dv = Var::from_tensor(&rows(&d, dtype)).unwrap();
+        for sphere in [false, true] {
+            let x = if sphere {
+                ray_sphere(&ov, &dv, [0.0; 3], 0.5).unwrap()
+            } else {
+                ray_aabb(&ov, &dv, [-0.5; 3], [0.5; 3]).unwrap()
+            };
+            let (go, gd) = grads_of(&x, &ov, &dv, 1.0, 1.0);
+            for g in go.iter().chain(&gd).flatten() {
+                assert!(g.is_finite(), "{dtype:?} sphere={sphere}");
+            }
+            let (n, f, h) = (v1(&x.near), v1(&x.far), mask(&x.hit));
+            assert!(n.iter().chain(&f).all(|v| v.is_finite()));
+            results.push((n, f, h));
+        }
+    }
+    // f32 (first two) against f64 (last two): hits agree, near/far relative 1e-4
+    for s in 0..2 {
+        let (n32, f32_, h32) = &results[s];
+        let (n64, f64_, h64) = &results[s + 2];
+        let agree = h32.iter().zip(h64).filter(|(a, b)| a == b).count();
+        assert!(
+            agree >= h32.len() - 2,
+            "sphere={s}: {agree} of {}",
+            h32.len()
+        );
+        assert!(
+            h64.iter().filter(|h| **h == 1).count() > 500,
+            "the batch should mostly hit"
+        );
+        for i in 0..h32.len() {
+            if h32[i] == 1 && h64[i] == 1 {
+                let rel = |a: f64, b: f64| (a - b).abs() / b.abs().max(f64::MIN_POSITIVE);
+                let near_ok = (n64[i] == 0.0 && n32[i] == 0.0) || rel(n32[i], n64[i]) < 1e-4;
+                assert!(near_ok, "{i}: near {} vs {}", n32[i], n64[i]);
+                assert!(
+                    rel(f32_[i], f64_[i]) < 1e-4,
+                    "{i}: far {} vs {}",
+                    f32_[i],
+                    f64_[i]
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn normalized_and_camera_directions_gradients_match_finite_differences() {
+    let w = Tensor::new(&[[0.3f64, -0.8, 0.5]], &dev()).unwrap();
+    for d0 in [
+        [0.3f64, -1.2, 2.0],
+        [3e-200, -1e-200, 2e-200],
+        [0.0, 0.0, -4.0],
+    ] {
+        let dv = Var::new(&[d0], &dev()).unwrap();
+        let o = Tensor::zeros((1, 3), DType::F64, &dev()).unwrap();
+        let f = |d: &Tensor| {
+            let r = Rays::new(o.clone(), d.clone())
+                .unwrap()
+                .normalized()
+                .unwrap();
+            (r.directions * &w).unwrap().sum_all().unwrap()
+        };
+        let g = v2(f(&dv).backward().unwrap().get(&dv).unwrap())[0].clone();
+        let h = 1e-6 * d0.iter().fold(0.0f64, |a, b| a.max(b.abs()));
+        let gmax = g.iter().fold(0.0f64, |a, b| a.max(b.abs()));
+        for k in 0..3 {
+            let (mut a, mut b) = (d0, d0);
+            a[k] += h;
+            b[k] -= h;
+            let fa = f(&rows(&[a], DType::F64)).to_scalar::<f64>().unwrap();
+            let fb = f(&rows(&[b], DType::F64)).to_scalar::<f64>().unwrap();
+            let fd = (fa - fb) / (2.0 * h);
+            assert!(
+                (g[k] - fd).abs() <= 1e-6 * gmax,
+                "{d0:?} k={k}: {} vs {fd}",
+                g[k]
+            );
+        }
+    }
+    // d_cam is affine in the pixel coordinates: ∂x/∂px = 1/fx, ∂y/∂py = ±1/fy
+    let i = intr();
+    for (conv, sy) in [(Convention::OpenCv, 1.0), (Convention::OpenGl, -1.0)] {
+        let px = Var::new(&[[3.0f64, 4.0]], &dev()).unwrap();
+        let d = i.camera_directions(&px, conv).unwrap();
+        let g = v2(d.sum_all().unwrap().backward().unwrap().get(&px).unwrap());
+        assert!(
+            close(g[0][0], 1.0 / i.fx, 1e-15) && close(g[0][1], sy / i.fy, 1e-15),
+            "{g:?}"
+        );
+    }
+}
