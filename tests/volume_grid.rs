@@ -441,3 +441,94 @@ fn grid_bad_input_errs_naming_the_argument() {
         "origins"
     );
 }
+
+/// A field with many occupied and empty regions at every level.
+fn blobs(p: &Tensor) -> Result<Tensor> {
+    let x = p.narrow(1, 0, 1)?.squeeze(1)?;
+    let y = p.narrow(1, 1, 1)?.squeeze(1)?;
+    let z = p.narrow(1, 2, 1)?.squeeze(1)?;
+    let v = ((x * 3.1)?.sin()? * (y * 2.3)?.sin()?)?.mul(&(z * 1.7)?.sin()?)?;
+    Ok(v.affine(1.0, -0.3)?.relu()?)
+}
+
+#[test]
+fn jumping_over_empty_cells_gives_exactly_the_step_by_step_march() {
+    let dev = Device::Cpu;
+    let aabb = [-1.0, -0.5, -1.0, 1.0, 1.5, 0.5];
+    let cfg = GridConfig {
+        dilate: false,
+        ..GridConfig::default()
+    };
+    let mut grid = OccupancyGrid::with_config(aabb, 16, 3, cfg).unwrap();
+    for step in 0..4 {
+        grid.update(step, 1, &dev, DType::F64, blobs).unwrap();
+    }
+    let occ = grid.occupied_fraction();
+    assert!(occ > 0.05 && occ < 0.95, "occupied fraction {occ}");
+    let full_grid = OccupancyGrid::new(aabb, 16, 3).unwrap();
+    // Random rays from outside and inside, plus rays along cell faces and level boundaries.
+    let mut rng = neural_fields::rng::SplitMix64::new(9);
+    let mut o = Vec::new();
+    let mut d = Vec::new();
+    for i in 0..600 {
+        let mut u = || 2.0 * rng.uniform() - 1.0;
+        if i < 400 {
+            o.extend([4.0 * u(), 4.0 * u() + 0.5, 4.0 * u() - 0.25]);
+            d.extend([u(), u(), u()]);
+        } else if i < 500 {
+            // Along x at y, z exactly on level-0 and level-1 cell faces.
+            let k = (i - 400) as f64;
+            o.extend([-5.0, -0.5 + 0.125 * (k % 17.0), -1.0 + 0.25 * (k % 9.0)]);
+            d.extend([1.0, 0.0, 0.0]);
+        } else {
+            // Nearly parallel to a face, slowly crossing it.
+            let k = (i - 500) as f64;
+            o.extend([-5.0, 0.5 + 1e-3 * k, -0.25]);
+            d.extend([1.0, 1e-12 * (k - 50.0), 1e-9]);
+        }
+    }
+    let n = o.len() / 3;
+    let o = Tensor::from_vec(o, (n, 3), &dev).unwrap();
+    let d = Tensor::from_vec(d, (n, 3), &dev).unwrap();
+    for h in [0.01, 0.0137, 0.05] {
+        let opts = MarchOptions::new(0.0, f64::INFINITY, h);
+        let full = full_grid.sample(&o, &d, &opts).unwrap();
+        let skip = grid.sample(&o, &d, &opts).unwrap();
+        assert_eq!(full.n_marched, skip.n_marched);
+        // The step-by-step answer: every interval of the full march whose midpoint's
+        // cell is occupied.
+        let fs = full.starts.to_vec1::<f64>().unwrap();
+        let fe = full.ends.to_vec1::<f64>().unwrap();
+        let fr = full.packed.ray_indices.to_vec1::<u32>().unwrap();
+        let oh = o.to_vec2::<f64>().unwrap();
+        let dh = d.to_vec2::<f64>().unwrap();
+        let mut want = Vec::new();
+        for i in 0..fs.len() {
+            let r = fr[i] as usize;
+            let m = 0.5 * (fs[i] + fe[i]);
+            let p = [
+                oh[r][0] + m * dh[r][0],
+                oh[r][1] + m * dh[r][1],
+                oh[r][2] + m * dh[r][2],
+            ];
+            if grid.is_occupied(p) {
+                want.push((r as u32, fs[i], fe[i]));
+            }
+        }
+        let ss = skip.starts.to_vec1::<f64>().unwrap();
+        let se = skip.ends.to_vec1::<f64>().unwrap();
+        let sr = skip.packed.ray_indices.to_vec1::<u32>().unwrap();
+        let got: Vec<(u32, f64, f64)> = (0..ss.len()).map(|i| (sr[i], ss[i], se[i])).collect();
+        println!(
+            "step {h}: {} intervals marched, {} kept (occupied {:.1}% of cells)",
+            full.n_marched,
+            got.len(),
+            100.0 * occ
+        );
+        assert_eq!(got.len(), want.len(), "step {h}");
+        assert!(
+            got == want,
+            "step {h}: jumped march differs from the step-by-step one"
+        );
+    }
+}

@@ -32,8 +32,11 @@
 //! interval `[t, t + Δt]` iff the cell containing its midpoint is occupied. The kept
 //! intervals are exactly the ones the same march would produce without a grid, minus
 //! those in empty cells: skipping changes a render only through density the grid has
-//! missed. The traversal runs on the host over `to_vec` copies of the rays, in parallel
-//! over rays with rayon; the results are placed on the rays' device.
+//! missed. With a fixed step, interval `k` is `[t₀ + k·Δt, min(t₀ + (k+1)·Δt, t₁)]` and
+//! runs of steps inside one empty cell are jumped over in O(1) (the jump is verified so
+//! that the result is exactly the step-by-step one; see `skip_empty`); cone stepping
+//! visits every step. The traversal runs on the host over `to_vec` copies of the rays, in
+//! parallel over rays with rayon; the results are placed on the rays' device.
 
 use crate::error::{check_float, check_points, check_same, check_scalar, Error, Result};
 use crate::volume::composite::Packed;
@@ -125,6 +128,37 @@ impl MarchOptions {
     #[must_use]
     pub fn with_cone_angle(self, cone_angle: f64) -> Self {
         MarchOptions { cone_angle, ..self }
+    }
+}
+
+/// The position `o + m·d`.
+fn point(o: &[f64; 3], d: &[f64; 3], m: f64) -> [f64; 3] {
+    [o[0] + m * d[0], o[1] + m * d[1], o[2] + m * d[2]]
+}
+
+/// A fixed-step march along one ray.
+struct FixedMarch {
+    o: [f64; 3],
+    d: [f64; 3],
+    t0: f64,
+    t1: f64,
+    h: f64,
+    n_steps: usize,
+}
+
+impl FixedMarch {
+    /// Interval `k`: `[t0 + k·h, min(t0 + (k + 1)·h, t1)]`.
+    fn interval(&self, k: usize) -> (f64, f64) {
+        let t = self.t0 + k as f64 * self.h;
+        let te = (self.t0 + (k + 1) as f64 * self.h).min(self.t1);
+        (t, te)
+    }
+
+    /// The position at the midpoint of interval `k`.
+    fn midpoint(&self, k: usize) -> (f64, [f64; 3]) {
+        let (t, te) = self.interval(k);
+        let m = 0.5 * (t + te);
+        (m, point(&self.o, &self.d, m))
     }
 }
 
@@ -404,6 +438,85 @@ impl OccupancyGrid {
         }
     }
 
+    /// The next step to visit after step `k` of `march`, whose midpoint lies in the
+    /// empty cell `cell`: the first step whose midpoint may lie outside that cell.
+    ///
+    /// The jump target `j` is estimated from where the ray leaves the cell (or enters
+    /// the next finer level's box, slightly enlarged), with one step of margin, and then
+    /// verified: the midpoint of step `j − 1` must map to `cell` too. Midpoint
+    /// coordinates are monotone in the step index, even in floating point (every
+    /// operation producing them is monotone), so each axis index of the steps between
+    /// lies between those of steps `k` and `j − 1`, i.e. equals the cell's; and as each
+    /// `|p_a − c_a|` is quasi-convex along the ray, their level cannot be coarser, nor
+    /// (by the enlarged finer box) finer. Hence every skipped step has its midpoint in
+    /// `cell`: jumping gives exactly the intervals of the step-by-step march.
+    fn skip_empty(&self, cell: usize, k: usize, march: &FixedMarch) -> usize {
+        let res = self.resolution;
+        let per_level = res * res * res;
+        let level = cell / per_level;
+        let scale = (1u64 << level) as f64;
+        let (c, h) = self.centre_half();
+        let mut rest = cell % per_level;
+        let mut ijk = [0usize; 3];
+        for a in (0..3).rev() {
+            ijk[a] = rest % res;
+            rest /= res;
+        }
+        let (m, _) = march.midpoint(k);
+        let (o, d) = (&march.o, &march.d);
+        let mut t_exit = f64::INFINITY;
+        for a in 0..3 {
+            if d[a] != 0.0 {
+                let lo = c[a] - h[a] * scale;
+                let size = 2.0 * h[a] * scale / res as f64;
+                let upper = usize::from(d[a] > 0.0);
+                let bound = lo + (ijk[a] + upper) as f64 * size;
+                t_exit = t_exit.min((bound - o[a]) / d[a]);
+            }
+        }
+        if level >= 1 {
+            let inner = 0.5 * scale * (1.0 + 1e-9);
+            let (mut t_in, mut t_out) = (f64::NEG_INFINITY, f64::INFINITY);
+            for a in 0..3 {
+                let (lo, hi) = (c[a] - h[a] * inner, c[a] + h[a] * inner);
+                if d[a] == 0.0 {
+                    if o[a] < lo || o[a] > hi {
+                        t_in = f64::INFINITY;
+                        t_out = f64::NEG_INFINITY;
+                    }
+                } else {
+                    let (ta, tb) = ((lo - o[a]) / d[a], (hi - o[a]) / d[a]);
+                    t_in = t_in.max(ta.min(tb));
+                    t_out = t_out.min(ta.max(tb));
+                }
+            }
+            if t_in <= t_out && t_out >= m {
+                if t_in <= m {
+                    return k + 1;
+                }
+                t_exit = t_exit.min(t_in);
+            }
+        }
+        let j = ((t_exit - march.t0) / march.h - 0.5).floor() - 1.0;
+        if j.is_nan() || j < (k + 2) as f64 {
+            return k + 1;
+        }
+        let j = if j >= march.n_steps as f64 {
+            march.n_steps
+        } else {
+            j as usize
+        };
+        if j < k + 2 {
+            return k + 1;
+        }
+        let (_, p_end) = march.midpoint(j - 1);
+        if self.cell_of(p_end) == Some(cell) {
+            j
+        } else {
+            k + 1
+        }
+    }
+
     /// Whether the point `p` lies in an occupied cell (false outside the last level).
     #[must_use]
     pub fn is_occupied(&self, p: [f64; 3]) -> bool {
@@ -631,22 +744,63 @@ impl OccupancyGrid {
                     }
                 }
                 let mut kept = Vec::new();
-                let mut marched = 0usize;
-                let mut t = t0;
-                while t < t1 {
-                    if marched >= max_steps {
-                        return Err(ray);
+                if cone_angle > 0.0 {
+                    let mut marched = 0usize;
+                    let mut t = t0;
+                    while t < t1 {
+                        if marched >= max_steps {
+                            return Err(ray);
+                        }
+                        let dt = (cone_angle * t).clamp(step_size, max_step.max(step_size));
+                        let te = (t + dt).min(t1);
+                        let m = 0.5 * (t + te);
+                        marched += 1;
+                        if self.is_occupied(point(&oo, &dd, m)) {
+                            kept.push((t, te));
+                        }
+                        t = te;
                     }
-                    let dt = (cone_angle * t).clamp(step_size, max_step.max(step_size));
-                    let te = (t + dt).min(t1);
-                    let m = 0.5 * (t + te);
-                    let p = [oo[0] + m * dd[0], oo[1] + m * dd[1], oo[2] + m * dd[2]];
-                    marched += 1;
-                    if self.is_occupied(p) {
-                        kept.push((t, te));
-                    }
-                    t = te;
+                    return Ok((kept, marched));
                 }
+                // Fixed step: interval k is [t0 + k·h, min(t0 + (k + 1)·h, t1)] for
+                // k < n_steps, and runs of empty cells are jumped over.
+                if t0.is_nan() || t1.is_nan() || t0 >= t1 {
+                    return Ok((kept, 0));
+                }
+                let h = step_size;
+                let approx = ((t1 - t0) / h).ceil();
+                if approx.is_nan() || approx > max_steps as f64 {
+                    return Err(ray);
+                }
+                let mut n_steps = approx as usize;
+                while n_steps > 0 && t0 + (n_steps - 1) as f64 * h >= t1 {
+                    n_steps -= 1;
+                }
+                while t0 + n_steps as f64 * h < t1 {
+                    n_steps += 1;
+                }
+                let march = FixedMarch {
+                    o: oo,
+                    d: dd,
+                    t0,
+                    t1,
+                    h,
+                    n_steps,
+                };
+                let mut k = 0usize;
+                while k < n_steps {
+                    let (t, te) = march.interval(k);
+                    let p = point(&oo, &dd, 0.5 * (t + te));
+                    match self.cell_of(p) {
+                        Some(c) if self.occupied[c] => {
+                            kept.push((t, te));
+                            k += 1;
+                        }
+                        Some(c) => k = self.skip_empty(c, k, &march),
+                        None => k += 1,
+                    }
+                }
+                let marched = n_steps;
                 Ok((kept, marched))
             })
             .collect();
