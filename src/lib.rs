@@ -103,6 +103,8 @@ pub mod field;
 pub mod nn;
 pub mod numerics;
 pub mod rng;
+#[cfg(feature = "volume")]
+pub mod volume;
 
 pub use error::{Error, Result};
 
