@@ -14,6 +14,8 @@
 
 mod encoding;
 mod report;
+#[cfg(feature = "volume")]
+mod volume;
 
 use report::{markdown, slug, svg, Table};
 use std::path::{Path, PathBuf};
@@ -24,6 +26,8 @@ const END: &str = "<!-- error_vs_time:end -->";
 fn studies(quick: bool) -> Vec<Table> {
     let mut tables = Vec::new();
     tables.extend(encoding::run(quick));
+    #[cfg(feature = "volume")]
+    tables.extend(volume::run(quick));
     tables
 }
 
