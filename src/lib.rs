@@ -88,7 +88,7 @@
 //! | `occupancy` | yes | occupancy networks: losses, samplers, meshes, marching cubes, MISE, metrics (planned) |
 //! | `texture` | yes | texture fields and photometric losses (planned) |
 //! | `dvr` | yes | surface rendering with implicit gradients (planned) |
-//! | `volume` | yes | NeRF sampling and compositing |
+//! | `volume` | yes | NeRF samplers, compositing (reference and fused CPU kernel), occupancy grid, regularisers |
 //! | `cuda` | no | candle's CUDA backend (needs nvcc) |
 //!
 //! The derivations behind every gradient are in `docs/math.md`.
