@@ -666,3 +666,27 @@ mod activations {
         }
     }
 }
+
+/// When δ and t are plain tensors (no gradient), the op skips their gradients; the
+/// gradients it does produce are unchanged.
+#[test]
+fn gradients_with_constant_deltas_match_reference() {
+    let (sig, col, del, tm) = batched(5, 33, 3, 4242);
+    let run = |f: &dyn Fn(&Tensor, &Tensor) -> Composite| {
+        let s = Var::from_tensor(&sig).unwrap();
+        let c = Var::from_tensor(&col).unwrap();
+        let out = f(s.as_tensor(), c.as_tensor());
+        let l = loss(&out, &[0.3, -1.0, 2.0, 0.7, -0.2]);
+        let g = l.backward().unwrap();
+        (
+            v1(g.get(s.as_tensor()).unwrap()),
+            v1(g.get(c.as_tensor()).unwrap()),
+        )
+    };
+    let opts = CompositeOptions::default();
+    let (gs_f, gc_f) = run(&|s, c| composite_fused(s, c, &del, &tm, &opts).unwrap());
+    let (gs_r, gc_r) = run(&|s, c| composite_reference(s, c, &del, &tm, &opts).unwrap());
+    for (a, b) in gs_f.iter().zip(&gs_r).chain(gc_f.iter().zip(&gc_r)) {
+        assert!((a - b).abs() <= 1e-10 * (1.0 + b.abs()), "{a} vs {b}");
+    }
+}

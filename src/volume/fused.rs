@@ -307,35 +307,58 @@ impl FusedComposite {
         out
     }
 
-    /// Gradients with respect to (sigmas, geometry, values) given `grad` `[R, K + G]`.
+    /// Gradients with respect to (sigmas, geometry, values) given `grad` `[R, K + G]`;
+    /// `need` says which of the three to produce (the others are returned empty and not
+    /// computed, saving their allocation and writes).
     fn backward<T: WithDType>(
         &self,
         sig: &[T],
         geo: &[T],
         vals: &[T],
         grad: &[T],
+        need: [bool; 3],
     ) -> (Vec<T>, Vec<T>, Vec<T>) {
         let (k, width) = (self.k, self.k + self.g());
         let m = self.seg.n_samples();
-        let mut gs = vec![T::zero(); m];
-        let mut ggeo = vec![T::zero(); m * self.g()];
-        let mut gv = vec![T::zero(); m * k];
-        let (gd, gt) = ggeo.split_at_mut(m);
-        let gt_rays: Vec<Option<&mut [T]>> = if self.depth {
-            split_rays(gt, &self.seg, 1).into_iter().map(Some).collect()
+        let alloc = |on: bool, len: usize| if on { vec![T::zero(); len] } else { Vec::new() };
+        let mut gs = alloc(need[0], m);
+        let mut ggeo = alloc(need[1], m * self.g());
+        let mut gv = alloc(need[2], m * k);
+        let r = self.seg.n_rays();
+        let none = || (0..r).map(|_| None).collect::<Vec<Option<&mut [T]>>>();
+        let seg = &self.seg;
+        fn some<'a, T>(buf: &'a mut [T], seg: &Segments, k: usize) -> Vec<Option<&'a mut [T]>> {
+            split_rays(buf, seg, k).into_iter().map(Some).collect()
+        }
+        let (gd_rays, gt_rays) = if need[1] {
+            let (gd, gt) = ggeo.split_at_mut(m);
+            (
+                some(gd, seg, 1),
+                if self.depth { some(gt, seg, 1) } else { none() },
+            )
         } else {
-            (0..self.seg.n_rays()).map(|_| None).collect()
+            (none(), none())
         };
-        let rays: Vec<_> = split_rays(&mut gs, &self.seg, 1)
+        let gs_rays = if need[0] {
+            some(&mut gs, seg, 1)
+        } else {
+            none()
+        };
+        let gv_rays = if need[2] {
+            some(&mut gv, seg, k)
+        } else {
+            none()
+        };
+        let rays: Vec<_> = gs_rays
             .into_iter()
-            .zip(split_rays(gd, &self.seg, 1))
-            .zip(split_rays(&mut gv, &self.seg, k))
+            .zip(gd_rays)
+            .zip(gv_rays)
             .zip(gt_rays)
             .enumerate()
             .collect();
         rays.into_par_iter().with_min_len(16).for_each_init(
             Scratch::default,
-            |sc, (ray, (((gs_r, gd_r), gv_r), mut gt_r))| {
+            |sc, (ray, (((mut gs_r, mut gd_r), mut gv_r), mut gt_r))| {
                 let (a, b) = self.seg.range(ray);
                 let n = b - a;
                 if n == 0 {
@@ -358,13 +381,19 @@ impl FusedComposite {
                     let v = &vals[j * k..(j + 1) * k];
                     let w = sc.w[j];
                     let mut u = g_op;
-                    for c in 0..k {
-                        u += sc.g[c] * v[c].to_f64();
-                        gv_r[j * k + c] = T::from_f64(w * sc.g[c]);
+                    for (gc, vc) in sc.g[..k].iter().zip(v) {
+                        u += gc * vc.to_f64();
                     }
-                    if let (Some(tm), Some(gt_r)) = (tm, gt_r.as_deref_mut()) {
+                    if let Some(gv_r) = gv_r.as_deref_mut() {
+                        for (o, gc) in gv_r[j * k..(j + 1) * k].iter_mut().zip(&sc.g[..k]) {
+                            *o = T::from_f64(w * gc);
+                        }
+                    }
+                    if let Some(tm) = tm {
                         u += g_dep * tm[j].to_f64();
-                        gt_r[j] = T::from_f64(w * g_dep);
+                        if let Some(gt_r) = gt_r.as_deref_mut() {
+                            gt_r[j] = T::from_f64(w * g_dep);
+                        }
                     }
                     let gx = if self.opaque_last && j + 1 == n {
                         0.0
@@ -373,13 +402,13 @@ impl FusedComposite {
                     };
                     suffix += w * u;
                     let (s, d) = (sig[j].to_f64(), del[j].to_f64());
-                    let (gsj, gdj) = if s * d > X_MAX {
-                        (0.0, 0.0)
-                    } else {
-                        (d * gx, s * gx)
-                    };
-                    gs_r[j] = T::from_f64(gsj);
-                    gd_r[j] = T::from_f64(gdj);
+                    let gx = if s * d > X_MAX { 0.0 } else { gx };
+                    if let Some(gs_r) = gs_r.as_deref_mut() {
+                        gs_r[j] = T::from_f64(d * gx);
+                    }
+                    if let Some(gd_r) = gd_r.as_deref_mut() {
+                        gd_r[j] = T::from_f64(s * gx);
+                    }
                 }
             },
         );
@@ -433,6 +462,8 @@ impl CustomOp3 for FusedComposite {
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         let grad = grad.contiguous()?;
+        // Only inputs that are part of the graph need a gradient.
+        let need = [sig.track_op(), geo.track_op(), vals.track_op()];
         let (ss, sl) = sig.storage_and_layout();
         let (ds, dl) = geo.storage_and_layout();
         let (vs, vl) = vals.storage_and_layout();
@@ -445,11 +476,19 @@ impl CustomOp3 for FusedComposite {
                 let v = cpu_slice::<$t>(&vs, vl, "values")?;
                 let g = cpu_slice::<$t>(&gs, gl, "grad")?;
                 self.check_len(s.len(), d.len(), v.len())?;
-                let (a, b, c) = self.backward(s, d, v, g);
+                let (a, b, c) = self.backward(s, d, v, g, need);
+                let wrap =
+                    |on: bool, v: Vec<$t>, t: &Tensor| -> candle_core::Result<Option<Tensor>> {
+                        if on {
+                            Ok(Some(Tensor::from_vec(v, t.shape(), dev)?))
+                        } else {
+                            Ok(None)
+                        }
+                    };
                 (
-                    Tensor::from_vec(a, sig.shape(), dev)?,
-                    Tensor::from_vec(b, geo.shape(), dev)?,
-                    Tensor::from_vec(c, vals.shape(), dev)?,
+                    wrap(need[0], a, sig)?,
+                    wrap(need[1], b, geo)?,
+                    wrap(need[2], c, vals)?,
                 )
             }};
         }
@@ -458,7 +497,7 @@ impl CustomOp3 for FusedComposite {
             DType::F64 => run!(f64),
             other => candle_core::bail!("fused composite: unsupported dtype {other:?}"),
         };
-        Ok((Some(a), Some(b), Some(c)))
+        Ok((a, b, c))
     }
 }
 
@@ -484,10 +523,12 @@ fn apply(
     values: &Tensor,
     op: FusedComposite,
 ) -> Result<Tensor> {
-    let sig = sig.flatten_all()?.contiguous()?;
+    // No reshapes around the op: each would add a zeros + add pass per gradient in
+    // candle's backprop. The kernel reads the contiguous data flat.
+    let sig = sig.contiguous()?;
     let geo = match tm {
-        Some(t) => Tensor::stack(&[&del.flatten_all()?, &t.flatten_all()?], 0)?,
-        None => del.flatten_all()?.contiguous()?,
+        Some(t) => Tensor::stack(&[del, t], 0)?,
+        None => del.contiguous()?,
     };
     let values = values.contiguous()?;
     Ok(sig.apply_op3(&geo, &values, op)?)
