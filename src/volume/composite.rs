@@ -602,7 +602,9 @@ pub fn composite_packed_reference(
 
 /// Composites a batch of rays, picking the implementation: the fused CPU op
 /// ([`super::fused::composite_fused`]) on CPU, [`composite_reference`] elsewhere. Same
-/// math, shapes, gradients and errors as [`composite_reference`].
+/// math, shapes, gradients and errors as [`composite_reference`], except that on the CPU
+/// only first-order gradients are available (call [`composite_reference`] for
+/// higher-order derivatives).
 ///
 /// # Errors
 /// As [`composite_reference`].

@@ -1,16 +1,20 @@
 //! Fused CPU compositing op with an O(S)-per-ray analytic backward.
 //!
-//! One candle [`CustomOp3`] takes `(sigmas, deltas, values)` and returns, per ray, the
-//! accumulated values Σwᵢvᵢₖ for every channel k followed by the opacity Σwᵢ: a single
-//! `[R, K + 1]` tensor. [`composite_fused`] feeds it `values = [colors | t_mids]`
-//! (`K = C + 1`), so one pass yields colour, expected depth and opacity; it then splits
-//! the output with `narrow` (views, no copies).
+//! One candle [`CustomOp3`] takes `(sigmas, geometry, values)`, where `geometry` is δ, or
+//! δ and the sample depths t stacked along a new leading axis (`[2, …]`, a contiguous
+//! block copy whose backward is a contiguous split), and returns per ray the accumulated
+//! values Σwᵢvᵢₖ for every channel k, then Σwᵢtᵢ (with t), then the opacity Σwᵢ: a single
+//! `[R, K + 2]` (or `[R, K + 1]`) tensor. [`composite_fused`] passes the colours as values,
+//! so one pass yields colour, expected depth and opacity, split with `narrow` (views).
+//! Per-sample weights are not an output; use
+//! [`super::composite::render_weights`] when they are needed.
 //!
-//! Forward (per ray, in f64 whatever the storage dtype): xᵢ = min(σᵢδᵢ, X_MAX),
-//! αᵢ = −expm1(−xᵢ), Tᵢ₊₁ = Tᵢ·e^{−xᵢ} with e^{−xᵢ} = 1 + expm1(−xᵢ) for xᵢ < ½ and
-//! `exp(−xᵢ)` above (one transcendental per sample, full relative accuracy in both), and
-//! wᵢ = Tᵢαᵢ. Once T < 1e-300 the rest of the ray contributes nothing representable and
-//! the scan stops (this also keeps denormals out of the loop).
+//! Forward (per ray, in f64 whatever the storage dtype): xᵢ = min(σᵢδᵢ, X_MAX); αᵢ =
+//! −expm1(−xᵢ) and e^{−xᵢ} from one branch-free range-reduced polynomial (vectorised
+//! across the ray's samples; full relative accuracy of the storage dtype, see
+//! docs/math.md); then the sequential scan Tᵢ₊₁ = Tᵢ·e^{−xᵢ}, wᵢ = Tᵢαᵢ. Once
+//! T < 1e-300 the rest of the ray contributes nothing representable and the scan stops
+//! (this also keeps denormals out of the loop).
 //!
 //! Backward (derivation in docs/math.md, "Volume compositing"): with upstream gradients
 //! gₖ for the channels and g_O for the opacity, uᵢ = Σₖ gₖvᵢₖ + g_O and
@@ -21,7 +25,8 @@
 //!
 //! evaluated by recomputing the forward scan into a per-ray buffer and one reverse scan
 //! for the suffix sum: O(S) per ray, no n×n work, no division by α or T. Rays run in
-//! parallel with rayon. The backward is not itself differentiable (no second order).
+//! parallel with rayon. The backward is not itself differentiable (no second order), and
+//! it only computes the gradients of inputs that are part of the autograd graph.
 
 use super::composite::{
     check_composite_inputs, check_composite_inputs_packed, check_sigmas_deltas, finish, Composite,
