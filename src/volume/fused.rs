@@ -363,7 +363,7 @@ impl FusedComposite {
             .collect();
         rays.into_par_iter().with_min_len(16).for_each_init(
             Scratch::default,
-            |sc, (ray, (((mut gs_r, mut gd_r), mut gv_r), mut gt_r))| {
+            |sc: &mut Scratch, (ray, (((mut gs_r, mut gd_r), mut gv_r), mut gt_r))| {
                 let (a, b) = self.seg.range(ray);
                 let n = b - a;
                 if n == 0 {
@@ -381,38 +381,65 @@ impl FusedComposite {
                 let g_op = sc.g[width - 1];
                 let g_dep = if self.depth { sc.g[k] } else { 0.0 };
                 // Samples at index >= live have zero weight and zero gradient (already 0).
+                // 1. uⱼ = Σ_c g_c v_jc + g_O + g_D tⱼ (independent per sample: vectorises),
+                //    stored in the (now free) alpha buffer.
+                let u = &mut sc.alpha[..live];
+                let gk = &sc.g[..k];
+                if k == 3 {
+                    let (g0, g1, g2) = (gk[0], gk[1], gk[2]);
+                    for (uj, v) in u.iter_mut().zip(vals.chunks_exact(3)) {
+                        *uj = g_op + g0 * v[0].to_f64() + g1 * v[1].to_f64() + g2 * v[2].to_f64();
+                    }
+                } else {
+                    for (j, uj) in u.iter_mut().enumerate() {
+                        let v = &vals[j * k..(j + 1) * k];
+                        *uj = g_op + gk.iter().zip(v).map(|(g, x)| g * x.to_f64()).sum::<f64>();
+                    }
+                }
+                if let Some(tm) = tm {
+                    for (uj, t) in u.iter_mut().zip(tm) {
+                        *uj += g_dep * t.to_f64();
+                    }
+                }
+                // 2. Reverse scan: ∂L/∂xⱼ = Tⱼ₊₁uⱼ − Σ_{i>j} wᵢuᵢ, overwriting uⱼ.
                 let mut suffix = 0.0f64;
                 for j in (0..live).rev() {
-                    let v = &vals[j * k..(j + 1) * k];
-                    let w = sc.w[j];
-                    let mut u = g_op;
-                    for (gc, vc) in sc.g[..k].iter().zip(v) {
-                        u += gc * vc.to_f64();
-                    }
-                    if let Some(gv_r) = gv_r.as_deref_mut() {
-                        for (o, gc) in gv_r[j * k..(j + 1) * k].iter_mut().zip(&sc.g[..k]) {
-                            *o = T::from_f64(w * gc);
-                        }
-                    }
-                    if let Some(tm) = tm {
-                        u += g_dep * tm[j].to_f64();
-                        if let Some(gt_r) = gt_r.as_deref_mut() {
-                            gt_r[j] = T::from_f64(w * g_dep);
-                        }
-                    }
-                    let gx = if self.opaque_last && j + 1 == n {
+                    let uj = u[j];
+                    u[j] = sc.t_next[j] * uj - suffix;
+                    suffix += sc.w[j] * uj;
+                }
+                if self.opaque_last && live == n {
+                    u[n - 1] = 0.0;
+                }
+                // 3. Independent writes (vectorise); the clamp region has zero gradient.
+                let gx = |j: usize| {
+                    let (s, d) = (sig[j].to_f64(), del[j].to_f64());
+                    if s * d > X_MAX {
                         0.0
                     } else {
-                        sc.t_next[j] * u - suffix
-                    };
-                    suffix += w * u;
-                    let (s, d) = (sig[j].to_f64(), del[j].to_f64());
-                    let gx = if s * d > X_MAX { 0.0 } else { gx };
-                    if let Some(gs_r) = gs_r.as_deref_mut() {
-                        gs_r[j] = T::from_f64(d * gx);
+                        u[j]
                     }
-                    if let Some(gd_r) = gd_r.as_deref_mut() {
-                        gd_r[j] = T::from_f64(s * gx);
+                };
+                if let Some(gs_r) = gs_r.as_deref_mut() {
+                    for (j, o) in gs_r[..live].iter_mut().enumerate() {
+                        *o = T::from_f64(del[j].to_f64() * gx(j));
+                    }
+                }
+                if let Some(gd_r) = gd_r.as_deref_mut() {
+                    for (j, o) in gd_r[..live].iter_mut().enumerate() {
+                        *o = T::from_f64(sig[j].to_f64() * gx(j));
+                    }
+                }
+                if let Some(gv_r) = gv_r.as_deref_mut() {
+                    for (row, w) in gv_r[..live * k].chunks_exact_mut(k).zip(&sc.w[..live]) {
+                        for (o, g) in row.iter_mut().zip(gk) {
+                            *o = T::from_f64(w * g);
+                        }
+                    }
+                }
+                if let Some(gt_r) = gt_r.as_deref_mut() {
+                    for (o, w) in gt_r[..live].iter_mut().zip(&sc.w[..live]) {
+                        *o = T::from_f64(w * g_dep);
                     }
                 }
             },
