@@ -541,3 +541,152 @@ fn fused_rejects_non_contiguous_nothing_and_bad_input_with_names() {
         other => panic!("{other:?}"),
     }
 }
+
+mod activations {
+    use super::*;
+    use neural_fields::volume::activations::{softplus, trunc_exp};
+
+    fn value_and_grad(
+        f: fn(&Tensor) -> neural_fields::Result<Tensor>,
+        xs: &[f64],
+        dt: DType,
+    ) -> (Vec<f64>, Vec<f64>) {
+        let x = Var::from_tensor(&Tensor::new(xs, &dev()).unwrap().to_dtype(dt).unwrap()).unwrap();
+        let y = f(x.as_tensor()).unwrap();
+        let g = y.sum_all().unwrap().backward().unwrap();
+        (v1(&y), v1(g.get(x.as_tensor()).unwrap()))
+    }
+
+    #[test]
+    fn trunc_exp_value_is_clamped_and_gradient_is_exp_of_clamped_input() {
+        let xs = [-1000.0, -20.0, -1.0, 0.0, 3.0, 20.0, 88.0, 100.0, 800.0];
+        for (dt, m, tol) in [(DType::F32, 88.0f64, 1e-6), (DType::F64, 709.0, 1e-15)] {
+            let (y, g) = value_and_grad(trunc_exp, &xs, dt);
+            for i in 0..xs.len() {
+                let want = if dt == DType::F32 {
+                    f64::from((xs[i].min(m) as f32).exp())
+                } else {
+                    xs[i].min(m).exp()
+                };
+                let rel = if want == 0.0 {
+                    y[i].abs()
+                } else {
+                    ((y[i] - want) / want).abs()
+                };
+                assert!(
+                    y[i].is_finite() && rel < tol,
+                    "{dt:?} value at {}: {} vs {want}",
+                    xs[i],
+                    y[i]
+                );
+                let gw = xs[i].clamp(-15.0, 15.0).exp();
+                assert!(
+                    ((g[i] - gw) / gw).abs() < tol,
+                    "{dt:?} grad at {}: {}",
+                    xs[i],
+                    g[i]
+                );
+            }
+        }
+        let (y, _) = value_and_grad(trunc_exp, &[f64::NAN], DType::F32);
+        assert!(y[0].is_nan(), "NaN propagates");
+    }
+
+    #[test]
+    fn softplus_is_stable_with_sigmoid_gradient() {
+        let xs = [-800.0, -100.0, -30.0, -1.0, 0.0, 1e-8, 2.0, 40.0, 1e6];
+        for (dt, tol) in [(DType::F32, 1e-6), (DType::F64, 1e-14)] {
+            let (y, g) = value_and_grad(softplus, &xs, dt);
+            for i in 0..xs.len() {
+                let x = xs[i];
+                let want = x.max(0.0) + (-x.abs()).exp().ln_1p();
+                let xr = v1(&Tensor::new(&[x], &dev()).unwrap().to_dtype(dt).unwrap())[0];
+                let want = if dt == DType::F32 {
+                    want as f32 as f64
+                } else {
+                    want
+                };
+                let scale = want.abs().max(f64::MIN_POSITIVE);
+                assert!(
+                    ((y[i] - want) / scale).abs() < tol || (want < 1e-38 && dt == DType::F32),
+                    "{dt:?} value at {x}: {} vs {want}",
+                    y[i]
+                );
+                let sig = 1.0 / (1.0 + (-xr).exp());
+                assert!(
+                    (g[i] - sig).abs() <= tol * sig.max(1e-300)
+                        || (sig < 1e-38 && dt == DType::F32),
+                    "{dt:?} grad at {x}: {} vs {sig}",
+                    g[i]
+                );
+            }
+            assert_eq!(g[4], 0.5, "derivative at 0 is exactly 1/2");
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+        #[test]
+        fn softplus_gradient_matches_finite_differences(x in -40.0f64..40.0) {
+            let (_, g) = value_and_grad(softplus, &[x], DType::F64);
+            let f = |x: f64| v1(&softplus(&Tensor::new(&[x], &dev()).unwrap()).unwrap())[0];
+            let h = 1e-5;
+            let fd = (f(x + h) - f(x - h)) / (2.0 * h);
+            prop_assert!((fd - g[0]).abs() <= 1e-6 * g[0].abs() + 1e-10, "{fd} vs {}", g[0]);
+        }
+    }
+
+    #[test]
+    fn activations_feed_compositing_without_nan_for_huge_raw_outputs() {
+        for dt in [DType::F32, DType::F64] {
+            for act in [
+                trunc_exp as fn(&Tensor) -> neural_fields::Result<Tensor>,
+                softplus,
+            ] {
+                let raw = Var::from_tensor(
+                    &Tensor::new(&[[-1e4f64, 1e3, 87.0, 0.0, 1e30]], &dev())
+                        .unwrap()
+                        .to_dtype(dt)
+                        .unwrap(),
+                )
+                .unwrap();
+                let sig = act(raw.as_tensor()).unwrap();
+                let del = Tensor::full(0.1f64, (1, 5), &dev())
+                    .unwrap()
+                    .to_dtype(dt)
+                    .unwrap();
+                let col = Tensor::ones((1, 5, 3), dt, &dev()).unwrap();
+                let out =
+                    composite_fused(&sig, &col, &del, &del, &CompositeOptions::default()).unwrap();
+                let g = out.color.sum_all().unwrap().backward().unwrap();
+                let gr = v1(g.get(raw.as_tensor()).unwrap());
+                assert!(gr.iter().all(|v| v.is_finite()), "{dt:?}: {gr:?}");
+                assert!(v1(&out.color).iter().all(|v| v.is_finite()));
+            }
+        }
+    }
+}
+
+/// When δ and t are plain tensors (no gradient), the op skips their gradients; the
+/// gradients it does produce are unchanged.
+#[test]
+fn gradients_with_constant_deltas_match_reference() {
+    let (sig, col, del, tm) = batched(5, 33, 3, 4242);
+    let run = |f: &dyn Fn(&Tensor, &Tensor) -> Composite| {
+        let s = Var::from_tensor(&sig).unwrap();
+        let c = Var::from_tensor(&col).unwrap();
+        let out = f(s.as_tensor(), c.as_tensor());
+        let l = loss(&out, &[0.3, -1.0, 2.0, 0.7, -0.2]);
+        let g = l.backward().unwrap();
+        (
+            v1(g.get(s.as_tensor()).unwrap()),
+            v1(g.get(c.as_tensor()).unwrap()),
+        )
+    };
+    let opts = CompositeOptions::default();
+    let (gs_f, gc_f) = run(&|s, c| composite_fused(s, c, &del, &tm, &opts).unwrap());
+    let (gs_r, gc_r) = run(&|s, c| composite_reference(s, c, &del, &tm, &opts).unwrap());
+    for (a, b) in gs_f.iter().zip(&gs_r).chain(gc_f.iter().zip(&gc_r)) {
+        assert!((a - b).abs() <= 1e-10 * (1.0 + b.abs()), "{a} vs {b}");
+    }
+}

@@ -167,11 +167,17 @@ impl Packed {
     }
 }
 
-fn first_bad<T: Copy>(xs: &[T], ok: impl Fn(T) -> (bool, f64)) -> Option<(usize, f64)> {
-    xs.iter().enumerate().find_map(|(i, &v)| {
-        let (good, val) = ok(v);
-        (!good).then_some((i, val))
-    })
+/// Index and value of the first element that is not finite and ≥ 0. A branch-free
+/// (vectorisable) pass over chunks finds whether one exists; only then is it located.
+fn first_bad<T: Copy + PartialOrd + Into<f64>>(xs: &[T], zero: T, max: T) -> Option<(usize, f64)> {
+    let ok = |v: T| (v >= zero) & (v <= max);
+    let all_ok = xs
+        .chunks(1024)
+        .all(|c| c.iter().fold(true, |acc, &v| acc & ok(v)));
+    if all_ok {
+        return None;
+    }
+    xs.iter().position(|&v| !ok(v)).map(|i| (i, xs[i].into()))
 }
 
 /// Checks that every element is finite and ≥ 0 (rejects NaN, −x, +∞).
@@ -185,12 +191,8 @@ pub(crate) fn check_nonneg_finite(t: &Tensor, arg: &'static str) -> Result<()> {
         let (st, layout) = t.storage_and_layout();
         if let (Storage::Cpu(cpu), Some((a, b))) = (&*st, layout.contiguous_offsets()) {
             let bad = match t.dtype() {
-                DType::F32 => first_bad(&cpu.as_slice::<f32>()?[a..b], |v| {
-                    (v >= 0.0 && v.is_finite(), f64::from(v))
-                }),
-                DType::F64 => first_bad(&cpu.as_slice::<f64>()?[a..b], |v| {
-                    (v >= 0.0 && v.is_finite(), v)
-                }),
+                DType::F32 => first_bad(&cpu.as_slice::<f32>()?[a..b], 0.0, f32::MAX),
+                DType::F64 => first_bad(&cpu.as_slice::<f64>()?[a..b], 0.0, f64::MAX),
                 other => {
                     return Err(Error::invalid(
                         arg,
@@ -600,7 +602,9 @@ pub fn composite_packed_reference(
 
 /// Composites a batch of rays, picking the implementation: the fused CPU op
 /// ([`super::fused::composite_fused`]) on CPU, [`composite_reference`] elsewhere. Same
-/// math, shapes, gradients and errors as [`composite_reference`].
+/// math, shapes, gradients and errors as [`composite_reference`], except that on the CPU
+/// only first-order gradients are available (call [`composite_reference`] for
+/// higher-order derivatives).
 ///
 /// # Errors
 /// As [`composite_reference`].
