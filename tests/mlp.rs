@@ -365,3 +365,40 @@ fn bad_inputs_and_configs_name_the_argument() {
         assert!(e.starts_with(arg), "{e}");
     }
 }
+
+/// Regression: with geometric initialisation and an encoding (or codes), the first
+/// layer's weight is stored as two variables (`weight`, `weight_rest`); they used to be
+/// joined once at build time, so optimiser updates never reached the network.
+#[test]
+fn updates_to_zero_initialised_weight_blocks_reach_the_network() {
+    let config = MlpConfig {
+        hidden: 8,
+        depth: 2,
+        code_dim: 2,
+        encoding: PointEncoding::Frequency(FrequencyEncoding::new(3, 2).unwrap()),
+        ..MlpConfig::sdf(0.5)
+    };
+    let varmap = VarMap::new();
+    let net = build_seeded(&varmap, DType::F64, &Device::Cpu, 1, |vb| mlp(&config, vb)).unwrap();
+    let points = Tensor::new(&[[0.1f64, 0.2, 0.3]], &Device::Cpu).unwrap();
+    let codes = Tensor::new(&[[0.5f64, -0.5]], &Device::Cpu).unwrap();
+    let before = v64(&net.forward_points(&points, Some(&codes)).unwrap());
+    let rest = varmap.data().lock().unwrap()["layer0.weight_rest"].clone();
+    assert!(
+        v64(rest.as_tensor()).iter().all(|v| *v == 0.0),
+        "zero-initialised block"
+    );
+    rest.set(&rest.as_tensor().ones_like().unwrap()).unwrap();
+    let after = v64(&net.forward_points(&points, Some(&codes)).unwrap());
+    assert_ne!(
+        before, after,
+        "setting layer0.weight_rest must change the output"
+    );
+    // And the block receives gradients from a loss on the output.
+    let y = net
+        .forward_points(&points, Some(&codes))
+        .unwrap()
+        .sum_all()
+        .unwrap();
+    assert!(y.backward().unwrap().get(&rest).is_some());
+}

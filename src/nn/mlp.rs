@@ -116,25 +116,33 @@ impl MlpConfig {
 }
 
 /// One affine layer whose weight may be stored in column blocks (so that a block can be
-/// zero-initialised through any `VarBuilder`); `W = [W₁ W₂ …]`.
+/// zero-initialised through any `VarBuilder`); `W = [W₁ W₂ …]`, joined at every use so
+/// that optimiser updates of the block variables take effect.
 #[derive(Clone, Debug)]
 struct Layer {
-    weight: Tensor,
+    blocks: Vec<Tensor>,
     bias: Tensor,
 }
 
 impl Layer {
-    fn forward(&self, a: &Tensor) -> Result<Tensor> {
-        Ok(a.matmul(&self.weight.t()?)?.broadcast_add(&self.bias)?)
+    fn weight(&self) -> Result<Tensor> {
+        match self.blocks.as_slice() {
+            [w] => Ok(w.clone()),
+            blocks => Ok(Tensor::cat(blocks, 1)?),
+        }
     }
 
-    /// `Ẇȧ` for tangents `ȧ: [N, K, in]` → `[N, K, out]` (no bias).
-    fn tangent(&self, da: &Tensor) -> Result<Tensor> {
+    fn forward(&self, a: &Tensor, weight: &Tensor) -> Result<Tensor> {
+        Ok(a.matmul(&weight.t()?)?.broadcast_add(&self.bias)?)
+    }
+
+    /// `Wȧ` for tangents `ȧ: [N, K, in]` → `[N, K, out]` (no bias).
+    fn tangent(&self, da: &Tensor, weight: &Tensor) -> Result<Tensor> {
         let (n, k, i) = da.dims3()?;
-        let out = self.weight.dim(0)?;
+        let out = weight.dim(0)?;
         Ok(da
             .reshape((n * k, i))?
-            .matmul(&self.weight.t()?)?
+            .matmul(&weight.t()?)?
             .reshape((n, k, out))?)
     }
 }
@@ -146,8 +154,8 @@ pub struct Mlp {
     config: MlpConfig,
 }
 
-/// Gets a weight `[out, in]` whose first `keep` input columns use `init` and the rest
-/// start at zero (stored as two variables, `{name}` and `{name}_rest`).
+/// Gets a weight `[out, in]` as column blocks: the first `keep` input columns use `init`
+/// and the rest start at zero (stored as two variables, `{name}` and `{name}_rest`).
 fn blocked_weight(
     vb: &VarBuilder,
     name: &str,
@@ -155,9 +163,9 @@ fn blocked_weight(
     input: usize,
     keep: usize,
     init: Init,
-) -> Result<Tensor> {
+) -> Result<Vec<Tensor>> {
     if keep >= input {
-        return Ok(vb.get_with_hints((out, input), name, init)?);
+        return Ok(vec![vb.get_with_hints((out, input), name, init)?]);
     }
     let head = vb.get_with_hints((out, keep), name, init)?;
     let rest = vb.get_with_hints(
@@ -165,7 +173,7 @@ fn blocked_weight(
         &format!("{name}_rest"),
         Init::Const(0.0),
     )?;
-    Ok(Tensor::cat(&[&head, &rest], 1)?)
+    Ok(vec![head, rest])
 }
 
 /// Builds an [`Mlp`] from `config`, taking its variables from `vb` (`layer{i}.weight`,
@@ -243,11 +251,11 @@ pub fn mlp(config: &MlpConfig, vb: VarBuilder) -> Result<Mlp> {
             None => {
                 let bound = 1.0 / (input as f64).sqrt();
                 (
-                    lvb.get_with_hints(
+                    vec![lvb.get_with_hints(
                         (out, input),
                         "weight",
                         candle_nn::init::DEFAULT_KAIMING_NORMAL,
-                    )?,
+                    )?],
                     lvb.get_with_hints(
                         out,
                         "bias",
@@ -261,7 +269,11 @@ pub fn mlp(config: &MlpConfig, vb: VarBuilder) -> Result<Mlp> {
             Some(radius) if l == config.depth => {
                 let mean = std::f64::consts::PI.sqrt() / (input as f64).sqrt();
                 (
-                    lvb.get_with_hints((out, input), "weight", Init::Randn { mean, stdev: 1e-4 })?,
+                    vec![lvb.get_with_hints(
+                        (out, input),
+                        "weight",
+                        Init::Randn { mean, stdev: 1e-4 },
+                    )?],
                     lvb.get_with_hints(out, "bias", Init::Const(-radius))?,
                 )
             }
@@ -282,7 +294,10 @@ pub fn mlp(config: &MlpConfig, vb: VarBuilder) -> Result<Mlp> {
                 )
             }
         };
-        layers.push(Layer { weight, bias });
+        layers.push(Layer {
+            blocks: weight,
+            bias,
+        });
     }
     Ok(Mlp {
         layers,
@@ -370,8 +385,9 @@ impl Mlp {
                     da = Some(Tensor::cat(&[t, t0], 2)?.affine(inv_sqrt2, 0.0)?);
                 }
             }
-            let h = layer.forward(&a)?;
-            let dh = da.as_ref().map(|t| layer.tangent(t)).transpose()?;
+            let weight = layer.weight()?;
+            let h = layer.forward(&a, &weight)?;
+            let dh = da.as_ref().map(|t| layer.tangent(t, &weight)).transpose()?;
             if l == hidden.len() {
                 return Ok((h, dh));
             }
