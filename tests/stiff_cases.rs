@@ -967,12 +967,9 @@ fn public_items() -> BTreeSet<String> {
                 let trimmed = line.trim_start();
                 let indent = line.len() - trimmed.len();
                 let name_after = |prefix: &str| {
-                    trimmed.strip_prefix(prefix).map(|r| {
-                        r.split(['(', '<'])
-                            .next()
-                            .unwrap()
-                            .to_string()
-                    })
+                    trimmed
+                        .strip_prefix(prefix)
+                        .map(|r| r.split(['(', '<']).next().unwrap().to_string())
                 };
                 let prefix = if module.is_empty() {
                     String::new()
