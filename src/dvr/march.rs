@@ -843,7 +843,9 @@ pub fn sphere_trace<F: ImplicitSurface + ?Sized>(
                     safe_b[i] = tb[i];
                 }
             }
-            if tf[i] > tb[i] {
+            // The fronts passed each other while both are outside: no surface between.
+            // (A front that overshot into the inside steps back first.)
+            if tf[i] > tb[i] && df[i] >= 0.0 && (!back_ok[i] || db[i] >= 0.0) {
                 state[i] = 2;
                 out.status[i] = RayStatus::Miss;
                 out.depth[i] = rays.far[i];
