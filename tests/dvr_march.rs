@@ -2,6 +2,8 @@
 //! occupancy, f64 and f32), exact evaluation counts, degenerate rays (each named), bad
 //! input, chunking invariance, bounded marching and the step schedule.
 
+#![allow(clippy::needless_range_loop)]
+
 mod common;
 
 use candle_core::{DType, Device, Tensor};

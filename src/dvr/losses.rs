@@ -118,10 +118,10 @@ fn bce_mean<F: ImplicitSurface + ?Sized>(
     points: &Tensor,
     target: f64,
 ) -> Result<Tensor> {
-    let s = logits(field, points)?;
-    if s.elem_count() == 0 {
-        return Ok(Tensor::zeros((), s.dtype(), s.device())?);
+    if check_points(points, "points")? == 0 {
+        return Ok(Tensor::zeros((), points.dtype(), points.device())?);
     }
+    let s = logits(field, points)?;
     let y = Tensor::full(target, s.shape(), s.device())?.to_dtype(s.dtype())?;
     Ok(bce_with_logits(&s, &y)?.mean_all()?)
 }

@@ -557,7 +557,7 @@ fn refine<F: ImplicitSurface + ?Sized>(
                 let g = &g[3 * b..3 * b + 3];
                 let w = &rays.w[*i];
                 let cos = dot(g, w).abs() / (dot(g, g).sqrt() * dot(w, w).sqrt());
-                grazing[b] = !(cos >= c);
+                grazing[b] = cos.is_nan() || cos < c;
             }
         }
     }
@@ -870,7 +870,7 @@ pub fn sphere_trace<F: ImplicitSurface + ?Sized>(
             for (k, &i) in conv.iter().enumerate() {
                 let g = &g[3 * k..3 * k + 3];
                 let cos = dot(g, &rays.w[i]).abs() / (dot(g, g).sqrt() * len[i]);
-                if !(cos >= c) {
+                if cos.is_nan() || cos < c {
                     out.status[i] = RayStatus::Grazing;
                 }
             }
