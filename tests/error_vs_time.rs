@@ -8,6 +8,10 @@ mod report;
 #[path = "../examples/error_vs_time/encoding.rs"]
 mod encoding;
 
+#[cfg(feature = "volume")]
+#[path = "../examples/error_vs_time/volume.rs"]
+mod volume;
+
 use report::Table;
 
 fn check(tables: Vec<Table>) {
@@ -52,5 +56,20 @@ fn encoding_study_runs_quick() {
         err("f32, exact"),
         err("f32, naive")
     );
+    check(tables);
+}
+
+#[cfg(feature = "volume")]
+#[test]
+fn volume_study_runs_quick() {
+    let tables = volume::run(true);
+    // More samples must not make stratified compositing worse on this scene.
+    let strat: Vec<f64> = tables[0]
+        .rows
+        .iter()
+        .filter(|r| r.series == "stratified")
+        .map(|r| r.error)
+        .collect();
+    assert!(strat.windows(2).all(|w| w[1] <= w[0] * 1.01), "{strat:?}");
     check(tables);
 }

@@ -16,6 +16,8 @@
 mod dvr;
 mod encoding;
 mod report;
+#[cfg(feature = "volume")]
+mod volume;
 
 use report::{markdown, slug, svg, Table};
 use std::path::{Path, PathBuf};
@@ -28,6 +30,8 @@ fn studies(quick: bool) -> Vec<Table> {
     tables.extend(encoding::run(quick));
     #[cfg(feature = "dvr")]
     tables.extend(dvr::run(quick));
+    #[cfg(feature = "volume")]
+    tables.extend(volume::run(quick));
     tables
 }
 

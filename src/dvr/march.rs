@@ -365,7 +365,21 @@ pub(crate) fn read_problem(
     if let Some(a) = active {
         rays.active = a;
     }
+    let largest = if rays.dtype == DType::F32 {
+        f64::from(f32::MAX)
+    } else {
+        f64::MAX
+    };
     for i in 0..r {
+        let t_max = rays.near[i].abs().max(rays.far[i].abs());
+        let reach = (0..3).all(|k| rays.o[i][k].abs() + t_max * rays.w[i][k].abs() <= largest);
+        if rays.active[i] && !reach {
+            return Err(Error::invalid(
+                "far",
+                "points o + t·w representable in the rays' dtype for t in [near, far]",
+                format!("an overflow at ray {i}"),
+            ));
+        }
         if rays.active[i] && rays.far[i] <= rays.near[i] {
             return Err(Error::invalid(
                 "far",
@@ -638,8 +652,8 @@ fn run_march<F: ImplicitSurface + ?Sized>(
 /// # Errors
 /// [`Error::InvalidArgument`] naming `origins` / `directions` (shape, dtype, device,
 /// non-finite values, a zero direction), `near` / `far` (shape, dtype, non-finite),
-/// `far` if `far ≤ near` on some ray, `config.*` for an invalid configuration; errors of
-/// the field.
+/// `far` if `far ≤ near` on some ray or if `o + t·w` overflows the dtype on `[near, far]`,
+/// `config.*` for an invalid configuration; errors of the field.
 pub fn march<F: ImplicitSurface + ?Sized>(
     field: &F,
     origins: &Tensor,
