@@ -527,3 +527,36 @@ fn implicit_surface_rejects_hits_of_other_rays() {
         e => panic!("{e}"),
     }
 }
+
+/// Regression: the guard's gradient floor scales with ‖w‖, so short directions get the
+/// exact gradient `∂t/∂r (λw) = ∂t/∂r (w)/λ` (an absolute floor on ‖∇f‖‖w‖ distorted it).
+#[test]
+fn implicit_gradient_is_exact_for_very_short_directions() {
+    let r = Var::new(0.5f64, &DEV).unwrap();
+    let field = Sphere {
+        center: Tensor::zeros(3, DType::F64, &DEV).unwrap(),
+        radius: r.as_tensor().clone(),
+    }
+    .sdf();
+    let grad_for = |lambda: f64| {
+        let o = Tensor::new(&[[0.1f64, 0.2, -2.0]], &DEV).unwrap();
+        let w = Tensor::new(&[[0.0f64, 0.0, lambda]], &DEV).unwrap();
+        let n = Tensor::new(&[0.0f64], &DEV).unwrap();
+        let fa = Tensor::new(&[4.0 / lambda], &DEV).unwrap();
+        let h = march(&field, &o, &w, &n, &fa, &accurate()).unwrap();
+        let s = implicit_surface(&field, &o, &w, &h, &ImplicitConfig::default()).unwrap();
+        v64(s
+            .depth
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap()
+            .get(&r)
+            .unwrap())[0]
+    };
+    let (g1, g_short) = (grad_for(1.0), grad_for(1e-15));
+    assert!(
+        close(g_short * 1e-15, g1, 1e-9, 0.0),
+        "{g_short:e} vs {g1:e}"
+    );
+}

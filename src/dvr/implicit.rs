@@ -20,7 +20,7 @@
 //! `f(x₀)` w.r.t. `θ`, `o` (via `∂x₀/∂o = I`) and `w` (via `∂x₀/∂w = t₀·I`) divided by
 //! `−D` is exactly the implicit derivative above. The denominator is guarded in a
 //! sign-preserving way on the cosine `c = D/(‖∇f‖‖w‖)`: `D̃ = s·guard(c, ε)` with
-//! `s = max(‖∇f‖‖w‖, min_gradient)` (see [`crate::numerics::guard_denominator`]), so
+//! `s = max(‖∇f‖, min_gradient)·‖w‖` (see [`crate::numerics::guard_denominator`]), so
 //! `|∂t/∂f| ≤ 1/(ε·s)` and grazing rays keep the sign of their gradient.
 
 use super::march::{read_rays, Hits};
@@ -35,7 +35,9 @@ pub struct ImplicitConfig {
     /// Guard `ε` on the cosine `|∇f·w|/(‖∇f‖‖w‖)` (1e-3, DVR's constant, applied
     /// relative to the gradient and direction lengths).
     pub grazing_eps: f64,
-    /// Floor on `‖∇f‖‖w‖` (1e-12) so that a vanishing spatial gradient cannot divide by 0.
+    /// Floor on `‖∇f‖` (1e-12, field units per unit length) so that a vanishing spatial
+    /// gradient cannot divide by 0. The guard scales with `‖w‖`, so it does not depend
+    /// on how the directions are scaled.
     pub min_gradient: f64,
 }
 
@@ -93,7 +95,8 @@ impl SurfacePoints {
 ///
 /// Evaluates `field.value_and_grad` once, at the `H` rays with a surface. Output dtype
 /// and device are those of the rays. Everything is finite whenever the inputs are: the
-/// guarded denominator bounds `|∂t̂/∂f|` by `1/(grazing_eps·max(‖∇f‖‖w‖, min_gradient))`.
+/// guarded denominator bounds `|∂t̂/∂f|` by `1/(grazing_eps·max(‖∇f‖, min_gradient)·‖w‖)`.
+/// (In f32 the true `∂t/∂w ∝ t/‖w‖` itself overflows where `t/‖w‖` exceeds ~1e38.)
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `origins` / `directions` (shape, dtype, device,
@@ -141,11 +144,12 @@ pub fn implicit_surface<F: ImplicitSurface + ?Sized>(
     let gd = g.detach();
     let wd = w.detach();
     let d = (&gd * &wd)?.sum(1)?;
-    let norms = (gd.sqr()?.sum(1)?.sqrt()? * wd.sqr()?.sum(1)?.sqrt()?)?;
-    let scale = norms.clamp(config.min_gradient, f64::INFINITY)?;
+    let grad_norm = gd.sqr()?.sum(1)?.sqrt()?;
+    let floored = grad_norm.clamp(config.min_gradient, f64::INFINITY)?;
+    let scale = (floored * wd.sqr()?.sum(1)?.sqrt()?)?;
     let cos = (&d / &scale)?;
-    let guarded =
-        (cos.abs()?.lt(config.grazing_eps)? + norms.lt(config.min_gradient)?)?.clamp(0u8, 1u8)?;
+    let guarded = (cos.abs()?.lt(config.grazing_eps)? + grad_norm.lt(config.min_gradient)?)?
+        .clamp(0u8, 1u8)?;
     let denom = (guard_denominator(&cos, config.grazing_eps)? * &scale)?.detach();
     let delta = (&f - f.detach())?;
     let depth = (&t0 - (delta / denom)?)?;

@@ -3,7 +3,7 @@
 //! gradients stay finite at 0).
 //!
 //! Logits of an implicit surface are `s = σ·(f − τ)` (inside positive for both
-//! occupancy logits and SDFs, see [`crate::dvr::march`]).
+//! occupancy logits and SDFs, see [`crate::dvr::march`](mod@crate::dvr::march)).
 
 use crate::error::{check_float, check_points, check_same, check_scalar, check_shape};
 use crate::error::{Dim, Error, Result};
@@ -304,7 +304,7 @@ impl AlphaSchedule {
 /// 65 536 points), plus one evaluation with graph per ray.
 ///
 /// # Errors
-/// As [`crate::dvr::march`] for the rays and bounds; `steps` below 1.
+/// As [`crate::dvr::march`](fn@crate::dvr::march) for the rays and bounds; `steps` below 1.
 pub fn most_inside_along_rays<F: ImplicitSurface + ?Sized>(
     field: &F,
     origins: &Tensor,

@@ -1,6 +1,6 @@
 //! Surface rendering of implicit fields with implicit gradients (DVR, IDR).
 //!
-//! One training step: [`march`] (or [`sphere_trace`] for SDFs) finds the first surface
+//! One training step: [`march`](fn@march) (or [`sphere_trace`] for SDFs) finds the first surface
 //! point on each ray, detached and in chunks (memory O(rays)); [`implicit_surface`]
 //! evaluates the field once more at those points and returns depths and points whose
 //! gradients are the implicit-function ones, w.r.t. the field's parameters, a bound latent
@@ -31,7 +31,7 @@
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 
-mod implicit;
+pub mod implicit;
 pub mod losses;
 pub mod march;
 
