@@ -942,6 +942,26 @@ fn sweep_volume(s: &mut Suite) {
             );
         }
         let label = format!("{dtype:?}");
+        {
+            use neural_fields::volume::activations::{softplus as density_softplus, trunc_exp};
+            let xs = magnitudes(dtype);
+            let x = var(&xs, &[xs.len()], dtype);
+            let al = format!("{label}, |x| up to max");
+            s.case(
+                "volume::activations::trunc_exp",
+                &al,
+                Expect::Finite,
+                &[&x],
+                || Ok(vec![trunc_exp(x.as_tensor())?]),
+            );
+            s.case(
+                "volume::activations::softplus",
+                &al,
+                Expect::Finite,
+                &[&x],
+                || Ok(vec![density_softplus(x.as_tensor())?]),
+            );
+        }
         for eps in [1e-30, 1e-4, 1.0] {
             s.case(
                 "volume::composite::visible_mask",
@@ -1679,6 +1699,8 @@ const DVR_COVERED: &[&str] = &[
 ];
 
 const VOLUME_COVERED: &[&str] = &[
+    "volume::activations::softplus",
+    "volume::activations::trunc_exp",
     "volume::composite::Composite::normalized_depth",
     "volume::composite::CompositeOptions::weight_options",
     "volume::composite::Packed::from_counts",
@@ -1817,6 +1839,14 @@ const EXEMPT: &[(&str, &str)] = &[
     ),
     ("nn::mlp::MlpConfig::default", "constant"),
     ("rng::SplitMix64::", "integer state; tensor makers swept"),
+    (
+        "volume::activations::Softplus::",
+        "CustomOp internals, swept via activations::softplus",
+    ),
+    (
+        "volume::activations::TruncExp::",
+        "CustomOp internals, swept via activations::trunc_exp",
+    ),
     ("volume::composite::Packed::max_count", "getter"),
     ("volume::composite::Packed::n_samples", "getter"),
     ("volume::composite::Packed::offsets_host", "getter"),
