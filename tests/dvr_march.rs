@@ -325,6 +325,7 @@ fn accuracy(dtype: DType, bound: f64) {
                 checked += 1;
             }
             assert!(checked >= 32, "{name}: only {checked} rays checked");
+            println!("{dtype:?} {name} occupancy={occupancy}: {checked} rays, worst relative depth error {worst:.2e}");
             assert!(
                 worst <= bound,
                 "{name} occupancy={occupancy} {dtype:?}: depth error {worst:e} > {bound:e}"
