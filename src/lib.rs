@@ -87,7 +87,7 @@
 //! |---|---|---|
 //! | `occupancy` | yes | occupancy networks: losses, samplers, meshes, marching cubes, MISE, metrics (planned) |
 //! | `texture` | yes | texture fields and photometric losses (planned) |
-//! | `dvr` | yes | surface rendering with implicit gradients (planned) |
+//! | `dvr` | yes | surface rendering with implicit gradients: ray marching + secant, sphere tracing, implicit surface points, DVR/IDR losses |
 //! | `volume` | yes | NeRF samplers, compositing (reference and fused CPU kernel), occupancy grid, regularisers |
 //! | `cuda` | no | candle's CUDA backend (needs nvcc) |
 //!
@@ -97,6 +97,8 @@
 #![deny(missing_docs)]
 
 pub mod camera;
+#[cfg(feature = "dvr")]
+pub mod dvr;
 pub mod encoding;
 pub mod error;
 pub mod field;

@@ -1291,6 +1291,318 @@ fn sweep_volume(s: &mut Suite) {
     }
 }
 
+#[cfg(feature = "dvr")]
+fn sweep_dvr(s: &mut Suite) {
+    use neural_fields::dvr::losses::{
+        depth_loss, eikonal_loss, freespace_loss, idr_mask_loss, most_inside_along_rays,
+        normal_smoothness_loss, occupancy_loss, photometric_loss, random_points_on_rays,
+        AlphaSchedule, Photometric,
+    };
+    use neural_fields::dvr::{
+        implicit_surface, march, march_bounded, secant_point, sphere_trace, ImplicitConfig,
+        MarchConfig, SphereTraceConfig,
+    };
+    use neural_fields::field::Inside;
+    let d = Device::Cpu;
+    for dtype in DTYPES {
+        let big = if dtype == DType::F32 { 1e18 } else { 1e150 };
+        // Rays: a plain hit, a tiny direction, a huge direction, a far-away origin, one
+        // starting inside, an exact tangent, a near-tangent one, one along an axis.
+        let o_rows = [
+            [0.1, 0.0, -2.0],
+            [0.0, 0.1, -2.0],
+            [0.0, 0.0, -2.0],
+            [0.0, 0.0, -big],
+            [0.0, 0.0, 0.1],
+            [0.0, 0.5, -2.0],
+            [0.0, 0.5 - 1e-7, -2.0],
+            [-2.0, 0.0, 0.0],
+        ]
+        .concat();
+        let w_rows = [
+            [0.0, 0.0, 1.0],
+            [0.0, 0.0, 1e-20],
+            [0.0, 0.0, 1e20],
+            [0.0, 0.0, 1.0],
+            [0.0, 0.0, 1.0],
+            [0.0, 0.0, 1.0],
+            [0.0, 0.0, 1.0],
+            [1.0, 0.0, 0.0],
+        ]
+        .concat();
+        // Tiny and huge directions: 1e∓20 in f64; 1e∓8 in f32, where ∂t/∂w ∝ t/|w| of a
+        // 1e-20 direction (4e40) is beyond the f32 range.
+        let s_w = if dtype == DType::F32 { 1e-8 } else { 1e-20 };
+        let w_rows = [
+            &w_rows[..3],
+            &[0.0, 0.0, s_w],
+            &[0.0, 0.0, 1.0 / s_w],
+            &w_rows[9..],
+        ]
+        .concat();
+        let far_v = [4.0, 4.0 / s_w, 4.0 * s_w, 2.0 * big, 4.0, 4.0, 4.0, 4.0];
+        let origins = var(&o_rows, &[8, 3], dtype);
+        let directions = var(&w_rows, &[8, 3], dtype);
+        let near = Tensor::zeros(8, dtype, &d).unwrap();
+        let far = Tensor::from_slice(&far_v, 8, &d)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap();
+        let radius = var(&[0.5], &[], dtype);
+        let center = var(&[0.0, 0.0, 0.0], &[3], dtype);
+        let sphere = Sphere {
+            center: center.as_tensor().clone(),
+            radius: radius
+                .as_tensor()
+                .squeeze(0)
+                .unwrap_or(radius.as_tensor().clone()),
+        };
+        let sdf = sphere.clone().sdf();
+        let occ = sphere.occupancy(1e6);
+        let fields: [(&str, &dyn ImplicitSurface); 2] = [("sdf", &sdf), ("occupancy k=1e6", &occ)];
+        for (name, field) in fields {
+            for (steps, secant) in [(2usize, 0usize), (64, 8), (16, 30)] {
+                let cfg = MarchConfig {
+                    steps,
+                    secant_steps: secant,
+                    ..MarchConfig::default()
+                };
+                let label = format!("{dtype:?}, {name}, {steps}+{secant}, extreme rays");
+                s.case(
+                    "dvr::march::march",
+                    label.clone(),
+                    Expect::Finite,
+                    &[],
+                    || {
+                        let h = march(
+                            field,
+                            origins.as_tensor(),
+                            directions.as_tensor(),
+                            &near,
+                            &far,
+                            &cfg,
+                        )?;
+                        Ok(vec![h.depth, h.points])
+                    },
+                );
+                s.case(
+                    "dvr::implicit::implicit_surface",
+                    label,
+                    Expect::Finite,
+                    &[&origins, &directions, &radius, &center],
+                    || {
+                        let h = march(
+                            field,
+                            &origins.detach(),
+                            &directions.detach(),
+                            &near,
+                            &far,
+                            &cfg,
+                        )?;
+                        let p = implicit_surface(
+                            field,
+                            origins.as_tensor(),
+                            directions.as_tensor(),
+                            &h,
+                            &ImplicitConfig::default(),
+                        )?;
+                        Ok(vec![p.depth, p.points, p.gradient])
+                    },
+                );
+            }
+            let rays =
+                neural_fields::camera::Rays::new(origins.detach(), directions.detach()).unwrap();
+            let bounds = ray_sphere(&rays.origins, &rays.directions, [0.0; 3], 1.0).unwrap();
+            s.case(
+                "dvr::march::march_bounded",
+                format!("{dtype:?}, {name}"),
+                Expect::Finite,
+                &[],
+                || {
+                    let h = march_bounded(field, &rays, &bounds, &MarchConfig::default())?;
+                    Ok(vec![h.depth, h.points])
+                },
+            );
+            let pts = extreme_points(dtype);
+            s.case(
+                "dvr::losses::freespace_loss",
+                format!("{dtype:?}, {name}"),
+                Expect::Finite,
+                &[&radius],
+                || Ok(vec![freespace_loss(field, &pts)?]),
+            );
+            s.case(
+                "dvr::losses::occupancy_loss",
+                format!("{dtype:?}, {name}"),
+                Expect::Finite,
+                &[&radius],
+                || Ok(vec![occupancy_loss(field, &pts)?]),
+            );
+            s.case(
+                "dvr::losses::normal_smoothness_loss",
+                format!("{dtype:?}, {name}"),
+                Expect::Finite,
+                &[&radius, &center],
+                || Ok(vec![normal_smoothness_loss(field, &pts, 5e-4, 1)?]),
+            );
+            s.case(
+                "dvr::losses::most_inside_along_rays",
+                format!("{dtype:?}, {name}"),
+                Expect::Finite,
+                &[&radius, &origins],
+                || {
+                    Ok(vec![most_inside_along_rays(
+                        field,
+                        origins.as_tensor(),
+                        directions.as_tensor(),
+                        &near,
+                        &far,
+                        17,
+                    )?])
+                },
+            );
+        }
+        s.case(
+            "dvr::march::sphere_trace",
+            format!("{dtype:?}, extreme rays"),
+            Expect::Finite,
+            &[],
+            || {
+                let h = sphere_trace(
+                    &sdf,
+                    origins.as_tensor(),
+                    directions.as_tensor(),
+                    &near,
+                    &far,
+                    &SphereTraceConfig::default(),
+                )?;
+                Ok(vec![h.depth, h.points])
+            },
+        );
+        s.case(
+            "dvr::losses::random_points_on_rays",
+            format!("{dtype:?}"),
+            Expect::Finite,
+            &[&origins, &directions],
+            || {
+                Ok(vec![random_points_on_rays(
+                    origins.as_tensor(),
+                    directions.as_tensor(),
+                    &near,
+                    &far,
+                    3,
+                )?])
+            },
+        );
+        let top = if dtype == DType::F32 { 1e18 } else { 1e150 };
+        let vals = var(&[0.0, 1e-30, -1e-30, top, -top, 1.0], &[6], dtype);
+        let mask = Tensor::from_slice(&[1.0, 0.0, 1.0, 0.0, 1.0, 0.5], 6, &d)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap();
+        let grads = var(
+            &[
+                0.0, 0.0, 0.0, 1e-30, 0.0, 0.0, top, -top, top, 1.0, 0.0, 0.0,
+            ],
+            &[4, 3],
+            dtype,
+        );
+        s.case(
+            "dvr::losses::eikonal_loss",
+            format!("{dtype:?}, |g| 0…{top:e}"),
+            Expect::Finite,
+            &[&grads],
+            || Ok(vec![eikonal_loss(grads.as_tensor())?]),
+        );
+        for alpha in [1e-6, 50.0, 1e12] {
+            s.case(
+                "dvr::losses::idr_mask_loss",
+                format!("{dtype:?}, α = {alpha:e}"),
+                Expect::Finite,
+                &[&vals],
+                || {
+                    Ok(vec![idr_mask_loss(
+                        vals.as_tensor(),
+                        &mask,
+                        Inside::Negative,
+                        alpha,
+                        6,
+                    )?])
+                },
+            );
+        }
+        s.case(
+            "dvr::losses::depth_loss",
+            format!("{dtype:?}, 0…{top:e}"),
+            Expect::Finite,
+            &[&vals],
+            || Ok(vec![depth_loss(vals.as_tensor(), &mask, None)?]),
+        );
+        let pred = var(&[0.0, 1e-30, top, -top, 1.0, 0.5], &[2, 3], dtype);
+        let target = Tensor::zeros((2, 3), dtype, &d).unwrap();
+        for norm in [Photometric::L1, Photometric::L2] {
+            let expect = if norm == Photometric::L2 && dtype == DType::F32 {
+                Expect::FiniteOrErr
+            } else {
+                Expect::Finite
+            };
+            let pred = if norm == Photometric::L2 {
+                var(&[0.0, 1e-30, 1e15, -1e15, 1.0, 0.5], &[2, 3], dtype)
+            } else {
+                pred.clone()
+            };
+            s.case(
+                "dvr::losses::photometric_loss",
+                format!("{dtype:?}, {norm:?}"),
+                expect,
+                &[&pred],
+                || {
+                    Ok(vec![photometric_loss(
+                        pred.as_tensor(),
+                        &target,
+                        None,
+                        norm,
+                    )?])
+                },
+            );
+        }
+        s.case(
+            "dvr::losses::AlphaSchedule::alpha_at",
+            format!("{dtype:?}"),
+            Expect::Finite,
+            &[],
+            || {
+                let a = AlphaSchedule::default();
+                Ok(vec![Tensor::new(
+                    &[a.alpha_at(0), a.alpha_at(usize::MAX)],
+                    &d,
+                )?])
+            },
+        );
+    }
+    let m = f64::MAX;
+    for (lo, slo, hi, shi) in [
+        (0.0, -m, 1.0, m),
+        (0.0, 0.0, 1.0, 0.0),
+        (0.0, f64::NAN, 1.0, 1.0),
+        (-1e300, -1e-300, 1e300, 1e-300),
+        (0.0, -f64::INFINITY, 1.0, f64::INFINITY),
+    ] {
+        s.case(
+            "dvr::march::secant_point",
+            format!("[{lo:e}, {hi:e}], s {slo:e}…{shi:e}"),
+            Expect::Finite,
+            &[],
+            || {
+                Ok(vec![Tensor::new(
+                    &[secant_point(lo, slo, hi, shi).0],
+                    &Device::Cpu,
+                )?])
+            },
+        );
+    }
+}
+
 #[test]
 fn stiff_cases_give_finite_outputs_and_gradients_or_err() {
     let mut s = Suite::default();
@@ -1302,6 +1614,8 @@ fn stiff_cases_give_finite_outputs_and_gradients_or_err() {
     sweep_rng_and_checks(&mut s);
     #[cfg(feature = "volume")]
     sweep_volume(&mut s);
+    #[cfg(feature = "dvr")]
+    sweep_dvr(&mut s);
     println!(
         "stiff cases: {} cases run over {} items, {} failures",
         s.cases,
@@ -1366,6 +1680,24 @@ const COVERED: &[&str] = &[
 ];
 
 /// Volume items swept by `sweep_volume`.
+const DVR_COVERED: &[&str] = &[
+    "dvr::implicit::implicit_surface",
+    "dvr::losses::AlphaSchedule::alpha_at",
+    "dvr::losses::depth_loss",
+    "dvr::losses::eikonal_loss",
+    "dvr::losses::freespace_loss",
+    "dvr::losses::idr_mask_loss",
+    "dvr::losses::most_inside_along_rays",
+    "dvr::losses::normal_smoothness_loss",
+    "dvr::losses::occupancy_loss",
+    "dvr::losses::photometric_loss",
+    "dvr::losses::random_points_on_rays",
+    "dvr::march::march",
+    "dvr::march::march_bounded",
+    "dvr::march::secant_point",
+    "dvr::march::sphere_trace",
+];
+
 const VOLUME_COVERED: &[&str] = &[
     "volume::activations::softplus",
     "volume::activations::trunc_exp",
@@ -1413,6 +1745,14 @@ const VOLUME_COVERED: &[&str] = &[
 /// Public items without floating-point input (or only reached through a swept item),
 /// with the reason. Matching is by prefix, so `"error::check_"` covers the checks.
 const EXEMPT: &[(&str, &str)] = &[
+    ("dvr::implicit::ImplicitConfig::default", "constants"),
+    ("dvr::implicit::SurfacePoints::", "getters"),
+    ("dvr::losses::AlphaSchedule::default", "constants"),
+    ("dvr::march::Hits::", "getters over statuses"),
+    ("dvr::march::MarchConfig::default", "constants"),
+    ("dvr::march::RayStatus::", "enum"),
+    ("dvr::march::SphereTraceConfig::default", "constants"),
+    ("dvr::march::StepSchedule::", "integer schedule"),
     ("camera::Camera::cam_to_world", "getter"),
     ("camera::Camera::center", "getter"),
     ("camera::Camera::convention", "getter"),
@@ -1626,6 +1966,9 @@ fn covered() -> Vec<&'static str> {
     let mut v = COVERED.to_vec();
     if cfg!(feature = "volume") {
         v.extend(VOLUME_COVERED);
+    }
+    if cfg!(feature = "dvr") {
+        v.extend(DVR_COVERED);
     }
     v
 }

@@ -12,6 +12,8 @@
 //! log–log SVG per table under `DIR/plots/`. Each module contributes a study file;
 //! studies of features that are not enabled are left out.
 
+#[cfg(feature = "dvr")]
+mod dvr;
 mod encoding;
 mod report;
 #[cfg(feature = "volume")]
@@ -26,6 +28,8 @@ const END: &str = "<!-- error_vs_time:end -->";
 fn studies(quick: bool) -> Vec<Table> {
     let mut tables = Vec::new();
     tables.extend(encoding::run(quick));
+    #[cfg(feature = "dvr")]
+    tables.extend(dvr::run(quick));
     #[cfg(feature = "volume")]
     tables.extend(volume::run(quick));
     tables

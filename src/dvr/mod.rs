@@ -1,0 +1,42 @@
+//! Surface rendering of implicit fields with implicit gradients (DVR, IDR).
+//!
+//! One training step: [`march`](fn@march) (or [`sphere_trace`] for SDFs) finds the first surface
+//! point on each ray, detached and in chunks (memory O(rays)); [`implicit_surface`]
+//! evaluates the field once more at those points and returns depths and points whose
+//! gradients are the implicit-function ones, w.r.t. the field's parameters, a bound latent
+//! code ([`crate::field::Conditioned`]), and the ray origins and directions (so a
+//! [`crate::camera::PoseParam`] is trained too). The [`losses`] are DVR's and IDR's.
+//!
+//! ```
+//! use candle_core::{DType, Device, Tensor, Var};
+//! use neural_fields::dvr::{implicit_surface, march, ImplicitConfig, MarchConfig, RayStatus};
+//! use neural_fields::field::{SignedDistance, Sphere};
+//!
+//! let dev = Device::Cpu;
+//! let radius = Var::new(0.5f64, &dev)?;                       // a learnable radius
+//! let sphere = Sphere { center: Tensor::zeros(3, DType::F64, &dev)?,
+//!                       radius: radius.as_tensor().clone() }.sdf();
+//! let origins = Tensor::new(&[[0.0f64, 0.0, -2.0], [0.0, 3.0, -2.0]], &dev)?;
+//! let directions = Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.0, 1.0]], &dev)?;
+//! let near = Tensor::new(&[0.0f64, 0.0], &dev)?;
+//! let far = Tensor::new(&[4.0f64, 4.0], &dev)?;
+//! let hits = march(&sphere, &origins, &directions, &near, &far, &MarchConfig::default())?;
+//! assert_eq!(hits.status, vec![RayStatus::Hit, RayStatus::Miss]);
+//! let surf = implicit_surface(&sphere, &origins, &directions, &hits, &ImplicitConfig::default())?;
+//! let t = surf.depth.to_vec1::<f64>()?;                        // one surface point
+//! assert!((t[0] - 1.5).abs() < 1e-12);
+//! let g = surf.depth.sum_all()?.backward()?;
+//! let dt_dr = g.get(&radius).unwrap().to_scalar::<f64>()?;    // ∂t/∂r = −1
+//! assert!((dt_dr + 1.0).abs() < 1e-12);
+//! # Ok::<(), neural_fields::Error>(())
+//! ```
+
+pub mod implicit;
+pub mod losses;
+pub mod march;
+
+pub use implicit::{implicit_surface, ImplicitConfig, SurfacePoints};
+pub use march::{
+    march, march_bounded, secant_point, sphere_trace, Hits, MarchConfig, RayStatus, SecantRule,
+    SphereTraceConfig, StepSchedule,
+};

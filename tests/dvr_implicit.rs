@@ -1,0 +1,562 @@
+//! `dvr::implicit_surface`: the implicit depth gradient against central finite
+//! differences of the depth found by a high-accuracy march (f64), w.r.t. Mlp weights, an
+//! analytic sphere's radius and centre, a latent code, ray origins and directions, and a
+//! camera pose; plus values, f32, and degenerate rays (finite, guarded, excluded).
+
+#![allow(clippy::needless_range_loop)]
+
+mod common;
+
+use candle_core::{DType, Device, Tensor, Var};
+use candle_nn::{VarBuilder, VarMap};
+use common::{central_diff, close, v64};
+use glam::DVec3;
+use neural_fields::camera::{Camera, Convention, Intrinsics};
+use neural_fields::dvr::{
+    implicit_surface, march, Hits, ImplicitConfig, MarchConfig, RayStatus, SecantRule,
+};
+use neural_fields::field::{Conditioned, ImplicitSurface, Inside, SignedDistance, Sphere, Torus};
+use neural_fields::nn::{build_seeded, mlp, Activation, Mlp, MlpConfig};
+use neural_fields::rng::SplitMix64;
+use proptest::prelude::*;
+
+const DEV: Device = Device::Cpu;
+
+fn accurate() -> MarchConfig {
+    MarchConfig {
+        steps: 256,
+        secant_steps: 40,
+        chunk_points: 1 << 16,
+        grazing_threshold: None,
+        tolerance: 1.0,
+        rule: SecantRule::Illinois,
+    }
+}
+
+/// Rays from distance 2 towards random points within `spread` of `center`;
+/// `[0, 4/|w|]` bounds; directions of random length in [0.5, 2].
+fn rays(seed: u64, r: usize, center: [f64; 3], spread: f64) -> (Tensor, Tensor, Tensor, Tensor) {
+    let mut rng = SplitMix64::new(seed);
+    let (mut o, mut w, mut far) = (vec![], vec![], vec![]);
+    for _ in 0..r {
+        let target: Vec<f64> = center
+            .iter()
+            .map(|c| c + spread * (2.0 * rng.uniform() - 1.0))
+            .collect();
+        let d = [rng.normal(), rng.normal(), rng.normal()];
+        let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        let s = 0.5 + 1.5 * rng.uniform();
+        for k in 0..3 {
+            o.push(target[k] - 2.0 * d[k] / l);
+            w.push(s * d[k] / l);
+        }
+        far.push(4.0 / s);
+    }
+    (
+        Tensor::from_vec(o, (r, 3), &DEV).unwrap(),
+        Tensor::from_vec(w, (r, 3), &DEV).unwrap(),
+        Tensor::zeros(r, DType::F64, &DEV).unwrap(),
+        Tensor::from_vec(far, r, &DEV).unwrap(),
+    )
+}
+
+/// `L = Σ cᵢ tᵢ` over the rays, from a high-accuracy march.
+fn loss_from_march<F: ImplicitSurface + ?Sized>(
+    f: &F,
+    o: &Tensor,
+    w: &Tensor,
+    n: &Tensor,
+    fa: &Tensor,
+    c: &[f64],
+) -> f64 {
+    let h = march(f, o, w, n, fa, &accurate()).unwrap();
+    v64(&h.depth).iter().zip(c).map(|(t, c)| t * c).sum()
+}
+
+/// March + implicit step; `None` if some ray does not hit cleanly (no crossing or a
+/// grazing angle |cos| < 0.1), where the test does not apply.
+fn implicit_loss<F: ImplicitSurface + ?Sized>(
+    f: &F,
+    o: &Tensor,
+    w: &Tensor,
+    n: &Tensor,
+    fa: &Tensor,
+    c: &[f64],
+) -> Option<(Tensor, Hits)> {
+    let h = march(f, &o.detach(), &w.detach(), n, fa, &accurate()).unwrap();
+    if h.status.iter().any(|s| *s != RayStatus::Hit) {
+        return None;
+    }
+    let s = implicit_surface(f, o, w, &h, &ImplicitConfig::default()).unwrap();
+    let g = v64(&s.gradient);
+    let wv = v64(&w.detach());
+    for i in 0..c.len() {
+        let (g, w) = (&g[3 * i..3 * i + 3], &wv[3 * i..3 * i + 3]);
+        let dot: f64 = g.iter().zip(w).map(|(a, b)| a * b).sum();
+        let ng: f64 = g.iter().map(|a| a * a).sum::<f64>().sqrt();
+        let nw: f64 = w.iter().map(|a| a * a).sum::<f64>().sqrt();
+        if dot.abs() < 0.1 * ng * nw {
+            return None;
+        }
+    }
+    assert_eq!(
+        v64(&s.depth),
+        v64(&h.depth),
+        "the value of t̂ is the march's depth"
+    );
+    let ct = Tensor::from_vec(c.to_vec(), c.len(), &DEV).unwrap();
+    Some(((s.depth * ct).unwrap().sum_all().unwrap(), h))
+}
+
+fn entry(v: &Var, i: usize) -> f64 {
+    v64(v.as_tensor())[i]
+}
+
+fn set_entry(v: &Var, i: usize, x: f64) {
+    let mut data = v64(v.as_tensor());
+    data[i] = x;
+    v.set(&Tensor::from_vec(data, v.dims(), &DEV).unwrap())
+        .unwrap();
+}
+
+/// FD of `loss()` along entry `i` of `v` (restored afterwards).
+fn fd(v: &Var, i: usize, loss: &mut dyn FnMut() -> f64) -> Option<f64> {
+    let x0 = entry(v, i);
+    let mut f = |x: f64| {
+        set_entry(v, i, x);
+        loss()
+    };
+    let d = central_diff(&mut f, x0, 1e-5, 1.0);
+    set_entry(v, i, x0);
+    d
+}
+
+fn check(name: &str, analytic: f64, numeric: Option<f64>) -> Result<(), TestCaseError> {
+    if let Some(n) = numeric {
+        prop_assert!(
+            close(analytic, n, 1e-6, 1e-3),
+            "{name}: implicit {analytic:e} vs FD {n:e}"
+        );
+    }
+    Ok(())
+}
+
+fn coeffs(seed: u64, r: usize) -> Vec<f64> {
+    let mut rng = SplitMix64::new(seed ^ 0xC0FFEE);
+    (0..r).map(|_| rng.normal()).collect()
+}
+
+/// An SDF Mlp (geometric init to a sphere of radius 0.5), with every weight perturbed so
+/// that the shape is not a sphere.
+fn bumpy_mlp(seed: u64, code_dim: usize) -> (VarMap, Mlp) {
+    let varmap = VarMap::new();
+    let cfg = MlpConfig {
+        hidden: 16,
+        depth: 2,
+        code_dim,
+        activation: Activation::Softplus { beta: 10.0 },
+        ..MlpConfig::sdf(0.5)
+    };
+    let net = build_seeded(&varmap, DType::F64, &DEV, seed, |vb| mlp(&cfg, vb)).unwrap();
+    let mut rng = SplitMix64::new(seed ^ 99);
+    let data = varmap.data().lock().unwrap();
+    let mut names: Vec<&String> = data.keys().collect();
+    names.sort();
+    for name in names {
+        let v = &data[name];
+        let noise = rng
+            .normal_tensor(v.dims(), 0.0, 0.1, DType::F64, &DEV)
+            .unwrap();
+        v.set(&(v.as_tensor() + noise).unwrap()).unwrap();
+    }
+    drop(data);
+    drop(net);
+    // Rebuild: a blocked weight (geometric init with codes) is concatenated from its
+    // variables when the network is built, so the perturbation must come first.
+    let net = mlp(&cfg, VarBuilder::from_varmap(&varmap, DType::F64, &DEV)).unwrap();
+    (varmap, net)
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(10))]
+
+    /// (a) ∂L/∂θ for the weights of an Mlp SDF.
+    #[test]
+    fn depth_gradient_wrt_mlp_weights_matches_finite_differences(seed in any::<u64>()) {
+        let (varmap, net) = bumpy_mlp(seed, 0);
+        let (o, w, n, fa) = rays(seed, 4, [0.0; 3], 0.15);
+        let c = coeffs(seed, 4);
+        let hit = implicit_loss(&net, &o, &w, &n, &fa, &c);
+        prop_assume!(hit.is_some());
+        let (l, _) = hit.unwrap();
+        let grads = l.backward().unwrap();
+        let mut rng = SplitMix64::new(seed ^ 5);
+        let vars = varmap.all_vars();
+        for _ in 0..6 {
+            let v = &vars[rng.below(vars.len() as u64) as usize];
+            let i = rng.below(v.elem_count() as u64) as usize;
+            let analytic = grads.get(v).map_or(0.0, |g| v64(g)[i]);
+            let numeric = fd(v, i, &mut || loss_from_march(&net, &o, &w, &n, &fa, &c));
+            check("weight", analytic, numeric)?;
+        }
+    }
+
+    /// (b) ∂L/∂r and ∂L/∂c for an analytic sphere with a learnable radius and centre,
+    /// as an SDF and as occupancy logits.
+    #[test]
+    fn depth_gradient_wrt_sphere_radius_and_centre_matches_finite_differences(
+        seed in any::<u64>(), occupancy in any::<bool>(), radius in 0.2f64..0.9
+    ) {
+        let mut rng = SplitMix64::new(seed);
+        let c0 = [0.2 * rng.normal(), 0.2 * rng.normal(), 0.2 * rng.normal()];
+        let center = Var::new(&c0, &DEV).unwrap();
+        let r = Var::new(radius, &DEV).unwrap();
+        let sphere = Sphere { center: center.as_tensor().clone(), radius: r.as_tensor().clone() };
+        let field: Box<dyn ImplicitSurface> = if occupancy {
+            Box::new(sphere.occupancy(7.0))
+        } else {
+            Box::new(sphere.sdf())
+        };
+        let (o, w, n, fa) = rays(seed, 5, c0, 0.5 * radius);
+        let c = coeffs(seed, 5);
+        let hit = implicit_loss(field.as_ref(), &o, &w, &n, &fa, &c);
+        prop_assume!(hit.is_some());
+        let (l, _) = hit.unwrap();
+        let grads = l.backward().unwrap();
+        let mut loss = || loss_from_march(field.as_ref(), &o, &w, &n, &fa, &c);
+        check("radius", v64(grads.get(&r).unwrap())[0], fd(&r, 0, &mut loss))?;
+        for k in 0..3 {
+            check("centre", v64(grads.get(&center).unwrap())[k], fd(&center, k, &mut loss))?;
+        }
+    }
+
+    /// (c) ∂L/∂z for the latent code of a conditional Mlp bound by `Conditioned`.
+    #[test]
+    fn depth_gradient_wrt_latent_code_matches_finite_differences(seed in any::<u64>()) {
+        let (_varmap, net) = bumpy_mlp(seed, 4);
+        let mut rng = SplitMix64::new(seed ^ 3);
+        let z = Var::from_tensor(&rng.normal_tensor(&[4], 0.0, 0.5, DType::F64, &DEV).unwrap()).unwrap();
+        let field = Conditioned::new(&net, z.as_tensor().clone()).unwrap();
+        let (o, w, n, fa) = rays(seed, 4, [0.0; 3], 0.15);
+        let c = coeffs(seed, 4);
+        let hit = implicit_loss(&field, &o, &w, &n, &fa, &c);
+        prop_assume!(hit.is_some());
+        let (l, _) = hit.unwrap();
+        let g = v64(l.backward().unwrap().get(&z).unwrap());
+        prop_assert!(g.iter().any(|v| v.abs() > 1e-6), "the code has an effect: {g:?}");
+        for k in 0..4 {
+            let mut loss = || {
+                let f = Conditioned::new(&net, z.as_tensor().clone()).unwrap();
+                loss_from_march(&f, &o, &w, &n, &fa, &c)
+            };
+            check("code", g[k], fd(&z, k, &mut loss))?;
+        }
+    }
+
+    /// (d, e) ∂L/∂o and ∂L/∂w for every ray coordinate, on a torus (SDF and occupancy)
+    /// and on an Mlp.
+    #[test]
+    fn depth_gradient_wrt_ray_origins_and_directions_matches_finite_differences(
+        seed in any::<u64>(), which in 0usize..3
+    ) {
+        let torus = Torus::new([0.0; 3], 0.5, 0.2, &DEV, DType::F64).unwrap();
+        let (_vm, net) = bumpy_mlp(seed, 0);
+        let field: Box<dyn ImplicitSurface> = match which {
+            0 => Box::new(torus.sdf()),
+            1 => Box::new(torus.occupancy(4.0)),
+            _ => Box::new(net),
+        };
+        let (o0, w0, n, fa) = if which < 2 { rays(seed, 3, [0.5, 0.0, 0.0], 0.1) } else { rays(seed, 3, [0.0; 3], 0.15) };
+        let o = Var::from_tensor(&o0).unwrap();
+        let w = Var::from_tensor(&w0).unwrap();
+        let c = coeffs(seed, 3);
+        let hit = implicit_loss(field.as_ref(), o.as_tensor(), w.as_tensor(), &n, &fa, &c);
+        prop_assume!(hit.is_some());
+        let (l, _) = hit.unwrap();
+        let grads = l.backward().unwrap();
+        let (go, gw) = (v64(grads.get(&o).unwrap()), v64(grads.get(&w).unwrap()));
+        for i in 0..9 {
+            let mut loss = || loss_from_march(field.as_ref(), o.as_tensor(), w.as_tensor(), &n, &fa, &c);
+            check("origin", go[i], fd(&o, i, &mut loss))?;
+            let mut loss = || loss_from_march(field.as_ref(), o.as_tensor(), w.as_tensor(), &n, &fa, &c);
+            check("direction", gw[i], fd(&w, i, &mut loss))?;
+        }
+    }
+}
+
+#[test]
+fn depth_gradient_reaches_the_camera_pose_and_matches_finite_differences() {
+    let k = Intrinsics::from_fov_y(16, 12, 0.7).unwrap();
+    let cam = Camera::look_at(
+        k,
+        DVec3::new(0.3, 0.4, 2.5),
+        DVec3::ZERO,
+        DVec3::Y,
+        Convention::OpenGl,
+    )
+    .unwrap();
+    let pose = cam.pose_param(&DEV, DType::F64).unwrap();
+    let pixels = Tensor::new(&[[8.5f64, 6.5], [7.0, 5.0], [9.5, 7.5]], &DEV).unwrap();
+    let field = Sphere::new([0.0, 0.05, 0.0], 0.6, &DEV, DType::F64)
+        .unwrap()
+        .occupancy(3.0);
+    let c = [1.0, -0.7, 0.4];
+    let n = Tensor::zeros(3, DType::F64, &DEV).unwrap();
+    let fa = Tensor::new(&[5.0f64, 5.0, 5.0], &DEV).unwrap();
+    let rays = pose.rays(&k, Convention::OpenGl, &pixels).unwrap();
+    let (l, _) = implicit_loss(&field, &rays.origins, &rays.directions, &n, &fa, &c).unwrap();
+    let grads = l.backward().unwrap();
+    let mut loss = || {
+        let r = pose.rays(&k, Convention::OpenGl, &pixels).unwrap();
+        loss_from_march(&field, &r.origins, &r.directions, &n, &fa, &c)
+    };
+    let gq = v64(grads.get(&pose.rotation).unwrap());
+    let gt = v64(grads.get(&pose.translation).unwrap());
+    for i in 0..4 {
+        let numeric = fd(&pose.rotation, i, &mut loss).unwrap();
+        assert!(
+            close(gq[i], numeric, 1e-6, 1e-3),
+            "rotation {i}: {} vs {numeric}",
+            gq[i]
+        );
+    }
+    for i in 0..3 {
+        let numeric = fd(&pose.translation, i, &mut loss).unwrap();
+        assert!(
+            close(gt[i], numeric, 1e-6, 1e-3),
+            "translation {i}: {} vs {numeric}",
+            gt[i]
+        );
+    }
+    assert!(gt.iter().any(|g| g.abs() > 1e-3));
+}
+
+#[test]
+fn f32_surface_points_equal_the_march_and_have_finite_gradients() {
+    let r = Var::new(0.5f32, &DEV).unwrap();
+    let sphere = Sphere {
+        center: Tensor::zeros(3, DType::F32, &DEV).unwrap(),
+        radius: r.as_tensor().clone(),
+    };
+    let field = sphere.sdf();
+    let o = Tensor::new(&[[0.1f32, 0.0, -2.0], [0.0, 0.2, -2.0]], &DEV).unwrap();
+    let w = Tensor::new(&[[0.0f32, 0.0, 1.0], [0.0, 0.0, 2.0]], &DEV).unwrap();
+    let n = Tensor::zeros(2, DType::F32, &DEV).unwrap();
+    let fa = Tensor::new(&[4.0f32, 2.0], &DEV).unwrap();
+    let h = march(&field, &o, &w, &n, &fa, &MarchConfig::default()).unwrap();
+    let s = implicit_surface(&field, &o, &w, &h, &ImplicitConfig::default()).unwrap();
+    assert_eq!(s.depth.dtype(), DType::F32);
+    assert_eq!(v64(&s.depth), v64(&h.depth));
+    let p = v64(&s.points);
+    let hp = v64(&h.points);
+    for (a, b) in p.iter().zip(&hp) {
+        assert!((a - b).abs() < 1e-6);
+    }
+    let g = v64(s
+        .depth
+        .sum_all()
+        .unwrap()
+        .backward()
+        .unwrap()
+        .get(&r)
+        .unwrap())[0];
+    // ∂t/∂r = −1/(∇f·w)·(−1)... for an SDF sphere, ∂t/∂r = −(∂f/∂r)/(∇f·w) = 1/(n·w) < 0.
+    assert!(g.is_finite() && g < 0.0, "{g}");
+}
+
+#[test]
+fn grazing_ray_gets_a_guarded_finite_gradient_with_the_right_sign() {
+    let r = Var::new(0.5f64, &DEV).unwrap();
+    let field = Sphere {
+        center: Tensor::zeros(3, DType::F64, &DEV).unwrap(),
+        radius: r.as_tensor().clone(),
+    }
+    .sdf();
+    let y = 0.5 - 1e-12;
+    let o = Tensor::new(&[[0.0f64, y, -2.0]], &DEV).unwrap();
+    let w = Tensor::new(&[[0.0f64, 0.0, 1.0]], &DEV).unwrap();
+    let n = Tensor::new(&[1.0f64], &DEV).unwrap();
+    let fa = Tensor::new(&[2.0f64 + 1e-9], &DEV).unwrap();
+    let cfg = MarchConfig {
+        steps: 2,
+        secant_steps: 40,
+        ..MarchConfig::default()
+    };
+    let h = march(&field, &o, &w, &n, &fa, &cfg).unwrap();
+    assert_eq!(h.status, vec![RayStatus::Grazing]);
+    let s = implicit_surface(&field, &o, &w, &h, &ImplicitConfig::default()).unwrap();
+    assert_eq!(v64(&s.guarded.to_dtype(DType::F64).unwrap()), vec![1.0]);
+    let g = v64(s
+        .depth
+        .sum_all()
+        .unwrap()
+        .backward()
+        .unwrap()
+        .get(&r)
+        .unwrap())[0];
+    // Growing the sphere moves the entry point towards the camera: negative, bounded by 1/ε.
+    assert!((-1e3 - 1e-9..0.0).contains(&g), "{g}");
+}
+
+#[test]
+fn rays_without_surface_are_excluded_and_get_zero_gradient() {
+    let field = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64).unwrap().sdf();
+    let o = Var::new(
+        &[[0.0f64, 0.0, -2.0], [0.0, 0.0, 0.1], [0.0, 3.0, -2.0]],
+        &DEV,
+    )
+    .unwrap();
+    let w = Var::new(
+        &[[0.0f64, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]],
+        &DEV,
+    )
+    .unwrap();
+    let n = Tensor::zeros(3, DType::F64, &DEV).unwrap();
+    let fa = Tensor::new(&[4.0f64, 4.0, 4.0], &DEV).unwrap();
+    let h = march(
+        &field,
+        o.as_tensor(),
+        w.as_tensor(),
+        &n,
+        &fa,
+        &MarchConfig::default(),
+    )
+    .unwrap();
+    assert_eq!(
+        h.status,
+        vec![RayStatus::Hit, RayStatus::StartsInside, RayStatus::Miss]
+    );
+    let s = implicit_surface(
+        &field,
+        o.as_tensor(),
+        w.as_tensor(),
+        &h,
+        &ImplicitConfig::default(),
+    )
+    .unwrap();
+    assert_eq!(s.indices.to_vec1::<u32>().unwrap(), vec![0]);
+    let grads = s.points.sum_all().unwrap().backward().unwrap();
+    let go = v64(grads.get(&o).unwrap());
+    assert!(go.iter().all(|v| v.is_finite()));
+    assert!(go[3..].iter().all(|&v| v == 0.0), "{go:?}");
+    // ∂t/∂o_z = −∇f_z/(∇f·w) = −1 on the axis; p̂_z = o_z + t̂ → ∂p̂_z/∂o_z = 0.
+    assert!(go[2].abs() < 1e-12, "{go:?}");
+    // No hits at all: empty outputs.
+    let miss = march(
+        &field,
+        &o.as_tensor().narrow(0, 2, 1).unwrap(),
+        &w.as_tensor().narrow(0, 2, 1).unwrap(),
+        &n.narrow(0, 0, 1).unwrap(),
+        &fa.narrow(0, 0, 1).unwrap(),
+        &MarchConfig::default(),
+    )
+    .unwrap();
+    let e = implicit_surface(
+        &field,
+        &o.as_tensor().narrow(0, 2, 1).unwrap(),
+        &w.as_tensor().narrow(0, 2, 1).unwrap(),
+        &miss,
+        &ImplicitConfig::default(),
+    )
+    .unwrap();
+    assert!(e.is_empty());
+}
+
+/// ∇f = 0 at the surface (a step field): the denominator is floored, nothing is NaN.
+#[test]
+fn zero_spatial_gradient_is_guarded_without_nan() {
+    struct Step(Var);
+    impl ImplicitSurface for Step {
+        fn value(&self, p: &Tensor) -> neural_fields::Result<Tensor> {
+            let z = p.narrow(1, 2, 1)?.squeeze(1)?;
+            let one = z.ones_like()?;
+            Ok(z.ge(0.3)?
+                .where_cond(&one, &one.neg()?)?
+                .broadcast_mul(self.0.as_tensor())?)
+        }
+        fn value_and_grad(&self, p: &Tensor) -> neural_fields::Result<(Tensor, Tensor)> {
+            Ok((self.value(p)?, p.zeros_like()?))
+        }
+        fn inside(&self) -> Inside {
+            Inside::Positive
+        }
+    }
+    let a = Var::new(2.0f64, &DEV).unwrap();
+    let field = Step(a.clone());
+    let o = Tensor::new(&[[0.0f64, 0.0, 0.0]], &DEV).unwrap();
+    let w = Tensor::new(&[[0.0f64, 0.0, 1.0]], &DEV).unwrap();
+    let h = march(
+        &field,
+        &o,
+        &w,
+        &Tensor::new(&[0.0f64], &DEV).unwrap(),
+        &Tensor::new(&[1.0f64], &DEV).unwrap(),
+        &MarchConfig::default(),
+    )
+    .unwrap();
+    let s = implicit_surface(&field, &o, &w, &h, &ImplicitConfig::default()).unwrap();
+    assert_eq!(v64(&s.guarded.to_dtype(DType::F64).unwrap()), vec![1.0]);
+    let g = v64(s
+        .depth
+        .sum_all()
+        .unwrap()
+        .backward()
+        .unwrap()
+        .get(&a)
+        .unwrap());
+    assert!(g.iter().all(|v| v.is_finite()), "{g:?}");
+}
+
+#[test]
+fn implicit_surface_rejects_hits_of_other_rays() {
+    let field = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64).unwrap().sdf();
+    let o = Tensor::new(&[[0.0f64, 0.0, -2.0], [0.0, 0.1, -2.0]], &DEV).unwrap();
+    let w = Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.0, 1.0]], &DEV).unwrap();
+    let n = Tensor::zeros(2, DType::F64, &DEV).unwrap();
+    let fa = Tensor::new(&[4.0f64, 4.0], &DEV).unwrap();
+    let h = march(&field, &o, &w, &n, &fa, &MarchConfig::default()).unwrap();
+    let o1 = o.narrow(0, 0, 1).unwrap();
+    let w1 = w.narrow(0, 0, 1).unwrap();
+    match implicit_surface(&field, &o1, &w1, &h, &ImplicitConfig::default()).unwrap_err() {
+        neural_fields::Error::InvalidArgument { arg, .. } => assert_eq!(arg, "hits"),
+        e => panic!("{e}"),
+    }
+    let zero = Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.0, 0.0]], &DEV).unwrap();
+    match implicit_surface(&field, &o, &zero, &h, &ImplicitConfig::default()).unwrap_err() {
+        neural_fields::Error::InvalidArgument { arg, .. } => assert_eq!(arg, "directions"),
+        e => panic!("{e}"),
+    }
+}
+
+/// Regression: the guard's gradient floor scales with ‖w‖, so short directions get the
+/// exact gradient `∂t/∂r (λw) = ∂t/∂r (w)/λ` (an absolute floor on ‖∇f‖‖w‖ distorted it).
+#[test]
+fn implicit_gradient_is_exact_for_very_short_directions() {
+    let r = Var::new(0.5f64, &DEV).unwrap();
+    let field = Sphere {
+        center: Tensor::zeros(3, DType::F64, &DEV).unwrap(),
+        radius: r.as_tensor().clone(),
+    }
+    .sdf();
+    let grad_for = |lambda: f64| {
+        let o = Tensor::new(&[[0.1f64, 0.2, -2.0]], &DEV).unwrap();
+        let w = Tensor::new(&[[0.0f64, 0.0, lambda]], &DEV).unwrap();
+        let n = Tensor::new(&[0.0f64], &DEV).unwrap();
+        let fa = Tensor::new(&[4.0 / lambda], &DEV).unwrap();
+        let h = march(&field, &o, &w, &n, &fa, &accurate()).unwrap();
+        let s = implicit_surface(&field, &o, &w, &h, &ImplicitConfig::default()).unwrap();
+        v64(s
+            .depth
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap()
+            .get(&r)
+            .unwrap())[0]
+    };
+    let (g1, g_short) = (grad_for(1.0), grad_for(1e-15));
+    assert!(
+        close(g_short * 1e-15, g1, 1e-9, 0.0),
+        "{g_short:e} vs {g1:e}"
+    );
+}

@@ -1,0 +1,856 @@
+//! `dvr::march` and `dvr::sphere_trace`: root accuracy on analytic shapes (SDF and
+//! occupancy, f64 and f32), exact evaluation counts, degenerate rays (each named), bad
+//! input, chunking invariance, bounded marching and the step schedule.
+
+#![allow(clippy::needless_range_loop)]
+
+mod common;
+
+use candle_core::{DType, Device, Tensor};
+use common::v64;
+use neural_fields::camera::{ray_aabb, Rays};
+use neural_fields::dvr::{
+    march, march_bounded, secant_point, sphere_trace, Hits, MarchConfig, RayStatus, SecantRule,
+    SphereTraceConfig, StepSchedule,
+};
+use neural_fields::field::{Cuboid, ImplicitSurface, Inside, Plane, SignedDistance, Sphere, Torus};
+use neural_fields::rng::SplitMix64;
+use neural_fields::Result;
+use std::cell::Cell;
+
+const DEV: Device = Device::Cpu;
+
+/// Counts the points at which a field is evaluated (value and value_and_grad alike).
+struct Counting<'a, F: ?Sized> {
+    inner: &'a F,
+    points: Cell<usize>,
+    calls: Cell<usize>,
+}
+
+impl<'a, F: ImplicitSurface + ?Sized> Counting<'a, F> {
+    fn new(inner: &'a F) -> Self {
+        Self {
+            inner,
+            points: Cell::new(0),
+            calls: Cell::new(0),
+        }
+    }
+    fn note(&self, p: &Tensor) {
+        self.points.set(self.points.get() + p.dim(0).unwrap());
+        self.calls.set(self.calls.get() + 1);
+    }
+}
+
+impl<F: ImplicitSurface + ?Sized> ImplicitSurface for Counting<'_, F> {
+    fn value(&self, points: &Tensor) -> Result<Tensor> {
+        self.note(points);
+        self.inner.value(points)
+    }
+    fn value_and_grad(&self, points: &Tensor) -> Result<(Tensor, Tensor)> {
+        self.note(points);
+        self.inner.value_and_grad(points)
+    }
+    fn level(&self) -> f64 {
+        self.inner.level()
+    }
+    fn inside(&self) -> Inside {
+        self.inner.inside()
+    }
+}
+
+/// A host-side signed distance (the reference) for each test shape.
+#[derive(Clone, Copy, Debug)]
+enum Shape {
+    Sphere { c: [f64; 3], r: f64 },
+    Box { c: [f64; 3], h: [f64; 3] },
+    Torus { c: [f64; 3], big: f64, small: f64 },
+    Plane { n: [f64; 3], o: f64 },
+}
+
+fn norm(v: [f64; 3]) -> f64 {
+    (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
+}
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+impl Shape {
+    fn dist(&self, p: [f64; 3]) -> f64 {
+        match *self {
+            Shape::Sphere { c, r } => norm(sub(p, c)) - r,
+            Shape::Box { c, h } => {
+                let d = sub(p, c);
+                let q = [d[0].abs() - h[0], d[1].abs() - h[1], d[2].abs() - h[2]];
+                norm([q[0].max(0.0), q[1].max(0.0), q[2].max(0.0)])
+                    + q[0].max(q[1]).max(q[2]).min(0.0)
+            }
+            Shape::Torus { c, big, small } => {
+                let d = sub(p, c);
+                let rho = (d[0] * d[0] + d[1] * d[1]).sqrt();
+                ((rho - big).powi(2) + d[2] * d[2]).sqrt() - small
+            }
+            Shape::Plane { n, o } => {
+                let l = norm(n);
+                (n[0] * p[0] + n[1] * p[1] + n[2] * p[2]) / l - o
+            }
+        }
+    }
+
+    /// A point well inside (rays are aimed at it).
+    fn target(&self, rng: &mut SplitMix64) -> [f64; 3] {
+        let mut u = |a: f64| a * (2.0 * rng.uniform() - 1.0);
+        match *self {
+            Shape::Sphere { c, r } => [c[0] + u(0.4 * r), c[1] + u(0.4 * r), c[2] + u(0.4 * r)],
+            Shape::Box { c, h } => [
+                c[0] + u(0.5 * h[0]),
+                c[1] + u(0.5 * h[1]),
+                c[2] + u(0.5 * h[2]),
+            ],
+            Shape::Torus { c, big, .. } => {
+                let a = std::f64::consts::PI * u(1.0);
+                [c[0] + big * a.cos(), c[1] + big * a.sin(), c[2]]
+            }
+            Shape::Plane { n, o } => {
+                let l = norm(n);
+                let base = [n[0] / l * o, n[1] / l * o, n[2] / l * o];
+                [base[0] + u(0.5), base[1] + u(0.5), base[2] + u(0.5) * 0.0]
+            }
+        }
+    }
+
+    fn sdf_surface(&self, dtype: DType) -> Box<dyn ImplicitSurface> {
+        match *self {
+            Shape::Sphere { c, r } => Box::new(Sphere::new(c, r, &DEV, dtype).unwrap().sdf()),
+            Shape::Box { c, h } => Box::new(Cuboid::new(c, h, &DEV, dtype).unwrap().sdf()),
+            Shape::Torus { c, big, small } => {
+                Box::new(Torus::new(c, big, small, &DEV, dtype).unwrap().sdf())
+            }
+            Shape::Plane { n, o } => Box::new(Plane::new(n, o, &DEV, dtype).unwrap().sdf()),
+        }
+    }
+
+    fn occ_surface(&self, dtype: DType, k: f64) -> Box<dyn ImplicitSurface> {
+        match *self {
+            Shape::Sphere { c, r } => {
+                Box::new(Sphere::new(c, r, &DEV, dtype).unwrap().occupancy(k))
+            }
+            Shape::Box { c, h } => Box::new(Cuboid::new(c, h, &DEV, dtype).unwrap().occupancy(k)),
+            Shape::Torus { c, big, small } => {
+                Box::new(Torus::new(c, big, small, &DEV, dtype).unwrap().occupancy(k))
+            }
+            Shape::Plane { n, o } => Box::new(Plane::new(n, o, &DEV, dtype).unwrap().occupancy(k)),
+        }
+    }
+}
+
+/// Reference first entry of the ray into the shape (dense samples + 200 bisections), the
+/// length of the first inside segment, and |cos| between ray and normal there.
+fn reference(
+    shape: &Shape,
+    o: [f64; 3],
+    w: [f64; 3],
+    near: f64,
+    far: f64,
+) -> Option<(f64, f64, f64)> {
+    let at = |t: f64| shape.dist([o[0] + t * w[0], o[1] + t * w[1], o[2] + t * w[2]]);
+    let n = 20_000;
+    let ts: Vec<f64> = (0..=n)
+        .map(|j| near + (far - near) * j as f64 / n as f64)
+        .collect();
+    let j = (1..=n).find(|&j| at(ts[j]) < 0.0)?;
+    let (mut a, mut b) = (ts[j - 1], ts[j]);
+    for _ in 0..200 {
+        let m = 0.5 * (a + b);
+        if at(m) < 0.0 {
+            b = m
+        } else {
+            a = m
+        }
+    }
+    let entry = 0.5 * (a + b);
+    let exit = (j..=n).find(|&k| at(ts[k]) >= 0.0).map_or(far, |k| ts[k]);
+    let p = [
+        o[0] + entry * w[0],
+        o[1] + entry * w[1],
+        o[2] + entry * w[2],
+    ];
+    let e = 1e-6;
+    let g = [
+        shape.dist([p[0] + e, p[1], p[2]]) - shape.dist([p[0] - e, p[1], p[2]]),
+        shape.dist([p[0], p[1] + e, p[2]]) - shape.dist([p[0], p[1] - e, p[2]]),
+        shape.dist([p[0], p[1], p[2] + e]) - shape.dist([p[0], p[1], p[2] - e]),
+    ];
+    let cos = (g[0] * w[0] + g[1] * w[1] + g[2] * w[2]).abs() / (norm(g) * norm(w));
+    Some((entry, exit - entry, cos))
+}
+
+struct Batch {
+    o: Vec<[f64; 3]>,
+    w: Vec<[f64; 3]>,
+    far: Vec<f64>,
+}
+
+/// `r` rays from distance 2 aimed at points inside `shape`, directions of random length
+/// in [0.5, 2], with `[0, far]` covering distance 4; values rounded to `dtype`.
+fn rays_at(shape: &Shape, r: usize, seed: u64, dtype: DType) -> Batch {
+    let mut rng = SplitMix64::new(seed);
+    let round = |x: f64| {
+        if dtype == DType::F32 {
+            f64::from(x as f32)
+        } else {
+            x
+        }
+    };
+    let (mut os, mut ws, mut fars) = (vec![], vec![], vec![]);
+    while os.len() < r {
+        let target = shape.target(&mut rng);
+        let mut d = [rng.normal(), rng.normal(), rng.normal()];
+        if let Shape::Plane { n, .. } = shape {
+            // Come from the outside (normal) side.
+            let s = d[0] * n[0] + d[1] * n[1] + d[2] * n[2];
+            if s > -0.3 * norm(*n) * norm(d) {
+                continue;
+            }
+        }
+        let l = norm(d);
+        d = [d[0] / l, d[1] / l, d[2] / l];
+        let o = [
+            target[0] - 2.0 * d[0],
+            target[1] - 2.0 * d[1],
+            target[2] - 2.0 * d[2],
+        ];
+        let scale = 0.5 + 1.5 * rng.uniform();
+        let w = [d[0] * scale, d[1] * scale, d[2] * scale];
+        os.push(o.map(round));
+        ws.push(w.map(round));
+        fars.push(round(4.0 / scale));
+    }
+    Batch {
+        o: os,
+        w: ws,
+        far: fars,
+    }
+}
+
+fn tensors(b: &Batch, dtype: DType) -> (Tensor, Tensor, Tensor, Tensor) {
+    let r = b.o.len();
+    let flat = |v: &Vec<[f64; 3]>| {
+        Tensor::from_vec(
+            v.iter().flatten().copied().collect::<Vec<_>>(),
+            (r, 3),
+            &DEV,
+        )
+        .unwrap()
+        .to_dtype(dtype)
+        .unwrap()
+    };
+    let near = Tensor::zeros(r, dtype, &DEV).unwrap();
+    let far = Tensor::from_vec(b.far.clone(), r, &DEV)
+        .unwrap()
+        .to_dtype(dtype)
+        .unwrap();
+    (flat(&b.o), flat(&b.w), near, far)
+}
+
+fn shapes() -> Vec<(&'static str, Shape)> {
+    vec![
+        (
+            "sphere",
+            Shape::Sphere {
+                c: [0.125, -0.0625, 0.25],
+                r: 0.5,
+            },
+        ),
+        (
+            "box",
+            Shape::Box {
+                c: [0.0625, 0.125, -0.125],
+                h: [0.5, 0.25, 0.375],
+            },
+        ),
+        (
+            "torus",
+            Shape::Torus {
+                c: [0.0, 0.125, 0.0],
+                big: 0.5,
+                small: 0.1875,
+            },
+        ),
+        (
+            "plane",
+            Shape::Plane {
+                n: [0.25, -0.5, 1.0],
+                o: 0.125,
+            },
+        ),
+    ]
+}
+
+fn accuracy(dtype: DType, bound: f64) {
+    let scene = 2.0;
+    let cfg = MarchConfig {
+        steps: 64,
+        secant_steps: 8,
+        ..MarchConfig::default()
+    };
+    for (name, shape) in shapes() {
+        for occupancy in [false, true] {
+            let field = if occupancy {
+                shape.occ_surface(dtype, 10.0)
+            } else {
+                shape.sdf_surface(dtype)
+            };
+            let b = rays_at(&shape, 64, 11, dtype);
+            let (o, w, near, far) = tensors(&b, dtype);
+            let hits = march(field.as_ref(), &o, &w, &near, &far, &cfg).unwrap();
+            let depth = v64(&hits.depth);
+            let mut checked = 0;
+            let mut worst: f64 = 0.0;
+            for i in 0..b.o.len() {
+                let Some((t_ref, seg, cos)) = reference(&shape, b.o[i], b.w[i], 0.0, b.far[i])
+                else {
+                    continue;
+                };
+                let spacing = b.far[i] / 63.0;
+                if seg < 2.0 * spacing || cos < 0.05 {
+                    continue; // a thin clip or a near-tangent entry: not this test's subject
+                }
+                assert_eq!(
+                    hits.status[i],
+                    RayStatus::Hit,
+                    "{name} occ={occupancy} ray {i}"
+                );
+                let err = (depth[i] - t_ref).abs() * norm(b.w[i]) / scene;
+                worst = worst.max(err);
+                checked += 1;
+            }
+            assert!(checked >= 32, "{name}: only {checked} rays checked");
+            println!("{dtype:?} {name} occupancy={occupancy}: {checked} rays, worst relative depth error {worst:.2e}");
+            assert!(
+                worst <= bound,
+                "{name} occupancy={occupancy} {dtype:?}: depth error {worst:e} > {bound:e}"
+            );
+        }
+    }
+}
+
+#[test]
+fn depth_error_f64_within_1e_10_of_scene_size_with_64_steps_and_8_secant() {
+    accuracy(DType::F64, 1e-10);
+}
+
+#[test]
+fn depth_error_f32_within_1e_5_of_scene_size_with_64_steps_and_8_secant() {
+    accuracy(DType::F32, 1e-5);
+}
+
+#[test]
+fn evaluations_per_ray_are_exactly_steps_plus_secant_steps() {
+    let sphere = Shape::Sphere {
+        c: [0.0; 3],
+        r: 0.5,
+    };
+    for (steps, secant, chunk) in [(64, 8, 1000), (16, 0, 7), (33, 5, 1_000_000), (3, 1, 1)] {
+        for occupancy in [false, true] {
+            let inner = if occupancy {
+                sphere.occ_surface(DType::F64, 5.0)
+            } else {
+                sphere.sdf_surface(DType::F64)
+            };
+            let field = Counting::new(inner.as_ref());
+            let b = rays_at(&sphere, 20, 3, DType::F64);
+            let (o, w, near, far) = tensors(&b, DType::F64);
+            let cfg = MarchConfig {
+                steps,
+                secant_steps: secant,
+                chunk_points: chunk,
+                ..MarchConfig::default()
+            };
+            let hits = march(&field, &o, &w, &near, &far, &cfg).unwrap();
+            assert_eq!(
+                hits.count(RayStatus::Hit) + hits.count(RayStatus::NotConverged),
+                20
+            );
+            assert_eq!(
+                field.points.get(),
+                20 * (steps + secant),
+                "steps {steps} secant {secant}"
+            );
+            assert_eq!(hits.evaluations, 20 * (steps + secant));
+        }
+    }
+    // Misses cost `steps` only.
+    let inner = sphere.sdf_surface(DType::F64);
+    let field = Counting::new(inner.as_ref());
+    let o = Tensor::new(&[[0.0f64, 0.0, -2.0], [0.0, 2.0, -2.0]], &DEV).unwrap();
+    let w = Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.0, 1.0]], &DEV).unwrap();
+    let near = Tensor::zeros(2, DType::F64, &DEV).unwrap();
+    let far = Tensor::new(&[4.0f64, 4.0], &DEV).unwrap();
+    let cfg = MarchConfig {
+        steps: 50,
+        secant_steps: 6,
+        ..MarchConfig::default()
+    };
+    let hits = march(&field, &o, &w, &near, &far, &cfg).unwrap();
+    assert_eq!(hits.status, vec![RayStatus::Hit, RayStatus::Miss]);
+    assert_eq!(field.points.get(), 56 + 50);
+}
+
+#[test]
+fn chunk_size_bounds_every_call_and_does_not_change_results() {
+    let torus = Shape::Torus {
+        c: [0.0; 3],
+        big: 0.5,
+        small: 0.2,
+    };
+    let inner = torus.sdf_surface(DType::F64);
+    let b = rays_at(&torus, 30, 5, DType::F64);
+    let (o, w, near, far) = tensors(&b, DType::F64);
+    let mut reference: Option<Hits> = None;
+    for chunk in [1usize, 7, 100, 1 << 20] {
+        let field = Counting::new(inner.as_ref());
+        let cfg = MarchConfig {
+            steps: 40,
+            secant_steps: 4,
+            chunk_points: chunk,
+            ..MarchConfig::default()
+        };
+        let hits = march(&field, &o, &w, &near, &far, &cfg).unwrap();
+        // Each call sees at most max(chunk, steps) points (whole rays are sampled together).
+        let max_call = chunk.max(40);
+        assert!(field.points.get() <= field.calls.get() * max_call);
+        if let Some(r) = &reference {
+            assert_eq!(v64(&r.depth), v64(&hits.depth));
+            assert_eq!(r.status, hits.status);
+        } else {
+            reference = Some(hits);
+        }
+    }
+}
+
+fn one_ray(o: [f64; 3], w: [f64; 3], near: f64, far: f64) -> (Tensor, Tensor, Tensor, Tensor) {
+    (
+        Tensor::new(&[o], &DEV).unwrap(),
+        Tensor::new(&[w], &DEV).unwrap(),
+        Tensor::new(&[near], &DEV).unwrap(),
+        Tensor::new(&[far], &DEV).unwrap(),
+    )
+}
+
+fn all_finite(h: &Hits) {
+    assert!(v64(&h.depth).iter().all(|v| v.is_finite()));
+    assert!(v64(&h.points).iter().all(|v| v.is_finite()));
+}
+
+#[test]
+fn ray_starting_inside_is_reported_with_depth_near() {
+    let s = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64).unwrap();
+    for field in [
+        Box::new(s.clone().sdf()) as Box<dyn ImplicitSurface>,
+        Box::new(s.occupancy(4.0)),
+    ] {
+        let (o, w, n, f) = one_ray([0.0, 0.0, 0.1], [0.0, 0.0, 1.0], 0.25, 3.0);
+        let h = march(field.as_ref(), &o, &w, &n, &f, &MarchConfig::default()).unwrap();
+        assert_eq!(h.status, vec![RayStatus::StartsInside]);
+        assert_eq!(v64(&h.depth), vec![0.25]);
+        assert_eq!(v64(&h.mask.to_dtype(DType::F64).unwrap()), vec![0.0]);
+        all_finite(&h);
+    }
+}
+
+#[test]
+fn missing_ray_is_reported_with_depth_far() {
+    let field = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64).unwrap().sdf();
+    let (o, w, n, f) = one_ray([0.0, 0.7, -2.0], [0.0, 0.0, 1.0], 0.0, 4.0);
+    let h = march(&field, &o, &w, &n, &f, &MarchConfig::default()).unwrap();
+    assert_eq!(h.status, vec![RayStatus::Miss]);
+    assert_eq!(v64(&h.depth), vec![4.0]);
+    all_finite(&h);
+}
+
+#[test]
+fn tangent_ray_misses_and_nearly_tangent_ray_is_grazing() {
+    let field = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64).unwrap().sdf();
+    // Exactly tangent: touches without entering.
+    let (o, w, n, f) = one_ray([0.0, 0.5, -2.0], [0.0, 0.0, 1.0], 0.0, 4.0);
+    let h = march(&field, &o, &w, &n, &f, &MarchConfig::default()).unwrap();
+    assert_eq!(h.status, vec![RayStatus::Miss]);
+    // Enters by 1e-9: a crossing exists (the samples are placed to see it), at cos ≈ 6e-5.
+    let y = 0.5 - 1e-9;
+    let t_mid = 2.0;
+    let (o, w, n, f) = one_ray([0.0, y, -2.0], [0.0, 0.0, 1.0], t_mid - 1.0, t_mid + 1e-6);
+    let cfg = MarchConfig {
+        steps: 2,
+        secant_steps: 30,
+        ..MarchConfig::default()
+    };
+    let h = march(&field, &o, &w, &n, &f, &cfg).unwrap();
+    assert_eq!(h.status, vec![RayStatus::Grazing]);
+    let expected = t_mid - (0.25 - y * y).sqrt();
+    assert!(
+        (v64(&h.depth)[0] - expected).abs() < 1e-9,
+        "{:?} vs {expected}",
+        v64(&h.depth)
+    );
+    all_finite(&h);
+}
+
+#[test]
+fn two_crossings_the_first_is_found() {
+    // Two spheres on the ray: the nearer one is found, at both sampling densities.
+    let near_s = Sphere::new([0.0, 0.0, -0.5], 0.25, &DEV, DType::F64).unwrap();
+    let far_s = Sphere::new([0.0, 0.0, 0.5], 0.25, &DEV, DType::F64).unwrap();
+    let union = Union(near_s.sdf(), far_s.sdf());
+    let (o, w, n, f) = one_ray([0.0, 0.0, -2.0], [0.0, 0.0, 1.0], 0.0, 4.0);
+    for steps in [16, 256] {
+        let cfg = MarchConfig {
+            steps,
+            ..MarchConfig::default()
+        };
+        let h = march(&union, &o, &w, &n, &f, &cfg).unwrap();
+        assert_eq!(h.status, vec![RayStatus::Hit]);
+        assert!(
+            (v64(&h.depth)[0] - 1.25).abs() < 1e-12,
+            "{:?}",
+            v64(&h.depth)
+        );
+    }
+    // A torus seen edge-on: entry into the near side of the tube.
+    let torus = Torus::new([0.0; 3], 0.5, 0.125, &DEV, DType::F64)
+        .unwrap()
+        .sdf();
+    let (o, w, n, f) = one_ray([-2.0, 0.0, 0.0], [1.0, 0.0, 0.0], 0.0, 4.0);
+    let h = march(&torus, &o, &w, &n, &f, &MarchConfig::default()).unwrap();
+    assert!(
+        (v64(&h.depth)[0] - 1.375).abs() < 1e-12,
+        "{:?}",
+        v64(&h.depth)
+    );
+}
+
+/// min of two SDFs (a union), for the two-crossings test.
+struct Union<A, B>(A, B);
+impl<A: ImplicitSurface, B: ImplicitSurface> ImplicitSurface for Union<A, B> {
+    fn value(&self, p: &Tensor) -> Result<Tensor> {
+        Ok(self.0.value(p)?.minimum(&self.1.value(p)?)?)
+    }
+    fn value_and_grad(&self, p: &Tensor) -> Result<(Tensor, Tensor)> {
+        let (a, ga) = self.0.value_and_grad(p)?;
+        let (b, gb) = self.1.value_and_grad(p)?;
+        let first = a.le(&b)?;
+        let g = first
+            .unsqueeze(1)?
+            .broadcast_as(ga.shape())?
+            .where_cond(&ga, &gb)?;
+        Ok((a.minimum(&b)?, g))
+    }
+    fn inside(&self) -> Inside {
+        Inside::Negative
+    }
+}
+
+#[test]
+fn field_exactly_at_level_at_a_sample_is_found_exactly() {
+    // Plane z = 0.5; samples at t = 0, 0.25, …, 1 put one exactly on it.
+    for field in [
+        Box::new(
+            Plane::new([0.0, 0.0, -1.0], -0.5, &DEV, DType::F64)
+                .unwrap()
+                .sdf(),
+        ) as Box<dyn ImplicitSurface>,
+        Box::new(
+            Plane::new([0.0, 0.0, -1.0], -0.5, &DEV, DType::F64)
+                .unwrap()
+                .occupancy(3.0),
+        ),
+    ] {
+        let (o, w, n, f) = one_ray([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], 0.0, 1.0);
+        for secant in [0, 1, 8] {
+            let cfg = MarchConfig {
+                steps: 5,
+                secant_steps: secant,
+                tolerance: 1.0,
+                ..MarchConfig::default()
+            };
+            let h = march(field.as_ref(), &o, &w, &n, &f, &cfg).unwrap();
+            assert!(h.status[0].has_surface(), "{:?}", h.status);
+            assert_eq!(v64(&h.depth), vec![0.5]);
+            all_finite(&h);
+        }
+    }
+}
+
+/// Values ±f64::MAX: `s_hi − s_lo` overflows, so every secant point is degenerate.
+struct Step;
+impl ImplicitSurface for Step {
+    fn value(&self, p: &Tensor) -> Result<Tensor> {
+        let z = p.narrow(1, 2, 1)?.squeeze(1)?;
+        let big = Tensor::full(f64::MAX, z.shape(), z.device())?.to_dtype(z.dtype())?;
+        Ok(z.ge(0.3)?.where_cond(&big, &big.neg()?)?)
+    }
+    fn value_and_grad(&self, p: &Tensor) -> Result<(Tensor, Tensor)> {
+        Ok((self.value(p)?, p.zeros_like()?))
+    }
+    fn inside(&self) -> Inside {
+        Inside::Positive
+    }
+}
+
+#[test]
+fn secant_denominator_zero_falls_back_to_bisection() {
+    // The rule itself: equal values, overflow and NaN give the midpoint.
+    assert_eq!(secant_point(1.0, 0.0, 3.0, 0.0), (2.0, true));
+    assert_eq!(secant_point(1.0, -f64::MAX, 3.0, f64::MAX), (2.0, true));
+    assert_eq!(secant_point(1.0, f64::NAN, 3.0, 1.0), (2.0, true));
+    assert_eq!(secant_point(1.0, -1.0, 3.0, 1.0), (2.0, false));
+    assert_eq!(secant_point(1.0, 0.0, 3.0, 5.0), (1.0, false));
+    // A march on a field whose every secant denominator overflows: bisection converges.
+    let (o, w, n, f) = one_ray([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], 0.0, 1.0);
+    let cfg = MarchConfig {
+        steps: 11,
+        secant_steps: 30,
+        ..MarchConfig::default()
+    };
+    let h = march(&Step, &o, &w, &n, &f, &cfg).unwrap();
+    // ∇f = 0: the status says the normal is degenerate.
+    assert_eq!(h.status, vec![RayStatus::Grazing]);
+    assert!((v64(&h.depth)[0] - 0.3).abs() < 1e-9, "{:?}", v64(&h.depth));
+    all_finite(&h);
+    let cfg = MarchConfig {
+        grazing_threshold: None,
+        ..cfg
+    };
+    let h = march(&Step, &o, &w, &n, &f, &cfg).unwrap();
+    assert_eq!(h.status, vec![RayStatus::Hit]);
+}
+
+#[test]
+fn not_converged_is_reported_when_the_refinement_is_too_short() {
+    let field = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64).unwrap().sdf();
+    let (o, w, n, f) = one_ray([0.1, 0.2, -2.0], [0.0, 0.0, 1.0], 0.0, 4.0);
+    let cfg = MarchConfig {
+        steps: 8,
+        secant_steps: 0,
+        tolerance: 1e-6,
+        ..MarchConfig::default()
+    };
+    let h = march(&field, &o, &w, &n, &f, &cfg).unwrap();
+    assert_eq!(h.status, vec![RayStatus::NotConverged]);
+    let cfg = MarchConfig {
+        secant_steps: 12,
+        ..cfg
+    };
+    let h = march(&field, &o, &w, &n, &f, &cfg).unwrap();
+    assert_eq!(h.status, vec![RayStatus::Hit]);
+}
+
+#[test]
+fn illinois_beats_plain_regula_falsi_on_a_curved_crossing() {
+    let field = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64)
+        .unwrap()
+        .occupancy(10.0);
+    let (o, w, n, f) = one_ray([0.3, 0.0, -2.0], [0.0, 0.0, 1.0], 0.0, 4.0);
+    let exact = 2.0 - (0.25f64 - 0.09).sqrt();
+    let err = |rule| {
+        let cfg = MarchConfig {
+            steps: 8,
+            secant_steps: 6,
+            rule,
+            ..MarchConfig::default()
+        };
+        (v64(&march(&field, &o, &w, &n, &f, &cfg).unwrap().depth)[0] - exact).abs()
+    };
+    let (e_rf, e_il) = (err(SecantRule::RegulaFalsi), err(SecantRule::Illinois));
+    assert!(
+        e_il < 1e-12 && e_il < e_rf,
+        "illinois {e_il:e}, regula falsi {e_rf:e}"
+    );
+}
+
+fn err_arg<T: std::fmt::Debug>(r: Result<T>) -> String {
+    match r.unwrap_err() {
+        neural_fields::Error::InvalidArgument { arg, .. } => arg.to_string(),
+        e => panic!("unexpected {e}"),
+    }
+}
+
+#[test]
+fn bad_input_errs_naming_the_argument() {
+    let field = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64).unwrap().sdf();
+    let o = Tensor::new(&[[0.0f64, 0.0, -2.0], [0.0, 0.0, -2.0]], &DEV).unwrap();
+    let w = Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.1, 1.0]], &DEV).unwrap();
+    let n = Tensor::new(&[0.0f64, 0.0], &DEV).unwrap();
+    let f = Tensor::new(&[4.0f64, 4.0], &DEV).unwrap();
+    let c = MarchConfig::default();
+    let w1 = w.narrow(0, 0, 1).unwrap();
+    assert_eq!(err_arg(march(&field, &o, &w1, &n, &f, &c)), "directions");
+    let bad_o = Tensor::new(&[[0.0f64, f64::NAN, -2.0], [0.0, 0.0, -2.0]], &DEV).unwrap();
+    assert_eq!(err_arg(march(&field, &bad_o, &w, &n, &f, &c)), "origins");
+    let inf_o = Tensor::new(&[[0.0f64, f64::INFINITY, -2.0], [0.0, 0.0, -2.0]], &DEV).unwrap();
+    assert_eq!(err_arg(march(&field, &inf_o, &w, &n, &f, &c)), "origins");
+    let zero_w = Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.0, 0.0]], &DEV).unwrap();
+    assert_eq!(
+        err_arg(march(&field, &o, &zero_w, &n, &f, &c)),
+        "directions"
+    );
+    let f_eq = Tensor::new(&[4.0f64, 0.0], &DEV).unwrap();
+    assert_eq!(err_arg(march(&field, &o, &w, &n, &f_eq, &c)), "far");
+    let f_lt = Tensor::new(&[-1.0f64, 4.0], &DEV).unwrap();
+    assert_eq!(err_arg(march(&field, &o, &w, &n, &f_lt, &c)), "far");
+    let n3 = Tensor::new(&[0.0f64, 0.0, 0.0], &DEV).unwrap();
+    assert_eq!(err_arg(march(&field, &o, &w, &n3, &f, &c)), "near");
+    let n32 = n.to_dtype(DType::F32).unwrap();
+    assert_eq!(err_arg(march(&field, &o, &w, &n32, &f, &c)), "near");
+    let o2 = Tensor::new(&[[0.0f64, 0.0], [0.0, 0.0]], &DEV).unwrap();
+    assert_eq!(err_arg(march(&field, &o2, &w, &n, &f, &c)), "origins");
+    let w32 = w.to_dtype(DType::F32).unwrap();
+    assert_eq!(err_arg(march(&field, &o, &w32, &n, &f, &c)), "directions");
+    let c1 = MarchConfig {
+        steps: 1,
+        ..MarchConfig::default()
+    };
+    assert_eq!(err_arg(march(&field, &o, &w, &n, &f, &c1)), "config.steps");
+    let c0 = MarchConfig {
+        chunk_points: 0,
+        ..MarchConfig::default()
+    };
+    assert_eq!(
+        err_arg(march(&field, &o, &w, &n, &f, &c0)),
+        "config.chunk_points"
+    );
+    let st = SphereTraceConfig::default();
+    assert_eq!(err_arg(sphere_trace(&field, &o, &w, &n, &f_eq, &st)), "far");
+    let occ = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64)
+        .unwrap()
+        .occupancy(2.0);
+    assert_eq!(err_arg(sphere_trace(&occ, &o, &w, &n, &f, &st)), "field");
+    assert_eq!(err_arg(StepSchedule::new(vec![(5, 16)])), "milestones");
+}
+
+#[test]
+fn sphere_tracing_agrees_with_the_march_on_sdfs() {
+    for (name, shape) in shapes() {
+        if let Shape::Plane { .. } = shape {
+            continue;
+        }
+        for dtype in [DType::F64, DType::F32] {
+            let field = shape.sdf_surface(dtype);
+            let b = rays_at(&shape, 48, 21, dtype);
+            let (o, w, near, far) = tensors(&b, dtype);
+            let cfg = MarchConfig {
+                steps: 256,
+                secant_steps: 12,
+                ..MarchConfig::default()
+            };
+            let m = march(field.as_ref(), &o, &w, &near, &far, &cfg).unwrap();
+            let s = sphere_trace(
+                field.as_ref(),
+                &o,
+                &w,
+                &near,
+                &far,
+                &SphereTraceConfig::default(),
+            )
+            .unwrap();
+            let (dm, ds) = (v64(&m.depth), v64(&s.depth));
+            let tol = if dtype == DType::F64 { 1e-4 } else { 2e-4 };
+            for i in 0..b.o.len() {
+                if m.status[i] == RayStatus::Hit && s.status[i] == RayStatus::Hit {
+                    // Sphere tracing stops within `threshold` of the surface.
+                    assert!(
+                        (dm[i] - ds[i]).abs() * norm(b.w[i]) < tol,
+                        "{name} ray {i}: {} vs {}",
+                        dm[i],
+                        ds[i]
+                    );
+                }
+                assert_eq!(
+                    m.status[i].has_surface(),
+                    s.status[i].has_surface(),
+                    "{name} ray {i}"
+                );
+            }
+            all_finite(&s);
+        }
+    }
+}
+
+#[test]
+fn sphere_tracing_falls_back_to_sampling_and_steps_back_on_overshoot() {
+    // f = 1.5·d overestimates the distance: steps land inside and must step back.
+    struct Overshoot(neural_fields::field::Sdf<Sphere>);
+    impl ImplicitSurface for Overshoot {
+        fn value(&self, p: &Tensor) -> Result<Tensor> {
+            Ok(self.0.value(p)?.affine(1.5, 0.0)?)
+        }
+        fn value_and_grad(&self, p: &Tensor) -> Result<(Tensor, Tensor)> {
+            let (v, g) = self.0.value_and_grad(p)?;
+            Ok((v.affine(1.5, 0.0)?, g.affine(1.5, 0.0)?))
+        }
+        fn inside(&self) -> Inside {
+            Inside::Negative
+        }
+    }
+    let field = Overshoot(Sphere::new([0.0; 3], 0.5, &DEV, DType::F64).unwrap().sdf());
+    let o = Tensor::new(
+        &[[0.0f64, 0.0, -2.0], [0.2, 0.1, -2.0], [0.0, 0.0, -0.2]],
+        &DEV,
+    )
+    .unwrap();
+    let w = Tensor::new(
+        &[[0.0f64, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]],
+        &DEV,
+    )
+    .unwrap();
+    let n = Tensor::zeros(3, DType::F64, &DEV).unwrap();
+    let f = Tensor::new(&[4.0f64, 4.0, 4.0], &DEV).unwrap();
+    let cfg = SphereTraceConfig {
+        max_iters: 3,
+        ..SphereTraceConfig::default()
+    };
+    let h = sphere_trace(&field, &o, &w, &n, &f, &cfg).unwrap();
+    let d = v64(&h.depth);
+    assert_eq!(h.status[2], RayStatus::StartsInside);
+    for (i, expected) in [(0, 1.5), (1, 2.0 - (0.25f64 - 0.05).sqrt())] {
+        assert!(h.status[i].has_surface(), "{:?}", h.status);
+        assert!(
+            (d[i] - expected).abs() < 1e-6,
+            "ray {i}: {} vs {expected}",
+            d[i]
+        );
+    }
+}
+
+#[test]
+fn march_bounded_skips_rays_outside_the_box_without_evaluating_them() {
+    let inner = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64).unwrap().sdf();
+    let field = Counting::new(&inner);
+    let rays = Rays::new(
+        Tensor::new(&[[0.0f64, 0.0, -2.0], [0.0, 3.0, -2.0]], &DEV).unwrap(),
+        Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.0, 1.0]], &DEV).unwrap(),
+    )
+    .unwrap();
+    let bounds = ray_aabb(&rays.origins, &rays.directions, [-0.55; 3], [0.55; 3]).unwrap();
+    let cfg = MarchConfig {
+        steps: 32,
+        secant_steps: 8,
+        ..MarchConfig::default()
+    };
+    let h = march_bounded(&field, &rays, &bounds, &cfg).unwrap();
+    assert_eq!(h.status, vec![RayStatus::Hit, RayStatus::Miss]);
+    assert!((v64(&h.depth)[0] - 1.5).abs() < 1e-12);
+    assert_eq!(field.points.get(), 40);
+}
+
+#[test]
+fn step_schedule_goes_coarse_to_fine() {
+    let s = StepSchedule::coarse_to_fine();
+    assert_eq!(
+        [0, 49_999, 50_000, 150_000, 10_000_000].map(|i| s.steps_at(i)),
+        [16, 16, 32, 64, 128]
+    );
+    let custom = StepSchedule::new(vec![(0, 8), (10, 24)]).unwrap();
+    let c = custom.config_at(12, &MarchConfig::default());
+    assert_eq!(c.steps, 24);
+    assert_eq!(c.secant_steps, MarchConfig::default().secant_steps);
+}
