@@ -84,7 +84,7 @@
 //! ## Features
 //! | feature | default | module |
 //! |---|---|---|
-//! | `occupancy` | yes | occupancy networks: losses, samplers, meshes, marching cubes, MISE, metrics (planned) |
+//! | `occupancy` | yes | occupancy networks: losses, samplers, meshes, marching cubes, MISE, metrics |
 //! | `texture` | yes | texture fields and photometric losses (planned) |
 //! | `dvr` | yes | surface rendering with implicit gradients (planned) |
 //! | `volume` | yes | NeRF sampling and compositing |
@@ -101,6 +101,8 @@ pub mod error;
 pub mod field;
 pub mod nn;
 pub mod numerics;
+#[cfg(feature = "occupancy")]
+pub mod occupancy;
 pub mod rng;
 
 pub use error::{Error, Result};
