@@ -85,7 +85,7 @@ fn ply_reads_big_endian_extra_properties_other_elements_and_quads() {
     .iter()
     .enumerate()
     {
-        b.extend_from_slice(&(v[0] as f64).to_be_bytes());
+        b.extend_from_slice(&v[0].to_be_bytes());
         b.extend_from_slice(&(v[1] as f32).to_be_bytes());
         b.extend_from_slice(&(v[2] as f32).to_be_bytes());
         b.push(i as u8);

@@ -2,9 +2,9 @@
 //! Multiresolution IsoSurface Extraction (MISE), the ONet metrics, training losses and
 //! point samplers.
 //!
-//! * [`mesh`]: [`Mesh`](mesh::Mesh) with validation, PLY (ASCII and binary) and OBJ
+//! * [`mesh`]: [`Mesh`] with validation, PLY (ASCII and binary) and OBJ
 //!   read/write, unit-cube normalisation, area-weighted surface sampling.
-//! * [`marching_cubes`]: watertight, consistently oriented marching cubes over a dense
+//! * [`mod@marching_cubes`]: watertight, consistently oriented marching cubes over a dense
 //!   grid of values.
 //! * [`mise`]: coarse-to-fine extraction of the level set of any
 //!   [`ImplicitSurface`](crate::field::ImplicitSurface), evaluating the field only near
