@@ -77,7 +77,7 @@ fn ply_reads_big_endian_extra_properties_other_elements_and_quads() {
     // and uint count, plus an unknown element after the faces.
     let mut b = b"ply\nformat binary_big_endian 1.0\nelement vertex 4\nproperty double x\nproperty float y\nproperty float z\nproperty uchar red\nelement face 1\nproperty uint nothing\nproperty list uint ushort vertex_index\nelement edge 1\nproperty int a\nend_header\n".to_vec();
     for (i, v) in [
-        [0.0, 0.0, 0.0],
+        [0.0f64, 0.0, 0.0],
         [1.0, 0.0, 0.0],
         [1.0, 1.0, 0.0],
         [0.0, 1.0, 0.0],
