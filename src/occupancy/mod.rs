@@ -24,3 +24,5 @@ pub mod sampling;
 
 pub use marching_cubes::{marching_cubes, Grid};
 pub use mesh::{Mesh, PlyFormat};
+pub use metrics::{iou, mesh_metrics, surface_metrics, KdTree, SurfaceMetrics};
+pub use mise::{logit_threshold, mise, MiseConfig, MiseOutput};
