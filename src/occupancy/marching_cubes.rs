@@ -25,7 +25,6 @@ use crate::field::{ImplicitSurface, Inside};
 use candle_core::{DType, Device, Tensor};
 use rayon::prelude::*;
 use std::collections::HashMap;
-use std::hash::{BuildHasherDefault, Hasher};
 use std::sync::OnceLock;
 
 /// A dense grid of samples of a scalar field: `dims = [nx, ny, nz]` grid points spanning
@@ -452,27 +451,6 @@ pub fn cases_needing_fallback() -> usize {
         .count()
 }
 
-/// A fast multiplicative hasher for `u64` edge keys.
-#[derive(Default)]
-struct EdgeHasher(u64);
-
-impl Hasher for EdgeHasher {
-    fn finish(&self) -> u64 {
-        self.0
-    }
-    fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.0 = (self.0.rotate_left(8) ^ u64::from(b)).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-        }
-    }
-    fn write_u64(&mut self, x: u64) {
-        self.0 = (x ^ (x >> 29)).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-        self.0 ^= self.0 >> 32;
-    }
-}
-
-type EdgeMap = HashMap<u64, u32, BuildHasherDefault<EdgeHasher>>;
-
 /// Extracts the level set `{f = level}` of a dense grid as a triangle mesh.
 ///
 /// A grid point is inside when `inside.sign()·(v − level) > 0`; points exactly at the
@@ -491,25 +469,83 @@ pub fn marching_cubes(grid: &Grid, level: f64, inside: Inside) -> Result<Mesh> {
     let table = case_table();
     let edges = edges();
     let [nx, ny, nz] = grid.dims;
+    let plane = nx * ny;
     let sign = inside.sign() as f32;
     let tau = level as f32;
     let vals = &grid.values;
-    let is_in = |idx: usize| sign * (vals[idx] - tau) > 0.0;
-    let corner_idx: [usize; 8] = std::array::from_fn(|c| {
+    let flags: Vec<bool> = vals.par_iter().map(|&v| sign * (v - tau) > 0.0).collect();
+    let h = grid.spacing();
+    let stride = [1, nx, plane];
+    // Phase 1, per plane k: the crossed edges it owns (x and y edges in the plane, z
+    // edges from it to plane k + 1), as sorted local keys (in-plane index · 3 + axis),
+    // with their interpolated vertices.
+    let owned: Vec<(Vec<u32>, Vec<[f64; 3]>)> = (0..nz)
+        .into_par_iter()
+        .map(|k| {
+            let mut keys = Vec::new();
+            let mut pos = Vec::new();
+            for j in 0..ny {
+                for i in 0..nx {
+                    let local = i + nx * j;
+                    let idx = local + plane * k;
+                    let here = flags[idx];
+                    let lim = [i + 1 < nx, j + 1 < ny, k + 1 < nz];
+                    for axis in 0..3 {
+                        if !lim[axis] || flags[idx + stride[axis]] == here {
+                            continue;
+                        }
+                        let (va, vb) = (f64::from(vals[idx]), f64::from(vals[idx + stride[axis]]));
+                        let den = vb - va;
+                        let t = if den != 0.0 && den.is_finite() {
+                            ((level - va) / den).clamp(0.0, 1.0)
+                        } else if va.is_infinite() {
+                            1.0
+                        } else {
+                            0.0
+                        };
+                        let mut p = [
+                            grid.min[0] + i as f64 * h[0],
+                            grid.min[1] + j as f64 * h[1],
+                            grid.min[2] + k as f64 * h[2],
+                        ];
+                        p[axis] += t * h[axis];
+                        keys.push((local * 3 + axis) as u32);
+                        pos.push(p);
+                    }
+                }
+            }
+            (keys, pos)
+        })
+        .collect();
+    let mut offsets = Vec::with_capacity(nz + 1);
+    let mut total = 0usize;
+    for (keys, _) in &owned {
+        offsets.push(total);
+        total += keys.len();
+    }
+    if total > u32::MAX as usize {
+        return Err(Error::invalid(
+            "grid",
+            "at most 2³² − 1 surface vertices",
+            format!("{total}"),
+        ));
+    }
+    // Phase 2, per slab of cells between planes k and k + 1: triangles, with vertex ids
+    // found by binary search in the owning plane's sorted keys.
+    let corner_local: [(usize, usize); 8] = std::array::from_fn(|c| {
         let o = corner_offset(c);
-        o[0] + nx * (o[1] + ny * o[2])
+        (o[0] + nx * o[1], o[2])
     });
-    // Triangles as global edge keys (grid index of the edge's lower point · 3 + axis).
-    let slabs: Vec<Vec<[u64; 3]>> = (0..nz - 1)
+    let faces: Vec<Vec<[u32; 3]>> = (0..nz - 1)
         .into_par_iter()
         .map(|k| {
             let mut out = Vec::new();
             for j in 0..ny - 1 {
                 for i in 0..nx - 1 {
-                    let base = i + nx * (j + ny * k);
+                    let local = i + nx * j;
                     let mut config = 0usize;
-                    for (c, off) in corner_idx.iter().enumerate() {
-                        if is_in(base + off) {
+                    for (c, &(off, dz)) in corner_local.iter().enumerate() {
+                        if flags[local + off + plane * (k + dz)] {
                             config |= 1 << c;
                         }
                     }
@@ -517,54 +553,30 @@ pub fn marching_cubes(grid: &Grid, level: f64, inside: Inside) -> Result<Mesh> {
                         continue;
                     }
                     for t in &table[config] {
-                        out.push(t.map(|e| {
+                        let mut f = [0u32; 3];
+                        for (slot, &e) in f.iter_mut().zip(t) {
                             let (c, axis) = edges[e as usize];
-                            ((base + corner_idx[c]) as u64) * 3 + axis as u64
-                        }));
+                            let (off, dz) = corner_local[c];
+                            let key = ((local + off) * 3 + axis) as u32;
+                            let pl = k + dz;
+                            // invariant: a crossed cell edge is owned by its plane.
+                            let at = owned[pl].0.binary_search(&key).unwrap_or(0);
+                            *slot = (offsets[pl] + at) as u32;
+                        }
+                        out.push(f);
                     }
                 }
             }
             out
         })
         .collect();
-    let n_tris: usize = slabs.iter().map(Vec::len).sum();
-    let mut map: EdgeMap = HashMap::with_capacity_and_hasher(n_tris, Default::default());
-    let mut vertices = Vec::with_capacity(n_tris / 2 + 8);
-    let mut faces = Vec::with_capacity(n_tris);
-    let h = grid.spacing();
-    let stride = [1, nx, nx * ny];
-    for slab in &slabs {
-        for t in slab {
-            let f = t.map(|key| {
-                *map.entry(key).or_insert_with(|| {
-                    let idx = (key / 3) as usize;
-                    let axis = (key % 3) as usize;
-                    let (va, vb) = (f64::from(vals[idx]), f64::from(vals[idx + stride[axis]]));
-                    let den = vb - va;
-                    let tt = if den != 0.0 && den.is_finite() {
-                        ((level - va) / den).clamp(0.0, 1.0)
-                    } else if va.is_infinite() {
-                        1.0
-                    } else {
-                        0.0
-                    };
-                    let (i, j, k) = (idx % nx, (idx / nx) % ny, idx / (nx * ny));
-                    let mut p = [
-                        grid.min[0] + i as f64 * h[0],
-                        grid.min[1] + j as f64 * h[1],
-                        grid.min[2] + k as f64 * h[2],
-                    ];
-                    p[axis] += tt * h[axis];
-                    vertices.push(p);
-                    (vertices.len() - 1) as u32
-                })
-            });
-            faces.push(f);
-        }
+    let mut vertices = Vec::with_capacity(total);
+    for (_, pos) in owned {
+        vertices.extend(pos);
     }
     Ok(Mesh {
         vertices,
-        faces,
+        faces: faces.concat(),
         normals: None,
     })
 }

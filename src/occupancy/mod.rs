@@ -6,7 +6,7 @@
 //!   read/write, unit-cube normalisation, area-weighted surface sampling.
 //! * [`mod@marching_cubes`]: watertight, consistently oriented marching cubes over a dense
 //!   grid of values.
-//! * [`mise`]: coarse-to-fine extraction of the level set of any
+//! * [`mod@mise`]: coarse-to-fine extraction of the level set of any
 //!   [`ImplicitSurface`](crate::field::ImplicitSurface), evaluating the field only near
 //!   the surface.
 //! * [`metrics`]: IoU, Chamfer-L1, normal consistency and F-score with ONet's conventions.
