@@ -540,18 +540,33 @@ pub fn marching_cubes(grid: &Grid, level: f64, inside: Inside) -> Result<Mesh> {
         .into_par_iter()
         .map(|k| {
             let mut out = Vec::new();
+            // Column codes: bit (y + 2z) of q[i] says whether point (i, j + y, k + z) is
+            // inside; corner c = x + 2y + 4z of cell i takes bit 2(y + 2z) + x.
+            let spread = |q: u8| -> usize {
+                let q = q as usize;
+                (q & 1) | ((q & 2) << 1) | ((q & 4) << 2) | ((q & 8) << 3)
+            };
+            let mut q = vec![0u8; nx];
             for j in 0..ny - 1 {
+                let rows = [
+                    j * nx + plane * k,
+                    (j + 1) * nx + plane * k,
+                    j * nx + plane * (k + 1),
+                    (j + 1) * nx + plane * (k + 1),
+                ];
+                for (i, qi) in q.iter_mut().enumerate() {
+                    *qi = u8::from(flags[rows[0] + i])
+                        | (u8::from(flags[rows[1] + i]) << 1)
+                        | (u8::from(flags[rows[2] + i]) << 2)
+                        | (u8::from(flags[rows[3] + i]) << 3);
+                }
                 for i in 0..nx - 1 {
-                    let local = i + nx * j;
-                    let mut config = 0usize;
-                    for (c, &(off, dz)) in corner_local.iter().enumerate() {
-                        if flags[local + off + plane * (k + dz)] {
-                            config |= 1 << c;
-                        }
-                    }
-                    if config == 0 || config == 255 {
+                    let (q0, q1) = (q[i], q[i + 1]);
+                    if (q0 == 0 && q1 == 0) || (q0 == 15 && q1 == 15) {
                         continue;
                     }
+                    let local = i + nx * j;
+                    let config = spread(q0) | (spread(q1) << 1);
                     for t in &table[config] {
                         let mut f = [0u32; 3];
                         for (slot, &e) in f.iter_mut().zip(t) {
