@@ -668,6 +668,11 @@ pub fn ray_aabb(
 /// `origins, directions: [N, 3]`, same float dtype and device; outputs on it.
 /// Differentiable w.r.t. origins and directions (zero, never NaN, for misses).
 ///
+/// Range: the sphere must be resolvable in the dtype at the origin's distance
+/// (`r ≫ ulp(|o − c|)`); in f32 keep `|o − c| ≤ 10⁶·r`. Beyond, `|o − c|² − r²` loses `r²`,
+/// and intermediate partials of the backward overflow f32 even where the true gradient
+/// is finite (`tests/stiff_cases.rs` sweeps within this range).
+///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `origins` / `directions` for wrong shapes, dtypes,
 /// devices or non-finite values; `directions` for a zero direction; `center` if not

@@ -153,6 +153,27 @@ pub fn check_same(t: &Tensor, arg: &'static str, reference: &Tensor, ref_arg: &s
     Ok(())
 }
 
+/// Checks that `t` has the same shape as `reference` (named `ref_arg`).
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `arg` when the shapes differ.
+pub fn check_same_shape(
+    t: &Tensor,
+    arg: &'static str,
+    reference: &Tensor,
+    ref_arg: &str,
+) -> Result<()> {
+    if t.dims() == reference.dims() {
+        Ok(())
+    } else {
+        Err(Error::invalid(
+            arg,
+            format!("shape {:?} (that of {ref_arg})", reference.dims()),
+            format!("shape {:?}", t.dims()),
+        ))
+    }
+}
+
 /// Checks that every element of `t` is finite (no NaN, no ±∞).
 ///
 /// This reads one scalar back from the device (a reduction), so it synchronises with

@@ -292,20 +292,26 @@ impl<S: SignedDistance> Field for Occupancy<S> {
     }
 }
 
-/// `x / ‖x‖` row-wise for `x: [N, 3]` with norm `n: [N, 1]`, and `0` where `n = 0`
-/// (double where: the division never sees a zero).
-fn safe_normalize(x: &Tensor, n: &Tensor) -> Result<Tensor> {
-    let pos = n.gt(0.0)?;
-    let n_safe = pos.where_cond(n, &n.ones_like()?)?;
-    Ok(x.broadcast_div(&n_safe)?)
-}
-
-/// Euclidean norm of the rows of `x: [N, K]` → `[N, 1]`, with a finite gradient at 0.
-fn norm_rows(x: &Tensor) -> Result<Tensor> {
-    let sq = x.sqr()?.sum_keepdim(1)?;
-    let pos = sq.gt(0.0)?;
-    let safe = pos.where_cond(&sq, &sq.ones_like()?)?;
-    Ok(pos.where_cond(&safe.sqrt()?, &sq.zeros_like()?)?)
+/// Row-wise unit vectors and norms of `x: [N, K]`: `(x/‖x‖ [N, K], ‖x‖ [N, 1])`, with
+/// the unit vector 0 where `x = 0`.
+///
+/// Rows are first divided by their detached largest magnitude `m` (`u = x/m`,
+/// `s = ‖u‖ ∈ [1, √K]`), so neither the value nor the backward ever forms `‖x‖²`: no
+/// overflow for huge rows (f32 beyond 1.8e19), no underflow for tiny ones, and the
+/// gradients of `u/s = x/‖x‖` and `m·s = ‖x‖` are the exact ones (both are functions of
+/// `x` alone for any fixed `m`). Double where: no division ever sees a zero.
+fn unit_and_norm(x: &Tensor) -> Result<(Tensor, Tensor)> {
+    let m = x.detach().abs()?.max_keepdim(1)?;
+    let pos = m.gt(0.0)?;
+    let m_safe = pos.where_cond(&m, &m.ones_like()?)?;
+    let u = x.broadcast_div(&m_safe)?;
+    let sq = u.sqr()?.sum_keepdim(1)?;
+    let s = pos.where_cond(&sq, &sq.ones_like()?)?.sqrt()?;
+    let unit = pos
+        .broadcast_as(u.shape())?
+        .where_cond(&u.broadcast_div(&s)?, &u.zeros_like()?)?;
+    let norm = pos.where_cond(&(s * &m_safe)?, &sq.zeros_like()?)?;
+    Ok((unit, norm))
 }
 
 fn param(values: &[f64], shape: &[usize], device: &Device, dtype: DType) -> Result<Tensor> {
@@ -346,10 +352,9 @@ impl Sphere {
 
 impl SignedDistance for Sphere {
     fn distance_and_grad(&self, points: &Tensor) -> Result<(Tensor, Tensor)> {
-        let d = offset(points, &self.center)?;
-        let n = norm_rows(&d)?;
+        let (unit, n) = unit_and_norm(&offset(points, &self.center)?)?;
         let dist = n.squeeze(1)?.broadcast_sub(&self.radius)?;
-        Ok((dist, safe_normalize(&d, &n)?))
+        Ok((dist, unit))
     }
 }
 
@@ -396,12 +401,12 @@ impl SignedDistance for Cuboid {
             .where_cond(&d.ones_like()?, &d.ones_like()?.neg()?)?;
         let q = d.abs()?.broadcast_sub(&self.half_extents.unsqueeze(0)?)?;
         let q_pos = q.relu()?;
-        let outside_norm = norm_rows(&q_pos)?;
+        let (q_unit, outside_norm) = unit_and_norm(&q_pos)?;
         let q_max = q.max_keepdim(1)?;
         let inside_part = q_max.clamp(f64::NEG_INFINITY, 0.0)?;
         let dist = (&outside_norm + inside_part)?.squeeze(1)?;
 
-        let grad_out = (safe_normalize(&q_pos, &outside_norm)? * &sign)?;
+        let grad_out = (q_unit * &sign)?;
         let onehot = q.broadcast_eq(&q_max)?.to_dtype(q.dtype())?;
         let grad_in = (onehot.broadcast_div(&onehot.sum_keepdim(1)?)? * &sign)?;
         let is_out = outside_norm.gt(0.0)?.broadcast_as(q.shape())?;
@@ -451,13 +456,11 @@ impl SignedDistance for Torus {
         let d = offset(points, &self.center)?;
         let xy = d.narrow(1, 0, 2)?;
         let z = d.narrow(1, 2, 1)?;
-        let rho = norm_rows(&xy)?;
+        let (radial, rho) = unit_and_norm(&xy)?; // (x/ρ, y/ρ), ρ
         let a = rho.broadcast_sub(&self.major)?;
         let q = Tensor::cat(&[&a, &z], 1)?;
-        let m = norm_rows(&q)?;
+        let (qn, m) = unit_and_norm(&q)?; // ((ρ−R)/m, z/m), m
         let dist = m.squeeze(1)?.broadcast_sub(&self.minor)?;
-        let qn = safe_normalize(&q, &m)?; // ((ρ−R)/m, z/m)
-        let radial = safe_normalize(&xy, &rho)?; // (x/ρ, y/ρ)
         let g_xy = radial.broadcast_mul(&qn.narrow(1, 0, 1)?)?;
         let grad = Tensor::cat(&[&g_xy, &qn.narrow(1, 1, 1)?], 1)?;
         Ok((dist, grad))

@@ -7,7 +7,7 @@
 //! the gradient of both branches, so each function feeds the untaken branch a safe input
 //! instead of relying on the mask (the "double where" trick).
 
-use crate::error::{check_float, check_same, check_scalar, Error, Result};
+use crate::error::{check_float, check_same, check_same_shape, check_scalar, Result};
 use candle_core::{DType, Tensor};
 
 // 2π split into three parts whose first two have 22 significant bits, so that k·C1 and
@@ -160,13 +160,7 @@ pub fn softplus(x: &Tensor, beta: f64) -> Result<Tensor> {
 pub fn bce_with_logits(logits: &Tensor, targets: &Tensor) -> Result<Tensor> {
     check_float(logits, "logits")?;
     check_same(targets, "targets", logits, "logits")?;
-    if logits.dims() != targets.dims() {
-        return Err(Error::invalid(
-            "targets",
-            format!("shape {:?} (that of logits)", logits.dims()),
-            format!("shape {:?}", targets.dims()),
-        ));
-    }
+    check_same_shape(targets, "targets", logits, "logits")?;
     let linear = (logits.relu()? - (logits * targets)?)?;
     Ok((linear + log1p_exp_neg_abs(logits)?)?)
 }

@@ -8,6 +8,7 @@ use candle_core::{DType, Device, Tensor, Var};
 use neural_fields::occupancy::losses::{kl_standard_normal, occupancy_loss, reparameterize};
 use neural_fields::occupancy::sampling::{
     from_tensor, inside_mesh, near_surface, uniform_in_padded_cube, winding_numbers,
+    winding_numbers_exact,
 };
 use neural_fields::occupancy::{marching_cubes, Grid, Mesh};
 use proptest::prelude::*;
@@ -130,11 +131,18 @@ fn winding_number_inside_test_is_exact_on_closed_meshes_and_robust_to_holes() {
         .map(|p| (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt() < 0.35)
         .collect();
     let w = winding_numbers(&mesh, &pts).unwrap();
+    let we = winding_numbers_exact(&mesh, &pts).unwrap();
+    let worst = w
+        .iter()
+        .zip(&we)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    assert!(worst < 0.02, "fast vs exact winding number: {worst}");
     let near =
         |p: &[f64; 3]| ((p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt() - 0.35).abs() < 0.01;
     for ((p, &t), &wi) in pts.iter().zip(&truth).zip(&w) {
         if !near(p) {
-            assert!((wi - if t { 1.0 } else { 0.0 }).abs() < 1e-6, "{p:?}: {wi}");
+            assert!((wi - if t { 1.0 } else { 0.0 }).abs() < 0.02, "{p:?}: {wi}");
         }
     }
     // Punch holes (drop 2% of the faces) and flip the orientation: still right away from

@@ -1,0 +1,141 @@
+//! Regularisers used with volume rendering: mip-NeRF 360's distortion loss and
+//! RegNeRF's depth smoothness on patches, with RegNeRF's weight schedule.
+
+use crate::error::{check_float, check_same, check_shape, Dim, Error, Result};
+use crate::volume::sampling::host_f64;
+use candle_core::{Tensor, D};
+
+/// Exclusive prefix sum along the last dimension: `out_k = Σ_{j<k} x_j`.
+fn exclusive_cumsum(x: &Tensor) -> Result<Tensor> {
+    let s = x.dim(D::Minus1)?;
+    let inclusive = x.cumsum(D::Minus1)?;
+    if s <= 1 {
+        return Ok(x.zeros_like()?);
+    }
+    let zero = x.narrow(D::Minus1, 0, 1)?.zeros_like()?;
+    Ok(Tensor::cat(
+        &[&zero, &inclusive.narrow(D::Minus1, 0, s - 1)?],
+        D::Minus1,
+    )?)
+}
+
+/// Distortion loss of mip-NeRF 360, per ray:
+///
+/// `L = Σᵢ Σⱼ wᵢ wⱼ |mᵢ − mⱼ| + ⅓ Σᵢ wᵢ² δᵢ`,
+///
+/// with midpoints `mᵢ = (sᵢ + eᵢ)/2` and lengths `δᵢ = eᵢ − sᵢ`. It is evaluated in its
+/// O(S) form: for intervals sorted along the ray, `Σᵢⱼ wᵢwⱼ|mᵢ − mⱼ| =
+/// 2 Σᵢ wᵢ (mᵢ Aᵢ − Bᵢ)` with the exclusive prefix sums `Aᵢ = Σ_{j<i} wⱼ` and
+/// `Bᵢ = Σ_{j<i} wⱼmⱼ`. (candle's `cumsum` is itself a matmul with a triangle, so the
+/// device cost is that of two `[R, S] × [S, S]` products.)
+///
+/// The loss is meant for **normalised** intervals: pass `t` mapped to `[0, 1]` (e.g.
+/// `(t − near)/(far − near)`, or mip-NeRF 360's s-space), so that its scale does not
+/// depend on the scene's units.
+///
+/// * `weights`, `starts`, `ends`: `[R, S]`, f32 or f64, same device; returns `[R]`.
+///
+/// Differentiable w.r.t. `weights`, `starts` and `ends`; the gradients
+/// (docs/math.md, "Distortion loss") are `∂L/∂w_k = 2 Σⱼ wⱼ|m_k − mⱼ| + ⅔ w_k δ_k`,
+/// `∂L/∂m_k = 2 w_k (Σ_{j<k} wⱼ − Σ_{j>k} wⱼ)` and `∂L/∂δ_k = ⅓ w_k²`.
+///
+/// # Errors
+/// Naming `weights`, `starts` or `ends` for wrong shapes, dtypes or devices; `starts`
+/// when the intervals are inverted or unsorted along a ray (read back on the host: the
+/// O(S) form is only valid for sorted midpoints).
+pub fn distortion_loss(weights: &Tensor, starts: &Tensor, ends: &Tensor) -> Result<Tensor> {
+    check_float(weights, "weights")?;
+    let dims = check_shape(weights, "weights", &[Dim::Any("R"), Dim::Any("S")])?;
+    check_same(starts, "starts", weights, "weights")?;
+    check_same(ends, "ends", weights, "weights")?;
+    check_shape(starts, "starts", &[Dim::Is(dims[0]), Dim::Is(dims[1])])?;
+    check_shape(ends, "ends", &[Dim::Is(dims[0]), Dim::Is(dims[1])])?;
+    if let Some(s) = std::num::NonZeroUsize::new(dims[1]) {
+        let s = s.get();
+        let sh = host_f64(starts)?;
+        let eh = host_f64(ends)?;
+        for (i, (&a, &b)) in sh.iter().zip(&eh).enumerate() {
+            if a.is_nan() || b.is_nan() || a > b {
+                return Err(Error::invalid(
+                    "starts",
+                    "finite intervals with start ≤ end",
+                    format!("[{a}, {b}] at ray {}, sample {}", i / s, i % s),
+                ));
+            }
+            if i % s + 1 < s && sh[i + 1] < a {
+                return Err(Error::invalid(
+                    "starts",
+                    "intervals sorted along each ray",
+                    format!("start {} after {a} at ray {}", sh[i + 1], i / s),
+                ));
+            }
+        }
+    }
+    let mids = ((starts + ends)? * 0.5)?;
+    let deltas = (ends - starts)?;
+    let a = exclusive_cumsum(weights)?;
+    let wm = (weights * &mids)?;
+    let b = exclusive_cumsum(&wm)?;
+    let inter = ((weights * ((&mids * &a)? - &b)?)?.sum(D::Minus1)? * 2.0)?;
+    let intra = ((weights.sqr()? * &deltas)?.sum(D::Minus1)? / 3.0)?;
+    Ok((inter + intra)?)
+}
+
+/// RegNeRF's depth smoothness on rendered depth patches, per patch:
+///
+/// `L_p = Σ_{i<k−1} Σ_{j<k−1} (d[i,j] − d[i,j+1])² + (d[i,j] − d[i+1,j])²`,
+///
+/// over the `(k−1)×(k−1)` top-left pixels of each `k×k` patch, as in RegNeRF's code
+/// (both differences are taken from the same pixel). RegNeRF uses 8×8 patches and
+/// averages; multiply by [`depth_smoothness_weight`] and take the mean over patches.
+///
+/// * `depth`: `[P, k, k]` (square or not: `[P, H, W]` with `H, W ≥ 2`), f32 or f64;
+///   returns `[P]`. Differentiable w.r.t. `depth`.
+///
+/// # Errors
+/// Naming `depth` for a wrong rank or dtype or a patch side below 2.
+pub fn depth_smoothness(depth: &Tensor) -> Result<Tensor> {
+    check_float(depth, "depth")?;
+    let dims = check_shape(
+        depth,
+        "depth",
+        &[Dim::Any("P"), Dim::Any("k"), Dim::Any("k")],
+    )?;
+    let (h, w) = (dims[1], dims[2]);
+    if h < 2 || w < 2 {
+        return Err(Error::invalid(
+            "depth",
+            "patches of at least 2×2 pixels",
+            format!("shape {dims:?}"),
+        ));
+    }
+    let d00 = depth.narrow(1, 0, h - 1)?.narrow(2, 0, w - 1)?;
+    let d01 = depth.narrow(1, 0, h - 1)?.narrow(2, 1, w - 1)?;
+    let d10 = depth.narrow(1, 1, h - 1)?.narrow(2, 0, w - 1)?;
+    let l = ((&d00 - &d01)?.sqr()? + (&d00 - &d10)?.sqr()?)?;
+    Ok(l.flatten_from(1)?.sum(1)?)
+}
+
+/// Log-linear schedule from `start` to `end` over `n_steps`:
+/// `exp((1 − τ) ln start + τ ln end)` with `τ = min(step / n_steps, 1)` (`τ = 1` when
+/// `n_steps = 0`). `start` and `end` must be `> 0`; non-positive values give NaN, so
+/// callers pass constants.
+#[must_use]
+pub fn log_linear_schedule(step: usize, start: f64, end: f64, n_steps: usize) -> f64 {
+    let tau = if n_steps == 0 {
+        1.0
+    } else {
+        (step as f64 / n_steps as f64).min(1.0)
+    };
+    if tau >= 1.0 {
+        return end;
+    }
+    ((1.0 - tau) * start.ln() + tau * end.ln()).exp()
+}
+
+/// RegNeRF's depth-smoothness weight: 400 decaying log-linearly to 0.1 over 512 steps
+/// ([`log_linear_schedule`]`(step, 400, 0.1, 512)`), then constant.
+#[must_use]
+pub fn depth_smoothness_weight(step: usize) -> f64 {
+    log_linear_schedule(step, 400.0, 0.1, 512)
+}

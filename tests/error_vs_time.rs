@@ -1,0 +1,75 @@
+//! Runs every study of `examples/error_vs_time` in quick mode, so the report command
+//! never rots: each table has rows, finite non-negative errors and positive times, and
+//! renders to Markdown and SVG.
+
+#[path = "../examples/error_vs_time/report.rs"]
+mod report;
+
+#[path = "../examples/error_vs_time/encoding.rs"]
+mod encoding;
+
+#[cfg(feature = "volume")]
+#[path = "../examples/error_vs_time/volume.rs"]
+mod volume;
+
+use report::Table;
+
+fn check(tables: Vec<Table>) {
+    assert!(!tables.is_empty());
+    for t in &tables {
+        assert!(!t.rows.is_empty(), "{}: no rows", t.title);
+        for r in &t.rows {
+            assert!(
+                r.error.is_finite() && r.error >= 0.0,
+                "{}: error {}",
+                t.title,
+                r.error
+            );
+            assert!(
+                r.seconds > 0.0 && r.seconds.is_finite(),
+                "{}: time {}",
+                t.title,
+                r.seconds
+            );
+        }
+        let md = report::markdown(t, Some("plots/x.svg"));
+        assert!(md.contains(&t.title) && md.lines().count() >= t.rows.len() + 4);
+        assert!(report::svg(t).contains("<polyline"));
+    }
+}
+
+#[test]
+fn encoding_study_runs_quick() {
+    let tables = encoding::run(true);
+    // The exact reduction must beat the naive f32 encoding at L = 10 by two orders.
+    let err = |series: &str| {
+        tables[0]
+            .rows
+            .iter()
+            .find(|r| r.series.starts_with(series) && r.knob == 10.0)
+            .map(|r| r.error)
+            .unwrap()
+    };
+    assert!(
+        err("f32, exact") * 100.0 < err("f32, naive"),
+        "{} vs {}",
+        err("f32, exact"),
+        err("f32, naive")
+    );
+    check(tables);
+}
+
+#[cfg(feature = "volume")]
+#[test]
+fn volume_study_runs_quick() {
+    let tables = volume::run(true);
+    // More samples must not make stratified compositing worse on this scene.
+    let strat: Vec<f64> = tables[0]
+        .rows
+        .iter()
+        .filter(|r| r.series == "stratified")
+        .map(|r| r.error)
+        .collect();
+    assert!(strat.windows(2).all(|w| w[1] <= w[0] * 1.01), "{strat:?}");
+    check(tables);
+}

@@ -1,0 +1,1655 @@
+//! The stiff-case suite: every public function that takes floating-point input is swept
+//! over extreme inputs (huge and tiny magnitudes, zeros, points at singularities, f32
+//! and f64) and must return finite outputs with finite gradients — or an `Err` where the
+//! input is invalid. One line summarises the run; a second test scans `src/` for public
+//! functions and names every one that is neither swept here nor exempted with a reason.
+
+mod common;
+
+use candle_core::{DType, Device, Tensor, Var};
+use common::v64;
+use glam::{DAffine3, DQuat, DVec3};
+use neural_fields::camera::{
+    ray_aabb, ray_sphere, Camera, Convention, Intrinsics, PoseParam, Rays,
+};
+use neural_fields::encoding::{integrated_pe, FourierFeatures, FrequencyEncoding, PointEncoding};
+use neural_fields::error::{check_finite, check_scalar};
+use neural_fields::field::{Cuboid, ImplicitSurface, Plane, SignedDistance, Sphere, Torus};
+use neural_fields::nn::{build_seeded, mlp, Activation, MlpConfig};
+use neural_fields::numerics::{
+    bce_with_logits, cos_pi, guard_denominator, safe_cos, safe_sin, sigmoid, sin_pi, softplus,
+};
+use neural_fields::rng::SplitMix64;
+use std::collections::BTreeSet;
+
+const DTYPES: [DType; 2] = [DType::F32, DType::F64];
+
+/// Magnitudes every scalar sweep visits, within the dtype's finite range.
+fn magnitudes(dtype: DType) -> Vec<f64> {
+    let top = if dtype == DType::F32 { 1e30 } else { 1e300 };
+    let mut v = vec![
+        0.0, 1e-45, 1e-30, 1e-12, 1e-6, 0.5, 1.0, 88.0, 1e4, 1e10, top,
+    ];
+    if dtype == DType::F64 {
+        v.extend([1e-300, 1e30]);
+    }
+    let neg: Vec<f64> = v.iter().map(|x| -x).collect();
+    v.extend(neg);
+    v
+}
+
+#[derive(Default)]
+struct Suite {
+    cases: usize,
+    failures: Vec<String>,
+    covered: BTreeSet<&'static str>,
+}
+
+/// What a case may do.
+#[derive(Clone, Copy, PartialEq)]
+enum Expect {
+    /// Must succeed with finite outputs and gradients.
+    Finite,
+    /// May return `Err` (invalid input); if it succeeds, outputs must be finite.
+    FiniteOrErr,
+}
+
+impl Suite {
+    /// Runs one case: `f` returns output tensors; gradients of their sum w.r.t. `wrt`
+    /// must be finite too.
+    fn case(
+        &mut self,
+        item: &'static str,
+        label: impl Into<String>,
+        expect: Expect,
+        wrt: &[&Var],
+        f: impl FnOnce() -> neural_fields::Result<Vec<Tensor>>,
+    ) {
+        self.cases += 1;
+        self.covered.insert(item);
+        let label = format!("{item} [{}]", label.into());
+        let outputs = match f() {
+            Ok(o) => o,
+            Err(e) => {
+                if expect == Expect::Finite {
+                    self.failures.push(format!("{label}: unexpected Err: {e}"));
+                }
+                return;
+            }
+        };
+        let mut loss: Option<Tensor> = None;
+        for (i, t) in outputs.iter().enumerate() {
+            if !matches!(t.dtype(), DType::F32 | DType::F64) {
+                continue;
+            }
+            if check_finite(t, "output").is_err() {
+                self.failures.push(format!(
+                    "{label}: output {i} not finite: {:?}",
+                    first_bad(t)
+                ));
+                return;
+            }
+            let s = t.to_dtype(DType::F64).unwrap().sum_all().unwrap();
+            loss = Some(match loss {
+                None => s,
+                Some(l) => (l + s).unwrap(),
+            });
+        }
+        if wrt.is_empty() {
+            return;
+        }
+        let Some(loss) = loss else { return };
+        let grads = match loss.backward() {
+            Ok(g) => g,
+            Err(e) => {
+                self.failures.push(format!("{label}: backward failed: {e}"));
+                return;
+            }
+        };
+        for (j, v) in wrt.iter().enumerate() {
+            if let Some(g) = grads.get(v) {
+                if check_finite(g, "gradient").is_err() {
+                    self.failures.push(format!(
+                        "{label}: gradient {j} not finite: {:?}",
+                        first_bad(g)
+                    ));
+                }
+            }
+        }
+    }
+}
+
+fn first_bad(t: &Tensor) -> Option<f64> {
+    v64(t).into_iter().find(|x| !x.is_finite())
+}
+
+fn var(values: &[f64], shape: &[usize], dtype: DType) -> Var {
+    Var::from_tensor(
+        &Tensor::from_slice(values, shape, &Device::Cpu)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap(),
+    )
+    .unwrap()
+}
+
+fn sweep_numerics(s: &mut Suite) {
+    for dtype in DTYPES {
+        let xs = magnitudes(dtype);
+        let n = xs.len();
+        let x = var(&xs, &[n], dtype);
+        let t = x.as_tensor();
+        let half = Tensor::full(0.5f64, n, &Device::Cpu)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap();
+        let tag = format!("{dtype:?}, |x| up to max");
+        s.case("numerics::safe_sin", &tag, Expect::Finite, &[&x], || {
+            Ok(vec![safe_sin(t)?])
+        });
+        s.case("numerics::safe_cos", &tag, Expect::Finite, &[&x], || {
+            Ok(vec![safe_cos(t)?])
+        });
+        s.case("numerics::sin_pi", &tag, Expect::Finite, &[&x], || {
+            Ok(vec![sin_pi(t)?])
+        });
+        s.case("numerics::cos_pi", &tag, Expect::Finite, &[&x], || {
+            Ok(vec![cos_pi(t)?])
+        });
+        s.case("numerics::sigmoid", &tag, Expect::Finite, &[&x], || {
+            Ok(vec![sigmoid(t)?])
+        });
+        for beta in [1e-3, 1.0, 100.0, 1e6] {
+            // softplus_β(x) ≈ x for large x: finite as long as x is.
+            s.case(
+                "numerics::softplus",
+                format!("{tag}, β = {beta}"),
+                Expect::Finite,
+                &[&x],
+                || Ok(vec![softplus(t, beta)?]),
+            );
+        }
+        s.case(
+            "numerics::bce_with_logits",
+            &tag,
+            Expect::Finite,
+            &[&x],
+            || Ok(vec![bce_with_logits(t, &half)?]),
+        );
+        // guard bounds 1/x by 1/eps and its derivative by 1/eps²; eps must keep 1/eps²
+        // representable (≥ 5.4e-20 in f32), which is the caller's choice.
+        let tiny_eps = if dtype == DType::F32 { 1e-19 } else { 1e-150 };
+        for eps in [tiny_eps, 1e-3, 1.0] {
+            s.case(
+                "numerics::guard_denominator",
+                format!("{tag}, eps = {eps}"),
+                Expect::Finite,
+                &[&x],
+                || Ok(vec![guard_denominator(t, eps)?.recip()?]),
+            );
+        }
+    }
+}
+
+/// Points at the origin, on axes, tiny and huge, for shape sweeps.
+fn extreme_points(dtype: DType) -> Tensor {
+    let big = if dtype == DType::F32 { 1e30 } else { 1e150 };
+    let rows: Vec<[f64; 3]> = vec![
+        [0.0, 0.0, 0.0],
+        [0.0, 0.0, 1e-30],
+        [1e-30, 0.0, 0.0],
+        [0.3, 0.0, 0.0],
+        [0.0, 0.0, 0.3],
+        [0.5, 0.5, 0.5],
+        [big, 0.0, 0.0],
+        [-big, big, -big],
+        [1e10, -1e10, 3.0],
+    ];
+    let flat: Vec<f64> = rows.concat();
+    Tensor::from_vec(flat, (rows.len(), 3), &Device::Cpu)
+        .unwrap()
+        .to_dtype(dtype)
+        .unwrap()
+}
+
+fn sweep_fields(s: &mut Suite) {
+    let d = Device::Cpu;
+    for dtype in DTYPES {
+        let p = Var::from_tensor(&extreme_points(dtype)).unwrap();
+        let pt = p.as_tensor();
+        for (scale, tag) in [(1.0, "unit"), (1e-20, "tiny shape"), (1e20, "huge shape")] {
+            let label = format!("{dtype:?}, {tag}");
+            s.case("field::Sphere::new", &label, Expect::Finite, &[&p], || {
+                let (v, g) = Sphere::new([0.0; 3], 0.3 * scale, &d, dtype)?
+                    .sdf()
+                    .value_and_grad(pt)?;
+                Ok(vec![v, g])
+            });
+            s.case("field::Cuboid::new", &label, Expect::Finite, &[&p], || {
+                let (v, g) =
+                    Cuboid::new([0.0; 3], [0.3 * scale, 0.2 * scale, 0.1 * scale], &d, dtype)?
+                        .sdf()
+                        .value_and_grad(pt)?;
+                Ok(vec![v, g])
+            });
+            s.case("field::Torus::new", &label, Expect::Finite, &[&p], || {
+                let (v, g) = Torus::new([0.0; 3], 0.3 * scale, 0.1 * scale, &d, dtype)?
+                    .sdf()
+                    .value_and_grad(pt)?;
+                Ok(vec![v, g])
+            });
+            s.case("field::Plane::new", &label, Expect::Finite, &[&p], || {
+                let (v, g) = Plane::new([0.0, 0.0, scale], 0.1, &d, dtype)?
+                    .sdf()
+                    .value_and_grad(pt)?;
+                Ok(vec![v, g])
+            });
+        }
+        // Occupancy logits −k·d: finite while k·|d| is representable.
+        s.case(
+            "field::Sphere::new",
+            format!("{dtype:?}, occupancy k = 100"),
+            Expect::Finite,
+            &[&p],
+            || {
+                let (v, g) = Sphere::new([0.0; 3], 0.3, &d, dtype)?
+                    .occupancy(100.0)
+                    .value_and_grad(pt)?;
+                Ok(vec![v, g])
+            },
+        );
+    }
+}
+
+fn sweep_encodings(s: &mut Suite) {
+    let d = Device::Cpu;
+    for dtype in DTYPES {
+        let big = if dtype == DType::F32 { 1e20 } else { 1e100 };
+        let vals = [0.0, 1e-30, -1e-30, 1.0, -3.0, 1e10, -1e10, big, -big];
+        let x = var(&vals, &[3, 3], dtype);
+        let t = x.as_tensor();
+        let dx = Tensor::ones((3, 2, 3), dtype, &d).unwrap();
+        let label = format!("{dtype:?}, |x| up to {big:e}");
+        for l in [0usize, 4, 10] {
+            s.case(
+                "encoding::FrequencyEncoding::forward_jvp",
+                format!("{label}, L = {l}"),
+                Expect::Finite,
+                &[&x],
+                || {
+                    let enc = PointEncoding::Frequency(FrequencyEncoding::new(3, l)?.without_pi());
+                    let (v, j) = enc.forward_jvp(t, &dx)?;
+                    Ok(vec![v, j, enc.forward(t)?])
+                },
+            );
+        }
+        for scale in [1e-10, 1.0, 100.0] {
+            s.case(
+                "encoding::FourierFeatures::new",
+                format!("{label}, s = {scale}"),
+                Expect::Finite,
+                &[&x],
+                || {
+                    let enc =
+                        PointEncoding::Fourier(FourierFeatures::new(3, 8, scale, 1, &d, dtype)?);
+                    let (v, j) = enc.forward_jvp(t, &dx)?;
+                    Ok(vec![v, j])
+                },
+            );
+        }
+        s.case(
+            "encoding::FourierFeatures::from_matrix",
+            &label,
+            Expect::Finite,
+            &[&x],
+            || {
+                let b = Tensor::from_slice(&[1e-20, 1.0, 0.0, 3.0, -1e3, 0.5], (2, 3), &d)?
+                    .to_dtype(dtype)?;
+                let enc = PointEncoding::Fourier(FourierFeatures::from_matrix(b)?);
+                Ok(vec![enc.forward(t)?])
+            },
+        );
+        s.case(
+            "encoding::PointEncoding::forward",
+            &label,
+            Expect::Finite,
+            &[&x],
+            || Ok(vec![PointEncoding::Identity.forward(t)?]),
+        );
+        let var_vals = [0.0, 1e-30, 1e30f64.min(big), 1.0, 0.0, 5.0, 1e-10, 2.0, 0.0];
+        let v = var(&var_vals, &[3, 3], dtype);
+        s.case(
+            "encoding::integrated_pe",
+            &label,
+            Expect::Finite,
+            &[&x, &v],
+            || Ok(vec![integrated_pe(t, v.as_tensor(), 0, 16)?]),
+        );
+        let neg = var(&[-1.0; 9], &[3, 3], dtype);
+        // Negative variances are not a Gaussian: growing terms, documented as data; must not be NaN.
+        s.case(
+            "encoding::integrated_pe",
+            format!("{dtype:?}, negative variances"),
+            Expect::FiniteOrErr,
+            &[&neg],
+            || {
+                Ok(vec![integrated_pe(
+                    &Tensor::zeros((3, 3), dtype, &d)?,
+                    neg.as_tensor(),
+                    0,
+                    4,
+                )?])
+            },
+        );
+    }
+}
+
+fn sweep_mlp(s: &mut Suite) {
+    let d = Device::Cpu;
+    for dtype in DTYPES {
+        let big = if dtype == DType::F32 { 1e8 } else { 1e100 };
+        let x = var(
+            &[
+                0.0, 0.0, 0.0, 1e-30, 0.0, 0.0, big, -big, big, 1e4, 1.0, -1e4,
+            ],
+            &[4, 3],
+            dtype,
+        );
+        for (activation, radius, tag) in [
+            (Activation::Relu, None, "ReLU"),
+            (
+                Activation::Softplus { beta: 100.0 },
+                Some(0.5),
+                "softplus(100), geometric init",
+            ),
+            (Activation::Softplus { beta: 1e-3 }, None, "softplus(1e-3)"),
+        ] {
+            let config = MlpConfig {
+                hidden: 16,
+                depth: 3,
+                skips: vec![2],
+                activation,
+                geometric_init: radius,
+                encoding: PointEncoding::Frequency(FrequencyEncoding::new(3, 4).unwrap()),
+                ..MlpConfig::default()
+            };
+            let varmap = candle_nn::VarMap::new();
+            let net = build_seeded(&varmap, dtype, &d, 3, |vb| mlp(&config, vb)).unwrap();
+            let label = format!("{dtype:?}, {tag}, |x| up to {big:e}");
+            let vars = varmap.all_vars();
+            let mut wrt: Vec<&Var> = vars.iter().collect();
+            wrt.push(&x);
+            s.case("nn::mlp::mlp", &label, Expect::Finite, &[], || Ok(vec![]));
+            s.case(
+                "nn::mlp::Mlp::forward_with_jacobian",
+                &label,
+                Expect::Finite,
+                &wrt,
+                || {
+                    let (y, j) = net.forward_with_jacobian(x.as_tensor(), None)?;
+                    Ok(vec![y, j])
+                },
+            );
+            s.case(
+                "nn::mlp::Mlp::forward_points",
+                &label,
+                Expect::Finite,
+                &wrt,
+                || Ok(vec![net.forward_points(x.as_tensor(), None)?]),
+            );
+            s.case(
+                "nn::mlp::MlpConfig::sdf",
+                &label,
+                Expect::Finite,
+                &[],
+                || {
+                    Ok(vec![Tensor::new(
+                        MlpConfig::sdf(1e-30).geometric_init.unwrap_or(0.0),
+                        &d,
+                    )?])
+                },
+            );
+        }
+    }
+}
+
+fn sweep_camera(s: &mut Suite) {
+    let d = Device::Cpu;
+    for dtype in DTYPES {
+        let tag = format!("{dtype:?}");
+        for (fx, w) in [(1e-6, 1usize), (500.0, 64), (1e8, 8)] {
+            s.case(
+                "camera::Intrinsics::new",
+                format!("{tag}, fx = {fx}"),
+                Expect::Finite,
+                &[],
+                || {
+                    let k = Intrinsics::new(fx, fx, w as f64 / 2.0, w as f64 / 2.0, w, w)?;
+                    let px =
+                        Tensor::from_slice(&[0.0, 0.0, 1e6, -1e6], (2, 2), &d)?.to_dtype(dtype)?;
+                    Ok(vec![k.camera_directions(&px, Convention::OpenCv)?])
+                },
+            );
+        }
+        s.case(
+            "camera::Intrinsics::camera_directions",
+            &tag,
+            Expect::Finite,
+            &[],
+            || {
+                let k = Intrinsics::from_fov_y(4, 4, 3.1)?;
+                Ok(vec![k.camera_directions(
+                    &Tensor::zeros((1, 2), dtype, &d)?,
+                    Convention::OpenGl,
+                )?])
+            },
+        );
+        for fov in [1e-12, 1.0, std::f64::consts::PI - 1e-6] {
+            s.case(
+                "camera::Intrinsics::from_fov_y",
+                format!("{tag}, fov = {fov}"),
+                Expect::Finite,
+                &[],
+                || {
+                    let k = Intrinsics::from_fov_y(8, 8, fov)?;
+                    Ok(vec![k.camera_directions(
+                        &Tensor::zeros((1, 2), dtype, &d)?,
+                        Convention::OpenCv,
+                    )?])
+                },
+            );
+        }
+        for eye in [
+            DVec3::new(0.0, 0.0, 1e-8),
+            DVec3::new(1e8, 1e8, 1e8),
+            DVec3::new(0.0, 1e-3, 3.0),
+        ] {
+            let label = format!("{tag}, eye = {eye}");
+            let k = Intrinsics::from_fov_y(4, 3, 0.8).unwrap();
+            s.case(
+                "camera::Camera::look_at",
+                &label,
+                Expect::Finite,
+                &[],
+                || {
+                    Ok(vec![
+                        Camera::look_at(k, eye, DVec3::ZERO, DVec3::Y, Convention::OpenGl)?
+                            .rays(&d, dtype)?
+                            .directions,
+                    ])
+                },
+            );
+            let cam = Camera::look_at(k, eye, DVec3::ZERO, DVec3::Y, Convention::OpenGl).unwrap();
+            s.case("camera::Camera::rays", &label, Expect::Finite, &[], || {
+                let r = cam.rays(&d, dtype)?;
+                Ok(vec![r.origins, r.directions])
+            });
+            s.case(
+                "camera::Camera::pixel_grid",
+                &label,
+                Expect::Finite,
+                &[],
+                || Ok(vec![cam.pixel_grid(&d, dtype)?]),
+            );
+            s.case(
+                "camera::Camera::random_rays",
+                &label,
+                Expect::Finite,
+                &[],
+                || {
+                    let (r, i) = cam.random_rays(16, 1, &d, dtype)?;
+                    Ok(vec![r.origins, r.directions, i])
+                },
+            );
+            s.case(
+                "camera::Camera::rays_for_pixels",
+                &label,
+                Expect::Finite,
+                &[],
+                || {
+                    let px = Tensor::from_slice(&[1e-30, 1e6], (1, 2), &d)?.to_dtype(dtype)?;
+                    Ok(vec![cam.rays_for_pixels(&px)?.directions])
+                },
+            );
+            s.case(
+                "camera::Camera::pose_param",
+                &label,
+                Expect::Finite,
+                &[],
+                || Ok(vec![cam.pose_param(&d, dtype)?.rotation_matrix()?]),
+            );
+        }
+        s.case(
+            "camera::Camera::new",
+            format!("{tag}, translation 1e12"),
+            Expect::Finite,
+            &[],
+            || {
+                let pose = DAffine3::from_rotation_translation(
+                    DQuat::from_rotation_y(0.3),
+                    DVec3::splat(1e12),
+                );
+                Ok(vec![
+                    Camera::new(Intrinsics::from_fov_y(2, 2, 1.0)?, pose, Convention::OpenCv)?
+                        .rays(&d, dtype)?
+                        .origins,
+                ])
+            },
+        );
+        // Rays: huge and tiny origins and directions, exact zeros in direction components.
+        // In f32 a unit sphere 1e15 away is below resolution (ulp(1e15) ≈ 7e7): r² is lost
+        // in |o − c|² − r², and candle's division backward (grad·lhs/rhs²) overflows an
+        // intermediate although the true gradient is finite. f32 sweeps stay within 1e6.
+        let big = if dtype == DType::F32 { 1e6 } else { 1e100 };
+        let o = var(
+            &[
+                0.0, 0.0, -3.0, 1e-30, 0.5, -big, 2.0, 2.0, 2.0, 0.0, 0.0, 0.0,
+            ],
+            &[4, 3],
+            dtype,
+        );
+        // ∂t/∂d ≈ t/|d|: a direction of length 1e-20 from inside a unit box has a true
+        // gradient of 1e40, beyond f32; f32 sweeps directions down to 1e-9.
+        let short = if dtype == DType::F32 { 1e-9 } else { 1e-20 };
+        let w = var(
+            &[
+                0.0, 0.0, 1.0, 0.0, 0.0, 1e-10, 1e10, 0.0, 0.0, short, short, short,
+            ],
+            &[4, 3],
+            dtype,
+        );
+        let t = var(&[0.0, 1e-30, 1e10, 1.0], &[4], dtype);
+        let label = format!("{tag}, origins up to {big:e}, directions {short:e}…1e10");
+        s.case(
+            "camera::Rays::new",
+            &label,
+            Expect::Finite,
+            &[&o, &w, &t],
+            || {
+                let r = Rays::new(o.as_tensor().clone(), w.as_tensor().clone())?;
+                Ok(vec![r.at(t.as_tensor())?])
+            },
+        );
+        s.case(
+            "camera::Rays::at",
+            &label,
+            Expect::Finite,
+            &[&o, &w, &t],
+            || {
+                Ok(vec![Rays::new(
+                    o.as_tensor().clone(),
+                    w.as_tensor().clone(),
+                )?
+                .at(t.as_tensor())?])
+            },
+        );
+        s.case(
+            "camera::Rays::normalized",
+            &label,
+            Expect::Finite,
+            &[&w],
+            || {
+                Ok(vec![
+                    Rays::new(o.as_tensor().clone(), w.as_tensor().clone())?
+                        .normalized()?
+                        .directions,
+                ])
+            },
+        );
+        s.case(
+            "camera::Rays::narrow",
+            &label,
+            Expect::Finite,
+            &[&o],
+            || {
+                Ok(vec![
+                    Rays::new(o.as_tensor().clone(), w.as_tensor().clone())?
+                        .narrow(1, 2)?
+                        .origins,
+                ])
+            },
+        );
+        s.case(
+            "camera::ray_aabb",
+            &label,
+            Expect::FiniteOrErr,
+            &[&o, &w],
+            || {
+                let i = ray_aabb(o.as_tensor(), w.as_tensor(), [-1.0; 3], [1.0; 3])?;
+                Ok(vec![i.near, i.far, i.hit])
+            },
+        );
+        s.case(
+            "camera::ray_sphere",
+            &label,
+            Expect::FiniteOrErr,
+            &[&o, &w],
+            || {
+                let i = ray_sphere(o.as_tensor(), w.as_tensor(), [0.0; 3], 1.0)?;
+                Ok(vec![i.near, i.far, i.hit])
+            },
+        );
+        // Learnable pose with a tiny and a huge quaternion.
+        for qs in [1e-6, 1.0, 1e6] {
+            let label = format!("{tag}, |q| = {qs}");
+            let pose = DAffine3::from_rotation_translation(
+                DQuat::from_rotation_x(0.7),
+                DVec3::new(0.0, 1.0, 5.0),
+            );
+            let k = Intrinsics::from_fov_y(8, 8, 1.0).unwrap();
+            let p = PoseParam::from_affine(&pose, &d, dtype).unwrap();
+            p.rotation
+                .set(&p.rotation.as_tensor().affine(qs, 0.0).unwrap())
+                .unwrap();
+            let px = Tensor::from_slice(&[0.5, 0.5, 7.5, 7.5], (2, 2), &d)
+                .unwrap()
+                .to_dtype(dtype)
+                .unwrap();
+            s.case(
+                "camera::PoseParam::rays",
+                &label,
+                Expect::Finite,
+                &[&p.rotation, &p.translation],
+                || {
+                    let r = p.rays(&k, Convention::OpenCv, &px)?;
+                    Ok(vec![r.origins, r.directions])
+                },
+            );
+            s.case(
+                "camera::PoseParam::rotation_matrix",
+                &label,
+                Expect::Finite,
+                &[&p.rotation],
+                || Ok(vec![p.rotation_matrix()?]),
+            );
+            s.case(
+                "camera::PoseParam::from_affine",
+                &label,
+                Expect::Finite,
+                &[],
+                || Ok(vec![p.translation.as_tensor().clone()]),
+            );
+            s.case(
+                "camera::PoseParam::to_affine",
+                &label,
+                Expect::Finite,
+                &[],
+                || {
+                    let a = p.to_affine()?;
+                    Ok(vec![Tensor::new(a.matrix3.to_cols_array().as_slice(), &d)?])
+                },
+            );
+            s.case(
+                "camera::PoseParam::renormalize",
+                &label,
+                Expect::Finite,
+                &[],
+                || {
+                    p.renormalize()?;
+                    Ok(vec![p.rotation.as_tensor().clone()])
+                },
+            );
+        }
+    }
+}
+
+fn sweep_rng_and_checks(s: &mut Suite) {
+    let d = Device::Cpu;
+    for dtype in DTYPES {
+        let tag = format!("{dtype:?}");
+        for (a, b) in [(0.0f64, 1e-30f64), (-1e30, 1e30), (1e10, 1e10)] {
+            s.case(
+                "rng::SplitMix64::normal_tensor",
+                format!("{tag}, mean {a}, std {b}"),
+                Expect::Finite,
+                &[],
+                || {
+                    Ok(vec![SplitMix64::new(1).normal_tensor(
+                        &[64],
+                        a,
+                        b.abs(),
+                        dtype,
+                        &d,
+                    )?])
+                },
+            );
+            s.case(
+                "rng::SplitMix64::uniform_tensor",
+                format!("{tag}, [{a}, {b})"),
+                Expect::Finite,
+                &[],
+                || {
+                    Ok(vec![SplitMix64::new(1).uniform_tensor(
+                        &[64],
+                        a,
+                        b,
+                        dtype,
+                        &d,
+                    )?])
+                },
+            );
+        }
+    }
+    for x in [f64::NAN, f64::INFINITY, -0.0, 1e300] {
+        s.case(
+            "error::check_scalar",
+            format!("{x}"),
+            Expect::FiniteOrErr,
+            &[],
+            || {
+                check_scalar(x, "x", true)?;
+                Ok(vec![])
+            },
+        );
+    }
+}
+
+#[cfg(feature = "volume")]
+fn sweep_volume(s: &mut Suite) {
+    use neural_fields::volume::composite::{
+        accumulate, accumulate_packed, composite, composite_packed, composite_packed_reference,
+        composite_reference, render_weights, render_weights_packed, visible_mask, CompositeOptions,
+        Packed, WeightOptions,
+    };
+    use neural_fields::volume::fused::{accumulate_fused, composite_fused, composite_packed_fused};
+    use neural_fields::volume::grid::{MarchOptions, OccupancyGrid};
+    use neural_fields::volume::regularizers::{
+        depth_smoothness, depth_smoothness_weight, distortion_loss, log_linear_schedule,
+    };
+    use neural_fields::volume::sampling::{
+        anneal_near_far, merge_sorted, sample_pdf, step_cdf, stratified, Intervals, Jitter,
+    };
+    let d = Device::Cpu;
+    let (r, n) = (7usize, 5usize);
+    for dtype in DTYPES {
+        let huge = if dtype == DType::F32 { 1e30 } else { 1e300 };
+        // Rows: empty, tiny, huge, one opaque slab, f32 transmittance underflow along a long
+        // ray (σδ summing to 5e5), mixed extremes, huge steps.
+        let sig = [
+            [0.0; 5],
+            [1e-30; 5],
+            [huge; 5],
+            [0.0, 0.0, 1e10, 0.0, 0.0],
+            [100.0; 5],
+            [1e-10, 1e10, 0.0, 1e-30, huge],
+            [1.0; 5],
+        ]
+        .concat();
+        let del = [
+            [0.1; 5],
+            [1e-30; 5],
+            [1e-30; 5],
+            [0.2; 5],
+            [1e3; 5],
+            [1e-30, 1e10, 0.0, 1.0, 1e-10],
+            [1e10; 5],
+        ]
+        .concat();
+        let sigmas = var(&sig, &[r, n], dtype);
+        let deltas = var(&del, &[r, n], dtype);
+        let mut rng = SplitMix64::new(5);
+        let colors =
+            Var::from_tensor(&rng.uniform_tensor(&[r, n, 3], 0.0, 1.0, dtype, &d).unwrap())
+                .unwrap();
+        let tm: Vec<f64> = (0..r * n).map(|i| 1.0 + (i % n) as f64).collect();
+        let t_mids = var(&tm, &[r, n], dtype);
+        let wrt = [&sigmas, &deltas, &colors, &t_mids];
+        for opaque_last in [false, true] {
+            let label = format!("{dtype:?}, σ 0…{huge:e}, δ 0…1e10, opaque_last = {opaque_last}");
+            let bg = Tensor::ones(3, dtype, &d).unwrap();
+            let opts = CompositeOptions {
+                opaque_last,
+                background: Some(bg),
+            };
+            let wo = WeightOptions { opaque_last };
+            let (st, dt, ct, tt) = (
+                sigmas.as_tensor(),
+                deltas.as_tensor(),
+                colors.as_tensor(),
+                t_mids.as_tensor(),
+            );
+            let out = |c: neural_fields::volume::composite::Composite| -> neural_fields::Result<Vec<Tensor>> {
+                let nd = c.normalized_depth(1e-10)?;
+                Ok(vec![c.color, c.opacity, c.depth, nd])
+            };
+            s.case(
+                "volume::composite::composite",
+                &label,
+                Expect::Finite,
+                &wrt,
+                || out(composite(st, ct, dt, tt, &opts)?),
+            );
+            s.case(
+                "volume::composite::composite_reference",
+                &label,
+                Expect::Finite,
+                &wrt,
+                || out(composite_reference(st, ct, dt, tt, &opts)?),
+            );
+            s.case(
+                "volume::fused::composite_fused",
+                &label,
+                Expect::Finite,
+                &wrt,
+                || out(composite_fused(st, ct, dt, tt, &opts)?),
+            );
+            s.case(
+                "volume::composite::Composite::normalized_depth",
+                &label,
+                Expect::Finite,
+                &wrt,
+                || out(composite_reference(st, ct, dt, tt, &opts)?),
+            );
+            s.case(
+                "volume::composite::CompositeOptions::weight_options",
+                &label,
+                Expect::Finite,
+                &[&sigmas],
+                || {
+                    Ok(vec![
+                        render_weights(st, dt, &opts.weight_options())?.weights,
+                    ])
+                },
+            );
+            s.case(
+                "volume::composite::render_weights",
+                &label,
+                Expect::Finite,
+                &[&sigmas, &deltas],
+                || {
+                    let w = render_weights(st, dt, &wo)?;
+                    Ok(vec![w.weights, w.transmittance, w.alphas])
+                },
+            );
+            s.case(
+                "volume::composite::accumulate",
+                &label,
+                Expect::Finite,
+                &[&sigmas, &colors],
+                || Ok(vec![accumulate(&render_weights(st, dt, &wo)?.weights, ct)?]),
+            );
+            s.case(
+                "volume::fused::accumulate_fused",
+                &label,
+                Expect::Finite,
+                &[&sigmas, &deltas, &colors],
+                || Ok(vec![accumulate_fused(st, dt, ct, opaque_last)?]),
+            );
+            // Packed: the same samples as rays of 5, 0, 3, 5, 0, 12, 10 samples.
+            let counts = [5usize, 0, 3, 5, 0, 12, 10];
+            let packed = Packed::from_counts(&counts, &d).unwrap();
+            let (ps, pd, pc, pt) = (
+                st.flatten_all().unwrap(),
+                dt.flatten_all().unwrap(),
+                ct.reshape((r * n, 3)).unwrap(),
+                tt.flatten_all().unwrap(),
+            );
+            let plabel = format!("{label}, packed with empty rays");
+            s.case(
+                "volume::composite::Packed::from_counts",
+                &plabel,
+                Expect::Finite,
+                &wrt,
+                || out(composite_packed(&ps, &pc, &pd, &pt, &packed, &opts)?),
+            );
+            s.case(
+                "volume::composite::composite_packed",
+                &plabel,
+                Expect::Finite,
+                &wrt,
+                || out(composite_packed(&ps, &pc, &pd, &pt, &packed, &opts)?),
+            );
+            s.case(
+                "volume::composite::composite_packed_reference",
+                &plabel,
+                Expect::Finite,
+                &wrt,
+                || {
+                    out(composite_packed_reference(
+                        &ps, &pc, &pd, &pt, &packed, &opts,
+                    )?)
+                },
+            );
+            s.case(
+                "volume::fused::composite_packed_fused",
+                &plabel,
+                Expect::Finite,
+                &wrt,
+                || out(composite_packed_fused(&ps, &pc, &pd, &pt, &packed, &opts)?),
+            );
+            s.case(
+                "volume::composite::render_weights_packed",
+                &plabel,
+                Expect::Finite,
+                &[&sigmas, &deltas],
+                || {
+                    let w = render_weights_packed(&ps, &pd, &packed, &wo)?;
+                    Ok(vec![w.weights, w.transmittance])
+                },
+            );
+            s.case(
+                "volume::composite::accumulate_packed",
+                &plabel,
+                Expect::Finite,
+                &[&sigmas, &colors],
+                || {
+                    Ok(vec![accumulate_packed(
+                        &render_weights_packed(&ps, &pd, &packed, &wo)?.weights,
+                        &pc,
+                        &packed,
+                    )?])
+                },
+            );
+        }
+        let label = format!("{dtype:?}");
+        for eps in [1e-30, 1e-4, 1.0] {
+            s.case(
+                "volume::composite::visible_mask",
+                format!("{label}, eps = {eps}"),
+                Expect::Finite,
+                &[],
+                || {
+                    Ok(vec![visible_mask(
+                        sigmas.as_tensor(),
+                        deltas.as_tensor(),
+                        eps,
+                    )?])
+                },
+            );
+        }
+        s.case(
+            "volume::composite::Packed::from_mask",
+            &label,
+            Expect::Finite,
+            &[],
+            || {
+                let mask = visible_mask(sigmas.as_tensor(), deltas.as_tensor(), 1e-4)?;
+                let (p, idx) = Packed::from_mask(&mask)?;
+                Ok(vec![Tensor::new(p.n_samples() as f64, &d)?, idx])
+            },
+        );
+        // Samplers over tiny, huge and far-away ranges.
+        let big = if dtype == DType::F32 { 1e6 } else { 1e100 };
+        let near = var(&[0.0, 1e-30, big, 0.0], &[4], dtype);
+        let far = var(&[1e-20, 2e-30, big * 1.5, 1e10], &[4], dtype);
+        let dirs = var(
+            &[
+                1e-20, 0.0, 0.0, 0.0, 1.0, 0.0, 1e10, 1e10, 1e10, 0.0, 0.0, 1.0,
+            ],
+            &[4, 3],
+            dtype,
+        );
+        for jitter in [Jitter::None, Jitter::PerSample, Jitter::SingleJitter] {
+            let jl = format!("{label}, ranges 1e-30…{big:e}, {jitter:?}");
+            s.case(
+                "volume::sampling::stratified",
+                &jl,
+                Expect::Finite,
+                &[&near, &far],
+                || {
+                    let iv = stratified(near.as_tensor(), far.as_tensor(), 16, jitter, 3)?;
+                    Ok(vec![iv.starts.clone(), iv.ends.clone()])
+                },
+            );
+        }
+        let iv = stratified(near.as_tensor(), far.as_tensor(), 16, Jitter::PerSample, 3).unwrap();
+        let il = format!("{label}, ranges 1e-30…{big:e}");
+        s.case(
+            "volume::sampling::Intervals::midpoints",
+            &il,
+            Expect::Finite,
+            &[&near, &far],
+            || Ok(vec![iv.midpoints()?]),
+        );
+        s.case(
+            "volume::sampling::Intervals::deltas",
+            &il,
+            Expect::Finite,
+            &[&near, &far, &dirs],
+            || Ok(vec![iv.deltas(Some(dirs.as_tensor()))?, iv.deltas(None)?]),
+        );
+        s.case(
+            "volume::sampling::Intervals::edges",
+            &il,
+            Expect::Finite,
+            &[&near, &far],
+            || Ok(vec![iv.edges()?]),
+        );
+        s.case(
+            "volume::sampling::Intervals::new",
+            &il,
+            Expect::Finite,
+            &[],
+            || {
+                Ok(vec![
+                    Intervals::new(iv.starts.clone(), iv.ends.clone())?.midpoints()?
+                ])
+            },
+        );
+        let w_rows = [[0.0; 16], [1e-30; 16], [huge; 16], {
+            let mut one_hot = [0.0; 16];
+            one_hot[7] = 1e30f64.min(huge);
+            one_hot
+        }]
+        .concat();
+        let weights = var(&w_rows, &[4, 16], dtype);
+        for deterministic in [true, false] {
+            let sl = format!("{il}, weights 0…{huge:e}, deterministic = {deterministic}");
+            s.case(
+                "volume::sampling::sample_pdf",
+                &sl,
+                Expect::Finite,
+                &[],
+                || {
+                    Ok(vec![sample_pdf(
+                        &iv.edges()?,
+                        weights.as_tensor(),
+                        32,
+                        deterministic,
+                        9,
+                        1e-5,
+                    )?])
+                },
+            );
+        }
+        s.case(
+            "volume::sampling::step_cdf",
+            &il,
+            Expect::Finite,
+            &[&weights],
+            || Ok(vec![step_cdf(weights.as_tensor(), 1e-5)?]),
+        );
+        let fine = sample_pdf(
+            &iv.edges().unwrap(),
+            weights.as_tensor(),
+            32,
+            false,
+            9,
+            1e-5,
+        )
+        .unwrap();
+        s.case(
+            "volume::sampling::merge_sorted",
+            &il,
+            Expect::Finite,
+            &[&near, &far],
+            || Ok(vec![merge_sorted(&iv.midpoints()?, &fine)?]),
+        );
+        s.case(
+            "volume::sampling::Intervals::from_samples",
+            &il,
+            Expect::Finite,
+            &[&near, &far],
+            || {
+                let iv2 = Intervals::from_samples(
+                    &merge_sorted(&iv.midpoints()?, &fine)?,
+                    near.as_tensor(),
+                    far.as_tensor(),
+                )?;
+                Ok(vec![iv2.starts, iv2.ends])
+            },
+        );
+        for step in [0usize, 128, 10_000] {
+            s.case(
+                "volume::sampling::anneal_near_far",
+                format!("{il}, step {step}"),
+                Expect::Finite,
+                &[&near, &far],
+                || {
+                    let (a, b) =
+                        anneal_near_far(near.as_tensor(), far.as_tensor(), step, 256, 0.5, 0.5)?;
+                    Ok(vec![a, b])
+                },
+            );
+        }
+        // Regularisers on normalised intervals with extreme weights.
+        let dl_w = var(
+            &[
+                [0.0; 8],
+                [1e-30; 8],
+                [1.0; 8],
+                [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0],
+            ]
+            .concat(),
+            &[4, 8],
+            dtype,
+        );
+        let edges: Vec<f64> = (0..=8).map(|i| f64::from(i) / 8.0).collect();
+        let st = Tensor::from_slice(&edges[..8], (1, 8), &d)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap()
+            .repeat((4, 1))
+            .unwrap();
+        let en = Tensor::from_slice(&edges[1..], (1, 8), &d)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap()
+            .repeat((4, 1))
+            .unwrap();
+        s.case(
+            "volume::regularizers::distortion_loss",
+            format!("{label}, weights 0…1"),
+            Expect::Finite,
+            &[&dl_w],
+            || Ok(vec![distortion_loss(dl_w.as_tensor(), &st, &en)?]),
+        );
+        let dbig = if dtype == DType::F32 { 1e15 } else { 1e150 };
+        let depth = var(
+            &[0.0, 1e-30, dbig, -dbig, 1.0, 2.0, 3.0, 4.0, 5.0],
+            &[1, 3, 3],
+            dtype,
+        );
+        s.case(
+            "volume::regularizers::depth_smoothness",
+            format!("{label}, depths ±{dbig:e}"),
+            Expect::Finite,
+            &[&depth],
+            || Ok(vec![depth_smoothness(depth.as_tensor())?]),
+        );
+        for (a, b) in [(400.0, 0.1), (1e-30, 1e30)] {
+            s.case(
+                "volume::regularizers::log_linear_schedule",
+                format!("{a} → {b}"),
+                Expect::Finite,
+                &[],
+                || {
+                    Ok(vec![Tensor::new(
+                        &[
+                            log_linear_schedule(0, a, b, 512),
+                            log_linear_schedule(10_000, a, b, 512),
+                            depth_smoothness_weight(7),
+                        ],
+                        &d,
+                    )?])
+                },
+            );
+        }
+        s.case(
+            "volume::regularizers::depth_smoothness_weight",
+            &label,
+            Expect::Finite,
+            &[],
+            || Ok(vec![Tensor::new(depth_smoothness_weight(100_000), &d)?]),
+        );
+        // Occupancy grid over tiny and huge boxes with extreme densities.
+        for (half, sigma) in [(1e-3, 1e30), (1.0, 1e-30), (1e4, 10.0)] {
+            let gl = format!("{label}, box ±{half}, σ = {sigma:e}");
+            let mut grid =
+                OccupancyGrid::new([-half, -half, -half, half, half, half], 16, 2).unwrap();
+            s.case(
+                "volume::grid::OccupancyGrid::new",
+                &gl,
+                Expect::Finite,
+                &[],
+                || Ok(vec![Tensor::new(grid.occupied_fraction(), &d)?]),
+            );
+            s.case(
+                "volume::grid::OccupancyGrid::update",
+                &gl,
+                Expect::Finite,
+                &[],
+                || {
+                    grid.update(0, 1, &d, dtype, |p: &Tensor| {
+                        let r2 = p.sqr()?.sum(1)?;
+                        let inside = r2.lt(half * half * 0.25)?;
+                        Ok(inside
+                            .where_cond(&r2.ones_like()?.affine(sigma, 0.0)?, &r2.zeros_like()?)?)
+                    })?;
+                    Ok(vec![Tensor::new(grid.occupied_fraction(), &d)?])
+                },
+            );
+            let o = Tensor::from_slice(&[-3.0 * half, 0.0, 0.0, 0.0, 0.0, 0.0], (2, 3), &d)
+                .unwrap()
+                .to_dtype(dtype)
+                .unwrap();
+            let w = Tensor::from_slice(&[1.0, 0.0, 0.0, 0.0, 1e-3, 1.0], (2, 3), &d)
+                .unwrap()
+                .to_dtype(dtype)
+                .unwrap();
+            for cone in [0.0, 1e-2] {
+                let cl = format!("{gl}, cone {cone}");
+                let opts = MarchOptions::new(0.0, 6.0 * half, half / 64.0).with_cone_angle(cone);
+                s.case(
+                    "volume::grid::MarchOptions::new",
+                    &cl,
+                    Expect::Finite,
+                    &[],
+                    || Ok(vec![grid.sample(&o, &w, &opts)?.starts]),
+                );
+                s.case(
+                    "volume::grid::MarchOptions::with_cone_angle",
+                    &cl,
+                    Expect::Finite,
+                    &[],
+                    || Ok(vec![grid.sample(&o, &w, &opts)?.ends]),
+                );
+                s.case(
+                    "volume::grid::OccupancyGrid::sample",
+                    &cl,
+                    Expect::Finite,
+                    &[],
+                    || {
+                        let gs = grid.sample(&o, &w, &opts)?;
+                        Ok(vec![gs.midpoints()?, gs.deltas(&w)?, gs.positions(&o, &w)?])
+                    },
+                );
+                let gs = grid.sample(&o, &w, &opts).unwrap();
+                s.case(
+                    "volume::grid::GridSamples::midpoints",
+                    &cl,
+                    Expect::Finite,
+                    &[],
+                    || Ok(vec![gs.midpoints()?]),
+                );
+                s.case(
+                    "volume::grid::GridSamples::deltas",
+                    &cl,
+                    Expect::Finite,
+                    &[],
+                    || Ok(vec![gs.deltas(&w)?]),
+                );
+                s.case(
+                    "volume::grid::GridSamples::positions",
+                    &cl,
+                    Expect::Finite,
+                    &[],
+                    || Ok(vec![gs.positions(&o, &w)?]),
+                );
+            }
+        }
+        s.case(
+            "volume::grid::OccupancyGrid::with_config",
+            &label,
+            Expect::FiniteOrErr,
+            &[],
+            || {
+                let g = OccupancyGrid::with_config([0.0; 6], 8, 1, Default::default())?;
+                Ok(vec![Tensor::new(g.occupied_fraction(), &d)?])
+            },
+        );
+    }
+}
+
+#[test]
+fn stiff_cases_give_finite_outputs_and_gradients_or_err() {
+    let mut s = Suite::default();
+    sweep_numerics(&mut s);
+    sweep_fields(&mut s);
+    sweep_encodings(&mut s);
+    sweep_mlp(&mut s);
+    sweep_camera(&mut s);
+    sweep_rng_and_checks(&mut s);
+    #[cfg(feature = "volume")]
+    sweep_volume(&mut s);
+    println!(
+        "stiff cases: {} cases run over {} items, {} failures",
+        s.cases,
+        s.covered.len(),
+        s.failures.len()
+    );
+    assert!(
+        s.failures.is_empty(),
+        "stiff-case failures:\n{}",
+        s.failures.join("\n")
+    );
+    covered_matches_list(&s.covered);
+}
+
+/// Items swept above; kept in sync with the sweeps by `covered_matches_list`.
+const COVERED: &[&str] = &[
+    "camera::Camera::look_at",
+    "camera::Camera::new",
+    "camera::Camera::pixel_grid",
+    "camera::Camera::pose_param",
+    "camera::Camera::random_rays",
+    "camera::Camera::rays",
+    "camera::Camera::rays_for_pixels",
+    "camera::Intrinsics::camera_directions",
+    "camera::Intrinsics::from_fov_y",
+    "camera::Intrinsics::new",
+    "camera::PoseParam::from_affine",
+    "camera::PoseParam::rays",
+    "camera::PoseParam::renormalize",
+    "camera::PoseParam::rotation_matrix",
+    "camera::PoseParam::to_affine",
+    "camera::Rays::at",
+    "camera::Rays::narrow",
+    "camera::Rays::new",
+    "camera::Rays::normalized",
+    "camera::ray_aabb",
+    "camera::ray_sphere",
+    "encoding::FourierFeatures::from_matrix",
+    "encoding::FourierFeatures::new",
+    "encoding::FrequencyEncoding::forward_jvp",
+    "encoding::PointEncoding::forward",
+    "encoding::integrated_pe",
+    "error::check_scalar",
+    "field::Cuboid::new",
+    "field::Plane::new",
+    "field::Sphere::new",
+    "field::Torus::new",
+    "nn::mlp::Mlp::forward_points",
+    "nn::mlp::Mlp::forward_with_jacobian",
+    "nn::mlp::MlpConfig::sdf",
+    "nn::mlp::mlp",
+    "numerics::bce_with_logits",
+    "numerics::cos_pi",
+    "numerics::guard_denominator",
+    "numerics::safe_cos",
+    "numerics::safe_sin",
+    "numerics::sigmoid",
+    "numerics::sin_pi",
+    "numerics::softplus",
+    "rng::SplitMix64::normal_tensor",
+    "rng::SplitMix64::uniform_tensor",
+];
+
+/// Volume items swept by `sweep_volume`.
+const VOLUME_COVERED: &[&str] = &[
+    "volume::composite::Composite::normalized_depth",
+    "volume::composite::CompositeOptions::weight_options",
+    "volume::composite::Packed::from_counts",
+    "volume::composite::Packed::from_mask",
+    "volume::composite::accumulate",
+    "volume::composite::accumulate_packed",
+    "volume::composite::composite",
+    "volume::composite::composite_packed",
+    "volume::composite::composite_packed_reference",
+    "volume::composite::composite_reference",
+    "volume::composite::render_weights",
+    "volume::composite::render_weights_packed",
+    "volume::composite::visible_mask",
+    "volume::fused::accumulate_fused",
+    "volume::fused::composite_fused",
+    "volume::fused::composite_packed_fused",
+    "volume::grid::GridSamples::deltas",
+    "volume::grid::GridSamples::midpoints",
+    "volume::grid::GridSamples::positions",
+    "volume::grid::MarchOptions::new",
+    "volume::grid::MarchOptions::with_cone_angle",
+    "volume::grid::OccupancyGrid::new",
+    "volume::grid::OccupancyGrid::sample",
+    "volume::grid::OccupancyGrid::update",
+    "volume::grid::OccupancyGrid::with_config",
+    "volume::regularizers::depth_smoothness",
+    "volume::regularizers::depth_smoothness_weight",
+    "volume::regularizers::distortion_loss",
+    "volume::regularizers::log_linear_schedule",
+    "volume::sampling::Intervals::deltas",
+    "volume::sampling::Intervals::edges",
+    "volume::sampling::Intervals::from_samples",
+    "volume::sampling::Intervals::midpoints",
+    "volume::sampling::Intervals::new",
+    "volume::sampling::anneal_near_far",
+    "volume::sampling::merge_sorted",
+    "volume::sampling::sample_pdf",
+    "volume::sampling::step_cdf",
+    "volume::sampling::stratified",
+];
+
+/// Public items without floating-point input (or only reached through a swept item),
+/// with the reason. Matching is by prefix, so `"error::check_"` covers the checks.
+const EXEMPT: &[(&str, &str)] = &[
+    ("camera::Camera::cam_to_world", "getter"),
+    ("camera::Camera::center", "getter"),
+    ("camera::Camera::convention", "getter"),
+    ("camera::Camera::intrinsics", "getter"),
+    ("camera::Convention::", "enum"),
+    ("camera::Intrinsics::num_pixels", "integer arithmetic"),
+    ("camera::PoseParam::vars", "getter"),
+    ("camera::Rays::is_empty", "getter"),
+    ("camera::Rays::len", "getter"),
+    (
+        "encoding::FourierFeatures::forward",
+        "swept through PointEncoding::forward_jvp / forward",
+    ),
+    (
+        "encoding::FourierFeatures::forward_jvp",
+        "swept through PointEncoding::forward_jvp",
+    ),
+    ("encoding::FourierFeatures::in_dim", "getter"),
+    ("encoding::FourierFeatures::matrix", "getter"),
+    ("encoding::FourierFeatures::out_dim", "getter"),
+    (
+        "encoding::FrequencyEncoding::forward",
+        "swept through PointEncoding::forward",
+    ),
+    ("encoding::FrequencyEncoding::in_dim", "getter"),
+    ("encoding::FrequencyEncoding::includes_input", "getter"),
+    ("encoding::FrequencyEncoding::n_freqs", "getter"),
+    ("encoding::FrequencyEncoding::new", "integer arguments"),
+    ("encoding::FrequencyEncoding::out_dim", "getter"),
+    ("encoding::FrequencyEncoding::without_", "builder flags"),
+    (
+        "encoding::PointEncoding::forward_jvp",
+        "swept in the FrequencyEncoding / FourierFeatures cases",
+    ),
+    ("encoding::PointEncoding::leads_with_input", "getter"),
+    ("encoding::PointEncoding::out_dim_for", "integer arithmetic"),
+    (
+        "error::",
+        "validation helpers: their job is to return Err for bad input (unit-tested)",
+    ),
+    (
+        "field::Conditioned::",
+        "forwards to the wrapped field (swept via the Mlp)",
+    ),
+    ("field::Inside::sign", "constant"),
+    (
+        "field::Occupancy::",
+        "trait methods, swept via the shapes' cases",
+    ),
+    ("field::Sdf::", "trait methods, swept via the shapes' cases"),
+    (
+        "field::Cuboid::distance_and_grad",
+        "swept via the Cuboid cases",
+    ),
+    (
+        "field::Plane::distance_and_grad",
+        "swept via the Plane cases",
+    ),
+    (
+        "field::Sphere::distance_and_grad",
+        "swept via the Sphere cases",
+    ),
+    (
+        "field::Torus::distance_and_grad",
+        "swept via the Torus cases",
+    ),
+    ("nn::SeededBackend::", "private"),
+    (
+        "nn::build_seeded",
+        "integer seed; its draws are swept via the Mlp cases",
+    ),
+    ("nn::mlp::Mlp::config", "getter"),
+    (
+        "nn::mlp::Mlp::forward",
+        "Module/Field forward: forwards to forward_points",
+    ),
+    ("nn::mlp::Mlp::inside", "getter"),
+    ("nn::mlp::Mlp::out_dim", "getter"),
+    ("nn::mlp::Mlp::value", "forwards to forward_points"),
+    ("nn::mlp::Mlp::code_dim", "getter"),
+    (
+        "nn::mlp::Mlp::value_and_grad",
+        "forwards to forward_with_jacobian",
+    ),
+    ("nn::mlp::MlpConfig::default", "constant"),
+    ("rng::SplitMix64::", "integer state; tensor makers swept"),
+    ("volume::composite::Packed::max_count", "getter"),
+    ("volume::composite::Packed::n_samples", "getter"),
+    ("volume::composite::Packed::offsets_host", "getter"),
+    (
+        "volume::fused::FusedComposite::",
+        "CustomOp internals, swept via composite_fused / composite",
+    ),
+    ("volume::grid::GridConfig::default", "constant"),
+    ("volume::grid::OccupancyGrid::aabb", "getter"),
+    ("volume::grid::OccupancyGrid::config", "getter"),
+    ("volume::grid::OccupancyGrid::density", "getter"),
+    (
+        "volume::grid::OccupancyGrid::is_occupied",
+        "lookup, swept through sample",
+    ),
+    ("volume::grid::OccupancyGrid::levels", "getter"),
+    ("volume::grid::OccupancyGrid::occupied", "getter"),
+    ("volume::grid::OccupancyGrid::resolution", "getter"),
+    ("volume::sampling::Intervals::n_", "getters"),
+];
+
+/// Public functions and trait-impl methods in `src/`, as `module::Type::method` or
+/// `module::function` (everything after a file's first `#[cfg(test)]` is skipped).
+fn public_items() -> BTreeSet<String> {
+    let mut items = BTreeSet::new();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut stack = vec![root.clone()];
+    while let Some(dir) = stack.pop() {
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                stack.push(path);
+                continue;
+            }
+            if path.extension().and_then(|e| e.to_str()) != Some("rs") {
+                continue;
+            }
+            let rel = path.strip_prefix(&root).unwrap().with_extension("");
+            let mut module: Vec<String> = rel
+                .iter()
+                .map(|c| c.to_string_lossy().into_owned())
+                .collect();
+            if module.last().map(|m| m == "mod" || m == "lib") == Some(true) {
+                module.pop();
+            }
+            let module = module.join("::");
+            let text = std::fs::read_to_string(&path).unwrap();
+            let mut current: Option<(String, bool)> = None; // (type, is trait impl)
+            for line in text.lines() {
+                if line.starts_with("#[cfg(test)]") {
+                    break;
+                }
+                if line.starts_with("impl") {
+                    let head = line.trim_end_matches('{').trim();
+                    let is_trait = head.contains(" for ");
+                    let ty = head
+                        .rsplit(" for ")
+                        .next()
+                        .unwrap()
+                        .trim_start_matches("impl")
+                        .trim();
+                    let ty = ty.rsplit("> ").next().unwrap_or(ty);
+                    let ty = ty
+                        .split('<')
+                        .next()
+                        .unwrap()
+                        .trim()
+                        .rsplit("::")
+                        .next()
+                        .unwrap()
+                        .to_string();
+                    current = Some((ty, is_trait));
+                    continue;
+                }
+                if line.starts_with('}') {
+                    current = None;
+                    continue;
+                }
+                let trimmed = line.trim_start();
+                let indent = line.len() - trimmed.len();
+                let name_after = |prefix: &str| {
+                    trimmed
+                        .strip_prefix(prefix)
+                        .map(|r| r.split(['(', '<']).next().unwrap().to_string())
+                };
+                let prefix = if module.is_empty() {
+                    String::new()
+                } else {
+                    format!("{module}::")
+                };
+                match (&current, indent) {
+                    (None, 0) => {
+                        if let Some(n) = name_after("pub fn ") {
+                            items.insert(format!("{prefix}{n}"));
+                        }
+                    }
+                    (Some((ty, is_trait)), 4) => {
+                        let n = if *is_trait {
+                            name_after("fn ")
+                        } else {
+                            name_after("pub fn ")
+                        };
+                        if let Some(n) = n {
+                            items.insert(format!("{prefix}{ty}::{n}"));
+                        }
+                    }
+                    _ => {}
+                }
+            }
+        }
+    }
+    items
+}
+
+/// `COVERED` plus the lists of the enabled feature modules.
+fn covered() -> Vec<&'static str> {
+    let mut v = COVERED.to_vec();
+    if cfg!(feature = "volume") {
+        v.extend(VOLUME_COVERED);
+    }
+    v
+}
+
+/// Whether a module's feature is enabled (items of disabled modules are not compiled).
+fn module_enabled(item: &str) -> bool {
+    let feature_of = [
+        ("volume::", cfg!(feature = "volume")),
+        ("dvr::", cfg!(feature = "dvr")),
+        ("occupancy::", cfg!(feature = "occupancy")),
+        ("texture::", cfg!(feature = "texture")),
+    ];
+    feature_of
+        .iter()
+        .all(|(prefix, on)| !item.starts_with(prefix) || *on)
+}
+
+fn covered_matches_list(swept: &BTreeSet<&'static str>) {
+    let listed: BTreeSet<&str> = covered().into_iter().collect();
+    let stale: Vec<_> = listed.symmetric_difference(swept).collect();
+    assert!(
+        stale.is_empty(),
+        "COVERED differs from what the sweeps ran: {stale:?}"
+    );
+}
+
+#[test]
+fn every_public_float_function_is_swept_or_exempt() {
+    let items: BTreeSet<String> = public_items()
+        .into_iter()
+        .filter(|i| module_enabled(i))
+        .collect();
+    assert!(items.len() > 50, "scanner found only {} items", items.len());
+    let covered = covered();
+    let missing: Vec<&String> = items
+        .iter()
+        .filter(|i| !covered.contains(&i.as_str()) && !EXEMPT.iter().any(|(p, _)| i.starts_with(p)))
+        .collect();
+    assert!(
+        missing.is_empty(),
+        "public items neither swept in tests/stiff_cases.rs nor exempted with a reason:\n{}",
+        missing
+            .iter()
+            .map(|s| s.as_str())
+            .collect::<Vec<_>>()
+            .join("\n")
+    );
+    let unknown: Vec<&str> = COVERED
+        .iter()
+        .copied()
+        .filter(|c| !items.contains(*c))
+        .collect();
+    assert!(
+        unknown.is_empty(),
+        "COVERED names items that no longer exist: {unknown:?}"
+    );
+}

@@ -1,0 +1,521 @@
+//! Closed forms, stiff cases and bad input for volume compositing (reference and
+//! dispatching paths).
+#![cfg(feature = "volume")]
+
+use candle_core::{DType, Device, Tensor};
+use neural_fields::volume::composite::{
+    accumulate, accumulate_packed, composite, composite_packed, composite_packed_reference,
+    composite_reference, render_weights, render_weights_packed, visible_mask, Composite,
+    CompositeOptions, Packed, WeightOptions,
+};
+use neural_fields::Error;
+
+type CompFn =
+    fn(&Tensor, &Tensor, &Tensor, &Tensor, &CompositeOptions) -> neural_fields::Result<Composite>;
+const IMPLS: [(&str, CompFn); 2] = [("reference", composite_reference), ("dispatch", composite)];
+
+fn dev() -> Device {
+    Device::Cpu
+}
+
+fn t2(v: Vec<f64>, r: usize, s: usize, dt: DType) -> Tensor {
+    Tensor::from_vec(v, (r, s), &dev())
+        .unwrap()
+        .to_dtype(dt)
+        .unwrap()
+}
+
+fn v1(t: &Tensor) -> Vec<f64> {
+    t.to_dtype(DType::F64)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap()
+}
+
+/// Uniform bins on [a, a + l]: (deltas, midpoints, left ends).
+fn bins(a: f64, l: f64, n: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    let d = l / n as f64;
+    let mids = (0..n).map(|i| a + (i as f64 + 0.5) * d).collect();
+    let lefts = (0..n).map(|i| a + i as f64 * d).collect();
+    (vec![d; n], mids, lefts)
+}
+
+/// Composites one ray with constant colour per sample given as `cols` (C = 1).
+fn one_ray(
+    f: CompFn,
+    sig: &[f64],
+    del: &[f64],
+    cols: &[f64],
+    mids: &[f64],
+    dt: DType,
+) -> (f64, f64, f64) {
+    let n = sig.len();
+    let s = t2(sig.to_vec(), 1, n, dt);
+    let d = t2(del.to_vec(), 1, n, dt);
+    let c = t2(cols.to_vec(), 1, n, dt).reshape((1, n, 1)).unwrap();
+    let m = t2(mids.to_vec(), 1, n, dt);
+    let out = f(&s, &c, &d, &m, &CompositeOptions::default()).unwrap();
+    (v1(&out.color)[0], v1(&out.opacity)[0], v1(&out.depth)[0])
+}
+
+#[test]
+fn one_slab_is_exact_for_aligned_bins() {
+    for (name, f) in IMPLS {
+        for dt in [DType::F32, DType::F64] {
+            let tol = if dt == DType::F32 { 1e-6 } else { 1e-13 };
+            for &(sigma, l, n) in &[
+                (0.7, 2.0, 1usize),
+                (3.0, 1.5, 7),
+                (0.01, 1.0, 64),
+                (50.0, 0.3, 192),
+            ] {
+                let (del, mids, _) = bins(0.0, l, n);
+                let c = 0.8;
+                let (col, op, _) = one_ray(f, &vec![sigma; n], &del, &vec![c; n], &mids, dt);
+                let exact_op = 1.0 - (-sigma * l).exp();
+                assert!(
+                    (op - exact_op).abs() <= tol,
+                    "{name} {dt:?}: opacity {op} vs {exact_op}"
+                );
+                assert!(
+                    (col - c * exact_op).abs() <= tol,
+                    "{name} {dt:?}: colour {col}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn two_slabs_are_exact_for_aligned_bins() {
+    for (name, f) in IMPLS {
+        let (s1, s2, c1, c2, a, l) = (1.3, 4.0, 0.2, 0.9, 0.6, 1.0);
+        let n = 10;
+        let (del, mids, _) = bins(0.0, l, n);
+        let sig: Vec<f64> = mids.iter().map(|&t| if t < a { s1 } else { s2 }).collect();
+        let col: Vec<f64> = mids.iter().map(|&t| if t < a { c1 } else { c2 }).collect();
+        let (c, o, _) = one_ray(f, &sig, &del, &col, &mids, DType::F64);
+        let t1 = (-s1 * a).exp();
+        let exact = c1 * (1.0 - t1) + t1 * c2 * (1.0 - (-s2 * (l - a)).exp());
+        let exact_o = 1.0 - t1 * (-s2 * (l - a)).exp();
+        assert!((c - exact).abs() < 1e-14, "{name}: {c} vs {exact}");
+        assert!((o - exact_o).abs() < 1e-14, "{name}: {o} vs {exact_o}");
+    }
+}
+
+#[test]
+fn opacity_equals_one_minus_exp_of_total_thickness() {
+    let n = 50;
+    let sig: Vec<f64> = (0..n).map(|i| ((i * 37 % 11) as f64) * 0.3).collect();
+    let del: Vec<f64> = (0..n)
+        .map(|i| 0.01 + ((i * 13 % 7) as f64) * 0.02)
+        .collect();
+    let total: f64 = sig.iter().zip(&del).map(|(s, d)| s * d).sum();
+    for (name, f) in IMPLS {
+        let (_, o, _) = one_ray(f, &sig, &del, &vec![0.0; n], &vec![0.0; n], DType::F64);
+        assert!((o - (1.0 - (-total).exp())).abs() < 1e-14, "{name}");
+    }
+}
+
+/// Least-squares slope of log(err) against log(n).
+fn fitted_slope(ns: &[usize], errs: &[f64]) -> f64 {
+    let xs: Vec<f64> = ns.iter().map(|&n| (n as f64).ln()).collect();
+    let ys: Vec<f64> = errs.iter().map(|e| e.ln()).collect();
+    let mx = xs.iter().sum::<f64>() / xs.len() as f64;
+    let my = ys.iter().sum::<f64>() / ys.len() as f64;
+    let num: f64 = xs.iter().zip(&ys).map(|(x, y)| (x - mx) * (y - my)).sum();
+    let den: f64 = xs.iter().map(|x| (x - mx).powi(2)).sum();
+    num / den
+}
+
+const NS: [usize; 5] = [8, 16, 32, 64, 128];
+
+#[test]
+fn expected_depth_in_a_slab_converges_to_the_closed_form() {
+    let (a, l, sigma) = (2.0, 1.5, 1.7f64);
+    let el = (-sigma * l).exp();
+    let exact = a + 1.0 / sigma - l * el / (1.0 - el);
+    let mut errs = vec![];
+    for &n in &NS {
+        let (del, mids, _) = bins(a, l, n);
+        let (_, o, d) = one_ray(
+            composite,
+            &vec![sigma; n],
+            &del,
+            &vec![0.0; n],
+            &mids,
+            DType::F64,
+        );
+        errs.push((d / o - exact).abs());
+    }
+    let slope = fitted_slope(&NS, &errs);
+    println!("expected depth errors {errs:?}, slope {slope}");
+    assert!(errs[4] < 1e-4, "{errs:?}");
+    assert!((slope + 2.0).abs() < 0.1, "slope {slope}");
+}
+
+#[test]
+fn linear_density_midpoint_is_exact_and_left_endpoint_is_first_order() {
+    let (k, l) = (3.0, 1.2);
+    let exact = 1.0 - (-k * l * l / 2.0f64).exp();
+    let mut errs = vec![];
+    for &n in &NS {
+        let (del, mids, lefts) = bins(0.0, l, n);
+        let sm: Vec<f64> = mids.iter().map(|t| k * t).collect();
+        let (_, o_mid, _) = one_ray(composite, &sm, &del, &vec![0.0; n], &mids, DType::F64);
+        assert!(
+            (o_mid - exact).abs() < 1e-14,
+            "midpoint n={n}: {o_mid} vs {exact}"
+        );
+        let sl: Vec<f64> = lefts.iter().map(|t| k * t).collect();
+        let (_, o_left, _) = one_ray(composite, &sl, &del, &vec![0.0; n], &mids, DType::F64);
+        errs.push((o_left - exact).abs());
+    }
+    let slope = fitted_slope(&NS, &errs);
+    println!("left-endpoint opacity errors {errs:?}, slope {slope}");
+    assert!((slope + 1.0).abs() < 0.05, "slope {slope}");
+}
+
+#[test]
+fn colour_equal_to_depth_converges_second_order_with_midpoints() {
+    let (sigma, l) = (2.5f64, 1.0);
+    let exact = (1.0 - (-sigma * l).exp() * (1.0 + sigma * l)) / sigma;
+    let mut errs = vec![];
+    for &n in &NS {
+        let (del, mids, _) = bins(0.0, l, n);
+        let (c, _, _) = one_ray(composite, &vec![sigma; n], &del, &mids, &mids, DType::F64);
+        errs.push((c - exact).abs());
+    }
+    let slope = fitted_slope(&NS, &errs);
+    println!("c(t)=t colour errors {errs:?}, slope {slope}");
+    assert!((slope + 2.0).abs() < 0.05, "slope {slope}");
+}
+
+#[test]
+fn background_fills_the_transparent_remainder() {
+    for (name, f) in IMPLS {
+        let s = t2(vec![0.5, 1.0, 0.0, 0.0], 2, 2, DType::F64);
+        let d = t2(vec![1.0; 4], 2, 2, DType::F64);
+        let c = Tensor::ones((2, 2, 3), DType::F64, &dev()).unwrap();
+        let bg = Tensor::new(&[0.0f64, 0.5, 1.0], &dev()).unwrap();
+        let opts = CompositeOptions {
+            background: Some(bg),
+            ..Default::default()
+        };
+        let out = f(&s, &c, &d, &d, &opts).unwrap();
+        let col = v1(&out.color);
+        let o = 1.0 - (-1.5f64).exp();
+        let want = [o, o + 0.5 * (1.0 - o), 1.0, 0.0, 0.5, 1.0];
+        for (g, w) in col.iter().zip(want) {
+            assert!((g - w).abs() < 1e-14, "{name}: {col:?}");
+        }
+    }
+}
+
+#[test]
+fn opaque_last_makes_opacity_one_and_ignores_the_last_density() {
+    for (name, f) in IMPLS {
+        for dt in [DType::F32, DType::F64] {
+            let s = t2(vec![0.1, 0.2, 0.0, 0.3, 0.0, 0.0], 2, 3, dt);
+            let d = t2(vec![0.5, 0.5, 1e10, 0.5, 0.5, 0.0], 2, 3, dt);
+            let c = Tensor::ones((2, 3, 1), dt, &dev()).unwrap();
+            let opts = CompositeOptions {
+                opaque_last: true,
+                ..Default::default()
+            };
+            let out = f(&s, &c, &d, &d, &opts).unwrap();
+            for o in v1(&out.opacity) {
+                assert!((o - 1.0).abs() < 1e-6, "{name}: {o}");
+            }
+        }
+    }
+    let w = render_weights(
+        &t2(vec![0.0, 0.0, 0.0], 1, 3, DType::F32),
+        &t2(vec![1.0, 1.0, 0.0], 1, 3, DType::F32),
+        &WeightOptions { opaque_last: true },
+    )
+    .unwrap();
+    assert_eq!(v1(&w.weights), vec![0.0, 0.0, 1.0]);
+}
+
+#[test]
+fn tiny_thickness_gives_alpha_equal_to_sigma_delta_in_f32() {
+    for dt in [DType::F32, DType::F64] {
+        for &x in &[1e-30, 1e-20, 1e-10, 1e-7, 1e-3, 0.29, 0.31, 0.5] {
+            let w = render_weights(
+                &t2(vec![x], 1, 1, dt),
+                &t2(vec![1.0], 1, 1, dt),
+                &WeightOptions::default(),
+            )
+            .unwrap();
+            let a = v1(&w.alphas)[0];
+            let xr = v1(&t2(vec![x], 1, 1, dt))[0];
+            let want = -(-xr).exp_m1();
+            let tol = if dt == DType::F32 { 1e-6 } else { 1e-14 };
+            assert!(
+                ((a - want) / want).abs() < tol,
+                "{dt:?} x={x}: alpha {a} vs {want}"
+            );
+        }
+    }
+}
+
+#[test]
+fn stiff_inputs_give_finite_outputs() {
+    for (name, f) in IMPLS {
+        for dt in [DType::F32, DType::F64] {
+            // sigma*delta = 1e30, 1e40 (overflows f32), 1e-30, huge and tiny mixed.
+            let s = t2(vec![1e30, 1e30, 1e-30, 1e10, 0.0, 3.0e38], 1, 6, dt);
+            let d = t2(vec![1.0, 1e10, 1.0, 1e-30, 1e10, 1.0], 1, 6, dt);
+            let c = Tensor::ones((1, 6, 3), dt, &dev()).unwrap();
+            let out = f(&s, &c, &d, &d, &CompositeOptions::default()).unwrap();
+            for v in v1(&out.color)
+                .into_iter()
+                .chain(v1(&out.opacity))
+                .chain(v1(&out.depth))
+            {
+                assert!(v.is_finite(), "{name} {dt:?}: {v}");
+            }
+            assert!((v1(&out.opacity)[0] - 1.0).abs() < 1e-6);
+        }
+    }
+}
+
+#[test]
+fn one_dense_interval_gives_one_hot_weights() {
+    for dt in [DType::F32, DType::F64] {
+        let mut sig = vec![0.0; 64];
+        sig[17] = 1e10;
+        let w = render_weights(
+            &t2(sig, 1, 64, dt),
+            &t2(vec![0.01; 64], 1, 64, dt),
+            &WeightOptions::default(),
+        )
+        .unwrap();
+        let w = v1(&w.weights);
+        for (i, v) in w.iter().enumerate() {
+            assert_eq!(*v, if i == 17 { 1.0 } else { 0.0 }, "{dt:?} at {i}");
+        }
+    }
+}
+
+#[test]
+fn f32_transmittance_underflows_to_zero_without_nan_on_long_rays() {
+    let n = 1024;
+    let s = t2(vec![1.0; n], 1, n, DType::F32);
+    let d = t2(vec![0.5; n], 1, n, DType::F32);
+    let w = render_weights(&s, &d, &WeightOptions::default()).unwrap();
+    let t = v1(&w.transmittance);
+    assert!(t.iter().all(|v| v.is_finite()));
+    assert_eq!(t[n - 1], 0.0, "exp(-511.5) underflows in f32");
+    assert!(t[100] > 0.0 && t[300] == 0.0);
+}
+
+#[test]
+fn packed_layout_matches_batched_and_handles_empty_rays() {
+    let counts = [3usize, 0, 5, 1, 0];
+    let packed = Packed::from_counts(&counts, &dev()).unwrap();
+    assert_eq!(packed.n_samples(), 9);
+    assert_eq!(
+        packed.offsets.to_vec1::<u32>().unwrap(),
+        vec![0, 3, 3, 8, 9, 9]
+    );
+    assert_eq!(
+        packed.ray_indices.to_vec1::<u32>().unwrap(),
+        vec![0, 0, 0, 2, 2, 2, 2, 2, 3]
+    );
+    let sig: Vec<f64> = (0..9).map(|i| 0.3 * i as f64).collect();
+    let del: Vec<f64> = (0..9).map(|i| 0.1 + 0.05 * i as f64).collect();
+    let cols: Vec<f64> = (0..27).map(|i| (i % 5) as f64 * 0.2).collect();
+    let mids: Vec<f64> = (0..9).map(|i| 1.0 + i as f64).collect();
+    let s = Tensor::new(sig.as_slice(), &dev()).unwrap();
+    let d = Tensor::new(del.as_slice(), &dev()).unwrap();
+    let c = Tensor::from_vec(cols.clone(), (9, 3), &dev()).unwrap();
+    let m = Tensor::new(mids.as_slice(), &dev()).unwrap();
+    let bg = Tensor::new(&[0.1f64, 0.2, 0.3], &dev()).unwrap();
+    for opaque_last in [false, true] {
+        let opts = CompositeOptions {
+            opaque_last,
+            background: Some(bg.clone()),
+        };
+        let outs = [
+            composite_packed_reference(&s, &c, &d, &m, &packed, &opts).unwrap(),
+            composite_packed(&s, &c, &d, &m, &packed, &opts).unwrap(),
+        ];
+        // Each non-empty ray on its own, batched.
+        let mut start = 0;
+        for (r, &n) in counts.iter().enumerate() {
+            let (colour, op, dep) = if n == 0 {
+                (vec![0.1, 0.2, 0.3], 0.0, 0.0)
+            } else {
+                let one = composite_reference(
+                    &s.narrow(0, start, n).unwrap().unsqueeze(0).unwrap(),
+                    &c.narrow(0, start, n).unwrap().unsqueeze(0).unwrap(),
+                    &d.narrow(0, start, n).unwrap().unsqueeze(0).unwrap(),
+                    &m.narrow(0, start, n).unwrap().unsqueeze(0).unwrap(),
+                    &opts,
+                )
+                .unwrap();
+                (v1(&one.color), v1(&one.opacity)[0], v1(&one.depth)[0])
+            };
+            for out in &outs {
+                let got = v1(&out.color);
+                for k in 0..3 {
+                    assert!((got[3 * r + k] - colour[k]).abs() < 1e-14, "ray {r}");
+                }
+                assert!((v1(&out.opacity)[r] - op).abs() < 1e-14);
+                assert!((v1(&out.depth)[r] - dep).abs() < 1e-13);
+            }
+            start += n;
+        }
+        let w = render_weights_packed(&s, &d, &packed, &opts.weight_options()).unwrap();
+        let acc = accumulate_packed(&w.weights, &c, &packed).unwrap();
+        assert_eq!(acc.dims(), &[5, 3]);
+    }
+}
+
+#[test]
+fn accumulate_is_the_weighted_sum() {
+    let w = t2(vec![0.5, 0.25], 1, 2, DType::F64);
+    let v = Tensor::from_vec(vec![1.0f64, 2.0, 3.0, 4.0], (1, 2, 2), &dev()).unwrap();
+    assert_eq!(v1(&accumulate(&w, &v).unwrap()), vec![1.25, 2.0]);
+}
+
+fn arg_of(e: Error) -> &'static str {
+    match e {
+        Error::InvalidArgument { arg, .. } => arg,
+        other => panic!("expected InvalidArgument, got {other}"),
+    }
+}
+
+#[test]
+fn bad_input_errors_name_the_argument() {
+    let ok = t2(vec![1.0; 6], 2, 3, DType::F32);
+    let c = Tensor::ones((2, 3, 3), DType::F32, &dev()).unwrap();
+    let o = CompositeOptions::default();
+    let w = WeightOptions::default();
+    for (name, f) in IMPLS {
+        let bad_shape = t2(vec![1.0; 4], 2, 2, DType::F32);
+        assert_eq!(
+            arg_of(f(&ok, &c, &bad_shape, &ok, &o).unwrap_err()),
+            "deltas",
+            "{name}"
+        );
+        assert_eq!(
+            arg_of(f(&ok, &c, &ok, &bad_shape, &o).unwrap_err()),
+            "t_mids",
+            "{name}"
+        );
+        let bad_c = Tensor::ones((2, 2, 3), DType::F32, &dev()).unwrap();
+        assert_eq!(
+            arg_of(f(&ok, &bad_c, &ok, &ok, &o).unwrap_err()),
+            "colors",
+            "{name}"
+        );
+        let neg = t2(vec![1.0, 1.0, -1e-3, 1.0, 1.0, 1.0], 2, 3, DType::F32);
+        assert_eq!(
+            arg_of(f(&ok, &c, &neg, &ok, &o).unwrap_err()),
+            "deltas",
+            "{name}"
+        );
+        assert_eq!(
+            arg_of(f(&neg, &c, &ok, &ok, &o).unwrap_err()),
+            "sigmas",
+            "{name}"
+        );
+        for v in [f64::NAN, f64::INFINITY] {
+            let bad = t2(vec![1.0, v, 1.0, 1.0, 1.0, 1.0], 2, 3, DType::F32);
+            assert_eq!(
+                arg_of(f(&bad, &c, &ok, &ok, &o).unwrap_err()),
+                "sigmas",
+                "{name} {v}"
+            );
+            assert_eq!(
+                arg_of(f(&ok, &c, &bad, &ok, &o).unwrap_err()),
+                "deltas",
+                "{name} {v}"
+            );
+        }
+        let f64s = t2(vec![1.0; 6], 2, 3, DType::F64);
+        assert_eq!(
+            arg_of(f(&ok, &c, &f64s, &ok, &o).unwrap_err()),
+            "deltas",
+            "{name}"
+        );
+        let bg = Tensor::ones(2, DType::F32, &dev()).unwrap();
+        let ob = CompositeOptions {
+            background: Some(bg),
+            ..Default::default()
+        };
+        assert_eq!(
+            arg_of(f(&ok, &c, &ok, &ok, &ob).unwrap_err()),
+            "background",
+            "{name}"
+        );
+    }
+    let neg = t2(vec![1.0, 1.0, -1e-3, 1.0, 1.0, 1.0], 2, 3, DType::F64);
+    let okd = t2(vec![1.0; 6], 2, 3, DType::F64);
+    assert_eq!(
+        arg_of(render_weights(&okd, &neg, &w).unwrap_err()),
+        "deltas"
+    );
+    let e = render_weights(&okd, &neg, &w).unwrap_err().to_string();
+    assert!(e.contains("deltas") && e.contains("-0.001"), "{e}");
+    assert_eq!(arg_of(visible_mask(&okd, &okd, 0.0).unwrap_err()), "eps");
+    let packed = Packed::from_counts(&[2, 2], &dev()).unwrap();
+    let s5 = Tensor::ones(5, DType::F64, &dev()).unwrap();
+    assert_eq!(
+        arg_of(render_weights_packed(&s5, &s5, &packed, &w).unwrap_err()),
+        "sigmas"
+    );
+}
+
+#[test]
+fn visible_mask_drops_only_samples_after_transmittance_falls_below_eps() {
+    let eps = 1e-4;
+    let n = 200;
+    let sig: Vec<f64> = (0..n)
+        .map(|i| if i < 50 { 0.0 } else { 2.0 + (i % 3) as f64 })
+        .collect();
+    let del = vec![0.05; n];
+    let cols: Vec<f64> = (0..n).map(|i| ((i * 7) % 10) as f64 / 10.0).collect();
+    let s = t2(sig.clone(), 1, n, DType::F64);
+    let d = t2(del.clone(), 1, n, DType::F64);
+    let mask = visible_mask(&s, &d, eps).unwrap();
+    let mv = mask.flatten_all().unwrap().to_vec1::<u8>().unwrap();
+    let w = render_weights(&s, &d, &WeightOptions::default()).unwrap();
+    let t = v1(&w.transmittance);
+    for i in 0..n {
+        assert_eq!(mv[i] == 1, t[i] >= eps, "sample {i}: T = {}", t[i]);
+    }
+    let kept = mv.iter().filter(|&&m| m == 1).count();
+    assert!(kept < n && kept > 50, "kept {kept}");
+    // Composite with and without the dropped samples: error <= eps * max|c|.
+    let full = one_ray(composite, &sig, &del, &cols, &del, DType::F64).0;
+    let (packed, idx) = Packed::from_mask(&mask).unwrap();
+    let pick = |v: &Vec<f64>| {
+        Tensor::new(v.as_slice(), &dev())
+            .unwrap()
+            .index_select(&idx, 0)
+            .unwrap()
+    };
+    let out = composite_packed(
+        &pick(&sig),
+        &pick(&cols).unsqueeze(1).unwrap(),
+        &pick(&del),
+        &pick(&del),
+        &packed,
+        &CompositeOptions::default(),
+    )
+    .unwrap();
+    let err = (v1(&out.color)[0] - full).abs();
+    let cmax = cols.iter().cloned().fold(0.0, f64::max);
+    println!(
+        "early termination: kept {kept}/{n}, colour error {err:e} (bound {:e})",
+        eps * cmax
+    );
+    assert!(err <= eps * cmax, "{err}");
+    assert!(err > 0.0, "the test must actually drop weight");
+}
