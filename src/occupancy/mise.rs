@@ -153,7 +153,7 @@ pub fn mise(surface: &dyn ImplicitSurface, config: &MiseConfig) -> Result<MiseOu
     };
     let at = |i: usize, j: usize, k: usize| i + np * (j + np * k);
     let mut values = vec![0.0f32; np * np * np];
-    // 0 unknown, 1 evaluated or filled, 2 queued for evaluation.
+    // 0 never evaluated, 1 evaluated, 2 queued for evaluation.
     let mut state = vec![0u8; np * np * np];
     let mut evaluations = 0usize;
     let mut evaluate = |ids: &[usize], values: &mut [f32], state: &mut [u8]| -> Result<()> {
@@ -245,46 +245,48 @@ pub fn mise(surface: &dyn ImplicitSurface, config: &MiseConfig) -> Result<MiseOu
         let half = s / 2;
         let vals = &values;
         let st = &state;
-        let fills: Vec<Vec<(usize, f32)>> = (0..np)
+        let pp = np * np;
+        // Each plane holding stride-`half` points is rebuilt from an immutable view
+        // (fills read only coarse-lattice points, which no fill writes), then copied back.
+        let planes: Vec<(usize, Vec<f32>)> = (0..np)
             .into_par_iter()
             .filter(|k| k % half == 0)
             .map(|k| {
-                let mut out = Vec::new();
+                let mut out = vals[k * pp..(k + 1) * pp].to_vec();
+                let span = |x: usize| -> [usize; 2] {
+                    if x % s == 0 {
+                        [x, x]
+                    } else {
+                        [x - half, x + half]
+                    }
+                };
+                let zs = span(k);
                 for j in (0..np).step_by(half) {
+                    let ys = span(j);
                     for i in (0..np).step_by(half) {
                         let idx = at(i, j, k);
                         if st[idx] != 0 {
                             continue;
                         }
-                        let span = |x: usize| -> [usize; 2] {
-                            if x % s == 0 {
-                                [x, x]
-                            } else {
-                                [x - half, x + half]
-                            }
-                        };
-                        let (xs, ys, zs) = (span(i), span(j), span(k));
+                        let xs = span(i);
                         let mut sum = 0.0f32;
                         for z in zs {
                             for y in ys {
-                                for x in xs {
-                                    sum += vals[at(x, y, z)];
-                                }
+                                let row = at(0, y, z);
+                                sum += vals[row + xs[0]] + vals[row + xs[1]];
                             }
                         }
-                        out.push((idx, sum / 8.0));
+                        out[i + np * j] = sum / 8.0;
                     }
                 }
-                out
+                (k, out)
             })
             .collect();
-        for (idx, v) in fills.into_iter().flatten() {
-            values[idx] = v;
-            state[idx] = 1;
+        for (k, plane_values) in planes {
+            values[k * pp..(k + 1) * pp].copy_from_slice(&plane_values);
         }
         s = half;
     }
-    debug_assert!(state.iter().all(|&x| x == 1));
     grid.values = values;
     grid.dims = [np; 3];
     let mesh = marching_cubes(&grid, level, surface.inside())?;
