@@ -74,6 +74,12 @@
 //! [`numerics`] (e.g. [`numerics::bce_with_logits`], finite for logits of ±10⁴). See
 //! `examples/quickstart.rs`, which fits an occupancy network to a torus in seconds.
 //!
+//! **6. Meshes.** [`occupancy::mise()`] extracts the surface of any implicit field
+//! (evaluating it only near the surface) with watertight [`occupancy::marching_cubes()`];
+//! [`occupancy::Mesh`] reads and writes PLY and OBJ, and [`occupancy::metrics`] computes
+//! ONet's IoU, Chamfer-L1, normal consistency and F-score. See
+//! `examples/fit_occupancy.rs`.
+//!
 //! ## Conventions
 //! * Shapes are written `[N, 3]`; every function follows the device and dtype (f32 or
 //!   f64) of its inputs, so the same code runs on CUDA with the `cuda` feature.
