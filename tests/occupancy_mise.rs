@@ -121,3 +121,72 @@ fn mise_256_against_dense_256_on_a_torus() {
     assert!(out.evaluations * 10 <= dense_evals);
     assert!(t_mise * 5.0 <= t_dense, "{t_mise} vs {t_dense}");
 }
+
+#[test]
+#[ignore = "timing: run in release, cargo test --release --test occupancy_mise -- --ignored"]
+fn mise_256_against_dense_256_on_a_trained_mlp() {
+    use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
+    use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
+    use neural_fields::nn::{build_seeded, mlp, MlpConfig};
+    use neural_fields::numerics::bce_with_logits;
+    use neural_fields::rng::SplitMix64;
+    let dev = Device::Cpu;
+    let dtype = DType::F32;
+    let shape = Torus::new([0.0; 3], 0.3, 0.12, &dev, dtype)
+        .unwrap()
+        .occupancy(1.0);
+    let config = MlpConfig {
+        hidden: 64,
+        depth: 4,
+        encoding: PointEncoding::Frequency(FrequencyEncoding::new(3, 4).unwrap()),
+        ..MlpConfig::default()
+    };
+    let vm = VarMap::new();
+    let net = build_seeded(&vm, dtype, &dev, 0, |vb| mlp(&config, vb)).unwrap();
+    let mut opt = AdamW::new(
+        vm.all_vars(),
+        ParamsAdamW {
+            lr: 2e-3,
+            weight_decay: 0.0,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let mut rng = SplitMix64::new(1);
+    for _ in 0..300 {
+        let p = rng
+            .uniform_tensor(&[4096, 3], -0.55, 0.55, dtype, &dev)
+            .unwrap();
+        let y = shape
+            .value(&p)
+            .unwrap()
+            .gt(0.0)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap();
+        let loss = bce_with_logits(&net.value(&p).unwrap(), &y)
+            .unwrap()
+            .mean_all()
+            .unwrap();
+        opt.backward_step(&loss).unwrap();
+    }
+    let cfg = MiseConfig::new(32, 3, &dev, dtype);
+    let t = Instant::now();
+    let out = mise(&net, &cfg).unwrap();
+    let t_mise = t.elapsed().as_secs_f64();
+    let np = cfg.final_points_per_axis();
+    let t = Instant::now();
+    let dense = Grid::sample(&net, [np; 3], cfg.min, cfg.max, 65_536, &dev, dtype).unwrap();
+    let dm = marching_cubes(&dense, 0.0, Inside::Positive).unwrap();
+    let t_dense = t.elapsed().as_secs_f64();
+    let m = neural_fields::occupancy::mesh_metrics(&out.mesh, &dm, 100_000, 1e-3, 0).unwrap();
+    let v = surface_metrics(&out.mesh.vertices, None, &dm.vertices, None, 1e-6).unwrap();
+    let dense_evals = np * np * np;
+    println!(
+        "trained MLP, MISE 32×2³: {} evals, {t_mise:.3} s; dense 257³: {dense_evals} evals, {t_dense:.3} s; vertex chamfer {:e}; faces {} vs {}; sampled chamfer {:e} (sampling floor)",
+        out.evaluations, v.chamfer_l1, out.mesh.faces.len(), dm.faces.len(), m.chamfer_l1
+    );
+    assert!(v.chamfer_l1 <= 1.1e-4);
+    assert!(out.evaluations * 10 <= dense_evals);
+    assert!(t_mise * 5.0 <= t_dense, "{t_mise} vs {t_dense}");
+}
