@@ -7,7 +7,9 @@
 //! Samples points uniformly in the padded cube [−0.55, 0.55]³ (ONet's box), labels them
 //! with the exact torus, trains a 4 × 64 ReLU MLP on frequency-encoded points with the
 //! stable BCE-with-logits and Adam, and prints the loss and the volumetric IoU on 100 000
-//! held-out points as it goes. Finishes in well under a minute on 2 cores.
+//! held-out points as it goes, then extracts the learned surface with MISE (16³ → 128³)
+//! and writes it to `quickstart_torus.ply` (or the path given as the first argument).
+//! Finishes in well under a minute on 2 cores.
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
@@ -15,6 +17,7 @@ use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::{ImplicitSurface, SignedDistance, Torus};
 use neural_fields::nn::{build_seeded, mlp, Activation, MlpConfig};
 use neural_fields::numerics::bce_with_logits;
+use neural_fields::occupancy::{mesh_metrics, mise, Grid, MiseConfig};
 use neural_fields::rng::SplitMix64;
 use std::time::Instant;
 
@@ -81,6 +84,35 @@ fn main() -> neural_fields::Result<()> {
                 start.elapsed().as_secs_f64()
             );
         }
+    }
+
+    // Extract the learned surface: MISE evaluates the network near the surface only.
+    let t = Instant::now();
+    let out = mise(&net, &MiseConfig::new(16, 3, &device, dtype))?;
+    let dense_evals = 129usize.pow(3);
+    println!(
+        "MISE: {} faces from {} network evaluations ({:.0}× fewer than a dense 129³ grid) in {:.2} s",
+        out.mesh.faces.len(),
+        out.evaluations,
+        dense_evals as f64 / out.evaluations as f64,
+        t.elapsed().as_secs_f64()
+    );
+    // Compare with the exact torus extracted the same way.
+    let exact = Grid::sample(
+        &shape, [129; 3], [-0.55; 3], [0.55; 3], 65_536, &device, dtype,
+    )?;
+    let exact = neural_fields::occupancy::marching_cubes(&exact, 0.0, shape.inside())?;
+    if !out.mesh.faces.is_empty() {
+        let m = mesh_metrics(&out.mesh, &exact, 20_000, 0.01, 0)?;
+        println!(
+            "vs exact torus: Chamfer-L1 {:.4}, normal consistency {:.3}, F@0.01 {:.3}",
+            m.chamfer_l1, m.normal_consistency, m.f_score
+        );
+        let path = std::env::args()
+            .nth(1)
+            .unwrap_or_else(|| "quickstart_torus.ply".into());
+        out.mesh.save(&path)?;
+        println!("wrote {path} (open it in MeshLab or Blender)");
     }
     Ok(())
 }

@@ -74,6 +74,12 @@
 //! [`numerics`] (e.g. [`numerics::bce_with_logits`], finite for logits of ±10⁴). See
 //! `examples/quickstart.rs`, which fits an occupancy network to a torus in seconds.
 //!
+//! **6. Meshes.** [`occupancy::mise()`] extracts the surface of any implicit field
+//! (evaluating it only near the surface) with watertight [`occupancy::marching_cubes()`];
+//! [`occupancy::Mesh`] reads and writes PLY and OBJ, and [`occupancy::metrics`] computes
+//! ONet's IoU, Chamfer-L1, normal consistency and F-score. See
+//! `examples/fit_occupancy.rs`.
+//!
 //! ## Conventions
 //! * Shapes are written `[N, 3]`; every function follows the device and dtype (f32 or
 //!   f64) of its inputs, so the same code runs on CUDA with the `cuda` feature.
@@ -85,7 +91,7 @@
 //! ## Features
 //! | feature | default | module |
 //! |---|---|---|
-//! | `occupancy` | yes | occupancy networks: losses, samplers, meshes, marching cubes, MISE, metrics (planned) |
+//! | `occupancy` | yes | occupancy networks: losses, samplers, meshes, marching cubes, MISE, metrics |
 //! | `texture` | yes | texture fields and photometric losses (planned) |
 //! | `dvr` | yes | surface rendering with implicit gradients: ray marching + secant, sphere tracing, implicit surface points, DVR/IDR losses |
 //! | `volume` | yes | NeRF samplers, compositing (reference and fused CPU kernel), occupancy grid, regularisers |
@@ -104,6 +110,8 @@ pub mod error;
 pub mod field;
 pub mod nn;
 pub mod numerics;
+#[cfg(feature = "occupancy")]
+pub mod occupancy;
 pub mod rng;
 #[cfg(feature = "volume")]
 pub mod volume;

@@ -15,6 +15,8 @@
 #[cfg(feature = "dvr")]
 mod dvr;
 mod encoding;
+#[cfg(feature = "occupancy")]
+mod mise;
 mod report;
 #[cfg(feature = "volume")]
 mod volume;
@@ -30,6 +32,8 @@ fn studies(quick: bool) -> Vec<Table> {
     tables.extend(encoding::run(quick));
     #[cfg(feature = "dvr")]
     tables.extend(dvr::run(quick));
+    #[cfg(feature = "occupancy")]
+    tables.extend(mise::run(quick));
     #[cfg(feature = "volume")]
     tables.extend(volume::run(quick));
     tables

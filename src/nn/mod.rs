@@ -2,12 +2,18 @@
 //! functions from a [`candle_nn::VarBuilder`].
 //!
 //! * [`Mlp`] / [`mlp`]: configurable MLP field with forward-mode spatial gradients.
+//! * [`OnetDecoder`] / [`onet_decoder`] (feature `occupancy`): the ONet decoder with
+//!   conditional normalisation that is batch-independent at inference.
 //! * [`build_seeded`]: reproducible initialisation (candle's CPU generator cannot be
 //!   seeded; this draws every variable's initial value from a `u64` seed instead).
 
 mod mlp;
+#[cfg(feature = "occupancy")]
+mod onet;
 
 pub use mlp::{mlp, Activation, Mlp, MlpConfig};
+#[cfg(feature = "occupancy")]
+pub use onet::{onet_decoder, NormMode, OnetConfig, OnetDecoder, ONET_BLOCK};
 
 use crate::error::{Error, Result};
 use crate::rng::SplitMix64;

@@ -1,0 +1,388 @@
+//! The Occupancy Networks decoder (Mescheder et al. 2019, "CBatchNorm" decoder) with
+//! conditional normalisation that does not depend on batch composition at inference.
+//!
+//! `f(p, c)`: `net = W_p p + b_p`; then `blocks` conditional ResNet blocks
+//! `net ← net + fc₁(ReLU(CN₁(fc₀(ReLU(CN₀(net, c))), c)))`; then
+//! `logit = fc_out(ReLU(CN(net, c)))`. `CN(x, c) = γ(c) ⊙ x̂ + β(c)` with `γ, β` linear
+//! in the code (initialised to `γ = 1`, `β = 0`) and `fc₁` initialised to zero, so the
+//! network starts as a plain MLP of `p`.
+//!
+//! `x̂` is where the reference implementation leaks batch statistics into inference
+//! (ONet issue #93: results change with how many points are queried together). Here:
+//! * [`NormMode::Train`]: `x̂ = (x − μ_B)/√(σ²_B + ε)` with the mean and (biased)
+//!   variance over the points of the call, and the running statistics are updated,
+//!   `r ← (1 − m) r + m·stat` (unbiased variance, as BatchNorm);
+//! * [`NormMode::Eval`] (the default): `x̂ = (x − r_μ)/√(r_σ² + ε)`, a per-point affine
+//!   map, so a point's logit is the same whether it is queried alone or with 10 000
+//!   others. Linear layers are evaluated on fixed blocks of [`ONET_BLOCK`] rows (the last
+//!   one zero-padded), so even the matrix-multiply kernel sees the same shapes; the
+//!   result is bit-identical (tested).
+
+use crate::error::{check_points, check_same, check_shape, Dim, Error, Result};
+use crate::field::{ConditionalField, Inside};
+use candle_core::{Tensor, D};
+use candle_nn::{Init, VarBuilder};
+use std::sync::{Mutex, PoisonError};
+
+/// Rows per matrix-multiply block in [`NormMode::Eval`].
+pub const ONET_BLOCK: usize = 256;
+
+/// Settings of [`onet_decoder`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct OnetConfig {
+    /// Hidden width (ONet: 256).
+    pub hidden: usize,
+    /// Number of conditional ResNet blocks (ONet: 5).
+    pub blocks: usize,
+    /// Code dimension `D ≥ 1`.
+    pub code_dim: usize,
+    /// Running-statistics momentum `m` (BatchNorm's 0.1).
+    pub momentum: f64,
+    /// `ε` of the normalisation (1e-5).
+    pub eps: f64,
+}
+
+impl Default for OnetConfig {
+    fn default() -> Self {
+        Self {
+            hidden: 256,
+            blocks: 5,
+            code_dim: 256,
+            momentum: 0.1,
+            eps: 1e-5,
+        }
+    }
+}
+
+/// Which statistics the conditional normalisation uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NormMode {
+    /// Batch statistics of the call; running statistics are updated.
+    Train,
+    /// Running statistics only (per-point, batch-independent).
+    Eval,
+}
+
+#[derive(Debug)]
+struct Linear {
+    weight: Tensor,
+    bias: Tensor,
+}
+
+impl Linear {
+    fn new(vb: &VarBuilder, name: &str, input: usize, out: usize, zero: bool) -> Result<Self> {
+        let vb = vb.pp(name);
+        let bound = 1.0 / (input as f64).sqrt();
+        let winit = if zero {
+            Init::Const(0.0)
+        } else {
+            candle_nn::init::DEFAULT_KAIMING_NORMAL
+        };
+        Ok(Self {
+            weight: vb.get_with_hints((out, input), "weight", winit)?,
+            bias: vb.get_with_hints(
+                out,
+                "bias",
+                Init::Uniform {
+                    lo: -bound,
+                    up: bound,
+                },
+            )?,
+        })
+    }
+
+    fn with(vb: &VarBuilder, name: &str, input: usize, out: usize, bias: f64) -> Result<Self> {
+        let vb = vb.pp(name);
+        Ok(Self {
+            weight: vb.get_with_hints((out, input), "weight", Init::Const(0.0))?,
+            bias: vb.get_with_hints(out, "bias", Init::Const(bias))?,
+        })
+    }
+
+    fn forward(&self, x: &Tensor, blocked: bool) -> Result<Tensor> {
+        let wt = self.weight.t()?;
+        let n = x.dim(0)?;
+        if !blocked || n == 0 {
+            return Ok(x.matmul(&wt)?.broadcast_add(&self.bias)?);
+        }
+        let mut parts = Vec::with_capacity(n.div_ceil(ONET_BLOCK));
+        let mut start = 0;
+        while start < n {
+            let len = ONET_BLOCK.min(n - start);
+            let mut blk = x.narrow(0, start, len)?;
+            if len < ONET_BLOCK {
+                let pad = Tensor::zeros((ONET_BLOCK - len, x.dim(1)?), x.dtype(), x.device())?;
+                blk = Tensor::cat(&[&blk, &pad], 0)?;
+            }
+            parts.push(blk.matmul(&wt)?.narrow(0, 0, len)?);
+            start += len;
+        }
+        Ok(Tensor::cat(&parts, 0)?.broadcast_add(&self.bias)?)
+    }
+}
+
+#[derive(Debug)]
+struct CondNorm {
+    gamma: Linear,
+    beta: Linear,
+    running_mean: Mutex<Tensor>,
+    running_var: Mutex<Tensor>,
+}
+
+#[derive(Debug)]
+struct Block {
+    norm0: CondNorm,
+    fc0: Linear,
+    norm1: CondNorm,
+    fc1: Linear,
+}
+
+/// The ONet decoder; build it with [`onet_decoder`].
+#[derive(Debug)]
+pub struct OnetDecoder {
+    fc_p: Linear,
+    blocks: Vec<Block>,
+    norm_out: CondNorm,
+    fc_out: Linear,
+    config: OnetConfig,
+    mode: Mutex<NormMode>,
+}
+
+/// Builds an [`OnetDecoder`] from `vb` (variables `fc_p`, `block{i}.{fc0,fc1,norm0,norm1}`,
+/// `norm_out`, `fc_out`; running statistics are plain tensors, not variables). Starts in
+/// [`NormMode::Eval`].
+///
+/// # Errors
+/// A zero `hidden`, `blocks` or `code_dim`; `momentum ∉ [0, 1]`; `eps ≤ 0`; errors of
+/// the `VarBuilder`.
+pub fn onet_decoder(config: &OnetConfig, vb: VarBuilder) -> Result<OnetDecoder> {
+    for (name, v) in [
+        ("config.hidden", config.hidden),
+        ("config.blocks", config.blocks),
+        ("config.code_dim", config.code_dim),
+    ] {
+        if v == 0 {
+            return Err(Error::invalid(name, "at least 1", "0"));
+        }
+    }
+    if !(0.0..=1.0).contains(&config.momentum) {
+        return Err(Error::invalid(
+            "config.momentum",
+            "a number in [0, 1]",
+            format!("{}", config.momentum),
+        ));
+    }
+    if !(config.eps > 0.0 && config.eps.is_finite()) {
+        return Err(Error::invalid(
+            "config.eps",
+            "a number > 0",
+            format!("{}", config.eps),
+        ));
+    }
+    let (h, d) = (config.hidden, config.code_dim);
+    let norm = |name: &str| -> Result<CondNorm> {
+        let nvb = vb.pp(name);
+        Ok(CondNorm {
+            gamma: Linear::with(&nvb, "gamma", d, h, 1.0)?,
+            beta: Linear::with(&nvb, "beta", d, h, 0.0)?,
+            running_mean: Mutex::new(Tensor::zeros(h, vb.dtype(), vb.device())?),
+            running_var: Mutex::new(Tensor::ones(h, vb.dtype(), vb.device())?),
+        })
+    };
+    let mut blocks = Vec::with_capacity(config.blocks);
+    for b in 0..config.blocks {
+        let bvb = vb.pp(format!("block{b}"));
+        let nb = |name: &str| -> Result<CondNorm> {
+            let nvb = bvb.pp(name);
+            Ok(CondNorm {
+                gamma: Linear::with(&nvb, "gamma", d, h, 1.0)?,
+                beta: Linear::with(&nvb, "beta", d, h, 0.0)?,
+                running_mean: Mutex::new(Tensor::zeros(h, vb.dtype(), vb.device())?),
+                running_var: Mutex::new(Tensor::ones(h, vb.dtype(), vb.device())?),
+            })
+        };
+        blocks.push(Block {
+            norm0: nb("norm0")?,
+            fc0: Linear::new(&bvb, "fc0", h, h, false)?,
+            norm1: nb("norm1")?,
+            fc1: Linear::new(&bvb, "fc1", h, h, true)?,
+        });
+    }
+    Ok(OnetDecoder {
+        fc_p: Linear::new(&vb, "fc_p", 3, h, false)?,
+        blocks,
+        norm_out: norm("norm_out")?,
+        fc_out: Linear::new(&vb, "fc_out", h, 1, false)?,
+        config: config.clone(),
+        mode: Mutex::new(NormMode::Eval),
+    })
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+impl OnetDecoder {
+    /// The configuration.
+    #[must_use]
+    pub fn config(&self) -> &OnetConfig {
+        &self.config
+    }
+
+    /// Switches between batch statistics (training) and running statistics (inference).
+    pub fn set_mode(&self, mode: NormMode) {
+        *lock(&self.mode) = mode;
+    }
+
+    /// The current [`NormMode`].
+    #[must_use]
+    pub fn mode(&self) -> NormMode {
+        *lock(&self.mode)
+    }
+
+    /// `x̂` and the per-feature scale `∂x̂/∂x` (`[H]`) of one normalisation layer.
+    fn normalize(&self, n: &CondNorm, x: &Tensor, mode: NormMode) -> Result<(Tensor, Tensor)> {
+        let eps = self.config.eps;
+        let (mean, var) = match mode {
+            NormMode::Eval => (lock(&n.running_mean).clone(), lock(&n.running_var).clone()),
+            NormMode::Train => {
+                let rows = x.dim(0)?;
+                let mean = x.mean(0)?;
+                let var = x.broadcast_sub(&mean)?.sqr()?.mean(0)?;
+                let m = self.config.momentum;
+                let unbiased = if rows > 1 {
+                    (var.detach() * (rows as f64 / (rows - 1) as f64))?
+                } else {
+                    var.detach()
+                };
+                let mut rm = lock(&n.running_mean);
+                *rm = ((&*rm * (1.0 - m))? + (mean.detach() * m)?)?;
+                let mut rv = lock(&n.running_var);
+                *rv = ((&*rv * (1.0 - m))? + (unbiased * m)?)?;
+                (mean, var)
+            }
+        };
+        let inv = (var + eps)?.sqrt()?.recip()?;
+        Ok((x.broadcast_sub(&mean)?.broadcast_mul(&inv)?, inv))
+    }
+
+    /// Conditional normalisation and ReLU, with forward-mode tangents `dx: [3, N, H]`.
+    fn cn_relu(
+        &self,
+        n: &CondNorm,
+        x: &Tensor,
+        dx: Option<&Tensor>,
+        codes: &Tensor,
+        mode: NormMode,
+        blocked: bool,
+    ) -> Result<(Tensor, Option<Tensor>)> {
+        let (xh, inv) = self.normalize(n, x, mode)?;
+        let gamma = n.gamma.forward(codes, blocked)?;
+        let beta = n.beta.forward(codes, blocked)?;
+        let y = ((xh * &gamma)? + beta)?;
+        let mask = y.gt(0.0)?.to_dtype(y.dtype())?;
+        let out = y.relu()?;
+        let dout = match dx {
+            Some(dx) => {
+                let scale = (gamma.broadcast_mul(&inv)? * &mask)?;
+                Some(dx.broadcast_mul(&scale.unsqueeze(0)?)?)
+            }
+            None => None,
+        };
+        Ok((out, dout))
+    }
+
+    fn run(
+        &self,
+        points: &Tensor,
+        codes: &Tensor,
+        tangents: bool,
+    ) -> Result<(Tensor, Option<Tensor>)> {
+        let n = check_points(points, "points")?;
+        check_same(codes, "codes", points, "points")?;
+        check_shape(codes, "codes", &[Dim::Is(n), Dim::Is(self.config.code_dim)])?;
+        let mode = self.mode();
+        let blocked = mode == NormMode::Eval;
+        let lin_t = |l: &Linear, d: &Tensor| -> Result<Tensor> {
+            // d: [3, N, in] → [3, N, out] (no bias).
+            let (k, rows, input) = d.dims3()?;
+            let out = l.weight.dim(0)?;
+            Ok(d.reshape((k * rows, input))?
+                .matmul(&l.weight.t()?)?
+                .reshape((k, rows, out))?)
+        };
+        let mut net = self.fc_p.forward(points, blocked)?;
+        let mut dnet = if tangents {
+            // ∂(W p)/∂p_j = column j of W, for every point: [3, N, H].
+            let w = self.fc_p.weight.t()?; // [3, H]
+            Some(
+                w.unsqueeze(1)?
+                    .broadcast_as((3, n, self.config.hidden))?
+                    .contiguous()?,
+            )
+        } else {
+            None
+        };
+        for b in &self.blocks {
+            let (a, da) = self.cn_relu(&b.norm0, &net, dnet.as_ref(), codes, mode, blocked)?;
+            let hmid = b.fc0.forward(&a, blocked)?;
+            let dh = match &da {
+                Some(d) => Some(lin_t(&b.fc0, d)?),
+                None => None,
+            };
+            let (a2, da2) = self.cn_relu(&b.norm1, &hmid, dh.as_ref(), codes, mode, blocked)?;
+            net = (net + b.fc1.forward(&a2, blocked)?)?;
+            dnet = match (dnet, &da2) {
+                (Some(dn), Some(d)) => Some((dn + lin_t(&b.fc1, d)?)?),
+                _ => None,
+            };
+        }
+        let (a, da) = self.cn_relu(&self.norm_out, &net, dnet.as_ref(), codes, mode, blocked)?;
+        let logit = self.fc_out.forward(&a, blocked)?.squeeze(D::Minus1)?;
+        let grad = match da {
+            Some(d) => Some(lin_t(&self.fc_out, &d)?.squeeze(2)?.t()?.contiguous()?),
+            None => None,
+        };
+        Ok((logit, grad))
+    }
+
+    /// Occupancy logits `[N]` at `points: [N, 3]` with per-point `codes: [N, D]` (same
+    /// dtype and device). Differentiable w.r.t. the parameters, the points and the
+    /// codes. In [`NormMode::Train`] the call updates the running statistics.
+    ///
+    /// # Errors
+    /// Wrong shapes, dtypes or devices.
+    pub fn logits(&self, points: &Tensor, codes: &Tensor) -> Result<Tensor> {
+        Ok(self.run(points, codes, false)?.0)
+    }
+}
+
+impl ConditionalField for OnetDecoder {
+    fn code_dim(&self) -> usize {
+        self.config.code_dim
+    }
+
+    fn out_dim(&self) -> usize {
+        1
+    }
+
+    fn forward_with_code(&self, points: &Tensor, codes: &Tensor) -> Result<Tensor> {
+        Ok(self.logits(points, codes)?.unsqueeze(1)?)
+    }
+
+    /// Logits and their spatial gradient by forward-mode tangents (in
+    /// [`NormMode::Train`] the batch statistics are treated as constants).
+    fn value_and_grad_with_code(
+        &self,
+        points: &Tensor,
+        codes: &Tensor,
+    ) -> Result<(Tensor, Tensor)> {
+        let (v, g) = self.run(points, codes, true)?;
+        let g = g.ok_or_else(|| Error::invalid("points", "tangents", "none"))?;
+        Ok((v, g))
+    }
+
+    fn inside(&self) -> Inside {
+        Inside::Positive
+    }
+}

@@ -1,0 +1,1002 @@
+//! Triangle meshes: validation, PLY and OBJ read/write, normalisation to the unit cube,
+//! area-weighted surface sampling, and the topological checks (watertight, oriented)
+//! used by the marching-cubes tests.
+//!
+//! Vertices are `f64` on the host (meshes are inputs and outputs of the pipeline, not
+//! part of a gradient); [`Mesh::vertex_tensor`] moves them to any device and dtype.
+//!
+//! Files written here load in standard tools: `assimp info` (assimp 5.2.5, Debian's
+//! `assimp-utils`) imports the binary PLY written by `examples/fit_occupancy.rs`
+//! (15 454 vertices, 30 896 triangles) and by `examples/quickstart.rs`; the format is the
+//! plain `float x y z` + `list uchar int vertex_indices` layout that MeshLab, Blender and
+//! trimesh read. The tests read every format back.
+
+use crate::error::{Error, Result};
+use crate::rng::SplitMix64;
+use candle_core::{DType, Device, Tensor};
+use std::collections::HashMap;
+use std::path::Path;
+
+/// A triangle mesh: vertex positions, triangles as vertex indices, optional per-vertex
+/// normals (one per vertex when present).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Mesh {
+    /// Vertex positions `[V][3]`.
+    pub vertices: Vec<[f64; 3]>,
+    /// Triangles `[F][3]`, indices into `vertices`, counter-clockwise seen from outside.
+    pub faces: Vec<[u32; 3]>,
+    /// Optional per-vertex normals `[V][3]`.
+    pub normals: Option<Vec<[f64; 3]>>,
+}
+
+/// Surface samples: points `[n][3]` and the unit normals of their faces `[n][3]`.
+pub type SurfaceSamples = (Vec<[f64; 3]>, Vec<[f64; 3]>);
+
+/// The encoding of a PLY file written by [`Mesh::to_ply_bytes`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PlyFormat {
+    /// `format ascii 1.0`.
+    Ascii,
+    /// `format binary_little_endian 1.0`.
+    BinaryLittleEndian,
+}
+
+pub(crate) fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+pub(crate) fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+pub(crate) fn norm(a: [f64; 3]) -> f64 {
+    dot(a, a).sqrt()
+}
+
+fn mesh_err(expected: &str, got: impl Into<String>) -> Error {
+    Error::invalid("mesh", expected.to_string(), got)
+}
+
+fn file_err(what: &'static str, expected: impl Into<String>, got: impl Into<String>) -> Error {
+    Error::invalid(what, expected, got)
+}
+
+impl Mesh {
+    /// A validated mesh from vertices and triangles (no normals).
+    ///
+    /// # Errors
+    /// See [`Mesh::validate`].
+    pub fn new(vertices: Vec<[f64; 3]>, faces: Vec<[u32; 3]>) -> Result<Self> {
+        let m = Self {
+            vertices,
+            faces,
+            normals: None,
+        };
+        m.validate()?;
+        Ok(m)
+    }
+
+    /// Checks the mesh: at least one vertex and one face, every face index `< V`, every
+    /// coordinate (and normal component) finite, normals (if any) one per vertex.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `mesh` and the first offending face or vertex.
+    pub fn validate(&self) -> Result<()> {
+        if self.vertices.is_empty() || self.faces.is_empty() {
+            return Err(mesh_err(
+                "at least one vertex and one face",
+                format!(
+                    "an empty mesh ({} vertices, {} faces)",
+                    self.vertices.len(),
+                    self.faces.len()
+                ),
+            ));
+        }
+        let nv = self.vertices.len();
+        for (i, v) in self.vertices.iter().enumerate() {
+            if v.iter().any(|c| !c.is_finite()) {
+                return Err(mesh_err(
+                    "finite vertex coordinates",
+                    format!("vertex {i} = {v:?} (NaN or infinite)"),
+                ));
+            }
+        }
+        for (i, f) in self.faces.iter().enumerate() {
+            if let Some(&bad) = f.iter().find(|&&k| k as usize >= nv) {
+                return Err(mesh_err(
+                    "face indices below the vertex count",
+                    format!("face {i} = {f:?} indexes vertex {bad} of {nv}"),
+                ));
+            }
+        }
+        if let Some(n) = &self.normals {
+            if n.len() != nv {
+                return Err(mesh_err(
+                    "one normal per vertex",
+                    format!("{} normals for {nv} vertices", n.len()),
+                ));
+            }
+            if let Some(i) = n.iter().position(|v| v.iter().any(|c| !c.is_finite())) {
+                return Err(mesh_err(
+                    "finite normals",
+                    format!("normal {i} = {:?}", n[i]),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    fn corners(&self, f: [u32; 3]) -> [[f64; 3]; 3] {
+        [
+            self.vertices[f[0] as usize],
+            self.vertices[f[1] as usize],
+            self.vertices[f[2] as usize],
+        ]
+    }
+
+    /// Unnormalised face normal `(b − a) × (c − a)` (length = twice the area).
+    fn face_cross(&self, f: [u32; 3]) -> [f64; 3] {
+        let [a, b, c] = self.corners(f);
+        cross(sub(b, a), sub(c, a))
+    }
+
+    /// Triangle areas `½‖(b − a) × (c − a)‖`, `[F]`.
+    #[must_use]
+    pub fn face_areas(&self) -> Vec<f64> {
+        self.faces
+            .iter()
+            .map(|&f| 0.5 * norm(self.face_cross(f)))
+            .collect()
+    }
+
+    /// Unit face normals `(b − a) × (c − a) / ‖·‖` (zero for degenerate faces), `[F][3]`.
+    #[must_use]
+    pub fn face_normals(&self) -> Vec<[f64; 3]> {
+        self.faces
+            .iter()
+            .map(|&f| {
+                let n = self.face_cross(f);
+                let l = norm(n);
+                if l > 0.0 {
+                    [n[0] / l, n[1] / l, n[2] / l]
+                } else {
+                    [0.0; 3]
+                }
+            })
+            .collect()
+    }
+
+    /// Area-weighted vertex normals (sum of the incident faces' `(b−a)×(c−a)`,
+    /// normalised; zero for isolated vertices), `[V][3]`.
+    #[must_use]
+    pub fn vertex_normals(&self) -> Vec<[f64; 3]> {
+        let mut acc = vec![[0.0f64; 3]; self.vertices.len()];
+        for &f in &self.faces {
+            let n = self.face_cross(f);
+            for &k in &f {
+                for c in 0..3 {
+                    acc[k as usize][c] += n[c];
+                }
+            }
+        }
+        for n in &mut acc {
+            let l = norm(*n);
+            if l > 0.0 {
+                *n = [n[0] / l, n[1] / l, n[2] / l];
+            }
+        }
+        acc
+    }
+
+    /// Total surface area.
+    #[must_use]
+    pub fn area(&self) -> f64 {
+        self.face_areas().iter().sum()
+    }
+
+    /// Signed volume `Σ a·(b × c) / 6` over the faces: positive for a closed mesh whose
+    /// faces are counter-clockwise seen from outside (outward normals).
+    #[must_use]
+    pub fn signed_volume(&self) -> f64 {
+        self.faces
+            .iter()
+            .map(|&f| {
+                let [a, b, c] = self.corners(f);
+                dot(a, cross(b, c))
+            })
+            .sum::<f64>()
+            / 6.0
+    }
+
+    /// Axis-aligned bounds `(min, max)` of the vertices (`([∞; 3], [−∞; 3])` if none).
+    #[must_use]
+    pub fn bounds(&self) -> ([f64; 3], [f64; 3]) {
+        let mut lo = [f64::INFINITY; 3];
+        let mut hi = [f64::NEG_INFINITY; 3];
+        for v in &self.vertices {
+            for c in 0..3 {
+                lo[c] = lo[c].min(v[c]);
+                hi[c] = hi[c].max(v[c]);
+            }
+        }
+        (lo, hi)
+    }
+
+    /// ONet's normalisation: translate the bounding-box centre to the origin and scale
+    /// uniformly so that the longest side of the box is `1`, i.e. the mesh fits in
+    /// `[−½, ½]³`. Normals are unchanged (uniform scale). Returns `(centre, scale)` with
+    /// `p_new = (p − centre)·scale`.
+    ///
+    /// # Errors
+    /// An invalid mesh, or all vertices at one point.
+    pub fn normalize_unit_cube(&mut self) -> Result<([f64; 3], f64)> {
+        self.validate()?;
+        let (lo, hi) = self.bounds();
+        let centre = [
+            0.5 * (lo[0] + hi[0]),
+            0.5 * (lo[1] + hi[1]),
+            0.5 * (lo[2] + hi[2]),
+        ];
+        let ext = (0..3).map(|c| hi[c] - lo[c]).fold(0.0, f64::max);
+        if ext <= 0.0 {
+            return Err(mesh_err(
+                "vertices spanning a box of positive size",
+                "all vertices at one point",
+            ));
+        }
+        let s = 1.0 / ext;
+        for v in &mut self.vertices {
+            for c in 0..3 {
+                v[c] = (v[c] - centre[c]) * s;
+            }
+        }
+        Ok((centre, s))
+    }
+
+    /// Counts `(boundary, non-manifold, misoriented)` edges: undirected edges used by one
+    /// face, by more than two faces, and edges whose two faces traverse them in the same
+    /// direction (inconsistent orientation).
+    #[must_use]
+    pub fn edge_report(&self) -> (usize, usize, usize) {
+        let mut uses: HashMap<(u32, u32), (u32, u32)> = HashMap::new(); // (forward, backward)
+        for f in &self.faces {
+            for k in 0..3 {
+                let (a, b) = (f[k], f[(k + 1) % 3]);
+                let e = uses.entry((a.min(b), a.max(b))).or_insert((0, 0));
+                if a < b {
+                    e.0 += 1;
+                } else {
+                    e.1 += 1;
+                }
+            }
+        }
+        let mut boundary = 0;
+        let mut nonmanifold = 0;
+        let mut misoriented = 0;
+        for &(fw, bw) in uses.values() {
+            match fw + bw {
+                1 => boundary += 1,
+                2 => {
+                    if fw != 1 {
+                        misoriented += 1;
+                    }
+                }
+                _ => nonmanifold += 1,
+            }
+        }
+        (boundary, nonmanifold, misoriented)
+    }
+
+    /// True if every edge is shared by exactly two faces traversing it in opposite
+    /// directions (closed, manifold along edges, consistently oriented).
+    #[must_use]
+    pub fn is_watertight_and_oriented(&self) -> bool {
+        !self.faces.is_empty() && self.edge_report() == (0, 0, 0)
+    }
+
+    /// `n` points drawn uniformly on the surface (faces chosen with probability
+    /// proportional to area, then uniform barycentric coordinates `(1 − √u, √u(1 − v),
+    /// √u v)`), with the unit normals of their faces. Same `seed`, same points.
+    ///
+    /// # Errors
+    /// Invalid mesh, or zero total area.
+    pub fn sample_surface(&self, n: usize, seed: u64) -> Result<SurfaceSamples> {
+        self.validate()?;
+        let areas = self.face_areas();
+        let mut cdf = Vec::with_capacity(areas.len());
+        let mut acc = 0.0;
+        for a in &areas {
+            acc += a;
+            cdf.push(acc);
+        }
+        if acc.is_nan() || acc <= 0.0 {
+            return Err(mesh_err("a positive surface area", format!("{acc}")));
+        }
+        let normals = self.face_normals();
+        let mut rng = SplitMix64::new(seed);
+        let mut pts = Vec::with_capacity(n);
+        let mut nrm = Vec::with_capacity(n);
+        for _ in 0..n {
+            let t = rng.uniform() * acc;
+            let fi = cdf.partition_point(|&c| c <= t).min(cdf.len() - 1);
+            let [a, b, c] = self.corners(self.faces[fi]);
+            let su = rng.uniform().sqrt();
+            let v = rng.uniform();
+            let (wa, wb, wc) = (1.0 - su, su * (1.0 - v), su * v);
+            pts.push([
+                wa * a[0] + wb * b[0] + wc * c[0],
+                wa * a[1] + wb * b[1] + wc * c[1],
+                wa * a[2] + wb * b[2] + wc * c[2],
+            ]);
+            nrm.push(normals[fi]);
+        }
+        Ok((pts, nrm))
+    }
+
+    /// The vertices as a `[V, 3]` tensor of the given dtype on the given device.
+    ///
+    /// # Errors
+    /// candle's.
+    pub fn vertex_tensor(&self, device: &Device, dtype: DType) -> Result<Tensor> {
+        points_tensor(&self.vertices, device, dtype)
+    }
+
+    // ------------------------------------------------------------------ files
+
+    /// Reads a `.ply` or `.obj` file (by extension, case-insensitive).
+    ///
+    /// # Errors
+    /// I/O errors ([`Error::Io`] with the path); unknown extension; parse errors of
+    /// [`Mesh::from_ply_bytes`] / [`Mesh::from_obj_str`].
+    pub fn load(path: impl AsRef<Path>) -> Result<Self> {
+        let path = path.as_ref();
+        let bytes = std::fs::read(path).map_err(|source| Error::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        match extension(path).as_str() {
+            "ply" => Self::from_ply_bytes(&bytes),
+            "obj" => Self::from_obj_str(&String::from_utf8_lossy(&bytes)),
+            other => Err(file_err(
+                "path",
+                "a .ply or .obj file",
+                format!("extension {other:?}"),
+            )),
+        }
+    }
+
+    /// Writes a `.ply` (binary little-endian) or `.obj` file, by extension.
+    ///
+    /// # Errors
+    /// Invalid mesh, unknown extension, I/O errors.
+    pub fn save(&self, path: impl AsRef<Path>) -> Result<()> {
+        let path = path.as_ref();
+        let bytes = match extension(path).as_str() {
+            "ply" => self.to_ply_bytes(PlyFormat::BinaryLittleEndian)?,
+            "obj" => self.to_obj_string()?.into_bytes(),
+            other => {
+                return Err(file_err(
+                    "path",
+                    "a .ply or .obj file",
+                    format!("extension {other:?}"),
+                ))
+            }
+        };
+        std::fs::write(path, bytes).map_err(|source| Error::Io {
+            path: path.display().to_string(),
+            source,
+        })
+    }
+
+    /// Serialises to PLY: `element vertex` with `float x, y, z` (and `nx, ny, nz` when
+    /// normals are present; coordinates are written as 32-bit floats, the common
+    /// convention read by every tool), `element face` with `list uchar int
+    /// vertex_indices`.
+    ///
+    /// # Errors
+    /// Invalid mesh ([`Mesh::validate`]).
+    pub fn to_ply_bytes(&self, format: PlyFormat) -> Result<Vec<u8>> {
+        self.validate()?;
+        let has_n = self.normals.is_some();
+        let mut out = Vec::new();
+        let fmt = match format {
+            PlyFormat::Ascii => "ascii",
+            PlyFormat::BinaryLittleEndian => "binary_little_endian",
+        };
+        let mut header = format!(
+            "ply\nformat {fmt} 1.0\ncomment neural-fields\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\n",
+            self.vertices.len()
+        );
+        if has_n {
+            header.push_str("property float nx\nproperty float ny\nproperty float nz\n");
+        }
+        header.push_str(&format!(
+            "element face {}\nproperty list uchar int vertex_indices\nend_header\n",
+            self.faces.len()
+        ));
+        out.extend_from_slice(header.as_bytes());
+        let empty = Vec::new();
+        let normals = self.normals.as_ref().unwrap_or(&empty);
+        match format {
+            PlyFormat::Ascii => {
+                let mut s = String::new();
+                for (i, v) in self.vertices.iter().enumerate() {
+                    s.push_str(&format!("{} {} {}", v[0] as f32, v[1] as f32, v[2] as f32));
+                    if has_n {
+                        let n = normals[i];
+                        s.push_str(&format!(" {} {} {}", n[0] as f32, n[1] as f32, n[2] as f32));
+                    }
+                    s.push('\n');
+                }
+                for f in &self.faces {
+                    s.push_str(&format!("3 {} {} {}\n", f[0], f[1], f[2]));
+                }
+                out.extend_from_slice(s.as_bytes());
+            }
+            PlyFormat::BinaryLittleEndian => {
+                for (i, v) in self.vertices.iter().enumerate() {
+                    for c in v {
+                        out.extend_from_slice(&(*c as f32).to_le_bytes());
+                    }
+                    if has_n {
+                        for c in normals[i] {
+                            out.extend_from_slice(&(c as f32).to_le_bytes());
+                        }
+                    }
+                }
+                for f in &self.faces {
+                    out.push(3);
+                    for &k in f {
+                        out.extend_from_slice(&(k as i32).to_le_bytes());
+                    }
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    /// Parses a PLY file (ASCII, binary little- or big-endian).
+    ///
+    /// Reads `element vertex` (`x, y, z`, optional `nx, ny, nz`; any other properties
+    /// are skipped) and `element face` (a list property named `vertex_indices` or
+    /// `vertex_index`, any count and index types). Other elements are skipped. Polygons
+    /// with more than three vertices are triangulated as fans `(0, i, i+1)`.
+    ///
+    /// # Errors
+    /// A malformed header or body, naming the line (ASCII and header) or the byte offset
+    /// (binary) where it went wrong; a truncated file; faces with fewer than 3 vertices;
+    /// then [`Mesh::validate`].
+    pub fn from_ply_bytes(bytes: &[u8]) -> Result<Self> {
+        let header = parse_ply_header(bytes)?;
+        let mut mesh = Mesh::default();
+        let mut normals = Vec::new();
+        let mut src = PlySource::new(bytes, &header);
+        for el in &header.elements {
+            let is_vertex = el.name == "vertex";
+            let is_face = el.name == "face";
+            let idx = |n: &str| el.props.iter().position(|p| p.name == n);
+            let (xi, yi, zi) = (idx("x"), idx("y"), idx("z"));
+            let (nxi, nyi, nzi) = (idx("nx"), idx("ny"), idx("nz"));
+            if is_vertex && (xi.is_none() || yi.is_none() || zi.is_none()) {
+                return Err(file_err(
+                    "ply",
+                    "vertex properties x, y and z",
+                    format!("header line {}: missing", el.line),
+                ));
+            }
+            let fi = el.props.iter().position(|p| {
+                p.list.is_some() && (p.name == "vertex_indices" || p.name == "vertex_index")
+            });
+            if is_face && fi.is_none() {
+                return Err(file_err(
+                    "ply",
+                    "a face list property vertex_indices or vertex_index",
+                    format!("header line {}: none", el.line),
+                ));
+            }
+            for row in 0..el.count {
+                src.begin_row()?;
+                let mut scalars = vec![0.0f64; el.props.len()];
+                let mut list: Vec<i64> = Vec::new();
+                for (pi, p) in el.props.iter().enumerate() {
+                    match p.list {
+                        Some(count_ty) => {
+                            let n = src.read(count_ty)?;
+                            if !(0.0..=1e7).contains(&n) || n.fract() != 0.0 {
+                                return Err(file_err(
+                                    "ply",
+                                    "a list count between 0 and 10⁷",
+                                    format!("{} {}: count {n}", src.position(), el.name),
+                                ));
+                            }
+                            let keep = is_face && Some(pi) == fi;
+                            for _ in 0..n as usize {
+                                let v = src.read(p.ty)?;
+                                if keep {
+                                    list.push(v as i64);
+                                }
+                            }
+                        }
+                        None => scalars[pi] = src.read(p.ty)?,
+                    }
+                }
+                src.end_row()?;
+                if is_vertex {
+                    // invariant: checked above that x, y, z exist.
+                    let (x, y, z) = (xi.unwrap_or(0), yi.unwrap_or(0), zi.unwrap_or(0));
+                    mesh.vertices.push([scalars[x], scalars[y], scalars[z]]);
+                    if let (Some(a), Some(b), Some(c)) = (nxi, nyi, nzi) {
+                        normals.push([scalars[a], scalars[b], scalars[c]]);
+                    }
+                } else if is_face {
+                    push_polygon(&mut mesh.faces, &list).map_err(|got| {
+                        file_err(
+                            "ply",
+                            "faces with at least 3 non-negative indices",
+                            format!("face {row}: {got}"),
+                        )
+                    })?;
+                }
+            }
+        }
+        src.finish()?;
+        if !normals.is_empty() {
+            mesh.normals = Some(normals);
+        }
+        mesh.validate()?;
+        Ok(mesh)
+    }
+
+    /// Serialises to Wavefront OBJ: `v x y z`, `vn` lines when normals are present, and
+    /// 1-based `f a b c` (or `f a//a b//b c//c` with normals).
+    ///
+    /// # Errors
+    /// Invalid mesh.
+    pub fn to_obj_string(&self) -> Result<String> {
+        self.validate()?;
+        let mut s = String::from("# neural-fields\n");
+        for v in &self.vertices {
+            s.push_str(&format!("v {} {} {}\n", v[0], v[1], v[2]));
+        }
+        if let Some(ns) = &self.normals {
+            for n in ns {
+                s.push_str(&format!("vn {} {} {}\n", n[0], n[1], n[2]));
+            }
+        }
+        let with_n = self.normals.is_some();
+        for f in &self.faces {
+            let (a, b, c) = (f[0] + 1, f[1] + 1, f[2] + 1);
+            if with_n {
+                s.push_str(&format!("f {a}//{a} {b}//{b} {c}//{c}\n"));
+            } else {
+                s.push_str(&format!("f {a} {b} {c}\n"));
+            }
+        }
+        Ok(s)
+    }
+
+    /// Parses Wavefront OBJ: `v` (extra components such as `w` or colours ignored), `vn`,
+    /// and `f` with `a`, `a/b`, `a//c` or `a/b/c` references, 1-based or negative
+    /// (relative). Polygons are fan-triangulated. Other statements (`vt`, `o`, `g`,
+    /// `usemtl`, `mtllib`, `s`, `l`, `p`) are ignored. Normals are kept only when every
+    /// face corner names the normal with the same index as its vertex (as written by
+    /// [`Mesh::to_obj_string`]); otherwise they are dropped.
+    ///
+    /// # Errors
+    /// Malformed numbers or references, naming the line; then [`Mesh::validate`].
+    pub fn from_obj_str(text: &str) -> Result<Self> {
+        let mut mesh = Mesh::default();
+        let mut vn: Vec<[f64; 3]> = Vec::new();
+        let mut normals_match = true;
+        let text = text.strip_prefix('\u{feff}').unwrap_or(text);
+        for (ln, raw) in text.lines().enumerate() {
+            let line_no = ln + 1;
+            let line = raw.split('#').next().unwrap_or("").trim();
+            let mut tok = line.split_whitespace();
+            let Some(kw) = tok.next() else { continue };
+            match kw {
+                "v" | "vn" => {
+                    let mut c = [0.0; 3];
+                    for slot in &mut c {
+                        let t = tok.next().ok_or_else(|| {
+                            file_err(
+                                "obj",
+                                "three coordinates",
+                                format!("line {line_no}: {line:?}"),
+                            )
+                        })?;
+                        *slot = t.parse::<f64>().map_err(|_| {
+                            file_err("obj", "a number", format!("line {line_no}: {t:?}"))
+                        })?;
+                    }
+                    if kw == "v" {
+                        mesh.vertices.push(c);
+                    } else {
+                        vn.push(c);
+                    }
+                }
+                "f" => {
+                    let mut poly = Vec::new();
+                    for t in tok {
+                        let mut parts = t.split('/');
+                        let vi = resolve_obj_index(parts.next().unwrap_or(""), mesh.vertices.len())
+                            .map_err(|e| {
+                                file_err(
+                                    "obj",
+                                    "a face vertex reference",
+                                    format!("line {line_no}: {t:?} ({e})"),
+                                )
+                            })?;
+                        let _tex = parts.next();
+                        match parts.next() {
+                            Some(n) if !n.is_empty() => {
+                                let ni = resolve_obj_index(n, vn.len()).map_err(|e| {
+                                    file_err(
+                                        "obj",
+                                        "a face normal reference",
+                                        format!("line {line_no}: {t:?} ({e})"),
+                                    )
+                                })?;
+                                if ni != vi {
+                                    normals_match = false;
+                                }
+                            }
+                            _ => normals_match = false,
+                        }
+                        poly.push(vi);
+                    }
+                    push_polygon(&mut mesh.faces, &poly).map_err(|got| {
+                        file_err(
+                            "obj",
+                            "faces with at least 3 vertices",
+                            format!("line {line_no}: {got}"),
+                        )
+                    })?;
+                }
+                _ => {}
+            }
+        }
+        if normals_match && !vn.is_empty() && vn.len() == mesh.vertices.len() {
+            mesh.normals = Some(vn);
+        }
+        mesh.validate()?;
+        Ok(mesh)
+    }
+}
+
+/// A `[N, 3]` tensor from host points.
+///
+/// # Errors
+/// candle's.
+pub fn points_tensor(points: &[[f64; 3]], device: &Device, dtype: DType) -> Result<Tensor> {
+    let flat: Vec<f64> = points.iter().flatten().copied().collect();
+    Ok(Tensor::from_vec(flat, (points.len(), 3), &Device::Cpu)?
+        .to_dtype(dtype)?
+        .to_device(device)?)
+}
+
+fn extension(path: &Path) -> String {
+    path.extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default()
+}
+
+/// 1-based (or negative, relative) OBJ index → 0-based.
+fn resolve_obj_index(t: &str, count: usize) -> std::result::Result<i64, String> {
+    let i: i64 = t.parse().map_err(|_| format!("{t:?} is not an integer"))?;
+    let z = if i > 0 {
+        i - 1
+    } else if i < 0 {
+        count as i64 + i
+    } else {
+        return Err("index 0 (OBJ indices start at 1)".into());
+    };
+    if z < 0 {
+        return Err(format!("relative index {i} before the first element"));
+    }
+    Ok(z)
+}
+
+/// Fan-triangulates a polygon of vertex indices and appends the triangles.
+fn push_polygon(faces: &mut Vec<[u32; 3]>, poly: &[i64]) -> std::result::Result<(), String> {
+    if poly.len() < 3 {
+        return Err(format!("{} vertices", poly.len()));
+    }
+    if let Some(&b) = poly.iter().find(|&&k| k < 0 || k > u32::MAX as i64) {
+        return Err(format!("index {b}"));
+    }
+    for i in 1..poly.len() - 1 {
+        faces.push([poly[0] as u32, poly[i] as u32, poly[i + 1] as u32]);
+    }
+    Ok(())
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum PlyTy {
+    I8,
+    U8,
+    I16,
+    U16,
+    I32,
+    U32,
+    F32,
+    F64,
+}
+
+impl PlyTy {
+    fn parse(s: &str) -> Option<Self> {
+        Some(match s {
+            "char" | "int8" => Self::I8,
+            "uchar" | "uint8" => Self::U8,
+            "short" | "int16" => Self::I16,
+            "ushort" | "uint16" => Self::U16,
+            "int" | "int32" => Self::I32,
+            "uint" | "uint32" => Self::U32,
+            "float" | "float32" => Self::F32,
+            "double" | "float64" => Self::F64,
+            _ => return None,
+        })
+    }
+    fn size(self) -> usize {
+        match self {
+            Self::I8 | Self::U8 => 1,
+            Self::I16 | Self::U16 => 2,
+            Self::I32 | Self::U32 | Self::F32 => 4,
+            Self::F64 => 8,
+        }
+    }
+}
+
+#[derive(Debug)]
+struct PlyProp {
+    name: String,
+    ty: PlyTy,
+    /// `Some(count type)` for a list property (then `ty` is the item type).
+    list: Option<PlyTy>,
+}
+
+#[derive(Debug)]
+struct PlyElement {
+    name: String,
+    count: usize,
+    props: Vec<PlyProp>,
+    line: usize,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum PlyEncoding {
+    Ascii,
+    Le,
+    Be,
+}
+
+struct PlyHeader {
+    encoding: PlyEncoding,
+    elements: Vec<PlyElement>,
+    /// Byte offset of the body.
+    body: usize,
+    /// Line number (1-based) of the first body line.
+    body_line: usize,
+}
+
+fn parse_ply_header(bytes: &[u8]) -> Result<PlyHeader> {
+    let mut pos = 0usize;
+    let mut line_no = 0usize;
+    let mut encoding = None;
+    let mut elements: Vec<PlyElement> = Vec::new();
+    loop {
+        let Some(rel) = bytes[pos..].iter().position(|&b| b == b'\n') else {
+            return Err(file_err(
+                "ply",
+                "a header ending in end_header",
+                format!("end of file at header line {}", line_no + 1),
+            ));
+        };
+        let line = String::from_utf8_lossy(&bytes[pos..pos + rel])
+            .trim()
+            .to_string();
+        pos += rel + 1;
+        line_no += 1;
+        let toks: Vec<&str> = line.split_whitespace().collect();
+        if line_no == 1 {
+            if line != "ply" {
+                return Err(file_err(
+                    "ply",
+                    "a file starting with \"ply\"",
+                    format!("line 1: {line:?}"),
+                ));
+            }
+            continue;
+        }
+        let bad = |what: &str| {
+            file_err(
+                "ply",
+                what.to_string(),
+                format!("header line {line_no}: {line:?}"),
+            )
+        };
+        match toks.first().copied() {
+            Some("format") => {
+                encoding = Some(match toks.get(1).copied() {
+                    Some("ascii") => PlyEncoding::Ascii,
+                    Some("binary_little_endian") => PlyEncoding::Le,
+                    Some("binary_big_endian") => PlyEncoding::Be,
+                    _ => {
+                        return Err(bad(
+                            "format ascii, binary_little_endian or binary_big_endian",
+                        ))
+                    }
+                });
+            }
+            Some("element") => {
+                let (Some(name), Some(count)) =
+                    (toks.get(1), toks.get(2).and_then(|c| c.parse().ok()))
+                else {
+                    return Err(bad("element NAME COUNT"));
+                };
+                elements.push(PlyElement {
+                    name: (*name).to_string(),
+                    count,
+                    props: Vec::new(),
+                    line: line_no,
+                });
+            }
+            Some("property") => {
+                let Some(el) = elements.last_mut() else {
+                    return Err(bad("a property after an element"));
+                };
+                let prop = if toks.get(1) == Some(&"list") {
+                    match (
+                        toks.get(2).and_then(|t| PlyTy::parse(t)),
+                        toks.get(3).and_then(|t| PlyTy::parse(t)),
+                        toks.get(4),
+                    ) {
+                        (Some(c), Some(t), Some(n)) => PlyProp {
+                            name: (*n).to_string(),
+                            ty: t,
+                            list: Some(c),
+                        },
+                        _ => return Err(bad("property list COUNT_TYPE ITEM_TYPE NAME")),
+                    }
+                } else {
+                    match (toks.get(1).and_then(|t| PlyTy::parse(t)), toks.get(2)) {
+                        (Some(t), Some(n)) => PlyProp {
+                            name: (*n).to_string(),
+                            ty: t,
+                            list: None,
+                        },
+                        _ => return Err(bad("property TYPE NAME")),
+                    }
+                };
+                el.props.push(prop);
+            }
+            Some("end_header") => break,
+            // comment, obj_info, and stray text some exporters leave (Blender 2.47
+            // writes a bare line after `comment`): ignored.
+            _ => {}
+        }
+    }
+    let Some(encoding) = encoding else {
+        return Err(file_err("ply", "a format line in the header", "none"));
+    };
+    Ok(PlyHeader {
+        encoding,
+        elements,
+        body: pos,
+        body_line: line_no + 1,
+    })
+}
+
+/// A cursor over a PLY body that reports positions as lines (ASCII) or byte offsets.
+struct PlySource<'a> {
+    bytes: &'a [u8],
+    enc: PlyEncoding,
+    pos: usize,
+    line: usize,
+    tokens: Vec<&'a str>,
+    tok: usize,
+}
+
+impl<'a> PlySource<'a> {
+    fn new(bytes: &'a [u8], h: &PlyHeader) -> Self {
+        Self {
+            bytes,
+            enc: h.encoding,
+            pos: h.body,
+            line: h.body_line - 1,
+            tokens: Vec::new(),
+            tok: 0,
+        }
+    }
+
+    fn position(&self) -> String {
+        match self.enc {
+            PlyEncoding::Ascii => format!("line {}", self.line),
+            _ => format!("byte {}", self.pos),
+        }
+    }
+
+    fn begin_row(&mut self) -> Result<()> {
+        if self.enc != PlyEncoding::Ascii {
+            return Ok(());
+        }
+        loop {
+            if self.pos >= self.bytes.len() {
+                return Err(file_err(
+                    "ply",
+                    "as many rows as the header declares",
+                    format!("end of file at line {} (truncated)", self.line + 1),
+                ));
+            }
+            let rel = self.bytes[self.pos..]
+                .iter()
+                .position(|&b| b == b'\n')
+                .unwrap_or(self.bytes.len() - self.pos);
+            let s = std::str::from_utf8(&self.bytes[self.pos..self.pos + rel])
+                .map_err(|_| file_err("ply", "UTF-8 text", format!("line {}", self.line + 1)))?;
+            self.pos += rel + 1;
+            self.line += 1;
+            self.tokens = s.split_whitespace().collect();
+            self.tok = 0;
+            if !self.tokens.is_empty() {
+                return Ok(());
+            }
+        }
+    }
+
+    fn end_row(&mut self) -> Result<()> {
+        Ok(())
+    }
+
+    fn read(&mut self, ty: PlyTy) -> Result<f64> {
+        match self.enc {
+            PlyEncoding::Ascii => {
+                let Some(t) = self.tokens.get(self.tok) else {
+                    return Err(file_err(
+                        "ply",
+                        "as many values on the line as the element has properties",
+                        format!("line {}: only {} values", self.line, self.tokens.len()),
+                    ));
+                };
+                self.tok += 1;
+                t.parse::<f64>()
+                    .map_err(|_| file_err("ply", "a number", format!("line {}: {t:?}", self.line)))
+            }
+            enc => {
+                let n = ty.size();
+                if self.pos + n > self.bytes.len() {
+                    return Err(file_err(
+                        "ply",
+                        "as many bytes as the header declares",
+                        format!("end of file at byte {} (truncated)", self.bytes.len()),
+                    ));
+                }
+                let mut b = [0u8; 8];
+                b[..n].copy_from_slice(&self.bytes[self.pos..self.pos + n]);
+                if enc == PlyEncoding::Be {
+                    b[..n].reverse();
+                }
+                self.pos += n;
+                Ok(match ty {
+                    PlyTy::I8 => f64::from(b[0] as i8),
+                    PlyTy::U8 => f64::from(b[0]),
+                    PlyTy::I16 => f64::from(i16::from_le_bytes([b[0], b[1]])),
+                    PlyTy::U16 => f64::from(u16::from_le_bytes([b[0], b[1]])),
+                    PlyTy::I32 => f64::from(i32::from_le_bytes([b[0], b[1], b[2], b[3]])),
+                    PlyTy::U32 => f64::from(u32::from_le_bytes([b[0], b[1], b[2], b[3]])),
+                    PlyTy::F32 => f64::from(f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
+                    PlyTy::F64 => f64::from_le_bytes(b),
+                })
+            }
+        }
+    }
+
+    fn finish(&self) -> Result<()> {
+        Ok(())
+    }
+}

@@ -1,0 +1,227 @@
+//! Mesh IO and validation: PLY (ASCII, binary) and OBJ round trips, real files from
+//! Debian's assimp-testmodels, errors that name the problem and where it is.
+#![cfg(feature = "occupancy")]
+
+use neural_fields::field::Inside;
+use neural_fields::occupancy::{marching_cubes, Grid, Mesh, PlyFormat};
+use std::path::Path;
+
+const MODELS: &str = "/usr/share/assimp/models";
+
+fn models() -> Option<&'static Path> {
+    let p = Path::new(MODELS);
+    if p.is_dir() {
+        Some(p)
+    } else {
+        println!("SKIPPED: {MODELS} is absent (apt-get install assimp-testmodels)");
+        None
+    }
+}
+
+fn sphere_mesh() -> Mesh {
+    let g = Grid::from_fn([17; 3], [-0.5; 3], [0.5; 3], |p| {
+        (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt() - 0.4
+    })
+    .unwrap();
+    marching_cubes(&g, 0.0, Inside::Negative).unwrap()
+}
+
+fn close(a: &Mesh, b: &Mesh, tol: f64) {
+    assert_eq!(a.faces, b.faces);
+    assert_eq!(a.vertices.len(), b.vertices.len());
+    for (p, q) in a.vertices.iter().zip(&b.vertices) {
+        for c in 0..3 {
+            assert!((p[c] - q[c]).abs() <= tol, "{p:?} {q:?}");
+        }
+    }
+}
+
+#[test]
+fn ply_and_obj_round_trip_with_and_without_normals() {
+    let mut m = sphere_mesh();
+    for with_normals in [false, true] {
+        if with_normals {
+            m.normals = Some(m.vertex_normals());
+        }
+        for fmt in [PlyFormat::Ascii, PlyFormat::BinaryLittleEndian] {
+            let bytes = m.to_ply_bytes(fmt).unwrap();
+            let back = Mesh::from_ply_bytes(&bytes).unwrap();
+            close(&m, &back, 1e-7); // written as f32
+            assert_eq!(back.normals.is_some(), with_normals);
+        }
+        let back = Mesh::from_obj_str(&m.to_obj_string().unwrap()).unwrap();
+        close(&m, &back, 0.0); // OBJ keeps f64 exactly (shortest round-trip printing)
+        assert_eq!(back.normals.is_some(), with_normals);
+    }
+    // Through files, by extension.
+    let dir = std::env::temp_dir().join(format!("nf_mesh_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for name in ["a.ply", "a.obj", "A.PLY"] {
+        let p = dir.join(name);
+        m.save(&p).unwrap();
+        close(&m, &Mesh::load(&p).unwrap(), 1e-7);
+    }
+    assert!(m
+        .save(dir.join("a.stl"))
+        .unwrap_err()
+        .to_string()
+        .contains("extension"));
+    let e = Mesh::load(dir.join("missing.ply")).unwrap_err().to_string();
+    assert!(e.contains("missing.ply"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn ply_reads_big_endian_extra_properties_other_elements_and_quads() {
+    // Binary big-endian, a double x, an extra uchar property, a quad with ushort indices
+    // and uint count, plus an unknown element after the faces.
+    let mut b = b"ply\nformat binary_big_endian 1.0\nelement vertex 4\nproperty double x\nproperty float y\nproperty float z\nproperty uchar red\nelement face 1\nproperty uint nothing\nproperty list uint ushort vertex_index\nelement edge 1\nproperty int a\nend_header\n".to_vec();
+    for (i, v) in [
+        [0.0f64, 0.0, 0.0],
+        [1.0, 0.0, 0.0],
+        [1.0, 1.0, 0.0],
+        [0.0, 1.0, 0.0],
+    ]
+    .iter()
+    .enumerate()
+    {
+        b.extend_from_slice(&v[0].to_be_bytes());
+        b.extend_from_slice(&(v[1] as f32).to_be_bytes());
+        b.extend_from_slice(&(v[2] as f32).to_be_bytes());
+        b.push(i as u8);
+    }
+    b.extend_from_slice(&7u32.to_be_bytes());
+    b.extend_from_slice(&4u32.to_be_bytes());
+    for k in 0..4u16 {
+        b.extend_from_slice(&k.to_be_bytes());
+    }
+    b.extend_from_slice(&9i32.to_be_bytes());
+    let m = Mesh::from_ply_bytes(&b).unwrap();
+    assert_eq!(m.faces, vec![[0, 1, 2], [0, 2, 3]]);
+    assert_eq!(m.vertices[2], [1.0, 1.0, 0.0]);
+    // Truncated by one byte: the error says so and where.
+    let e = Mesh::from_ply_bytes(&b[..b.len() - 1])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("truncated") && e.contains("byte"), "{e}");
+}
+
+#[test]
+fn bad_files_and_bad_meshes_name_the_problem() {
+    let good = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n";
+    assert_eq!(
+        Mesh::from_ply_bytes(good.as_bytes()).unwrap().faces.len(),
+        1
+    );
+    let cases: Vec<(String, &str)> = vec![
+        (good.replace("3 0 1 2\n", ""), "line 13"), // truncated: missing face row
+        (good.replace("1 0 0\n", "1 0\n"), "line 11"), // short vertex row
+        (good.replace("1 0 0\n", "1 zero 0\n"), "line 11"), // not a number
+        (
+            good.replace("3 0 1 2", "3 0 1 5"),
+            "face 0 = [0, 1, 5] indexes vertex 5 of 3",
+        ),
+        (good.replace("0 1 0\n", "0 nan 0\n"), "vertex 2"),
+        (good.replace("3 0 1 2", "2 0 1"), "face 0: 2 vertices"),
+        (good.replace("end_header\n", ""), "header"),
+        (
+            good.replace("format ascii", "format weird"),
+            "header line 2",
+        ),
+        (good.replace("ply\n", "plx\n"), "line 1"),
+        (
+            good.replace("element face 1", "element face 0"),
+            "empty mesh",
+        ),
+    ];
+    for (text, needle) in cases {
+        let e = Mesh::from_ply_bytes(text.as_bytes())
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(needle), "{needle:?} not in {e:?}");
+    }
+    let obj_cases = [
+        (
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n",
+            "indexes vertex 3 of 3",
+        ),
+        ("v 0 0 0\nv 1 0\n", "line 2"),
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 x\n", "line 4"),
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", "index 0"),
+        ("v 0 0 0\n", "empty mesh"),
+    ];
+    for (text, needle) in obj_cases {
+        let e = Mesh::from_obj_str(text).unwrap_err().to_string();
+        assert!(e.contains(needle), "{needle:?} not in {e:?}");
+    }
+    // Relative indices and the a/b/c forms; quads are fan-triangulated.
+    let m =
+        Mesh::from_obj_str("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nf -4/1 -3/1 -2/1 -1/1\n")
+            .unwrap();
+    assert_eq!(m.faces, vec![[0, 1, 2], [0, 2, 3]]);
+    assert!(Mesh::new(vec![], vec![]).is_err());
+    let e = Mesh::new(vec![[0.0; 3]], vec![[0, 0, 0]]).map(|mut m| m.normalize_unit_cube());
+    assert!(e.unwrap().is_err());
+}
+
+#[test]
+fn surface_samples_are_area_weighted_and_on_the_surface() {
+    // Two triangles of areas 1/2 and 2: the second gets ~80% of the samples.
+    let m = Mesh::new(
+        vec![
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 5.0],
+            [2.0, 0.0, 5.0],
+            [0.0, 2.0, 5.0],
+        ],
+        vec![[0, 1, 2], [3, 4, 5]],
+    )
+    .unwrap();
+    let (p, n) = m.sample_surface(20_000, 1).unwrap();
+    let high = p.iter().filter(|q| q[2] > 2.5).count() as f64 / p.len() as f64;
+    assert!((high - 0.8).abs() < 0.01, "{high}");
+    assert!(p
+        .iter()
+        .all(|q| q[0] >= 0.0 && q[1] >= 0.0 && q[0] + q[1] <= 2.0 + 1e-12));
+    assert!(n.iter().all(|v| *v == [0.0, 0.0, 1.0]));
+    // Uniform within a triangle: the mean is the centroid.
+    let lows: Vec<_> = p.iter().filter(|q| q[2] < 2.5).collect();
+    let mx = lows.iter().map(|q| q[0]).sum::<f64>() / lows.len() as f64;
+    assert!((mx - 1.0 / 3.0).abs() < 0.01, "{mx}");
+    assert_eq!(
+        m.sample_surface(10, 4).unwrap(),
+        m.sample_surface(10, 4).unwrap()
+    );
+}
+
+#[test]
+fn assimp_test_models_load() {
+    let Some(dir) = models() else { return };
+    let mut wuson = Mesh::load(dir.join("PLY/Wuson.ply")).unwrap();
+    assert_eq!(wuson.vertices.len(), 11184);
+    assert!(wuson.faces.len() >= 3732);
+    assert!(wuson.normals.is_some());
+    wuson.normalize_unit_cube().unwrap();
+    let (lo, hi) = wuson.bounds();
+    let ext = (0..3).map(|c| hi[c] - lo[c]).fold(0.0, f64::max);
+    assert!((ext - 1.0).abs() < 1e-12);
+    assert!((0..3).all(|c| (lo[c] + hi[c]).abs() < 1e-12));
+    let cube = Mesh::load(dir.join("PLY/cube.ply")).unwrap();
+    assert_eq!((cube.vertices.len(), cube.faces.len()), (8, 12));
+    assert!(cube.is_watertight_and_oriented());
+    assert!((cube.signed_volume().abs() - 1.0).abs() < 1e-12);
+    let bin = Mesh::load(dir.join("PLY/cube_binary.ply")).unwrap();
+    assert_eq!(bin.faces.len(), 12);
+    let bx = Mesh::load(dir.join("OBJ/box.obj")).unwrap();
+    assert_eq!((bx.vertices.len(), bx.faces.len()), (8, 12));
+    assert!(bx.is_watertight_and_oriented());
+    assert!((bx.signed_volume().abs() - 1.0).abs() < 1e-12);
+    let spider = Mesh::load(dir.join("OBJ/spider.obj")).unwrap();
+    assert!(spider.faces.len() > 100);
+    // What we write, we read back (and so do other tools that read standard PLY).
+    let back =
+        Mesh::from_ply_bytes(&wuson.to_ply_bytes(PlyFormat::BinaryLittleEndian).unwrap()).unwrap();
+    assert_eq!(back.faces, wuson.faces);
+}

@@ -1,0 +1,141 @@
+//! ONet decoder: batch-independent inference (bit-identical alone or among 10 000
+//! points), spatial gradients against finite differences, training-mode statistics.
+#![cfg(feature = "occupancy")]
+
+mod common;
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::VarMap;
+use neural_fields::field::ConditionalField;
+use neural_fields::nn::{build_seeded, onet_decoder, NormMode, OnetConfig};
+use neural_fields::rng::SplitMix64;
+
+fn config() -> OnetConfig {
+    OnetConfig {
+        hidden: 32,
+        blocks: 2,
+        code_dim: 8,
+        ..OnetConfig::default()
+    }
+}
+
+#[test]
+fn inference_is_bit_identical_alone_or_among_ten_thousand_points() {
+    for dtype in [DType::F32, DType::F64] {
+        let vm = VarMap::new();
+        let net = build_seeded(&vm, dtype, &Device::Cpu, 1, |vb| {
+            onet_decoder(&config(), vb)
+        })
+        .unwrap();
+        let mut rng = SplitMix64::new(2);
+        // Move the running statistics away from (0, 1) with a few training-mode calls.
+        net.set_mode(NormMode::Train);
+        for _ in 0..3 {
+            let p = common::uniform(&mut rng, 512, 3, -0.5, 0.5, dtype);
+            let c = common::uniform(&mut rng, 512, 8, -1.0, 1.0, dtype);
+            let _ = net.logits(&p, &c).unwrap();
+        }
+        net.set_mode(NormMode::Eval);
+        let n = 10_001;
+        let p = common::uniform(&mut rng, n, 3, -0.5, 0.5, dtype);
+        let code = common::uniform(&mut rng, 1, 8, -1.0, 1.0, dtype);
+        let codes = code.broadcast_as((n, 8)).unwrap().contiguous().unwrap();
+        let all = common::v64(&net.logits(&p, &codes).unwrap());
+        for &i in &[0usize, 255, 256, 5000, 10_000] {
+            let one = common::v64(&net.logits(&p.narrow(0, i, 1).unwrap(), &code).unwrap());
+            assert_eq!(one[0].to_bits(), all[i].to_bits(), "{dtype:?} point {i}");
+        }
+        // A different neighbourhood: the same point in a batch of 300 others.
+        let mid = Tensor::cat(
+            &[
+                &p.narrow(0, 100, 300).unwrap(),
+                &p.narrow(0, 5000, 1).unwrap(),
+            ],
+            0,
+        )
+        .unwrap();
+        let c301 = code.broadcast_as((301, 8)).unwrap().contiguous().unwrap();
+        let some = common::v64(&net.logits(&mid, &c301).unwrap());
+        assert_eq!(some[300].to_bits(), all[5000].to_bits());
+        // In training mode the batch statistics make outputs depend on the batch.
+        net.set_mode(NormMode::Train);
+        let a = common::v64(
+            &net.logits(
+                &p.narrow(0, 0, 64).unwrap(),
+                &codes.narrow(0, 0, 64).unwrap(),
+            )
+            .unwrap(),
+        );
+        let b = common::v64(
+            &net.logits(
+                &p.narrow(0, 0, 128).unwrap(),
+                &codes.narrow(0, 0, 128).unwrap(),
+            )
+            .unwrap(),
+        );
+        assert_ne!(a[0], b[0]);
+    }
+}
+
+#[test]
+fn spatial_gradient_matches_finite_differences_and_reaches_the_code() {
+    let vm = VarMap::new();
+    let net = build_seeded(&vm, DType::F64, &Device::Cpu, 4, |vb| {
+        onet_decoder(&config(), vb)
+    })
+    .unwrap();
+    let mut rng = SplitMix64::new(9);
+    // Non-trivial fc1 and γ/β: perturb every variable.
+    for v in vm.all_vars() {
+        let noise = rng
+            .normal_tensor(v.dims(), 0.0, 0.3, DType::F64, &Device::Cpu)
+            .unwrap();
+        v.set(&(v.as_tensor() + noise).unwrap()).unwrap();
+    }
+    let p = common::uniform(&mut rng, 20, 3, -0.5, 0.5, DType::F64);
+    let c = common::uniform(&mut rng, 20, 8, -1.0, 1.0, DType::F64);
+    let (v, g) = net.value_and_grad_with_code(&p, &c).unwrap();
+    assert_eq!(common::v64(&v), common::v64(&net.logits(&p, &c).unwrap()));
+    let g = common::v64(&g);
+    let pv = common::v64(&p);
+    let h = 1e-6;
+    for i in 0..20 {
+        for k in 0..3 {
+            let mut a = pv.clone();
+            let mut b = pv.clone();
+            a[3 * i + k] += h;
+            b[3 * i + k] -= h;
+            let fa = common::v64(
+                &net.logits(&Tensor::from_vec(a, (20, 3), &Device::Cpu).unwrap(), &c)
+                    .unwrap(),
+            )[i];
+            let fb = common::v64(
+                &net.logits(&Tensor::from_vec(b, (20, 3), &Device::Cpu).unwrap(), &c)
+                    .unwrap(),
+            )[i];
+            let num = (fa - fb) / (2.0 * h);
+            // ReLU kinks: skip points where a unit switches within ±h (rare).
+            if (g[3 * i + k] - num).abs() > 1e-5 * (1.0 + num.abs()) {
+                assert!(
+                    (g[3 * i + k] - num).abs() < 0.05 * (1.0 + num.abs()),
+                    "{i},{k}: {} vs {num}",
+                    g[3 * i + k]
+                );
+            }
+        }
+    }
+    assert_eq!(net.code_dim(), 8);
+    assert!(onet_decoder(
+        &OnetConfig {
+            hidden: 0,
+            ..config()
+        },
+        candle_nn::VarBuilder::from_varmap(&VarMap::new(), DType::F32, &Device::Cpu)
+    )
+    .is_err());
+    let e = net
+        .logits(&p, &c.narrow(0, 0, 3).unwrap())
+        .unwrap_err()
+        .to_string();
+    assert!(e.starts_with("codes"), "{e}");
+}
