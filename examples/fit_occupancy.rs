@@ -119,7 +119,11 @@ fn main() -> neural_fields::Result<()> {
             Some(mesh_metrics(&out.mesh, &gt, 100_000, 0.01, 7)?)
         };
         let (cd, nc, fs) = m.map_or((f64::NAN, f64::NAN, f64::NAN), |m| {
-            (m.chamfer_l1, m.normal_consistency, m.f_score)
+            (
+                m.chamfer_l1,
+                m.normal_consistency.unwrap_or(f64::NAN),
+                m.f_score,
+            )
         });
         println!(
             "{step:>6} {loss:>9.5} {vol_iou:>7.4} {cd:>11.5} {nc:>7.4} {fs:>7.4} {:>9} {:>8.1}",

@@ -106,7 +106,9 @@ fn main() -> neural_fields::Result<()> {
         let m = mesh_metrics(&out.mesh, &exact, 20_000, 0.01, 0)?;
         println!(
             "vs exact torus: Chamfer-L1 {:.4}, normal consistency {:.3}, F@0.01 {:.3}",
-            m.chamfer_l1, m.normal_consistency, m.f_score
+            m.chamfer_l1,
+            m.normal_consistency.unwrap_or(f64::NAN),
+            m.f_score
         );
         let path = std::env::args()
             .nth(1)

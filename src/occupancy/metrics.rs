@@ -145,8 +145,8 @@ pub struct SurfaceMetrics {
     pub completeness: f64,
     /// ½(accuracy + completeness) — multiply by 10 to compare with the ONet papers.
     pub chamfer_l1: f64,
-    /// ½(mean |n·n'| both ways); `NaN` if normals were not given.
-    pub normal_consistency: f64,
+    /// ½(mean |n·n'| both ways); `None` if normals were not given for both sets.
+    pub normal_consistency: Option<f64>,
     /// F-score at the threshold: `2PR/(P + R)` with precision `P` the fraction of
     /// predicted samples within the threshold of the ground truth, recall `R` the reverse.
     pub f_score: f64,
@@ -205,9 +205,9 @@ pub fn surface_metrics(
                 .map(|(i, &(j, _))| dot(gn[i], pn[j]).abs())
                 .sum::<f64>()
                 / gt.len() as f64;
-            0.5 * (a + b)
+            Some(0.5 * (a + b))
         }
-        _ => f64::NAN,
+        _ => None,
     };
     Ok(SurfaceMetrics {
         accuracy,
