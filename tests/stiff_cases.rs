@@ -2052,6 +2052,47 @@ fn sweep_occupancy(s: &mut Suite) {
                 || Ok(vec![Tensor::new(logit_threshold(p)?, &d)?]),
             );
         }
+        // PointNet encoder on extreme points and labels.
+        {
+            use neural_fields::nn::{pointnet_encoder, PointNetConfig};
+            let cfg = PointNetConfig {
+                hidden: 8,
+                layers: 2,
+                latent_dim: 3,
+            };
+            let vm = candle_nn::VarMap::new();
+            let enc = build_seeded(&vm, dtype, &d, 2, |vb| pointnet_encoder(&cfg, vb)).unwrap();
+            let big = if dtype == DType::F32 { 1e15 } else { 1e100 };
+            let p = var(
+                &[
+                    0.0, 0.0, 0.0, 1e-30, -1.0, 1.0, big, -big, big, 0.5, 0.5, 0.5,
+                ],
+                &[1, 4, 3],
+                dtype,
+            );
+            let o = var(&[0.0, 1.0, 1e-30, 0.5], &[1, 4], dtype);
+            let el = format!("{tag}, |p| up to {big:e}");
+            s.case(
+                "nn::pointnet::pointnet_encoder",
+                &el,
+                Expect::Finite,
+                &[&p, &o],
+                || {
+                    let (m, l) = enc.forward(p.as_tensor(), o.as_tensor())?;
+                    Ok(vec![m, l])
+                },
+            );
+            s.case(
+                "nn::pointnet::PointNetEncoder::forward",
+                &el,
+                Expect::Finite,
+                &[&p, &o],
+                || {
+                    let (m, l) = enc.forward(p.as_tensor(), o.as_tensor())?;
+                    Ok(vec![m, l])
+                },
+            );
+        }
         // ONet decoder on extreme points and codes, both norm modes.
         let config = OnetConfig {
             hidden: 16,
@@ -2274,6 +2315,8 @@ const VOLUME_COVERED: &[&str] = &[
 
 /// Occupancy and ONet items swept by `sweep_occupancy`.
 const OCCUPANCY_COVERED: &[&str] = &[
+    "nn::pointnet::PointNetEncoder::forward",
+    "nn::pointnet::pointnet_encoder",
     "nn::onet::OnetDecoder::forward_with_code",
     "nn::onet::OnetDecoder::logits",
     "nn::onet::OnetDecoder::set_mode",
@@ -2318,6 +2361,8 @@ const OCCUPANCY_COVERED: &[&str] = &[
 /// Public items without floating-point input (or only reached through a swept item),
 /// with the reason. Matching is by prefix, so `"error::check_"` covers the checks.
 const EXEMPT: &[(&str, &str)] = &[
+    ("nn::pointnet::PointNetConfig::default", "constant"),
+    ("nn::pointnet::PointNetEncoder::config", "getter"),
     ("nn::onet::OnetConfig::default", "constant"),
     ("nn::onet::OnetDecoder::code_dim", "getter"),
     ("nn::onet::OnetDecoder::config", "getter"),

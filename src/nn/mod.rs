@@ -4,16 +4,22 @@
 //! * [`Mlp`] / [`mlp`]: configurable MLP field with forward-mode spatial gradients.
 //! * [`OnetDecoder`] / [`onet_decoder`] (feature `occupancy`): the ONet decoder with
 //!   conditional normalisation that is batch-independent at inference.
+//! * [`PointNetEncoder`] / [`pointnet_encoder`] (feature `occupancy`): the variational
+//!   ONet's encoder `q_ψ(z | points, occupancies)`.
 //! * [`build_seeded`]: reproducible initialisation (candle's CPU generator cannot be
 //!   seeded; this draws every variable's initial value from a `u64` seed instead).
 
 mod mlp;
 #[cfg(feature = "occupancy")]
 mod onet;
+#[cfg(feature = "occupancy")]
+mod pointnet;
 
 pub use mlp::{mlp, Activation, Mlp, MlpConfig};
 #[cfg(feature = "occupancy")]
 pub use onet::{onet_decoder, NormMode, OnetConfig, OnetDecoder, ONET_BLOCK};
+#[cfg(feature = "occupancy")]
+pub use pointnet::{pointnet_encoder, PointNetConfig, PointNetEncoder};
 
 use crate::error::{Error, Result};
 use crate::rng::SplitMix64;

@@ -1,0 +1,114 @@
+//! The PointNet encoder `q_ψ(z | points, occupancies)` of the variational Occupancy
+//! Network (Mescheder et al. 2019, §3.3): a shared per-point MLP, a max-pool over the
+//! points, and two linear heads for the Gaussian posterior's mean and log-variance.
+//!
+//! For a shape with `K` labelled points `(pₖ, oₖ)`: `h⁰ₖ = [pₖ, oₖ] ∈ ℝ⁴`,
+//! `hˡ⁺¹ₖ = ReLU(Wˡhˡₖ + bˡ)`, `g = maxₖ hᴸₖ` (elementwise), `μ = W_μ g + b_μ`,
+//! `log σ² = W_σ g + b_σ`. The max-pool makes the code independent of the order of the
+//! points. Train with `occupancy::losses::{reparameterize, kl_standard_normal}`:
+//! `z = μ + σ ⊙ ε`, loss `Σ BCE(f(p, z), o) + KL(q ‖ N(0, I))`.
+
+use crate::error::{check_float, check_same, check_shape, Dim, Error, Result};
+use candle_core::Tensor;
+use candle_nn::{linear, Linear, Module, VarBuilder};
+
+/// Settings of [`pointnet_encoder`].
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct PointNetConfig {
+    /// Width of the per-point MLP (ONet: 128).
+    pub hidden: usize,
+    /// Number of per-point layers (≥ 1).
+    pub layers: usize,
+    /// Latent dimension `D` of `z`.
+    pub latent_dim: usize,
+}
+
+impl Default for PointNetConfig {
+    /// 3 layers of width 128, a 128-dimensional latent code.
+    fn default() -> Self {
+        Self {
+            hidden: 128,
+            layers: 3,
+            latent_dim: 128,
+        }
+    }
+}
+
+/// The encoder; build it with [`pointnet_encoder`].
+#[derive(Clone, Debug)]
+pub struct PointNetEncoder {
+    layers: Vec<Linear>,
+    mean: Linear,
+    logvar: Linear,
+    config: PointNetConfig,
+}
+
+/// Builds a [`PointNetEncoder`] from `vb` (`layer{l}`, `mean`, `logvar` linear layers with
+/// candle-nn's default initialisation).
+///
+/// # Errors
+/// A zero `hidden`, `layers` or `latent_dim` (naming `config.*`); errors of `vb`.
+pub fn pointnet_encoder(config: &PointNetConfig, vb: VarBuilder) -> Result<PointNetEncoder> {
+    for (name, v) in [
+        ("config.hidden", config.hidden),
+        ("config.layers", config.layers),
+        ("config.latent_dim", config.latent_dim),
+    ] {
+        if v == 0 {
+            return Err(Error::invalid(name, "at least 1", "0"));
+        }
+    }
+    let mut layers = Vec::with_capacity(config.layers);
+    for l in 0..config.layers {
+        let input = if l == 0 { 4 } else { config.hidden };
+        layers.push(linear(input, config.hidden, vb.pp(format!("layer{l}")))?);
+    }
+    Ok(PointNetEncoder {
+        layers,
+        mean: linear(config.hidden, config.latent_dim, vb.pp("mean"))?,
+        logvar: linear(config.hidden, config.latent_dim, vb.pp("logvar"))?,
+        config: config.clone(),
+    })
+}
+
+impl PointNetEncoder {
+    /// The configuration.
+    #[must_use]
+    pub fn config(&self) -> &PointNetConfig {
+        &self.config
+    }
+
+    /// The posterior parameters `(μ, log σ²)`, each `[B, D]`, of `B` shapes given
+    /// `points: [B, K, 3]` and `occupancies: [B, K]` (labels in `[0, 1]`), f32 or f64.
+    ///
+    /// Differentiable w.r.t. the encoder's weights, the points and the occupancies (the
+    /// max-pool passes gradients to the maximising point of each channel).
+    ///
+    /// # Errors
+    /// `points` not `[B, K, 3]` float with `K ≥ 1`; `occupancies` not `[B, K]` of the same
+    /// dtype and device.
+    pub fn forward(&self, points: &Tensor, occupancies: &Tensor) -> Result<(Tensor, Tensor)> {
+        check_float(points, "points")?;
+        let dims = check_shape(
+            points,
+            "points",
+            &[Dim::Any("B"), Dim::Any("K"), Dim::Is(3)],
+        )?;
+        let (b, k) = (dims[0], dims[1]);
+        if k == 0 {
+            return Err(Error::invalid(
+                "points",
+                "at least one point per shape (K ≥ 1)",
+                "K = 0",
+            ));
+        }
+        check_same(occupancies, "occupancies", points, "points")?;
+        check_shape(occupancies, "occupancies", &[Dim::Is(b), Dim::Is(k)])?;
+        let mut h = Tensor::cat(&[points, &occupancies.unsqueeze(2)?], 2)?.reshape((b * k, 4))?;
+        for layer in &self.layers {
+            h = layer.forward(&h)?.relu()?;
+        }
+        let g = h.reshape((b, k, self.config.hidden))?.max(1)?;
+        Ok((self.mean.forward(&g)?, self.logvar.forward(&g)?))
+    }
+}
