@@ -2093,6 +2093,74 @@ fn sweep_occupancy(s: &mut Suite) {
                 },
             );
         }
+        // ONet's simple decoder on extreme points and codes.
+        {
+            use neural_fields::nn::{simple_decoder, SimpleDecoderConfig};
+            let cfg = SimpleDecoderConfig {
+                hidden: 8,
+                blocks: 2,
+                code_dim: 4,
+            };
+            let vm = candle_nn::VarMap::new();
+            let dec = build_seeded(&vm, dtype, &d, 6, |vb| simple_decoder(&cfg, vb)).unwrap();
+            let big = if dtype == DType::F32 { 1e15 } else { 1e100 };
+            let p = var(
+                &[0.0, 0.0, 0.0, 1e-30, 1.0, -1.0, big, -big, big],
+                &[3, 3],
+                dtype,
+            );
+            let c = var(
+                &[
+                    0.0, 1e-30, 1.0, -1.0, 1e3, -1e3, 0.5, 0.0, big, 0.0, 0.0, 0.0,
+                ],
+                &[3, 4],
+                dtype,
+            );
+            let sl = format!("{tag}, |p|, |z| up to {big:e}");
+            s.case(
+                "nn::onet::simple_decoder",
+                &sl,
+                Expect::Finite,
+                &[&p, &c],
+                || Ok(vec![dec.logits(p.as_tensor(), c.as_tensor())?]),
+            );
+            s.case(
+                "nn::onet::SimpleDecoder::logits",
+                &sl,
+                Expect::Finite,
+                &[&p, &c],
+                || Ok(vec![dec.logits(p.as_tensor(), c.as_tensor())?]),
+            );
+            s.case(
+                "nn::onet::SimpleDecoder::value_and_grad_with_code",
+                &sl,
+                Expect::Finite,
+                &[&p, &c],
+                || {
+                    let (v, g) = neural_fields::field::ConditionalField::value_and_grad_with_code(
+                        &dec,
+                        p.as_tensor(),
+                        c.as_tensor(),
+                    )?;
+                    Ok(vec![v, g])
+                },
+            );
+            s.case(
+                "nn::onet::SimpleDecoder::forward_with_code",
+                &sl,
+                Expect::Finite,
+                &[&p, &c],
+                || {
+                    Ok(vec![
+                        neural_fields::field::ConditionalField::forward_with_code(
+                            &dec,
+                            p.as_tensor(),
+                            c.as_tensor(),
+                        )?,
+                    ])
+                },
+            );
+        }
         // ONet decoder on extreme points and codes, both norm modes.
         let config = OnetConfig {
             hidden: 16,
@@ -2315,6 +2383,10 @@ const VOLUME_COVERED: &[&str] = &[
 
 /// Occupancy and ONet items swept by `sweep_occupancy`.
 const OCCUPANCY_COVERED: &[&str] = &[
+    "nn::onet::SimpleDecoder::forward_with_code",
+    "nn::onet::SimpleDecoder::logits",
+    "nn::onet::SimpleDecoder::value_and_grad_with_code",
+    "nn::onet::simple_decoder",
     "nn::pointnet::PointNetEncoder::forward",
     "nn::pointnet::pointnet_encoder",
     "nn::onet::OnetDecoder::forward_with_code",
@@ -2361,6 +2433,11 @@ const OCCUPANCY_COVERED: &[&str] = &[
 /// Public items without floating-point input (or only reached through a swept item),
 /// with the reason. Matching is by prefix, so `"error::check_"` covers the checks.
 const EXEMPT: &[(&str, &str)] = &[
+    ("nn::onet::SimpleDecoderConfig::default", "constant"),
+    ("nn::onet::SimpleDecoder::code_dim", "getter"),
+    ("nn::onet::SimpleDecoder::config", "getter"),
+    ("nn::onet::SimpleDecoder::inside", "getter"),
+    ("nn::onet::SimpleDecoder::out_dim", "getter"),
     ("nn::pointnet::PointNetConfig::default", "constant"),
     ("nn::pointnet::PointNetEncoder::config", "getter"),
     ("nn::onet::OnetConfig::default", "constant"),

@@ -17,7 +17,10 @@ mod pointnet;
 
 pub use mlp::{mlp, Activation, Mlp, MlpConfig};
 #[cfg(feature = "occupancy")]
-pub use onet::{onet_decoder, NormMode, OnetConfig, OnetDecoder, ONET_BLOCK};
+pub use onet::{
+    onet_decoder, simple_decoder, NormMode, OnetConfig, OnetDecoder, SimpleDecoder,
+    SimpleDecoderConfig, ONET_BLOCK,
+};
 #[cfg(feature = "occupancy")]
 pub use pointnet::{pointnet_encoder, PointNetConfig, PointNetEncoder};
 

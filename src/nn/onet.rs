@@ -386,3 +386,185 @@ impl ConditionalField for OnetDecoder {
         Inside::Positive
     }
 }
+
+/// Settings of [`simple_decoder`].
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SimpleDecoderConfig {
+    /// Hidden width (ONet: 128).
+    pub hidden: usize,
+    /// Number of ResNet-FC blocks (ONet: 5).
+    pub blocks: usize,
+    /// Code dimension `D ≥ 1`.
+    pub code_dim: usize,
+}
+
+impl Default for SimpleDecoderConfig {
+    /// ONet's simple decoder: width 128, 5 blocks, 128-dimensional code.
+    fn default() -> Self {
+        Self {
+            hidden: 128,
+            blocks: 5,
+            code_dim: 128,
+        }
+    }
+}
+
+/// ONet's simple decoder: the code is added once at the input,
+/// `net = W_p p + W_c c + b`, then ResNet-FC blocks
+/// `net ← net + W₁ ReLU(W₀ ReLU(net) + b₀) + b₁` (`W₁` zero-initialised, so each block
+/// starts as the identity), then `logit = w_out · ReLU(net) + b_out`.
+///
+/// It has no normalisation, so a point's output does not depend on the other points
+/// of the call (up to the rounding of the matrix products). Spatial gradients come by
+/// forward mode (ReLU masks on the tangents) and are differentiable w.r.t. the weights;
+/// being a ReLU network with an additive code, `∇ₚf` is piecewise constant in the code,
+/// so a loss on normals gives the code no gradient (losses on values do). Build it with
+/// [`simple_decoder`].
+#[derive(Clone, Debug)]
+pub struct SimpleDecoder {
+    fc_p: candle_nn::Linear,
+    fc_c: candle_nn::Linear,
+    blocks: Vec<(candle_nn::Linear, candle_nn::Linear)>,
+    fc_out: candle_nn::Linear,
+    config: SimpleDecoderConfig,
+}
+
+/// Builds a [`SimpleDecoder`] from `vb` (`fc_p`, `fc_c`, `block{i}.fc_0`, `block{i}.fc_1`,
+/// `fc_out`).
+///
+/// # Errors
+/// A zero `hidden`, `blocks` or `code_dim` (naming `config.*`); errors of `vb`.
+pub fn simple_decoder(config: &SimpleDecoderConfig, vb: VarBuilder) -> Result<SimpleDecoder> {
+    for (name, v) in [
+        ("config.hidden", config.hidden),
+        ("config.blocks", config.blocks),
+        ("config.code_dim", config.code_dim),
+    ] {
+        if v == 0 {
+            return Err(Error::invalid(name, "at least 1", "0"));
+        }
+    }
+    let h = config.hidden;
+    let zero_linear = |vb: VarBuilder| -> Result<candle_nn::Linear> {
+        let w = vb.get_with_hints((h, h), "weight", Init::Const(0.0))?;
+        let b = vb.get_with_hints(h, "bias", Init::Const(0.0))?;
+        Ok(candle_nn::Linear::new(w, Some(b)))
+    };
+    let mut blocks = Vec::with_capacity(config.blocks);
+    for i in 0..config.blocks {
+        let bvb = vb.pp(format!("block{i}"));
+        blocks.push((
+            candle_nn::linear(h, h, bvb.pp("fc_0"))?,
+            zero_linear(bvb.pp("fc_1"))?,
+        ));
+    }
+    Ok(SimpleDecoder {
+        fc_p: candle_nn::linear(3, h, vb.pp("fc_p"))?,
+        fc_c: candle_nn::linear_no_bias(config.code_dim, h, vb.pp("fc_c"))?,
+        blocks,
+        fc_out: candle_nn::linear(h, 1, vb.pp("fc_out"))?,
+        config: config.clone(),
+    })
+}
+
+/// `W·ȧ` for tangents `ȧ: [N, 3, in]` → `[N, 3, out]`.
+fn tangent(layer: &candle_nn::Linear, da: &Tensor) -> Result<Tensor> {
+    let (n, k, i) = da.dims3()?;
+    let w = layer.weight();
+    Ok(da
+        .reshape((n * k, i))?
+        .matmul(&w.t()?)?
+        .reshape((n, k, w.dim(0)?))?)
+}
+
+/// `ReLU(x)` and its tangent `ȧ ⊙ 𝟙[x ≥ 0]` (candle's ReLU derivative convention).
+fn relu_jvp(x: &Tensor, dx: Option<&Tensor>) -> Result<(Tensor, Option<Tensor>)> {
+    let dy = match dx {
+        Some(dx) => Some(dx.broadcast_mul(&x.ge(0.0)?.to_dtype(x.dtype())?.unsqueeze(1)?)?),
+        None => None,
+    };
+    Ok((x.relu()?, dy))
+}
+
+impl SimpleDecoder {
+    /// The configuration.
+    #[must_use]
+    pub fn config(&self) -> &SimpleDecoderConfig {
+        &self.config
+    }
+
+    fn run(
+        &self,
+        points: &Tensor,
+        codes: &Tensor,
+        tangents: bool,
+    ) -> Result<(Tensor, Option<Tensor>)> {
+        let n = check_points(points, "points")?;
+        check_same(codes, "codes", points, "points")?;
+        check_shape(codes, "codes", &[Dim::Is(n), Dim::Is(self.config.code_dim)])?;
+        let mut net = (candle_nn::Module::forward(&self.fc_p, points)?
+            + candle_nn::Module::forward(&self.fc_c, codes)?)?;
+        let mut dnet = if tangents {
+            let eye = Tensor::eye(3, points.dtype(), points.device())?
+                .unsqueeze(0)?
+                .broadcast_as((n, 3, 3))?
+                .contiguous()?;
+            Some(tangent(&self.fc_p, &eye)?)
+        } else {
+            None
+        };
+        for (fc0, fc1) in &self.blocks {
+            let (a0, da0) = relu_jvp(&net, dnet.as_ref())?;
+            let h = candle_nn::Module::forward(fc0, &a0)?;
+            let dh = da0.map(|t| tangent(fc0, &t)).transpose()?;
+            let (a1, da1) = relu_jvp(&h, dh.as_ref())?;
+            net = (net + candle_nn::Module::forward(fc1, &a1)?)?;
+            if let (Some(d), Some(t)) = (dnet.as_ref(), da1) {
+                dnet = Some((d + tangent(fc1, &t)?)?);
+            }
+        }
+        let (a, da) = relu_jvp(&net, dnet.as_ref())?;
+        let logit = candle_nn::Module::forward(&self.fc_out, &a)?.squeeze(1)?;
+        let grad = da
+            .map(|t| -> Result<Tensor> { Ok(tangent(&self.fc_out, &t)?.squeeze(2)?) })
+            .transpose()?;
+        Ok((logit, grad))
+    }
+
+    /// Occupancy logits `[N]` for `points: [N, 3]` and `codes: [N, D]`, f32 or f64.
+    /// Differentiable w.r.t. the weights, points and codes.
+    ///
+    /// # Errors
+    /// Wrong shapes, dtypes or devices (naming `points` / `codes`).
+    pub fn logits(&self, points: &Tensor, codes: &Tensor) -> Result<Tensor> {
+        Ok(self.run(points, codes, false)?.0)
+    }
+}
+
+impl ConditionalField for SimpleDecoder {
+    fn code_dim(&self) -> usize {
+        self.config.code_dim
+    }
+
+    fn out_dim(&self) -> usize {
+        1
+    }
+
+    fn forward_with_code(&self, points: &Tensor, codes: &Tensor) -> Result<Tensor> {
+        Ok(self.logits(points, codes)?.unsqueeze(1)?)
+    }
+
+    fn value_and_grad_with_code(
+        &self,
+        points: &Tensor,
+        codes: &Tensor,
+    ) -> Result<(Tensor, Tensor)> {
+        let (v, g) = self.run(points, codes, true)?;
+        let g = g.ok_or_else(|| Error::invalid("tangents", "propagated", "none"))?;
+        Ok((v, g))
+    }
+
+    fn inside(&self) -> Inside {
+        Inside::Positive
+    }
+}
