@@ -5,7 +5,9 @@
 //! Logits of an implicit surface are `s = σ·(f − τ)` (inside positive for both
 //! occupancy logits and SDFs, see [`crate::dvr::march`](mod@crate::dvr::march)).
 
-use crate::error::{check_float, check_points, check_same, check_scalar, check_shape};
+use crate::error::{
+    check_float, check_points, check_same, check_same_shape, check_scalar, check_shape,
+};
 use crate::error::{Dim, Error, Result};
 use crate::field::{ImplicitSurface, Inside};
 use crate::numerics::bce_with_logits;
@@ -44,13 +46,7 @@ fn masked_mean(per_row: &Tensor, m: &Tensor) -> Result<Tensor> {
 fn check_pair(pred: &Tensor, target: &Tensor) -> Result<()> {
     check_float(pred, "pred")?;
     check_same(target, "target", pred, "pred")?;
-    if pred.dims() != target.dims() {
-        return Err(Error::invalid(
-            "target",
-            format!("shape {:?} (that of pred)", pred.dims()),
-            format!("shape {:?}", target.dims()),
-        ));
-    }
+    check_same_shape(target, "target", pred, "pred")?;
     Ok(())
 }
 
@@ -250,13 +246,7 @@ pub fn idr_mask_loss(
     if normalizer == 0 {
         return Err(Error::invalid("normalizer", "at least 1", "0"));
     }
-    if mask.dims() != values.dims() {
-        return Err(Error::invalid(
-            "mask",
-            format!("shape {:?} (that of values)", values.dims()),
-            format!("shape {:?}", mask.dims()),
-        ));
-    }
+    check_same_shape(mask, "mask", values, "values")?;
     check_same(mask, "mask", values, "values")?;
     let logits = values.affine(alpha * inside.sign(), 0.0)?;
     let sum = bce_with_logits(&logits, mask)?.sum_all()?;

@@ -39,6 +39,7 @@
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 
+use super::weight_jvp;
 use crate::encoding::PointEncoding;
 use crate::error::{check_float, check_points, check_same, check_shape, Dim, Error, Result};
 use crate::field::{ConditionalField, Field, ImplicitSurface, Inside};
@@ -134,16 +135,6 @@ impl Layer {
 
     fn forward(&self, a: &Tensor, weight: &Tensor) -> Result<Tensor> {
         Ok(a.matmul(&weight.t()?)?.broadcast_add(&self.bias)?)
-    }
-
-    /// `Wȧ` for tangents `ȧ: [N, K, in]` → `[N, K, out]` (no bias).
-    fn tangent(&self, da: &Tensor, weight: &Tensor) -> Result<Tensor> {
-        let (n, k, i) = da.dims3()?;
-        let out = weight.dim(0)?;
-        Ok(da
-            .reshape((n * k, i))?
-            .matmul(&weight.t()?)?
-            .reshape((n, k, out))?)
     }
 }
 
@@ -387,7 +378,7 @@ impl Mlp {
             }
             let weight = layer.weight()?;
             let h = layer.forward(&a, &weight)?;
-            let dh = da.as_ref().map(|t| layer.tangent(t, &weight)).transpose()?;
+            let dh = da.as_ref().map(|t| weight_jvp(&weight, t)).transpose()?;
             if l == hidden.len() {
                 return Ok((h, dh));
             }

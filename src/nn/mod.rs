@@ -32,6 +32,17 @@ use candle_nn::var_builder::SimpleBackend;
 use candle_nn::{Init, VarBuilder, VarMap};
 use std::sync::{Arc, Mutex};
 
+/// The tangent of a linear layer: `Wȧ` for tangents `ȧ: [A, B, in]` and
+/// `weight: [out, in]` → `[A, B, out]` (the bias drops out). Shared by the forward-mode
+/// passes of every network here.
+pub(crate) fn weight_jvp(weight: &Tensor, da: &Tensor) -> Result<Tensor> {
+    let (a, b, i) = da.dims3()?;
+    Ok(da
+        .reshape((a * b, i))?
+        .matmul(&weight.t()?)?
+        .reshape((a, b, weight.dim(0)?))?)
+}
+
 /// A `VarBuilder` backend that draws each requested tensor from a seeded generator,
 /// following the requested [`Init`], and records it.
 struct SeededBackend {

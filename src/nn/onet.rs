@@ -18,6 +18,7 @@
 //!   one zero-padded), so even the matrix-multiply kernel sees the same shapes; the
 //!   result is bit-identical (tested).
 
+use super::weight_jvp;
 use crate::error::{check_points, check_same, check_shape, Dim, Error, Result};
 use crate::field::{ConditionalField, Inside};
 use candle_core::{Tensor, D};
@@ -303,14 +304,7 @@ impl OnetDecoder {
         check_shape(codes, "codes", &[Dim::Is(n), Dim::Is(self.config.code_dim)])?;
         let mode = self.mode();
         let blocked = mode == NormMode::Eval;
-        let lin_t = |l: &Linear, d: &Tensor| -> Result<Tensor> {
-            // d: [3, N, in] → [3, N, out] (no bias).
-            let (k, rows, input) = d.dims3()?;
-            let out = l.weight.dim(0)?;
-            Ok(d.reshape((k * rows, input))?
-                .matmul(&l.weight.t()?)?
-                .reshape((k, rows, out))?)
-        };
+        let lin_t = |l: &Linear, d: &Tensor| weight_jvp(&l.weight, d);
         let mut net = self.fc_p.forward(points, blocked)?;
         let mut dnet = if tangents {
             // ∂(W p)/∂p_j = column j of W, for every point: [3, N, H].
@@ -467,16 +461,6 @@ pub fn simple_decoder(config: &SimpleDecoderConfig, vb: VarBuilder) -> Result<Si
     })
 }
 
-/// `W·ȧ` for tangents `ȧ: [N, 3, in]` → `[N, 3, out]`.
-fn tangent(layer: &candle_nn::Linear, da: &Tensor) -> Result<Tensor> {
-    let (n, k, i) = da.dims3()?;
-    let w = layer.weight();
-    Ok(da
-        .reshape((n * k, i))?
-        .matmul(&w.t()?)?
-        .reshape((n, k, w.dim(0)?))?)
-}
-
 /// `ReLU(x)` and its tangent `ȧ ⊙ 𝟙[x ≥ 0]` (candle's ReLU derivative convention).
 fn relu_jvp(x: &Tensor, dx: Option<&Tensor>) -> Result<(Tensor, Option<Tensor>)> {
     let dy = match dx {
@@ -509,24 +493,24 @@ impl SimpleDecoder {
                 .unsqueeze(0)?
                 .broadcast_as((n, 3, 3))?
                 .contiguous()?;
-            Some(tangent(&self.fc_p, &eye)?)
+            Some(weight_jvp(self.fc_p.weight(), &eye)?)
         } else {
             None
         };
         for (fc0, fc1) in &self.blocks {
             let (a0, da0) = relu_jvp(&net, dnet.as_ref())?;
             let h = candle_nn::Module::forward(fc0, &a0)?;
-            let dh = da0.map(|t| tangent(fc0, &t)).transpose()?;
+            let dh = da0.map(|t| weight_jvp(fc0.weight(), &t)).transpose()?;
             let (a1, da1) = relu_jvp(&h, dh.as_ref())?;
             net = (net + candle_nn::Module::forward(fc1, &a1)?)?;
             if let (Some(d), Some(t)) = (dnet.as_ref(), da1) {
-                dnet = Some((d + tangent(fc1, &t)?)?);
+                dnet = Some((d + weight_jvp(fc1.weight(), &t)?)?);
             }
         }
         let (a, da) = relu_jvp(&net, dnet.as_ref())?;
         let logit = candle_nn::Module::forward(&self.fc_out, &a)?.squeeze(1)?;
         let grad = da
-            .map(|t| -> Result<Tensor> { Ok(tangent(&self.fc_out, &t)?.squeeze(2)?) })
+            .map(|t| -> Result<Tensor> { Ok(weight_jvp(self.fc_out.weight(), &t)?.squeeze(2)?) })
             .transpose()?;
         Ok((logit, grad))
     }

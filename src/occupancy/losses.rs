@@ -9,7 +9,7 @@
 
 pub use crate::numerics::bce_with_logits;
 
-use crate::error::{check_float, check_same, check_shape, Dim, Error, Result};
+use crate::error::{check_float, check_same, check_same_shape, check_shape, Dim, Error, Result};
 use crate::rng::SplitMix64;
 use candle_core::Tensor;
 
@@ -45,13 +45,7 @@ pub fn kl_standard_normal(mean: &Tensor, logvar: &Tensor) -> Result<Tensor> {
     check_float(mean, "mean")?;
     check_shape(mean, "mean", &[Dim::Any("B"), Dim::Any("D")])?;
     check_same(logvar, "logvar", mean, "mean")?;
-    if logvar.dims() != mean.dims() {
-        return Err(Error::invalid(
-            "logvar",
-            format!("shape {:?} (that of mean)", mean.dims()),
-            format!("shape {:?}", logvar.dims()),
-        ));
-    }
+    check_same_shape(logvar, "logvar", mean, "mean")?;
     let t = ((logvar.exp()? + mean.sqr()?)? - logvar)?;
     Ok(((t - 1.0)?.sum(1)? * 0.5)?)
 }
@@ -67,13 +61,7 @@ pub fn kl_standard_normal(mean: &Tensor, logvar: &Tensor) -> Result<Tensor> {
 pub fn reparameterize(mean: &Tensor, logvar: &Tensor, seed: u64) -> Result<Tensor> {
     check_float(mean, "mean")?;
     check_same(logvar, "logvar", mean, "mean")?;
-    if logvar.dims() != mean.dims() {
-        return Err(Error::invalid(
-            "logvar",
-            format!("shape {:?} (that of mean)", mean.dims()),
-            format!("shape {:?}", logvar.dims()),
-        ));
-    }
+    check_same_shape(logvar, "logvar", mean, "mean")?;
     let eps =
         SplitMix64::new(seed).normal_tensor(mean.dims(), 0.0, 1.0, mean.dtype(), mean.device())?;
     Ok((mean + ((logvar * 0.5)?.exp()? * eps)?)?)

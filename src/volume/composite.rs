@@ -26,7 +26,9 @@
 //! depths. Candle's `cumsum` is a matmul with an n×n triangle, so the reference costs
 //! O(R·S²); the fused CPU op in [`super::fused`] is O(R·S).
 
-use crate::error::{check_float, check_same, check_scalar, check_shape, Dim, Error, Result};
+use crate::error::{
+    check_float, check_same, check_same_shape, check_scalar, check_shape, Dim, Error, Result,
+};
 use candle_core::{DType, Device, Storage, Tensor};
 use std::sync::Arc;
 
@@ -283,13 +285,7 @@ fn thickness(sigmas: &Tensor, deltas: &Tensor) -> Result<Tensor> {
 pub(crate) fn check_sigmas_deltas(sigmas: &Tensor, deltas: &Tensor) -> Result<()> {
     check_float(sigmas, "sigmas")?;
     check_same(deltas, "deltas", sigmas, "sigmas")?;
-    if deltas.dims() != sigmas.dims() {
-        return Err(Error::invalid(
-            "deltas",
-            format!("shape {:?} (that of sigmas)", sigmas.dims()),
-            format!("shape {:?}", deltas.dims()),
-        ));
-    }
+    check_same_shape(deltas, "deltas", sigmas, "sigmas")?;
     check_nonneg_finite(sigmas, "sigmas")?;
     check_nonneg_finite(deltas, "deltas")?;
     Ok(())
