@@ -74,6 +74,17 @@ fn bench(c: &mut Criterion) {
     g.sample_size(10);
     g.bench_function("fused", |b| b.iter(|| step(composite_fused, &x)));
     g.bench_function("reference", |b| b.iter(|| step(composite_reference, &x)));
+    // What candle's backprop itself spends on the two gradients of any compositing op:
+    // `GradStore::or_insert` makes zeros the size of each input, then adds the op's
+    // gradient into them. A floor no op can go under through `backward()`.
+    g.bench_function("candle_grad_accumulation_floor", |b| {
+        b.iter(|| {
+            for v in [&x.sigmas, &x.colors] {
+                let acc = v.as_tensor().zeros_like().unwrap();
+                black_box(acc.add(v.as_tensor()).unwrap());
+            }
+        })
+    });
     g.finish();
     let _ = DType::F32;
 }

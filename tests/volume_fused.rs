@@ -84,13 +84,32 @@ struct Grads {
 type Path<'a> = &'a dyn Fn(&Tensor, &Tensor, &Tensor, &Tensor) -> Composite;
 
 fn grads(path: Path, sig: &Tensor, col: &Tensor, del: &Tensor, tm: &Tensor, lw: &[f64]) -> Grads {
+    grads_with(path, sig, col, del, tm, lw, true)
+}
+
+/// As [`grads`]; with `t_var = false` the depths are a constant of the graph (the fused
+/// op then reads them in place instead of stacking them under δ) and `tm` is empty.
+fn grads_with(
+    path: Path,
+    sig: &Tensor,
+    col: &Tensor,
+    del: &Tensor,
+    tm: &Tensor,
+    lw: &[f64],
+    t_var: bool,
+) -> Grads {
     let (s, c, d, t) = (
         Var::from_tensor(sig).unwrap(),
         Var::from_tensor(col).unwrap(),
         Var::from_tensor(del).unwrap(),
         Var::from_tensor(tm).unwrap(),
     );
-    let out = path(s.as_tensor(), c.as_tensor(), d.as_tensor(), t.as_tensor());
+    let t_in = if t_var {
+        t.as_tensor().clone()
+    } else {
+        tm.clone()
+    };
+    let out = path(s.as_tensor(), c.as_tensor(), d.as_tensor(), &t_in);
     let l = loss(&out, lw);
     let g = l.backward().unwrap();
     let get = |v: &Var| v1(g.get(v.as_tensor()).expect("gradient present"));
@@ -99,7 +118,7 @@ fn grads(path: Path, sig: &Tensor, col: &Tensor, del: &Tensor, tm: &Tensor, lw: 
         sig: get(&s),
         del: get(&d),
         col: get(&c),
-        tm: get(&t),
+        tm: if t_var { get(&t) } else { Vec::new() },
     }
 }
 
@@ -175,16 +194,19 @@ proptest! {
     #![proptest_config(ProptestConfig { cases: 24, ..ProptestConfig::default() })]
 
     /// Fused and reference gradients agree to 1e-10 relative (f64), measured against the
-    /// magnitude of the terms each gradient is made of.
+    /// magnitude of the terms each gradient is made of; 1–8 channels cover the kernels
+    /// specialised for 1–4 channels and the general one, and the depths are either
+    /// differentiated (stacked under δ) or constant (read in place).
     #[test]
     fn fused_gradients_equal_reference_gradients(
-        seed in any::<u64>(), r in 1usize..4, s in sample_count(), c in 1usize..4, opaque_last in any::<bool>()
+        seed in any::<u64>(), r in 1usize..4, s in sample_count(), c in 1usize..9, opaque_last in any::<bool>(),
+        t_var in any::<bool>(),
     ) {
         let (sig, col, del, tm) = batched(r, s, c, seed);
         let lw = loss_weights(seed, c);
         let opts = CompositeOptions { opaque_last, ..Default::default() };
-        let gf = grads(&|a, b, d, e| composite_fused(a, b, d, e, &opts).unwrap(), &sig, &col, &del, &tm, &lw);
-        let gr = grads(&|a, b, d, e| composite_reference(a, b, d, e, &opts).unwrap(), &sig, &col, &del, &tm, &lw);
+        let gf = grads_with(&|a, b, d, e| composite_fused(a, b, d, e, &opts).unwrap(), &sig, &col, &del, &tm, &lw, t_var);
+        let gr = grads_with(&|a, b, d, e| composite_reference(a, b, d, e, &opts).unwrap(), &sig, &col, &del, &tm, &lw, t_var);
         prop_assert!(all_finite(&gf) && all_finite(&gr));
         prop_assert!((gf.loss - gr.loss).abs() <= 1e-12 * (1.0 + gr.loss.abs()));
         let xs = x_scale(&sig, &del, &v1(&col), &v1(&tm), &lw, opaque_last);
@@ -195,6 +217,7 @@ proptest! {
         check_close("deltas", &gf.del, &gr.del, &sd, 1e-10)?;
         let zero_c = vec![1e-300; gf.col.len()];
         check_close("colors", &gf.col, &gr.col, &zero_c, 1e-10)?;
+        prop_assert_eq!(gf.tm.len(), gr.tm.len());
         check_close("t_mids", &gf.tm, &gr.tm, &zero_c[..gf.tm.len()], 1e-10)?;
     }
 
@@ -523,6 +546,76 @@ fn accumulate_fused_matches_weights_times_values() {
     for (a, b) in op.iter().zip(v1(&w.weights.sum(1).unwrap())) {
         assert!((a - b).abs() < 1e-13);
     }
+}
+
+/// `accumulate_fused` for 0–7 channels (the kernels specialised for 1–4 channels and
+/// the general one, including no channels at all: opacity only) equals weights × values
+/// from the reference path, values and gradients, on both the AVX2 + FMA kernels (where
+/// the CPU has them) and the baseline ones.
+#[test]
+fn every_channel_count_and_both_kernel_builds_match_the_reference() {
+    for baseline in [false, true] {
+        neural_fields::volume::fused::force_baseline_kernels(baseline);
+        for k in 0..8 {
+            let (sig, col, del, _) = batched(3, 37, k, 7 + k as u64);
+            let run = |fused: bool| {
+                let (s, c, d) = (
+                    Var::from_tensor(&sig).unwrap(),
+                    Var::from_tensor(&col).unwrap(),
+                    Var::from_tensor(&del).unwrap(),
+                );
+                let out = if fused {
+                    accumulate_fused(s.as_tensor(), d.as_tensor(), c.as_tensor(), false).unwrap()
+                } else {
+                    let w = render_weights(s.as_tensor(), d.as_tensor(), &WeightOptions::default())
+                        .unwrap();
+                    let opacity = w.weights.sum_keepdim(1).unwrap();
+                    if k == 0 {
+                        opacity
+                    } else {
+                        let acc =
+                            neural_fields::volume::composite::accumulate(&w.weights, c.as_tensor())
+                                .unwrap();
+                        Tensor::cat(&[&acc, &opacity], 1).unwrap()
+                    }
+                };
+                let lw = Tensor::new(&loss_weights(k as u64, k)[..k + 1], &dev()).unwrap();
+                let l = out.broadcast_mul(&lw).unwrap().sum_all().unwrap();
+                let g = l.backward().unwrap();
+                let get = |v: &Var| v1(g.get(v.as_tensor()).unwrap());
+                // With no channels candle drops the empty values from the reference graph.
+                let gc = g.get(c.as_tensor()).map(v1).unwrap_or_default();
+                (v1(&out), get(&s), get(&d), gc)
+            };
+            let (fo, fs, fd, fc) = run(true);
+            let (ro, rs, rd, rc) = run(false);
+            // ∂L/∂xⱼ = Tⱼ₊₁uⱼ − Σ_{i>j} wᵢuᵢ cancels down from |u| ≤ Σ|loss weights|
+            // (values in [0, 1]); ∂L/∂σ = δ·∂L/∂x and ∂L/∂δ = σ·∂L/∂x.
+            let umax: f64 = loss_weights(k as u64, k)[..k + 1]
+                .iter()
+                .map(|w| w.abs())
+                .sum();
+            let (sv, dv) = (v1(&sig), v1(&del));
+            let ss: Vec<f64> = dv.iter().map(|d| d * umax).collect();
+            let sd: Vec<f64> = sv.iter().map(|s| s * umax).collect();
+            let one = vec![1.0; fo.len().max(fc.len())];
+            for (name, a, b, scale) in [
+                ("out", &fo, &ro, &one),
+                ("sigmas", &fs, &rs, &ss),
+                ("deltas", &fd, &rd, &sd),
+                ("values", &fc, &rc, &one),
+            ] {
+                assert_eq!(a.len(), b.len(), "k = {k}: {name}");
+                for ((x, y), sc) in a.iter().zip(b.iter()).zip(scale.iter()) {
+                    assert!(
+                        (x - y).abs() <= 1e-10 * (sc + y.abs()),
+                        "k = {k}, baseline = {baseline}: {name} {x} vs {y}"
+                    );
+                }
+            }
+        }
+    }
+    neural_fields::volume::fused::force_baseline_kernels(false);
 }
 
 #[test]

@@ -1,13 +1,21 @@
 //! Fused CPU compositing op with an O(S)-per-ray analytic backward.
 //!
-//! One candle [`CustomOp3`] takes `(sigmas, geometry, values)`, where `geometry` is δ, or
-//! δ and the sample depths t stacked along a new leading axis (`[2, …]`, a contiguous
-//! block copy whose backward is a contiguous split), and returns per ray the accumulated
-//! values Σwᵢvᵢₖ for every channel k, then Σwᵢtᵢ (with t), then the opacity Σwᵢ: a single
-//! `[R, K + 2]` (or `[R, K + 1]`) tensor. [`composite_fused`] passes the colours as values,
-//! so one pass yields colour, expected depth and opacity, split with `narrow` (views).
-//! Per-sample weights are not an output; use
-//! [`super::composite::render_weights`] when they are needed.
+//! One candle [`CustomOp3`] takes `(sigmas, geometry, values)` and returns per ray the
+//! accumulated values Σwᵢvᵢₖ for every channel k, then Σwᵢtᵢ (when depths are given),
+//! then the opacity Σwᵢ: a single `[R, K + 2]` (or `[R, K + 1]`) tensor.
+//! [`composite_fused`] passes the colours as values, so one pass yields colour, expected
+//! depth and opacity, split with `narrow` (views). `geometry` is δ; the depths t are read
+//! in place from the op when they are a constant of the graph (the usual case), and
+//! stacked under δ (`[2, …]`, a contiguous block copy whose backward is a contiguous
+//! split) only when they need a gradient. Inputs are passed in their own shapes (no
+//! reshape: in candle's backprop every reshape costs a zeros + add pass per gradient).
+//! Per-sample weights are not an output; use [`super::composite::render_weights`] when
+//! they are needed.
+//!
+//! The per-ray kernels are specialised at compile time for 1–4 channels (accumulators in
+//! registers) with a general path for other counts, and are built twice: for the
+//! baseline target and with AVX2 + FMA, chosen at run time by CPU feature detection
+//! (the results differ only by the rounding of fused multiply–adds; both are tested).
 //!
 //! Forward (per ray, in f64 whatever the storage dtype): xᵢ = min(σᵢδᵢ, X_MAX); αᵢ =
 //! −expm1(−xᵢ) and e^{−xᵢ} from one branch-free range-reduced polynomial (vectorised
@@ -35,6 +43,7 @@ use super::composite::{
 use crate::error::{check_same, check_shape, Dim, Error, Result};
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Shape, Storage, Tensor, WithDType};
 use rayon::prelude::*;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 /// Transmittance below which a ray is considered spent inside the kernel.
@@ -70,14 +79,26 @@ impl Segments {
     }
 }
 
+/// Where the sample depths t for the expected depth come from.
+#[derive(Clone, Debug)]
+enum Depth {
+    /// No depth output.
+    None,
+    /// t is a constant of the graph (no gradient wanted): the op holds it and reads it
+    /// in place, so nothing is copied.
+    Captured(Tensor),
+    /// t needs a gradient: it is stacked under δ in the geometry input (`[2, …]`).
+    Stacked,
+}
+
 /// The fused compositing op on `(sigmas [M], geometry [G, M], values [M, K])`, where the
-/// geometry rows are δ and, when `depth` (G = 2), the sample depths t. Output
-/// `[R, K + G]` = (Σwᵢvᵢₖ for each k, Σwᵢtᵢ if `depth`, Σwᵢ).
+/// geometry rows are δ and, with [`Depth::Stacked`] (G = 2), the sample depths t.
+/// Output `[R, K + 2]` = (Σwᵢvᵢₖ for each k, Σwᵢtᵢ, Σwᵢ), or `[R, K + 1]` without depth.
 #[derive(Clone, Debug)]
 struct FusedComposite {
     seg: Segments,
     k: usize,
-    depth: bool,
+    depth: Depth,
     opaque_last: bool,
 }
 
@@ -175,75 +196,352 @@ struct Scratch {
     g: Vec<f64>,
 }
 
-/// Forward scan of one ray. Fills `sc.acc` with (Σwᵢvᵢₖ for k < K, Σwᵢtᵢ if `tm` is
-/// given, Σwᵢ) and, when `store`, `sc.w[i]` = wᵢ and `sc.t_next[i]` = Tᵢ₊₁. Returns the
-/// number of samples scanned: after T < T_STOP the rest have zero weight.
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn scan_ray<T: WithDType>(
-    sig: &[T],
-    del: &[T],
-    tm: Option<&[T]>,
-    vals: &[T],
+/// The inputs of one ray: `vals` has `k` entries per sample, `tm` is present when the
+/// op accumulates depth.
+struct RayIn<'a, T> {
+    sig: &'a [T],
+    del: &'a [T],
+    tm: Option<&'a [T]>,
+    vals: &'a [T],
     k: usize,
     opaque_last: bool,
+}
+
+/// The gradient outputs of one ray (each present only when requested).
+struct RayGrads<'a, T> {
+    sig: Option<&'a mut [T]>,
+    del: Option<&'a mut [T]>,
+    vals: Option<&'a mut [T]>,
+    tm: Option<&'a mut [T]>,
+}
+
+/// Accumulated sums of one ray's forward scan.
+struct ScanOut {
+    /// Samples scanned: after T < T_STOP the rest have zero weight.
+    live: usize,
+    /// Σwᵢtᵢ (0 without depths).
+    depth: f64,
+    /// Σwᵢ.
+    opacity: f64,
+}
+
+/// Forward scan of one ray with `k` channels (a constant after inlining into a
+/// specialised caller). Accumulates Σwᵢvᵢₖ into `acc[..k]` (zeroed here) and, when
+/// `store`, writes `sc.w[i]` = wᵢ and `sc.t_next[i]` = Tᵢ₊₁.
+#[inline(always)]
+fn scan_ray<T: WithDType>(
+    ray: &RayIn<'_, T>,
+    k: usize,
+    acc: &mut [f64],
     sc: &mut Scratch,
     store: bool,
-) -> usize {
-    let n = sig.len();
-    let g = usize::from(tm.is_some());
-    sc.acc.clear();
-    sc.acc.resize(k + g + 1, 0.0);
+) -> ScanOut {
+    let n = ray.sig.len();
+    let acc = &mut acc[..k];
+    acc.fill(0.0);
     sc.alpha.resize(n, 0.0);
     sc.decay.resize(n, 0.0);
     if store {
         sc.w.resize(n, 0.0);
         sc.t_next.resize(n, 0.0);
     }
-    alpha_decay(sig, del, &mut sc.alpha, &mut sc.decay);
-    if opaque_last && n > 0 {
+    alpha_decay(ray.sig, ray.del, &mut sc.alpha, &mut sc.decay);
+    if ray.opaque_last && n > 0 {
         sc.alpha[n - 1] = 1.0;
         sc.decay[n - 1] = 0.0;
     }
-    let mut t = 1.0f64;
-    let mut op = 0.0f64;
-    let mut dep = 0.0f64;
+    // Local slices of exactly n entries: the loop then reloads nothing from `sc` (its
+    // stores cannot alias the Vec headers) and needs no bounds checks.
+    let (alpha, decay) = (&sc.alpha[..n], &sc.decay[..n]);
+    let (w_out, t_out): (&mut [f64], &mut [f64]) = if store {
+        (&mut sc.w[..n], &mut sc.t_next[..n])
+    } else {
+        (&mut [], &mut [])
+    };
+    let tm = ray.tm.map(|t| &t[..n]);
+    let vals = &ray.vals[..n * k];
+    let (mut t, mut opacity, mut depth) = (1.0f64, 0.0f64, 0.0f64);
     let mut live = n;
     for i in 0..n {
-        let w = t * sc.alpha[i];
-        let v = &vals[i * k..(i + 1) * k];
-        for (a, vv) in sc.acc[..k].iter_mut().zip(v) {
+        let w = t * alpha[i];
+        for (a, vv) in acc.iter_mut().zip(&vals[i * k..i * k + k]) {
             *a += w * vv.to_f64();
         }
         if let Some(tm) = tm {
-            dep += w * tm[i].to_f64();
+            depth += w * tm[i].to_f64();
         }
-        op += w;
-        t *= sc.decay[i];
+        opacity += w;
+        t *= decay[i];
         if store {
-            sc.w[i] = w;
-            sc.t_next[i] = t;
+            w_out[i] = w;
+            t_out[i] = t;
         }
         if t < T_STOP {
             live = i + 1;
             break;
         }
     }
-    if g == 1 {
-        sc.acc[k] = dep;
+    ScanOut {
+        live,
+        depth,
+        opacity,
     }
-    sc.acc[k + g] = op;
-    live
 }
 
-/// Mutable per-ray sub-slices of `buf` (`k` entries per sample).
-fn split_rays<'a, T>(mut buf: &'a mut [T], seg: &Segments, k: usize) -> Vec<&'a mut [T]> {
+/// Channel counts with kernels specialised at compile time (accumulators in registers,
+/// fixed-stride loops); others take the general path (`K = 0`).
+const MAX_FIXED_K: usize = 4;
+
+/// Calls `$f::<T, K>(args)` with `K` = the ray's channel count when it is at most
+/// [`MAX_FIXED_K`], else `K = 0` (general).
+macro_rules! specialise_k {
+    ($f:ident::<$t:ty>($k:expr; $($arg:expr),*)) => {
+        match $k {
+            1 => $f::<$t, 1>($($arg),*),
+            2 => $f::<$t, 2>($($arg),*),
+            3 => $f::<$t, 3>($($arg),*),
+            4 => $f::<$t, 4>($($arg),*),
+            _ => $f::<$t, 0>($($arg),*),
+        }
+    };
+}
+
+/// Forward of one ray into its output row `o` (`[K + G]`).
+#[inline(always)]
+fn forward_ray<T: WithDType>(ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) {
+    specialise_k!(forward_ray_k::<T>(ray.k; ray, sc, o))
+}
+
+#[inline(always)]
+fn forward_ray_k<T: WithDType, const K: usize>(ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) {
+    let k = if K == 0 { ray.k } else { K };
+    let mut fixed = [0.0f64; MAX_FIXED_K];
+    let mut general = std::mem::take(&mut sc.acc);
+    let acc: &mut [f64] = if K == 0 {
+        general.resize(k, 0.0);
+        &mut general
+    } else {
+        &mut fixed
+    };
+    let res = scan_ray(ray, k, acc, sc, false);
+    for (oo, aa) in o.iter_mut().zip(&acc[..k]) {
+        *oo = T::from_f64(*aa);
+    }
+    if ray.tm.is_some() {
+        o[k] = T::from_f64(res.depth);
+    }
+    o[o.len() - 1] = T::from_f64(res.opacity);
+    sc.acc = general;
+}
+
+/// Backward of one ray given its upstream gradient row `grad` (`[K + G]`).
+#[inline(always)]
+fn backward_ray<T: WithDType>(
+    ray: &RayIn<'_, T>,
+    grad: &[T],
+    sc: &mut Scratch,
+    out: &mut RayGrads<'_, T>,
+) {
+    specialise_k!(backward_ray_k::<T>(ray.k; ray, grad, sc, out))
+}
+
+#[inline(always)]
+fn backward_ray_k<T: WithDType, const K: usize>(
+    ray: &RayIn<'_, T>,
+    grad: &[T],
+    sc: &mut Scratch,
+    out: &mut RayGrads<'_, T>,
+) {
+    let k = if K == 0 { ray.k } else { K };
+    let n = ray.sig.len();
+    if n == 0 {
+        return;
+    }
+    let (sig, del, vals) = (ray.sig, ray.del, &ray.vals[..n * k]);
+    let mut fixed = [0.0f64; MAX_FIXED_K];
+    let mut general = std::mem::take(&mut sc.acc);
+    let acc: &mut [f64] = if K == 0 {
+        general.resize(k, 0.0);
+        &mut general
+    } else {
+        &mut fixed
+    };
+    let live = scan_ray(ray, k, acc, sc, true).live;
+    sc.acc = general;
+    // Upstream gradients g_c of the channels, g_D of the depth, g_O of the opacity.
+    let mut gk_fixed = [0.0f64; MAX_FIXED_K];
+    sc.g.clear();
+    let gk: &[f64] = if K == 0 {
+        sc.g.extend(grad[..k].iter().map(|x| x.to_f64()));
+        &sc.g
+    } else {
+        for (a, b) in gk_fixed.iter_mut().zip(&grad[..k]) {
+            *a = b.to_f64();
+        }
+        &gk_fixed[..k]
+    };
+    let g_op = grad[grad.len() - 1].to_f64();
+    let g_dep = if ray.tm.is_some() {
+        grad[k].to_f64()
+    } else {
+        0.0
+    };
+    // Samples at index >= live have zero weight and zero gradient (the buffers start at 0).
+    // 1. uⱼ = Σ_c g_c v_jc + g_O + g_D tⱼ (independent per sample: vectorises), stored
+    //    in the (now free) alpha buffer.
+    let u = &mut sc.alpha[..live];
+    if k == 0 {
+        u.fill(g_op);
+    }
+    for (uj, v) in u.iter_mut().zip(vals.chunks_exact(k.max(1))) {
+        let mut s = g_op;
+        for (g, x) in gk.iter().zip(v) {
+            s += g * x.to_f64();
+        }
+        *uj = s;
+    }
+    if let Some(tm) = ray.tm {
+        for (uj, t) in u.iter_mut().zip(tm) {
+            *uj += g_dep * t.to_f64();
+        }
+    }
+    // 2. Reverse scan: ∂L/∂xⱼ = Tⱼ₊₁uⱼ − Σ_{i>j} wᵢuᵢ, overwriting uⱼ.
+    let mut suffix = 0.0f64;
+    for ((uj, tn), w) in u.iter_mut().zip(&sc.t_next).zip(&sc.w).rev() {
+        let v = *uj;
+        *uj = tn * v - suffix;
+        suffix += w * v;
+    }
+    if ray.opaque_last && live == n {
+        u[n - 1] = 0.0;
+    }
+    // 3. Independent writes (vectorise); the clamp region x > X_MAX has zero gradient,
+    //    ∂L/∂σ = δ·∂L/∂x and ∂L/∂δ = σ·∂L/∂x.
+    let gx = |s: f64, d: f64, u: f64| if s * d > X_MAX { 0.0 } else { u };
+    if let Some(gs) = out.sig.as_deref_mut() {
+        for (((o, s), d), u) in gs.iter_mut().zip(sig).zip(del).zip(u.iter()) {
+            let (s, d) = (s.to_f64(), d.to_f64());
+            *o = T::from_f64(d * gx(s, d, *u));
+        }
+    }
+    if let Some(gd) = out.del.as_deref_mut() {
+        for (((o, s), d), u) in gd.iter_mut().zip(sig).zip(del).zip(u.iter()) {
+            let (s, d) = (s.to_f64(), d.to_f64());
+            *o = T::from_f64(s * gx(s, d, *u));
+        }
+    }
+    let w = &sc.w[..live];
+    if let Some(gv) = out.vals.as_deref_mut() {
+        for (row, w) in gv[..live * k].chunks_exact_mut(k.max(1)).zip(w) {
+            for (o, g) in row.iter_mut().zip(gk) {
+                *o = T::from_f64(w * g);
+            }
+        }
+    }
+    if let Some(gt) = out.tm.as_deref_mut() {
+        for (o, w) in gt.iter_mut().zip(w) {
+            *o = T::from_f64(w * g_dep);
+        }
+    }
+}
+
+/// Runtime CPU dispatch: the per-ray kernels compiled for AVX2 + FMA (4 f64 lanes for
+/// the exp polynomial and the per-sample passes) when the CPU has them, else for the
+/// build's baseline target (SSE2 on x86-64). Same code, so the same results up to the
+/// rounding of fused multiply–adds.
+#[derive(Clone, Copy)]
+struct Isa {
+    #[cfg(target_arch = "x86_64")]
+    avx2_fma: bool,
+}
+
+/// Set by [`force_baseline_kernels`].
+static BASELINE_ONLY: AtomicBool = AtomicBool::new(false);
+
+/// Makes the fused op use its baseline kernels even where the CPU has AVX2 and FMA
+/// (`on = true`), or go back to runtime detection (`on = false`). Process-wide; for tests
+/// and benchmarks that compare the two builds of the same kernel code.
+#[doc(hidden)]
+pub fn force_baseline_kernels(on: bool) {
+    BASELINE_ONLY.store(on, Ordering::Relaxed);
+}
+
+impl Isa {
+    fn detect() -> Self {
+        let _allowed = !BASELINE_ONLY.load(Ordering::Relaxed);
+        Isa {
+            #[cfg(target_arch = "x86_64")]
+            avx2_fma: _allowed
+                && std::arch::is_x86_feature_detected!("avx2")
+                && std::arch::is_x86_feature_detected!("fma"),
+        }
+    }
+
+    #[inline(always)]
+    fn forward<T: WithDType>(self, ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) {
+        #[cfg(target_arch = "x86_64")]
+        if self.avx2_fma {
+            // SAFETY: `avx2_fma` is true only when the running CPU reports AVX2 and FMA.
+            return unsafe { x86::forward_ray(ray, sc, o) };
+        }
+        forward_ray(ray, sc, o)
+    }
+
+    #[inline(always)]
+    fn backward<T: WithDType>(
+        self,
+        ray: &RayIn<'_, T>,
+        grad: &[T],
+        sc: &mut Scratch,
+        out: &mut RayGrads<'_, T>,
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if self.avx2_fma {
+            // SAFETY: as in `forward`.
+            return unsafe { x86::backward_ray(ray, grad, sc, out) };
+        }
+        backward_ray(ray, grad, sc, out)
+    }
+}
+
+/// The per-ray kernels compiled with AVX2 and FMA enabled.
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use super::{RayGrads, RayIn, Scratch};
+    use candle_core::WithDType;
+
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) fn forward_ray<T: WithDType>(ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) {
+        super::forward_ray(ray, sc, o)
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) fn backward_ray<T: WithDType>(
+        ray: &RayIn<'_, T>,
+        grad: &[T],
+        sc: &mut Scratch,
+        out: &mut RayGrads<'_, T>,
+    ) {
+        super::backward_ray(ray, grad, sc, out)
+    }
+}
+
+/// Mutable per-ray sub-slices of `buf` (`k` entries per sample), or `None` for every
+/// ray when the buffer is not requested.
+fn split_rays<'a, T>(
+    buf: Option<&'a mut [T]>,
+    seg: &Segments,
+    k: usize,
+) -> Vec<Option<&'a mut [T]>> {
     let r = seg.n_rays();
+    let Some(mut buf) = buf else {
+        return (0..r).map(|_| None).collect();
+    };
     let mut out = Vec::with_capacity(r);
     for ray in 0..r {
         let (a, b) = seg.range(ray);
         let (head, tail) = std::mem::take(&mut buf).split_at_mut((b - a) * k);
-        out.push(head);
+        out.push(Some(head));
         buf = tail;
     }
     out
@@ -264,13 +562,19 @@ fn cpu_slice<'a, T: WithDType>(
 }
 
 impl FusedComposite {
-    fn g(&self) -> usize {
-        1 + usize::from(self.depth)
+    /// Rows of the geometry input: δ, and t when stacked.
+    fn geo_rows(&self) -> usize {
+        1 + usize::from(matches!(self.depth, Depth::Stacked))
+    }
+
+    /// Output columns: K values, depth (unless `Depth::None`), opacity.
+    fn width(&self) -> usize {
+        self.k + usize::from(!matches!(self.depth, Depth::None)) + 1
     }
 
     fn check_len(&self, m_sig: usize, m_geo: usize, m_val: usize) -> candle_core::Result<()> {
         let m = self.seg.n_samples();
-        if m_sig != m || m_geo != m * self.g() || m_val != m * self.k {
+        if m_sig != m || m_geo != m * self.geo_rows() || m_val != m * self.k {
             candle_core::bail!(
                 "fused composite: expected {m} samples with {} channels, got {m_sig}, {m_geo}, {m_val}",
                 self.k
@@ -279,35 +583,56 @@ impl FusedComposite {
         Ok(())
     }
 
-    /// (δ, t) slices of the geometry input for samples `a..b`.
-    fn geo<'a, T>(&self, geo: &'a [T], a: usize, b: usize) -> (&'a [T], Option<&'a [T]>) {
+    /// Calls `f(δ, t)` with the full-length δ and (when depth is accumulated) t slices,
+    /// taken from the geometry input or from the captured t tensor.
+    fn with_geometry<T: WithDType, R>(
+        &self,
+        geo: &[T],
+        f: impl FnOnce(&[T], Option<&[T]>) -> candle_core::Result<R>,
+    ) -> candle_core::Result<R> {
         let m = self.seg.n_samples();
-        let tm = self.depth.then(|| &geo[m + a..m + b]);
-        (&geo[a..b], tm)
+        match &self.depth {
+            Depth::None => f(geo, None),
+            Depth::Stacked => f(&geo[..m], Some(&geo[m..])),
+            Depth::Captured(t) => {
+                let (st, l) = t.storage_and_layout();
+                let tm = cpu_slice::<T>(&st, l, "t_mids")?;
+                if tm.len() != m {
+                    candle_core::bail!("fused composite: expected {m} depths, got {}", tm.len());
+                }
+                f(geo, Some(tm))
+            }
+        }
     }
 
-    fn forward<T: WithDType>(&self, sig: &[T], geo: &[T], vals: &[T]) -> Vec<T> {
-        let (k, r, width) = (self.k, self.seg.n_rays(), self.k + self.g());
+    fn ray<'a, T>(
+        &self,
+        r: usize,
+        sig: &'a [T],
+        del: &'a [T],
+        tm: Option<&'a [T]>,
+        vals: &'a [T],
+    ) -> RayIn<'a, T> {
+        let (a, b) = self.seg.range(r);
+        RayIn {
+            sig: &sig[a..b],
+            del: &del[a..b],
+            tm: tm.map(|t| &t[a..b]),
+            vals: &vals[a * self.k..b * self.k],
+            k: self.k,
+            opaque_last: self.opaque_last,
+        }
+    }
+
+    fn forward<T: WithDType>(&self, sig: &[T], del: &[T], tm: Option<&[T]>, vals: &[T]) -> Vec<T> {
+        let (r, width) = (self.seg.n_rays(), self.width());
+        let isa = Isa::detect();
         let mut out = vec![T::zero(); r * width];
         out.par_chunks_mut(width)
             .enumerate()
             .with_min_len(16)
             .for_each_init(Scratch::default, |sc, (ray, o)| {
-                let (a, b) = self.seg.range(ray);
-                let (del, tm) = self.geo(geo, a, b);
-                scan_ray(
-                    &sig[a..b],
-                    del,
-                    tm,
-                    &vals[a * k..b * k],
-                    k,
-                    self.opaque_last,
-                    sc,
-                    false,
-                );
-                for (oo, aa) in o.iter_mut().zip(sc.acc.iter()) {
-                    *oo = T::from_f64(*aa);
-                }
+                isa.forward(&self.ray(ray, sig, del, tm, vals), sc, o);
             });
         out
     }
@@ -315,133 +640,47 @@ impl FusedComposite {
     /// Gradients with respect to (sigmas, geometry, values) given `grad` `[R, K + G]`;
     /// `need` says which of the three to produce (the others are returned empty and not
     /// computed, saving their allocation and writes).
+    #[allow(clippy::too_many_arguments)]
     fn backward<T: WithDType>(
         &self,
         sig: &[T],
-        geo: &[T],
+        del: &[T],
+        tm: Option<&[T]>,
         vals: &[T],
         grad: &[T],
         need: [bool; 3],
     ) -> (Vec<T>, Vec<T>, Vec<T>) {
-        let (k, width) = (self.k, self.k + self.g());
-        let m = self.seg.n_samples();
+        let (k, width, m) = (self.k, self.width(), self.seg.n_samples());
         let alloc = |on: bool, len: usize| if on { vec![T::zero(); len] } else { Vec::new() };
         let mut gs = alloc(need[0], m);
-        let mut ggeo = alloc(need[1], m * self.g());
+        let mut ggeo = alloc(need[1], m * self.geo_rows());
         let mut gv = alloc(need[2], m * k);
-        let r = self.seg.n_rays();
-        let none = || (0..r).map(|_| None).collect::<Vec<Option<&mut [T]>>>();
         let seg = &self.seg;
-        fn some<'a, T>(buf: &'a mut [T], seg: &Segments, k: usize) -> Vec<Option<&'a mut [T]>> {
-            split_rays(buf, seg, k).into_iter().map(Some).collect()
-        }
-        let (gd_rays, gt_rays) = if need[1] {
+        let (gd, gt) = if need[1] {
             let (gd, gt) = ggeo.split_at_mut(m);
-            (
-                some(gd, seg, 1),
-                if self.depth { some(gt, seg, 1) } else { none() },
-            )
+            (Some(gd), (!gt.is_empty()).then_some(gt))
         } else {
-            (none(), none())
+            (None, None)
         };
-        let gs_rays = if need[0] {
-            some(&mut gs, seg, 1)
-        } else {
-            none()
-        };
-        let gv_rays = if need[2] {
-            some(&mut gv, seg, k)
-        } else {
-            none()
-        };
-        let rays: Vec<_> = gs_rays
+        let rays: Vec<_> = split_rays((!gs.is_empty()).then_some(&mut gs[..]), seg, 1)
             .into_iter()
-            .zip(gd_rays)
-            .zip(gv_rays)
-            .zip(gt_rays)
+            .zip(split_rays(gd, seg, 1))
+            .zip(split_rays((!gv.is_empty()).then_some(&mut gv[..]), seg, k))
+            .zip(split_rays(gt, seg, 1))
             .enumerate()
             .collect();
+        let isa = Isa::detect();
         rays.into_par_iter().with_min_len(16).for_each_init(
             Scratch::default,
-            |sc: &mut Scratch, (ray, (((mut gs_r, mut gd_r), mut gv_r), mut gt_r))| {
-                let (a, b) = self.seg.range(ray);
-                let n = b - a;
-                if n == 0 {
-                    return;
-                }
-                let (del, tm) = self.geo(geo, a, b);
-                let (sig, vals) = (&sig[a..b], &vals[a * k..b * k]);
-                let live = scan_ray(sig, del, tm, vals, k, self.opaque_last, sc, true);
-                sc.g.clear();
-                sc.g.extend(
-                    grad[ray * width..(ray + 1) * width]
-                        .iter()
-                        .map(|x| x.to_f64()),
-                );
-                let g_op = sc.g[width - 1];
-                let g_dep = if self.depth { sc.g[k] } else { 0.0 };
-                // Samples at index >= live have zero weight and zero gradient (already 0).
-                // 1. uⱼ = Σ_c g_c v_jc + g_O + g_D tⱼ (independent per sample: vectorises),
-                //    stored in the (now free) alpha buffer.
-                let u = &mut sc.alpha[..live];
-                let gk = &sc.g[..k];
-                if k == 3 {
-                    let (g0, g1, g2) = (gk[0], gk[1], gk[2]);
-                    for (uj, v) in u.iter_mut().zip(vals.chunks_exact(3)) {
-                        *uj = g_op + g0 * v[0].to_f64() + g1 * v[1].to_f64() + g2 * v[2].to_f64();
-                    }
-                } else {
-                    for (j, uj) in u.iter_mut().enumerate() {
-                        let v = &vals[j * k..(j + 1) * k];
-                        *uj = g_op + gk.iter().zip(v).map(|(g, x)| g * x.to_f64()).sum::<f64>();
-                    }
-                }
-                if let Some(tm) = tm {
-                    for (uj, t) in u.iter_mut().zip(tm) {
-                        *uj += g_dep * t.to_f64();
-                    }
-                }
-                // 2. Reverse scan: ∂L/∂xⱼ = Tⱼ₊₁uⱼ − Σ_{i>j} wᵢuᵢ, overwriting uⱼ.
-                let mut suffix = 0.0f64;
-                for j in (0..live).rev() {
-                    let uj = u[j];
-                    u[j] = sc.t_next[j] * uj - suffix;
-                    suffix += sc.w[j] * uj;
-                }
-                if self.opaque_last && live == n {
-                    u[n - 1] = 0.0;
-                }
-                // 3. Independent writes (vectorise); the clamp region has zero gradient.
-                let gx = |j: usize| {
-                    let (s, d) = (sig[j].to_f64(), del[j].to_f64());
-                    if s * d > X_MAX {
-                        0.0
-                    } else {
-                        u[j]
-                    }
+            |sc: &mut Scratch, (ray, (((gs, gd), gv), gt))| {
+                let mut out = RayGrads {
+                    sig: gs,
+                    del: gd,
+                    vals: gv,
+                    tm: gt,
                 };
-                if let Some(gs_r) = gs_r.as_deref_mut() {
-                    for (j, o) in gs_r[..live].iter_mut().enumerate() {
-                        *o = T::from_f64(del[j].to_f64() * gx(j));
-                    }
-                }
-                if let Some(gd_r) = gd_r.as_deref_mut() {
-                    for (j, o) in gd_r[..live].iter_mut().enumerate() {
-                        *o = T::from_f64(sig[j].to_f64() * gx(j));
-                    }
-                }
-                if let Some(gv_r) = gv_r.as_deref_mut() {
-                    for (row, w) in gv_r[..live * k].chunks_exact_mut(k).zip(&sc.w[..live]) {
-                        for (o, g) in row.iter_mut().zip(gk) {
-                            *o = T::from_f64(w * g);
-                        }
-                    }
-                }
-                if let Some(gt_r) = gt_r.as_deref_mut() {
-                    for (o, w) in gt_r[..live].iter_mut().zip(&sc.w[..live]) {
-                        *o = T::from_f64(w * g_dep);
-                    }
-                }
+                let g = &grad[ray * width..(ray + 1) * width];
+                isa.backward(&self.ray(ray, sig, del, tm, vals), g, sc, &mut out);
             },
         );
         (gs, ggeo, gv)
@@ -462,7 +701,7 @@ impl CustomOp3 for FusedComposite {
         s3: &CpuStorage,
         l3: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let shape = Shape::from((self.seg.n_rays(), self.k + self.g()));
+        let shape = Shape::from((self.seg.n_rays(), self.width()));
         let (Some((a1, b1)), Some((a2, b2)), Some((a3, b3))) = (
             l1.contiguous_offsets(),
             l2.contiguous_offsets(),
@@ -474,12 +713,14 @@ impl CustomOp3 for FusedComposite {
             (CpuStorage::F32(s), CpuStorage::F32(d), CpuStorage::F32(v)) => {
                 let (s, d, v) = (&s[a1..b1], &d[a2..b2], &v[a3..b3]);
                 self.check_len(s.len(), d.len(), v.len())?;
-                Ok((CpuStorage::F32(self.forward(s, d, v)), shape))
+                let out = self.with_geometry(d, |del, tm| Ok(self.forward(s, del, tm, v)))?;
+                Ok((CpuStorage::F32(out), shape))
             }
             (CpuStorage::F64(s), CpuStorage::F64(d), CpuStorage::F64(v)) => {
                 let (s, d, v) = (&s[a1..b1], &d[a2..b2], &v[a3..b3]);
                 self.check_len(s.len(), d.len(), v.len())?;
-                Ok((CpuStorage::F64(self.forward(s, d, v)), shape))
+                let out = self.with_geometry(d, |del, tm| Ok(self.forward(s, del, tm, v)))?;
+                Ok((CpuStorage::F64(out), shape))
             }
             _ => candle_core::bail!("fused composite: inputs must all be f32 or all f64"),
         }
@@ -508,7 +749,8 @@ impl CustomOp3 for FusedComposite {
                 let v = cpu_slice::<$t>(&vs, vl, "values")?;
                 let g = cpu_slice::<$t>(&gs, gl, "grad")?;
                 self.check_len(s.len(), d.len(), v.len())?;
-                let (a, b, c) = self.backward(s, d, v, g, need);
+                let (a, b, c) =
+                    self.with_geometry(d, |del, tm| Ok(self.backward(s, del, tm, v, g, need)))?;
                 let wrap =
                     |on: bool, v: Vec<$t>, t: &Tensor| -> candle_core::Result<Option<Tensor>> {
                         if on {
@@ -545,25 +787,33 @@ fn require_cpu(sigmas: &Tensor) -> Result<()> {
     }
 }
 
-/// Applies the fused op; `geo` is δ alone or δ and t stacked along a new leading axis
-/// (a contiguous block copy, and its backward is a contiguous split). Returns
-/// `[R, K + G]`.
+/// Applies the fused op to `values` (any shape whose contiguous data is `[M, K]`; no
+/// reshape, since each reshape in the graph adds a zeros + add pass per gradient in
+/// candle's backprop). A constant `tm` is captured by the op and read in place; one that
+/// needs a gradient is stacked under δ (a contiguous block copy whose backward is a
+/// contiguous split). Returns `[R, K + 2]`, or `[R, K + 1]` without `tm`.
 fn apply(
     sig: &Tensor,
     del: &Tensor,
     tm: Option<&Tensor>,
     values: &Tensor,
-    op: FusedComposite,
+    seg: Segments,
+    k: usize,
+    opaque_last: bool,
 ) -> Result<Tensor> {
-    // No reshapes around the op: each would add a zeros + add pass per gradient in
-    // candle's backprop. The kernel reads the contiguous data flat.
     let sig = sig.contiguous()?;
-    let geo = match tm {
-        Some(t) => Tensor::stack(&[del, t], 0)?,
-        None => del.contiguous()?,
+    let (geo, depth) = match tm {
+        Some(t) if t.track_op() => (Tensor::stack(&[del, t], 0)?, Depth::Stacked),
+        Some(t) => (del.contiguous()?, Depth::Captured(t.contiguous()?)),
+        None => (del.contiguous()?, Depth::None),
     };
-    let values = values.contiguous()?;
-    Ok(sig.apply_op3(&geo, &values, op)?)
+    let op = FusedComposite {
+        seg,
+        k,
+        depth,
+        opaque_last,
+    };
+    Ok(sig.apply_op3(&geo, &values.contiguous()?, op)?)
 }
 
 /// Splits `[R, C + 2]` = (colour, depth, opacity) and adds the background.
@@ -597,18 +847,15 @@ pub fn composite_fused(
     require_cpu(sigmas)?;
     let (r, s) = sigmas.dims2()?;
     let c = colors.dim(2)?;
-    let op = FusedComposite {
-        seg: Segments::Uniform { rays: r, s },
-        k: c,
-        depth: true,
-        opaque_last: opts.opaque_last,
-    };
+    let seg = Segments::Uniform { rays: r, s };
     let out = apply(
         sigmas,
         deltas,
         Some(t_mids),
-        &colors.reshape((r * s, c))?,
-        op,
+        colors,
+        seg,
+        c,
+        opts.opaque_last,
     )?;
     split_out(&out, c, opts)
 }
@@ -630,13 +877,16 @@ pub fn composite_packed_fused(
     check_composite_inputs_packed(sigmas, colors, deltas, t_mids, packed)?;
     require_cpu(sigmas)?;
     let c = colors.dim(1)?;
-    let op = FusedComposite {
-        seg: Segments::Offsets(packed.offsets_arc()),
-        k: c,
-        depth: true,
-        opaque_last: opts.opaque_last,
-    };
-    let out = apply(sigmas, deltas, Some(t_mids), colors, op)?;
+    let seg = Segments::Offsets(packed.offsets_arc());
+    let out = apply(
+        sigmas,
+        deltas,
+        Some(t_mids),
+        colors,
+        seg,
+        c,
+        opts.opaque_last,
+    )?;
     split_out(&out, c, opts)
 }
 
@@ -664,20 +914,9 @@ pub fn accumulate_fused(
     )?;
     check_sigmas_deltas(sigmas, deltas)?;
     require_cpu(sigmas)?;
-    let op = FusedComposite {
-        seg: Segments::Uniform {
-            rays: d[0],
-            s: d[1],
-        },
-        k: dv[2],
-        depth: false,
-        opaque_last,
+    let seg = Segments::Uniform {
+        rays: d[0],
+        s: d[1],
     };
-    apply(
-        sigmas,
-        deltas,
-        None,
-        &values.reshape((d[0] * d[1], dv[2]))?,
-        op,
-    )
+    apply(sigmas, deltas, None, values, seg, dv[2], opaque_last)
 }
