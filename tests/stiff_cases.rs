@@ -18,6 +18,7 @@ use neural_fields::field::{Cuboid, ImplicitSurface, Plane, SignedDistance, Spher
 use neural_fields::nn::{build_seeded, mlp, Activation, MlpConfig};
 use neural_fields::numerics::{
     bce_with_logits, cos_pi, guard_denominator, safe_cos, safe_sin, sigmoid, sin_pi, softplus,
+    softplus_reference,
 };
 use neural_fields::rng::SplitMix64;
 use std::collections::BTreeSet;
@@ -167,6 +168,13 @@ fn sweep_numerics(s: &mut Suite) {
                 Expect::Finite,
                 &[&x],
                 || Ok(vec![softplus(t, beta)?]),
+            );
+            s.case(
+                "numerics::softplus_reference",
+                format!("{tag}, β = {beta}"),
+                Expect::Finite,
+                &[&x],
+                || Ok(vec![softplus_reference(t, beta)?]),
             );
         }
         s.case(
@@ -2314,6 +2322,7 @@ const COVERED: &[&str] = &[
     "numerics::sigmoid",
     "numerics::sin_pi",
     "numerics::softplus",
+    "numerics::softplus_reference",
     "rng::SplitMix64::normal_tensor",
     "rng::SplitMix64::uniform_tensor",
 ];
@@ -2591,8 +2600,12 @@ const EXEMPT: &[(&str, &str)] = &[
     ("nn::mlp::MlpConfig::default", "constant"),
     ("rng::SplitMix64::", "integer state; tensor makers swept"),
     (
-        "volume::activations::Softplus::",
-        "CustomOp internals, swept via activations::softplus",
+        "numerics::SoftplusOp::",
+        "CustomOp internals, swept via numerics::softplus",
+    ),
+    (
+        "numerics::SigmoidOfScaled::",
+        "CustomOp internals (softplus backward), swept via numerics::softplus",
     ),
     (
         "volume::activations::TruncExp::",

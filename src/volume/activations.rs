@@ -17,6 +17,7 @@
 //! (`v.detach() + (x·s − (x·s).detach())` has value `v` and gradient `s`).
 
 use crate::error::{check_float, Result};
+use crate::numerics::{map_cpu, with_slope};
 use candle_core::{CpuStorage, CustomOp1, DType, Layout, Shape, Tensor};
 
 /// Upper clamp of the trunc-exp argument in f32: e⁸⁸ ≈ 1.65e38 is finite.
@@ -25,24 +26,6 @@ pub const TRUNC_EXP_MAX_F32: f64 = 88.0;
 pub const TRUNC_EXP_MAX_F64: f64 = 709.0;
 /// The trunc-exp gradient is `exp(clamp(x, −TRUNC_EXP_GRAD_CLAMP, TRUNC_EXP_GRAD_CLAMP))`.
 pub const TRUNC_EXP_GRAD_CLAMP: f64 = 15.0;
-
-fn unary<F32: Fn(f32) -> f32, F64: Fn(f64) -> f64>(
-    name: &str,
-    s: &CpuStorage,
-    l: &Layout,
-    f32op: F32,
-    f64op: F64,
-) -> candle_core::Result<(CpuStorage, Shape)> {
-    let Some((a, b)) = l.contiguous_offsets() else {
-        candle_core::bail!("{name}: input must be contiguous")
-    };
-    let out = match s {
-        CpuStorage::F32(v) => CpuStorage::F32(v[a..b].iter().map(|&x| f32op(x)).collect()),
-        CpuStorage::F64(v) => CpuStorage::F64(v[a..b].iter().map(|&x| f64op(x)).collect()),
-        _ => candle_core::bail!("{name}: f32 or f64 input expected"),
-    };
-    Ok((out, l.shape().clone()))
-}
 
 /// `x` if `x ≤ m`, else `m`; NaN stays NaN (unlike `f32::min`).
 #[inline]
@@ -62,7 +45,7 @@ impl CustomOp1 for TruncExp {
     }
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
-        unary(
+        map_cpu(
             self.name(),
             s,
             l,
@@ -82,47 +65,6 @@ impl CustomOp1 for TruncExp {
             .exp()?;
         Ok(Some(grad.mul(&s)?))
     }
-}
-
-struct Softplus;
-
-/// Stable sigmoid from candle ops: 1/(1+e) for x ≥ 0, e/(1+e) otherwise, e = exp(−|x|).
-fn sigmoid_ops(x: &Tensor) -> candle_core::Result<Tensor> {
-    let e = x.abs()?.neg()?.exp()?;
-    let den = (&e + 1.0)?;
-    x.ge(0.0)?.where_cond(&den.recip()?, &(&e / &den)?)
-}
-
-impl CustomOp1 for Softplus {
-    fn name(&self) -> &'static str {
-        "nf-softplus"
-    }
-
-    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
-        unary(
-            self.name(),
-            s,
-            l,
-            |x| x.max(0.0) + (-x.abs()).exp().ln_1p(),
-            |x| x.max(0.0) + (-x.abs()).exp().ln_1p(),
-        )
-    }
-
-    fn bwd(
-        &self,
-        arg: &Tensor,
-        _res: &Tensor,
-        grad: &Tensor,
-    ) -> candle_core::Result<Option<Tensor>> {
-        Ok(Some(grad.mul(&sigmoid_ops(arg)?)?))
-    }
-}
-
-/// Value `value`, gradient `slope` with respect to `x` (any device): the detach trick.
-fn with_slope(value: &Tensor, x: &Tensor, slope: &Tensor) -> Result<Tensor> {
-    let xs = (x * slope.detach())?;
-    let zero = (&xs - xs.detach())?;
-    Ok((value.detach() + zero)?)
 }
 
 /// Truncated exponential density activation.
@@ -154,7 +96,7 @@ pub fn trunc_exp(x: &Tensor) -> Result<Tensor> {
     with_slope(&value, x, &slope)
 }
 
-/// Softplus density activation `log(1 + eˣ)`.
+/// Softplus density activation `log(1 + eˣ)`: [`crate::numerics::softplus`] with β = 1.
 ///
 /// Value: `max(x, 0) + log1p(exp(−|x|))` (finite for all finite x, ≈ eˣ for very
 /// negative x, ≈ x for large x). Gradient: `sigmoid(x)` exactly (1/2 at 0), computed
@@ -166,11 +108,5 @@ pub fn trunc_exp(x: &Tensor) -> Result<Tensor> {
 /// # Errors
 /// `x` when not f32/f64.
 pub fn softplus(x: &Tensor) -> Result<Tensor> {
-    check_float(x, "x")?;
-    if x.device().is_cpu() {
-        return Ok(x.contiguous()?.apply_op1(Softplus)?);
-    }
-    let value = crate::numerics::softplus(x, 1.0)?;
-    let slope = sigmoid_ops(x)?;
-    with_slope(&value, x, &slope)
+    crate::numerics::softplus(x, 1.0)
 }
