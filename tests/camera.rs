@@ -1,7 +1,10 @@
 //! Tests for `neural_fields::camera`: conventions, ray generation, intersections, pose
 //! gradients and argument validation.
 
+mod common;
+
 use candle_core::{DType, Device, Tensor, Var};
+use common::v64;
 use glam::{DAffine3, DMat3, DQuat, DVec3};
 use neural_fields::camera::{
     ray_aabb, ray_sphere, Camera, Convention, Intersection, Intrinsics, PoseParam, Rays,
@@ -18,10 +21,6 @@ fn dev() -> Device {
 
 fn v2(t: &Tensor) -> Vec<Vec<f64>> {
     t.to_dtype(DType::F64).unwrap().to_vec2::<f64>().unwrap()
-}
-
-fn v1(t: &Tensor) -> Vec<f64> {
-    t.to_dtype(DType::F64).unwrap().to_vec1::<f64>().unwrap()
 }
 
 fn mask(t: &Tensor) -> Vec<u8> {
@@ -217,7 +216,7 @@ fn aabb1(o: [f64; 3], d: [f64; 3], dtype: DType) -> Intersection {
 }
 
 fn nfh(x: &Intersection) -> (f64, f64, u8) {
-    (v1(&x.near)[0], v1(&x.far)[0], mask(&x.hit)[0])
+    (v64(&x.near)[0], v64(&x.far)[0], mask(&x.hit)[0])
 }
 
 #[test]
@@ -638,7 +637,7 @@ fn rotation_matrix_is_that_of_the_normalised_quaternion() {
         assert!(close(*a, *b, 1e-14));
     }
     p.renormalize().unwrap();
-    let unit = v1(&p.rotation);
+    let unit = v64(&p.rotation);
     assert!(
         close(unit.iter().map(|x| x * x).sum::<f64>(), 1.0, 1e-15),
         "{unit:?}"
@@ -683,8 +682,8 @@ proptest! {
         let tt = Tensor::new(&[t], &dev()).unwrap();
         let wt = Tensor::new(&[w], &dev()).unwrap();
         let g = pose_objective(&p, &pxt, &tt, &wt, conv).backward().unwrap();
-        let gq = v1(g.get(&p.rotation).unwrap());
-        let gt = v1(g.get(&p.translation).unwrap());
+        let gq = v64(g.get(&p.rotation).unwrap());
+        let gt = v64(g.get(&p.translation).unwrap());
         let eval = |q: &[f64], tr: &[f64]| {
             set_var(&p.rotation, q);
             set_var(&p.translation, tr);
@@ -985,7 +984,7 @@ fn stiff_batches_give_finite_values_and_gradients_and_f32_agrees_with_f64() {
             for g in go.iter().chain(&gd).flatten() {
                 assert!(g.is_finite(), "{dtype:?} sphere={sphere}");
             }
-            let (n, f, h) = (v1(&x.near), v1(&x.far), mask(&x.hit));
+            let (n, f, h) = (v64(&x.near), v64(&x.far), mask(&x.hit));
             assert!(n.iter().chain(&f).all(|v| v.is_finite()));
             results.push((n, f, h));
         }

@@ -2,7 +2,10 @@
 //! dispatching paths).
 #![cfg(feature = "volume")]
 
+mod common;
+
 use candle_core::{DType, Device, Tensor};
+use common::v64;
 use neural_fields::volume::composite::{
     accumulate, accumulate_packed, composite, composite_packed, composite_packed_reference,
     composite_reference, render_weights, render_weights_packed, visible_mask, Composite,
@@ -22,15 +25,6 @@ fn t2(v: Vec<f64>, r: usize, s: usize, dt: DType) -> Tensor {
     Tensor::from_vec(v, (r, s), &dev())
         .unwrap()
         .to_dtype(dt)
-        .unwrap()
-}
-
-fn v1(t: &Tensor) -> Vec<f64> {
-    t.to_dtype(DType::F64)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1()
         .unwrap()
 }
 
@@ -57,7 +51,7 @@ fn one_ray(
     let c = t2(cols.to_vec(), 1, n, dt).reshape((1, n, 1)).unwrap();
     let m = t2(mids.to_vec(), 1, n, dt);
     let out = f(&s, &c, &d, &m, &CompositeOptions::default()).unwrap();
-    (v1(&out.color)[0], v1(&out.opacity)[0], v1(&out.depth)[0])
+    (v64(&out.color)[0], v64(&out.opacity)[0], v64(&out.depth)[0])
 }
 
 #[test]
@@ -205,7 +199,7 @@ fn background_fills_the_transparent_remainder() {
             ..Default::default()
         };
         let out = f(&s, &c, &d, &d, &opts).unwrap();
-        let col = v1(&out.color);
+        let col = v64(&out.color);
         let o = 1.0 - (-1.5f64).exp();
         let want = [o, o + 0.5 * (1.0 - o), 1.0, 0.0, 0.5, 1.0];
         for (g, w) in col.iter().zip(want) {
@@ -226,7 +220,7 @@ fn opaque_last_makes_opacity_one_and_ignores_the_last_density() {
                 ..Default::default()
             };
             let out = f(&s, &c, &d, &d, &opts).unwrap();
-            for o in v1(&out.opacity) {
+            for o in v64(&out.opacity) {
                 assert!((o - 1.0).abs() < 1e-6, "{name}: {o}");
             }
         }
@@ -237,7 +231,7 @@ fn opaque_last_makes_opacity_one_and_ignores_the_last_density() {
         &WeightOptions { opaque_last: true },
     )
     .unwrap();
-    assert_eq!(v1(&w.weights), vec![0.0, 0.0, 1.0]);
+    assert_eq!(v64(&w.weights), vec![0.0, 0.0, 1.0]);
 }
 
 #[test]
@@ -250,8 +244,8 @@ fn tiny_thickness_gives_alpha_equal_to_sigma_delta_in_f32() {
                 &WeightOptions::default(),
             )
             .unwrap();
-            let a = v1(&w.alphas)[0];
-            let xr = v1(&t2(vec![x], 1, 1, dt))[0];
+            let a = v64(&w.alphas)[0];
+            let xr = v64(&t2(vec![x], 1, 1, dt))[0];
             let want = -(-xr).exp_m1();
             let tol = if dt == DType::F32 { 1e-6 } else { 1e-14 };
             assert!(
@@ -271,14 +265,14 @@ fn stiff_inputs_give_finite_outputs() {
             let d = t2(vec![1.0, 1e10, 1.0, 1e-30, 1e10, 1.0], 1, 6, dt);
             let c = Tensor::ones((1, 6, 3), dt, &dev()).unwrap();
             let out = f(&s, &c, &d, &d, &CompositeOptions::default()).unwrap();
-            for v in v1(&out.color)
+            for v in v64(&out.color)
                 .into_iter()
-                .chain(v1(&out.opacity))
-                .chain(v1(&out.depth))
+                .chain(v64(&out.opacity))
+                .chain(v64(&out.depth))
             {
                 assert!(v.is_finite(), "{name} {dt:?}: {v}");
             }
-            assert!((v1(&out.opacity)[0] - 1.0).abs() < 1e-6);
+            assert!((v64(&out.opacity)[0] - 1.0).abs() < 1e-6);
         }
     }
 }
@@ -294,7 +288,7 @@ fn one_dense_interval_gives_one_hot_weights() {
             &WeightOptions::default(),
         )
         .unwrap();
-        let w = v1(&w.weights);
+        let w = v64(&w.weights);
         for (i, v) in w.iter().enumerate() {
             assert_eq!(*v, if i == 17 { 1.0 } else { 0.0 }, "{dt:?} at {i}");
         }
@@ -307,7 +301,7 @@ fn f32_transmittance_underflows_to_zero_without_nan_on_long_rays() {
     let s = t2(vec![1.0; n], 1, n, DType::F32);
     let d = t2(vec![0.5; n], 1, n, DType::F32);
     let w = render_weights(&s, &d, &WeightOptions::default()).unwrap();
-    let t = v1(&w.transmittance);
+    let t = v64(&w.transmittance);
     assert!(t.iter().all(|v| v.is_finite()));
     assert_eq!(t[n - 1], 0.0, "exp(-511.5) underflows in f32");
     assert!(t[100] > 0.0 && t[300] == 0.0);
@@ -358,15 +352,15 @@ fn packed_layout_matches_batched_and_handles_empty_rays() {
                     &opts,
                 )
                 .unwrap();
-                (v1(&one.color), v1(&one.opacity)[0], v1(&one.depth)[0])
+                (v64(&one.color), v64(&one.opacity)[0], v64(&one.depth)[0])
             };
             for out in &outs {
-                let got = v1(&out.color);
+                let got = v64(&out.color);
                 for k in 0..3 {
                     assert!((got[3 * r + k] - colour[k]).abs() < 1e-14, "ray {r}");
                 }
-                assert!((v1(&out.opacity)[r] - op).abs() < 1e-14);
-                assert!((v1(&out.depth)[r] - dep).abs() < 1e-13);
+                assert!((v64(&out.opacity)[r] - op).abs() < 1e-14);
+                assert!((v64(&out.depth)[r] - dep).abs() < 1e-13);
             }
             start += n;
         }
@@ -380,7 +374,7 @@ fn packed_layout_matches_batched_and_handles_empty_rays() {
 fn accumulate_is_the_weighted_sum() {
     let w = t2(vec![0.5, 0.25], 1, 2, DType::F64);
     let v = Tensor::from_vec(vec![1.0f64, 2.0, 3.0, 4.0], (1, 2, 2), &dev()).unwrap();
-    assert_eq!(v1(&accumulate(&w, &v).unwrap()), vec![1.25, 2.0]);
+    assert_eq!(v64(&accumulate(&w, &v).unwrap()), vec![1.25, 2.0]);
 }
 
 fn arg_of(e: Error) -> &'static str {
@@ -486,7 +480,7 @@ fn visible_mask_drops_only_samples_after_transmittance_falls_below_eps() {
     let mask = visible_mask(&s, &d, eps).unwrap();
     let mv = mask.flatten_all().unwrap().to_vec1::<u8>().unwrap();
     let w = render_weights(&s, &d, &WeightOptions::default()).unwrap();
-    let t = v1(&w.transmittance);
+    let t = v64(&w.transmittance);
     for i in 0..n {
         assert_eq!(mv[i] == 1, t[i] >= eps, "sample {i}: T = {}", t[i]);
     }
@@ -510,7 +504,7 @@ fn visible_mask_drops_only_samples_after_transmittance_falls_below_eps() {
         &CompositeOptions::default(),
     )
     .unwrap();
-    let err = (v1(&out.color)[0] - full).abs();
+    let err = (v64(&out.color)[0] - full).abs();
     let cmax = cols.iter().cloned().fold(0.0, f64::max);
     println!(
         "early termination: kept {kept}/{n}, colour error {err:e} (bound {:e})",

@@ -2,7 +2,10 @@
 //! on extreme inputs, and its stiff cases.
 #![cfg(feature = "volume")]
 
+mod common;
+
 use candle_core::{DType, Device, Tensor, Var};
+use common::v64;
 use neural_fields::rng::SplitMix64;
 use neural_fields::volume::composite::{
     composite_packed_reference, composite_reference, render_weights, Composite, CompositeOptions,
@@ -13,15 +16,6 @@ use proptest::prelude::*;
 
 fn dev() -> Device {
     Device::Cpu
-}
-
-fn v1(t: &Tensor) -> Vec<f64> {
-    t.to_dtype(DType::F64)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1()
-        .unwrap()
 }
 
 /// Random extreme inputs for `r` rays of `s` samples: σ in {0, 10^[−30, 30], moderate
@@ -112,9 +106,9 @@ fn grads_with(
     let out = path(s.as_tensor(), c.as_tensor(), d.as_tensor(), &t_in);
     let l = loss(&out, lw);
     let g = l.backward().unwrap();
-    let get = |v: &Var| v1(g.get(v.as_tensor()).expect("gradient present"));
+    let get = |v: &Var| v64(g.get(v.as_tensor()).expect("gradient present"));
     Grads {
-        loss: v1(&l)[0],
+        loss: v64(&l)[0],
         sig: get(&s),
         del: get(&d),
         col: get(&c),
@@ -143,7 +137,7 @@ fn x_scale(
     opaque_last: bool,
 ) -> Vec<f64> {
     let w = render_weights(sig, del, &WeightOptions { opaque_last }).unwrap();
-    let t = v1(&w.transmittance);
+    let t = v64(&w.transmittance);
     let c = lw.len() - 2;
     let umax = (0..t.len())
         .map(|i| {
@@ -209,8 +203,8 @@ proptest! {
         let gr = grads_with(&|a, b, d, e| composite_reference(a, b, d, e, &opts).unwrap(), &sig, &col, &del, &tm, &lw, t_var);
         prop_assert!(all_finite(&gf) && all_finite(&gr));
         prop_assert!((gf.loss - gr.loss).abs() <= 1e-12 * (1.0 + gr.loss.abs()));
-        let xs = x_scale(&sig, &del, &v1(&col), &v1(&tm), &lw, opaque_last);
-        let (sv, dv) = (v1(&sig), v1(&del));
+        let xs = x_scale(&sig, &del, &v64(&col), &v64(&tm), &lw, opaque_last);
+        let (sv, dv) = (v64(&sig), v64(&del));
         let ss: Vec<f64> = xs.iter().zip(&dv).map(|(x, d)| x * d).collect();
         let sd: Vec<f64> = xs.iter().zip(&sv).map(|(x, s)| x * s).collect();
         check_close("sigmas", &gf.sig, &gr.sig, &ss, 1e-10)?;
@@ -233,8 +227,8 @@ proptest! {
         let lw = loss_weights(seed, c);
         let opts = CompositeOptions { opaque_last, ..Default::default() };
         let g = grads(&|a, b, d, e| composite_fused(a, b, d, e, &opts).unwrap(), &sig, &col, &del, &tm, &lw);
-        let xs = x_scale(&sig, &del, &v1(&col), &v1(&tm), &lw, opaque_last);
-        let (sv, dv, cv, tv) = (v1(&sig), v1(&del), v1(&col), v1(&tm));
+        let xs = x_scale(&sig, &del, &v64(&col), &v64(&tm), &lw, opaque_last);
+        let (sv, dv, cv, tv) = (v64(&sig), v64(&del), v64(&col), v64(&tm));
         let eval = |sv: &[f64], dv: &[f64], cv: &[f64], tv: &[f64]| -> f64 {
             let out = composite_fused(
                 &Tensor::from_slice(sv, (r, s), &dev()).unwrap(),
@@ -243,7 +237,7 @@ proptest! {
                 &Tensor::from_slice(tv, (r, s), &dev()).unwrap(),
                 &opts,
             ).unwrap();
-            v1(&loss(&out, &lw))[0]
+            v64(&loss(&out, &lw))[0]
         };
         let mut rng = SplitMix64::new(seed ^ 77);
         let picks: Vec<usize> = if r * s <= 24 { (0..r * s).collect() } else { (0..24).map(|_| rng.below((r * s) as u64) as usize).collect() };
@@ -300,9 +294,9 @@ proptest! {
         prop_assert!(all_finite(&gf) && all_finite(&gr));
         prop_assert!((gf.loss - gr.loss).abs() <= 1e-12 * (1.0 + gr.loss.abs()));
         // Scale per sample from the packed reference weights.
-        let tr = v1(&neural_fields::volume::composite::render_weights_packed(&sig, &del, &packed, &opts.weight_options()).unwrap().transmittance);
+        let tr = v64(&neural_fields::volume::composite::render_weights_packed(&sig, &del, &packed, &opts.weight_options()).unwrap().transmittance);
         let umax = 10.0 * lw.iter().map(|x| x.abs()).sum::<f64>();
-        let (sv, dv) = (v1(&sig), v1(&del));
+        let (sv, dv) = (v64(&sig), v64(&del));
         let ss: Vec<f64> = (0..m).map(|i| tr[i].max(1e-290) * umax * dv[i]).collect();
         let sd: Vec<f64> = (0..m).map(|i| tr[i].max(1e-290) * umax * sv[i]).collect();
         check_close("sigmas", &gf.sig, &gr.sig, &ss, 1e-10)?;
@@ -455,7 +449,7 @@ fn stiff_cases_have_finite_outputs_and_gradients() {
             composite_fused(&sig, &col, &del, &del, &CompositeOptions::default()).unwrap(),
             composite_reference(&sig, &col, &del, &del, &CompositeOptions::default()).unwrap(),
         ] {
-            let o = v1(&out.opacity)[0];
+            let o = v64(&out.opacity)[0];
             assert!((o / 3e-30 - 1.0).abs() < 1e-6, "{dt:?}: {o:e}");
         }
     }
@@ -473,8 +467,8 @@ fn one_dense_interval_gives_one_hot_weights_and_gradient_only_up_to_it() {
         .reshape((1, n, 1))
         .unwrap();
     let out = composite_fused(&sig, &col, &del, &del, &CompositeOptions::default()).unwrap();
-    assert_eq!(v1(&out.color)[0], 9.0, "colour of the one-hot sample");
-    assert_eq!(v1(&out.opacity)[0], 1.0);
+    assert_eq!(v64(&out.color)[0], 9.0, "colour of the one-hot sample");
+    assert_eq!(v64(&out.opacity)[0], 1.0);
     let g = grads(
         &|a, b, d, e| composite_fused(a, b, d, e, &CompositeOptions::default()).unwrap(),
         &sig,
@@ -527,8 +521,8 @@ fn packed_with_only_empty_rays_gives_background() {
         composite_packed_fused(&z, &zc, &z, &z, &packed, &opts).unwrap(),
         composite_packed_reference(&z, &zc, &z, &z, &packed, &opts).unwrap(),
     ] {
-        assert_eq!(v1(&out.color), vec![0.25, 0.5, 1.0, 0.25, 0.5, 1.0]);
-        assert_eq!(v1(&out.opacity), vec![0.0, 0.0]);
+        assert_eq!(v64(&out.color), vec![0.25, 0.5, 1.0, 0.25, 0.5, 1.0]);
+        assert_eq!(v64(&out.opacity), vec![0.0, 0.0]);
     }
 }
 
@@ -538,12 +532,12 @@ fn accumulate_fused_matches_weights_times_values() {
     let out = accumulate_fused(&sig, &del, &col, false).unwrap();
     let w = render_weights(&sig, &del, &WeightOptions::default()).unwrap();
     let want = neural_fields::volume::composite::accumulate(&w.weights, &col).unwrap();
-    let got = v1(&out.narrow(1, 0, 2).unwrap());
-    for (a, b) in got.iter().zip(v1(&want)) {
+    let got = v64(&out.narrow(1, 0, 2).unwrap());
+    for (a, b) in got.iter().zip(v64(&want)) {
         assert!((a - b).abs() < 1e-13);
     }
-    let op = v1(&out.narrow(1, 2, 1).unwrap());
-    for (a, b) in op.iter().zip(v1(&w.weights.sum(1).unwrap())) {
+    let op = v64(&out.narrow(1, 2, 1).unwrap());
+    for (a, b) in op.iter().zip(v64(&w.weights.sum(1).unwrap())) {
         assert!((a - b).abs() < 1e-13);
     }
 }
@@ -582,10 +576,10 @@ fn every_channel_count_and_both_kernel_builds_match_the_reference() {
                 let lw = Tensor::new(&loss_weights(k as u64, k)[..k + 1], &dev()).unwrap();
                 let l = out.broadcast_mul(&lw).unwrap().sum_all().unwrap();
                 let g = l.backward().unwrap();
-                let get = |v: &Var| v1(g.get(v.as_tensor()).unwrap());
+                let get = |v: &Var| v64(g.get(v.as_tensor()).unwrap());
                 // With no channels candle drops the empty values from the reference graph.
-                let gc = g.get(c.as_tensor()).map(v1).unwrap_or_default();
-                (v1(&out), get(&s), get(&d), gc)
+                let gc = g.get(c.as_tensor()).map(v64).unwrap_or_default();
+                (v64(&out), get(&s), get(&d), gc)
             };
             let (fo, fs, fd, fc) = run(true);
             let (ro, rs, rd, rc) = run(false);
@@ -595,7 +589,7 @@ fn every_channel_count_and_both_kernel_builds_match_the_reference() {
                 .iter()
                 .map(|w| w.abs())
                 .sum();
-            let (sv, dv) = (v1(&sig), v1(&del));
+            let (sv, dv) = (v64(&sig), v64(&del));
             let ss: Vec<f64> = dv.iter().map(|d| d * umax).collect();
             let sd: Vec<f64> = sv.iter().map(|s| s * umax).collect();
             let one = vec![1.0; fo.len().max(fc.len())];
@@ -625,7 +619,7 @@ fn fused_rejects_non_contiguous_nothing_and_bad_input_with_names() {
     let sig_t = sig.t().unwrap().contiguous().unwrap().t().unwrap();
     let a = composite_fused(&sig_t, &col, &del, &tm, &CompositeOptions::default()).unwrap();
     let b = composite_reference(&sig, &col, &del, &tm, &CompositeOptions::default()).unwrap();
-    for (x, y) in v1(&a.color).iter().zip(v1(&b.color)) {
+    for (x, y) in v64(&a.color).iter().zip(v64(&b.color)) {
         assert!((x - y).abs() < 1e-13);
     }
     let neg = (del.clone() * -1.0).unwrap();
@@ -647,7 +641,7 @@ mod activations {
         let x = Var::from_tensor(&Tensor::new(xs, &dev()).unwrap().to_dtype(dt).unwrap()).unwrap();
         let y = f(x.as_tensor()).unwrap();
         let g = y.sum_all().unwrap().backward().unwrap();
-        (v1(&y), v1(g.get(x.as_tensor()).unwrap()))
+        (v64(&y), v64(g.get(x.as_tensor()).unwrap()))
     }
 
     #[test]
@@ -693,7 +687,7 @@ mod activations {
             for i in 0..xs.len() {
                 let x = xs[i];
                 let want = x.max(0.0) + (-x.abs()).exp().ln_1p();
-                let xr = v1(&Tensor::new(&[x], &dev()).unwrap().to_dtype(dt).unwrap())[0];
+                let xr = v64(&Tensor::new(&[x], &dev()).unwrap().to_dtype(dt).unwrap())[0];
                 let want = if dt == DType::F32 {
                     want as f32 as f64
                 } else {
@@ -722,7 +716,7 @@ mod activations {
         #[test]
         fn softplus_gradient_matches_finite_differences(x in -40.0f64..40.0) {
             let (_, g) = value_and_grad(softplus, &[x], DType::F64);
-            let f = |x: f64| v1(&softplus(&Tensor::new(&[x], &dev()).unwrap()).unwrap())[0];
+            let f = |x: f64| v64(&softplus(&Tensor::new(&[x], &dev()).unwrap()).unwrap())[0];
             let h = 1e-5;
             let fd = (f(x + h) - f(x - h)) / (2.0 * h);
             prop_assert!((fd - g[0]).abs() <= 1e-6 * g[0].abs() + 1e-10, "{fd} vs {}", g[0]);
@@ -752,9 +746,9 @@ mod activations {
                 let out =
                     composite_fused(&sig, &col, &del, &del, &CompositeOptions::default()).unwrap();
                 let g = out.color.sum_all().unwrap().backward().unwrap();
-                let gr = v1(g.get(raw.as_tensor()).unwrap());
+                let gr = v64(g.get(raw.as_tensor()).unwrap());
                 assert!(gr.iter().all(|v| v.is_finite()), "{dt:?}: {gr:?}");
-                assert!(v1(&out.color).iter().all(|v| v.is_finite()));
+                assert!(v64(&out.color).iter().all(|v| v.is_finite()));
             }
         }
     }
@@ -772,8 +766,8 @@ fn gradients_with_constant_deltas_match_reference() {
         let l = loss(&out, &[0.3, -1.0, 2.0, 0.7, -0.2]);
         let g = l.backward().unwrap();
         (
-            v1(g.get(s.as_tensor()).unwrap()),
-            v1(g.get(c.as_tensor()).unwrap()),
+            v64(g.get(s.as_tensor()).unwrap()),
+            v64(g.get(c.as_tensor()).unwrap()),
         )
     };
     let opts = CompositeOptions::default();

@@ -3,7 +3,7 @@
 //! (f32; IDR geometric initialisation with seeded perturbations, so a bumpy closed
 //! surface), each against its own high-accuracy march (4096 steps + 40 secant steps).
 
-use crate::report::{median_seconds, Row, Table};
+use crate::report::{median_seconds, v64, Row, Table};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use glam::DVec3;
@@ -12,10 +12,6 @@ use neural_fields::dvr::{march_bounded, sphere_trace, Hits, MarchConfig, SphereT
 use neural_fields::field::{ImplicitSurface, SignedDistance, Torus};
 use neural_fields::nn::{build_seeded, mlp, Activation, MlpConfig};
 use neural_fields::rng::SplitMix64;
-
-fn v64(t: &Tensor) -> Vec<f64> {
-    t.to_dtype(DType::F64).unwrap().to_vec1().unwrap()
-}
 
 fn scene(side: usize, dtype: DType) -> (Rays, Intersection) {
     let k = Intrinsics::from_fov_y(side, side, 0.7).unwrap();

@@ -1,7 +1,7 @@
 //! Positional-encoding error against frequency count, f32 (exact reduction and naive)
 //! and f64, against an f64 evaluation of the same f32 inputs.
 
-use crate::report::{median_seconds, Row, Table};
+use crate::report::{median_seconds, v64, Row, Table};
 use candle_core::{DType, Device, Tensor};
 use neural_fields::encoding::{Encoding, FrequencyEncoding};
 use neural_fields::rng::SplitMix64;
@@ -36,15 +36,6 @@ fn naive(x: &Tensor, l: usize) -> Tensor {
     Tensor::cat(&parts, 1).unwrap()
 }
 
-fn to_vec(t: &Tensor) -> Vec<f64> {
-    t.to_dtype(DType::F64)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1()
-        .unwrap()
-}
-
 pub fn run(quick: bool) -> Vec<Table> {
     let n = if quick { 2_000 } else { 100_000 };
     let reps = if quick { 1 } else { 5 };
@@ -53,7 +44,7 @@ pub fn run(quick: bool) -> Vec<Table> {
         .uniform_tensor(&[n, 3], -PI, PI, DType::F32, &Device::Cpu)
         .unwrap();
     let x64 = x32.to_dtype(DType::F64).unwrap();
-    let xs = to_vec(&x64);
+    let xs = v64(&x64);
     let mut rows = Vec::new();
     for l in [1usize, 2, 5, 8, 10, 12, 15, 20] {
         let enc = FrequencyEncoding::new(3, l).unwrap();
@@ -66,7 +57,7 @@ pub fn run(quick: bool) -> Vec<Table> {
             rows.push(Row {
                 series: series.into(),
                 knob: l as f64,
-                error: max_err(&to_vec(&out), &xs, l),
+                error: max_err(&v64(&out), &xs, l),
                 seconds,
             });
         }
@@ -76,7 +67,7 @@ pub fn run(quick: bool) -> Vec<Table> {
         rows.push(Row {
             series: "f32, naive sin(f32(2ᵏπ)·x)".into(),
             knob: l as f64,
-            error: max_err(&to_vec(&out), &xs, l),
+            error: max_err(&v64(&out), &xs, l),
             seconds,
         });
     }

@@ -5,6 +5,7 @@
 //! particular algorithm.
 #![allow(dead_code)]
 
+use candle_core::{DType, Tensor};
 use std::fmt::Write as _;
 use std::time::Instant;
 
@@ -35,6 +36,16 @@ pub struct Row {
 }
 
 /// Median wall time of `reps` runs of `f` (at least one), in seconds.
+/// Flattens any float tensor into a `Vec<f64>`.
+pub fn v64(t: &Tensor) -> Vec<f64> {
+    t.to_dtype(DType::F64)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap()
+}
+
 pub fn median_seconds(reps: usize, mut f: impl FnMut()) -> f64 {
     let mut times: Vec<f64> = (0..reps.max(1))
         .map(|_| {

@@ -139,6 +139,10 @@ struct Block {
 }
 
 /// The ONet decoder; build it with [`onet_decoder`].
+///
+/// As a [`ConditionalField`] it has one output channel (the occupancy logit, inside where
+/// positive) and spatial gradients by forward-mode tangents; in [`NormMode::Train`] the
+/// batch statistics are treated as constants of that propagation.
 #[derive(Debug)]
 pub struct OnetDecoder {
     fc_p: Linear,
@@ -351,35 +355,43 @@ impl OnetDecoder {
     }
 }
 
-impl ConditionalField for OnetDecoder {
-    fn code_dim(&self) -> usize {
-        self.config.code_dim
-    }
+/// `ConditionalField` for a decoder with `config.code_dim` and a
+/// `run(points, codes, tangents) -> (logits [N], Option<∇ logits [N, 3]>)`: one output
+/// channel (the occupancy logit), inside where it is positive, spatial gradients by
+/// forward-mode tangents.
+macro_rules! logit_decoder_field {
+    ($decoder:ty) => {
+        impl ConditionalField for $decoder {
+            fn code_dim(&self) -> usize {
+                self.config.code_dim
+            }
 
-    fn out_dim(&self) -> usize {
-        1
-    }
+            fn out_dim(&self) -> usize {
+                1
+            }
 
-    fn forward_with_code(&self, points: &Tensor, codes: &Tensor) -> Result<Tensor> {
-        Ok(self.logits(points, codes)?.unsqueeze(1)?)
-    }
+            fn forward_with_code(&self, points: &Tensor, codes: &Tensor) -> Result<Tensor> {
+                Ok(self.run(points, codes, false)?.0.unsqueeze(1)?)
+            }
 
-    /// Logits and their spatial gradient by forward-mode tangents (in
-    /// [`NormMode::Train`] the batch statistics are treated as constants).
-    fn value_and_grad_with_code(
-        &self,
-        points: &Tensor,
-        codes: &Tensor,
-    ) -> Result<(Tensor, Tensor)> {
-        let (v, g) = self.run(points, codes, true)?;
-        let g = g.ok_or_else(|| Error::invalid("points", "tangents", "none"))?;
-        Ok((v, g))
-    }
+            fn value_and_grad_with_code(
+                &self,
+                points: &Tensor,
+                codes: &Tensor,
+            ) -> Result<(Tensor, Tensor)> {
+                let (v, g) = self.run(points, codes, true)?;
+                let g = g.ok_or_else(|| Error::invalid("points", "tangents", "none"))?;
+                Ok((v, g))
+            }
 
-    fn inside(&self) -> Inside {
-        Inside::Positive
-    }
+            fn inside(&self) -> Inside {
+                Inside::Positive
+            }
+        }
+    };
 }
+
+logit_decoder_field!(OnetDecoder);
 
 /// Settings of [`simple_decoder`].
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -525,30 +537,4 @@ impl SimpleDecoder {
     }
 }
 
-impl ConditionalField for SimpleDecoder {
-    fn code_dim(&self) -> usize {
-        self.config.code_dim
-    }
-
-    fn out_dim(&self) -> usize {
-        1
-    }
-
-    fn forward_with_code(&self, points: &Tensor, codes: &Tensor) -> Result<Tensor> {
-        Ok(self.logits(points, codes)?.unsqueeze(1)?)
-    }
-
-    fn value_and_grad_with_code(
-        &self,
-        points: &Tensor,
-        codes: &Tensor,
-    ) -> Result<(Tensor, Tensor)> {
-        let (v, g) = self.run(points, codes, true)?;
-        let g = g.ok_or_else(|| Error::invalid("tangents", "propagated", "none"))?;
-        Ok((v, g))
-    }
-
-    fn inside(&self) -> Inside {
-        Inside::Positive
-    }
-}
+logit_decoder_field!(SimpleDecoder);

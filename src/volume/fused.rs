@@ -312,8 +312,16 @@ fn forward_ray<T: WithDType>(ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) 
     specialise_k!(forward_ray_k::<T>(ray.k; ray, sc, o))
 }
 
+/// [`scan_ray`] with `K` channels (`K = 0`: `ray.k`, general), the accumulators in a
+/// local array when `K > 0` (registers) and in `sc.acc` otherwise; `sink` receives the
+/// channel sums and the scan result.
 #[inline(always)]
-fn forward_ray_k<T: WithDType, const K: usize>(ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) {
+fn scan_ray_k<T: WithDType, const K: usize, R>(
+    ray: &RayIn<'_, T>,
+    sc: &mut Scratch,
+    store: bool,
+    sink: impl FnOnce(&[f64], ScanOut) -> R,
+) -> R {
     let k = if K == 0 { ray.k } else { K };
     let mut fixed = [0.0f64; MAX_FIXED_K];
     let mut general = std::mem::take(&mut sc.acc);
@@ -323,15 +331,24 @@ fn forward_ray_k<T: WithDType, const K: usize>(ray: &RayIn<'_, T>, sc: &mut Scra
     } else {
         &mut fixed
     };
-    let res = scan_ray(ray, k, acc, sc, false);
-    for (oo, aa) in o.iter_mut().zip(&acc[..k]) {
-        *oo = T::from_f64(*aa);
-    }
-    if ray.tm.is_some() {
-        o[k] = T::from_f64(res.depth);
-    }
-    o[o.len() - 1] = T::from_f64(res.opacity);
+    let res = scan_ray(ray, k, acc, sc, store);
+    let out = sink(&acc[..k], res);
     sc.acc = general;
+    out
+}
+
+#[inline(always)]
+fn forward_ray_k<T: WithDType, const K: usize>(ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) {
+    scan_ray_k::<T, K, _>(ray, sc, false, |acc, res| {
+        let k = acc.len();
+        for (oo, aa) in o.iter_mut().zip(acc) {
+            *oo = T::from_f64(*aa);
+        }
+        if ray.tm.is_some() {
+            o[k] = T::from_f64(res.depth);
+        }
+        o[o.len() - 1] = T::from_f64(res.opacity);
+    })
 }
 
 /// Backward of one ray given its upstream gradient row `grad` (`[K + G]`).
@@ -358,16 +375,7 @@ fn backward_ray_k<T: WithDType, const K: usize>(
         return;
     }
     let (sig, del, vals) = (ray.sig, ray.del, &ray.vals[..n * k]);
-    let mut fixed = [0.0f64; MAX_FIXED_K];
-    let mut general = std::mem::take(&mut sc.acc);
-    let acc: &mut [f64] = if K == 0 {
-        general.resize(k, 0.0);
-        &mut general
-    } else {
-        &mut fixed
-    };
-    let live = scan_ray(ray, k, acc, sc, true).live;
-    sc.acc = general;
+    let live = scan_ray_k::<T, K, _>(ray, sc, true, |_, res| res.live);
     // Upstream gradients g_c of the channels, g_D of the depth, g_O of the opacity.
     let mut gk_fixed = [0.0f64; MAX_FIXED_K];
     sc.g.clear();
@@ -816,8 +824,26 @@ fn apply(
     Ok(sig.apply_op3(&geo, &values.contiguous()?, op)?)
 }
 
-/// Splits `[R, C + 2]` = (colour, depth, opacity) and adds the background.
-fn split_out(out: &Tensor, c: usize, opts: &CompositeOptions) -> Result<Composite> {
+/// The fused op over `seg` with `c` colour channels, split into colour, depth and
+/// opacity, with the background added.
+fn composite_segments(
+    sigmas: &Tensor,
+    colors: &Tensor,
+    deltas: &Tensor,
+    t_mids: &Tensor,
+    seg: Segments,
+    c: usize,
+    opts: &CompositeOptions,
+) -> Result<Composite> {
+    let out = apply(
+        sigmas,
+        deltas,
+        Some(t_mids),
+        colors,
+        seg,
+        c,
+        opts.opaque_last,
+    )?;
     let color = out.narrow(1, 0, c)?;
     let depth = out.narrow(1, c, 1)?.squeeze(1)?;
     let opacity = out.narrow(1, c + 1, 1)?.squeeze(1)?;
@@ -848,16 +874,7 @@ pub fn composite_fused(
     let (r, s) = sigmas.dims2()?;
     let c = colors.dim(2)?;
     let seg = Segments::Uniform { rays: r, s };
-    let out = apply(
-        sigmas,
-        deltas,
-        Some(t_mids),
-        colors,
-        seg,
-        c,
-        opts.opaque_last,
-    )?;
-    split_out(&out, c, opts)
+    composite_segments(sigmas, colors, deltas, t_mids, seg, c, opts)
 }
 
 /// Packed-layout [`composite_fused`]: `sigmas, deltas, t_mids: [M]`, `colors: [M, C]`
@@ -878,16 +895,7 @@ pub fn composite_packed_fused(
     require_cpu(sigmas)?;
     let c = colors.dim(1)?;
     let seg = Segments::Offsets(packed.offsets_arc());
-    let out = apply(
-        sigmas,
-        deltas,
-        Some(t_mids),
-        colors,
-        seg,
-        c,
-        opts.opaque_last,
-    )?;
-    split_out(&out, c, opts)
+    composite_segments(sigmas, colors, deltas, t_mids, seg, c, opts)
 }
 
 /// Fused accumulation of arbitrary per-sample values with the weights of
