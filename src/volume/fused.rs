@@ -21,8 +21,9 @@
 //! −expm1(−xᵢ) and e^{−xᵢ} from one branch-free range-reduced polynomial (vectorised
 //! across the ray's samples; full relative accuracy of the storage dtype, see
 //! docs/math.md); then the sequential scan Tᵢ₊₁ = Tᵢ·e^{−xᵢ}, wᵢ = Tᵢαᵢ. Once
-//! T < 1e-300 the rest of the ray contributes nothing representable and the scan stops
-//! (this also keeps denormals out of the loop).
+//! T < 1e-300 the scan stops: the rest of the ray's weights (together below 1e-300, zero
+//! in f32) are dropped, an absolute error below 1e-300·max|v| in f64, and denormals stay
+//! out of the loop.
 //!
 //! Backward (derivation in docs/math.md, "Volume compositing"): with upstream gradients
 //! gₖ for the channels and g_O for the opacity, uᵢ = Σₖ gₖvᵢₖ + g_O and
@@ -128,6 +129,17 @@ const EXPM1_COEF: [f64; 13] = [
     0.5,
 ];
 
+/// `a·b + c`: one fused multiply–add (a single rounding) in the kernels built with FMA,
+/// a multiply and an add otherwise (a software `fma` call would be far slower there).
+#[inline(always)]
+fn madd<const FMA: bool>(a: f64, b: f64, c: f64) -> f64 {
+    if FMA {
+        a.mul_add(b, c)
+    } else {
+        a * b + c
+    }
+}
+
 /// (α, e^{−x}) = (−expm1(−x), exp(−x)) for x ∈ [0, X_MAX], branch-free (vectorisable).
 ///
 /// Range reduction −x = k·ln2 + r, |r| ≤ ln2/2 (Cody–Waite), q = expm1(r) by a degree-`D`
@@ -136,20 +148,20 @@ const EXPM1_COEF: [f64; 13] = [
 /// α ≥ 0.29 and the sum has no cancellation. e^{−x} is flushed to 0 for x > 708 (below
 /// the smallest normal f64).
 #[inline(always)]
-fn alpha_and_decay<const D: usize>(x: f64) -> (f64, f64) {
+fn alpha_and_decay<const D: usize, const FMA: bool>(x: f64) -> (f64, f64) {
     let y = -x.min(708.0);
-    let t = y * std::f64::consts::LOG2_E + ROUND_MAGIC;
+    let t = madd::<FMA>(y, std::f64::consts::LOG2_E, ROUND_MAGIC);
     let k = (t.to_bits() as i64).wrapping_sub(ROUND_MAGIC.to_bits() as i64);
     let kf = t - ROUND_MAGIC;
-    let r = (y - kf * LN2_HI) - kf * LN2_LO;
+    let r = madd::<FMA>(-kf, LN2_LO, madd::<FMA>(-kf, LN2_HI, y));
     let mut p = EXPM1_COEF[13 - D];
     for &c in &EXPM1_COEF[14 - D..] {
-        p = p * r + c;
+        p = madd::<FMA>(p, r, c);
     }
-    let q = (p * r + 1.0) * r;
+    let q = madd::<FMA>(p, r, 1.0) * r;
     let scale = f64::from_bits(((k + 1023) as u64) << 52);
-    let em = scale * q + (scale - 1.0);
-    let decay = scale + scale * q;
+    let em = madd::<FMA>(scale, q, scale - 1.0);
+    let decay = madd::<FMA>(scale, q, scale);
     if x > 708.0 {
         (1.0, 0.0)
     } else {
@@ -161,8 +173,14 @@ fn alpha_and_decay<const D: usize>(x: f64) -> (f64, f64) {
 /// relative accuracy of the storage dtype (f64: degree 13, f32: degree 7). `alpha` and
 /// `decay` must have the length of `sig`.
 #[inline(always)]
-fn alpha_decay<T: WithDType>(sig: &[T], del: &[T], alpha: &mut [f64], decay: &mut [f64]) {
-    fn run<T: WithDType, const D: usize>(
+fn alpha_decay<T: WithDType, const FMA: bool>(
+    sig: &[T],
+    del: &[T],
+    alpha: &mut [f64],
+    decay: &mut [f64],
+) {
+    #[inline(always)]
+    fn run<T: WithDType, const D: usize, const FMA: bool>(
         sig: &[T],
         del: &[T],
         alpha: &mut [f64],
@@ -175,13 +193,13 @@ fn alpha_decay<T: WithDType>(sig: &[T], del: &[T], alpha: &mut [f64], decay: &mu
             .zip(decay.iter_mut())
         {
             let x = (s.to_f64() * d.to_f64()).min(X_MAX);
-            (*a, *e) = alpha_and_decay::<D>(x);
+            (*a, *e) = alpha_and_decay::<D, FMA>(x);
         }
     }
     if T::DTYPE == DType::F32 {
-        run::<T, 7>(sig, del, alpha, decay)
+        run::<T, 7, FMA>(sig, del, alpha, decay)
     } else {
-        run::<T, 13>(sig, del, alpha, decay)
+        run::<T, 13, FMA>(sig, del, alpha, decay)
     }
 }
 
@@ -229,7 +247,7 @@ struct ScanOut {
 /// specialised caller). Accumulates Σwᵢvᵢₖ into `acc[..k]` (zeroed here) and, when
 /// `store`, writes `sc.w[i]` = wᵢ and `sc.t_next[i]` = Tᵢ₊₁.
 #[inline(always)]
-fn scan_ray<T: WithDType>(
+fn scan_ray<T: WithDType, const FMA: bool>(
     ray: &RayIn<'_, T>,
     k: usize,
     acc: &mut [f64],
@@ -245,7 +263,7 @@ fn scan_ray<T: WithDType>(
         sc.w.resize(n, 0.0);
         sc.t_next.resize(n, 0.0);
     }
-    alpha_decay(ray.sig, ray.del, &mut sc.alpha, &mut sc.decay);
+    alpha_decay::<T, FMA>(ray.sig, ray.del, &mut sc.alpha, &mut sc.decay);
     if ray.opaque_last && n > 0 {
         sc.alpha[n - 1] = 1.0;
         sc.decay[n - 1] = 0.0;
@@ -265,10 +283,10 @@ fn scan_ray<T: WithDType>(
     for i in 0..n {
         let w = t * alpha[i];
         for (a, vv) in acc.iter_mut().zip(&vals[i * k..i * k + k]) {
-            *a += w * vv.to_f64();
+            *a = madd::<FMA>(w, vv.to_f64(), *a);
         }
         if let Some(tm) = tm {
-            depth += w * tm[i].to_f64();
+            depth = madd::<FMA>(w, tm[i].to_f64(), depth);
         }
         opacity += w;
         t *= decay[i];
@@ -292,31 +310,31 @@ fn scan_ray<T: WithDType>(
 /// fixed-stride loops); others take the general path (`K = 0`).
 const MAX_FIXED_K: usize = 4;
 
-/// Calls `$f::<T, K>(args)` with `K` = the ray's channel count when it is at most
+/// Calls `$f::<T, K, FMA>(args)` with `K` = the ray's channel count when it is at most
 /// [`MAX_FIXED_K`], else `K = 0` (general).
 macro_rules! specialise_k {
-    ($f:ident::<$t:ty>($k:expr; $($arg:expr),*)) => {
+    ($f:ident::<$t:ty, $fma:ident>($k:expr; $($arg:expr),*)) => {
         match $k {
-            1 => $f::<$t, 1>($($arg),*),
-            2 => $f::<$t, 2>($($arg),*),
-            3 => $f::<$t, 3>($($arg),*),
-            4 => $f::<$t, 4>($($arg),*),
-            _ => $f::<$t, 0>($($arg),*),
+            1 => $f::<$t, 1, $fma>($($arg),*),
+            2 => $f::<$t, 2, $fma>($($arg),*),
+            3 => $f::<$t, 3, $fma>($($arg),*),
+            4 => $f::<$t, 4, $fma>($($arg),*),
+            _ => $f::<$t, 0, $fma>($($arg),*),
         }
     };
 }
 
 /// Forward of one ray into its output row `o` (`[K + G]`).
 #[inline(always)]
-fn forward_ray<T: WithDType>(ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) {
-    specialise_k!(forward_ray_k::<T>(ray.k; ray, sc, o))
+fn forward_ray<T: WithDType, const FMA: bool>(ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) {
+    specialise_k!(forward_ray_k::<T, FMA>(ray.k; ray, sc, o))
 }
 
 /// [`scan_ray`] with `K` channels (`K = 0`: `ray.k`, general), the accumulators in a
 /// local array when `K > 0` (registers) and in `sc.acc` otherwise; `sink` receives the
 /// channel sums and the scan result.
 #[inline(always)]
-fn scan_ray_k<T: WithDType, const K: usize, R>(
+fn scan_ray_k<T: WithDType, const K: usize, const FMA: bool, R>(
     ray: &RayIn<'_, T>,
     sc: &mut Scratch,
     store: bool,
@@ -331,15 +349,19 @@ fn scan_ray_k<T: WithDType, const K: usize, R>(
     } else {
         &mut fixed
     };
-    let res = scan_ray(ray, k, acc, sc, store);
+    let res = scan_ray::<T, FMA>(ray, k, acc, sc, store);
     let out = sink(&acc[..k], res);
     sc.acc = general;
     out
 }
 
 #[inline(always)]
-fn forward_ray_k<T: WithDType, const K: usize>(ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) {
-    scan_ray_k::<T, K, _>(ray, sc, false, |acc, res| {
+fn forward_ray_k<T: WithDType, const K: usize, const FMA: bool>(
+    ray: &RayIn<'_, T>,
+    sc: &mut Scratch,
+    o: &mut [T],
+) {
+    scan_ray_k::<T, K, FMA, _>(ray, sc, false, |acc, res| {
         let k = acc.len();
         for (oo, aa) in o.iter_mut().zip(acc) {
             *oo = T::from_f64(*aa);
@@ -353,17 +375,17 @@ fn forward_ray_k<T: WithDType, const K: usize>(ray: &RayIn<'_, T>, sc: &mut Scra
 
 /// Backward of one ray given its upstream gradient row `grad` (`[K + G]`).
 #[inline(always)]
-fn backward_ray<T: WithDType>(
+fn backward_ray<T: WithDType, const FMA: bool>(
     ray: &RayIn<'_, T>,
     grad: &[T],
     sc: &mut Scratch,
     out: &mut RayGrads<'_, T>,
 ) {
-    specialise_k!(backward_ray_k::<T>(ray.k; ray, grad, sc, out))
+    specialise_k!(backward_ray_k::<T, FMA>(ray.k; ray, grad, sc, out))
 }
 
 #[inline(always)]
-fn backward_ray_k<T: WithDType, const K: usize>(
+fn backward_ray_k<T: WithDType, const K: usize, const FMA: bool>(
     ray: &RayIn<'_, T>,
     grad: &[T],
     sc: &mut Scratch,
@@ -375,7 +397,7 @@ fn backward_ray_k<T: WithDType, const K: usize>(
         return;
     }
     let (sig, del, vals) = (ray.sig, ray.del, &ray.vals[..n * k]);
-    let live = scan_ray_k::<T, K, _>(ray, sc, true, |_, res| res.live);
+    let live = scan_ray_k::<T, K, FMA, _>(ray, sc, true, |_, res| res.live);
     // Upstream gradients g_c of the channels, g_D of the depth, g_O of the opacity.
     let mut gk_fixed = [0.0f64; MAX_FIXED_K];
     sc.g.clear();
@@ -404,21 +426,21 @@ fn backward_ray_k<T: WithDType, const K: usize>(
     for (uj, v) in u.iter_mut().zip(vals.chunks_exact(k.max(1))) {
         let mut s = g_op;
         for (g, x) in gk.iter().zip(v) {
-            s += g * x.to_f64();
+            s = madd::<FMA>(*g, x.to_f64(), s);
         }
         *uj = s;
     }
     if let Some(tm) = ray.tm {
         for (uj, t) in u.iter_mut().zip(tm) {
-            *uj += g_dep * t.to_f64();
+            *uj = madd::<FMA>(g_dep, t.to_f64(), *uj);
         }
     }
     // 2. Reverse scan: ∂L/∂xⱼ = Tⱼ₊₁uⱼ − Σ_{i>j} wᵢuᵢ, overwriting uⱼ.
     let mut suffix = 0.0f64;
     for ((uj, tn), w) in u.iter_mut().zip(&sc.t_next).zip(&sc.w).rev() {
         let v = *uj;
-        *uj = tn * v - suffix;
-        suffix += w * v;
+        *uj = madd::<FMA>(*tn, v, -suffix);
+        suffix = madd::<FMA>(*w, v, suffix);
     }
     if ray.opaque_last && live == n {
         u[n - 1] = 0.0;
@@ -492,7 +514,7 @@ impl Isa {
             // SAFETY: `avx2_fma` is true only when the running CPU reports AVX2 and FMA.
             return unsafe { x86::forward_ray(ray, sc, o) };
         }
-        forward_ray(ray, sc, o)
+        forward_ray::<T, false>(ray, sc, o)
     }
 
     #[inline(always)]
@@ -508,7 +530,7 @@ impl Isa {
             // SAFETY: as in `forward`.
             return unsafe { x86::backward_ray(ray, grad, sc, out) };
         }
-        backward_ray(ray, grad, sc, out)
+        backward_ray::<T, false>(ray, grad, sc, out)
     }
 }
 
@@ -520,7 +542,7 @@ mod x86 {
 
     #[target_feature(enable = "avx2,fma")]
     pub(super) fn forward_ray<T: WithDType>(ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) {
-        super::forward_ray(ray, sc, o)
+        super::forward_ray::<T, true>(ray, sc, o)
     }
 
     #[target_feature(enable = "avx2,fma")]
@@ -530,7 +552,7 @@ mod x86 {
         sc: &mut Scratch,
         out: &mut RayGrads<'_, T>,
     ) {
-        super::backward_ray(ray, grad, sc, out)
+        super::backward_ray::<T, true>(ray, grad, sc, out)
     }
 }
 
