@@ -81,6 +81,31 @@ pub trait ImplicitSurface {
     /// Wrong shape or dtype of `points`.
     fn value_and_grad(&self, points: &Tensor) -> Result<(Tensor, Tensor)>;
 
+    /// [`value`](Self::value) at points that lie on rays: `rays: [N]` (u32, on the
+    /// device of `points`) is each point's ray index. A field that does not depend on
+    /// the ray ignores it (this default); [`Conditioned`] with one code per ray
+    /// (`[R, D]`) gives each point the code of its ray. The ray marchers of `dvr` call
+    /// this form, so a batch of rays through different shapes can be marched at once.
+    ///
+    /// # Errors
+    /// As [`value`](Self::value); an implementation that reads `rays` names it when it
+    /// does not match.
+    fn value_on_rays(&self, points: &Tensor, rays: &Tensor) -> Result<Tensor> {
+        let _ = rays;
+        self.value(points)
+    }
+
+    /// [`value_and_grad`](Self::value_and_grad) at points on rays; see
+    /// [`value_on_rays`](Self::value_on_rays).
+    ///
+    /// # Errors
+    /// As [`value_and_grad`](Self::value_and_grad) and
+    /// [`value_on_rays`](Self::value_on_rays).
+    fn value_and_grad_on_rays(&self, points: &Tensor, rays: &Tensor) -> Result<(Tensor, Tensor)> {
+        let _ = rays;
+        self.value_and_grad(points)
+    }
+
     /// The level τ of the surface (0 for logits and SDFs).
     fn level(&self) -> f64 {
         0.0
@@ -124,8 +149,11 @@ pub trait ConditionalField {
 /// A [`ConditionalField`] with its latent code bound: `p ↦ f(p, z)`.
 ///
 /// The code is `[D]` (shared by all points, broadcast to `[N, D]`) or `[N, D]` (one per
-/// point; then every call must pass exactly `N` points). Gradients flow to the code if
-/// it is a `Var` or depends on one (auto-decoding, encoders).
+/// point; then every call must pass exactly `N` points). Given to the `dvr` ray marchers
+/// (which call [`ImplicitSurface::value_on_rays`]), an `[R, D]` code is one per *ray*:
+/// each sample takes the code of its ray, so rays through different shapes march in one
+/// batch. Gradients flow to the code if it is a `Var` or depends on one (auto-decoding,
+/// encoders).
 #[derive(Clone, Debug)]
 pub struct Conditioned<'a, F: ?Sized> {
     field: &'a F,
@@ -171,6 +199,35 @@ impl<'a, F: ConditionalField + ?Sized> Conditioned<'a, F> {
         }
         Ok(self.code.clone())
     }
+
+    /// Codes for points on rays: the shared `[D]` code broadcast, or row `rays[i]` of an
+    /// `[R, D]` code (one per ray) for point i.
+    fn codes_on_rays(&self, points: &Tensor, rays: &Tensor) -> Result<Tensor> {
+        if self.code.rank() == 1 {
+            return self.codes_for(points);
+        }
+        let n = check_points(points, "points")?;
+        check_shape(rays, "rays", &[Dim::Is(n)])?;
+        if rays.dtype() != DType::U32 || !rays.device().same_device(points.device()) {
+            return Err(Error::invalid(
+                "rays",
+                "u32 ray indices on the device of points",
+                format!("{:?} on {:?}", rays.dtype(), rays.device()),
+            ));
+        }
+        let rows = self.code.dim(0)?;
+        if n > 0 {
+            let max = rays.max(0)?.to_scalar::<u32>()? as usize;
+            if max >= rows {
+                return Err(Error::invalid(
+                    "code",
+                    format!("one row per ray (at least {} rows)", max + 1),
+                    format!("{rows} rows"),
+                ));
+            }
+        }
+        Ok(self.code.index_select(rays, 0)?)
+    }
 }
 
 impl<F: ConditionalField + ?Sized> Field for Conditioned<'_, F> {
@@ -191,6 +248,20 @@ impl<F: ConditionalField + ?Sized> ImplicitSurface for Conditioned<'_, F> {
 
     fn value_and_grad(&self, points: &Tensor) -> Result<(Tensor, Tensor)> {
         let codes = self.codes_for(points)?;
+        self.field.value_and_grad_with_code(points, &codes)
+    }
+
+    fn value_on_rays(&self, points: &Tensor, rays: &Tensor) -> Result<Tensor> {
+        let codes = self.codes_on_rays(points, rays)?;
+        Ok(self
+            .field
+            .forward_with_code(points, &codes)?
+            .narrow(1, 0, 1)?
+            .squeeze(1)?)
+    }
+
+    fn value_and_grad_on_rays(&self, points: &Tensor, rays: &Tensor) -> Result<(Tensor, Tensor)> {
+        let codes = self.codes_on_rays(points, rays)?;
         self.field.value_and_grad_with_code(points, &codes)
     }
 

@@ -87,7 +87,7 @@ impl SurfacePoints {
 /// [module docs](self)).
 ///
 /// * `field`: the field that was marched (possibly [`crate::field::Conditioned`] with a
-///   `[D]` code; gradients then reach the code).
+///   shared `[D]` code or one `[R, D]` code per ray; gradients then reach the code).
 /// * `origins, directions: [R, 3]`: the rays that were marched, *with* their graph (e.g.
 ///   from [`crate::camera::PoseParam::rays`]) so that gradients reach the camera.
 /// * `hits`: the march's result for these rays; only its detached depths and statuses
@@ -140,7 +140,7 @@ pub fn implicit_surface<F: ImplicitSurface + ?Sized>(
     let w = directions.index_select(&indices, 0)?;
     let t0 = hits.depth.detach().index_select(&indices, 0)?;
     let x0 = (&o + w.broadcast_mul(&t0.unsqueeze(1)?)?)?;
-    let (f, g) = field.value_and_grad(&x0)?;
+    let (f, g) = field.value_and_grad_on_rays(&x0, &indices)?;
     let gd = g.detach();
     let wd = w.detach();
     let d = (&gd * &wd)?.sum(1)?;

@@ -320,12 +320,11 @@ pub fn most_inside_along_rays<F: ImplicitSurface + ?Sized>(
         }
     };
     for chunk in idx.chunks(per_chunk) {
-        let mut pts = Vec::with_capacity(3 * steps * chunk.len());
+        let mut pts = super::march::RayPoints::with_capacity(steps * chunk.len());
         for &i in chunk {
             for j in 0..steps {
                 let t = rays.near[i] + (rays.far[i] - rays.near[i]) * frac(j);
-                let (o, w) = (&rays.o[i], &rays.w[i]);
-                pts.extend_from_slice(&[o[0] + t * w[0], o[1] + t * w[1], o[2] + t * w[2]]);
+                pts.push(i, &rays.o[i], &rays.w[i], t);
             }
         }
         let s = ev.values(&pts)?;
@@ -344,5 +343,11 @@ pub fn most_inside_along_rays<F: ImplicitSurface + ?Sized>(
         .to_dtype(origins.dtype())?
         .to_device(origins.device())?;
     let p = (origins + directions.broadcast_mul(&t.unsqueeze(1)?)?)?;
-    field.value(&p)
+    field.value_on_rays(&p, &ray_indices(r, origins.device())?)
+}
+
+/// `[0, 1, …, r − 1]` as u32 ray indices on `device`.
+pub(crate) fn ray_indices(r: usize, device: &candle_core::Device) -> Result<Tensor> {
+    // Ray counts are far below 2³² (the host copies alone would not fit otherwise).
+    Ok(Tensor::arange(0u32, r as u32, device)?)
 }

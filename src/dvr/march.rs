@@ -391,6 +391,35 @@ pub(crate) fn read_problem(
     Ok(rays)
 }
 
+/// Host points to evaluate, each with the index of its ray (for fields with one latent
+/// code per ray; see [`ImplicitSurface::value_on_rays`]).
+#[derive(Default)]
+pub(crate) struct RayPoints {
+    pts: Vec<f64>,
+    ids: Vec<u32>,
+}
+
+impl RayPoints {
+    pub(crate) fn with_capacity(n: usize) -> Self {
+        Self {
+            pts: Vec::with_capacity(3 * n),
+            ids: Vec::with_capacity(n),
+        }
+    }
+
+    pub(crate) fn clear(&mut self) {
+        self.pts.clear();
+        self.ids.clear();
+    }
+
+    /// Adds the point `o + t·w` of ray `ray`.
+    pub(crate) fn push(&mut self, ray: usize, o: &[f64; 3], w: &[f64; 3], t: f64) {
+        self.pts.extend_from_slice(&point(o, w, t));
+        // Ray counts are far below 2³² (the host copies alone would not fit otherwise).
+        self.ids.push(ray as u32);
+    }
+}
+
 /// Evaluates `s = σ(f − τ)` (and `σ∇f`) at host points, in chunks.
 pub(crate) struct Evaluator<'a, F: ?Sized> {
     field: &'a F,
@@ -415,30 +444,43 @@ impl<'a, F: ImplicitSurface + ?Sized> Evaluator<'a, F> {
         }
     }
 
-    fn upload(&self, pts: &[f64]) -> Result<Tensor> {
-        Ok(Tensor::from_slice(pts, (pts.len() / 3, 3), &Device::Cpu)?
-            .to_dtype(self.dtype)?
-            .to_device(&self.device)?)
+    /// Chunks of `(points [M, 3], ray indices [M])` on the rays' device and dtype.
+    fn upload<'p>(
+        &'p self,
+        p: &'p RayPoints,
+    ) -> impl Iterator<Item = Result<(Tensor, Tensor)>> + 'p {
+        p.pts
+            .chunks(3 * self.chunk)
+            .zip(p.ids.chunks(self.chunk))
+            .map(move |(c, ids)| {
+                let pts = Tensor::from_slice(c, (ids.len(), 3), &Device::Cpu)?
+                    .to_dtype(self.dtype)?
+                    .to_device(&self.device)?;
+                let ids =
+                    Tensor::from_slice(ids, ids.len(), &Device::Cpu)?.to_device(&self.device)?;
+                Ok((pts, ids))
+            })
     }
 
-    /// `s` at `pts` (flattened `[M, 3]`).
-    pub(crate) fn values(&mut self, pts: &[f64]) -> Result<Vec<f64>> {
-        let mut out = Vec::with_capacity(pts.len() / 3);
-        for c in pts.chunks(3 * self.chunk) {
-            let f = self.field.value(&self.upload(c)?)?;
-            self.count += c.len() / 3;
+    /// `s` at the points.
+    pub(crate) fn values(&mut self, p: &RayPoints) -> Result<Vec<f64>> {
+        let mut out = Vec::with_capacity(p.ids.len());
+        for chunk in self.upload(p) {
+            let (pts, ids) = chunk?;
+            let f = self.field.value_on_rays(&pts, &ids)?;
             out.extend(vec1(&f)?.into_iter().map(|v| self.sign * (v - self.level)));
         }
+        self.count += p.ids.len();
         Ok(out)
     }
 
-    /// `s` and `σ∇f` (flattened `[M, 3]`) at `pts`.
-    pub(crate) fn values_and_grads(&mut self, pts: &[f64]) -> Result<(Vec<f64>, Vec<f64>)> {
-        let mut vals = Vec::with_capacity(pts.len() / 3);
-        let mut grads = Vec::with_capacity(pts.len());
-        for c in pts.chunks(3 * self.chunk) {
-            let (f, g) = self.field.value_and_grad(&self.upload(c)?)?;
-            self.count += c.len() / 3;
+    /// `s` and `σ∇f` (flattened `[M, 3]`) at the points.
+    pub(crate) fn values_and_grads(&mut self, p: &RayPoints) -> Result<(Vec<f64>, Vec<f64>)> {
+        let mut vals = Vec::with_capacity(p.ids.len());
+        let mut grads = Vec::with_capacity(p.pts.len());
+        for chunk in self.upload(p) {
+            let (pts, ids) = chunk?;
+            let (f, g) = self.field.value_and_grad_on_rays(&pts, &ids)?;
             vals.extend(vec1(&f)?.into_iter().map(|v| self.sign * (v - self.level)));
             let g = g
                 .detach()
@@ -447,6 +489,7 @@ impl<'a, F: ImplicitSurface + ?Sized> Evaluator<'a, F> {
                 .to_vec1::<f64>()?;
             grads.extend(g.into_iter().map(|v| self.sign * v));
         }
+        self.count += p.ids.len();
         Ok((vals, grads))
     }
 }
@@ -487,14 +530,14 @@ pub(crate) fn march_host<F: ImplicitSurface + ?Sized>(
     let n = config.steps;
     let per_chunk = (config.chunk_points / n).max(1);
     let mut brackets: Vec<(usize, Bracket)> = Vec::new();
-    let mut pts = Vec::with_capacity(3 * n * per_chunk.min(todo.len()));
+    let mut pts = RayPoints::with_capacity(n * per_chunk.min(todo.len()));
     for chunk in todo.chunks(per_chunk) {
         pts.clear();
         for &i in chunk {
             let (a, b) = (rays.near[i], rays.far[i]);
             for j in 0..n {
                 let t = a + (b - a) * (j as f64 / (n - 1) as f64);
-                pts.extend_from_slice(&point(&rays.o[i], &rays.w[i], t));
+                pts.push(i, &rays.o[i], &rays.w[i], t);
             }
         }
         let s = ev.values(&pts)?;
@@ -535,13 +578,13 @@ fn refine<F: ImplicitSurface + ?Sized>(
     let k = config.secant_steps;
     let mut last_t = vec![f64::NAN; brackets.len()];
     let mut grazing = vec![false; brackets.len()];
-    let mut pts = Vec::with_capacity(3 * brackets.len());
+    let mut pts = RayPoints::with_capacity(brackets.len());
     for step in 0..k {
         pts.clear();
         for (b, (i, br)) in brackets.iter().enumerate() {
             let (t, _) = secant_point(br.t_lo, br.s_lo, br.t_hi, br.s_hi);
             last_t[b] = t;
-            pts.extend_from_slice(&point(&rays.o[*i], &rays.w[*i], t));
+            pts.push(*i, &rays.o[*i], &rays.w[*i], t);
         }
         let with_grad = step + 1 == k && config.grazing_threshold.is_some();
         let (s, g) = if with_grad {
@@ -641,7 +684,9 @@ fn run_march<F: ImplicitSurface + ?Sized>(
 /// math). Detached: the outputs carry no graph.
 ///
 /// * `field`: any [`ImplicitSurface`] (occupancy or SDF; its `level` and `inside` sign
-///   are respected).
+///   are respected), evaluated through [`ImplicitSurface::value_on_rays`]: a
+///   [`crate::field::Conditioned`] field with an `[R, D]` code gives every ray its own
+///   code (a batch of rays through different shapes).
 /// * `origins, directions: [R, 3]`, f32 or f64, same dtype and device; directions need
 ///   not be unit (depth is in units of `|w|`).
 /// * `near, far: [R]`, same dtype/device, `far > near` on every ray.
@@ -784,10 +829,10 @@ pub fn sphere_trace<F: ImplicitSurface + ?Sized>(
     // Distances are σ·s with σ = −1: d = f − τ = −s.
     let mut tf = rays.near.clone();
     let mut tb = rays.far.clone();
-    let mut pts = Vec::with_capacity(6 * r);
+    let mut pts = RayPoints::with_capacity(2 * r);
     for i in 0..r {
-        pts.extend_from_slice(&point(&rays.o[i], &rays.w[i], tf[i]));
-        pts.extend_from_slice(&point(&rays.o[i], &rays.w[i], tb[i]));
+        pts.push(i, &rays.o[i], &rays.w[i], tf[i]);
+        pts.push(i, &rays.o[i], &rays.w[i], tb[i]);
     }
     let s = ev.values(&pts)?;
     let mut df: Vec<f64> = (0..r).map(|i| -s[2 * i]).collect();
@@ -842,8 +887,8 @@ pub fn sphere_trace<F: ImplicitSurface + ?Sized>(
                 };
                 tb[i] -= step;
             }
-            pts.extend_from_slice(&point(&rays.o[i], &rays.w[i], tf[i]));
-            pts.extend_from_slice(&point(&rays.o[i], &rays.w[i], tb[i]));
+            pts.push(i, &rays.o[i], &rays.w[i], tf[i]);
+            pts.push(i, &rays.o[i], &rays.w[i], tb[i]);
         }
         let s = ev.values(&pts)?;
         for (k, &i) in running.iter().enumerate() {
@@ -877,7 +922,7 @@ pub fn sphere_trace<F: ImplicitSurface + ?Sized>(
     if let Some(c) = config.fallback.grazing_threshold {
         pts.clear();
         for &i in &conv {
-            pts.extend_from_slice(&point(&rays.o[i], &rays.w[i], tf[i]));
+            pts.push(i, &rays.o[i], &rays.w[i], tf[i]);
         }
         if !conv.is_empty() {
             let (_, g) = ev.values_and_grads(&pts)?;

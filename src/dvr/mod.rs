@@ -4,7 +4,8 @@
 //! point on each ray, detached and in chunks (memory O(rays)); [`implicit_surface`]
 //! evaluates the field once more at those points and returns depths and points whose
 //! gradients are the implicit-function ones, w.r.t. the field's parameters, a bound latent
-//! code ([`crate::field::Conditioned`]), and the ray origins and directions (so a
+//! code ([`crate::field::Conditioned`], shared `[D]` or one `[R, D]` row per ray), and the
+//! ray origins and directions (so a
 //! [`crate::camera::PoseParam`] is trained too). The [`losses`] are DVR's and IDR's.
 //!
 //! ```
