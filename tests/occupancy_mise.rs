@@ -4,7 +4,8 @@
 use candle_core::{DType, Device};
 use neural_fields::field::{ImplicitSurface, Inside, SignedDistance, Sphere, Torus};
 use neural_fields::occupancy::{
-    logit_threshold, marching_cubes, mise, surface_metrics, Grid, MiseConfig,
+    logit_threshold, marching_cubes, mise, refine_vertices, surface_metrics, Grid, MiseConfig,
+    RefineConfig,
 };
 use std::time::Instant;
 
@@ -189,4 +190,107 @@ fn mise_256_against_dense_256_on_a_trained_mlp() {
     assert!(v.chamfer_l1 <= 1.1e-4);
     assert!(out.evaluations * 10 <= dense_evals);
     assert!(t_mise * 5.0 <= t_dense, "{t_mise} vs {t_dense}");
+}
+
+/// Largest |‖p‖ − r| over the vertices: the distance of a sphere mesh from the sphere.
+fn sphere_error(vertices: &[[f64; 3]], r: f64) -> f64 {
+    vertices
+        .iter()
+        .map(|v| ((v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt() - r).abs())
+        .fold(0.0, f64::max)
+}
+
+#[test]
+fn newton_refinement_moves_vertices_onto_the_level_set() {
+    let dev = Device::Cpu;
+    let r = 0.37;
+    // f32 stops at its rounding of the field (|p| ≈ 0.4: ulp ≈ 3e-8, the grid's
+    // interpolation error at 32³ is ~1e-3); f64 reaches rounding of the field too.
+    for (dtype, tol) in [(DType::F32, 1e-6), (DType::F64, 1e-13)] {
+        let sphere = Sphere::new([0.0; 3], r, &dev, dtype).unwrap();
+        for field in [
+            Box::new(sphere.clone().sdf()) as Box<dyn ImplicitSurface>,
+            Box::new(sphere.occupancy(20.0)),
+        ] {
+            let mut mesh = mise(field.as_ref(), &MiseConfig::new(16, 1, &dev, dtype))
+                .unwrap()
+                .mesh;
+            mesh.normals = Some(mesh.vertex_normals());
+            let faces = mesh.faces.clone();
+            let coarse = sphere_error(&mesh.vertices, r);
+            let h = 1.1 / 32.0;
+            let (before, after) = refine_vertices(
+                field.as_ref(),
+                &mut mesh,
+                &RefineConfig::new(0.5 * h, &dev, dtype),
+            )
+            .unwrap();
+            let fine = sphere_error(&mesh.vertices, r);
+            assert!(
+                coarse > 1e-4,
+                "{dtype:?}: the grid must leave an error ({coarse})"
+            );
+            assert!(fine < tol, "{dtype:?}: {coarse:e} -> {fine:e}");
+            assert!(
+                after < 1e-3 * before,
+                "{dtype:?}: residual {before:e} -> {after:e}"
+            );
+            assert_eq!(mesh.faces, faces, "topology is kept");
+            assert!(mesh.is_watertight_and_oriented());
+            let n = mesh.normals.as_ref().unwrap();
+            // Recomputed normals point outwards along the position on a sphere.
+            let worst = mesh
+                .vertices
+                .iter()
+                .zip(n)
+                .map(|(v, n)| {
+                    let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+                    (v[0] * n[0] + v[1] * n[1] + v[2] * n[2]) / l
+                })
+                .fold(1.0, f64::min);
+            assert!(worst > 0.99, "{dtype:?}: normal/position cosine {worst}");
+        }
+    }
+}
+
+#[test]
+fn newton_refinement_clamps_the_shift_and_names_bad_settings() {
+    let dev = Device::Cpu;
+    let sphere = Sphere::new([0.0; 3], 0.3, &dev, DType::F64).unwrap().sdf();
+    let mut mesh = mise(&sphere, &MiseConfig::new(8, 1, &dev, DType::F64))
+        .unwrap()
+        .mesh;
+    let start = mesh.vertices.clone();
+    // A field whose level set is a sphere of radius 0.2: every vertex wants to move
+    // 0.1, but may move only 0.01.
+    let small = Sphere::new([0.0; 3], 0.2, &dev, DType::F64).unwrap().sdf();
+    let mut cfg = RefineConfig::new(0.01, &dev, DType::F64);
+    cfg.steps = 5;
+    refine_vertices(&small, &mut mesh, &cfg).unwrap();
+    for (a, b) in start.iter().zip(&mesh.vertices) {
+        let d = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
+        assert!(d <= 0.01 + 1e-12, "moved {d}");
+    }
+    // Zero steps change nothing; bad settings name the argument.
+    let mut copy = mesh.clone();
+    cfg.steps = 0;
+    refine_vertices(&small, &mut copy, &cfg).unwrap();
+    assert_eq!(copy.vertices, mesh.vertices);
+    for (bad, arg) in [
+        (RefineConfig::new(0.0, &dev, DType::F64), "max_shift"),
+        (RefineConfig::new(f64::NAN, &dev, DType::F64), "max_shift"),
+        (
+            RefineConfig {
+                chunk: 0,
+                ..RefineConfig::new(0.1, &dev, DType::F64)
+            },
+            "chunk",
+        ),
+        (RefineConfig::new(0.1, &dev, DType::U8), "dtype"),
+    ] {
+        let e = refine_vertices(&small, &mut copy, &bad)
+            .unwrap_err()
+            .to_string();
+        assert!(e.starts_with(arg), "{e}");
+    }
 }

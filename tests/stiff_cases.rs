@@ -1621,7 +1621,9 @@ fn sweep_occupancy(s: &mut Suite) {
     use neural_fields::occupancy::metrics::{
         iou, mesh_metrics, nearest_distances, surface_metrics, KdTree,
     };
-    use neural_fields::occupancy::mise::{logit_threshold, mise, MiseConfig};
+    use neural_fields::occupancy::mise::{
+        logit_threshold, mise, refine_vertices, MiseConfig, RefineConfig,
+    };
     use neural_fields::occupancy::sampling::{
         from_tensor, inside_mesh, near_surface, to_tensor, uniform_in_padded_cube, winding_numbers,
         winding_numbers_exact,
@@ -2039,6 +2041,41 @@ fn sweep_occupancy(s: &mut Suite) {
                 ])
             });
             s.case(
+                "occupancy::mise::refine_vertices",
+                &gl,
+                Expect::Finite,
+                &[],
+                || {
+                    let sphere =
+                        Sphere::new([0.0; 3], 0.5 * ext, &d, dtype)?.occupancy(100.0 / ext);
+                    let mut cfg = MiseConfig::new(8, 1, &d, dtype);
+                    cfg.min = [-ext; 3];
+                    cfg.max = [ext; 3];
+                    let mut mesh = mise(&sphere, &cfg)?.mesh;
+                    let (before, after) = refine_vertices(
+                        &sphere,
+                        &mut mesh,
+                        &RefineConfig::new(0.1 * ext, &d, dtype),
+                    )?;
+                    Ok(vec![
+                        flat(mesh.vertices)?,
+                        Tensor::new(&[before, after], &d)?,
+                    ])
+                },
+            );
+            s.case(
+                "occupancy::mise::RefineConfig::new",
+                &gl,
+                Expect::Finite,
+                &[],
+                || {
+                    Ok(vec![Tensor::new(
+                        RefineConfig::new(ext, &d, dtype).max_shift,
+                        &d,
+                    )?])
+                },
+            );
+            s.case(
                 "occupancy::mise::MiseConfig::new",
                 &gl,
                 Expect::Finite,
@@ -2428,8 +2465,10 @@ const OCCUPANCY_COVERED: &[&str] = &[
     "occupancy::metrics::nearest_distances",
     "occupancy::metrics::surface_metrics",
     "occupancy::mise::MiseConfig::new",
+    "occupancy::mise::RefineConfig::new",
     "occupancy::mise::logit_threshold",
     "occupancy::mise::mise",
+    "occupancy::mise::refine_vertices",
     "occupancy::sampling::from_tensor",
     "occupancy::sampling::inside_mesh",
     "occupancy::sampling::near_surface",

@@ -9,7 +9,7 @@ use common::v64;
 use neural_fields::volume::composite::{
     accumulate, accumulate_packed, composite, composite_packed, composite_packed_reference,
     composite_reference, render_weights, render_weights_packed, visible_mask, Composite,
-    CompositeOptions, Packed, WeightOptions,
+    CompositeOptions, Packed, WeightOptions, DEFAULT_TERMINATION_EPS,
 };
 use neural_fields::Error;
 
@@ -464,6 +464,52 @@ fn bad_input_errors_name_the_argument() {
         arg_of(render_weights_packed(&s5, &s5, &packed, &w).unwrap_err()),
         "sigmas"
     );
+}
+
+#[test]
+fn visible_mask_matches_transmittance_on_random_rays_in_f32_and_f64() {
+    // Many rays with densities over ten decades: the mask is 1 exactly where the
+    // transmittance of `render_weights` (f64) is at least ε (ties within rounding of the
+    // log-space sum skipped), for both dtypes and for ε at its default and far from it.
+    let (r, s) = (64, 100);
+    let mut rng = neural_fields::rng::SplitMix64::new(9);
+    let sig: Vec<f64> = (0..r * s)
+        .map(|_| 10f64.powf(-6.0 + 10.0 * rng.uniform()) * rng.uniform())
+        .collect();
+    let del: Vec<f64> = (0..r * s).map(|_| 1e-3 + 0.05 * rng.uniform()).collect();
+    let s64 = t2(sig.clone(), r, s, DType::F64);
+    let d64 = t2(del.clone(), r, s, DType::F64);
+    let w = render_weights(&s64, &d64, &WeightOptions::default()).unwrap();
+    let t = v64(&w.transmittance);
+    for eps in [DEFAULT_TERMINATION_EPS, 1e-30, 0.5] {
+        for dt in [DType::F32, DType::F64] {
+            let mask =
+                visible_mask(&s64.to_dtype(dt).unwrap(), &d64.to_dtype(dt).unwrap(), eps).unwrap();
+            assert_eq!(mask.dims(), &[r, s]);
+            let mv = mask.flatten_all().unwrap().to_vec1::<u8>().unwrap();
+            let mut checked = 0;
+            for i in 0..r * s {
+                if (t[i].ln() - eps.ln()).abs() < 1e-5 * eps.ln().abs().max(1.0) {
+                    continue;
+                }
+                checked += 1;
+                assert_eq!(
+                    mv[i] == 1,
+                    t[i] >= eps,
+                    "{dt:?} eps {eps}: sample {i}, T = {}",
+                    t[i]
+                );
+            }
+            assert!(checked > r * s * 9 / 10, "{checked}");
+            let kept = mv.iter().filter(|&&m| m == 1).count();
+            if eps == DEFAULT_TERMINATION_EPS {
+                assert!(
+                    kept < r * s && kept > r,
+                    "the scene must stop some rays: {kept}"
+                );
+            }
+        }
+    }
 }
 
 #[test]

@@ -42,4 +42,4 @@ pub mod sampling;
 pub use marching_cubes::{marching_cubes, Grid};
 pub use mesh::{Mesh, PlyFormat};
 pub use metrics::{iou, mesh_metrics, surface_metrics, KdTree, SurfaceMetrics};
-pub use mise::{logit_threshold, mise, MiseConfig, MiseOutput};
+pub use mise::{logit_threshold, mise, refine_vertices, MiseConfig, MiseOutput, RefineConfig};

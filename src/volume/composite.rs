@@ -37,6 +37,11 @@ use std::sync::Arc;
 /// overflow of σδ) out of the exclusive sum.
 pub const X_MAX: f64 = 1000.0;
 
+/// The default transmittance threshold ε of early termination ([`visible_mask`]): the
+/// value of Instant-NGP and nerfacc. Samples behind `T < ε` carry less than ε of the
+/// ray's weight in total.
+pub const DEFAULT_TERMINATION_EPS: f64 = 1e-4;
+
 /// Options for [`render_weights`] and the compositing functions.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct WeightOptions {
@@ -641,14 +646,16 @@ pub fn composite_packed(
 /// (or any expensive per-sample quantity) is evaluated. Detached (no gradient).
 ///
 /// Sample i is visible iff Tᵢ = exp(−Σ_{j<i} σⱼδⱼ) ≥ `eps` (Instant-NGP and nerfacc use
-/// ε = 1e-4). Since T is non-increasing, the dropped samples of a ray are a suffix
+/// ε = 1e-4: [`DEFAULT_TERMINATION_EPS`]). Since T is non-increasing, the dropped samples of a ray are a suffix
 /// i ≥ k with T_k < ε, and their total weight is Σ_{i≥k} wᵢ = T_k − T_end < ε.
 /// Dropping them changes the composited colour by Σ_{i≥k} wᵢ(cᵢ − c_bg), so the error is
 /// at most ε·max|cᵢ − c_bg| per channel (≤ ε·max|cᵢ| on a black background); the
 /// opacity changes by less than ε and the depth by less than ε·max tᵢ.
 ///
 /// Shapes: `sigmas, deltas: [R, S]` → `[R, S]` u8 (1 = keep). Use [`Packed::from_mask`]
-/// to turn it into a packed layout.
+/// to turn it into a packed layout. On the CPU the exclusive sums are one O(S) scan per
+/// ray in f64 (parallel over rays); elsewhere one matmul with the S × S triangle in the
+/// inputs' dtype (the two agree except for sums within rounding of −ln ε).
 ///
 /// # Errors
 /// As [`render_weights`]; `eps` when not finite and > 0.
@@ -657,8 +664,24 @@ pub fn visible_mask(sigmas: &Tensor, deltas: &Tensor, eps: f64) -> Result<Tensor
     check_shape(sigmas, "sigmas", &[Dim::Any("R"), Dim::Any("S")])?;
     check_sigmas_deltas(sigmas, deltas)?;
     let x = thickness(&sigmas.detach(), &deltas.detach())?;
-    let s = x.dim(1)?;
+    let (r, s) = x.dims2()?;
     // Compare in log space: T ≥ ε  ⇔  Σ_{j<i} x_j ≤ −ln ε.
+    let limit = -eps.ln();
+    if x.device().is_cpu() {
+        use rayon::prelude::*;
+        let xs: Vec<f64> = x.to_dtype(DType::F64)?.flatten_all()?.to_vec1()?;
+        let mut mask = vec![0u8; r * s];
+        mask.par_chunks_mut(s.max(1))
+            .zip(xs.par_chunks(s.max(1)))
+            .for_each(|(m, row)| {
+                let mut excl = 0.0;
+                for (mi, &xi) in m.iter_mut().zip(row) {
+                    *mi = u8::from(excl <= limit);
+                    excl += xi;
+                }
+            });
+        return Ok(Tensor::from_vec(mask, (r, s), x.device())?);
+    }
     let excl = x.matmul(&exclusive_triangle(s, &x)?)?;
-    Ok(excl.le(-eps.ln())?)
+    Ok(excl.le(limit)?)
 }
