@@ -54,6 +54,13 @@ fn check_input(x: &Tensor, d: usize) -> Result<usize> {
     Ok(check_shape(x, "x", &[Dim::Any("N"), Dim::Is(d)])?[0])
 }
 
+/// Checks the identity encoding's input: f32/f64 `[N, D]` for any `D`; returns `(N, D)`.
+fn check_identity_input(x: &Tensor) -> Result<(usize, usize)> {
+    check_float(x, "x")?;
+    let dims = check_shape(x, "x", &[Dim::Any("N"), Dim::Any("D")])?;
+    Ok((dims[0], dims[1]))
+}
+
 fn check_tangents(x: &Tensor, dx: &Tensor, n: usize, d: usize) -> Result<usize> {
     check_same(dx, "dx", x, "x")?;
     let dims = check_shape(dx, "dx", &[Dim::Any("N"), Dim::Any("K"), Dim::Is(d)])?;
@@ -200,6 +207,9 @@ impl Encoding for FrequencyEncoding {
         let ds = dy.broadcast_mul(&c.unsqueeze(1)?)?;
         let dc = dy.broadcast_mul(&s.unsqueeze(1)?)?.neg()?;
         let tangent = self.assemble(dx, &ds, &dc)?;
+        // invariant: check_tangents proved dx is [n, k, D]; assemble joins dx's D columns
+        // (when the input is included) with the 2·L·D sine/cosine tangent columns of
+        // ds, dc: [n, k, L, D], so the last dimension is out_dim().
         debug_assert_eq!(tangent.dims(), &[n, k, self.out_dim()]);
         Ok((value, tangent))
     }
@@ -337,25 +347,38 @@ impl PointEncoding {
         }
     }
 
-    /// [`Encoding::forward`] of the wrapped encoding (identity: `x` itself).
+    /// [`Encoding::forward`] of the wrapped encoding (identity: `γ(x) = x`, returned as
+    /// is): `x: [N, D]` → `[N, E]` in `x`'s dtype (f32 or f64) and device,
+    /// differentiable w.r.t. `x`.
     ///
     /// # Errors
-    /// As the wrapped encoding's.
+    /// As the wrapped encoding's; for the identity, `x` not an f32/f64 tensor of rank 2
+    /// (any `D`; [`crate::nn::Mlp`] checks `D` against its configuration).
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         match self {
-            PointEncoding::Identity => Ok(x.clone()),
+            PointEncoding::Identity => {
+                check_identity_input(x)?;
+                Ok(x.clone())
+            }
             PointEncoding::Frequency(e) => e.forward(x),
             PointEncoding::Fourier(e) => e.forward(x),
         }
     }
 
-    /// [`Encoding::forward_jvp`] of the wrapped encoding (identity: `(x, dx)`).
+    /// [`Encoding::forward_jvp`] of the wrapped encoding (identity: `J_γ = I`, so
+    /// `(x, dx)` as is): `x: [N, D]`, `dx: [N, K, D]` → (`[N, E]`, `[N, K, E]`), f32 or
+    /// f64, differentiable w.r.t. `x` and `dx`.
     ///
     /// # Errors
-    /// As the wrapped encoding's.
+    /// As the wrapped encoding's; for the identity, `x` not an f32/f64 rank-2 tensor,
+    /// or `dx` not `[N, K, D]` with `x`'s `N`, `D`, dtype and device.
     pub fn forward_jvp(&self, x: &Tensor, dx: &Tensor) -> Result<(Tensor, Tensor)> {
         match self {
-            PointEncoding::Identity => Ok((x.clone(), dx.clone())),
+            PointEncoding::Identity => {
+                let (n, d) = check_identity_input(x)?;
+                check_tangents(x, dx, n, d)?;
+                Ok((x.clone(), dx.clone()))
+            }
             PointEncoding::Frequency(e) => e.forward_jvp(x, dx),
             PointEncoding::Fourier(e) => e.forward_jvp(x, dx),
         }
@@ -371,9 +394,13 @@ impl PointEncoding {
 /// input. High frequencies whose period is far below the Gaussian's width fade to 0
 /// instead of aliasing. Differentiable w.r.t. `means` and `variances`.
 ///
+/// f32 or f64 (the output takes `means`' dtype and device).
+///
 /// # Errors
-/// Mismatched shapes/dtypes, negative or NaN variances are not checked (they are data);
-/// `min_deg > max_deg` or `max_deg > 60` → Err.
+/// [`Error::InvalidArgument`] naming `means` when it is not an f32/f64 `[N, D]` tensor,
+/// `variances` when its shape, dtype or device differs from `means`', and
+/// `min_deg, max_deg` unless `min_deg ≤ max_deg ≤ 60`. The values of `variances` are
+/// data and not checked (negative or NaN variances give non-finite or growing outputs).
 pub fn integrated_pe(
     means: &Tensor,
     variances: &Tensor,

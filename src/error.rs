@@ -228,10 +228,14 @@ pub fn check_scalar(x: f64, arg: &'static str, positive: bool) -> Result<()> {
     Ok(())
 }
 
-/// Checks `[N, 3]` float points: shape, dtype and that `N > 0`. Returns `N`.
+/// Checks `[N, 3]` float points: rank 2, three columns and dtype f32 or f64. Returns `N`.
+///
+/// An empty batch (`N = 0`) is accepted: the `dvr` marchers and losses evaluate fields
+/// on the (possibly empty) set of rays that hit, and return empty or zero results for
+/// it. Functions that need `N > 0` add [`check_nonempty`].
 ///
 /// # Errors
-/// [`Error::InvalidArgument`] naming `arg`.
+/// [`Error::InvalidArgument`] naming `arg` for another rank, column count or dtype.
 pub fn check_points(t: &Tensor, arg: &'static str) -> Result<usize> {
     check_float(t, arg)?;
     let dims = check_shape(t, arg, &[Dim::Any("N"), Dim::Is(3)])?;

@@ -385,9 +385,17 @@ fn unit_and_norm(x: &Tensor) -> Result<(Tensor, Tensor)> {
     Ok((unit, norm))
 }
 
-fn param(values: &[f64], shape: &[usize], device: &Device, dtype: DType) -> Result<Tensor> {
+/// A constant parameter tensor of the given shape; `arg` names the constructor argument
+/// the values came from (in the error when one is not finite).
+fn param(
+    arg: &'static str,
+    values: &[f64],
+    shape: &[usize],
+    device: &Device,
+    dtype: DType,
+) -> Result<Tensor> {
     for &v in values {
-        check_scalar(v, "shape parameter", false)?;
+        check_scalar(v, arg, false)?;
     }
     Ok(Tensor::from_slice(values, shape, device)?.to_dtype(dtype)?)
 }
@@ -415,8 +423,8 @@ impl Sphere {
     pub fn new(center: [f64; 3], radius: f64, device: &Device, dtype: DType) -> Result<Self> {
         check_scalar(radius, "radius", true)?;
         Ok(Self {
-            center: param(&center, &[3], device, dtype)?,
-            radius: param(&[radius], &[], device, dtype)?,
+            center: param("center", &center, &[3], device, dtype)?,
+            radius: param("radius", &[radius], &[], device, dtype)?,
         })
     }
 }
@@ -458,8 +466,8 @@ impl Cuboid {
             check_scalar(h, "half_extents", true)?;
         }
         Ok(Self {
-            center: param(&center, &[3], device, dtype)?,
-            half_extents: param(&half_extents, &[3], device, dtype)?,
+            center: param("center", &center, &[3], device, dtype)?,
+            half_extents: param("half_extents", &half_extents, &[3], device, dtype)?,
         })
     }
 }
@@ -515,9 +523,9 @@ impl Torus {
         check_scalar(major, "major", true)?;
         check_scalar(minor, "minor", true)?;
         Ok(Self {
-            center: param(&center, &[3], device, dtype)?,
-            major: param(&[major], &[], device, dtype)?,
-            minor: param(&[minor], &[], device, dtype)?,
+            center: param("center", &center, &[3], device, dtype)?,
+            major: param("major", &[major], &[], device, dtype)?,
+            minor: param("minor", &[minor], &[], device, dtype)?,
         })
     }
 }
@@ -563,8 +571,8 @@ impl Plane {
             ));
         }
         Ok(Self {
-            normal: param(&normal, &[3], device, dtype)?,
-            offset: param(&[offset], &[], device, dtype)?,
+            normal: param("normal", &normal, &[3], device, dtype)?,
+            offset: param("offset", &[offset], &[], device, dtype)?,
         })
     }
 }

@@ -13,7 +13,10 @@ use proptest::prelude::*;
 
 type DistanceFn = Box<dyn Fn(&Tensor) -> (Tensor, Tensor)>;
 
-fn shapes(seed: u64) -> Vec<(&'static str, DistanceFn)> {
+/// Every analytic shape with random parameters, as an SDF (`distance_and_grad`, whose
+/// gradient has norm 1) and as occupancy logits `.occupancy(k)` (`value_and_grad`,
+/// gradient norm `k`), with the norm `‖∇f‖` expected where the field is smooth.
+fn shapes(seed: u64) -> Vec<(String, DistanceFn, f64)> {
     let mut rng = SplitMix64::new(seed);
     let mut u = |lo: f64, hi: f64| lo + (hi - lo) * rng.uniform();
     let d = Device::Cpu;
@@ -29,37 +32,47 @@ fn shapes(seed: u64) -> Vec<(&'static str, DistanceFn)> {
         f,
     )
     .unwrap();
-    vec![
-        (
-            "sphere",
-            Box::new(move |p: &Tensor| sphere.distance_and_grad(p).unwrap()),
-        ),
-        (
-            "cuboid",
-            Box::new(move |p: &Tensor| cuboid.distance_and_grad(p).unwrap()),
-        ),
-        (
-            "torus",
-            Box::new(move |p: &Tensor| torus.distance_and_grad(p).unwrap()),
-        ),
-        (
-            "plane",
-            Box::new(move |p: &Tensor| plane.distance_and_grad(p).unwrap()),
-        ),
-    ]
+    let k = u(0.5, 50.0);
+    let mut out: Vec<(String, DistanceFn, f64)> = Vec::new();
+    fn push<S: SignedDistance + Clone + 'static>(
+        out: &mut Vec<(String, DistanceFn, f64)>,
+        name: &str,
+        shape: S,
+        k: f64,
+    ) {
+        let occ = shape.clone().occupancy(k);
+        out.push((
+            format!("{name} sdf"),
+            Box::new(move |p: &Tensor| shape.distance_and_grad(p).unwrap()),
+            1.0,
+        ));
+        out.push((
+            format!("{name} occupancy({k})"),
+            Box::new(move |p: &Tensor| occ.value_and_grad(p).unwrap()),
+            k,
+        ));
+    }
+    push(&mut out, "sphere", sphere, k);
+    push(&mut out, "cuboid", cuboid, k);
+    push(&mut out, "torus", torus, k);
+    push(&mut out, "plane", plane, k);
+    out
 }
 
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(64))]
 
-    /// ∇d equals central finite differences of d (away from the measure-zero creases,
-    /// which the kink check skips), and ‖∇d‖ = 1 wherever d is smooth.
+    /// ∇f equals central finite differences of f (away from the measure-zero creases,
+    /// which the kink check skips), and ‖∇f‖ is 1 for the SDFs and k for the occupancy
+    /// logits `−k·d` wherever f is smooth; for every analytic shape in both forms.
     #[test]
     fn analytic_gradients_match_finite_differences(seed in any::<u64>(), scale in prop_oneof![Just(1.0), Just(1e-3), Just(1e3)]) {
         let mut rng = SplitMix64::new(seed ^ 77);
         let points = uniform(&mut rng, 8, 3, -scale, scale, DType::F64);
         let p = v64(&points);
-        for (name, shape) in shapes(seed) {
+        let all = shapes(seed);
+        prop_assert_eq!(all.len(), 8);
+        for (name, shape, grad_norm) in all {
             let (dist, grad) = shape(&points);
             let (dist, grad) = (v64(&dist), v64(&grad));
             prop_assert!(dist.iter().chain(&grad).all(|v| v.is_finite()));
@@ -72,17 +85,17 @@ proptest! {
                         v64(&shape(&Tensor::from_vec(q, (1, 3), &Device::Cpu).unwrap()).0)[0]
                     };
                     let h = 1e-6 * scale.max(1.0);
-                    match central_diff(&mut f, p[3 * n + j], h, 1.0) {
+                    match central_diff(&mut f, p[3 * n + j], h, grad_norm) {
                         Some(fd) => prop_assert!(
-                            (grad[3 * n + j] - fd).abs() < 1e-6,
-                            "{name} point {n} axis {j}: {} vs {fd} (d = {})", grad[3 * n + j], dist[n]
+                            (grad[3 * n + j] - fd).abs() < 1e-6 * grad_norm,
+                            "{} point {} axis {}: {} vs {} (f = {})", name, n, j, grad[3 * n + j], fd, dist[n]
                         ),
                         None => smooth = false,
                     }
                 }
                 let norm = (0..3).map(|j| grad[3 * n + j].powi(2)).sum::<f64>().sqrt();
                 if smooth {
-                    prop_assert!((norm - 1.0).abs() < 1e-9, "{name}: ‖∇d‖ = {norm}");
+                    prop_assert!((norm - grad_norm).abs() < 1e-9 * grad_norm, "{}: ‖∇f‖ = {}", name, norm);
                 }
             }
         }
@@ -216,7 +229,45 @@ fn bad_inputs_name_the_argument() {
         .unwrap_err()
         .to_string()
         .starts_with("radius"));
-    assert!(Sphere::new([f64::NAN, 0.0, 0.0], 1.0, &d, DType::F64).is_err());
+    // Non-finite parameters: the error names the constructor argument.
+    let param_errors = [
+        (
+            Sphere::new([f64::NAN, 0.0, 0.0], 1.0, &d, DType::F64).map(|_| ()),
+            "center: ",
+        ),
+        (
+            Sphere::new([0.0; 3], f64::INFINITY, &d, DType::F64).map(|_| ()),
+            "radius: ",
+        ),
+        (
+            Cuboid::new([0.0, f64::INFINITY, 0.0], [1.0; 3], &d, DType::F64).map(|_| ()),
+            "center: ",
+        ),
+        (
+            Cuboid::new([0.0; 3], [1.0, f64::NAN, 1.0], &d, DType::F64).map(|_| ()),
+            "half_extents: ",
+        ),
+        (
+            Torus::new([0.0, 0.0, f64::NAN], 0.5, 0.1, &d, DType::F64).map(|_| ()),
+            "center: ",
+        ),
+        (
+            Torus::new([0.0; 3], f64::NAN, 0.1, &d, DType::F64).map(|_| ()),
+            "major: ",
+        ),
+        (
+            Plane::new([0.0, 0.0, 1.0], f64::NAN, &d, DType::F64).map(|_| ()),
+            "offset: ",
+        ),
+        (
+            Plane::new([f64::NAN, 0.0, 1.0], 0.0, &d, DType::F64).map(|_| ()),
+            "normal: ",
+        ),
+    ];
+    for (result, arg) in param_errors {
+        let e = result.unwrap_err().to_string();
+        assert!(e.starts_with(arg), "{e}");
+    }
     assert!(Cuboid::new([0.0; 3], [1.0, 0.0, 1.0], &d, DType::F64)
         .unwrap_err()
         .to_string()

@@ -175,7 +175,8 @@ fn blocked_weight(
 ///
 /// # Errors
 /// `depth == 0`, `hidden == 0`, `in_dim == 0`, `out_dim == 0`, a skip index outside
-/// `1..depth`, an encoding whose input dimension is not `in_dim`, geometric
+/// `1..depth`, a softplus β that is not finite and positive (`config.activation`), an
+/// encoding whose input dimension is not `in_dim`, geometric
 /// initialisation with a non-positive radius or an encoding that does not lead with the
 /// raw input; errors of the `VarBuilder`.
 pub fn mlp(config: &MlpConfig, vb: VarBuilder) -> Result<Mlp> {
@@ -195,6 +196,15 @@ pub fn mlp(config: &MlpConfig, vb: VarBuilder) -> Result<Mlp> {
             format!("hidden layer indices in 1..{}", config.depth),
             format!("{s}"),
         ));
+    }
+    if let Activation::Softplus { beta } = config.activation {
+        if !(beta.is_finite() && beta > 0.0) {
+            return Err(Error::invalid(
+                "config.activation",
+                "softplus with a finite beta > 0",
+                format!("beta = {beta}"),
+            ));
+        }
     }
     let enc_dim = config.encoding.out_dim_for(config.in_dim);
     let enc_in = match &config.encoding {
@@ -449,10 +459,14 @@ impl Mlp {
 }
 
 impl candle_nn::Module for Mlp {
-    /// `xs: [N, in_dim + code_dim]`: points followed by codes.
+    /// `xs: [N, in_dim + code_dim]` (f32 or f64): points followed by codes →
+    /// `[N, out_dim]`, as [`Mlp::forward_points`] (differentiable w.r.t. the weights and
+    /// `xs`). Argument errors come back as `candle_core::Error::Msg` carrying this
+    /// crate's message (`xs: expected …`).
     fn forward(&self, xs: &Tensor) -> candle_core::Result<Tensor> {
         let d = self.config.in_dim;
         let run = || -> Result<Tensor> {
+            check_float(xs, "xs")?;
             check_shape(
                 xs,
                 "xs",
