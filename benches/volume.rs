@@ -3,7 +3,7 @@
 //!
 //! Run: `cargo bench --bench volume -- --warm-up-time 1 --measurement-time 5`.
 
-use candle_core::{DType, Device, Tensor, Var};
+use candle_core::{CpuStorage, CustomOp3, DType, Device, Layout, Shape, Tensor, Var};
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use neural_fields::volume::composite::{composite_reference, Composite, CompositeOptions};
 use neural_fields::volume::fused::composite_fused;
@@ -67,6 +67,71 @@ fn step(f: CompositeFn, x: &Inputs) {
     black_box(grads.get(x.colors.as_tensor()).unwrap());
 }
 
+/// An op with the fused op's inputs, output and gradient shapes that computes nothing:
+/// forward allocates the `[R, C + 2]` output, backward allocates zero gradients for
+/// the densities and colours. Through the same narrow/sum/`backward()` step as the real
+/// op, it measures what candle's graph walk, gradient accumulation and allocations
+/// cost around any compositing kernel: the floor of the `fused` row.
+struct NullComposite {
+    rays: usize,
+    width: usize,
+}
+
+impl CustomOp3 for NullComposite {
+    fn name(&self) -> &'static str {
+        "null-composite"
+    }
+
+    fn cpu_fwd(
+        &self,
+        _: &CpuStorage,
+        _: &Layout,
+        _: &CpuStorage,
+        _: &Layout,
+        _: &CpuStorage,
+        _: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        Ok((
+            CpuStorage::F32(vec![0.0; self.rays * self.width]),
+            Shape::from((self.rays, self.width)),
+        ))
+    }
+
+    fn bwd(
+        &self,
+        sig: &Tensor,
+        _geo: &Tensor,
+        vals: &Tensor,
+        _res: &Tensor,
+        _grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let zeros =
+            |t: &Tensor| Tensor::from_vec(vec![0f32; t.elem_count()], t.shape(), t.device());
+        Ok((Some(zeros(sig)?), None, Some(zeros(vals)?)))
+    }
+}
+
+fn null_step(x: &Inputs) {
+    let op = NullComposite {
+        rays: RAYS,
+        width: 5,
+    };
+    let out = x
+        .sigmas
+        .as_tensor()
+        .apply_op3(&x.deltas, x.colors.as_tensor(), op)
+        .unwrap();
+    let color = out.narrow(1, 0, 3).unwrap();
+    let depth = out.narrow(1, 3, 1).unwrap().squeeze(1).unwrap();
+    let opacity = out.narrow(1, 4, 1).unwrap().squeeze(1).unwrap();
+    let loss = ((color.sum_all().unwrap() + depth.sum_all().unwrap()).unwrap()
+        + opacity.sum_all().unwrap())
+    .unwrap();
+    let grads = loss.backward().unwrap();
+    black_box(grads.get(x.sigmas.as_tensor()).unwrap());
+    black_box(grads.get(x.colors.as_tensor()).unwrap());
+}
+
 fn bench(c: &mut Criterion) {
     let x = inputs();
     let mut g = c.benchmark_group("composite_4096x192_rgb_f32_fwd_bwd");
@@ -77,6 +142,9 @@ fn bench(c: &mut Criterion) {
     // What candle's backprop itself spends on the two gradients of any compositing op:
     // `GradStore::or_insert` makes zeros the size of each input, then adds the op's
     // gradient into them. A floor no op can go under through `backward()`.
+    g.bench_function("candle_autograd_floor_null_op", |b| {
+        b.iter(|| null_step(&x))
+    });
     g.bench_function("candle_grad_accumulation_floor", |b| {
         b.iter(|| {
             for v in [&x.sigmas, &x.colors] {

@@ -1,7 +1,7 @@
 //! Positional-encoding error against frequency count, f32 (exact reduction and naive)
 //! and f64, against an f64 evaluation of the same f32 inputs.
 
-use crate::report::{median_seconds, v64, Row, Table};
+use crate::report::{median_seconds, v64, Row, Table, TIME_PER_CALL};
 use candle_core::{DType, Device, Tensor};
 use neural_fields::encoding::{Encoding, FrequencyEncoding};
 use neural_fields::rng::SplitMix64;
@@ -59,6 +59,7 @@ pub fn run(quick: bool) -> Vec<Table> {
                 knob: l as f64,
                 error: max_err(&v64(&out), &xs, l),
                 seconds,
+                work: n as f64,
             });
         }
         // The naive layout interleaves per frequency like the crate's, so it compares directly.
@@ -69,6 +70,7 @@ pub fn run(quick: bool) -> Vec<Table> {
             knob: l as f64,
             error: max_err(&v64(&out), &xs, l),
             seconds,
+            work: n as f64,
         });
     }
     vec![Table {
@@ -78,6 +80,8 @@ pub fn run(quick: bool) -> Vec<Table> {
         ),
         knob: "L".into(),
         error_name: "max abs error".into(),
+        work_unit: "points".into(),
+        time_name: TIME_PER_CALL.into(),
         rows,
     }]
 }

@@ -19,9 +19,18 @@ pub struct Table {
     pub knob: String,
     /// Name of the error column, e.g. "max |C − C_exact|".
     pub error_name: String,
+    /// What one unit of [`Row::work`] is ("rays", "samples", "field evaluations"); empty
+    /// when the rows carry no work count (then the table has no work/throughput columns).
+    pub work_unit: String,
+    /// Header of the time column; `"time per call (s)"` unless a study measures something
+    /// else (e.g. cumulative wall time of a training run).
+    pub time_name: String,
     /// The rows, in any order; rows of one `series` form one curve.
     pub rows: Vec<Row>,
 }
+
+/// The usual time column: median wall time of one call.
+pub const TIME_PER_CALL: &str = "time per call (s)";
 
 /// One measurement.
 pub struct Row {
@@ -31,8 +40,11 @@ pub struct Row {
     pub knob: f64,
     /// The error against the reference.
     pub error: f64,
-    /// Median wall time of one call, in seconds.
+    /// Median wall time of one call, in seconds (or what [`Table::time_name`] says).
     pub seconds: f64,
+    /// Items processed by one call, in [`Table::work_unit`]s (0 when not counted); the
+    /// report prints it and the throughput `work / seconds`.
+    pub work: f64,
 }
 
 /// Median wall time of `reps` runs of `f` (at least one), in seconds.
@@ -71,6 +83,16 @@ fn fmt_num(x: f64) -> String {
     }
 }
 
+/// A count or rate with at most three significant digits and a k/M/G suffix.
+fn fmt_count(x: f64) -> String {
+    match x.abs() {
+        a if a >= 1e9 => format!("{:.3} G", x / 1e9),
+        a if a >= 1e6 => format!("{:.3} M", x / 1e6),
+        a if a >= 1e4 => format!("{:.1} k", x / 1e3),
+        _ => format!("{x:.0}"),
+    }
+}
+
 /// A file-name slug of a title.
 pub fn slug(title: &str) -> String {
     let s: String = title
@@ -93,21 +115,46 @@ pub fn slug(title: &str) -> String {
 pub fn markdown(table: &Table, plot_path: Option<&str>) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "### {}\n\n{}\n", table.title, table.description);
-    let _ = writeln!(
-        s,
-        "| series | {} | {} | time per call (s) |",
-        table.knob, table.error_name
-    );
-    let _ = writeln!(s, "|---|---:|---:|---:|");
-    for r in &table.rows {
+    let unit = &table.work_unit;
+    // A `|` inside a cell would end it: escape the names that may hold one.
+    let cell = |t: &str| t.replace('|', "\\|");
+    if unit.is_empty() {
         let _ = writeln!(
             s,
+            "| series | {} | {} | {} |",
+            cell(&table.knob),
+            cell(&table.error_name),
+            cell(&table.time_name)
+        );
+        let _ = writeln!(s, "|---|---:|---:|---:|");
+    } else {
+        let _ = writeln!(
+            s,
+            "| series | {} | {} | {} | {unit} per call | {unit} per second |",
+            cell(&table.knob),
+            cell(&table.error_name),
+            cell(&table.time_name)
+        );
+        let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|");
+    }
+    for r in &table.rows {
+        let _ = write!(
+            s,
             "| {} | {} | {} | {} |",
-            r.series,
+            cell(&r.series),
             fmt_num(r.knob),
             fmt_num(r.error),
             fmt_num(r.seconds)
         );
+        if !unit.is_empty() {
+            let rate = if r.seconds > 0.0 {
+                r.work / r.seconds
+            } else {
+                0.0
+            };
+            let _ = write!(s, " {} | {} |", fmt_count(r.work), fmt_count(rate));
+        }
+        s.push('\n');
     }
     if let Some(p) = plot_path {
         let _ = writeln!(s, "\n![{}]({p})", table.title);
@@ -168,9 +215,10 @@ pub fn svg(table: &Table) -> String {
     }
     let _ = writeln!(
         s,
-        "<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\">time per call (s)</text>",
+        "<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\">{}</text>",
         (ml + w - mr) / 2.0,
-        h - 12.0
+        h - 12.0,
+        escape(&table.time_name)
     );
     let _ = writeln!(s, "<text x=\"16\" y=\"{:.1}\" transform=\"rotate(-90 16 {:.1})\" text-anchor=\"middle\">{}</text>", (mt + h - mb) / 2.0, (mt + h - mb) / 2.0, escape(&table.error_name));
     let mut series: Vec<&str> = Vec::new();
