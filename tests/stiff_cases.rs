@@ -1315,7 +1315,11 @@ fn sweep_dvr(s: &mut Suite) {
     for dtype in DTYPES {
         let big = if dtype == DType::F32 { 1e18 } else { 1e150 };
         // Rays: a plain hit, a tiny direction, a huge direction, a far-away origin, one
-        // starting inside, an exact tangent, a near-tangent one, one along an axis.
+        // starting inside, an exact tangent, a near-tangent one, one along an axis, and
+        // four grazing rays from the tangent's origin tilted into the sphere by
+        // 1e-3, 1e-6, 1e-9 and 1e-12 rad (the last is a tangent to f32 rounding).
+        const GRAZE: [f64; 4] = [1e-3, 1e-6, 1e-9, 1e-12];
+        const N_RAYS: usize = 8 + GRAZE.len();
         let o_rows = [
             [0.1, 0.0, -2.0],
             [0.0, 0.1, -2.0],
@@ -1326,6 +1330,9 @@ fn sweep_dvr(s: &mut Suite) {
             [0.0, 0.5 - 1e-7, -2.0],
             [-2.0, 0.0, 0.0],
         ]
+        .into_iter()
+        .chain(GRAZE.map(|_| [0.0, 0.5, -2.0]))
+        .collect::<Vec<_>>()
         .concat();
         let w_rows = [
             [0.0, 0.0, 1.0],
@@ -1337,6 +1344,9 @@ fn sweep_dvr(s: &mut Suite) {
             [0.0, 0.0, 1.0],
             [1.0, 0.0, 0.0],
         ]
+        .into_iter()
+        .chain(GRAZE.map(|a: f64| [0.0, -a.sin(), a.cos()]))
+        .collect::<Vec<_>>()
         .concat();
         // Tiny and huge directions: 1e∓20 in f64; 1e∓8 in f32, where ∂t/∂w ∝ t/|w| of a
         // 1e-20 direction (4e40) is beyond the f32 range.
@@ -1348,11 +1358,12 @@ fn sweep_dvr(s: &mut Suite) {
             &w_rows[9..],
         ]
         .concat();
-        let far_v = [4.0, 4.0 / s_w, 4.0 * s_w, 2.0 * big, 4.0, 4.0, 4.0, 4.0];
-        let origins = var(&o_rows, &[8, 3], dtype);
-        let directions = var(&w_rows, &[8, 3], dtype);
-        let near = Tensor::zeros(8, dtype, &d).unwrap();
-        let far = Tensor::from_slice(&far_v, 8, &d)
+        let mut far_v = vec![4.0, 4.0 / s_w, 4.0 * s_w, 2.0 * big, 4.0, 4.0, 4.0, 4.0];
+        far_v.extend(GRAZE.map(|_| 4.0));
+        let origins = var(&o_rows, &[N_RAYS, 3], dtype);
+        let directions = var(&w_rows, &[N_RAYS, 3], dtype);
+        let near = Tensor::zeros(N_RAYS, dtype, &d).unwrap();
+        let far = Tensor::from_slice(&far_v, N_RAYS, &d)
             .unwrap()
             .to_dtype(dtype)
             .unwrap();

@@ -29,7 +29,7 @@ fn run_example(example: &str, args: &[String]) -> Result<String, String> {
         .map_err(|e| format!("could not start cargo: {e}"))?;
     if !out.status.success() {
         return Err(format!(
-            "exit status {}: {}",
+            "{}: {}",
             out.status,
             String::from_utf8_lossy(&out.stderr).trim()
         ));
