@@ -6,57 +6,19 @@
 
 mod common;
 
-use candle_core::{DType, Device, Tensor};
+use candle_core::{DType, Device, Tensor, Var};
+use common::counting::Counting;
 use common::v64;
-use neural_fields::camera::{ray_aabb, Rays};
+use neural_fields::camera::{ray_aabb, Intersection, Rays};
 use neural_fields::dvr::{
-    march, march_bounded, secant_point, sphere_trace, Hits, MarchConfig, RayStatus, SecantRule,
-    SphereTraceConfig, StepSchedule,
+    implicit_surface, march, march_bounded, secant_point, sphere_trace, Hits, ImplicitConfig,
+    MarchConfig, RayStatus, SecantRule, SphereTraceConfig, StepSchedule,
 };
 use neural_fields::field::{Cuboid, ImplicitSurface, Inside, Plane, SignedDistance, Sphere, Torus};
 use neural_fields::rng::SplitMix64;
 use neural_fields::Result;
-use std::cell::Cell;
 
 const DEV: Device = Device::Cpu;
-
-/// Counts the points at which a field is evaluated (value and value_and_grad alike).
-struct Counting<'a, F: ?Sized> {
-    inner: &'a F,
-    points: Cell<usize>,
-    calls: Cell<usize>,
-}
-
-impl<'a, F: ImplicitSurface + ?Sized> Counting<'a, F> {
-    fn new(inner: &'a F) -> Self {
-        Self {
-            inner,
-            points: Cell::new(0),
-            calls: Cell::new(0),
-        }
-    }
-    fn note(&self, p: &Tensor) {
-        self.points.set(self.points.get() + p.dim(0).unwrap());
-        self.calls.set(self.calls.get() + 1);
-    }
-}
-
-impl<F: ImplicitSurface + ?Sized> ImplicitSurface for Counting<'_, F> {
-    fn value(&self, points: &Tensor) -> Result<Tensor> {
-        self.note(points);
-        self.inner.value(points)
-    }
-    fn value_and_grad(&self, points: &Tensor) -> Result<(Tensor, Tensor)> {
-        self.note(points);
-        self.inner.value_and_grad(points)
-    }
-    fn level(&self) -> f64 {
-        self.inner.level()
-    }
-    fn inside(&self) -> Inside {
-        self.inner.inside()
-    }
-}
 
 /// A host-side signed distance (the reference) for each test shape.
 #[derive(Clone, Copy, Debug)]
@@ -416,9 +378,18 @@ fn chunk_size_bounds_every_call_and_does_not_change_results() {
             ..MarchConfig::default()
         };
         let hits = march(&field, &o, &w, &near, &far, &cfg).unwrap();
-        // Each call sees at most max(chunk, steps) points (whole rays are sampled together).
-        let max_call = chunk.max(40);
-        assert!(field.points.get() <= field.calls.get() * max_call);
+        // No single call sees more than `chunk_points` points (the sampling gathers
+        // whole rays, but the evaluator splits them into chunks).
+        assert!(
+            field.max_call.get() <= chunk,
+            "chunk {chunk}: a call with {} points",
+            field.max_call.get()
+        );
+        assert!(field.max_call.get() >= 1);
+        if chunk < 40 {
+            // Small chunks are filled: the bound is attained, not just respected.
+            assert_eq!(field.max_call.get(), chunk);
+        }
         if let Some(r) = &reference {
             assert_eq!(v64(&r.depth), v64(&hits.depth));
             assert_eq!(r.status, hits.status);
@@ -440,6 +411,62 @@ fn one_ray(o: [f64; 3], w: [f64; 3], near: f64, far: f64) -> (Tensor, Tensor, Te
 fn all_finite(h: &Hits) {
     assert!(v64(&h.depth).iter().all(|v| v.is_finite()));
     assert!(v64(&h.points).iter().all(|v| v.is_finite()));
+}
+
+/// `implicit_surface` on a march's result, then `backward()`: asserts that the depths are
+/// the march's, that every output (depth, points, value, gradient) is finite, and that
+/// the gradients of `Σ t̂ + Σ p̂ + Σ f + Σ ∇f` w.r.t. every variable in `vars` are finite.
+/// Returns `∂(Σ t̂)/∂v` for each variable (zeros where the graph does not reach it),
+/// also checked finite.
+fn implicit_and_backward<F: ImplicitSurface + ?Sized>(
+    field: &F,
+    o: &Tensor,
+    w: &Tensor,
+    hits: &Hits,
+    vars: &[&Var],
+) -> Vec<Vec<f64>> {
+    let s = implicit_surface(field, o, w, hits, &ImplicitConfig::default()).unwrap();
+    let on: Vec<usize> = (0..hits.len())
+        .filter(|&i| hits.status[i].has_surface())
+        .collect();
+    assert_eq!(s.len(), on.len());
+    let march_depth = v64(&hits.depth);
+    let want: Vec<f64> = on.iter().map(|&i| march_depth[i]).collect();
+    assert_eq!(v64(&s.depth), want, "t̂ is the march's depth");
+    for (name, t) in [
+        ("depth", &s.depth),
+        ("points", &s.points),
+        ("value", &s.value),
+        ("gradient", &s.gradient),
+    ] {
+        let v = v64(t);
+        assert!(v.iter().all(|x| x.is_finite()), "{name}: {v:?}");
+    }
+    let grads_of = |loss: &Tensor| -> Vec<Vec<f64>> {
+        let g = loss.backward().unwrap();
+        let out: Vec<Vec<f64>> = vars
+            .iter()
+            .map(|v| g.get(v).map_or_else(|| vec![0.0; v.elem_count()], v64))
+            .collect();
+        for (k, g) in out.iter().enumerate() {
+            assert!(g.iter().all(|x| x.is_finite()), "variable {k}: {g:?}");
+        }
+        out
+    };
+    let sum = |t: &Tensor| t.sum_all().unwrap();
+    let all = (sum(&s.depth) + sum(&s.points) + sum(&s.value) + sum(&s.gradient)).unwrap();
+    grads_of(&all);
+    grads_of(&sum(&s.depth))
+}
+
+/// `(o, w)` of `one_ray` as variables, so that the implicit step differentiates them.
+fn ray_vars(o: &Tensor, w: &Tensor) -> (Var, Var) {
+    (Var::from_tensor(o).unwrap(), Var::from_tensor(w).unwrap())
+}
+
+/// `|a − b| ≤ 1e-9`, with a message.
+fn near_eq(a: f64, b: f64, what: &str) {
+    assert!((a - b).abs() <= 1e-9, "{what}: {a} vs {b}");
 }
 
 #[test]
@@ -497,11 +524,21 @@ fn tangent_ray_misses_and_nearly_tangent_ray_is_grazing() {
 
 #[test]
 fn two_crossings_the_first_is_found() {
-    // Two spheres on the ray: the nearer one is found, at both sampling densities.
-    let near_s = Sphere::new([0.0, 0.0, -0.5], 0.25, &DEV, DType::F64).unwrap();
-    let far_s = Sphere::new([0.0, 0.0, 0.5], 0.25, &DEV, DType::F64).unwrap();
-    let union = Union(near_s.sdf(), far_s.sdf());
+    // Two spheres on the ray, with learnable centres and radii: the nearer one is found,
+    // at both sampling densities, and the implicit step differentiates it alone:
+    // t = 2 + c_z − r for the near sphere, so ∂t/∂c_z = 1, ∂t/∂r = −1, ∂t/∂o_z = −1,
+    // ∂t/∂w_z = −t, and nothing reaches the far sphere.
+    let near_c = Var::new(&[0.0f64, 0.0, -0.5], &DEV).unwrap();
+    let near_r = Var::new(0.25f64, &DEV).unwrap();
+    let far_c = Var::new(&[0.0f64, 0.0, 0.5], &DEV).unwrap();
+    let far_r = Var::new(0.25f64, &DEV).unwrap();
+    let sphere = |c: &Var, r: &Var| Sphere {
+        center: c.as_tensor().clone(),
+        radius: r.as_tensor().clone(),
+    };
+    let union = Union(sphere(&near_c, &near_r).sdf(), sphere(&far_c, &far_r).sdf());
     let (o, w, n, f) = one_ray([0.0, 0.0, -2.0], [0.0, 0.0, 1.0], 0.0, 4.0);
+    let (ov, wv) = ray_vars(&o, &w);
     for steps in [16, 256] {
         let cfg = MarchConfig {
             steps,
@@ -514,18 +551,46 @@ fn two_crossings_the_first_is_found() {
             "{:?}",
             v64(&h.depth)
         );
+        let g = implicit_and_backward(
+            &union,
+            ov.as_tensor(),
+            wv.as_tensor(),
+            &h,
+            &[&near_c, &near_r, &far_c, &far_r, &ov, &wv],
+        );
+        near_eq(g[0][2], 1.0, "∂t/∂c_z (near sphere)");
+        near_eq(g[1][0], -1.0, "∂t/∂r (near sphere)");
+        assert!(g[2].iter().chain(&g[3]).all(|&x| x == 0.0), "{g:?}");
+        near_eq(g[4][2], -1.0, "∂t/∂o_z");
+        near_eq(g[5][2], -1.25, "∂t/∂w_z");
     }
-    // A torus seen edge-on: entry into the near side of the tube.
-    let torus = Torus::new([0.0; 3], 0.5, 0.125, &DEV, DType::F64)
-        .unwrap()
-        .sdf();
+    // A torus seen edge-on: entry into the near side of the tube, t = 2 − R − r.
+    let major = Var::new(0.5f64, &DEV).unwrap();
+    let minor = Var::new(0.125f64, &DEV).unwrap();
+    let torus = Torus {
+        center: Tensor::zeros(3, DType::F64, &DEV).unwrap(),
+        major: major.as_tensor().clone(),
+        minor: minor.as_tensor().clone(),
+    }
+    .sdf();
     let (o, w, n, f) = one_ray([-2.0, 0.0, 0.0], [1.0, 0.0, 0.0], 0.0, 4.0);
     let h = march(&torus, &o, &w, &n, &f, &MarchConfig::default()).unwrap();
+    assert_eq!(h.status, vec![RayStatus::Hit]);
     assert!(
         (v64(&h.depth)[0] - 1.375).abs() < 1e-12,
         "{:?}",
         v64(&h.depth)
     );
+    let (ov, wv) = ray_vars(&o, &w);
+    let g = implicit_and_backward(
+        &torus,
+        ov.as_tensor(),
+        wv.as_tensor(),
+        &h,
+        &[&major, &minor, &ov, &wv],
+    );
+    near_eq(g[0][0], -1.0, "∂t/∂R");
+    near_eq(g[1][0], -1.0, "∂t/∂r");
 }
 
 /// min of two SDFs (a union), for the two-crossings test.
@@ -551,20 +616,21 @@ impl<A: ImplicitSurface, B: ImplicitSurface> ImplicitSurface for Union<A, B> {
 
 #[test]
 fn field_exactly_at_level_at_a_sample_is_found_exactly() {
-    // Plane z = 0.5; samples at t = 0, 0.25, …, 1 put one exactly on it.
+    // Plane z = 0.5 (normal (0, 0, −1), learnable offset o = −0.5, so the SDF along the
+    // ray is −t − o); samples at t = 0, 0.25, …, 1 put one exactly on it. The implicit
+    // step at that sample: ∂t/∂o = −1, for the SDF and the occupancy logits alike.
+    let normal = Var::new(&[0.0f64, 0.0, -1.0], &DEV).unwrap();
+    let offset = Var::new(-0.5f64, &DEV).unwrap();
+    let plane = Plane {
+        normal: normal.as_tensor().clone(),
+        offset: offset.as_tensor().clone(),
+    };
     for field in [
-        Box::new(
-            Plane::new([0.0, 0.0, -1.0], -0.5, &DEV, DType::F64)
-                .unwrap()
-                .sdf(),
-        ) as Box<dyn ImplicitSurface>,
-        Box::new(
-            Plane::new([0.0, 0.0, -1.0], -0.5, &DEV, DType::F64)
-                .unwrap()
-                .occupancy(3.0),
-        ),
+        Box::new(plane.clone().sdf()) as Box<dyn ImplicitSurface>,
+        Box::new(plane.occupancy(3.0)),
     ] {
         let (o, w, n, f) = one_ray([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], 0.0, 1.0);
+        let (ov, wv) = ray_vars(&o, &w);
         for secant in [0, 1, 8] {
             let cfg = MarchConfig {
                 steps: 5,
@@ -573,9 +639,18 @@ fn field_exactly_at_level_at_a_sample_is_found_exactly() {
                 ..MarchConfig::default()
             };
             let h = march(field.as_ref(), &o, &w, &n, &f, &cfg).unwrap();
-            assert!(h.status[0].has_surface(), "{:?}", h.status);
+            assert_eq!(h.status, vec![RayStatus::Hit], "secant {secant}");
             assert_eq!(v64(&h.depth), vec![0.5]);
             all_finite(&h);
+            let g = implicit_and_backward(
+                field.as_ref(),
+                ov.as_tensor(),
+                wv.as_tensor(),
+                &h,
+                &[&normal, &offset, &ov, &wv],
+            );
+            near_eq(g[1][0], -1.0, "∂t/∂o (plane offset)");
+            near_eq(g[2][2], -1.0, "∂t/∂o_z (ray origin)");
         }
     }
 }
@@ -622,6 +697,59 @@ fn secant_denominator_zero_falls_back_to_bisection() {
     };
     let h = march(&Step, &o, &w, &n, &f, &cfg).unwrap();
     assert_eq!(h.status, vec![RayStatus::Hit]);
+    // The same with a learnable offset θ (f = ±f64::MAX + θ, θ = 0): the secant steps
+    // still overflow, and the implicit step has ∇f = 0, so its denominator is floored
+    // (guarded) at ε·min_gradient·‖w‖ = 1e-15 with the sign of +0: ∂t/∂θ = −1e15,
+    // finite, and ∂t/∂o = ∂t/∂w = 0.
+    let theta = Var::new(0.0f64, &DEV).unwrap();
+    let field = ShiftedStep(theta.clone());
+    for grazing_threshold in [Some(1e-3), None] {
+        let cfg = MarchConfig {
+            grazing_threshold,
+            ..cfg.clone()
+        };
+        let h = march(&field, &o, &w, &n, &f, &cfg).unwrap();
+        let want = if grazing_threshold.is_some() {
+            RayStatus::Grazing
+        } else {
+            RayStatus::Hit
+        };
+        assert_eq!(h.status, vec![want]);
+        assert!((v64(&h.depth)[0] - 0.3).abs() < 1e-9, "{:?}", v64(&h.depth));
+        let (ov, wv) = ray_vars(&o, &w);
+        let s = implicit_surface(
+            &field,
+            ov.as_tensor(),
+            wv.as_tensor(),
+            &h,
+            &ImplicitConfig::default(),
+        )
+        .unwrap();
+        assert_eq!(v64(&s.guarded.to_dtype(DType::F64).unwrap()), vec![1.0]);
+        let g = implicit_and_backward(
+            &field,
+            ov.as_tensor(),
+            wv.as_tensor(),
+            &h,
+            &[&theta, &ov, &wv],
+        );
+        assert!((g[0][0] + 1e15).abs() <= 1.0, "∂t/∂θ = {:e}", g[0][0]);
+        assert!(g[1].iter().chain(&g[2]).all(|&x| x == 0.0), "{g:?}");
+    }
+}
+
+/// [`Step`] plus a learnable offset θ (a scalar variable).
+struct ShiftedStep(Var);
+impl ImplicitSurface for ShiftedStep {
+    fn value(&self, p: &Tensor) -> Result<Tensor> {
+        Ok(Step.value(p)?.broadcast_add(self.0.as_tensor())?)
+    }
+    fn value_and_grad(&self, p: &Tensor) -> Result<(Tensor, Tensor)> {
+        Ok((self.value(p)?, p.zeros_like()?))
+    }
+    fn inside(&self) -> Inside {
+        Inside::Positive
+    }
 }
 
 #[test]
@@ -667,9 +795,16 @@ fn illinois_beats_plain_regula_falsi_on_a_curved_crossing() {
     );
 }
 
+/// The argument an `Err(InvalidArgument)` names; also checks that its message starts
+/// with that name.
 fn err_arg<T: std::fmt::Debug>(r: Result<T>) -> String {
-    match r.unwrap_err() {
-        neural_fields::Error::InvalidArgument { arg, .. } => arg.to_string(),
+    let e = r.unwrap_err();
+    let msg = e.to_string();
+    match e {
+        neural_fields::Error::InvalidArgument { arg, .. } => {
+            assert!(msg.starts_with(&format!("{arg}: ")), "{msg}");
+            arg.to_string()
+        }
         e => panic!("unexpected {e}"),
     }
 }
@@ -725,6 +860,119 @@ fn bad_input_errs_naming_the_argument() {
         .occupancy(2.0);
     assert_eq!(err_arg(sphere_trace(&occ, &o, &w, &n, &f, &st)), "field");
     assert_eq!(err_arg(StepSchedule::new(vec![(5, 16)])), "milestones");
+
+    // Non-finite directions.
+    for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+        let bad_w = Tensor::new(&[[0.0f64, 0.0, 1.0], [bad, 0.0, 1.0]], &DEV).unwrap();
+        assert_eq!(err_arg(march(&field, &o, &bad_w, &n, &f, &c)), "directions");
+        assert_eq!(
+            err_arg(sphere_trace(&field, &o, &bad_w, &n, &f, &st)),
+            "directions"
+        );
+    }
+    // `far` of the wrong shape, dtype or with non-finite values.
+    let f3 = Tensor::new(&[4.0f64, 4.0, 4.0], &DEV).unwrap();
+    assert_eq!(err_arg(march(&field, &o, &w, &n, &f3, &c)), "far");
+    let f21 = f.unsqueeze(1).unwrap();
+    assert_eq!(err_arg(march(&field, &o, &w, &n, &f21, &c)), "far");
+    let f32_ = f.to_dtype(DType::F32).unwrap();
+    assert_eq!(err_arg(march(&field, &o, &w, &n, &f32_, &c)), "far");
+    let f_nan = Tensor::new(&[4.0f64, f64::NAN], &DEV).unwrap();
+    assert_eq!(err_arg(march(&field, &o, &w, &n, &f_nan, &c)), "far");
+
+    // march_bounded with bad bounds.
+    let rays = Rays::new(o.clone(), w.clone()).unwrap();
+    let good = ray_aabb(&o, &w, [-0.55; 3], [0.55; 3]).unwrap();
+    assert!(march_bounded(&field, &rays, &good, &c).is_ok());
+    let with = |near: &Tensor, far: &Tensor, hit: &Tensor| Intersection {
+        near: near.clone(),
+        far: far.clone(),
+        hit: hit.clone(),
+    };
+    let hit2 = Tensor::new(&[1u8, 1], &DEV).unwrap();
+    let cases = [
+        (with(&n3, &f, &hit2), "near"),
+        (with(&n.unsqueeze(1).unwrap(), &f, &hit2), "near"),
+        (with(&n, &f3, &hit2), "far"),
+        (with(&n, &f21, &hit2), "far"),
+        (with(&n, &f, &Tensor::new(&[1u8], &DEV).unwrap()), "hit"),
+        (with(&n32, &f, &hit2), "near"),
+        (with(&n, &f_nan, &hit2), "far"),
+        (
+            with(
+                &Tensor::new(&[f64::INFINITY, 0.0], &DEV).unwrap(),
+                &f,
+                &hit2,
+            ),
+            "near",
+        ),
+        // far < near on a ray with hit = 1 (on a ray with hit = 0 it is ignored).
+        (with(&f, &n, &hit2), "far"),
+    ];
+    for (bounds, arg) in &cases {
+        assert_eq!(err_arg(march_bounded(&field, &rays, bounds, &c)), *arg);
+    }
+    let hit01 = Tensor::new(&[1u8, 0], &DEV).unwrap();
+    let swapped = with(
+        &Tensor::new(&[0.0f64, 4.0], &DEV).unwrap(),
+        &Tensor::new(&[4.0f64, 1.0], &DEV).unwrap(),
+        &hit01,
+    );
+    let h = march_bounded(&field, &rays, &swapped, &c).unwrap();
+    assert_eq!(h.status[1], RayStatus::Miss);
+    let short_rays = Rays {
+        origins: o.clone(),
+        directions: w1.clone(),
+    };
+    assert_eq!(
+        err_arg(march_bounded(&field, &short_rays, &good, &c)),
+        "directions"
+    );
+
+    // sphere_trace shape errors.
+    assert_eq!(
+        err_arg(sphere_trace(&field, &o2, &w, &n, &f, &st)),
+        "origins"
+    );
+    assert_eq!(
+        err_arg(sphere_trace(&field, &o, &w1, &n, &f, &st)),
+        "directions"
+    );
+    assert_eq!(err_arg(sphere_trace(&field, &o, &w, &n3, &f, &st)), "near");
+    assert_eq!(err_arg(sphere_trace(&field, &o, &w, &n, &f3, &st)), "far");
+    assert_eq!(err_arg(sphere_trace(&field, &o, &w, &n, &f21, &st)), "far");
+
+    // implicit_surface shape errors (with a valid march of these two rays).
+    let hits = march(&field, &o, &w, &n, &f, &c).unwrap();
+    let ic = ImplicitConfig::default();
+    assert_eq!(
+        err_arg(implicit_surface(&field, &o2, &w, &hits, &ic)),
+        "origins"
+    );
+    assert_eq!(
+        err_arg(implicit_surface(&field, &o, &w1, &hits, &ic)),
+        "directions"
+    );
+    let w4 = Tensor::new(&[[0.0f64, 0.0, 1.0, 0.0], [0.0, 0.1, 1.0, 0.0]], &DEV).unwrap();
+    assert_eq!(
+        err_arg(implicit_surface(&field, &o, &w4, &hits, &ic)),
+        "directions"
+    );
+    let nan_w = Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, f64::NAN, 1.0]], &DEV).unwrap();
+    assert_eq!(
+        err_arg(implicit_surface(&field, &o, &nan_w, &hits, &ic)),
+        "directions"
+    );
+    let o1 = o.narrow(0, 0, 1).unwrap();
+    assert_eq!(
+        err_arg(implicit_surface(&field, &o1, &w1, &hits, &ic)),
+        "hits"
+    );
+    let o32 = o.to_dtype(DType::F32).unwrap();
+    assert_eq!(
+        err_arg(implicit_surface(&field, &o32, &w32, &hits, &ic)),
+        "hits"
+    );
 }
 
 #[test]

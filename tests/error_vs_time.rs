@@ -12,6 +12,14 @@ mod encoding;
 #[path = "../examples/error_vs_time/volume.rs"]
 mod volume;
 
+#[cfg(feature = "dvr")]
+#[path = "../examples/error_vs_time/dvr.rs"]
+mod dvr;
+
+#[cfg(feature = "occupancy")]
+#[path = "../examples/error_vs_time/mise.rs"]
+mod mise;
+
 use report::Table;
 
 fn check(tables: Vec<Table>) {
@@ -71,5 +79,38 @@ fn volume_study_runs_quick() {
         .map(|r| r.error)
         .collect();
     assert!(strat.windows(2).all(|w| w[1] <= w[0] * 1.01), "{strat:?}");
+    check(tables);
+}
+
+#[cfg(feature = "dvr")]
+#[test]
+fn dvr_study_runs_quick() {
+    let tables = dvr::run(true);
+    // On the analytic torus, secant refinement must not make the depth worse at the
+    // finest sampling.
+    let torus = &tables[0];
+    let finest = torus.rows.iter().map(|r| r.knob).fold(0.0, f64::max);
+    let err = |series: &str| {
+        torus
+            .rows
+            .iter()
+            .find(|r| r.series == series && r.knob == finest)
+            .map(|r| r.error)
+            .unwrap()
+    };
+    assert!(
+        err("8 secant steps") <= err("0 secant steps"),
+        "{}: {} vs {}",
+        torus.title,
+        err("8 secant steps"),
+        err("0 secant steps")
+    );
+    check(tables);
+}
+
+#[cfg(feature = "occupancy")]
+#[test]
+fn mise_study_runs_quick() {
+    let tables = mise::run(true);
     check(tables);
 }

@@ -716,7 +716,10 @@ pub fn march<F: ImplicitSurface + ?Sized>(
 /// `near = far` get [`RayStatus::Miss`] (depth 0) without any field evaluation.
 ///
 /// # Errors
-/// As [`march`]; `bounds` naming its mismatched fields as `near` / `far` / `hit`.
+/// As [`march`]; `bounds` naming its fields as `near` / `far` / `hit`: a shape other
+/// than `[R]`, a dtype or device other than the rays', non-finite `near` / `far`, and
+/// `far` if `far < near` on a ray with `hit = 1` (which [`crate::camera::ray_aabb`] and
+/// [`crate::camera::ray_sphere`] never produce).
 pub fn march_bounded<F: ImplicitSurface + ?Sized>(
     field: &F,
     rays: &Rays,
@@ -725,16 +728,13 @@ pub fn march_bounded<F: ImplicitSurface + ?Sized>(
 ) -> Result<Hits> {
     let r = rays.len();
     check_shape(&bounds.hit, "hit", &[Dim::Is(r)])?;
+    for (t, arg) in [(&bounds.near, "near"), (&bounds.far, "far")] {
+        check_float(t, arg)?;
+        check_shape(t, arg, &[Dim::Is(r)])?;
+    }
     let hit: Vec<u8> = bounds.hit.to_dtype(DType::U8)?.to_vec1::<u8>()?;
     let near = vec1(&bounds.near)?;
     let far = vec1(&bounds.far)?;
-    if near.len() != r || far.len() != r {
-        return Err(Error::invalid(
-            "near",
-            format!("[{r}] bounds (one per ray)"),
-            format!("{} / {}", near.len(), far.len()),
-        ));
-    }
     let active: Vec<bool> = (0..r).map(|i| hit[i] != 0 && far[i] > near[i]).collect();
     let host = read_problem(
         &rays.origins,
@@ -743,6 +743,13 @@ pub fn march_bounded<F: ImplicitSurface + ?Sized>(
         &bounds.far,
         Some(active),
     )?;
+    if let Some(i) = (0..r).find(|&i| hit[i] != 0 && far[i] < near[i]) {
+        return Err(Error::invalid(
+            "far",
+            "far ≥ near on every ray with hit = 1",
+            format!("near = {} > far = {} at ray {i}", near[i], far[i]),
+        ));
+    }
     run_march(field, &host, config)
 }
 

@@ -2,6 +2,8 @@
 //! central finite differences with kink detection.
 #![allow(dead_code)]
 
+pub mod counting;
+
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;
 use neural_fields::rng::SplitMix64;
