@@ -58,6 +58,19 @@ fn accurate(quick: bool) -> MarchConfig {
     }
 }
 
+/// The camera rays (16² in quick mode, 32² otherwise), their bounds, the reference
+/// march of `field` along them and their far bounds on the host.
+fn reference_scene<F: ImplicitSurface + ?Sized>(
+    field: &F,
+    dtype: DType,
+    quick: bool,
+) -> (Rays, Intersection, Hits, Vec<f64>) {
+    let (rays, bounds) = scene(if quick { 16 } else { 32 }, dtype);
+    let reference = march_bounded(field, &rays, &bounds, &accurate(quick)).unwrap();
+    let far = v64(&bounds.far);
+    (rays, bounds, reference, far)
+}
+
 fn march_table<F: ImplicitSurface + ?Sized>(
     field: &F,
     title: &str,
@@ -65,9 +78,7 @@ fn march_table<F: ImplicitSurface + ?Sized>(
     dtype: DType,
     quick: bool,
 ) -> Table {
-    let (rays, bounds) = scene(if quick { 16 } else { 32 }, dtype);
-    let reference = march_bounded(field, &rays, &bounds, &accurate(quick)).unwrap();
-    let far = v64(&bounds.far);
+    let (rays, bounds, reference, far) = reference_scene(field, dtype, quick);
     let steps: &[usize] = if quick {
         &[16, 64, 256]
     } else {
@@ -119,9 +130,7 @@ fn sphere_trace_table<F: ImplicitSurface + ?Sized>(
     dtype: DType,
     quick: bool,
 ) -> Table {
-    let (rays, bounds) = scene(if quick { 16 } else { 32 }, dtype);
-    let reference = march_bounded(field, &rays, &bounds, &accurate(quick)).unwrap();
-    let far = v64(&bounds.far);
+    let (rays, bounds, reference, far) = reference_scene(field, dtype, quick);
     let reps = if quick { 1 } else { 3 };
     let iters: &[usize] = if quick {
         &[5, 20]

@@ -101,6 +101,16 @@ pub struct MiseOutput {
     pub active_per_level: Vec<usize>,
 }
 
+/// Checks that `dtype` is f32 or f64 and returns the level: `level`, or the field's own.
+fn dtype_and_level(surface: &dyn ImplicitSurface, dtype: DType, level: Option<f64>) -> Result<f64> {
+    if !matches!(dtype, DType::F32 | DType::F64) {
+        return Err(Error::invalid("dtype", "f32 or f64", format!("{dtype:?}")));
+    }
+    let level = level.unwrap_or_else(|| surface.level());
+    check_scalar(level, "level", false)?;
+    Ok(level)
+}
+
 /// Extracts the level set of `surface` by MISE (see the module docs); the field is
 /// evaluated through [`ImplicitSurface::value`] on batches of `config.chunk` points.
 ///
@@ -126,15 +136,7 @@ pub fn mise(surface: &dyn ImplicitSurface, config: &MiseConfig) -> Result<MiseOu
             format!("{r0}·2^{steps}"),
         ));
     }
-    if !matches!(config.dtype, DType::F32 | DType::F64) {
-        return Err(Error::invalid(
-            "dtype",
-            "f32 or f64",
-            format!("{:?}", config.dtype),
-        ));
-    }
-    let level = config.level.unwrap_or_else(|| surface.level());
-    check_scalar(level, "level", false)?;
+    let level = dtype_and_level(surface, config.dtype, config.level)?;
     let sign = surface.inside().sign() as f32;
     let tau = level as f32;
     let n = r0 << steps; // cells per axis
@@ -366,15 +368,7 @@ pub fn refine_vertices(
     if config.chunk == 0 {
         return Err(Error::invalid("chunk", "a chunk size ≥ 1", "0"));
     }
-    if !matches!(config.dtype, DType::F32 | DType::F64) {
-        return Err(Error::invalid(
-            "dtype",
-            "f32 or f64",
-            format!("{:?}", config.dtype),
-        ));
-    }
-    let level = config.level.unwrap_or_else(|| surface.level());
-    check_scalar(level, "level", false)?;
+    let level = dtype_and_level(surface, config.dtype, config.level)?;
     let start = mesh.vertices.clone();
     let residual = |mesh: &mut Mesh, step: bool| -> Result<f64> {
         let mut sum = 0.0;
