@@ -24,8 +24,9 @@
 //! component along the optical axis, so `t` is the depth along that axis in scene units
 //! (the torus is 0.84 across); pixels in only one mask count in the IoU, not here.
 //!
-//! Measured on 2 cores (idle machine, release build): 73 s for the default 300 steps,
-//! ending at IoU 0.94 and depth error 0.010 (from 0.69 and 0.179 for the initial sphere).
+//! Measured on 2 cores (release build): 73 s for the default 300 steps on an idle
+//! machine, 123 s while other builds shared the cores; the run is deterministic and ends
+//! at IoU 0.94 and depth error 0.010 (from 0.69 and 0.179 for the initial sphere).
 //! The curve is not monotone: IoU dips around step 100 while the hole opens.
 
 use candle_core::{DType, Device, Tensor};
