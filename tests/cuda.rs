@@ -637,23 +637,29 @@ fn camera_case(dev: &Device, dtype: DType) -> Result<Outs> {
     Ok(out)
 }
 
-fn field_case(dev: &Device, dtype: DType) -> Result<Outs> {
-    let mut rng = SplitMix64::new(51);
-    let points = uniform(&mut rng, &[300, 3], -1.2, 1.2, dtype, dev)?;
-    let center = Var::from_tensor(
-        &Tensor::new(&[0.05f64, -0.1, 0.02], &Device::Cpu)?
-            .to_dtype(dtype)?
-            .to_device(dev)?,
-    )?;
-    let radius = Var::from_tensor(
-        &Tensor::new(0.7f64, &Device::Cpu)?
-            .to_dtype(dtype)?
-            .to_device(dev)?,
-    )?;
+/// A sphere whose centre and radius are `Var`s on `dev` in `dtype` (built on the CPU in
+/// f64 and converted, so both devices start from the same rounded values).
+fn learnable_sphere(
+    center: [f64; 3],
+    radius: f64,
+    dev: &Device,
+    dtype: DType,
+) -> Result<(Var, Var, Sphere)> {
+    let var =
+        |t: Tensor| -> Result<Var> { Ok(Var::from_tensor(&t.to_dtype(dtype)?.to_device(dev)?)?) };
+    let center = var(Tensor::new(&center, &Device::Cpu)?)?;
+    let radius = var(Tensor::new(radius, &Device::Cpu)?)?;
     let sphere = Sphere {
         center: center.as_tensor().clone(),
         radius: radius.as_tensor().clone(),
     };
+    Ok((center, radius, sphere))
+}
+
+fn field_case(dev: &Device, dtype: DType) -> Result<Outs> {
+    let mut rng = SplitMix64::new(51);
+    let points = uniform(&mut rng, &[300, 3], -1.2, 1.2, dtype, dev)?;
+    let (center, radius, sphere) = learnable_sphere([0.05, -0.1, 0.02], 0.7, dev, dtype)?;
     let mut out: Outs = Vec::new();
     let (d, g) = sphere.distance_and_grad(&points)?;
     let mut up = SplitMix64::new(6);
@@ -692,21 +698,8 @@ fn field_case(dev: &Device, dtype: DType) -> Result<Outs> {
 
 fn dvr_case(dev: &Device, dtype: DType) -> Result<Outs> {
     let depth_tol = |t: &Tensor| Out::Abs(t.clone(), 1e-5, 1e-10);
-    let center = Var::from_tensor(
-        &Tensor::new(&[0.05f64, -0.03, 0.02], &Device::Cpu)?
-            .to_dtype(dtype)?
-            .to_device(dev)?,
-    )?;
-    let radius = Var::from_tensor(
-        &Tensor::new(0.6f64, &Device::Cpu)?
-            .to_dtype(dtype)?
-            .to_device(dev)?,
-    )?;
-    let sdf = Sphere {
-        center: center.as_tensor().clone(),
-        radius: radius.as_tensor().clone(),
-    }
-    .sdf();
+    let (center, radius, sphere) = learnable_sphere([0.05, -0.03, 0.02], 0.6, dev, dtype)?;
+    let sdf = sphere.sdf();
     let k = Intrinsics::from_fov_y(32, 24, 0.8)?;
     let cam = Camera::look_at(
         k,

@@ -71,6 +71,25 @@ fn reference_scene<F: ImplicitSurface + ?Sized>(
     (rays, bounds, reference, far)
 }
 
+/// One row of a depth table: `run` once for the depth error against `reference` (with
+/// the rays' far bounds), then `reps` more times for the median wall time.
+fn depth_row(
+    series: String,
+    knob: usize,
+    reps: usize,
+    (reference, far): (&Hits, &[f64]),
+    run: impl Fn() -> Hits,
+) -> Row {
+    let hits = run();
+    Row {
+        series,
+        knob: knob as f64,
+        error: depth_error(&hits, reference, far),
+        seconds: median_seconds(reps, || drop(run())),
+        work: hits.status.len() as f64,
+    }
+}
+
 fn march_table<F: ImplicitSurface + ?Sized>(
     field: &F,
     title: &str,
@@ -93,17 +112,13 @@ fn march_table<F: ImplicitSurface + ?Sized>(
                 secant_steps: secant,
                 ..MarchConfig::default()
             };
-            let h = march_bounded(field, &rays, &bounds, &cfg).unwrap();
-            let seconds = median_seconds(reps, || {
-                march_bounded(field, &rays, &bounds, &cfg).unwrap();
-            });
-            rows.push(Row {
-                series: format!("{secant} secant steps"),
-                knob: n as f64,
-                error: depth_error(&h, &reference, &far),
-                seconds,
-                work: rays.len() as f64,
-            });
+            rows.push(depth_row(
+                format!("{secant} secant steps"),
+                n,
+                reps,
+                (&reference, &far),
+                || march_bounded(field, &rays, &bounds, &cfg).unwrap(),
+            ));
         }
     }
     Table {
@@ -163,17 +178,13 @@ fn sphere_trace_table<F: ImplicitSurface + ?Sized>(
                 ..SphereTraceConfig::default()
             };
             // Rays missing the bounding sphere have near = far = 0; trace only the others.
-            let hits = trace_active(field, &rays, &bounds, &cfg);
-            let seconds = median_seconds(reps, || {
-                trace_active(field, &rays, &bounds, &cfg);
-            });
-            rows.push(Row {
-                series: series.into(),
-                knob: it as f64,
-                error: depth_error(&hits, &reference, &far),
-                seconds,
-                work: rays.len() as f64,
-            });
+            rows.push(depth_row(
+                series.into(),
+                it,
+                reps,
+                (&reference, &far),
+                || trace_active(field, &rays, &bounds, &cfg),
+            ));
         }
     }
     Table {
