@@ -45,6 +45,7 @@ use super::composite::{
 };
 use crate::error::{check_same, check_shape, Dim, Error, Result};
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Shape, Storage, Tensor, WithDType};
+use std::mem::MaybeUninit;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
@@ -227,11 +228,14 @@ struct RayIn<'a, T> {
 }
 
 /// The gradient outputs of one ray (each present only when requested).
+///
+/// The buffers are uninitialised: the kernel writes every entry (zeros past the ray's
+/// live samples), which saves the serial zeroing pass of a fresh allocation.
 struct RayGrads<'a, T> {
-    sig: Option<&'a mut [T]>,
-    del: Option<&'a mut [T]>,
-    vals: Option<&'a mut [T]>,
-    tm: Option<&'a mut [T]>,
+    sig: Option<&'a mut [MaybeUninit<T>]>,
+    del: Option<&'a mut [MaybeUninit<T>]>,
+    vals: Option<&'a mut [MaybeUninit<T>]>,
+    tm: Option<&'a mut [MaybeUninit<T>]>,
 }
 
 /// Accumulated sums of one ray's forward scan.
@@ -448,31 +452,41 @@ fn backward_ray_k<T: WithDType, const K: usize, const FMA: bool>(
     }
     // 3. Independent writes (vectorise); the clamp region x > X_MAX has zero gradient,
     //    ∂L/∂σ = δ·∂L/∂x and ∂L/∂δ = σ·∂L/∂x.
+    //    Every entry is written: entries past `live` get 0.
     let gx = |s: f64, d: f64, u: f64| if s * d > X_MAX { 0.0 } else { u };
+    let zero = |buf: &mut [MaybeUninit<T>]| {
+        for o in buf {
+            o.write(T::zero());
+        }
+    };
     if let Some(gs) = out.sig.as_deref_mut() {
         for (((o, s), d), u) in gs.iter_mut().zip(sig).zip(del).zip(u.iter()) {
             let (s, d) = (s.to_f64(), d.to_f64());
-            *o = T::from_f64(d * gx(s, d, *u));
+            o.write(T::from_f64(d * gx(s, d, *u)));
         }
+        zero(&mut gs[live..]);
     }
     if let Some(gd) = out.del.as_deref_mut() {
         for (((o, s), d), u) in gd.iter_mut().zip(sig).zip(del).zip(u.iter()) {
             let (s, d) = (s.to_f64(), d.to_f64());
-            *o = T::from_f64(s * gx(s, d, *u));
+            o.write(T::from_f64(s * gx(s, d, *u)));
         }
+        zero(&mut gd[live..]);
     }
     let w = &sc.w[..live];
     if let Some(gv) = out.vals.as_deref_mut() {
         for (row, w) in gv[..live * k].chunks_exact_mut(k.max(1)).zip(w) {
             for (o, g) in row.iter_mut().zip(gk) {
-                *o = T::from_f64(w * g);
+                o.write(T::from_f64(w * g));
             }
         }
+        zero(&mut gv[live * k..]);
     }
     if let Some(gt) = out.tm.as_deref_mut() {
         for (o, w) in gt.iter_mut().zip(w) {
-            *o = T::from_f64(w * g_dep);
+            o.write(T::from_f64(w * g_dep));
         }
+        zero(&mut gt[live..]);
     }
 }
 
@@ -581,6 +595,11 @@ fn par_for_each<I: Send>(items: Vec<I>, f: impl Fn(&mut Scratch, I) + Sync) {
             }
         }
     });
+}
+
+/// The first `len` entries of `v`'s spare capacity when `on`.
+fn spare<T>(v: &mut Vec<T>, on: bool, len: usize) -> Option<&mut [MaybeUninit<T>]> {
+    on.then(|| &mut v.spare_capacity_mut()[..len])
 }
 
 /// Mutable per-ray sub-slices of `buf` (`k` entries per sample), or `None` for every
@@ -706,21 +725,27 @@ impl FusedComposite {
         need: [bool; 3],
     ) -> (Vec<T>, Vec<T>, Vec<T>) {
         let (k, width, m) = (self.k, self.width(), self.seg.n_samples());
-        let alloc = |on: bool, len: usize| if on { vec![T::zero(); len] } else { Vec::new() };
-        let mut gs = alloc(need[0], m);
-        let mut ggeo = alloc(need[1], m * self.geo_rows());
-        let mut gv = alloc(need[2], m * k);
+        // Uninitialised buffers (capacity `len` when requested, else empty): the kernels
+        // write every entry, see `RayGrads`.
+        let alloc = |on: bool, len: usize| Vec::<T>::with_capacity(if on { len } else { 0 });
+        let lens = [m, m * self.geo_rows(), m * k];
+        let (mut gs, mut ggeo, mut gv) = (
+            alloc(need[0], lens[0]),
+            alloc(need[1], lens[1]),
+            alloc(need[2], lens[2]),
+        );
         let seg = &self.seg;
-        let (gd, gt) = if need[1] {
-            let (gd, gt) = ggeo.split_at_mut(m);
-            (Some(gd), (!gt.is_empty()).then_some(gt))
-        } else {
-            (None, None)
+        let (gd, gt) = match spare(&mut ggeo, need[1], lens[1]) {
+            Some(g) => {
+                let (gd, gt) = g.split_at_mut(m);
+                (Some(gd), (!gt.is_empty()).then_some(gt))
+            }
+            None => (None, None),
         };
-        let rays: Vec<_> = split_rays((!gs.is_empty()).then_some(&mut gs[..]), seg, 1)
+        let rays: Vec<_> = split_rays(spare(&mut gs, need[0], lens[0]), seg, 1)
             .into_iter()
             .zip(split_rays(gd, seg, 1))
-            .zip(split_rays((!gv.is_empty()).then_some(&mut gv[..]), seg, k))
+            .zip(split_rays(spare(&mut gv, need[2], lens[2]), seg, k))
             .zip(split_rays(gt, seg, 1))
             .enumerate()
             .collect();
@@ -735,6 +760,19 @@ impl FusedComposite {
             let g = &grad[ray * width..(ray + 1) * width];
             isa.backward(&self.ray(ray, sig, del, tm, vals), g, sc, &mut out);
         });
+        for (v, (on, len)) in [&mut gs, &mut ggeo, &mut gv]
+            .into_iter()
+            .zip(need.iter().zip(lens))
+        {
+            if *on {
+                // SAFETY: `split_rays` partitioned the first `len` spare entries of `v` among
+                // the rays (the segments cover all m samples: `check_len` and `Segments`
+                // ensure `(b − a)·k` slices sum to `len`), `par_for_each` returned normally,
+                // so every ray's kernel ran, and `backward_ray_k` writes every entry of its
+                // slices (values before `live`, zeros after; an empty ray has empty slices).
+                unsafe { v.set_len(len) };
+            }
+        }
         (gs, ggeo, gv)
     }
 }
