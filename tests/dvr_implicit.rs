@@ -15,6 +15,7 @@ use glam::DVec3;
 use neural_fields::camera::{Camera, Convention, Intrinsics};
 use neural_fields::dvr::{
     implicit_surface, march, Hits, ImplicitConfig, MarchConfig, RayStatus, SecantRule,
+    SurfacePoints,
 };
 use neural_fields::field::{Conditioned, ImplicitSurface, Inside, SignedDistance, Sphere, Torus};
 use neural_fields::nn::{build_seeded, mlp, Activation, Mlp, MlpConfig};
@@ -74,10 +75,10 @@ fn loss_from_march<F: ImplicitSurface + ?Sized>(
     v64(&h.depth).iter().zip(c).map(|(t, c)| t * c).sum()
 }
 
-/// Which rays hit cleanly: a crossing is found and the angle is not grazing
-/// (|cos(∇f, w)| ≥ 0.1); the tests do not apply to the others.
-fn clean_hits<F: ImplicitSurface + ?Sized>(f: &F, o: &Tensor, w: &Tensor, h: &Hits) -> Vec<bool> {
-    let s = implicit_surface(f, o, w, h, &ImplicitConfig::default()).unwrap();
+/// Which rays hit cleanly, from the implicit step `s` of the march `h`: a crossing is
+/// found and the angle is not grazing (|cos(∇f, w)| ≥ 0.1); the tests do not apply to
+/// the others.
+fn clean_hits(s: &SurfacePoints, w: &Tensor, h: &Hits) -> Vec<bool> {
     // `gradient` has one row per hit ray (in `indices` order).
     let g = v64(&s.gradient);
     let wv = v64(&w.detach());
@@ -108,7 +109,8 @@ fn hitting_rays<F: ImplicitSurface + ?Sized>(
     let n = 4 * r;
     let (o, w, near, far) = rays(seed, n, [0.0; 3], 0.15);
     let h = march(f, &o, &w, &near, &far, &accurate()).unwrap();
-    let keep: Vec<u32> = clean_hits(f, &o, &w, &h)
+    let s = implicit_surface(f, &o, &w, &h, &ImplicitConfig::default()).unwrap();
+    let keep: Vec<u32> = clean_hits(&s, &w, &h)
         .iter()
         .enumerate()
         .filter(|(_, ok)| **ok)
@@ -131,10 +133,13 @@ fn implicit_loss<F: ImplicitSurface + ?Sized>(
     c: &[f64],
 ) -> Option<(Tensor, Hits)> {
     let h = march(f, &o.detach(), &w.detach(), n, fa, &accurate()).unwrap();
-    if h.status.iter().any(|s| *s != RayStatus::Hit) || clean_hits(f, o, w, &h).contains(&false) {
+    if h.status.iter().any(|s| *s != RayStatus::Hit) {
         return None;
     }
     let s = implicit_surface(f, o, w, &h, &ImplicitConfig::default()).unwrap();
+    if clean_hits(&s, w, &h).contains(&false) {
+        return None;
+    }
     assert_eq!(
         v64(&s.depth),
         v64(&h.depth),
