@@ -112,6 +112,9 @@ pub mod nn;
 pub mod numerics;
 #[cfg(feature = "occupancy")]
 pub mod occupancy;
+// Used by the fused compositing kernel only so far.
+#[cfg_attr(not(feature = "volume"), allow(dead_code))]
+mod parallel;
 pub mod rng;
 #[cfg(feature = "volume")]
 pub mod volume;

@@ -34,8 +34,8 @@
 //!
 //! evaluated by recomputing the forward scan into a per-ray buffer and one reverse scan
 //! for the suffix sum: O(S) per ray, no n×n work, no division by α or T. Rays run in
-//! parallel on candle's own CPU worker pool (the one its element-wise ops use), not on a
-//! second pool competing for the same cores. The backward is not itself differentiable
+//! parallel on candle's own CPU worker pool (see `crate::parallel`), not on a second pool
+//! competing for the same cores. The backward is not itself differentiable
 //! (no second order), and it only computes the gradients of inputs that are part of the
 //! autograd graph.
 
@@ -44,10 +44,11 @@ use super::composite::{
     CompositeOptions, Packed, X_MAX,
 };
 use crate::error::{check_same, check_shape, Dim, Error, Result};
+use crate::parallel::for_each_init;
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Shape, Storage, Tensor, WithDType};
 use std::mem::MaybeUninit;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 /// Transmittance below which a ray is considered spent inside the kernel.
 const T_STOP: f64 = 1e-300;
@@ -571,32 +572,6 @@ mod x86 {
     }
 }
 
-/// Runs `f(scratch, item)` for every item, in parallel on candle's own CPU worker pool
-/// ([`candle_core::utils::barrier_pool`]), with one [`Scratch`] per claimed chunk.
-///
-/// Candle runs its element-wise CPU kernels on that pool, whose workers spin for a while
-/// after each op; work placed on a second pool (rayon's) competes with those spinning
-/// workers for the same cores, which cost the compositing step about a fifth of its time
-/// on a 2-core machine. Items are handed out through per-item slots (each taken once), so
-/// every `&mut` in an item reaches exactly one call of `f`.
-fn par_for_each<I: Send>(items: Vec<I>, f: impl Fn(&mut Scratch, I) + Sync) {
-    let slots: Vec<Mutex<Option<I>>> = items.into_iter().map(|i| Mutex::new(Some(i))).collect();
-    candle_core::utils::barrier_pool().execute_chunked(slots.len(), |range| {
-        let mut sc = Scratch::default();
-        for slot in &slots[range] {
-            // A poisoned slot can only come from a panic in `f`, which the pool re-raises
-            // on the calling thread; taking the item out of it is still sound.
-            let item = match slot.lock() {
-                Ok(mut g) => g.take(),
-                Err(p) => p.into_inner().take(),
-            };
-            if let Some(item) = item {
-                f(&mut sc, item);
-            }
-        }
-    });
-}
-
 /// The first `len` entries of `v`'s spare capacity when `on`.
 fn spare<T>(v: &mut Vec<T>, on: bool, len: usize) -> Option<&mut [MaybeUninit<T>]> {
     on.then(|| &mut v.spare_capacity_mut()[..len])
@@ -705,7 +680,7 @@ impl FusedComposite {
         let isa = Isa::detect();
         let mut out = vec![T::zero(); r * width];
         let rows: Vec<_> = out.chunks_mut(width).enumerate().collect();
-        par_for_each(rows, |sc, (ray, o)| {
+        for_each_init(rows, Scratch::default, |sc, (ray, o)| {
             isa.forward(&self.ray(ray, sig, del, tm, vals), sc, o);
         });
         out
@@ -750,7 +725,7 @@ impl FusedComposite {
             .enumerate()
             .collect();
         let isa = Isa::detect();
-        par_for_each(rays, |sc, (ray, (((gs, gd), gv), gt))| {
+        for_each_init(rays, Scratch::default, |sc, (ray, (((gs, gd), gv), gt))| {
             let mut out = RayGrads {
                 sig: gs,
                 del: gd,
@@ -767,7 +742,7 @@ impl FusedComposite {
             if *on {
                 // SAFETY: `split_rays` partitioned the first `len` spare entries of `v` among
                 // the rays (the segments cover all m samples: `check_len` and `Segments`
-                // ensure `(b − a)·k` slices sum to `len`), `par_for_each` returned normally,
+                // ensure `(b − a)·k` slices sum to `len`), `for_each_init` returned normally,
                 // so every ray's kernel ran, and `backward_ray_k` writes every entry of its
                 // slices (values before `live`, zeros after; an empty ray has empty slices).
                 unsafe { v.set_len(len) };
