@@ -2493,8 +2493,12 @@ const OCCUPANCY_COVERED: &[&str] = &[
 /// with the reason. Matching is by prefix, so `"error::check_"` covers the checks.
 const EXEMPT: &[(&str, &str)] = &[
     (
-        "volume::fused::force_baseline_kernels",
-        "a switch with no float input; both kernel builds are swept in tests/volume_fused.rs",
+        "volume::fused::limit_kernel_build",
+        "a switch with no float input; every kernel build is swept in tests/volume_fused.rs",
+    ),
+    (
+        "volume::fused::KernelBuild",
+        "an enum of kernel builds, no float input",
     ),
     ("nn::onet::SimpleDecoderConfig::default", "constant"),
     ("nn::onet::SimpleDecoder::code_dim", "getter"),

@@ -11,7 +11,9 @@ use neural_fields::volume::composite::{
     composite_packed_reference, composite_reference, render_weights, Composite, CompositeOptions,
     Packed, WeightOptions,
 };
-use neural_fields::volume::fused::{accumulate_fused, composite_fused, composite_packed_fused};
+use neural_fields::volume::fused::{
+    accumulate_fused, composite_fused, composite_packed_fused, limit_kernel_build, KernelBuild,
+};
 use proptest::prelude::*;
 
 fn dev() -> Device {
@@ -554,12 +556,16 @@ fn accumulate_fused_matches_weights_times_values() {
 
 /// `accumulate_fused` for 0–7 channels (the kernels specialised for 1–4 channels and
 /// the general one, including no channels at all: opacity only) equals weights × values
-/// from the reference path, values and gradients, on both the AVX2 + FMA kernels (where
-/// the CPU has them) and the baseline ones.
+/// from the reference path, values and gradients, on every kernel build the CPU has
+/// (baseline, AVX2 + FMA, AVX-512).
 #[test]
 fn every_channel_count_and_both_kernel_builds_match_the_reference() {
-    for baseline in [false, true] {
-        neural_fields::volume::fused::force_baseline_kernels(baseline);
+    for build in [
+        KernelBuild::Baseline,
+        KernelBuild::Avx2Fma,
+        KernelBuild::Avx512,
+    ] {
+        limit_kernel_build(build);
         for k in 0..8 {
             let (sig, col, del, _) = batched(3, 37, k, 7 + k as u64);
             let run = |fused: bool| {
@@ -613,13 +619,13 @@ fn every_channel_count_and_both_kernel_builds_match_the_reference() {
                 for ((x, y), sc) in a.iter().zip(b.iter()).zip(scale.iter()) {
                     assert!(
                         (x - y).abs() <= 1e-10 * (sc + y.abs()),
-                        "k = {k}, baseline = {baseline}: {name} {x} vs {y}"
+                        "k = {k}, {build:?}: {name} {x} vs {y}"
                     );
                 }
             }
         }
     }
-    neural_fields::volume::fused::force_baseline_kernels(false);
+    limit_kernel_build(KernelBuild::Avx512);
 }
 
 #[test]
@@ -820,4 +826,87 @@ fn fused_stops_after_transmittance_below_1e_300() {
     for (a, b) in f.iter().zip(&r) {
         assert!(a.is_finite() && (a - b).abs() <= 1e-300, "{a} vs {b}");
     }
+}
+
+/// The scans run in blocks of 4 samples and fall back to one sample at a time in the
+/// block where T drops below 1e-300 (and in the last S mod 4 samples). With the drop at
+/// every position of 3 blocks and a tail (S = 13), every kernel build gives the
+/// reference's colour, opacity and depth, and gradients equal to the reference's up to
+/// the dropped weights (each below 1e-300), with exactly zero gradient past the drop.
+#[test]
+fn blocked_scan_stops_in_the_block_where_transmittance_falls_below_1e_300() {
+    let s = 13;
+    let dt = DType::F64;
+    for build in [
+        KernelBuild::Baseline,
+        KernelBuild::Avx2Fma,
+        KernelBuild::Avx512,
+    ] {
+        limit_kernel_build(build);
+        for drop_at in 0..s {
+            // x = σδ = 0.3 before the drop, 700 at it (T falls by e^{-700} ≈ 1e-304),
+            // 0.2 after it.
+            let sig: Vec<f64> = (0..s)
+                .map(|i| match i.cmp(&drop_at) {
+                    std::cmp::Ordering::Less => 0.3,
+                    std::cmp::Ordering::Equal => 700.0,
+                    std::cmp::Ordering::Greater => 0.2,
+                })
+                .collect();
+            let sig = Tensor::from_vec(sig, (1, s), &dev()).unwrap();
+            let del = Tensor::ones((1, s), dt, &dev()).unwrap();
+            let tm = Tensor::arange(0.0f64, s as f64, &dev())
+                .unwrap()
+                .reshape((1, s))
+                .unwrap();
+            let col = Tensor::from_vec(
+                (0..s * 2)
+                    .map(|i| 0.1 + 0.05 * i as f64)
+                    .collect::<Vec<_>>(),
+                (1, s, 2),
+                &dev(),
+            )
+            .unwrap();
+            let run = |fused: bool| {
+                let (sv, cv) = (
+                    Var::from_tensor(&sig).unwrap(),
+                    Var::from_tensor(&col).unwrap(),
+                );
+                let opts = CompositeOptions::default();
+                let f = if fused {
+                    composite_fused
+                } else {
+                    composite_reference
+                };
+                let out = f(sv.as_tensor(), cv.as_tensor(), &del, &tm, &opts).unwrap();
+                let l = loss(&out, &[0.7, -1.3, 0.4, 0.9]);
+                let g = l.backward().unwrap();
+                let vals = [v64(&out.color), v64(&out.opacity), v64(&out.depth)].concat();
+                (
+                    vals,
+                    v64(g.get(sv.as_tensor()).unwrap()),
+                    v64(g.get(cv.as_tensor()).unwrap()),
+                )
+            };
+            let ((fv, fs, fc), (rv, rs, rc)) = (run(true), run(false));
+            for (name, a, b) in [
+                ("outputs", &fv, &rv),
+                ("d/dsigma", &fs, &rs),
+                ("d/dcolor", &fc, &rc),
+            ] {
+                for (x, y) in a.iter().zip(b.iter()) {
+                    assert!(
+                        x.is_finite() && (x - y).abs() <= 1e-13 * (1.0 + y.abs()) + 1e-290,
+                        "{build:?}, drop at {drop_at}: {name} {x:e} vs {y:e}"
+                    );
+                }
+            }
+            assert!(
+                fs[drop_at + 1..].iter().all(|g| *g == 0.0)
+                    && fc[2 * (drop_at + 1)..].iter().all(|g| *g == 0.0),
+                "{build:?}, drop at {drop_at}: gradient past the drop {fs:?}"
+            );
+        }
+    }
+    limit_kernel_build(KernelBuild::Avx512);
 }

@@ -256,7 +256,7 @@ pub fn mise(surface: &dyn ImplicitSurface, config: &MiseConfig) -> Result<MiseOu
             .map(|k| {
                 let mut out = vals[k * pp..(k + 1) * pp].to_vec();
                 let span = |x: usize| -> [usize; 2] {
-                    if x % s == 0 {
+                    if x.is_multiple_of(s) {
                         [x, x]
                     } else {
                         [x - half, x + half]

@@ -104,7 +104,7 @@ impl Packed {
         }
         let mut ray_idx = Vec::with_capacity(acc);
         for (r, &c) in counts.iter().enumerate() {
-            ray_idx.extend(std::iter::repeat(r as u32).take(c));
+            ray_idx.extend(std::iter::repeat_n(r as u32, c));
         }
         let off_u32: Vec<u32> = offsets_host.iter().map(|&o| o as u32).collect();
         Ok(Self {

@@ -13,17 +13,25 @@
 //! they are needed.
 //!
 //! The per-ray kernels are specialised at compile time for 1–4 channels (accumulators in
-//! registers) with a general path for other counts, and are built twice: for the
-//! baseline target and with AVX2 + FMA, chosen at run time by CPU feature detection
-//! (the results differ only by the rounding of fused multiply–adds; both are tested).
+//! registers) with a general path for other counts, and are built three times: for the
+//! baseline target, with AVX2 + FMA and with AVX-512, chosen at run time by CPU feature
+//! detection (the results differ only by the rounding of fused multiply–adds; all are
+//! tested).
 //!
 //! Forward (per ray, in f64 whatever the storage dtype): xᵢ = min(σᵢδᵢ, X_MAX); αᵢ =
 //! −expm1(−xᵢ) and e^{−xᵢ} from one branch-free range-reduced polynomial (vectorised
 //! across the ray's samples; full relative accuracy of the storage dtype, see
-//! docs/math.md); then the sequential scan Tᵢ₊₁ = Tᵢ·e^{−xᵢ}, wᵢ = Tᵢαᵢ. Once
-//! T < 1e-300 the scan stops: the rest of the ray's weights (together below 1e-300, zero
-//! in f32) are dropped, an absolute error below 1e-300·max|v| in f64, and denormals stay
-//! out of the loop.
+//! docs/math.md); then the scan Tᵢ₊₁ = Tᵢ·e^{−xᵢ}, wᵢ = Tᵢαᵢ. Once T < 1e-300 the scan
+//! stops: the rest of the ray's weights (together below 1e-300, zero in f32) are
+//! dropped, an absolute error below 1e-300·max|v| in f64, and denormals stay out of the
+//! loop.
+//!
+//! The scans are blocked by 4 samples: T advances once per block by the product of the
+//! block's four decays, and each running sum (Σwᵢvᵢₖ, Σwᵢ, Σwᵢtᵢ, and the backward's
+//! suffix sum) once per block by the block's own sum, formed off the dependency chain.
+//! A one-sample-at-a-time scan is bound by the latency of that chain (one multiply or
+//! fused multiply–add per sample); blocking divides it by 4. The sums are the
+//! sequential ones reassociated, so results differ from a sequential scan by rounding.
 //!
 //! Backward (derivation in docs/math.md, "Volume compositing"): with upstream gradients
 //! gₖ for the channels and g_O for the opacity, uᵢ = Σₖ gₖvᵢₖ + g_O and
@@ -47,7 +55,7 @@ use crate::error::{check_same, check_shape, Dim, Error, Result};
 use crate::parallel::for_each_init;
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Shape, Storage, Tensor, WithDType};
 use std::mem::MaybeUninit;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::Arc;
 
 /// Transmittance below which a ray is considered spent inside the kernel.
@@ -286,7 +294,46 @@ fn scan_ray<T: WithDType, const FMA: bool>(
     let vals = &ray.vals[..n * k];
     let (mut t, mut opacity, mut depth) = (1.0f64, 0.0f64, 0.0f64);
     let mut live = n;
-    for i in 0..n {
+    // Blocked part: T advances once per block by the block's product of decays
+    // (Tᵢ ≤ 1 and every decay ≤ 1, so T only falls and a block whose end stays at or
+    // above T_STOP has no sample below it). The block where T falls below T_STOP, and the
+    // last n % BLOCK samples, go through the sequential loop below.
+    let mut seq_from = n - n % BLOCK;
+    for (b, (ab, db)) in alpha
+        .chunks_exact(BLOCK)
+        .zip(decay.chunks_exact(BLOCK))
+        .enumerate()
+    {
+        let i0 = b * BLOCK;
+        let vb = &vals[i0 * k..(i0 + BLOCK) * k];
+        let q1 = db[0];
+        let q2 = q1 * db[1];
+        let q3 = q2 * db[2];
+        let t_end = t * (q3 * db[3]);
+        if t_end < T_STOP {
+            seq_from = i0;
+            break;
+        }
+        let tb = [t, t * q1, t * q2, t * q3];
+        let w: [f64; BLOCK] = std::array::from_fn(|j| tb[j] * ab[j]);
+        // Block sums as trees (off the dependency chain), then one add each.
+        let tree = |x: [f64; BLOCK]| (x[0] + x[1]) + (x[2] + x[3]);
+        for (c, a) in acc.iter_mut().enumerate() {
+            let wv: [f64; BLOCK] = std::array::from_fn(|j| w[j] * vb[j * k + c].to_f64());
+            *a += tree(wv);
+        }
+        if let Some(tm) = tm {
+            let tt = &tm[i0..i0 + BLOCK];
+            depth += tree(std::array::from_fn(|j| w[j] * tt[j].to_f64()));
+        }
+        opacity += tree(w);
+        if store {
+            w_out[i0..i0 + BLOCK].copy_from_slice(&w);
+            t_out[i0..i0 + BLOCK].copy_from_slice(&[tb[1], tb[2], tb[3], t_end]);
+        }
+        t = t_end;
+    }
+    for i in seq_from..n {
         let w = t * alpha[i];
         for (a, vv) in acc.iter_mut().zip(&vals[i * k..i * k + k]) {
             *a = madd::<FMA>(w, vv.to_f64(), *a);
@@ -442,12 +489,7 @@ fn backward_ray_k<T: WithDType, const K: usize, const FMA: bool>(
         }
     }
     // 2. Reverse scan: ∂L/∂xⱼ = Tⱼ₊₁uⱼ − Σ_{i>j} wᵢuᵢ, overwriting uⱼ.
-    let mut suffix = 0.0f64;
-    for ((uj, tn), w) in u.iter_mut().zip(&sc.t_next).zip(&sc.w).rev() {
-        let v = *uj;
-        *uj = madd::<FMA>(*tn, v, -suffix);
-        suffix = madd::<FMA>(*w, v, suffix);
-    }
+    reverse_scan::<FMA>(u, &sc.t_next[..live], &sc.w[..live]);
     if ray.opaque_last && live == n {
         u[n - 1] = 0.0;
     }
@@ -491,46 +533,111 @@ fn backward_ray_k<T: WithDType, const K: usize, const FMA: bool>(
     }
 }
 
-/// Runtime CPU dispatch: the per-ray kernels compiled for AVX2 + FMA (4 f64 lanes for
-/// the exp polynomial and the per-sample passes) when the CPU has them, else for the
-/// build's baseline target (SSE2 on x86-64). Same code, so the same results up to the
-/// rounding of fused multiply–adds.
-#[derive(Clone, Copy)]
-struct Isa {
-    #[cfg(target_arch = "x86_64")]
-    avx2_fma: bool,
+/// Samples per block in the blocked scans: the running sum advances once per block, by
+/// the block's total computed off the dependency chain, so the chain's latency is paid
+/// once per `BLOCK` samples instead of once per sample.
+const BLOCK: usize = 4;
+
+/// Reverse scan of one ray: uⱼ ← Tⱼ₊₁uⱼ − Σ_{i>j} wᵢuᵢ for every j (`u`, `t_next`, `w`
+/// of equal length).
+///
+/// Blocked: within a block of [`BLOCK`] samples the partial suffixes ℓⱼ = Σ_{j<i<end}
+/// wᵢuᵢ are formed from the block's own products, then added to the suffix S of
+/// everything after the block (Σ_{i>j} = S + ℓⱼ), and S grows by the block total. The
+/// sums are the sequential ones reassociated (rounding differs by a few ulps of S).
+#[inline(always)]
+fn reverse_scan<const FMA: bool>(u: &mut [f64], t_next: &[f64], w: &[f64]) {
+    let mut suffix = 0.0f64;
+    let mut uc = u.rchunks_exact_mut(BLOCK);
+    let mut tc = t_next.rchunks_exact(BLOCK);
+    let mut wc = w.rchunks_exact(BLOCK);
+    for ((ub, tb), wb) in (&mut uc).zip(&mut tc).zip(&mut wc) {
+        let v: [f64; BLOCK] = std::array::from_fn(|j| ub[j]);
+        let p: [f64; BLOCK] = std::array::from_fn(|j| wb[j] * v[j]);
+        // ℓ₃ = 0, ℓ₂ = p₃, ℓ₁ = p₃ + p₂, ℓ₀ = p₃ + p₂ + p₁.
+        let l2 = p[3];
+        let l1 = l2 + p[2];
+        let l0 = l1 + p[1];
+        let local = [l0, l1, l2, 0.0];
+        for j in 0..BLOCK {
+            ub[j] = madd::<FMA>(tb[j], v[j], -(suffix + local[j]));
+        }
+        suffix += l0 + p[0];
+    }
+    // The first len % BLOCK samples, last to first.
+    for ((uj, tn), wj) in uc
+        .into_remainder()
+        .iter_mut()
+        .zip(tc.remainder())
+        .zip(wc.remainder())
+        .rev()
+    {
+        let v = *uj;
+        *uj = madd::<FMA>(*tn, v, -suffix);
+        suffix = madd::<FMA>(*wj, v, suffix);
+    }
 }
 
-/// Set by [`force_baseline_kernels`].
-static BASELINE_ONLY: AtomicBool = AtomicBool::new(false);
-
-/// Makes the fused op use its baseline kernels even where the CPU has AVX2 and FMA
-/// (`on = true`), or go back to runtime detection (`on = false`). Process-wide; for tests
-/// and benchmarks that compare the two builds of the same kernel code.
+/// The instruction-set builds of the per-ray kernels, in increasing order. The same
+/// code is compiled once per build and chosen at run time by CPU feature detection, so
+/// the results differ only by the rounding of fused multiply–adds (the baseline build
+/// multiplies and adds separately). Test and benchmark hook: see [`limit_kernel_build`].
 #[doc(hidden)]
-pub fn force_baseline_kernels(on: bool) {
-    BASELINE_ONLY.store(on, Ordering::Relaxed);
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum KernelBuild {
+    /// The build's baseline target (SSE2 on x86-64; every non-x86 target).
+    Baseline,
+    /// AVX2 + FMA: 4 f64 lanes for the exp polynomial and the per-sample passes.
+    Avx2Fma,
+    /// AVX-512 (F, VL) + FMA: 8 f64 lanes.
+    Avx512,
 }
+
+/// The best build allowed by [`limit_kernel_build`] .
+static MAX_BUILD: AtomicU8 = AtomicU8::new(KernelBuild::Avx512 as u8);
+
+/// Makes the fused op use at most `max` (the best build the CPU supports that is not
+/// above `max`; `Avx512` restores plain detection). Process-wide; for tests and
+/// benchmarks that compare the builds of the same kernel code.
+#[doc(hidden)]
+pub fn limit_kernel_build(max: KernelBuild) {
+    MAX_BUILD.store(max as u8, Ordering::Relaxed);
+}
+
+/// Runtime CPU dispatch to one [`KernelBuild`].
+#[derive(Clone, Copy)]
+struct Isa(KernelBuild);
 
 impl Isa {
     fn detect() -> Self {
-        let _allowed = !BASELINE_ONLY.load(Ordering::Relaxed);
-        Isa {
-            #[cfg(target_arch = "x86_64")]
-            avx2_fma: _allowed
-                && std::arch::is_x86_feature_detected!("avx2")
-                && std::arch::is_x86_feature_detected!("fma"),
+        let max = MAX_BUILD.load(Ordering::Relaxed);
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::is_x86_feature_detected as has;
+            let allowed = |b: KernelBuild| b as u8 <= max;
+            let avx2_fma = has!("avx2") && has!("fma");
+            if allowed(KernelBuild::Avx512) && avx2_fma && has!("avx512f") && has!("avx512vl") {
+                return Isa(KernelBuild::Avx512);
+            }
+            if allowed(KernelBuild::Avx2Fma) && avx2_fma {
+                return Isa(KernelBuild::Avx2Fma);
+            }
         }
+        let _ = max;
+        Isa(KernelBuild::Baseline)
     }
 
     #[inline(always)]
     fn forward<T: WithDType>(self, ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) {
-        #[cfg(target_arch = "x86_64")]
-        if self.avx2_fma {
-            // SAFETY: `avx2_fma` is true only when the running CPU reports AVX2 and FMA.
-            return unsafe { x86::forward_ray(ray, sc, o) };
+        match self.0 {
+            // SAFETY: `detect` picks these builds only when the running CPU reports
+            // every feature they are compiled with.
+            #[cfg(target_arch = "x86_64")]
+            KernelBuild::Avx512 => unsafe { x86::forward_ray_avx512(ray, sc, o) },
+            #[cfg(target_arch = "x86_64")]
+            KernelBuild::Avx2Fma => unsafe { x86::forward_ray_avx2(ray, sc, o) },
+            _ => forward_ray::<T, false>(ray, sc, o),
         }
-        forward_ray::<T, false>(ray, sc, o)
     }
 
     #[inline(always)]
@@ -541,28 +648,53 @@ impl Isa {
         sc: &mut Scratch,
         out: &mut RayGrads<'_, T>,
     ) {
-        #[cfg(target_arch = "x86_64")]
-        if self.avx2_fma {
+        match self.0 {
             // SAFETY: as in `forward`.
-            return unsafe { x86::backward_ray(ray, grad, sc, out) };
+            #[cfg(target_arch = "x86_64")]
+            KernelBuild::Avx512 => unsafe { x86::backward_ray_avx512(ray, grad, sc, out) },
+            #[cfg(target_arch = "x86_64")]
+            KernelBuild::Avx2Fma => unsafe { x86::backward_ray_avx2(ray, grad, sc, out) },
+            _ => backward_ray::<T, false>(ray, grad, sc, out),
         }
-        backward_ray::<T, false>(ray, grad, sc, out)
     }
 }
 
-/// The per-ray kernels compiled with AVX2 and FMA enabled.
+/// The per-ray kernels compiled with AVX2 + FMA and with AVX-512 enabled.
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::{RayGrads, RayIn, Scratch};
     use candle_core::WithDType;
 
     #[target_feature(enable = "avx2,fma")]
-    pub(super) fn forward_ray<T: WithDType>(ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) {
+    pub(super) fn forward_ray_avx2<T: WithDType>(
+        ray: &RayIn<'_, T>,
+        sc: &mut Scratch,
+        o: &mut [T],
+    ) {
         super::forward_ray::<T, true>(ray, sc, o)
     }
 
     #[target_feature(enable = "avx2,fma")]
-    pub(super) fn backward_ray<T: WithDType>(
+    pub(super) fn backward_ray_avx2<T: WithDType>(
+        ray: &RayIn<'_, T>,
+        grad: &[T],
+        sc: &mut Scratch,
+        out: &mut RayGrads<'_, T>,
+    ) {
+        super::backward_ray::<T, true>(ray, grad, sc, out)
+    }
+
+    #[target_feature(enable = "avx2,fma,avx512f,avx512vl")]
+    pub(super) fn forward_ray_avx512<T: WithDType>(
+        ray: &RayIn<'_, T>,
+        sc: &mut Scratch,
+        o: &mut [T],
+    ) {
+        super::forward_ray::<T, true>(ray, sc, o)
+    }
+
+    #[target_feature(enable = "avx2,fma,avx512f,avx512vl")]
+    pub(super) fn backward_ray_avx512<T: WithDType>(
         ray: &RayIn<'_, T>,
         grad: &[T],
         sc: &mut Scratch,

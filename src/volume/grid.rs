@@ -552,7 +552,7 @@ impl OccupancyGrid {
         if !matches!(dtype, DType::F32 | DType::F64) {
             return Err(Error::invalid("dtype", "f32 or f64", format!("{dtype:?}")));
         }
-        if step % every_n != 0 {
+        if !step.is_multiple_of(every_n) {
             return Ok(false);
         }
         let res = self.resolution;
