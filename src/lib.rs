@@ -112,7 +112,7 @@ pub mod nn;
 pub mod numerics;
 #[cfg(feature = "occupancy")]
 pub mod occupancy;
-// Used by the fused compositing kernel only so far.
+// Used by the volume module only so far (the fused kernel, input checks).
 #[cfg_attr(not(feature = "volume"), allow(dead_code))]
 mod parallel;
 pub mod rng;

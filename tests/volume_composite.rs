@@ -466,6 +466,37 @@ fn bad_input_errors_name_the_argument() {
     );
 }
 
+/// Inputs of 2^18 and more elements are checked in parallel chunks: a bad value in any
+/// chunk (first, middle, last element) is still found, reported under the argument's
+/// name with its flat index, by every compositing path and in f32 and f64.
+#[test]
+fn bad_values_in_large_inputs_are_found_in_every_chunk() {
+    let (r, s) = (2048, 160);
+    let n = r * s;
+    for dt in [DType::F32, DType::F64] {
+        let ok = Tensor::ones((r, s), dt, &dev()).unwrap();
+        let c = Tensor::ones((r, s, 3), dt, &dev()).unwrap();
+        let o = CompositeOptions::default();
+        for (at, bad) in [(0, f64::NAN), (n / 2 + 17, -2.5), (n - 1, f64::INFINITY)] {
+            let mut v = vec![0.5f64; n];
+            v[at] = bad;
+            let b = t2(v, r, s, dt);
+            for (name, f) in IMPLS {
+                let e = f(&b, &c, &ok, &ok, &o).unwrap_err().to_string();
+                assert!(
+                    e.contains("sigmas") && e.contains(&format!("flat index {at}")),
+                    "{name}, {dt:?}, {bad} at {at}: {e}"
+                );
+                let e = f(&ok, &c, &b, &ok, &o).unwrap_err().to_string();
+                assert!(
+                    e.contains("deltas") && e.contains(&format!("flat index {at}")),
+                    "{name}, {dt:?}, {bad} at {at}: {e}"
+                );
+            }
+        }
+    }
+}
+
 #[test]
 fn visible_mask_matches_transmittance_on_random_rays_in_f32_and_f64() {
     // Many rays with densities over ten decades: the mask is 1 exactly where the

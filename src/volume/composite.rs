@@ -29,7 +29,9 @@
 use crate::error::{
     check_float, check_same, check_same_shape, check_scalar, check_shape, Dim, Error, Result,
 };
+use crate::parallel::for_each_init;
 use candle_core::{DType, Device, Storage, Tensor};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 /// Optical thickness above which xᵢ = σᵢδᵢ is clamped. `exp(−1000)` is exactly zero in
@@ -176,16 +178,43 @@ impl Packed {
 
 /// Index and value of the first element that is not finite and ≥ 0. A branch-free
 /// (vectorisable) pass over chunks finds whether one exists; only then is it located.
-fn first_bad<T: Copy + PartialOrd + Into<f64>>(xs: &[T], zero: T, max: T) -> Option<(usize, f64)> {
+/// Index and value of the first element outside [`zero`, `max`] (NaN included), or
+/// `None`. This check runs on every compositing call, so slices of at least
+/// [`PARALLEL_CHECK_LEN`] elements are checked in chunks of that length on candle's CPU
+/// pool; the serial search for the position runs only when some chunk fails.
+fn first_bad<T>(xs: &[T], zero: T, max: T) -> Option<(usize, f64)>
+where
+    T: Copy + PartialOrd + Into<f64> + Sync,
+{
     let ok = |v: T| (v >= zero) & (v <= max);
-    let all_ok = xs
-        .chunks(1024)
-        .all(|c| c.iter().fold(true, |acc, &v| acc & ok(v)));
-    if all_ok {
+    let all_ok = |c: &[T]| {
+        c.chunks(1024)
+            .all(|c| c.iter().fold(true, |acc, &v| acc & ok(v)))
+    };
+    let fine = if xs.len() < 2 * PARALLEL_CHECK_LEN {
+        all_ok(xs)
+    } else {
+        let failed = AtomicBool::new(false);
+        let chunks = xs.chunks(PARALLEL_CHECK_LEN).collect();
+        for_each_init(
+            chunks,
+            || (),
+            |_, c| {
+                if !all_ok(c) {
+                    failed.store(true, Ordering::Relaxed);
+                }
+            },
+        );
+        !failed.load(Ordering::Relaxed)
+    };
+    if fine {
         return None;
     }
     xs.iter().position(|&v| !ok(v)).map(|i| (i, xs[i].into()))
 }
+
+/// Chunk length of the parallel input check in [`first_bad`].
+const PARALLEL_CHECK_LEN: usize = 1 << 16;
 
 /// Checks that every element is finite and ≥ 0 (rejects NaN, −x, +∞).
 ///
