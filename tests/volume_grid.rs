@@ -9,16 +9,26 @@ use neural_fields::volume::grid::{GridConfig, GridSamples, MarchOptions, Occupan
 use neural_fields::{Error, Result};
 use std::time::Instant;
 
+/// The ball of the default scene: it fills 1.4% of the level-0 box [−1, 1]³ (the grid's
+/// AABB) and 0.18% of the level-1 box.
 const BALL_R: f64 = 0.3;
+/// The ball that fills 5.0% of the grid's AABB [−1, 1]³ (4/3·π·r³ = 0.05·8): the
+/// scene of the issue's bar, 95% empty.
+const BALL_R_95: f64 = 0.457_1;
 const BALL_D: f64 = 20.0;
 const UPDATES: usize = 16;
 
-/// σ(p) = D·(1 − |p|²/r²)² inside the ball of radius r about the origin, 0 outside: the
-/// ball fills 1.4% of the level-0 box [−1, 1]³ and 0.18% of the level-1 box.
+/// σ(p) = D·(1 − |p|²/r²)² inside the ball of radius r about the origin, 0 outside.
+fn ball(r: f64) -> impl Fn(&Tensor) -> Result<Tensor> + Copy {
+    move |p: &Tensor| {
+        let r2 = p.sqr()?.sum(1)?;
+        let u = r2.affine(-1.0 / (r * r), 1.0)?.relu()?;
+        Ok((u.sqr()? * BALL_D)?)
+    }
+}
+
 fn ball_sigma(p: &Tensor) -> Result<Tensor> {
-    let r2 = p.sqr()?.sum(1)?;
-    let u = r2.affine(-1.0 / (BALL_R * BALL_R), 1.0)?.relu()?;
-    Ok((u.sqr()? * BALL_D)?)
+    ball(BALL_R)(p)
 }
 
 /// A colour that varies across the ball: c(p) = 0.5 + p per channel.
@@ -75,9 +85,9 @@ fn max_abs_diff(a: &Tensor, b: &Tensor) -> f64 {
         .unwrap()
 }
 
-fn render(s: &GridSamples, origins: &Tensor, dirs: &Tensor) -> Tensor {
+fn render(s: &GridSamples, origins: &Tensor, dirs: &Tensor, r: f64) -> Tensor {
     let pos = s.positions(origins, dirs).unwrap();
-    let sigma = ball_sigma(&pos).unwrap();
+    let sigma = ball(r)(&pos).unwrap();
     let rgb = ball_color(&pos).unwrap();
     let deltas = s.deltas(dirs).unwrap();
     let mids = s.midpoints().unwrap();
@@ -93,9 +103,20 @@ fn render(s: &GridSamples, origins: &Tensor, dirs: &Tensor) -> Tensor {
     .color
 }
 
+/// On the 98.6%-empty scene and on the 95%-empty one (the issue's bar), in f32 and f64:
+/// rendering through the grid gives the full render's colours within 1e-3 while
+/// compositing at least 10× fewer samples. (Not counted: the warm-up updates, 16
+/// evaluations of every one of the 65 536 cells, which a training loop spreads over its
+/// steps, one update every k of them.)
 #[test]
 fn skipping_empty_space_matches_the_full_render_with_ten_times_fewer_samples() {
-    for dt in [DType::F32, DType::F64] {
+    for (r, dt) in [
+        (BALL_R, DType::F32),
+        (BALL_R, DType::F64),
+        (BALL_R_95, DType::F32),
+        (BALL_R_95, DType::F64),
+    ] {
+        let ball_sigma = ball(r);
         let (o, d) = rays(48, dt);
         let aabb = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0];
         let full_grid = OccupancyGrid::new(aabb, 32, 2).unwrap();
@@ -146,10 +167,10 @@ fn skipping_empty_space_matches_the_full_render_with_ten_times_fewer_samples() {
         let m_full = full.starts.dims()[0];
         let m_skip = skip.starts.dims()[0];
         let clock = Instant::now();
-        let c_full = render(&full, &o, &d);
+        let c_full = render(&full, &o, &d, r);
         let t_render_full = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
-        let c_skip = render(&skip, &o, &d);
+        let c_skip = render(&skip, &o, &d, r);
         let t_render_skip = clock.elapsed().as_secs_f64();
         let err = max_abs_diff(&c_full, &c_skip);
         let max_c = c_skip
@@ -165,9 +186,9 @@ fn skipping_empty_space_matches_the_full_render_with_ten_times_fewer_samples() {
         let undilated = plain
             .sample(&o, &d, &MarchOptions::new(0.0, f64::INFINITY, step))
             .unwrap();
-        let err_plain = max_abs_diff(&c_full, &render(&undilated, &o, &d));
+        let err_plain = max_abs_diff(&c_full, &render(&undilated, &o, &d, r));
         println!(
-            "grid skipping ({dt:?}, 48x48 rays, 2 levels of 32^3, occupied {:.2}% of cells): \
+            "grid skipping (ball r = {r}, {dt:?}, 48x48 rays, 2 levels of 32^3, occupied {:.2}% of cells): \
              {m_full} samples without skipping, {m_skip} with ({ratio:.1}x fewer); \
              max |colour error| {err:.3e} (max colour {max_c:.3})",
             100.0 * occ
@@ -188,8 +209,11 @@ fn skipping_empty_space_matches_the_full_render_with_ten_times_fewer_samples() {
             1e3 * t_update
         );
         assert!(max_c > 0.3, "the ball must be visible");
-        assert!(err <= 1e-3, "{dt:?}: max colour error {err}");
-        assert!(ratio >= 10.0, "{dt:?}: only {ratio}x fewer samples");
+        assert!(err <= 1e-3, "r = {r}, {dt:?}: max colour error {err}");
+        assert!(
+            ratio >= 10.0,
+            "r = {r}, {dt:?}: only {ratio}x fewer samples"
+        );
     }
 }
 
