@@ -361,7 +361,7 @@ pub fn render_weights(sigmas: &Tensor, deltas: &Tensor, opts: &WeightOptions) ->
 /// processed like the batched layout, and gathered back.
 ///
 /// Shapes: `sigmas: [M]`, `deltas: [M]` with `M = packed.n_samples()` → fields `[M]`.
-/// Differentiable with respect to `sigmas` and `deltas`.
+/// f32 or f64, any device. Differentiable with respect to `sigmas` and `deltas`.
 ///
 /// # Errors
 /// As [`render_weights`]; `sigmas` also when its length differs from the packed count.
@@ -444,7 +444,7 @@ pub fn accumulate(weights: &Tensor, values: &Tensor) -> Result<Tensor> {
 /// Packed form of [`accumulate`]: `out[r, c] = Σ_{i in ray r} w[i]·values[i, c]`.
 ///
 /// Shapes: `weights: [M]`, `values: [M, C]` → `[R, C]` (zero rows for rays with no
-/// samples). Differentiable with respect to both.
+/// samples). f32 or f64, any device. Differentiable with respect to both.
 ///
 /// # Errors
 /// `weights` / `values` on shape, dtype or device mismatch with `packed`.
@@ -497,8 +497,9 @@ pub struct Composite {
 
 impl Composite {
     /// Normalised expected depth Σwᵢtᵢ / max(Σwᵢ, eps): the expected depth conditioned
-    /// on the ray terminating inside the samples. `[R]`, differentiable. Rays with
-    /// opacity below `eps` get Σwᵢtᵢ / eps (close to 0).
+    /// on the ray terminating inside the samples. `[R]`, the dtype of the composite
+    /// (f32 or f64), differentiable through `depth` and `opacity`. Rays with opacity
+    /// below `eps` get Σwᵢtᵢ / eps (close to 0).
     ///
     /// # Errors
     /// `eps` when not finite and > 0.
@@ -610,6 +611,11 @@ pub fn composite_reference(
 /// `colors: [M, C]` → `color: [R, C]`, `opacity: [R]`, `depth: [R]`; rays without
 /// samples get opacity 0, depth 0 and the background colour.
 ///
+/// Math per ray r (its samples `offsets[r]..offsets[r + 1]` of `packed`): wᵢ from
+/// [`render_weights_packed`]; colour = Σwᵢcᵢ + (1 − Σwᵢ)·c_bg, opacity = Σwᵢ, depth =
+/// Σwᵢtᵢ. f32 or f64, any device. Differentiable with respect to `sigmas`, `colors`,
+/// `deltas`, `t_mids` and the background.
+///
 /// # Errors
 /// As [`composite_reference`], with shapes checked against `packed`.
 pub fn composite_packed_reference(
@@ -653,6 +659,9 @@ pub fn composite(
 }
 
 /// Packed-layout [`composite`]: fused on CPU, [`composite_packed_reference`] elsewhere.
+/// Same math, shapes (`sigmas, deltas, t_mids: [M]`, `colors: [M, C]` → `[R, C]`, `[R]`,
+/// `[R]`), dtypes (f32, f64) and gradients as [`composite_packed_reference`], first
+/// order only on the CPU.
 ///
 /// # Errors
 /// As [`composite_packed_reference`].

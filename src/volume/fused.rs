@@ -1070,6 +1070,10 @@ pub fn composite_fused(
 /// → `color: [R, C]`, `opacity, depth: [R]`; rays with no samples get opacity 0, depth 0
 /// and the background colour.
 ///
+/// Same math per ray as [`super::composite::composite_packed_reference`]. CPU only, f32
+/// or f64. Differentiable (first order) with respect to `sigmas`, `deltas`, `colors`,
+/// `t_mids` and the background.
+///
 /// # Errors
 /// As [`super::composite::composite_packed_reference`]; `sigmas` when not on the CPU.
 pub fn composite_packed_fused(

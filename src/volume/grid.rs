@@ -182,7 +182,8 @@ pub struct GridSamples {
 }
 
 impl GridSamples {
-    /// Midpoints `(starts + ends)/2`, `[M]`. Differentiable w.r.t. `starts`, `ends`.
+    /// Midpoints `(starts + ends)/2`, `[M]`, the samples' dtype (that of the march's
+    /// rays). Differentiable w.r.t. `starts`, `ends`.
     ///
     /// # Errors
     /// Only candle errors.
@@ -201,8 +202,9 @@ impl GridSamples {
         Ok(((&self.ends - &self.starts)? * norms)?)
     }
 
-    /// Sample positions `o_r + m·d_r` at the midpoints, `[M, 3]`. Differentiable
-    /// w.r.t. the intervals, `origins` and `directions`.
+    /// Sample positions `o_r + m·d_r` at the midpoints, `[M, 3]`, f32 or f64 (the
+    /// dtype of `origins`, which must match the samples'). Differentiable w.r.t. the
+    /// intervals, `origins` and `directions`.
     ///
     /// # Errors
     /// Naming `origins` or `directions` for a wrong shape, dtype or device.

@@ -143,7 +143,8 @@ impl Intervals {
     }
 
     /// Midpoints `mᵢ = (startsᵢ + endsᵢ) / 2`, `[R, S]`, where the field is usually
-    /// evaluated. Differentiable w.r.t. `starts` and `ends`.
+    /// evaluated. The intervals' dtype and device; differentiable w.r.t. `starts` and
+    /// `ends`.
     ///
     /// # Errors
     /// Only candle errors.
@@ -190,7 +191,8 @@ impl Intervals {
 
     /// Interval edges `[R, S + 1]`: the starts followed by the last end. This describes
     /// the intervals exactly when they are contiguous (`endsᵢ = startsᵢ₊₁`), as those of
-    /// [`stratified`] are; it is the `bins` argument of [`sample_pdf`].
+    /// [`stratified`] are; it is the `bins` argument of [`sample_pdf`]. The intervals'
+    /// dtype and device; differentiable w.r.t. `starts` and the last `ends`.
     ///
     /// # Errors
     /// Naming `starts` when there are no samples per ray.
@@ -535,7 +537,7 @@ pub fn sample_pdf(
 /// row). Use it to combine coarse samples (e.g. stratified midpoints) with importance
 /// samples, then [`Intervals::from_samples`] to re-derive intervals.
 ///
-/// Differentiable w.r.t. both inputs (the sort is a gather; the fine samples of
+/// f32 or f64, any device. Differentiable w.r.t. both inputs (the sort is a gather; the fine samples of
 /// [`sample_pdf`] are detached already). On CUDA, candle's sort limits a row to the
 /// sizes its bitonic kernel supports.
 ///
