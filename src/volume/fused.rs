@@ -665,43 +665,32 @@ mod x86 {
     use super::{RayGrads, RayIn, Scratch};
     use candle_core::WithDType;
 
-    #[target_feature(enable = "avx2,fma")]
-    pub(super) fn forward_ray_avx2<T: WithDType>(
-        ray: &RayIn<'_, T>,
-        sc: &mut Scratch,
-        o: &mut [T],
-    ) {
-        super::forward_ray::<T, true>(ray, sc, o)
+    /// The forward and backward kernel entry points compiled with `$features`.
+    macro_rules! kernel_build {
+        ($features:literal, $fwd:ident, $bwd:ident) => {
+            #[target_feature(enable = $features)]
+            pub(super) fn $fwd<T: WithDType>(ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) {
+                super::forward_ray::<T, true>(ray, sc, o)
+            }
+
+            #[target_feature(enable = $features)]
+            pub(super) fn $bwd<T: WithDType>(
+                ray: &RayIn<'_, T>,
+                grad: &[T],
+                sc: &mut Scratch,
+                out: &mut RayGrads<'_, T>,
+            ) {
+                super::backward_ray::<T, true>(ray, grad, sc, out)
+            }
+        };
     }
 
-    #[target_feature(enable = "avx2,fma")]
-    pub(super) fn backward_ray_avx2<T: WithDType>(
-        ray: &RayIn<'_, T>,
-        grad: &[T],
-        sc: &mut Scratch,
-        out: &mut RayGrads<'_, T>,
-    ) {
-        super::backward_ray::<T, true>(ray, grad, sc, out)
-    }
-
-    #[target_feature(enable = "avx2,fma,avx512f,avx512vl")]
-    pub(super) fn forward_ray_avx512<T: WithDType>(
-        ray: &RayIn<'_, T>,
-        sc: &mut Scratch,
-        o: &mut [T],
-    ) {
-        super::forward_ray::<T, true>(ray, sc, o)
-    }
-
-    #[target_feature(enable = "avx2,fma,avx512f,avx512vl")]
-    pub(super) fn backward_ray_avx512<T: WithDType>(
-        ray: &RayIn<'_, T>,
-        grad: &[T],
-        sc: &mut Scratch,
-        out: &mut RayGrads<'_, T>,
-    ) {
-        super::backward_ray::<T, true>(ray, grad, sc, out)
-    }
+    kernel_build!("avx2,fma", forward_ray_avx2, backward_ray_avx2);
+    kernel_build!(
+        "avx2,fma,avx512f,avx512vl",
+        forward_ray_avx512,
+        backward_ray_avx512
+    );
 }
 
 /// The first `len` entries of `v`'s spare capacity when `on`.
