@@ -26,6 +26,8 @@ use neural_fields::occupancy::{mesh_metrics, mise, Grid, MiseConfig};
 use neural_fields::rng::SplitMix64;
 use std::time::Instant;
 
+mod common;
+
 const BOX: f64 = 0.55;
 
 /// Volumetric IoU between `predicted > 0` and `truth > 0` (both logits, `[N]`).
@@ -159,20 +161,7 @@ fn render(net: &Mlp, path: &std::path::Path) -> neural_fields::Result<()> {
             }
         })
         .collect();
-    let io = |source: std::io::Error| neural_fields::Error::Io {
-        path: path.display().to_string(),
-        source,
-    };
-    let png_err = |e: png::EncodingError| io(std::io::Error::other(e.to_string()));
-    let file = std::fs::File::create(path).map_err(io)?;
-    let mut encoder = png::Encoder::new(std::io::BufWriter::new(file), side as u32, side as u32);
-    encoder.set_color(png::ColorType::Grayscale);
-    encoder.set_depth(png::BitDepth::Eight);
-    encoder
-        .write_header()
-        .map_err(png_err)?
-        .write_image_data(&pixels)
-        .map_err(png_err)?;
+    common::write_png(path, side, side, png::ColorType::Grayscale, &pixels)?;
     println!(
         "rendered {side}×{side} with dvr::march_bounded ({} field evaluations) in {:.2} s: wrote {}",
         hits.evaluations,

@@ -5,17 +5,42 @@
 use crate::report::{Row, Table};
 
 /// How to read one example's progress table: rows are the printed lines of exactly
-/// `columns` numbers; `time` is the column of wall seconds, `step` the training step.
+/// `columns` numbers (after the run's label, for examples that train several runs);
+/// `time` is the column of wall seconds, `step` the training step.
 struct Curve {
     example: &'static str,
     args: Vec<String>,
     /// What the example trains, for the series names.
     what: &'static str,
+    /// The labels that start the progress rows of each run the example prints (one
+    /// series per run), or none for unlabelled rows.
+    runs: &'static [&'static str],
     columns: usize,
     step: usize,
     time: usize,
-    /// (column, series name, error = 1 − value instead of the value).
-    metrics: &'static [(usize, &'static str, bool)],
+    /// (column, series name, how the column becomes an error).
+    metrics: &'static [(usize, &'static str, Metric)],
+}
+
+/// How a printed metric becomes the error plotted.
+#[derive(Clone, Copy)]
+enum Metric {
+    /// The value itself (Chamfer-L1).
+    Value,
+    /// 1 − value (IoU).
+    OneMinus,
+    /// The mean squared error 10^(−PSNR/10) of a PSNR in dB.
+    MseOfPsnr,
+}
+
+impl Metric {
+    fn error(self, v: f64) -> f64 {
+        match self {
+            Metric::Value => v,
+            Metric::OneMinus => 1.0 - v,
+            Metric::MseOfPsnr => 10f64.powf(-v / 10.0),
+        }
+    }
 }
 
 /// Runs `cargo run --release --example NAME -- ARGS` (the `cargo` that runs this command)
@@ -37,12 +62,19 @@ fn run_example(example: &str, args: &[String]) -> Result<String, String> {
     Ok(String::from_utf8_lossy(&out.stdout).into_owned())
 }
 
-/// The rows of numbers with exactly `columns` entries in `stdout`.
-fn numeric_rows(stdout: &str, columns: usize) -> Vec<Vec<f64>> {
+/// The rows of numbers with exactly `columns` entries in `stdout`; with a `label`, only
+/// the lines that start with it (the label itself not counted).
+fn numeric_rows(stdout: &str, columns: usize, label: Option<&str>) -> Vec<Vec<f64>> {
     stdout
         .lines()
         .filter_map(|l| {
-            let v: Option<Vec<f64>> = l.split_whitespace().map(|t| t.parse().ok()).collect();
+            let mut tokens = l.split_whitespace();
+            if let Some(label) = label {
+                if tokens.next() != Some(label) {
+                    return None;
+                }
+            }
+            let v: Option<Vec<f64>> = tokens.map(|t| t.parse().ok()).collect();
             v.filter(|v| v.len() == columns)
         })
         .collect()
@@ -59,10 +91,11 @@ pub fn run(quick: bool) -> Vec<Table> {
             example: "quickstart",
             args: vec![out("nf_quickstart_torus.ply")],
             what: "quickstart (torus, 4×64 MLP)",
+            runs: &[],
             columns: 4,
             step: 0,
             time: 3,
-            metrics: &[(2, "1 − IoU", true)],
+            metrics: &[(2, "1 − IoU", Metric::OneMinus)],
         },
         Curve {
             example: "fit_occupancy",
@@ -71,10 +104,24 @@ pub fn run(quick: bool) -> Vec<Table> {
                 out("nf_fit_occupancy.ply"),
             ],
             what: "fit_occupancy (Wuson.ply, 4×128 MLP)",
+            runs: &[],
             columns: 8,
             step: 0,
             time: 7,
-            metrics: &[(2, "1 − IoU", true), (3, "Chamfer-L1", false)],
+            metrics: &[
+                (2, "1 − IoU", Metric::OneMinus),
+                (3, "Chamfer-L1", Metric::Value),
+            ],
+        },
+        Curve {
+            example: "tiny_nerf",
+            args: vec![out("nf_tiny_nerf.png")],
+            what: "tiny_nerf (fuzzy ball, 4×64 MLP)",
+            runs: &["stratified", "grid"],
+            columns: 6,
+            step: 0,
+            time: 5,
+            metrics: &[(2, "held-out MSE", Metric::MseOfPsnr)],
         },
     ];
     let mut rows = Vec::new();
@@ -87,19 +134,30 @@ pub fn run(quick: bool) -> Vec<Table> {
                 continue;
             }
         };
-        let table = numeric_rows(&stdout, c.columns);
-        if table.is_empty() {
-            notes.push(format!("`{}` printed no progress rows", c.example));
-        }
-        for r in &table {
-            for &(col, name, complement) in c.metrics {
-                rows.push(Row {
-                    series: format!("{}: {name}", c.what),
-                    knob: r[c.step],
-                    error: if complement { 1.0 - r[col] } else { r[col] },
-                    seconds: r[c.time],
-                    work: 0.0,
-                });
+        let runs: Vec<Option<&str>> = if c.runs.is_empty() {
+            vec![None]
+        } else {
+            c.runs.iter().map(|r| Some(*r)).collect()
+        };
+        for run in runs {
+            let table = numeric_rows(&stdout, c.columns, run);
+            if table.is_empty() {
+                notes.push(format!("`{}` printed no progress rows", c.example));
+            }
+            let what = match run {
+                Some(run) => format!("{}, {run}", c.what),
+                None => c.what.to_string(),
+            };
+            for r in &table {
+                for &(col, name, metric) in c.metrics {
+                    rows.push(Row {
+                        series: format!("{what}: {name}"),
+                        knob: r[c.step],
+                        error: metric.error(r[col]),
+                        seconds: r[c.time],
+                        work: 0.0,
+                    });
+                }
             }
         }
     }
@@ -108,12 +166,15 @@ pub fn run(quick: bool) -> Vec<Table> {
         description: format!(
             "The bundled examples, each run once by this command with its default settings \
              (`cargo run --release --example quickstart`; `cargo run --release --example \
-             fit_occupancy`, which trains for 150 s on Wuson.ply normalised to the unit cube), \
-             reading the progress rows they print: the training step, the metric and the wall \
-             time since training started (quickstart) or since the example started, labelling \
-             included (fit_occupancy). IoU on held-out uniform points of the padded cube; \
-             Chamfer-L1 of the MISE mesh against the input mesh (100 000 samples each, \
-             unscaled: the ONet papers print ×10).{}",
+             fit_occupancy`, which trains for 150 s on Wuson.ply normalised to the unit cube; \
+             `cargo run --release --example tiny_nerf`, which trains a NeRF twice, with \
+             stratified samples and with occupancy-grid skipping), reading the progress rows \
+             they print: the training step, the metric and the wall time since training \
+             started (quickstart, tiny_nerf) or since the example started, labelling included \
+             (fit_occupancy). IoU on held-out uniform points of the padded cube; Chamfer-L1 of \
+             the MISE mesh against the input mesh (100 000 samples each, unscaled: the ONet \
+             papers print ×10); held-out MSE = 10^(−PSNR/10) of tiny_nerf's held-out view \
+             (the training time excludes rendering it).{}",
             if notes.is_empty() {
                 String::new()
             } else {
@@ -121,7 +182,7 @@ pub fn run(quick: bool) -> Vec<Table> {
             }
         ),
         knob: "training step".into(),
-        error_name: "error (1 − IoU, or Chamfer-L1)".into(),
+        error_name: "error (1 − IoU, Chamfer-L1 or held-out MSE)".into(),
         work_unit: String::new(),
         time_name: "wall time since start (s)".into(),
         rows,
