@@ -521,15 +521,28 @@ fn check_fd(o: [f64; 3], d: [f64; 3], sphere: bool) -> Result<(), TestCaseError>
         // the gradient's largest entry, as FD noise scales with it
         let h = 1e-6 * DVec3::from_array(base).length().max(1e-3);
         let gmax = g.iter().fold(0.0f64, |a, b| a.max(b.abs()));
+        let f0 = f(o, d);
         for k in 0..3 {
             let (mut p, mut m) = (base, base);
             p[k] += h;
             m[k] -= h;
-            let fd = if which == 0 {
-                (f(p, d) - f(m, d)) / (2.0 * h)
+            let (fp, fm) = if which == 0 {
+                (f(p, d), f(m, d))
             } else {
-                (f(o, p) - f(o, m)) / (2.0 * h)
+                (f(o, p), f(o, m))
             };
+            // A central difference checks the gradient only where near/far are close to
+            // linear across the stencil. The box's are piecewise smooth with a kink where
+            // the entry or exit face changes (a ray through an edge: the difference
+            // averages the two one-sided slopes; regression seed dba5fe01…, a ray 1.6e-5
+            // from an edge); the sphere's have a square-root singularity at grazing
+            // incidence, near which the truncation error exceeds the tolerance (found at
+            // 3000 cases: 6e-5 relative). Both show as one-sided differences that disagree
+            // far beyond their rounding (≈ 1e-9 here; 1e-6 for smooth cases); such cases
+            // are skipped, not failed.
+            let bent = ((fp - f0) / h - (f0 - fm) / h).abs() > 1e-4 * gmax.max(1e-12);
+            prop_assume!(!bent, "kink or near-singularity inside the FD stencil");
+            let fd = (fp - fm) / (2.0 * h);
             let err = (g[k] - fd).abs() / gmax.max(1e-12);
             prop_assert!(
                 err <= 1e-5,
