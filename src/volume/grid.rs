@@ -51,7 +51,12 @@ pub struct GridConfig {
     pub threshold: f64,
     /// Lower bound of the effective threshold τ. Default 1e-4.
     pub floor: f64,
-    /// EMA decay of the per-cell density estimate. Default 0.95.
+    /// Decay of the per-cell density estimate (`dᵢ ← max(decay·dᵢ, σ)`). Default 0.95,
+    /// nerfacc's, for schedules of thousands of steps: a cell that once saw density `D`
+    /// needs `⌈ln(D/τ)/ln(1/decay)⌉` updates that evaluate it to empty (about 70 from
+    /// D = e⁻¹ to τ = 0.01). Short runs want a smaller decay: `examples/tiny_nerf` uses
+    /// 0.6 with an update every 8 steps, where 0.95 every 16 left every cell occupied
+    /// after 300 steps.
     pub decay: f64,
     /// Updates at steps below this evaluate every cell. Default 256.
     pub warmup_steps: usize,
