@@ -66,6 +66,9 @@ const EVAL_EVERY: usize = 50;
 const GRID_EVERY: usize = 8;
 const BALL_R: f64 = 0.6;
 const BALL_D: f64 = 8.0;
+/// The grid march's step in t: the unit sphere's diameter over `SAMPLES`, so that both
+/// runs place samples equally densely.
+const GRID_STEP: f64 = 2.0 / SAMPLES as f64;
 /// Rays per chunk when rendering a whole view (bounds the memory of one forward pass).
 const CHUNK: usize = 400;
 
@@ -135,7 +138,7 @@ fn render_stratified(
 /// number of samples evaluated.
 fn render_grid(rays: &Rays, grid: &OccupancyGrid, net: &Mlp) -> Result<(Composite, usize)> {
     let (o, d) = (&rays.origins, &rays.directions);
-    let samples = grid.sample(o, d, &MarchOptions::new(0.0, f64::INFINITY, step_size()))?;
+    let samples = grid.sample(o, d, &MarchOptions::new(0.0, f64::INFINITY, GRID_STEP))?;
     let m = samples.starts.dims1()?;
     let (sigma, rgb) = radiance(net, &samples.positions(o, d)?)?;
     let out = composite_packed(
@@ -147,12 +150,6 @@ fn render_grid(rays: &Rays, grid: &OccupancyGrid, net: &Mlp) -> Result<(Composit
         &CompositeOptions::default(),
     )?;
     Ok((out, m))
-}
-
-/// The grid march's step in t: the unit sphere's diameter over `SAMPLES`, so that both
-/// runs place samples equally densely.
-fn step_size() -> f64 {
-    2.0 / SAMPLES as f64
 }
 
 /// How samples are placed in a training run.

@@ -44,7 +44,8 @@
 //! let (_, grad) = net.value_and_grad(&p)?;
 //! let eikonal = (grad.sqr()?.sum(1)?.sqrt()? - 1.0)?.sqr()?.mean_all()?;
 //! let grads = eikonal.backward()?;            // reaches the weights
-//! let w0 = varmap.data().lock().unwrap()["layer0.weight"].clone();
+//! let vars = varmap.data().lock().map_err(|e| candle_core::Error::Msg(e.to_string()))?;
+//! let w0 = vars["layer0.weight"].clone();
 //! assert!(grads.get(&w0).is_some());
 //! # Ok::<(), neural_fields::Error>(())
 //! ```

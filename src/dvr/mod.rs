@@ -27,7 +27,8 @@
 //! let t = surf.depth.to_vec1::<f64>()?;                        // one surface point
 //! assert!((t[0] - 1.5).abs() < 1e-12);
 //! let g = surf.depth.sum_all()?.backward()?;
-//! let dt_dr = g.get(&radius).unwrap().to_scalar::<f64>()?;    // ∂t/∂r = −1
+//! let no_grad = || candle_core::Error::Msg("no gradient for radius".into());
+//! let dt_dr = g.get(&radius).ok_or_else(no_grad)?.to_scalar::<f64>()?; // ∂t/∂r = −1
 //! assert!((dt_dr + 1.0).abs() < 1e-12);
 //! # Ok::<(), neural_fields::Error>(())
 //! ```

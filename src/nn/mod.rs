@@ -131,8 +131,11 @@ impl SimpleBackend for SeededBackend {
 /// let config = MlpConfig::default();
 /// let _net_a = build_seeded(&a, DType::F32, &Device::Cpu, 7, |vb| mlp(&config, vb))?;
 /// let _net_b = build_seeded(&b, DType::F32, &Device::Cpu, 7, |vb| mlp(&config, vb))?;
-/// let wa = a.data().lock().unwrap()["layer0.weight"].as_tensor().to_vec2::<f32>()?;
-/// let wb = b.data().lock().unwrap()["layer0.weight"].as_tensor().to_vec2::<f32>()?;
+/// let weight = |m: &VarMap| -> candle_core::Result<Vec<Vec<f32>>> {
+///     let vars = m.data().lock().map_err(|e| candle_core::Error::Msg(e.to_string()))?;
+///     vars["layer0.weight"].as_tensor().to_vec2::<f32>()
+/// };
+/// let (wa, wb) = (weight(&a)?, weight(&b)?);
 /// assert_eq!(wa, wb);
 /// # Ok::<(), neural_fields::Error>(())
 /// ```

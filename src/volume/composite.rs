@@ -176,12 +176,11 @@ impl Packed {
     }
 }
 
-/// Index and value of the first element that is not finite and ≥ 0. A branch-free
-/// (vectorisable) pass over chunks finds whether one exists; only then is it located.
 /// Index and value of the first element outside [`zero`, `max`] (NaN included), or
-/// `None`. This check runs on every compositing call, so slices of at least
-/// [`PARALLEL_CHECK_LEN`] elements are checked in chunks of that length on candle's CPU
-/// pool; the serial search for the position runs only when some chunk fails.
+/// `None`. A branch-free (vectorisable) pass finds whether one exists; only then is it
+/// located. This check runs on every compositing call, so slices of at least
+/// 2·[`PARALLEL_CHECK_LEN`] elements are checked in chunks of that length on candle's
+/// CPU pool.
 fn first_bad<T>(xs: &[T], zero: T, max: T) -> Option<(usize, f64)>
 where
     T: Copy + PartialOrd + Into<f64> + Sync,

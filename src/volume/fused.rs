@@ -258,8 +258,9 @@ struct ScanOut {
 }
 
 /// Forward scan of one ray with `k` channels (a constant after inlining into a
-/// specialised caller). Accumulates Σwᵢvᵢₖ into `acc[..k]` (zeroed here) and, when
-/// `store`, writes `sc.w[i]` = wᵢ and `sc.t_next[i]` = Tᵢ₊₁.
+/// specialised caller; `k = 0` for weights only, as the backward needs). Accumulates
+/// Σwᵢvᵢₖ into `acc[..k]` (zeroed here) and, when `store`, writes `sc.w[i]` = wᵢ and
+/// `sc.t_next[i]` = Tᵢ₊₁.
 #[inline(always)]
 fn scan_ray<T: WithDType, const FMA: bool>(
     ray: &RayIn<'_, T>,
@@ -383,16 +384,14 @@ fn forward_ray<T: WithDType, const FMA: bool>(ray: &RayIn<'_, T>, sc: &mut Scrat
     specialise_k!(forward_ray_k::<T, FMA>(ray.k; ray, sc, o))
 }
 
-/// [`scan_ray`] with `K` channels (`K = 0`: `ray.k`, general), the accumulators in a
-/// local array when `K > 0` (registers) and in `sc.acc` otherwise; `sink` receives the
-/// channel sums and the scan result.
+/// [`forward_ray`] with `K` channels (`K = 0`: `ray.k`, general): the accumulators in a
+/// local array when `K > 0` (registers) and in `sc.acc` otherwise.
 #[inline(always)]
-fn scan_ray_k<T: WithDType, const K: usize, const FMA: bool, R>(
+fn forward_ray_k<T: WithDType, const K: usize, const FMA: bool>(
     ray: &RayIn<'_, T>,
     sc: &mut Scratch,
-    store: bool,
-    sink: impl FnOnce(&[f64], ScanOut) -> R,
-) -> R {
+    o: &mut [T],
+) {
     let k = if K == 0 { ray.k } else { K };
     let mut fixed = [0.0f64; MAX_FIXED_K];
     let mut general = std::mem::take(&mut sc.acc);
@@ -402,28 +401,15 @@ fn scan_ray_k<T: WithDType, const K: usize, const FMA: bool, R>(
     } else {
         &mut fixed
     };
-    let res = scan_ray::<T, FMA>(ray, k, acc, sc, store);
-    let out = sink(&acc[..k], res);
+    let res = scan_ray::<T, FMA>(ray, k, acc, sc, false);
+    for (oo, aa) in o.iter_mut().zip(&acc[..k]) {
+        *oo = T::from_f64(*aa);
+    }
+    if ray.tm.is_some() {
+        o[k] = T::from_f64(res.depth);
+    }
+    o[o.len() - 1] = T::from_f64(res.opacity);
     sc.acc = general;
-    out
-}
-
-#[inline(always)]
-fn forward_ray_k<T: WithDType, const K: usize, const FMA: bool>(
-    ray: &RayIn<'_, T>,
-    sc: &mut Scratch,
-    o: &mut [T],
-) {
-    scan_ray_k::<T, K, FMA, _>(ray, sc, false, |acc, res| {
-        let k = acc.len();
-        for (oo, aa) in o.iter_mut().zip(acc) {
-            *oo = T::from_f64(*aa);
-        }
-        if ray.tm.is_some() {
-            o[k] = T::from_f64(res.depth);
-        }
-        o[o.len() - 1] = T::from_f64(res.opacity);
-    })
 }
 
 /// Backward of one ray given its upstream gradient row `grad` (`[K + G]`).
@@ -450,7 +436,9 @@ fn backward_ray_k<T: WithDType, const K: usize, const FMA: bool>(
         return;
     }
     let (sig, del, vals) = (ray.sig, ray.del, &ray.vals[..n * k]);
-    let live = scan_ray_k::<T, K, FMA, _>(ray, sc, true, |_, res| res.live);
+    // The weights and transmittances only: the backward needs no channel sums, so the
+    // scan accumulates none (k = 0).
+    let live = scan_ray::<T, FMA>(ray, 0, &mut [], sc, true).live;
     // Upstream gradients g_c of the channels, g_D of the depth, g_O of the opacity.
     let mut gk_fixed = [0.0f64; MAX_FIXED_K];
     sc.g.clear();
@@ -593,7 +581,7 @@ pub enum KernelBuild {
     Avx512,
 }
 
-/// The best build allowed by [`limit_kernel_build`] .
+/// The best build allowed by [`limit_kernel_build`].
 static MAX_BUILD: AtomicU8 = AtomicU8::new(KernelBuild::Avx512 as u8);
 
 /// Makes the fused op use at most `max` (the best build the CPU supports that is not

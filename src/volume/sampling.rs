@@ -537,9 +537,9 @@ pub fn sample_pdf(
 /// row). Use it to combine coarse samples (e.g. stratified midpoints) with importance
 /// samples, then [`Intervals::from_samples`] to re-derive intervals.
 ///
-/// f32 or f64, any device. Differentiable w.r.t. both inputs (the sort is a gather; the fine samples of
-/// [`sample_pdf`] are detached already). On CUDA, candle's sort limits a row to the
-/// sizes its bitonic kernel supports.
+/// f32 or f64, any device. Differentiable w.r.t. both inputs (the sort is a gather; the
+/// fine samples of [`sample_pdf`] are detached already). On CUDA, candle's sort limits a
+/// row to the sizes its bitonic kernel supports.
 ///
 /// # Errors
 /// Naming `coarse` or `fine` for wrong shapes, dtypes or devices.
