@@ -418,23 +418,36 @@ impl Camera {
     }
 }
 
-/// A batch of rays `o + t·d`: `origins: [N, 3]`, `directions: [N, 3]`, same float dtype
-/// and device. Directions are whatever the producer made them (camera rays have unit
-/// camera-space z, see the module docs).
+/// A batch of rays `o + t·d`: origins `[N, 3]` and directions `[N, 3]`, one float dtype
+/// and device, validated once when built ([`Rays::new`]): every function that takes
+/// `&Rays` relies on that and checks nothing more of them. Directions are whatever the
+/// producer made them (camera rays have unit camera-space z, see the module docs).
 #[derive(Clone, Debug)]
 pub struct Rays {
-    /// Ray origins, `[N, 3]`.
-    pub origins: Tensor,
-    /// Ray directions, `[N, 3]` (not necessarily unit length).
-    pub directions: Tensor,
+    origins: Tensor,
+    directions: Tensor,
 }
 
 impl Rays {
-    /// Bundles origins and directions.
+    /// Bundles origins and directions, after checking them: `[N, 3]` each (`N = 0`
+    /// allowed), f32 or f64, one dtype and device, finite, and no zero direction (one
+    /// read-back of the `6N` values). Both may carry a graph (a learnable pose's rays).
+    ///
+    /// ```
+    /// use candle_core::{Device, Tensor};
+    /// use neural_fields::camera::Rays;
+    ///
+    /// let o = Tensor::new(&[[0.0f32, 0.0, 0.0]], &Device::Cpu)?;
+    /// let rays = Rays::new(o.clone(), Tensor::new(&[[0.0f32, 0.0, 2.0]], &Device::Cpu)?)?;
+    /// assert_eq!(rays.at(&Tensor::new(&[1.5f32], &Device::Cpu)?)?.to_vec2::<f32>()?, vec![vec![0.0, 0.0, 3.0]]);
+    /// assert!(Rays::new(o, Tensor::zeros((1, 3), candle_core::DType::F32, &Device::Cpu)?).is_err());
+    /// # Ok::<(), neural_fields::Error>(())
+    /// ```
     ///
     /// # Errors
-    /// [`Error::InvalidArgument`] naming `origins` unless it is `[N, 3]` f32/f64, and
-    /// `directions` unless it has the same shape, dtype and device.
+    /// [`Error::InvalidArgument`] naming `origins` unless it is `[N, 3]` f32/f64 and
+    /// finite, and `directions` unless it has the same shape, dtype and device, is finite
+    /// and has no zero row.
     pub fn new(origins: Tensor, directions: Tensor) -> Result<Self> {
         let n = check_points(&origins, "origins")?;
         check_points(&directions, "directions")?;
@@ -446,10 +459,34 @@ impl Rays {
             ));
         }
         check_same(&directions, "directions", &origins, "origins")?;
+        check_finite(&origins, "origins")?;
+        check_finite(&directions, "directions")?;
+        if n > 0 {
+            let m = directions.detach().abs()?.max_keepdim(1)?;
+            if scalar_f64(&m.min_all()?)?.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+                return Err(Error::invalid(
+                    "directions",
+                    "non-zero rows",
+                    "a zero direction",
+                ));
+            }
+        }
         Ok(Self {
             origins,
             directions,
         })
+    }
+
+    /// Ray origins, `[N, 3]`.
+    #[must_use]
+    pub fn origins(&self) -> &Tensor {
+        &self.origins
+    }
+
+    /// Ray directions, `[N, 3]` (not necessarily unit length).
+    #[must_use]
+    pub fn directions(&self) -> &Tensor {
+        &self.directions
     }
 
     /// Number of rays `N`.
@@ -497,7 +534,10 @@ impl Rays {
         }
         let dn = self.directions.broadcast_div(&m)?;
         let norm = dn.sqr()?.sum_keepdim(1)?.sqrt()?;
-        Rays::new(self.origins.clone(), dn.broadcast_div(&norm)?)
+        Ok(Rays {
+            origins: self.origins.clone(),
+            directions: dn.broadcast_div(&norm)?,
+        })
     }
 
     /// Rays `start .. start + len` (a view, for processing in chunks).
@@ -543,29 +583,34 @@ pub struct Intersection {
     pub hit: Tensor,
 }
 
-/// Validates ray inputs; returns `N` and the detached per-ray scale `m = max|dᵢ|`, `[N, 1]`.
-fn check_ray_inputs(origins: &Tensor, directions: &Tensor) -> Result<(usize, Tensor)> {
-    let n = check_points(origins, "origins")?;
-    check_points(directions, "directions")?;
-    if directions.dim(0)? != n {
-        return Err(Error::invalid(
-            "directions",
-            format!("shape [{n}, 3] (that of origins)"),
-            format!("shape {:?}", directions.dims()),
-        ));
+impl Intersection {
+    /// The range `[near, far]` on every ray, all marked hit: the search range of
+    /// [`crate::dvr::march`] and [`crate::dvr::sphere_trace`] when it does not come from
+    /// [`ray_aabb`] or [`ray_sphere`]. A ray with `near = far` has an empty range.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `near` unless it is an f32/f64 `[N]` tensor of
+    /// finite values, `far` unless it matches `near`'s shape, dtype and device, is finite
+    /// and `far ≥ near` on every ray.
+    pub fn new(near: Tensor, far: Tensor) -> Result<Self> {
+        check_float(&near, "near")?;
+        let n = check_shape(&near, "near", &[Dim::Any("N")])?[0];
+        check_same(&far, "far", &near, "near")?;
+        check_shape(&far, "far", &[Dim::Is(n)])?;
+        check_finite(&near, "near")?;
+        check_finite(&far, "far")?;
+        if n > 0 && scalar_f64(&(&far - &near)?.min_all()?)? < 0.0 {
+            return Err(Error::invalid("far", "far ≥ near on every ray", "far < near"));
+        }
+        let hit = Tensor::ones(n, DType::U8, near.device())?;
+        Ok(Intersection { near, far, hit })
     }
-    check_same(directions, "directions", origins, "origins")?;
-    check_finite(origins, "origins")?;
-    check_finite(directions, "directions")?;
-    let m = directions.detach().abs()?.max_keepdim(1)?;
-    if n > 0 && scalar_f64(&m.min_all()?)?.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
-        return Err(Error::invalid(
-            "directions",
-            "non-zero rows",
-            "a zero direction",
-        ));
-    }
-    Ok((n, m))
+}
+
+/// The detached per-ray scale `m = max|dᵢ|`, `[N, 1]` (> 0: [`Rays::new`] rejects zero
+/// directions).
+fn direction_scale(rays: &Rays) -> Result<Tensor> {
+    Ok(rays.directions.detach().abs()?.max_keepdim(1)?)
 }
 
 /// Shared tail: clamp, mask, rescale by `1/m`, and check that nothing overflowed.
@@ -608,21 +653,31 @@ fn check_center(v: [f64; 3], arg: &'static str) -> Result<()> {
 /// grazing an edge or corner hits with `near = far`. See [`Intersection`] for
 /// `near/far/hit`.
 ///
-/// `origins, directions: [N, 3]`, same float dtype and device; outputs on it.
-/// Differentiable w.r.t. origins and directions (gradients are zero, never NaN, for
-/// missed rays and where `near` is clamped at 0).
+/// `rays`: `N` rays (f32 or f64); outputs `[N]` in their dtype and on their device.
+/// Differentiable w.r.t. the rays' origins and directions (gradients are zero, never
+/// NaN, for missed rays and where `near` is clamped at 0).
+///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::camera::{ray_aabb, Rays};
+///
+/// let rays = Rays::new(
+///     Tensor::new(&[[0.0f32, 0.0, -3.0], [5.0, 0.0, -3.0]], &Device::Cpu)?,
+///     Tensor::new(&[[0.0f32, 0.0, 1.0], [0.0, 0.0, 1.0]], &Device::Cpu)?,
+/// )?;
+/// let box_hit = ray_aabb(&rays, [-1.0; 3], [1.0; 3])?;
+/// assert_eq!(box_hit.near.to_vec1::<f32>()?, vec![2.0, 0.0]);
+/// assert_eq!(box_hit.far.to_vec1::<f32>()?, vec![4.0, 0.0]);
+/// assert_eq!(box_hit.hit.to_vec1::<u8>()?, vec![1, 0]);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
 ///
 /// # Errors
-/// [`Error::InvalidArgument`] naming `origins` / `directions` for wrong shapes, dtypes,
-/// devices or non-finite values; `directions` for a zero direction (or one so short that
-/// the parameter overflows); `min` / `max` if not finite, `max` if `minᵢ > maxᵢ`.
-pub fn ray_aabb(
-    origins: &Tensor,
-    directions: &Tensor,
-    min: [f64; 3],
-    max: [f64; 3],
-) -> Result<Intersection> {
-    let (_, m) = check_ray_inputs(origins, directions)?;
+/// [`Error::InvalidArgument`] naming `directions` for a direction so short that the
+/// parameter overflows; `min` / `max` if not finite, `max` if `minᵢ > maxᵢ`.
+pub fn ray_aabb(rays: &Rays, min: [f64; 3], max: [f64; 3]) -> Result<Intersection> {
+    let m = direction_scale(rays)?;
+    let (origins, directions) = (&rays.origins, &rays.directions);
     check_center(min, "min")?;
     check_center(max, "max")?;
     if min.iter().zip(&max).any(|(a, b)| a > b) {
@@ -665,8 +720,8 @@ pub fn ray_aabb(
 /// zero gradient there (its true derivative is infinite). See [`Intersection`] for
 /// `near/far/hit`; the origin inside gives `near = 0`.
 ///
-/// `origins, directions: [N, 3]`, same float dtype and device; outputs on it.
-/// Differentiable w.r.t. origins and directions (zero, never NaN, for misses).
+/// `rays`: `N` rays (f32 or f64); outputs `[N]` in their dtype and on their device.
+/// Differentiable w.r.t. the rays' origins and directions (zero, never NaN, for misses).
 ///
 /// Range: the sphere must be resolvable in the dtype at the origin's distance
 /// (`r ≫ ulp(|o − c|)`); in f32 keep `|o − c| ≤ 10⁶·r`. Beyond, `|o − c|² − r²` loses `r²`,
@@ -674,16 +729,11 @@ pub fn ray_aabb(
 /// is finite (`tests/stiff_cases.rs` sweeps within this range).
 ///
 /// # Errors
-/// [`Error::InvalidArgument`] naming `origins` / `directions` for wrong shapes, dtypes,
-/// devices or non-finite values; `directions` for a zero direction; `center` if not
-/// finite; `radius` unless finite and > 0.
-pub fn ray_sphere(
-    origins: &Tensor,
-    directions: &Tensor,
-    center: [f64; 3],
-    radius: f64,
-) -> Result<Intersection> {
-    let (_, m) = check_ray_inputs(origins, directions)?;
+/// [`Error::InvalidArgument`] naming `center` if not finite; `radius` unless finite and
+/// > 0; `directions` if the parameter overflows.
+pub fn ray_sphere(rays: &Rays, center: [f64; 3], radius: f64) -> Result<Intersection> {
+    let m = direction_scale(rays)?;
+    let (origins, directions) = (&rays.origins, &rays.directions);
     check_center(center, "center")?;
     crate::error::check_scalar(radius, "radius", true)?;
     let r2 = radius * radius;

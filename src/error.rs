@@ -1,4 +1,5 @@
-//! The crate's error type and the argument checks every public function runs first.
+//! The crate's error type, and the (crate-private) argument checks every public function
+//! runs first.
 //!
 //! Every check names the argument it inspected and says what was expected, so that a
 //! wrong shape deep inside a training loop reads as `points: expected shape [N, 3], got
@@ -7,8 +8,10 @@
 use candle_core::{DType, Tensor};
 use std::fmt;
 
-/// Errors returned by this crate.
+/// Errors returned by this crate. New variants may be added in minor releases, so
+/// matches need a wildcard arm.
 #[derive(Debug)]
+#[non_exhaustive]
 pub enum Error {
     /// An argument failed validation: `arg` names it, `expected` says what was wanted and
     /// `got` what was passed.
@@ -37,7 +40,7 @@ pub type Result<T> = std::result::Result<T, Error>;
 impl Error {
     /// Builds an [`Error::InvalidArgument`].
     #[must_use]
-    pub fn invalid(arg: &'static str, expected: impl Into<String>, got: impl Into<String>) -> Self {
+    pub(crate) fn invalid(arg: &'static str, expected: impl Into<String>, got: impl Into<String>) -> Self {
         Error::InvalidArgument {
             arg,
             expected: expected.into(),
@@ -76,7 +79,7 @@ impl From<candle_core::Error> for Error {
 
 /// One expected dimension in a shape pattern: a fixed size or any size.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Dim {
+pub(crate) enum Dim {
     /// Any size (printed with the given symbol, e.g. `N`).
     Any(&'static str),
     /// Exactly this size.
@@ -98,7 +101,7 @@ fn pattern_string(pattern: &[Dim]) -> String {
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `arg` when the rank or a fixed dimension differs.
-pub fn check_shape(t: &Tensor, arg: &'static str, pattern: &[Dim]) -> Result<Vec<usize>> {
+pub(crate) fn check_shape(t: &Tensor, arg: &'static str, pattern: &[Dim]) -> Result<Vec<usize>> {
     let dims = t.dims();
     let ok = dims.len() == pattern.len()
         && dims.iter().zip(pattern).all(|(&d, p)| match p {
@@ -120,7 +123,7 @@ pub fn check_shape(t: &Tensor, arg: &'static str, pattern: &[Dim]) -> Result<Vec
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `arg` for any other dtype.
-pub fn check_float(t: &Tensor, arg: &'static str) -> Result<DType> {
+pub(crate) fn check_float(t: &Tensor, arg: &'static str) -> Result<DType> {
     match t.dtype() {
         DType::F32 | DType::F64 => Ok(t.dtype()),
         other => Err(Error::invalid(
@@ -135,7 +138,7 @@ pub fn check_float(t: &Tensor, arg: &'static str) -> Result<DType> {
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `arg` when either differs.
-pub fn check_same(t: &Tensor, arg: &'static str, reference: &Tensor, ref_arg: &str) -> Result<()> {
+pub(crate) fn check_same(t: &Tensor, arg: &'static str, reference: &Tensor, ref_arg: &str) -> Result<()> {
     if t.dtype() != reference.dtype() {
         return Err(Error::invalid(
             arg,
@@ -157,7 +160,7 @@ pub fn check_same(t: &Tensor, arg: &'static str, reference: &Tensor, ref_arg: &s
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `arg` when the shapes differ.
-pub fn check_same_shape(
+pub(crate) fn check_same_shape(
     t: &Tensor,
     arg: &'static str,
     reference: &Tensor,
@@ -181,7 +184,7 @@ pub fn check_same_shape(
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `arg` when some element is not finite.
-pub fn check_finite(t: &Tensor, arg: &'static str) -> Result<()> {
+pub(crate) fn check_finite(t: &Tensor, arg: &'static str) -> Result<()> {
     if t.elem_count() == 0 {
         return Ok(());
     }
@@ -199,26 +202,11 @@ pub fn check_finite(t: &Tensor, arg: &'static str) -> Result<()> {
     }
 }
 
-/// Checks that a tensor has at least one row (dimension 0 is non-empty).
-///
-/// # Errors
-/// [`Error::InvalidArgument`] naming `arg` for an empty batch.
-pub fn check_nonempty(t: &Tensor, arg: &'static str) -> Result<()> {
-    match t.dims().first() {
-        Some(&n) if n > 0 => Ok(()),
-        _ => Err(Error::invalid(
-            arg,
-            "a non-empty batch",
-            format!("shape {:?}", t.dims()),
-        )),
-    }
-}
-
 /// Checks a plain scalar argument: finite, and strictly positive if `positive`.
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `arg` otherwise.
-pub fn check_scalar(x: f64, arg: &'static str, positive: bool) -> Result<()> {
+pub(crate) fn check_scalar(x: f64, arg: &'static str, positive: bool) -> Result<()> {
     if !x.is_finite() {
         return Err(Error::invalid(arg, "a finite number", format!("{x}")));
     }
@@ -236,7 +224,7 @@ pub fn check_scalar(x: f64, arg: &'static str, positive: bool) -> Result<()> {
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `arg` for another rank, column count or dtype.
-pub fn check_points(t: &Tensor, arg: &'static str) -> Result<usize> {
+pub(crate) fn check_points(t: &Tensor, arg: &'static str) -> Result<usize> {
     check_float(t, arg)?;
     let dims = check_shape(t, arg, &[Dim::Any("N"), Dim::Is(3)])?;
     Ok(dims[0])

@@ -2,8 +2,8 @@
 //!
 //! Differentiable neural-field primitives on [candle]: fields and implicit surfaces,
 //! encodings, cameras, reference networks with trainable normals — and, behind Cargo
-//! features, occupancy networks, texture fields, surface rendering with implicit
-//! gradients (DVR) and NeRF volume rendering. You keep your own training loop (a
+//! features, occupancy networks, surface rendering with implicit gradients (DVR) and
+//! NeRF volume rendering. You keep your own training loop (a
 //! candle-nn `VarMap` and optimiser); this crate gives you the pieces whose gradients
 //! are hard to get right, each proven against finite differences by property tests.
 //!
@@ -93,7 +93,6 @@
 //! | feature | default | module |
 //! |---|---|---|
 //! | `occupancy` | yes | occupancy networks: losses, samplers, meshes, marching cubes, MISE, metrics |
-//! | `texture` | yes | texture fields and photometric losses (planned) |
 //! | `dvr` | yes | surface rendering with implicit gradients: ray marching + secant, sphere tracing, implicit surface points, DVR/IDR losses |
 //! | `volume` | yes | NeRF samplers, compositing (reference and fused CPU kernel), occupancy grid, regularisers |
 //! | `cuda` | no | candle's CUDA backend (needs nvcc) |

@@ -158,7 +158,7 @@ pub fn softplus(x: &Tensor, beta: f64) -> Result<Tensor> {
 ///
 /// # Errors
 /// As [`softplus`].
-pub fn softplus_reference(x: &Tensor, beta: f64) -> Result<Tensor> {
+pub(crate) fn softplus_reference(x: &Tensor, beta: f64) -> Result<Tensor> {
     check_float(x, "x")?;
     check_scalar(beta, "beta", true)?;
     let value = (x.relu()? + log1p_exp_neg_abs(&x.affine(beta, 0.0)?)?.affine(1.0 / beta, 0.0)?)?;

@@ -23,7 +23,8 @@
 //! `s = max(‖∇f‖, min_gradient)·‖w‖` (see [`crate::numerics::guard_denominator`]), so
 //! `|∂t/∂f| ≤ 1/(ε·s)` and grazing rays keep the sign of their gradient.
 
-use super::march::{read_rays, Hits};
+use super::march::Hits;
+use crate::camera::Rays;
 use crate::error::{check_scalar, Error, Result};
 use crate::field::ImplicitSurface;
 use crate::numerics::guard_denominator;
@@ -69,20 +70,6 @@ pub struct SurfacePoints {
     pub guarded: Tensor,
 }
 
-impl SurfacePoints {
-    /// The number `H` of surface points.
-    #[must_use]
-    pub fn len(&self) -> usize {
-        self.depth.dims().first().copied().unwrap_or(0)
-    }
-
-    /// Whether there are none.
-    #[must_use]
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-}
-
 /// Makes the surface points of `hits` differentiable (IDR's implicit form; see the
 /// [module docs](self)).
 ///
@@ -99,24 +86,24 @@ impl SurfacePoints {
 /// (In f32 the true `∂t/∂w ∝ t/‖w‖` itself overflows where `t/‖w‖` exceeds ~1e38.)
 ///
 /// # Errors
-/// [`Error::InvalidArgument`] naming `origins` / `directions` (shape, dtype, device,
-/// non-finite, zero direction), `hits` if it has a different number of rays or dtype,
+/// [`Error::InvalidArgument`] naming `hits` if it has a different number of rays or dtype
+/// than `rays`,
 /// `config.grazing_eps` / `config.min_gradient` unless finite and > 0; field errors.
 pub fn implicit_surface<F: ImplicitSurface + ?Sized>(
     field: &F,
-    origins: &Tensor,
-    directions: &Tensor,
+    rays: &Rays,
     hits: &Hits,
     config: &ImplicitConfig,
 ) -> Result<SurfacePoints> {
     check_scalar(config.grazing_eps, "config.grazing_eps", true)?;
     check_scalar(config.min_gradient, "config.min_gradient", true)?;
-    let (r, _) = read_rays(origins, directions)?;
-    if hits.len() != r || hits.depth.dims() != [r] {
+    let r = rays.len();
+    let (origins, directions) = (rays.origins(), rays.directions());
+    if hits.status.len() != r || hits.depth.dims() != [r] {
         return Err(Error::invalid(
             "hits",
             format!("the march result for these {r} rays"),
-            format!("{} rays", hits.len()),
+            format!("{} rays", hits.status.len()),
         ));
     }
     crate::error::check_same(&hits.depth, "hits", origins, "origins")?;

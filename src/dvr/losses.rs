@@ -9,6 +9,7 @@ use crate::error::{
     check_float, check_points, check_same, check_same_shape, check_scalar, check_shape,
 };
 use crate::error::{Dim, Error, Result};
+use crate::camera::{Intersection, Rays};
 use crate::field::{ImplicitSurface, Inside};
 use crate::numerics::bce_with_logits;
 use crate::rng::SplitMix64;
@@ -139,28 +140,26 @@ pub fn freespace_loss<F: ImplicitSurface + ?Sized>(field: &F, points: &Tensor) -
 ///
 /// # Errors
 /// `points` not float `[M, 3]`; field errors.
-pub fn occupancy_loss<F: ImplicitSurface + ?Sized>(field: &F, points: &Tensor) -> Result<Tensor> {
+pub fn missed_foreground_loss<F: ImplicitSurface + ?Sized>(
+    field: &F,
+    points: &Tensor,
+) -> Result<Tensor> {
     bce_mean(field, points, 1.0)
 }
 
 /// One uniformly random point per ray, `o + u·w` with `u ~ U(near, far)` drawn from
-/// `seed`: `[R, 3]`, differentiable w.r.t. `origins` and `directions` (`u` is constant).
+/// `seed`: `[R, 3]`, differentiable w.r.t. the rays' origins and directions (`u` is
+/// constant).
 ///
-/// * `origins, directions: [R, 3]`; `near, far: [R]`; same float dtype and device.
+/// * `rays`: `R` rays; `range`: `near, far: [R]` in their dtype and on their device (the
+///   hit mask is not used).
 ///
 /// # Errors
-/// Shapes, dtypes or devices that differ (naming the argument).
-pub fn random_points_on_rays(
-    origins: &Tensor,
-    directions: &Tensor,
-    near: &Tensor,
-    far: &Tensor,
-    seed: u64,
-) -> Result<Tensor> {
-    let r = check_points(origins, "origins")?;
-    check_points(directions, "directions")?;
-    check_shape(directions, "directions", &[Dim::Is(r), Dim::Is(3)])?;
-    check_same(directions, "directions", origins, "origins")?;
+/// Naming `near` / `far` for shapes, dtypes or devices that differ from the rays'.
+pub fn random_points_on_rays(rays: &Rays, range: &Intersection, seed: u64) -> Result<Tensor> {
+    let r = rays.len();
+    let (origins, directions) = (rays.origins(), rays.directions());
+    let (near, far) = (&range.near, &range.far);
     for (t, name) in [(near, "near"), (far, "far")] {
         check_float(t, name)?;
         check_shape(t, name, &[Dim::Is(r)])?;
@@ -297,16 +296,15 @@ impl AlphaSchedule {
 /// As [`crate::dvr::march`](fn@crate::dvr::march) for the rays and bounds; `steps` below 1.
 pub fn most_inside_along_rays<F: ImplicitSurface + ?Sized>(
     field: &F,
-    origins: &Tensor,
-    directions: &Tensor,
-    near: &Tensor,
-    far: &Tensor,
+    rays: &Rays,
+    range: &Intersection,
     steps: usize,
 ) -> Result<Tensor> {
     if steps == 0 {
         return Err(Error::invalid("steps", "at least 1", "0"));
     }
-    let rays = super::march::read_problem(origins, directions, near, far, None)?;
+    let (origins, directions) = (rays.origins(), rays.directions());
+    let rays = super::march::read_problem(rays, range)?;
     let r = rays.o.len();
     let mut ev = super::march::Evaluator::new(field, &rays, 65_536);
     let per_chunk = (65_536 / steps).max(1);

@@ -1,5 +1,5 @@
 //! Detached root finding along rays: evenly spaced samples + secant refinement
-//! ([`march`], [`march_bounded`]) and IDR-style sphere tracing for SDFs
+//! ([`march`]) and IDR-style sphere tracing for SDFs
 //! ([`sphere_trace`]).
 //!
 //! ## Math
@@ -24,7 +24,7 @@
 //! needed by [`crate::dvr::implicit_surface`], which makes the depth differentiable.
 
 use crate::camera::{Intersection, Rays};
-use crate::error::{check_finite, check_float, check_points, check_same, check_shape};
+use crate::error::{check_finite, check_float, check_same, check_shape};
 use crate::error::{Dim, Error, Result};
 use crate::field::{ImplicitSurface, Inside};
 use candle_core::{DType, Device, Tensor};
@@ -183,8 +183,7 @@ impl StepSchedule {
     }
 
     /// The number of steps at training `iteration`.
-    #[must_use]
-    pub fn steps_at(&self, iteration: usize) -> usize {
+    fn steps_at(&self, iteration: usize) -> usize {
         self.milestones
             .iter()
             .rev()
@@ -211,7 +210,8 @@ pub struct Hits {
     pub depth: Tensor,
     /// `o + t·w`, `[R, 3]`, detached.
     pub points: Tensor,
-    /// Per-ray status.
+    /// Per-ray status (`R` entries: `hits.status.len()` is the ray count, and
+    /// `hits.status.iter().filter(|&&s| s == RayStatus::Hit).count()` counts the hits).
     pub status: Vec<RayStatus>,
     /// `[R]` u8: 1 where the ray has a surface point ([`RayStatus::has_surface`]).
     pub mask: Tensor,
@@ -220,24 +220,6 @@ pub struct Hits {
 }
 
 impl Hits {
-    /// The number of rays `R`.
-    #[must_use]
-    pub fn len(&self) -> usize {
-        self.status.len()
-    }
-
-    /// Whether there are no rays.
-    #[must_use]
-    pub fn is_empty(&self) -> bool {
-        self.status.is_empty()
-    }
-
-    /// How many rays have status `s`.
-    #[must_use]
-    pub fn count(&self, s: RayStatus) -> usize {
-        self.status.iter().filter(|&&x| x == s).count()
-    }
-
     /// Indices of the rays with a surface point, ascending.
     #[must_use]
     pub fn surface_indices(&self) -> Vec<u32> {
@@ -305,42 +287,18 @@ fn vec1(t: &Tensor) -> Result<Vec<f64>> {
     Ok(t.detach().to_dtype(DType::F64)?.to_vec1::<f64>()?)
 }
 
-/// Validates origins and directions (`[R, 3]`, same dtype/device, finite, non-zero
-/// directions) and reads them to the host.
-pub(crate) fn read_rays(origins: &Tensor, directions: &Tensor) -> Result<(usize, HostRays)> {
-    let r = check_points(origins, "origins")?;
-    check_points(directions, "directions")?;
-    if directions.dim(0)? != r {
-        return Err(Error::invalid(
-            "directions",
-            format!("shape [{r}, 3] (that of origins)"),
-            format!("shape {:?}", directions.dims()),
-        ));
-    }
-    check_same(directions, "directions", origins, "origins")?;
-    check_finite(origins, "origins")?;
-    check_finite(directions, "directions")?;
-    let o = rows3(origins)?;
-    let w = rows3(directions)?;
-    if let Some(i) = w.iter().position(|d| d.iter().all(|&x| x == 0.0)) {
-        return Err(Error::invalid(
-            "directions",
-            "non-zero rows",
-            format!("a zero direction at ray {i}"),
-        ));
-    }
-    Ok((
-        r,
-        HostRays {
-            o,
-            w,
-            near: vec![0.0; r],
-            far: vec![1.0; r],
-            active: vec![true; r],
-            dtype: origins.dtype(),
-            device: origins.device().clone(),
-        },
-    ))
+/// Reads validated rays to the host (every ray active on `[0, 1]` until bounds are set).
+pub(crate) fn read_rays(rays: &Rays) -> Result<HostRays> {
+    let r = rays.len();
+    Ok(HostRays {
+        o: rows3(rays.origins())?,
+        w: rows3(rays.directions())?,
+        near: vec![0.0; r],
+        far: vec![1.0; r],
+        active: vec![true; r],
+        dtype: rays.origins().dtype(),
+        device: rays.origins().device().clone(),
+    })
 }
 
 fn read_bound(t: &Tensor, arg: &'static str, like: &Tensor, r: usize) -> Result<Vec<f64>> {
@@ -351,44 +309,43 @@ fn read_bound(t: &Tensor, arg: &'static str, like: &Tensor, r: usize) -> Result<
     vec1(t)
 }
 
-/// Validates rays and `near`/`far` bounds (`far > near` on every ray where `active`).
-pub(crate) fn read_problem(
-    origins: &Tensor,
-    directions: &Tensor,
-    near: &Tensor,
-    far: &Tensor,
-    active: Option<Vec<bool>>,
-) -> Result<HostRays> {
-    let (r, mut rays) = read_rays(origins, directions)?;
-    rays.near = read_bound(near, "near", origins, r)?;
-    rays.far = read_bound(far, "far", origins, r)?;
-    if let Some(a) = active {
-        rays.active = a;
+/// Reads the rays and the search range: a ray is searched iff `hit = 1` and
+/// `far > near`; `far < near` on a ray with `hit = 1` is an error, and so are bounds
+/// whose points overflow the rays' dtype.
+pub(crate) fn read_problem(rays: &Rays, range: &Intersection) -> Result<HostRays> {
+    let r = rays.len();
+    let mut host = read_rays(rays)?;
+    check_shape(&range.hit, "hit", &[Dim::Is(r)])?;
+    host.near = read_bound(&range.near, "near", rays.origins(), r)?;
+    host.far = read_bound(&range.far, "far", rays.origins(), r)?;
+    let hit: Vec<u8> = range.hit.to_dtype(DType::U8)?.to_vec1::<u8>()?;
+    if let Some(i) = (0..r).find(|&i| hit[i] != 0 && host.far[i] < host.near[i]) {
+        return Err(Error::invalid(
+            "far",
+            "far ≥ near on every ray with hit = 1",
+            format!("near = {} > far = {} at ray {i}", host.near[i], host.far[i]),
+        ));
     }
-    let largest = if rays.dtype == DType::F32 {
+    host.active = (0..r)
+        .map(|i| hit[i] != 0 && host.far[i] > host.near[i])
+        .collect();
+    let largest = if host.dtype == DType::F32 {
         f64::from(f32::MAX)
     } else {
         f64::MAX
     };
     for i in 0..r {
-        let t_max = rays.near[i].abs().max(rays.far[i].abs());
-        let reach = (0..3).all(|k| rays.o[i][k].abs() + t_max * rays.w[i][k].abs() <= largest);
-        if rays.active[i] && !reach {
+        let t_max = host.near[i].abs().max(host.far[i].abs());
+        let reach = (0..3).all(|k| host.o[i][k].abs() + t_max * host.w[i][k].abs() <= largest);
+        if host.active[i] && !reach {
             return Err(Error::invalid(
                 "far",
                 "points o + t·w representable in the rays' dtype for t in [near, far]",
                 format!("an overflow at ray {i}"),
             ));
         }
-        if rays.active[i] && rays.far[i] <= rays.near[i] {
-            return Err(Error::invalid(
-                "far",
-                "far > near on every ray",
-                format!("near = {} ≥ far = {} at ray {i}", rays.near[i], rays.far[i]),
-            ));
-        }
     }
-    Ok(rays)
+    Ok(host)
 }
 
 /// Host points to evaluate, each with the index of its ray (for fields with one latent
@@ -687,69 +644,30 @@ fn run_march<F: ImplicitSurface + ?Sized>(
 ///   are respected), evaluated through [`ImplicitSurface::value_on_rays`]: a
 ///   [`crate::field::Conditioned`] field with an `[R, D]` code gives every ray its own
 ///   code (a batch of rays through different shapes).
-/// * `origins, directions: [R, 3]`, f32 or f64, same dtype and device; directions need
-///   not be unit (depth is in units of `|w|`).
-/// * `near, far: [R]`, same dtype/device, `far > near` on every ray.
+/// * `rays`: `R` rays, f32 or f64; directions need not be unit (depth is in units of
+///   `|w|`).
+/// * `range`: the part of each ray to search, `near, far: [R]` in the rays' dtype and
+///   device, e.g. from [`crate::camera::ray_aabb`] or [`crate::camera::ray_sphere`], or
+///   [`Intersection::new`] for the same or explicit bounds on every ray. Rays with
+///   `hit = 0` or `near = far` get [`RayStatus::Miss`] (depth 0) without any field
+///   evaluation.
 ///
-/// Cost: `n` evaluations per ray plus `k` per ray with a crossing, in calls of at most
-/// `config.chunk_points` points; memory is O(R + chunk_points).
+/// Cost: `n` evaluations per searched ray plus `k` per ray with a crossing, in calls of
+/// at most `config.chunk_points` points; memory is O(R + chunk_points).
 ///
 /// # Errors
-/// [`Error::InvalidArgument`] naming `origins` / `directions` (shape, dtype, device,
-/// non-finite values, a zero direction), `near` / `far` (shape, dtype, non-finite),
-/// `far` if `far ≤ near` on some ray or if `o + t·w` overflows the dtype on `[near, far]`,
-/// `config.*` for an invalid configuration; errors of the field.
+/// [`Error::InvalidArgument`] naming `near` / `far` / `hit` (a shape other than `[R]`, a
+/// dtype or device other than the rays', non-finite bounds), `far` if `far < near` on a
+/// ray with `hit = 1` (which [`crate::camera::ray_aabb`] and
+/// [`crate::camera::ray_sphere`] never produce) or if `o + t·w` overflows the dtype on
+/// `[near, far]`, `config.*` for an invalid configuration; errors of the field.
 pub fn march<F: ImplicitSurface + ?Sized>(
     field: &F,
-    origins: &Tensor,
-    directions: &Tensor,
-    near: &Tensor,
-    far: &Tensor,
-    config: &MarchConfig,
-) -> Result<Hits> {
-    let rays = read_problem(origins, directions, near, far, None)?;
-    run_march(field, &rays, config)
-}
-
-/// [`march`] over the part of each ray inside a bounding volume, e.g. from
-/// [`crate::camera::ray_aabb`] or [`crate::camera::ray_sphere`]: rays with `hit = 0` or
-/// `near = far` get [`RayStatus::Miss`] (depth 0) without any field evaluation.
-///
-/// # Errors
-/// As [`march`]; `bounds` naming its fields as `near` / `far` / `hit`: a shape other
-/// than `[R]`, a dtype or device other than the rays', non-finite `near` / `far`, and
-/// `far` if `far < near` on a ray with `hit = 1` (which [`crate::camera::ray_aabb`] and
-/// [`crate::camera::ray_sphere`] never produce).
-pub fn march_bounded<F: ImplicitSurface + ?Sized>(
-    field: &F,
     rays: &Rays,
-    bounds: &Intersection,
+    range: &Intersection,
     config: &MarchConfig,
 ) -> Result<Hits> {
-    let r = rays.len();
-    check_shape(&bounds.hit, "hit", &[Dim::Is(r)])?;
-    for (t, arg) in [(&bounds.near, "near"), (&bounds.far, "far")] {
-        check_float(t, arg)?;
-        check_shape(t, arg, &[Dim::Is(r)])?;
-    }
-    let hit: Vec<u8> = bounds.hit.to_dtype(DType::U8)?.to_vec1::<u8>()?;
-    let near = vec1(&bounds.near)?;
-    let far = vec1(&bounds.far)?;
-    let active: Vec<bool> = (0..r).map(|i| hit[i] != 0 && far[i] > near[i]).collect();
-    let host = read_problem(
-        &rays.origins,
-        &rays.directions,
-        &bounds.near,
-        &bounds.far,
-        Some(active),
-    )?;
-    if let Some(i) = (0..r).find(|&i| hit[i] != 0 && far[i] < near[i]) {
-        return Err(Error::invalid(
-            "far",
-            "far ≥ near on every ray with hit = 1",
-            format!("near = {} > far = {} at ray {i}", near[i], far[i]),
-        ));
-    }
+    let host = read_problem(rays, range)?;
     run_march(field, &host, config)
 }
 
@@ -800,10 +718,8 @@ impl Default for SphereTraceConfig {
 /// if 0, `config.threshold` unless > 0, `config.step_back` unless in (0, 1).
 pub fn sphere_trace<F: ImplicitSurface + ?Sized>(
     field: &F,
-    origins: &Tensor,
-    directions: &Tensor,
-    near: &Tensor,
-    far: &Tensor,
+    rays: &Rays,
+    range: &Intersection,
     config: &SphereTraceConfig,
 ) -> Result<Hits> {
     if field.inside() != Inside::Negative {
@@ -825,7 +741,7 @@ pub fn sphere_trace<F: ImplicitSurface + ?Sized>(
         ));
     }
     config.fallback.check()?;
-    let rays = read_problem(origins, directions, near, far, None)?;
+    let rays = read_problem(rays, range)?;
     let r = rays.o.len();
     let mut ev = Evaluator::new(field, &rays, config.fallback.chunk_points);
     let mut out = HostHits {
@@ -836,14 +752,23 @@ pub fn sphere_trace<F: ImplicitSurface + ?Sized>(
     // Distances are σ·s with σ = −1: d = f − τ = −s.
     let mut tf = rays.near.clone();
     let mut tb = rays.far.clone();
-    let mut pts = RayPoints::with_capacity(2 * r);
-    for i in 0..r {
+    // Rays outside the range (hit = 0 or near = far) are misses at depth 0, never
+    // evaluated.
+    let act: Vec<usize> = (0..r).filter(|&i| rays.active[i]).collect();
+    for i in (0..r).filter(|&i| !rays.active[i]) {
+        out.depth[i] = 0.0;
+    }
+    let mut pts = RayPoints::with_capacity(2 * act.len());
+    for &i in &act {
         pts.push(i, &rays.o[i], &rays.w[i], tf[i]);
         pts.push(i, &rays.o[i], &rays.w[i], tb[i]);
     }
     let s = ev.values(&pts)?;
-    let mut df: Vec<f64> = (0..r).map(|i| -s[2 * i]).collect();
-    let mut db: Vec<f64> = (0..r).map(|i| -s[2 * i + 1]).collect();
+    let (mut df, mut db) = (vec![0.0; r], vec![0.0; r]);
+    for (k, &i) in act.iter().enumerate() {
+        df[i] = -s[2 * k];
+        db[i] = -s[2 * k + 1];
+    }
     let back_ok: Vec<bool> = db.iter().map(|&d| d >= 0.0).collect();
     // The last front / back positions known to be outside (d ≥ 0).
     let mut safe_f = tf.clone();
@@ -851,8 +776,9 @@ pub fn sphere_trace<F: ImplicitSurface + ?Sized>(
     let mut last_f = vec![0.0; r];
     let mut last_b = vec![0.0; r];
     // 0 = running, 1 = front converged, 2 = done (miss or starts inside).
-    let mut state = vec![0u8; r];
-    for i in 0..r {
+    let mut state = vec![2u8; r];
+    for &i in &act {
+        state[i] = 0;
         if df[i] < 0.0 {
             state[i] = 2;
             out.status[i] = RayStatus::StartsInside;

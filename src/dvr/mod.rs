@@ -10,6 +10,7 @@
 //!
 //! ```
 //! use candle_core::{DType, Device, Tensor, Var};
+//! use neural_fields::camera::{Intersection, Rays};
 //! use neural_fields::dvr::{implicit_surface, march, ImplicitConfig, MarchConfig, RayStatus};
 //! use neural_fields::field::{SignedDistance, Sphere};
 //!
@@ -17,13 +18,14 @@
 //! let radius = Var::new(0.5f64, &dev)?;                       // a learnable radius
 //! let sphere = Sphere { center: Tensor::zeros(3, DType::F64, &dev)?,
 //!                       radius: radius.as_tensor().clone() }.sdf();
-//! let origins = Tensor::new(&[[0.0f64, 0.0, -2.0], [0.0, 3.0, -2.0]], &dev)?;
-//! let directions = Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.0, 1.0]], &dev)?;
-//! let near = Tensor::new(&[0.0f64, 0.0], &dev)?;
-//! let far = Tensor::new(&[4.0f64, 4.0], &dev)?;
-//! let hits = march(&sphere, &origins, &directions, &near, &far, &MarchConfig::default())?;
+//! let rays = Rays::new(
+//!     Tensor::new(&[[0.0f64, 0.0, -2.0], [0.0, 3.0, -2.0]], &dev)?,  // origins
+//!     Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.0, 1.0]], &dev)?,    // directions
+//! )?;
+//! let range = Intersection::new(Tensor::new(&[0.0f64, 0.0], &dev)?, Tensor::new(&[4.0f64, 4.0], &dev)?)?;
+//! let hits = march(&sphere, &rays, &range, &MarchConfig::default())?;
 //! assert_eq!(hits.status, vec![RayStatus::Hit, RayStatus::Miss]);
-//! let surf = implicit_surface(&sphere, &origins, &directions, &hits, &ImplicitConfig::default())?;
+//! let surf = implicit_surface(&sphere, &rays, &hits, &ImplicitConfig::default())?;
 //! let t = surf.depth.to_vec1::<f64>()?;                        // one surface point
 //! assert!((t[0] - 1.5).abs() < 1e-12);
 //! let g = surf.depth.sum_all()?.backward()?;
@@ -38,7 +40,12 @@ pub mod losses;
 pub mod march;
 
 pub use implicit::{implicit_surface, ImplicitConfig, SurfacePoints};
+pub use losses::{
+    depth_loss, eikonal_loss, freespace_loss, idr_mask_loss, missed_foreground_loss,
+    most_inside_along_rays, normal_smoothness_loss, photometric_loss, random_points_on_rays,
+    AlphaSchedule, Photometric,
+};
 pub use march::{
-    march, march_bounded, secant_point, sphere_trace, Hits, MarchConfig, RayStatus, SecantRule,
+    march, secant_point, sphere_trace, Hits, MarchConfig, RayStatus, SecantRule,
     SphereTraceConfig, StepSchedule,
 };

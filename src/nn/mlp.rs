@@ -313,18 +313,6 @@ impl Mlp {
         &self.config
     }
 
-    /// Which side of channel 0's zero level is inside (from the configuration).
-    #[must_use]
-    pub fn inside(&self) -> Inside {
-        self.config.inside
-    }
-
-    /// The number of output channels.
-    #[must_use]
-    pub fn out_dim(&self) -> usize {
-        self.config.out_dim
-    }
-
     fn check_inputs(&self, points: &Tensor, codes: Option<&Tensor>) -> Result<usize> {
         check_float(points, "points")?;
         let n = check_shape(
@@ -402,11 +390,9 @@ impl Mlp {
 
     /// `y = f(points, codes)`: `points: [N, in_dim]`, `codes: [N, code_dim]` or `None`
     /// (only when `code_dim == 0`) → `[N, out_dim]`. Differentiable w.r.t. the weights,
-    /// the points and the codes. f32 or f64, any device.
-    ///
-    /// # Errors
-    /// Shapes, dtypes or devices that do not match the configuration.
-    pub fn forward_points(&self, points: &Tensor, codes: Option<&Tensor>) -> Result<Tensor> {
+    /// the points and the codes. f32 or f64, any device. Users reach it through
+    /// [`Field::forward`] and [`ConditionalField::forward_with_code`].
+    fn forward_points(&self, points: &Tensor, codes: Option<&Tensor>) -> Result<Tensor> {
         self.check_inputs(points, codes)?;
         let a0 = self.first_input(self.config.encoding.forward(points)?, codes)?;
         Ok(self.run(&a0, None)?.0)
@@ -418,7 +404,7 @@ impl Mlp {
     /// Both outputs are differentiable w.r.t. the weights and the codes (and the points).
     ///
     /// # Errors
-    /// As [`Mlp::forward_points`].
+    /// Shapes, dtypes or devices that do not match the configuration.
     pub fn forward_with_jacobian(
         &self,
         points: &Tensor,
@@ -455,35 +441,6 @@ impl Mlp {
             y.narrow(1, 0, 1)?.squeeze(1)?,
             j.narrow(D::Minus1, 0, 1)?.squeeze(D::Minus1)?,
         ))
-    }
-}
-
-impl candle_nn::Module for Mlp {
-    /// `xs: [N, in_dim + code_dim]` (f32 or f64): points followed by codes →
-    /// `[N, out_dim]`, as [`Mlp::forward_points`] (differentiable w.r.t. the weights and
-    /// `xs`). Argument errors come back as `candle_core::Error::Msg` carrying this
-    /// crate's message (`xs: expected …`).
-    fn forward(&self, xs: &Tensor) -> candle_core::Result<Tensor> {
-        let d = self.config.in_dim;
-        let run = || -> Result<Tensor> {
-            check_float(xs, "xs")?;
-            check_shape(
-                xs,
-                "xs",
-                &[Dim::Any("N"), Dim::Is(d + self.config.code_dim)],
-            )?;
-            let points = xs.narrow(1, 0, d)?;
-            if self.config.code_dim == 0 {
-                self.forward_points(&points, None)
-            } else {
-                let codes = xs.narrow(1, d, self.config.code_dim)?;
-                self.forward_points(&points, Some(&codes))
-            }
-        };
-        run().map_err(|e| match e {
-            Error::Candle(c) => c,
-            other => candle_core::Error::Msg(other.to_string()),
-        })
     }
 }
 

@@ -1,13 +1,13 @@
 //! Training losses of occupancy networks.
 //!
-//! * [`bce_with_logits`] (re-exported from [`crate::numerics`]): elementwise, finite for
-//!   logits of ±10⁴, gradient `σ(x) − y`.
-//! * [`occupancy_loss`]: ONet's reduction, BCE summed over the `K` points of a shape and
+//! * [`bce_with_logits`] (in [`crate::numerics`]): elementwise, finite for logits of
+//!   ±10⁴, gradient `σ(x) − y`.
+//! * [`reconstruction_loss`]: ONet's reduction, BCE summed over the `K` points of a shape and
 //!   averaged over the `B` shapes of the batch.
 //! * [`kl_standard_normal`] and [`reparameterize`]: the variational ONet's
 //!   `KL[N(μ, diag σ²) ‖ N(0, I)]` and the sample `z = μ + σ ⊙ ε`.
 
-pub use crate::numerics::bce_with_logits;
+use crate::numerics::bce_with_logits;
 
 use crate::error::{check_float, check_same, check_same_shape, check_shape, Dim, Error, Result};
 use crate::rng::SplitMix64;
@@ -22,7 +22,7 @@ use candle_core::Tensor;
 ///
 /// # Errors
 /// Not rank 2, mismatched shapes, dtypes or devices.
-pub fn occupancy_loss(logits: &Tensor, targets: &Tensor) -> Result<Tensor> {
+pub fn reconstruction_loss(logits: &Tensor, targets: &Tensor) -> Result<Tensor> {
     check_float(logits, "logits")?;
     let dims = check_shape(logits, "logits", &[Dim::Any("B"), Dim::Any("K")])?;
     if dims[0] == 0 {

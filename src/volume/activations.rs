@@ -1,6 +1,7 @@
-//! Density activations for NeRF fields: trunc-exp and softplus.
+//! Density activations for NeRF fields: trunc-exp (softplus is
+//! [`crate::numerics::softplus`]).
 //!
-//! Both map a raw network output x ∈ ℝ to a density σ ≥ 0 whose value and gradient are
+//! Both (trunc-exp and softplus) map a raw network output x ∈ ℝ to a density σ ≥ 0 whose value and gradient are
 //! finite for every finite x, so that [`super::composite`] never sees ∞.
 //!
 //! - `trunc_exp(x) = exp(min(x, m))` with m = 88 in f32 (e⁸⁸ ≈ 1.65e38 < f32::MAX) and
@@ -94,19 +95,4 @@ pub fn trunc_exp(x: &Tensor) -> Result<Tensor> {
         .clamp(-TRUNC_EXP_GRAD_CLAMP, TRUNC_EXP_GRAD_CLAMP)?
         .exp()?;
     with_slope(&value, x, &slope)
-}
-
-/// Softplus density activation `log(1 + eˣ)`: [`crate::numerics::softplus`] with β = 1.
-///
-/// Value: `max(x, 0) + log1p(exp(−|x|))` (finite for all finite x, ≈ eˣ for very
-/// negative x, ≈ x for large x). Gradient: `sigmoid(x)` exactly (1/2 at 0), computed
-/// without overflow.
-///
-/// Shapes: any; f32 or f64; any device (CustomOp on CPU, composed elsewhere).
-/// Differentiable (first order) with respect to `x`.
-///
-/// # Errors
-/// `x` when not f32/f64.
-pub fn softplus(x: &Tensor) -> Result<Tensor> {
-    crate::numerics::softplus(x, 1.0)
 }

@@ -3,14 +3,23 @@
 //! One candle [`CustomOp3`] takes `(sigmas, geometry, values)` and returns per ray the
 //! accumulated values Σwᵢvᵢₖ for every channel k, then Σwᵢtᵢ (when depths are given),
 //! then the opacity Σwᵢ: a single `[R, K + 2]` (or `[R, K + 1]`) tensor.
-//! [`composite_fused`] passes the colours as values, so one pass yields colour, expected
-//! depth and opacity, split with `narrow` (views). `geometry` is δ; the depths t are read
-//! in place from the op when they are a constant of the graph (the usual case), and
-//! stacked under δ (`[2, …]`, a contiguous block copy whose backward is a contiguous
-//! split) only when they need a gradient. Inputs are passed in their own shapes (no
-//! reshape: in candle's backprop every reshape costs a zeros + add pass per gradient).
-//! Per-sample weights are not an output; use [`super::composite::render_weights`] when
-//! they are needed.
+//! [`composite`] passes the colours as values, so one pass yields colour, expected
+//! depth and opacity, split with `narrow` (views). The geometry comes in one of two
+//! forms ([`FusedGeometry`]):
+//!
+//! - constant intervals (the usual case: samplers return intervals without a graph):
+//!   `geometry` is the interval starts, the op holds the ends and the per-ray direction
+//!   norms, and each ray's δᵢ = (eᵢ − sᵢ)·‖d‖ and tᵢ = (sᵢ + eᵢ)/2 are formed in a per-thread
+//!   buffer as the ray is processed: no per-sample tensor is allocated, and the check that
+//!   every δᵢ is finite and ≥ 0 happens in the same pass;
+//! - δ and t as tensors (when the intervals or the rays carry a graph): `geometry` is δ;
+//!   the depths t are read in place from the op when they are a constant of the graph,
+//!   and stacked under δ (`[2, …]`, a contiguous block copy whose backward is a contiguous
+//!   split) when they need a gradient.
+//!
+//! Inputs are passed in their own shapes (no reshape: in candle's backprop every reshape
+//! costs a zeros + add pass per gradient). Per-sample weights are not an output; the
+//! reference path's weights serve [`super::render_weights`].
 //!
 //! The per-ray kernels are specialised at compile time for 1–4 channels (accumulators in
 //! registers) with a general path for other counts, and are built three times: for the
@@ -47,15 +56,12 @@
 //! (no second order), and it only computes the gradients of inputs that are part of the
 //! autograd graph.
 
-use super::composite::{
-    check_composite_inputs, check_composite_inputs_packed, check_sigmas_deltas, finish, Composite,
-    CompositeOptions, Packed, X_MAX,
-};
-use crate::error::{check_same, check_shape, Dim, Error, Result};
+use super::layout::{bad_intervals, host_f64, Layout as SampleLayout, X_MAX};
+use crate::error::{Error, Result};
 use crate::parallel::for_each_init;
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Shape, Storage, Tensor, WithDType};
 use std::mem::MaybeUninit;
-use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 /// Transmittance below which a ray is considered spent inside the kernel.
@@ -91,27 +97,40 @@ impl Segments {
     }
 }
 
-/// Where the sample depths t for the expected depth come from.
+/// What the op's geometry input holds, and where the rest of the geometry comes from.
 #[derive(Clone, Debug)]
-enum Depth {
-    /// No depth output.
-    None,
-    /// t is a constant of the graph (no gradient wanted): the op holds it and reads it
-    /// in place, so nothing is copied.
-    Captured(Tensor),
-    /// t needs a gradient: it is stacked under δ in the geometry input (`[2, …]`).
+enum Geometry {
+    /// The input is δ; the sample depths t are a constant of the graph, held by the op
+    /// and read in place.
+    Deltas(Tensor),
+    /// The input is δ stacked over t (`[2, …]`): t needs a gradient.
     Stacked,
+    /// The input is the (constant) interval starts; the op holds the ends and, when the
+    /// directions are not unit, the per-ray direction norms (host f64). δ and t are
+    /// formed per ray.
+    Intervals {
+        ends: Tensor,
+        norms: Option<Arc<[f64]>>,
+    },
 }
 
-/// The fused compositing op on `(sigmas [M], geometry [G, M], values [M, K])`, where the
-/// geometry rows are δ and, with [`Depth::Stacked`] (G = 2), the sample depths t.
-/// Output `[R, K + 2]` = (Σwᵢvᵢₖ for each k, Σwᵢtᵢ, Σwᵢ), or `[R, K + 1]` without depth.
+/// The fused compositing op on `(sigmas [M], geometry [G, M], values [M, K])`, the
+/// geometry as [`Geometry`] says. Output `[R, K + 2]` = (Σwᵢvᵢₖ for each k, Σwᵢtᵢ, Σwᵢ).
 #[derive(Clone, Debug)]
 struct FusedComposite {
     seg: Segments,
     k: usize,
-    depth: Depth,
+    geometry: Geometry,
     opaque_last: bool,
+    isa: Isa,
+    /// Set by the forward when an interval has a non-finite or negative length.
+    bad: Arc<AtomicBool>,
+}
+
+/// A ray's δ and t, from slices of the inputs or formed from its intervals.
+enum Geo<'a, T> {
+    Slices { del: &'a [T], tm: &'a [T] },
+    Intervals { s: &'a [T], e: &'a [T], norms: Option<&'a [f64]> },
 }
 
 /// ln 2 split for Cody–Waite range reduction (fdlibm constants): `LN2_HI` has trailing
@@ -569,45 +588,35 @@ fn reverse_scan<const FMA: bool>(u: &mut [f64], t_next: &[f64], w: &[f64]) {
 /// The instruction-set builds of the per-ray kernels, in increasing order. The same
 /// code is compiled once per build and chosen at run time by CPU feature detection, so
 /// the results differ only by the rounding of fused multiply–adds (the baseline build
-/// multiplies and adds separately). Test and benchmark hook: see [`limit_kernel_build`].
-#[doc(hidden)]
+/// multiplies and adds separately). Each call names the best build it may use (the
+/// entry points pass [`KernelBuild::Avx512`], plain detection); the tests pass each
+/// build in turn.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
-pub enum KernelBuild {
+pub(crate) enum KernelBuild {
     /// The build's baseline target (SSE2 on x86-64; every non-x86 target).
     Baseline,
     /// AVX2 + FMA: 4 f64 lanes for the exp polynomial and the per-sample passes.
+    #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
     Avx2Fma,
     /// AVX-512 (F, VL) + FMA: 8 f64 lanes.
     Avx512,
 }
 
-/// The best build allowed by [`limit_kernel_build`].
-static MAX_BUILD: AtomicU8 = AtomicU8::new(KernelBuild::Avx512 as u8);
-
-/// Makes the fused op use at most `max` (the best build the CPU supports that is not
-/// above `max`; `Avx512` restores plain detection). Process-wide; for tests and
-/// benchmarks that compare the builds of the same kernel code.
-#[doc(hidden)]
-pub fn limit_kernel_build(max: KernelBuild) {
-    MAX_BUILD.store(max as u8, Ordering::Relaxed);
-}
-
 /// Runtime CPU dispatch to one [`KernelBuild`].
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, Debug)]
 struct Isa(KernelBuild);
 
 impl Isa {
-    fn detect() -> Self {
-        let max = MAX_BUILD.load(Ordering::Relaxed);
+    /// The best build the CPU supports that is not above `max`.
+    fn detect(max: KernelBuild) -> Self {
         #[cfg(target_arch = "x86_64")]
         {
             use std::arch::is_x86_feature_detected as has;
-            let allowed = |b: KernelBuild| b as u8 <= max;
             let avx2_fma = has!("avx2") && has!("fma");
-            if allowed(KernelBuild::Avx512) && avx2_fma && has!("avx512f") && has!("avx512vl") {
+            if max >= KernelBuild::Avx512 && avx2_fma && has!("avx512f") && has!("avx512vl") {
                 return Isa(KernelBuild::Avx512);
             }
-            if allowed(KernelBuild::Avx2Fma) && avx2_fma {
+            if max >= KernelBuild::Avx2Fma && avx2_fma {
                 return Isa(KernelBuild::Avx2Fma);
             }
         }
@@ -722,14 +731,14 @@ fn cpu_slice<'a, T: WithDType>(
 }
 
 impl FusedComposite {
-    /// Rows of the geometry input: δ, and t when stacked.
+    /// Rows of the geometry input: δ (or the starts), and t when stacked.
     fn geo_rows(&self) -> usize {
-        1 + usize::from(matches!(self.depth, Depth::Stacked))
+        1 + usize::from(matches!(self.geometry, Geometry::Stacked))
     }
 
-    /// Output columns: K values, depth (unless `Depth::None`), opacity.
+    /// Output columns: K values, depth, opacity.
     fn width(&self) -> usize {
-        self.k + usize::from(!matches!(self.depth, Depth::None)) + 1
+        self.k + 2
     }
 
     fn check_len(&self, m_sig: usize, m_geo: usize, m_val: usize) -> candle_core::Result<()> {
@@ -743,54 +752,95 @@ impl FusedComposite {
         Ok(())
     }
 
-    /// Calls `f(δ, t)` with the full-length δ and (when depth is accumulated) t slices,
-    /// taken from the geometry input or from the captured t tensor.
+    /// Calls `f` with the geometry of all samples: slices of δ and t taken from the
+    /// geometry input or the captured t tensor, or the interval starts (the input), ends
+    /// and norms (captured).
     fn with_geometry<T: WithDType, R>(
         &self,
         geo: &[T],
-        f: impl FnOnce(&[T], Option<&[T]>) -> candle_core::Result<R>,
+        f: impl FnOnce(Geo<'_, T>) -> candle_core::Result<R>,
     ) -> candle_core::Result<R> {
         let m = self.seg.n_samples();
-        match &self.depth {
-            Depth::None => f(geo, None),
-            Depth::Stacked => f(&geo[..m], Some(&geo[m..])),
-            Depth::Captured(t) => {
-                let (st, l) = t.storage_and_layout();
-                let tm = cpu_slice::<T>(&st, l, "t_mids")?;
-                if tm.len() != m {
-                    candle_core::bail!("fused composite: expected {m} depths, got {}", tm.len());
-                }
-                f(geo, Some(tm))
+        let captured = |t: &Tensor, f: &mut dyn FnMut(&[T]) -> candle_core::Result<R>| {
+            let (st, l) = t.storage_and_layout();
+            let x = cpu_slice::<T>(&st, l, "geometry")?;
+            if x.len() != m {
+                candle_core::bail!("fused composite: expected {m} samples, got {}", x.len());
             }
+            f(x)
+        };
+        let mut f = Some(f);
+        let mut call = |g: Geo<'_, T>| match f.take() {
+            Some(f) => f(g),
+            None => candle_core::bail!("fused composite: geometry visited twice"),
+        };
+        match &self.geometry {
+            Geometry::Stacked => call(Geo::Slices {
+                del: &geo[..m],
+                tm: &geo[m..],
+            }),
+            Geometry::Deltas(t) => captured(t, &mut |tm| call(Geo::Slices { del: geo, tm })),
+            Geometry::Intervals { ends, norms } => captured(ends, &mut |e| {
+                call(Geo::Intervals {
+                    s: geo,
+                    e,
+                    norms: norms.as_deref(),
+                })
+            }),
         }
     }
 
-    fn ray<'a, T>(
+    /// The inputs of ray `r`; δ and t of constant intervals are formed in `buf`.
+    fn ray<'a, T: WithDType>(
         &self,
         r: usize,
         sig: &'a [T],
-        del: &'a [T],
-        tm: Option<&'a [T]>,
+        geo: &Geo<'a, T>,
         vals: &'a [T],
+        buf: &'a mut (Vec<T>, Vec<T>),
     ) -> RayIn<'a, T> {
         let (a, b) = self.seg.range(r);
+        let (del, tm): (&[T], &[T]) = match geo {
+            Geo::Slices { del, tm } => (&del[a..b], &tm[a..b]),
+            Geo::Intervals { s, e, norms } => {
+                let norm = norms.map_or(1.0, |n| n[r]);
+                let (del, tm) = (&mut buf.0, &mut buf.1);
+                del.clear();
+                tm.clear();
+                let mut ok = true;
+                for (&s, &e) in s[a..b].iter().zip(&e[a..b]) {
+                    let (s, e) = (s.to_f64(), e.to_f64());
+                    let d = (e - s) * norm;
+                    // NaN fails the comparison, so NaN and ±∞ bounds are caught here.
+                    let good = d >= 0.0 && d <= f64::MAX && s.is_finite();
+                    ok &= good;
+                    del.push(T::from_f64(if good { d } else { 0.0 }));
+                    tm.push(T::from_f64(0.5 * s + 0.5 * e));
+                }
+                if !ok {
+                    self.bad.store(true, Ordering::Relaxed);
+                }
+                (&buf.0[..], &buf.1[..])
+            }
+        };
         RayIn {
             sig: &sig[a..b],
-            del: &del[a..b],
-            tm: tm.map(|t| &t[a..b]),
+            del,
+            tm: Some(tm),
             vals: &vals[a * self.k..b * self.k],
             k: self.k,
             opaque_last: self.opaque_last,
         }
     }
 
-    fn forward<T: WithDType>(&self, sig: &[T], del: &[T], tm: Option<&[T]>, vals: &[T]) -> Vec<T> {
+    fn forward<T: WithDType>(&self, sig: &[T], geo: Geo<'_, T>, vals: &[T]) -> Vec<T> {
         let (r, width) = (self.seg.n_rays(), self.width());
-        let isa = Isa::detect();
+        let isa = self.isa;
         let mut out = vec![T::zero(); r * width];
         let rows: Vec<_> = out.chunks_mut(width).enumerate().collect();
-        for_each_init(rows, Scratch::default, |sc, (ray, o)| {
-            isa.forward(&self.ray(ray, sig, del, tm, vals), sc, o);
+        let init = || (Scratch::default(), (Vec::new(), Vec::new()));
+        for_each_init(rows, init, |(sc, buf), (ray, o)| {
+            isa.forward(&self.ray(ray, sig, &geo, vals, buf), sc, o);
         });
         out
     }
@@ -798,12 +848,10 @@ impl FusedComposite {
     /// Gradients with respect to (sigmas, geometry, values) given `grad` `[R, K + G]`;
     /// `need` says which of the three to produce (the others are returned empty and not
     /// computed, saving their allocation and writes).
-    #[allow(clippy::too_many_arguments)]
     fn backward<T: WithDType>(
         &self,
         sig: &[T],
-        del: &[T],
-        tm: Option<&[T]>,
+        geo: Geo<'_, T>,
         vals: &[T],
         grad: &[T],
         need: [bool; 3],
@@ -833,8 +881,9 @@ impl FusedComposite {
             .zip(split_rays(gt, seg, 1))
             .enumerate()
             .collect();
-        let isa = Isa::detect();
-        for_each_init(rays, Scratch::default, |sc, (ray, (((gs, gd), gv), gt))| {
+        let isa = self.isa;
+        let init = || (Scratch::default(), (Vec::new(), Vec::new()));
+        for_each_init(rays, init, |(sc, buf), (ray, (((gs, gd), gv), gt))| {
             let mut out = RayGrads {
                 sig: gs,
                 del: gd,
@@ -842,7 +891,7 @@ impl FusedComposite {
                 tm: gt,
             };
             let g = &grad[ray * width..(ray + 1) * width];
-            isa.backward(&self.ray(ray, sig, del, tm, vals), g, sc, &mut out);
+            isa.backward(&self.ray(ray, sig, &geo, vals, buf), g, sc, &mut out);
         });
         for (v, (on, len)) in [&mut gs, &mut ggeo, &mut gv]
             .into_iter()
@@ -887,13 +936,13 @@ impl CustomOp3 for FusedComposite {
             (CpuStorage::F32(s), CpuStorage::F32(d), CpuStorage::F32(v)) => {
                 let (s, d, v) = (&s[a1..b1], &d[a2..b2], &v[a3..b3]);
                 self.check_len(s.len(), d.len(), v.len())?;
-                let out = self.with_geometry(d, |del, tm| Ok(self.forward(s, del, tm, v)))?;
+                let out = self.with_geometry(d, |geo| Ok(self.forward(s, geo, v)))?;
                 Ok((CpuStorage::F32(out), shape))
             }
             (CpuStorage::F64(s), CpuStorage::F64(d), CpuStorage::F64(v)) => {
                 let (s, d, v) = (&s[a1..b1], &d[a2..b2], &v[a3..b3]);
                 self.check_len(s.len(), d.len(), v.len())?;
-                let out = self.with_geometry(d, |del, tm| Ok(self.forward(s, del, tm, v)))?;
+                let out = self.with_geometry(d, |geo| Ok(self.forward(s, geo, v)))?;
                 Ok((CpuStorage::F64(out), shape))
             }
             _ => candle_core::bail!("fused composite: inputs must all be f32 or all f64"),
@@ -924,7 +973,7 @@ impl CustomOp3 for FusedComposite {
                 let g = cpu_slice::<$t>(&gs, gl, "grad")?;
                 self.check_len(s.len(), d.len(), v.len())?;
                 let (a, b, c) =
-                    self.with_geometry(d, |del, tm| Ok(self.backward(s, del, tm, v, g, need)))?;
+                    self.with_geometry(d, |geo| Ok(self.backward(s, geo, v, g, need)))?;
                 let wrap =
                     |on: bool, v: Vec<$t>, t: &Tensor| -> candle_core::Result<Option<Tensor>> {
                         if on {
@@ -949,152 +998,90 @@ impl CustomOp3 for FusedComposite {
     }
 }
 
-fn require_cpu(sigmas: &Tensor) -> Result<()> {
-    if sigmas.device().is_cpu() {
-        Ok(())
-    } else {
-        Err(Error::invalid(
-            "sigmas",
-            "a CPU tensor (the fused op has only a CPU kernel; use composite or composite_reference)",
-            format!("{:?}", sigmas.device()),
-        ))
-    }
+/// The geometry of the samples for [`composite`].
+pub(crate) enum FusedGeometry<'a> {
+    /// δ and t as tensors of the samples' shape (either may carry a graph).
+    Tensors {
+        deltas: &'a Tensor,
+        t_mids: &'a Tensor,
+    },
+    /// Constant interval bounds (no graph) and optional constant per-ray direction norms
+    /// `[R]`: δ = (ends − starts)·norm and t = (starts + ends)/2 are formed in the kernel.
+    Intervals {
+        starts: &'a Tensor,
+        ends: &'a Tensor,
+        norms: Option<&'a Tensor>,
+    },
 }
 
-/// Applies the fused op to `values` (any shape whose contiguous data is `[M, K]`; no
-/// reshape, since each reshape in the graph adds a zeros + add pass per gradient in
-/// candle's backprop). A constant `tm` is captured by the op and read in place; one that
-/// needs a gradient is stacked under δ (a contiguous block copy whose backward is a
-/// contiguous split). Returns `[R, K + 2]`, or `[R, K + 1]` without `tm`.
-fn apply(
-    sig: &Tensor,
-    del: &Tensor,
-    tm: Option<&Tensor>,
-    values: &Tensor,
-    seg: Segments,
-    k: usize,
-    opaque_last: bool,
-) -> Result<Tensor> {
-    let sig = sig.contiguous()?;
-    let (geo, depth) = match tm {
-        Some(t) if t.track_op() => (Tensor::stack(&[del, t], 0)?, Depth::Stacked),
-        Some(t) => (del.contiguous()?, Depth::Captured(t.contiguous()?)),
-        None => (del.contiguous()?, Depth::None),
-    };
-    let op = FusedComposite {
-        seg,
-        k,
-        depth,
-        opaque_last,
-    };
-    Ok(sig.apply_op3(&geo, &values.contiguous()?, op)?)
-}
-
-/// The fused op over `seg` with `c` colour channels, split into colour, depth and
-/// opacity, with the background added.
-fn composite_segments(
+/// The fused op over validated CPU inputs in either layout: returns colour Σwᵢcᵢ
+/// `[R, C]`, opacity Σwᵢ `[R]` and depth Σwᵢtᵢ `[R]` (no background), differentiable
+/// (first order) w.r.t. `sigmas`, `colors` and tensor geometry. `build` is the best
+/// kernel build the call may use.
+///
+/// # Errors
+/// `sigmas` when not on the CPU; `intervals` when a constant interval has a non-finite or
+/// negative length (checked in the kernel's own pass).
+pub(crate) fn composite(
     sigmas: &Tensor,
     colors: &Tensor,
-    deltas: &Tensor,
-    t_mids: &Tensor,
-    seg: Segments,
-    c: usize,
-    opts: &CompositeOptions,
-) -> Result<Composite> {
-    let out = apply(
-        sigmas,
-        deltas,
-        Some(t_mids),
-        colors,
+    geometry: FusedGeometry<'_>,
+    layout: &SampleLayout,
+    opaque_last: bool,
+    build: KernelBuild,
+) -> Result<(Tensor, Tensor, Tensor)> {
+    if !sigmas.device().is_cpu() {
+        return Err(Error::invalid(
+            "sigmas",
+            "a CPU tensor (the fused op has only a CPU kernel)",
+            format!("{:?}", sigmas.device()),
+        ));
+    }
+    let c = colors.dims().last().copied().unwrap_or(0);
+    let seg = match layout {
+        SampleLayout::Batched => {
+            let (rays, s) = sigmas.dims2()?;
+            Segments::Uniform { rays, s }
+        }
+        SampleLayout::Packed(p) => Segments::Offsets(p.offsets_arc()),
+    };
+    let (geo, geometry) = match geometry {
+        FusedGeometry::Tensors { deltas, t_mids } if t_mids.track_op() => {
+            (Tensor::stack(&[deltas, t_mids], 0)?, Geometry::Stacked)
+        }
+        FusedGeometry::Tensors { deltas, t_mids } => {
+            (deltas.contiguous()?, Geometry::Deltas(t_mids.contiguous()?))
+        }
+        FusedGeometry::Intervals {
+            starts,
+            ends,
+            norms,
+        } => {
+            let norms = match norms {
+                Some(n) => Some(host_f64(n)?.into()),
+                None => None,
+            };
+            let ends = ends.contiguous()?;
+            (starts.contiguous()?, Geometry::Intervals { ends, norms })
+        }
+    };
+    let bad = Arc::new(AtomicBool::new(false));
+    let op = FusedComposite {
         seg,
-        c,
-        opts.opaque_last,
-    )?;
+        k: c,
+        geometry,
+        opaque_last,
+        isa: Isa::detect(build),
+        bad: bad.clone(),
+    };
+    let out = sigmas
+        .contiguous()?
+        .apply_op3(&geo, &colors.contiguous()?, op)?;
+    if bad.load(Ordering::Relaxed) {
+        return Err(bad_intervals());
+    }
     let color = out.narrow(1, 0, c)?;
     let depth = out.narrow(1, c, 1)?.squeeze(1)?;
     let opacity = out.narrow(1, c + 1, 1)?.squeeze(1)?;
-    finish(color, opacity, depth, opts)
-}
-
-/// Fused [`super::composite::composite_reference`]: the same results (to rounding) from
-/// one CPU pass per ray, with the O(S) analytic backward.
-///
-/// Math: C = Σwᵢcᵢ + (1 − Σwᵢ)·c_bg, opacity Σwᵢ, depth Σwᵢtᵢ, with wᵢ as in
-/// [`super::composite::render_weights`]; accumulated in f64 for f32 and f64 inputs.
-///
-/// Shapes: `sigmas, deltas, t_mids: [R, S]`, `colors: [R, S, C]` → `color: [R, C]`,
-/// `opacity, depth: [R]`. CPU only, f32 or f64. Differentiable (first order) with respect
-/// to `sigmas`, `deltas`, `colors`, `t_mids` and the background.
-///
-/// # Errors
-/// As [`super::composite::composite_reference`]; `sigmas` when not on the CPU.
-pub fn composite_fused(
-    sigmas: &Tensor,
-    colors: &Tensor,
-    deltas: &Tensor,
-    t_mids: &Tensor,
-    opts: &CompositeOptions,
-) -> Result<Composite> {
-    check_composite_inputs(sigmas, colors, deltas, t_mids)?;
-    require_cpu(sigmas)?;
-    let (r, s) = sigmas.dims2()?;
-    let c = colors.dim(2)?;
-    let seg = Segments::Uniform { rays: r, s };
-    composite_segments(sigmas, colors, deltas, t_mids, seg, c, opts)
-}
-
-/// Packed-layout [`composite_fused`]: `sigmas, deltas, t_mids: [M]`, `colors: [M, C]`
-/// → `color: [R, C]`, `opacity, depth: [R]`; rays with no samples get opacity 0, depth 0
-/// and the background colour.
-///
-/// Same math per ray as [`super::composite::composite_packed_reference`]. CPU only, f32
-/// or f64. Differentiable (first order) with respect to `sigmas`, `deltas`, `colors`,
-/// `t_mids` and the background.
-///
-/// # Errors
-/// As [`super::composite::composite_packed_reference`]; `sigmas` when not on the CPU.
-pub fn composite_packed_fused(
-    sigmas: &Tensor,
-    colors: &Tensor,
-    deltas: &Tensor,
-    t_mids: &Tensor,
-    packed: &Packed,
-    opts: &CompositeOptions,
-) -> Result<Composite> {
-    check_composite_inputs_packed(sigmas, colors, deltas, t_mids, packed)?;
-    require_cpu(sigmas)?;
-    let c = colors.dim(1)?;
-    let seg = Segments::Offsets(packed.offsets_arc());
-    composite_segments(sigmas, colors, deltas, t_mids, seg, c, opts)
-}
-
-/// Fused accumulation of arbitrary per-sample values with the weights of
-/// `(sigmas, deltas)`: returns `[R, K + 1]` = (Σwᵢvᵢₖ for each k, Σwᵢ).
-///
-/// Shapes: `sigmas, deltas: [R, S]`, `values: [R, S, K]`. CPU, f32/f64. Differentiable
-/// (first order) with respect to all three.
-///
-/// # Errors
-/// `sigmas`/`deltas` as in [`super::composite::render_weights`]; `values` on a shape,
-/// dtype or device mismatch; `sigmas` when not on the CPU.
-pub fn accumulate_fused(
-    sigmas: &Tensor,
-    deltas: &Tensor,
-    values: &Tensor,
-    opaque_last: bool,
-) -> Result<Tensor> {
-    let d = check_shape(sigmas, "sigmas", &[Dim::Any("R"), Dim::Any("S")])?;
-    check_same(values, "values", sigmas, "sigmas")?;
-    let dv = check_shape(
-        values,
-        "values",
-        &[Dim::Is(d[0]), Dim::Is(d[1]), Dim::Any("K")],
-    )?;
-    check_sigmas_deltas(sigmas, deltas)?;
-    require_cpu(sigmas)?;
-    let seg = Segments::Uniform {
-        rays: d[0],
-        s: d[1],
-    };
-    apply(sigmas, deltas, None, values, seg, dv[2], opaque_last)
+    Ok((color, opacity, depth))
 }

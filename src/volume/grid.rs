@@ -38,15 +38,23 @@
 //! visits every step. The traversal runs on the host over `to_vec` copies of the rays, in
 //! parallel over rays with rayon; the results are placed on the rays' device.
 
-use crate::error::{check_float, check_points, check_same, check_scalar, Error, Result};
-use crate::volume::composite::Packed;
-use crate::volume::sampling::{from_host, host_f64, stream};
+use crate::camera::Rays;
+use crate::error::{check_float, check_scalar, Error, Result};
+use crate::volume::layout::{host_f64, Intervals, Layout, Packed};
+use crate::volume::sampling::{from_host, stream};
 use candle_core::{DType, Device, Tensor};
 use rayon::prelude::*;
 
-/// Knobs of an [`OccupancyGrid`]'s update rule (see the module docs).
+/// An [`OccupancyGrid`]'s box, resolution and update rule (see the module docs).
 #[derive(Clone, Debug, PartialEq)]
 pub struct GridConfig {
+    /// The level-0 box `[x₀, y₀, z₀, x₁, y₁, z₁]`. Default `[−1, −1, −1, 1, 1, 1]`.
+    pub aabb: [f64; 6],
+    /// Cells per axis and level. Default 128 (nerfacc's).
+    pub resolution: usize,
+    /// Number of levels; level `l` covers the box scaled by `2^l` about its centre.
+    /// Default 1.
+    pub levels: usize,
     /// Density above which a cell is occupied (before the mean clamp). Default 0.01.
     pub threshold: f64,
     /// Lower bound of the effective threshold τ. Default 1e-4.
@@ -77,6 +85,9 @@ pub struct GridConfig {
 impl Default for GridConfig {
     fn default() -> Self {
         GridConfig {
+            aabb: [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0],
+            resolution: 128,
+            levels: 1,
             threshold: 0.01,
             floor: 1e-4,
             decay: 0.95,
@@ -91,18 +102,17 @@ impl Default for GridConfig {
 /// A multi-resolution binary occupancy grid (see the module docs).
 #[derive(Clone, Debug)]
 pub struct OccupancyGrid {
-    aabb: [f64; 6],
-    resolution: usize,
-    levels: usize,
     density: Vec<f32>,
     occupied: Vec<bool>,
     config: GridConfig,
 }
 
 /// How [`OccupancyGrid::sample`] marches: the range `[near, far]` in ray parameter `t`,
-/// the step, and optional cone stepping.
+/// the step, and optional cone stepping. Build it with [`GridMarchConfig::new`] and
+/// struct-update syntax for the rest:
+/// `GridMarchConfig { cone_angle: 0.004, ..GridMarchConfig::new(0.0, 10.0, 1e-2) }`.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct MarchOptions {
+pub struct GridMarchConfig {
     /// Start of the march, `≥ 0`.
     pub near: f64,
     /// End of the march, `> near` (may be `+∞`: the march stops at the grid's box).
@@ -116,23 +126,17 @@ pub struct MarchOptions {
     pub max_step: f64,
 }
 
-impl MarchOptions {
+impl GridMarchConfig {
     /// A fixed-step march over `[near, far]`.
     #[must_use]
     pub fn new(near: f64, far: f64, step_size: f64) -> Self {
-        MarchOptions {
+        GridMarchConfig {
             near,
             far,
             step_size,
             cone_angle: 0.0,
             max_step: 1e10,
         }
-    }
-
-    /// The same march with cone stepping of angle `cone_angle`.
-    #[must_use]
-    pub fn with_cone_angle(self, cone_angle: f64) -> Self {
-        MarchOptions { cone_angle, ..self }
     }
 }
 
@@ -171,130 +175,70 @@ impl FixedMarch {
 /// it would take too many steps.
 type RayMarch = std::result::Result<(Vec<(f64, f64)>, usize), usize>;
 
-/// Samples emitted by [`OccupancyGrid::sample`], in the packed layout of
-/// [`crate::volume::composite`].
+/// Samples emitted by [`OccupancyGrid::sample`]: packed [`Intervals`] (ready for
+/// [`crate::volume::composite`] and [`Intervals::positions`]) and the work they saved.
 #[derive(Clone, Debug)]
+#[non_exhaustive]
 pub struct GridSamples {
-    /// `[M]` interval starts (ray parameter t), ray by ray, sorted along each ray.
-    pub starts: Tensor,
-    /// `[M]` interval ends.
-    pub ends: Tensor,
-    /// Per-ray layout: `packed.ray_indices` (`[M]` u32) and offsets.
-    pub packed: Packed,
+    /// `[M]` kept intervals in ray parameter `t`, ray by ray, sorted along each ray, in
+    /// the packed [`Layout`] (`Layout::Packed`, with the per-ray offsets).
+    pub intervals: Intervals,
     /// How many intervals the march visited in all, kept or not: the number of samples
     /// the same march would have evaluated without the grid.
     pub n_marched: usize,
 }
 
-impl GridSamples {
-    /// Midpoints `(starts + ends)/2`, `[M]`, the samples' dtype (that of the march's
-    /// rays). Differentiable w.r.t. `starts`, `ends`.
-    ///
-    /// # Errors
-    /// Only candle errors.
-    pub fn midpoints(&self) -> Result<Tensor> {
-        Ok(((&self.starts + &self.ends)? * 0.5)?)
-    }
-
-    /// Interval lengths in world units, `δ = (ends − starts)·‖d_r‖` for the ray `r` of
-    /// each sample, `[M]`; `directions: [R, 3]` as passed to
-    /// [`OccupancyGrid::sample`]. Differentiable w.r.t. the intervals and `directions`.
-    ///
-    /// # Errors
-    /// Naming `directions` for a wrong shape, dtype or device.
-    pub fn deltas(&self, directions: &Tensor) -> Result<Tensor> {
-        let norms = self.direction_norms(directions)?;
-        Ok(((&self.ends - &self.starts)? * norms)?)
-    }
-
-    /// Sample positions `o_r + m·d_r` at the midpoints, `[M, 3]`, f32 or f64 (the
-    /// dtype of `origins`, which must match the samples'). Differentiable w.r.t. the
-    /// intervals, `origins` and `directions`.
-    ///
-    /// # Errors
-    /// Naming `origins` or `directions` for a wrong shape, dtype or device.
-    pub fn positions(&self, origins: &Tensor, directions: &Tensor) -> Result<Tensor> {
-        let r = self.packed.n_rays;
-        check_rays(origins, directions, r)?;
-        let idx = &self.packed.ray_indices;
-        let o = origins.index_select(idx, 0)?;
-        let d = directions.index_select(idx, 0)?;
-        let m = self.midpoints()?.unsqueeze(1)?;
-        Ok((o + d.broadcast_mul(&m)?)?)
-    }
-
-    fn direction_norms(&self, directions: &Tensor) -> Result<Tensor> {
-        check_same(directions, "directions", &self.starts, "starts")?;
-        crate::error::check_shape(
-            directions,
-            "directions",
-            &[
-                crate::error::Dim::Is(self.packed.n_rays),
-                crate::error::Dim::Is(3),
-            ],
-        )?;
-        let n = directions.sqr()?.sum(1)?.sqrt()?;
-        Ok(n.index_select(&self.packed.ray_indices, 0)?)
-    }
-}
-
-fn check_rays(origins: &Tensor, directions: &Tensor, r: usize) -> Result<()> {
-    let n = check_points(origins, "origins")?;
-    if n != r {
-        return Err(Error::invalid(
-            "origins",
-            format!("shape [{r}, 3]"),
-            format!("shape {:?}", origins.dims()),
-        ));
-    }
-    check_same(directions, "directions", origins, "origins")?;
-    let m = check_points(directions, "directions")?;
-    if m != r {
-        return Err(Error::invalid(
-            "directions",
-            format!("shape [{r}, 3] (that of origins)"),
-            format!("shape {:?}", directions.dims()),
-        ));
-    }
-    Ok(())
-}
-
 impl OccupancyGrid {
-    /// A grid over `aabb = [x₀, y₀, z₀, x₁, y₁, z₁]` with `levels` levels of
-    /// `resolution³` cells, default [`GridConfig`], every cell occupied.
+    /// A grid over `config.aabb = [x₀, y₀, z₀, x₁, y₁, z₁]` with `config.levels` levels
+    /// of `config.resolution³` cells and the update rule of `config` (the defaults are
+    /// nerfacc's), every cell occupied.
+    ///
+    /// ```
+    /// use candle_core::{DType, Device, Tensor};
+    /// use neural_fields::camera::Rays;
+    /// use neural_fields::volume::{GridConfig, GridMarchConfig, OccupancyGrid};
+    ///
+    /// let dev = Device::Cpu;
+    /// let mut grid = OccupancyGrid::new(GridConfig { resolution: 32, ..GridConfig::default() })?;
+    /// // Density: a ball of radius 0.3 (a trained field's density in practice).
+    /// let ball = |p: &Tensor| -> neural_fields::Result<Tensor> {
+    ///     Ok((p.sqr()?.sum(1)?.lt(0.09)?.to_dtype(DType::F32)? * 50.0)?)
+    /// };
+    /// grid.update(0, 1, &dev, DType::F32, ball)?;                  // warm-up: every cell
+    /// let occupied = grid.occupied().iter().filter(|&&o| o).count();
+    /// assert!(occupied < 32 * 32 * 32 / 20);
+    /// let rays = Rays::new(
+    ///     Tensor::new(&[[0.0f32, 0.0, -2.0], [0.9, 0.9, -2.0]], &dev)?,
+    ///     Tensor::new(&[[0.0f32, 0.0, 1.0], [0.0, 0.0, 1.0]], &dev)?,
+    /// )?;
+    /// let samples = grid.sample(&rays, &GridMarchConfig::new(0.0, 4.0, 0.01))?;
+    /// let m = samples.intervals.starts.dim(0)?;                   // packed: [M]
+    /// assert!(m > 0 && m < samples.n_marched);                      // empty space skipped
+    /// assert_eq!(samples.intervals.positions(&rays)?.dims(), &[m, 3]);
+    /// # Ok::<(), neural_fields::Error>(())
+    /// ```
     ///
     /// # Errors
-    /// Naming `aabb` when it is not finite with `x₀ < x₁`, `y₀ < y₁`, `z₀ < z₁`;
-    /// `resolution` or `levels` when 0 or when the grid would exceed 2³¹ cells.
-    pub fn new(aabb: [f64; 6], resolution: usize, levels: usize) -> Result<Self> {
-        Self::with_config(aabb, resolution, levels, GridConfig::default())
-    }
-
-    /// As [`OccupancyGrid::new`] with the given update rule.
-    ///
-    /// # Errors
-    /// As [`OccupancyGrid::new`]; naming `config` when `threshold` or `floor` is not
-    /// finite and ≥ 0, `decay` is not in `[0, 1]`, or `chunk_size` is 0.
-    pub fn with_config(
-        aabb: [f64; 6],
-        resolution: usize,
-        levels: usize,
-        config: GridConfig,
-    ) -> Result<Self> {
+    /// Naming `config.aabb` when it is not finite with `x₀ < x₁`, `y₀ < y₁`, `z₀ < z₁`;
+    /// `config.resolution` or `config.levels` when 0 or when the grid would exceed 2³¹
+    /// cells; `config` when `threshold` or `floor` is not finite and ≥ 0, `decay` is not in
+    /// `[0, 1]`, or `chunk_size` is 0.
+    pub fn new(config: GridConfig) -> Result<Self> {
+        let (aabb, resolution, levels) = (config.aabb, config.resolution, config.levels);
         let ok = aabb.iter().all(|x| x.is_finite()) && (0..3).all(|a| aabb[a] < aabb[a + 3]);
         if !ok {
             return Err(Error::invalid(
-                "aabb",
+                "config.aabb",
                 "finite [x0, y0, z0, x1, y1, z1] with min < max on each axis",
                 format!("{aabb:?}"),
             ));
         }
         if resolution == 0 {
-            return Err(Error::invalid("resolution", "at least 1", "0"));
+            return Err(Error::invalid("config.resolution", "at least 1", "0"));
         }
         if levels == 0 || levels > 16 {
             return Err(Error::invalid(
-                "levels",
+                "config.levels",
                 "1 to 16 levels",
                 format!("{levels}"),
             ));
@@ -305,7 +249,7 @@ impl OccupancyGrid {
             .filter(|&c| c <= 1 << 31)
             .ok_or_else(|| {
                 Error::invalid(
-                    "resolution",
+                    "config.resolution",
                     "at most 2^31 cells in all",
                     format!("{levels} levels of {resolution}^3"),
                 )
@@ -323,34 +267,13 @@ impl OccupancyGrid {
             ));
         }
         Ok(OccupancyGrid {
-            aabb,
-            resolution,
-            levels,
             density: vec![0.0; cells],
             occupied: vec![true; cells],
             config,
         })
     }
 
-    /// The level-0 box.
-    #[must_use]
-    pub fn aabb(&self) -> [f64; 6] {
-        self.aabb
-    }
-
-    /// Cells per axis and level.
-    #[must_use]
-    pub fn resolution(&self) -> usize {
-        self.resolution
-    }
-
-    /// Number of levels.
-    #[must_use]
-    pub fn levels(&self) -> usize {
-        self.levels
-    }
-
-    /// The update rule.
+    /// The box, resolution, levels and update rule.
     #[must_use]
     pub fn config(&self) -> &GridConfig {
         &self.config
@@ -369,15 +292,8 @@ impl OccupancyGrid {
         &self.occupied
     }
 
-    /// Fraction of cells (over all levels) that are occupied.
-    #[must_use]
-    pub fn occupied_fraction(&self) -> f64 {
-        let n = self.occupied.iter().filter(|&&o| o).count();
-        n as f64 / self.occupied.len() as f64
-    }
-
     fn centre_half(&self) -> ([f64; 3], [f64; 3]) {
-        let a = &self.aabb;
+        let a = &self.config.aabb;
         (
             [
                 0.5 * (a[0] + a[3]),
@@ -406,11 +322,11 @@ impl OccupancyGrid {
         while q > scale {
             level += 1;
             scale *= 2.0;
-            if level >= self.levels {
+            if level >= self.config.levels {
                 return None;
             }
         }
-        let res = self.resolution;
+        let res = self.config.resolution;
         let mut idx = level;
         for a in 0..3 {
             let lo = c[a] - h[a] * scale;
@@ -428,7 +344,7 @@ impl OccupancyGrid {
 
     /// Box dilation by one cell within each level, as three separable passes (x, y, z).
     fn dilate(&mut self) {
-        let res = self.resolution;
+        let res = self.config.resolution;
         let per_level = res * res * res;
         let strides = [res * res, res, 1];
         for stride in strides {
@@ -458,7 +374,7 @@ impl OccupancyGrid {
     /// (by the enlarged finer box) finer. Hence every skipped step has its midpoint in
     /// `cell`: jumping gives exactly the intervals of the step-by-step march.
     fn skip_empty(&self, cell: usize, k: usize, march: &FixedMarch) -> usize {
-        let res = self.resolution;
+        let res = self.config.resolution;
         let per_level = res * res * res;
         let level = cell / per_level;
         let scale = (1u64 << level) as f64;
@@ -562,7 +478,7 @@ impl OccupancyGrid {
         if !step.is_multiple_of(every_n) {
             return Ok(false);
         }
-        let res = self.resolution;
+        let res = self.config.resolution;
         let per_level = res * res * res;
         let mut rng = stream(self.config.seed, step as u64);
         let cells: Vec<usize> = if step < self.config.warmup_steps {
@@ -570,7 +486,7 @@ impl OccupancyGrid {
         } else {
             let mut chosen = Vec::with_capacity(self.density.len() / 2);
             let quarter = (per_level / 4).max(1);
-            for l in 0..self.levels {
+            for l in 0..self.config.levels {
                 let base = l * per_level;
                 for _ in 0..quarter {
                     chosen.push(base + rng.below(per_level as u64) as usize);
@@ -645,36 +561,30 @@ impl OccupancyGrid {
 
     /// Marches rays through the grid and returns the intervals in occupied cells.
     ///
-    /// * `origins`, `directions`: `[R, 3]`, f32 or f64, same device (directions need not
-    ///   be unit: `t` is the ray parameter, and `step_size` is in units of `t`).
-    /// * `opts`: [`MarchOptions`]; the march covers `[max(near, t_entry),
+    /// * `rays`: `R` rays, f32 or f64 (directions need not be unit: `t` is the ray
+    ///   parameter, and `step_size` is in units of `t`).
+    /// * `config`: [`GridMarchConfig`]; the march covers `[max(near, t_entry),
     ///   min(far, t_exit)]` of the outermost level's box with steps
     ///   `Δt = clamp(cone_angle·t, step_size, max_step)` (fixed for `cone_angle = 0`).
     ///
-    /// Returns [`GridSamples`]: `starts`, `ends` `[M]` in the rays' dtype and device,
-    /// sorted along each ray, in the packed layout; the last interval of a ray ends at
-    /// its exit point. Detached: the intervals carry no gradient (get one to origins and
-    /// directions through [`GridSamples::positions`]).
+    /// Returns [`GridSamples`]: packed intervals `[M]` in the rays' dtype and device,
+    /// sorted along each ray; the last interval of a ray ends at its exit point.
+    /// Detached: the intervals carry no gradient (get one to origins and directions
+    /// through [`Intervals::positions`]).
     ///
     /// # Errors
-    /// Naming `origins`/`directions` for wrong shapes, dtypes, devices, non-finite
-    /// values or a zero direction; `near`, `far`, `step_size`, `cone_angle`, `max_step` for bad scalars;
+    /// Naming `near`, `far`, `step_size`, `cone_angle`, `max_step` for bad scalars;
     /// `step_size` when a single ray would take more than 2²⁴ steps.
-    pub fn sample(
-        &self,
-        origins: &Tensor,
-        directions: &Tensor,
-        opts: &MarchOptions,
-    ) -> Result<GridSamples> {
-        let MarchOptions {
+    pub fn sample(&self, rays: &Rays, config: &GridMarchConfig) -> Result<GridSamples> {
+        let GridMarchConfig {
             near,
             far,
             step_size,
             cone_angle,
             max_step,
-        } = *opts;
-        let r = check_points(origins, "origins")?;
-        check_rays(origins, directions, r)?;
+        } = *config;
+        let r = rays.len();
+        let (origins, directions) = (rays.origins(), rays.directions());
         check_scalar(near, "near", false)?;
         if near < 0.0 {
             return Err(Error::invalid("near", "a number ≥ 0", format!("{near}")));
@@ -698,29 +608,8 @@ impl OccupancyGrid {
         check_scalar(max_step, "max_step", true)?;
         let o = host_f64(origins)?;
         let d = host_f64(directions)?;
-        if o.iter().any(|x| !x.is_finite()) {
-            return Err(Error::invalid(
-                "origins",
-                "finite values",
-                "NaN or infinity",
-            ));
-        }
-        if d.iter().any(|x| !x.is_finite()) {
-            return Err(Error::invalid(
-                "directions",
-                "finite values",
-                "NaN or infinity",
-            ));
-        }
-        if let Some(ray) = d.chunks(3).position(|v| v.iter().all(|&x| x == 0.0)) {
-            return Err(Error::invalid(
-                "directions",
-                "non-zero direction vectors",
-                format!("0 at ray {ray}"),
-            ));
-        }
         let (c, h) = self.centre_half();
-        let outer = (1u64 << (self.levels - 1)) as f64;
+        let outer = (1u64 << (self.config.levels - 1)) as f64;
         let lo = [
             c[0] - h[0] * outer,
             c[1] - h[1] * outer,
@@ -833,9 +722,11 @@ impl OccupancyGrid {
         let m = starts.len();
         let (dtype, device) = (origins.dtype(), origins.device());
         Ok(GridSamples {
-            starts: from_host(starts, &[m], dtype, device)?,
-            ends: from_host(ends, &[m], dtype, device)?,
-            packed: Packed::from_counts(&counts, device)?,
+            intervals: Intervals {
+                starts: from_host(starts, &[m], dtype, device)?,
+                ends: from_host(ends, &[m], dtype, device)?,
+                layout: Layout::Packed(Packed::from_counts(&counts, device)?),
+            },
             n_marched,
         })
     }

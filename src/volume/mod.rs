@@ -1,35 +1,66 @@
-//! NeRF volume rendering: compositing samples along rays into pixels.
+//! NeRF volume rendering: samplers along rays, compositing samples into pixels, the
+//! occupancy grid that skips empty space, and regularisers.
 //!
-//! The compositing half of this module turns per-sample densities σᵢ ≥ 0, interval
-//! lengths δᵢ ≥ 0 and per-sample values (colours, depths) into per-ray results:
+//! One training step, in the batched layout:
 //!
-//! - xᵢ = σᵢδᵢ, αᵢ = 1 − e^{−xᵢ} (computed as −expm1(−xᵢ)),
-//! - Tᵢ = exp(−Σ_{j<i} xⱼ) by one exclusive sum in log space,
-//! - wᵢ = Tᵢαᵢ, C = Σ wᵢcᵢ + (1 − Σ wᵢ)·c_bg.
+//! ```
+//! use candle_core::{DType, Device, Tensor, Var};
+//! use neural_fields::camera::Rays;
+//! use neural_fields::volume::{composite, stratified, CompositeConfig, Jitter};
 //!
-//! Two layouts are supported: batched `[R, S]` (every ray has `S` samples) and packed
-//! `[M]` with per-ray offsets ([`composite::Packed`]), for rays with different sample
-//! counts (including none).
+//! let dev = Device::Cpu;
+//! let rays = Rays::new(
+//!     Tensor::new(&[[0.0f32, 0.0, -2.0], [0.3, 0.0, -2.0]], &dev)?,
+//!     Tensor::new(&[[0.0f32, 0.0, 1.0], [0.0, 0.0, 1.0]], &dev)?,
+//! )?;
+//! let (near, far) = (Tensor::new(&[1.0f32, 1.0], &dev)?, Tensor::new(&[3.0f32, 3.0], &dev)?);
+//! let intervals = stratified(&near, &far, 32, Jitter::PerSample, 7)?;   // [R, S] = [2, 32]
+//! let points = intervals.positions(&rays)?;                             // [2, 32, 3]
+//! // A "field": density 5 inside the unit ball, a learnable colour everywhere.
+//! let inside = points.sqr()?.sum(2)?.lt(1.0)?.to_dtype(DType::F32)?;
+//! let sigmas = (inside * 5.0)?;                                         // [2, 32]
+//! let rgb = Var::zeros((1, 1, 3), DType::F32, &dev)?;
+//! let colors = rgb.as_tensor().broadcast_as((2, 32, 3))?.contiguous()?;
+//! let out = composite(&sigmas, &colors, &intervals, Some(&rays), &CompositeConfig::default())?;
+//! let loss = (out.color - 1.0)?.sqr()?.mean_all()?;                    // target: white
+//! let grads = loss.backward()?;
+//! assert!(grads.get(rgb.as_tensor()).is_some());
+//! # Ok::<(), neural_fields::Error>(())
+//! ```
 //!
-//! Two implementations agree to rounding: the reference path
-//! ([`composite::composite_reference`]) from plain candle ops on any device and dtype, and
-//! the fused CPU op ([`fused::composite_fused`]) with an O(S)-per-ray analytic backward.
-//! [`composite::composite`] picks the fused op on CPU and the reference path elsewhere.
-//!
-//! Early termination ([`composite::visible_mask`]) marks samples whose transmittance
-//! has fallen below ε, so that the caller can skip evaluating the field there.
-//! [`activations`] holds the density activations (trunc-exp, softplus).
+//! - [`sampling`]: stratified intervals, importance samples from the coarse weights,
+//!   merging, RegNeRF's annealed near/far.
+//! - [`layout`]: [`Intervals`] in the batched `[R, S]` or packed `[M]` [`Layout`]
+//!   ([`Packed`]), their midpoints, lengths and positions.
+//! - [`composite`](mod@composite): [`composite`](fn@composite), [`render_weights`],
+//!   [`accumulate`], [`visible_mask`] — one function per operation, either layout; the
+//!   fused CPU kernel runs on the CPU, candle ops elsewhere.
+//! - [`grid`]: the [`OccupancyGrid`] estimator, whose [`OccupancyGrid::sample`] emits
+//!   samples only in occupied cells, in the packed layout.
+//! - [`regularizers`]: distortion loss, depth smoothness; [`activations`]: trunc-exp.
 //!
 //! See `docs/math.md`, section "Volume compositing", for the derivations.
-//!
-//! The sampling half: [`sampling`] (stratified intervals, importance samples from the
-//! coarse weights, merge, annealed near/far), [`grid`] (an occupancy-grid estimator
-//! whose [`grid::OccupancyGrid::sample`] emits samples only in occupied cells, in the
-//! packed layout) and [`regularizers`] (distortion loss, depth smoothness).
 
 pub mod activations;
 pub mod composite;
-pub mod fused;
+mod fused;
 pub mod grid;
+pub mod layout;
+mod reference;
 pub mod regularizers;
 pub mod sampling;
+
+pub use activations::{trunc_exp, TRUNC_EXP_GRAD_CLAMP, TRUNC_EXP_MAX_F32, TRUNC_EXP_MAX_F64};
+pub use composite::{
+    accumulate, composite, render_weights, visible_mask, Composite, CompositeConfig,
+    DEFAULT_TERMINATION_EPS,
+};
+pub use grid::{GridConfig, GridMarchConfig, GridSamples, OccupancyGrid};
+pub use layout::{Intervals, Layout, Packed, Weights, X_MAX};
+pub use regularizers::{
+    depth_smoothness, distortion_loss, log_linear_schedule,
+};
+pub use sampling::{
+    anneal_near_far, merge_sorted, sample_pdf, step_cdf, stratified, Jitter, ANNEAL_MID_RATIO,
+    ANNEAL_P_START, PDF_PADDING,
+};

@@ -2,7 +2,7 @@
 //! RegNeRF's depth smoothness on patches, with RegNeRF's weight schedule.
 
 use crate::error::{check_float, check_same, check_shape, Dim, Error, Result};
-use crate::volume::sampling::host_f64;
+use crate::volume::layout::{host_f64, Intervals, Layout};
 use candle_core::{Tensor, D};
 
 /// Exclusive prefix sum along the last dimension: `out_k = Σ_{j<k} x_j`.
@@ -33,7 +33,8 @@ fn exclusive_cumsum(x: &Tensor) -> Result<Tensor> {
 /// `(t − near)/(far − near)`, or mip-NeRF 360's s-space), so that its scale does not
 /// depend on the scene's units.
 ///
-/// * `weights`, `starts`, `ends`: `[R, S]`, f32 or f64, same device; returns `[R]`.
+/// * `weights`: `[R, S]`; `intervals`: batched `[R, S]` (starts `sᵢ`, ends `eᵢ`); f32 or
+///   f64, same device; returns `[R]`.
 ///
 /// Differentiable w.r.t. `weights`, `starts` and `ends`; the gradients
 /// (docs/math.md, "Distortion loss") are `∂L/∂w_k = 2 Σⱼ wⱼ|m_k − mⱼ| + ⅔ w_k δ_k`,
@@ -42,8 +43,16 @@ fn exclusive_cumsum(x: &Tensor) -> Result<Tensor> {
 /// # Errors
 /// Naming `weights`, `starts` or `ends` for wrong shapes, dtypes or devices; `starts`
 /// when the intervals are inverted or unsorted along a ray (read back on the host: the
-/// O(S) form is only valid for sorted midpoints).
-pub fn distortion_loss(weights: &Tensor, starts: &Tensor, ends: &Tensor) -> Result<Tensor> {
+/// O(S) form is only valid for sorted midpoints); `intervals` when they are packed.
+pub fn distortion_loss(weights: &Tensor, intervals: &Intervals) -> Result<Tensor> {
+    if matches!(intervals.layout, Layout::Packed(_)) {
+        return Err(Error::invalid(
+            "intervals",
+            "the batched layout",
+            "packed intervals",
+        ));
+    }
+    let (starts, ends) = (&intervals.starts, &intervals.ends);
     check_float(weights, "weights")?;
     let dims = check_shape(weights, "weights", &[Dim::Any("R"), Dim::Any("S")])?;
     check_same(starts, "starts", weights, "weights")?;
@@ -87,7 +96,7 @@ pub fn distortion_loss(weights: &Tensor, starts: &Tensor, ends: &Tensor) -> Resu
 ///
 /// over the `(k−1)×(k−1)` top-left pixels of each `k×k` patch, as in RegNeRF's code
 /// (both differences are taken from the same pixel). RegNeRF uses 8×8 patches and
-/// averages; multiply by [`depth_smoothness_weight`] and take the mean over patches.
+/// averages; multiply by RegNeRF's weight, [`log_linear_schedule`]`(step, 400.0, 0.1, 512)`, and take the mean over patches.
 ///
 /// * `depth`: `[P, k, k]` (square or not: `[P, H, W]` with `H, W ≥ 2`), f32 or f64;
 ///   returns `[P]`. Differentiable w.r.t. `depth`.
@@ -131,11 +140,4 @@ pub fn log_linear_schedule(step: usize, start: f64, end: f64, n_steps: usize) ->
         return end;
     }
     ((1.0 - tau) * start.ln() + tau * end.ln()).exp()
-}
-
-/// RegNeRF's depth-smoothness weight: 400 decaying log-linearly to 0.1 over 512 steps
-/// ([`log_linear_schedule`]`(step, 400, 0.1, 512)`), then constant.
-#[must_use]
-pub fn depth_smoothness_weight(step: usize) -> f64 {
-    log_linear_schedule(step, 400.0, 0.1, 512)
 }

@@ -3,8 +3,8 @@
 //!
 //! A ray is `r(t) = o + t·d`. Samples are described by [`Intervals`]: per ray `S`
 //! intervals `[startsᵢ, endsᵢ]` in ray parameter `t`, sorted along the ray. The field is
-//! usually evaluated at the [`Intervals::midpoints`] and compositing uses the
-//! [`Intervals::deltas`] δᵢ = (endsᵢ − startsᵢ)·‖d‖.
+//! usually evaluated at the [`Intervals::positions`] (the midpoints) and compositing
+//! derives δᵢ = (endsᵢ − startsᵢ)·‖d‖ itself.
 //!
 //! # Randomness
 //! Every random draw comes from the crate's splitmix64 generator
@@ -14,6 +14,7 @@
 //! different seed each step (e.g. the step number) for fresh samples. Rays draw from
 //! independent streams derived from `(seed, ray index)`.
 
+use super::layout::{host_f64, Intervals, Layout};
 use crate::error::{check_float, check_same, check_scalar, check_shape, Dim, Error, Result};
 use crate::rng::SplitMix64;
 use candle_core::{DType, Device, Tensor, D};
@@ -25,14 +26,6 @@ use rayon::prelude::*;
 pub(crate) fn stream(seed: u64, index: u64) -> SplitMix64 {
     let mut g = SplitMix64::new(seed ^ index.wrapping_mul(0xD1B5_4A32_D192_ED03));
     SplitMix64::new(g.next_u64() ^ index)
-}
-
-/// Reads a float tensor back to the host as f64 values (row-major).
-pub(crate) fn host_f64(t: &Tensor) -> Result<Vec<f64>> {
-    Ok(t.detach()
-        .to_dtype(DType::F64)?
-        .flatten_all()?
-        .to_vec1::<f64>()?)
 }
 
 /// Builds a tensor of the given dtype on `device` from host f64 values.
@@ -77,140 +70,7 @@ pub enum Jitter {
     SingleJitter,
 }
 
-/// Sample intervals along a batch of rays: `starts` and `ends`, both `[R, S]`, in ray
-/// parameter `t`, with `startsᵢ ≤ endsᵢ ≤ startsᵢ₊₁`.
-#[derive(Clone, Debug)]
-pub struct Intervals {
-    /// Interval starts, `[R, S]`.
-    pub starts: Tensor,
-    /// Interval ends, `[R, S]`.
-    pub ends: Tensor,
-}
-
 impl Intervals {
-    /// Wraps `starts` and `ends` (`[R, S]`, f32 or f64, same device and dtype).
-    ///
-    /// Reads the values back to check that every interval has `start ≤ end` and that
-    /// intervals are sorted along each ray (`endsᵢ ≤ startsᵢ₊₁`).
-    ///
-    /// # Errors
-    /// Naming `starts` or `ends` on a dtype, shape or device mismatch, on non-finite
-    /// values, or when the intervals are inverted or unsorted.
-    pub fn new(starts: Tensor, ends: Tensor) -> Result<Self> {
-        check_float(&starts, "starts")?;
-        let dims = check_shape(&starts, "starts", &[Dim::Any("R"), Dim::Any("S")])?;
-        check_same(&ends, "ends", &starts, "starts")?;
-        check_shape(&ends, "ends", &[Dim::Is(dims[0]), Dim::Is(dims[1])])?;
-        let s = host_f64(&starts)?;
-        let e = host_f64(&ends)?;
-        let n = dims[1];
-        for (i, (&a, &b)) in s.iter().zip(&e).enumerate() {
-            if !a.is_finite() || !b.is_finite() {
-                return Err(Error::invalid(
-                    "starts",
-                    "finite intervals",
-                    "NaN or infinity",
-                ));
-            }
-            if a > b {
-                return Err(Error::invalid(
-                    "ends",
-                    "ends ≥ starts for every interval",
-                    format!("start {a} > end {b} at ray {}, sample {}", i / n, i % n),
-                ));
-            }
-            if i % n + 1 < n && b > s[i + 1] {
-                return Err(Error::invalid(
-                    "starts",
-                    "intervals sorted along each ray (endsᵢ ≤ startsᵢ₊₁)",
-                    format!("end {b} > next start {} at ray {}", s[i + 1], i / n),
-                ));
-            }
-        }
-        Ok(Intervals { starts, ends })
-    }
-
-    /// The number of rays `R`.
-    #[must_use]
-    pub fn n_rays(&self) -> usize {
-        self.starts.dims().first().copied().unwrap_or(0)
-    }
-
-    /// The number of samples per ray `S`.
-    #[must_use]
-    pub fn n_samples(&self) -> usize {
-        self.starts.dims().get(1).copied().unwrap_or(0)
-    }
-
-    /// Midpoints `mᵢ = (startsᵢ + endsᵢ) / 2`, `[R, S]`, where the field is usually
-    /// evaluated. The intervals' dtype and device; differentiable w.r.t. `starts` and
-    /// `ends`.
-    ///
-    /// # Errors
-    /// Only candle errors.
-    pub fn midpoints(&self) -> Result<Tensor> {
-        Ok(((&self.starts + &self.ends)? * 0.5)?)
-    }
-
-    /// Interval lengths in world units: `δᵢ = (endsᵢ − startsᵢ)·‖d‖`, `[R, S]`.
-    ///
-    /// With `directions: Some([R, 3])` the lengths in `t` are scaled by each ray's
-    /// direction norm, so that unnormalised directions (the camera module returns
-    /// directions with unit z, not unit length) give physical distances. With `None`
-    /// the directions are taken to be unit vectors. Differentiable w.r.t. the intervals
-    /// and the directions.
-    ///
-    /// # Errors
-    /// Naming `directions` when its shape is not `[R, 3]`, its dtype or device differs
-    /// from the intervals', or some direction has norm 0 or is not finite (checked on
-    /// the host; its gradient would not be finite).
-    pub fn deltas(&self, directions: Option<&Tensor>) -> Result<Tensor> {
-        let d = (&self.ends - &self.starts)?;
-        match directions {
-            None => Ok(d),
-            Some(dirs) => {
-                check_same(dirs, "directions", &self.starts, "starts")?;
-                check_shape(dirs, "directions", &[Dim::Is(self.n_rays()), Dim::Is(3)])?;
-                let norm = dirs.sqr()?.sum_keepdim(1)?.sqrt()?;
-                let host = host_f64(&norm)?;
-                if let Some((i, x)) = host
-                    .iter()
-                    .enumerate()
-                    .find(|(_, x)| !(x.is_finite() && **x > 0.0))
-                {
-                    return Err(Error::invalid(
-                        "directions",
-                        "finite, non-zero direction vectors",
-                        format!("norm {x} at ray {i}"),
-                    ));
-                }
-                Ok(d.broadcast_mul(&norm)?)
-            }
-        }
-    }
-
-    /// Interval edges `[R, S + 1]`: the starts followed by the last end. This describes
-    /// the intervals exactly when they are contiguous (`endsᵢ = startsᵢ₊₁`), as those of
-    /// [`stratified`] are; it is the `bins` argument of [`sample_pdf`]. The intervals'
-    /// dtype and device; differentiable w.r.t. `starts` and the last `ends`.
-    ///
-    /// # Errors
-    /// Naming `starts` when there are no samples per ray.
-    pub fn edges(&self) -> Result<Tensor> {
-        let s = self.n_samples();
-        if s == 0 {
-            return Err(Error::invalid(
-                "starts",
-                "at least one interval per ray",
-                "S = 0",
-            ));
-        }
-        Ok(Tensor::cat(
-            &[&self.starts, &self.ends.narrow(1, s - 1, 1)?],
-            1,
-        )?)
-    }
-
     /// Intervals around sorted sample positions `t: [R, S]`: interval boundaries at the
     /// midpoints between consecutive samples, the first interval starting at `near` and
     /// the last ending at `far` (both `[R]`). Used after [`merge_sorted`] to re-derive
@@ -271,12 +131,17 @@ impl Intervals {
             return Ok(Intervals {
                 starts: near_c,
                 ends: far_c,
+                layout: Layout::Batched,
             });
         }
         let mids = ((samples.narrow(1, 0, s - 1)? + samples.narrow(1, 1, s - 1)?)? * 0.5)?;
         let starts = Tensor::cat(&[&near_c, &mids], 1)?;
         let ends = Tensor::cat(&[&mids, &far_c], 1)?;
-        Ok(Intervals { starts, ends })
+        Ok(Intervals {
+            starts,
+            ends,
+            layout: Layout::Batched,
+        })
     }
 }
 
@@ -377,6 +242,7 @@ pub fn stratified(
     Ok(Intervals {
         starts: edges.narrow(1, 0, n)?,
         ends: edges.narrow(1, 1, n)?,
+        layout: Layout::Batched,
     })
 }
 
@@ -451,7 +317,10 @@ pub fn step_cdf(weights: &Tensor, padding: f64) -> Result<Tensor> {
     from_host(out, &[r, s + 1], weights.dtype(), weights.device())
 }
 
-/// Importance samples from the step-function PDF given by `weights` on `bins`.
+/// Importance samples from the step-function PDF given by `weights` on the bins of
+/// `intervals`: bin `i` of a ray is `[bᵢ, bᵢ₊₁]` with `b` the interval starts followed by
+/// the last end ([`stratified`]'s intervals are contiguous, so the bins are exactly the
+/// intervals).
 ///
 /// Per ray, with `w̃ᵢ = wᵢ + padding` and `W = Σ w̃ᵢ` (a ray whose `W` is 0 is sampled
 /// uniformly), the CDF at the bin edges is `F₀ = 0`, `F_k = min(1, Σ_{i<k} w̃ᵢ / W)`
@@ -462,20 +331,19 @@ pub fn step_cdf(weights: &Tensor, padding: f64) -> Result<Tensor> {
 /// a sample never leaves the bin it was drawn in and bins of zero probability are never
 /// drawn from (with `padding = 0`, samples of a one-hot PDF lie exactly in that bin).
 ///
-/// * `bins`: `[R, S + 1]` sorted bin edges; `weights`: `[R, S]`, `≥ 0`; f32 or f64,
-///   same device. `padding ≥ 0` (NeRF uses `1e-5`, [`PDF_PADDING`]).
+/// * `intervals`: batched `[R, S]`; `weights`: `[R, S]`, `≥ 0`; f32 or f64, same device. `padding ≥ 0` (NeRF uses `1e-5`, [`PDF_PADDING`]).
 /// * returns `[R, n]`, sorted along each ray, same device and dtype, **detached**: no
-///   gradient flows to `bins` or `weights` (NeRF's stop-gradient on resampled points).
+///   gradient flows to the intervals or `weights` (NeRF's stop-gradient on resampled points).
 ///
 /// The inversion runs on the host in f64 (the result carries no graph, so nothing is
 /// lost): it reads `R·(2S + 1)` values back and copies `R·n` to the device.
 ///
 /// # Errors
-/// Naming `weights` for a wrong shape or dtype, negative or non-finite values; `bins`
+/// Naming `weights` for a wrong shape or dtype, negative or non-finite values; `intervals`
 /// for a shape other than `[R, S + 1]`, a different dtype or device, non-finite or
 /// unsorted edges; `n` for `n = 0`; `padding` for a negative or non-finite value.
 pub fn sample_pdf(
-    bins: &Tensor,
+    intervals: &Intervals,
     weights: &Tensor,
     n: usize,
     deterministic: bool,
@@ -483,8 +351,9 @@ pub fn sample_pdf(
     padding: f64,
 ) -> Result<Tensor> {
     let (w, r, s) = check_weights(weights, padding)?;
-    check_same(bins, "bins", weights, "weights")?;
-    check_shape(bins, "bins", &[Dim::Is(r), Dim::Is(s + 1)])?;
+    let bins = &intervals.edges()?;
+    check_same(bins, "intervals", weights, "weights")?;
+    check_shape(bins, "intervals", &[Dim::Is(r), Dim::Is(s + 1)])?;
     if n == 0 {
         return Err(Error::invalid("n", "at least one sample per ray", "0"));
     }
@@ -493,14 +362,14 @@ pub fn sample_pdf(
         let row = &b[ray * (s + 1)..(ray + 1) * (s + 1)];
         if row.iter().any(|x| !x.is_finite()) {
             return Err(Error::invalid(
-                "bins",
+                "intervals",
                 "finite edges",
                 format!("NaN or ∞ at ray {ray}"),
             ));
         }
         if row.windows(2).any(|p| p[0] > p[1]) {
             return Err(Error::invalid(
-                "bins",
+                "intervals",
                 "edges sorted in increasing order",
                 format!("unsorted edges at ray {ray}"),
             ));
