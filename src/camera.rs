@@ -144,12 +144,6 @@ impl Intrinsics {
         Self::new(f, f, 0.5 * width as f64, 0.5 * height as f64, width, height)
     }
 
-    /// Number of pixels, `width · height`.
-    #[must_use]
-    pub fn num_pixels(&self) -> usize {
-        self.width * self.height
-    }
-
     /// Camera-space ray directions for pixel coordinates.
     ///
     /// `pixels: [N, 2]` (f32 or f64) holds continuous coordinates `(x, y)` = (column, row);
@@ -162,7 +156,11 @@ impl Intrinsics {
     /// # Errors
     /// [`Error::InvalidArgument`] naming `pixels` for a wrong shape or dtype, or non-finite
     /// values.
-    pub fn camera_directions(&self, pixels: &Tensor, convention: Convention) -> Result<Tensor> {
+    pub(crate) fn camera_directions(
+        &self,
+        pixels: &Tensor,
+        convention: Convention,
+    ) -> Result<Tensor> {
         check_float(pixels, "pixels")?;
         let n = check_shape(pixels, "pixels", &[Dim::Any("N"), Dim::Is(2)])?[0];
         check_finite(pixels, "pixels")?;
@@ -358,7 +356,9 @@ impl Camera {
 
     /// World-space rays for pixel coordinates `pixels: [N, 2]` (column, row; the centre of
     /// pixel `(u, v)` is `(u + 0.5, v + 0.5)`): origin `t` (the camera centre), direction
-    /// `R · d_cam` with `d_cam` from [`Intrinsics::camera_directions`] (not normalised).
+    /// `R · d_cam` with the camera-space direction `d_cam` of the pixel: OpenCV
+    /// `((x − cx)/fx, (y − cy)/fy, 1)`, OpenGL `((x − cx)/fx, −(y − cy)/fy, −1)` (not
+    /// normalised; no half-pixel offset is added to `pixels`).
     /// Dtype and device follow `pixels`; directions are differentiable w.r.t. `pixels`.
     ///
     /// # Errors
@@ -394,7 +394,7 @@ impl Camera {
             return Err(Error::invalid("n", "at least one ray", "0"));
         }
         let w = self.intrinsics.width;
-        let total = self.intrinsics.num_pixels() as u64;
+        let total = (self.intrinsics.width * self.intrinsics.height) as u64;
         let mut rng = crate::rng::SplitMix64::new(seed);
         let mut idx = Vec::with_capacity(n);
         let mut pix = Vec::with_capacity(2 * n);
@@ -600,7 +600,11 @@ impl Intersection {
         check_finite(&near, "near")?;
         check_finite(&far, "far")?;
         if n > 0 && scalar_f64(&(&far - &near)?.min_all()?)? < 0.0 {
-            return Err(Error::invalid("far", "far ≥ near on every ray", "far < near"));
+            return Err(Error::invalid(
+                "far",
+                "far ≥ near on every ray",
+                "far < near",
+            ));
         }
         let hit = Tensor::ones(n, DType::U8, near.device())?;
         Ok(Intersection { near, far, hit })
@@ -902,12 +906,6 @@ impl PoseParam {
         let norm = q.sqr()?.sum_keepdim(0)?.sqrt()?;
         self.rotation.set(&q.broadcast_div(&norm)?)?;
         Ok(())
-    }
-
-    /// Both variables, `[rotation, translation]`, for an optimiser.
-    #[must_use]
-    pub fn vars(&self) -> Vec<Var> {
-        vec![self.rotation.clone(), self.translation.clone()]
     }
 
     /// World rays for `pixels: [N, 2]` (as in [`Camera::rays_for_pixels`]): origins `t`

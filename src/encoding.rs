@@ -76,7 +76,7 @@ fn check_tangents(x: &Tensor, dx: &Tensor, n: usize, d: usize) -> Result<usize> 
 
 /// NeRF's frequency positional encoding
 /// `γ(x) = [x, sin(2⁰ωx), cos(2⁰ωx), …, sin(2ᴸ⁻¹ωx), cos(2ᴸ⁻¹ωx)]` with `ω = π` (or
-/// `ω = 1`, as NeRF's code does, with [`FrequencyEncoding::without_pi`]), each term
+/// `ω = 1`, as NeRF's code does, with `use_pi = false`), each term
 /// applied to all `D` coordinates; the leading `x` is optional.
 ///
 /// Output dimension `E = D·(1 + 2L)` with the input, `2DL` without. Column layout: the
@@ -86,8 +86,10 @@ fn check_tangents(x: &Tensor, dx: &Tensor, n: usize, d: usize) -> Result<usize> 
 pub struct FrequencyEncoding {
     in_dim: usize,
     n_freqs: usize,
-    include_input: bool,
-    use_pi: bool,
+    /// Whether the raw input leads the output (default `true`; `false` leaves it out).
+    pub include_input: bool,
+    /// Frequencies `2ᵏπ` (default `true`) or `2ᵏ` (`false`, NeRF's released code).
+    pub use_pi: bool,
 }
 
 impl FrequencyEncoding {
@@ -113,26 +115,6 @@ impl FrequencyEncoding {
             include_input: true,
             use_pi: true,
         })
-    }
-
-    /// Leaves the raw input out of the encoding.
-    #[must_use]
-    pub fn without_input(mut self) -> Self {
-        self.include_input = false;
-        self
-    }
-
-    /// Uses frequencies `2ᵏ` instead of `2ᵏπ` (NeRF's released code).
-    #[must_use]
-    pub fn without_pi(mut self) -> Self {
-        self.use_pi = false;
-        self
-    }
-
-    /// Whether the raw input leads the output.
-    #[must_use]
-    pub fn includes_input(&self) -> bool {
-        self.include_input
     }
 
     /// The number of frequencies `L`.
@@ -338,11 +320,10 @@ impl PointEncoding {
 
     /// Whether the raw input forms the first `in_dim` output columns (needed by the
     /// geometric initialisation, which keeps only those columns at initialisation).
-    #[must_use]
-    pub fn leads_with_input(&self) -> bool {
+    pub(crate) fn leads_with_input(&self) -> bool {
         match self {
             PointEncoding::Identity => true,
-            PointEncoding::Frequency(e) => e.includes_input(),
+            PointEncoding::Frequency(e) => e.include_input,
             PointEncoding::Fourier(_) => false,
         }
     }

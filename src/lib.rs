@@ -55,27 +55,55 @@
 //! frequency thanks to exact argument reduction ([`numerics::sin_pi`]).
 //!
 //! **4. Cameras.** [`camera::Camera`] (pinhole, OpenCV or OpenGL axes) makes
-//! [`camera::Rays`]; [`camera::ray_aabb`] and [`camera::ray_sphere`] clip them;
-//! [`camera::PoseParam`] is a learnable pose whose rays carry gradients.
+//! [`camera::Rays`] (validated once, taken by every function that traces rays);
+//! [`camera::ray_aabb`] and [`camera::ray_sphere`] clip them; [`camera::PoseParam`] is a
+//! learnable pose whose rays carry gradients. Poses are [`glam`] types, re-exported.
 //!
 //! ```
 //! use candle_core::{DType, Device};
-//! use glam::DVec3;
 //! use neural_fields::camera::{ray_sphere, Camera, Convention, Intrinsics};
+//! use neural_fields::glam::DVec3;
 //!
 //! let k = Intrinsics::from_fov_y(64, 48, 0.8)?;
 //! let cam = Camera::look_at(k, DVec3::new(0.0, 0.0, 3.0), DVec3::ZERO, DVec3::Y, Convention::OpenGl)?;
 //! let rays = cam.rays(&Device::Cpu, DType::F32)?;                 // 3072 rays
-//! let hits = ray_sphere(&rays.origins, &rays.directions, [0.0; 3], 1.0)?;
+//! let hits = ray_sphere(&rays, [0.0; 3], 1.0)?;
 //! assert_eq!(hits.near.dims(), &[64 * 48]);
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 //!
-//! **5. Training.** The usual candle loop; losses use the defended numerics of
+//! **5. Volume rendering (NeRF).** Samplers return [`volume::Intervals`] along the rays;
+//! evaluate your field at their positions and [`volume::composite`] them into pixels
+//! (the fused CPU kernel on the CPU, candle ops elsewhere; either the batched `[R, S]`
+//! or the packed layout of the [`volume::OccupancyGrid`], which skips empty space):
+//!
+//! ```
+//! use candle_core::{DType, Device};
+//! use neural_fields::camera::{ray_aabb, Camera, Convention, Intrinsics};
+//! use neural_fields::glam::DVec3;
+//! use neural_fields::volume::{composite, stratified, trunc_exp, CompositeConfig, Jitter};
+//!
+//! let dev = Device::Cpu;
+//! let k = Intrinsics::from_fov_y(16, 16, 0.8)?;
+//! let cam = Camera::look_at(k, DVec3::new(0.0, 0.0, 3.0), DVec3::ZERO, DVec3::Y, Convention::OpenGl)?;
+//! let rays = cam.rays(&dev, DType::F32)?;                          // 256 rays
+//! let bounds = ray_aabb(&rays, [-1.0; 3], [1.0; 3])?;              // near, far per ray
+//! let intervals = stratified(&bounds.near, &bounds.far, 48, Jitter::PerSample, 0)?;
+//! let points = intervals.positions(&rays)?;                        // [256, 48, 3]
+//! // Your field here: density and colour at the points (a fuzzy ball for the example).
+//! let r2 = points.sqr()?.sum(2)?;                                  // [256, 48]
+//! let sigmas = trunc_exp(&((r2 * -8.0)? + 3.0)?)?;
+//! let colors = points.affine(0.5, 0.5)?.clamp(0.0, 1.0)?;         // [256, 48, 3]
+//! let out = composite(&sigmas, &colors, &intervals, Some(&rays), &CompositeConfig::default())?;
+//! assert_eq!(out.color.dims(), &[256, 3]);                         // one RGB per pixel
+//! # Ok::<(), neural_fields::Error>(())
+//! ```
+//!
+//! **6. Training.** The usual candle loop; losses use the defended numerics of
 //! [`numerics`] (e.g. [`numerics::bce_with_logits`], finite for logits of ±10⁴). See
 //! `examples/quickstart.rs`, which fits an occupancy network to a torus in seconds.
 //!
-//! **6. Meshes.** [`occupancy::mise()`] extracts the surface of any implicit field
+//! **7. Meshes.** [`occupancy::mise()`] extracts the surface of any implicit field
 //! (evaluating it only near the surface) with watertight [`occupancy::marching_cubes()`];
 //! [`occupancy::Mesh`] reads and writes PLY and OBJ, and [`occupancy::metrics`] computes
 //! ONet's IoU, Chamfer-L1, normal consistency and F-score. See
@@ -120,6 +148,9 @@ pub mod rng;
 pub mod volume;
 
 pub use error::{Error, Result};
+/// glam, whose types ([`glam::DAffine3`], [`glam::DVec3`]) poses and cameras take:
+/// re-exported so that users need not pin the same version by hand.
+pub use glam;
 
 /// The README's code blocks, compiled and run as doc tests.
 #[doc = include_str!("../README.md")]

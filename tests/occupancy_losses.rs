@@ -5,11 +5,11 @@
 mod common;
 
 use candle_core::{DType, Device, Tensor, Var};
-use neural_fields::occupancy::losses::{kl_standard_normal, occupancy_loss, reparameterize};
 use neural_fields::occupancy::sampling::{
     from_tensor, inside_mesh, near_surface, uniform_in_padded_cube, winding_numbers,
     winding_numbers_exact,
 };
+use neural_fields::occupancy::{kl_standard_normal, reconstruction_loss, reparameterize};
 use neural_fields::occupancy::{marching_cubes, Grid, Mesh};
 use proptest::prelude::*;
 
@@ -29,13 +29,13 @@ proptest! {
     #![proptest_config(ProptestConfig::with_cases(48))]
 
     #[test]
-    fn occupancy_loss_gradient_matches_finite_differences(
+    fn reconstruction_loss_gradient_matches_finite_differences(
         logits in proptest::collection::vec(-30.0f64..30.0, 6),
         targets in proptest::collection::vec(0.0f64..1.0, 6),
     ) {
-        let loss_of = |x: &[f64]| occupancy_loss(&t2(x, 2, 3), &t2(&targets, 2, 3)).unwrap().to_scalar::<f64>().unwrap();
+        let loss_of = |x: &[f64]| reconstruction_loss(&t2(x, 2, 3), &t2(&targets, 2, 3)).unwrap().to_scalar::<f64>().unwrap();
         let v = Var::from_tensor(&t2(&logits, 2, 3)).unwrap();
-        let l = occupancy_loss(v.as_tensor(), &t2(&targets, 2, 3)).unwrap();
+        let l = reconstruction_loss(v.as_tensor(), &t2(&targets, 2, 3)).unwrap();
         let g = common::v64(l.backward().unwrap().get(&v).unwrap());
         for i in 0..6 {
             let num = fd(&loss_of, &logits, i, 1e-5);
@@ -77,7 +77,7 @@ fn losses_are_finite_for_extreme_logits_in_f32_and_closed_forms_hold() {
     let d = Device::Cpu;
     let x = Var::from_tensor(&Tensor::new(&[[1e4f32, -1e4, 0.0, 88.0]], &d).unwrap()).unwrap();
     let y = Tensor::new(&[[0.0f32, 1.0, 0.5, 0.0]], &d).unwrap();
-    let l = occupancy_loss(x.as_tensor(), &y).unwrap();
+    let l = reconstruction_loss(x.as_tensor(), &y).unwrap();
     let lv = l.to_scalar::<f32>().unwrap();
     assert!((lv - (2e4 + 2f32.ln() + 88.0)).abs() < 1.0, "{lv}");
     let g = common::v64(l.backward().unwrap().get(&x).unwrap());
@@ -104,7 +104,7 @@ fn losses_are_finite_for_extreme_logits_in_f32_and_closed_forms_hold() {
         .unwrap_err()
         .to_string();
     assert!(e.starts_with("logvar"), "{e}");
-    let e = occupancy_loss(
+    let e = reconstruction_loss(
         &Tensor::zeros(3, DType::F64, &d).unwrap(),
         &Tensor::zeros(3, DType::F64, &d).unwrap(),
     )

@@ -157,11 +157,3 @@ fn no_crossing_gives_an_empty_mesh_and_bad_grids_are_rejected() {
     assert!(Grid::new(vec![0.0; 4], [1, 2, 2], [0.0; 3], [1.0; 3]).is_err());
     assert!(marching_cubes(&g, f64::NAN, Inside::Negative).is_err());
 }
-
-#[test]
-fn no_case_draws_a_diagonal_on_a_cube_face() {
-    assert_eq!(
-        neural_fields::occupancy::marching_cubes::cases_needing_fallback(),
-        0
-    );
-}

@@ -3,7 +3,7 @@
 #![cfg(feature = "occupancy")]
 
 use neural_fields::field::Inside;
-use neural_fields::occupancy::{marching_cubes, Grid, Mesh, PlyFormat};
+use neural_fields::occupancy::{marching_cubes, Grid, Mesh, MeshFormat};
 use std::path::Path;
 
 const MODELS: &str = "/usr/share/assimp/models";
@@ -43,13 +43,14 @@ fn ply_and_obj_round_trip_with_and_without_normals() {
         if with_normals {
             m.normals = Some(m.vertex_normals());
         }
-        for fmt in [PlyFormat::Ascii, PlyFormat::BinaryLittleEndian] {
-            let bytes = m.to_ply_bytes(fmt).unwrap();
-            let back = Mesh::from_ply_bytes(&bytes).unwrap();
+        for fmt in [MeshFormat::PlyAscii, MeshFormat::PlyBinary] {
+            let bytes = m.to_bytes(fmt).unwrap();
+            let back = Mesh::from_bytes(&bytes, fmt).unwrap();
             close(&m, &back, 1e-7); // written as f32
             assert_eq!(back.normals.is_some(), with_normals);
         }
-        let back = Mesh::from_obj_str(&m.to_obj_string().unwrap()).unwrap();
+        let back =
+            Mesh::from_bytes(&m.to_bytes(MeshFormat::Obj).unwrap(), MeshFormat::Obj).unwrap();
         close(&m, &back, 0.0); // OBJ keeps f64 exactly (shortest round-trip printing)
         assert_eq!(back.normals.is_some(), with_normals);
     }
@@ -96,11 +97,11 @@ fn ply_reads_big_endian_extra_properties_other_elements_and_quads() {
         b.extend_from_slice(&k.to_be_bytes());
     }
     b.extend_from_slice(&9i32.to_be_bytes());
-    let m = Mesh::from_ply_bytes(&b).unwrap();
+    let m = Mesh::from_bytes(&b, MeshFormat::PlyBinary).unwrap();
     assert_eq!(m.faces, vec![[0, 1, 2], [0, 2, 3]]);
     assert_eq!(m.vertices[2], [1.0, 1.0, 0.0]);
     // Truncated by one byte: the error says so and where.
-    let e = Mesh::from_ply_bytes(&b[..b.len() - 1])
+    let e = Mesh::from_bytes(&b[..b.len() - 1], MeshFormat::PlyBinary)
         .unwrap_err()
         .to_string();
     assert!(e.contains("truncated") && e.contains("byte"), "{e}");
@@ -110,7 +111,10 @@ fn ply_reads_big_endian_extra_properties_other_elements_and_quads() {
 fn bad_files_and_bad_meshes_name_the_problem() {
     let good = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n";
     assert_eq!(
-        Mesh::from_ply_bytes(good.as_bytes()).unwrap().faces.len(),
+        Mesh::from_bytes(good.as_bytes(), MeshFormat::PlyAscii)
+            .unwrap()
+            .faces
+            .len(),
         1
     );
     let cases: Vec<(String, &str)> = vec![
@@ -135,7 +139,7 @@ fn bad_files_and_bad_meshes_name_the_problem() {
         ),
     ];
     for (text, needle) in cases {
-        let e = Mesh::from_ply_bytes(text.as_bytes())
+        let e = Mesh::from_bytes(text.as_bytes(), MeshFormat::PlyAscii)
             .unwrap_err()
             .to_string();
         assert!(e.contains(needle), "{needle:?} not in {e:?}");
@@ -151,13 +155,17 @@ fn bad_files_and_bad_meshes_name_the_problem() {
         ("v 0 0 0\n", "empty mesh"),
     ];
     for (text, needle) in obj_cases {
-        let e = Mesh::from_obj_str(text).unwrap_err().to_string();
+        let e = Mesh::from_bytes(text.as_bytes(), MeshFormat::Obj)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains(needle), "{needle:?} not in {e:?}");
     }
     // Relative indices and the a/b/c forms; quads are fan-triangulated.
-    let m =
-        Mesh::from_obj_str("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nf -4/1 -3/1 -2/1 -1/1\n")
-            .unwrap();
+    let m = Mesh::from_bytes(
+        b"v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nf -4/1 -3/1 -2/1 -1/1\n",
+        MeshFormat::Obj,
+    )
+    .unwrap();
     assert_eq!(m.faces, vec![[0, 1, 2], [0, 2, 3]]);
     assert!(Mesh::new(vec![], vec![]).is_err());
     let e = Mesh::new(vec![[0.0; 3]], vec![[0, 0, 0]]).map(|mut m| m.normalize_unit_cube());
@@ -221,7 +229,10 @@ fn assimp_test_models_load() {
     let spider = Mesh::load(dir.join("OBJ/spider.obj")).unwrap();
     assert!(spider.faces.len() > 100);
     // What we write, we read back (and so do other tools that read standard PLY).
-    let back =
-        Mesh::from_ply_bytes(&wuson.to_ply_bytes(PlyFormat::BinaryLittleEndian).unwrap()).unwrap();
+    let back = Mesh::from_bytes(
+        &wuson.to_bytes(MeshFormat::PlyBinary).unwrap(),
+        MeshFormat::PlyBinary,
+    )
+    .unwrap();
     assert_eq!(back.faces, wuson.faces);
 }

@@ -25,7 +25,7 @@ fn mise_matches_dense_marching_cubes_with_far_fewer_evaluations() {
             .occupancy(10.0);
         let cfg = MiseConfig::new(16, 3, &dev, dtype);
         let out = mise(&torus, &cfg).unwrap();
-        let np = cfg.final_points_per_axis();
+        let np = (cfg.resolution0 << cfg.upsampling_steps) + 1;
         assert_eq!(np, 129);
         let dense = Grid::sample(&torus, [np; 3], cfg.min, cfg.max, 65_536, &dev, dtype).unwrap();
         let dm = marching_cubes(&dense, 0.0, Inside::Positive).unwrap();
@@ -107,7 +107,7 @@ fn mise_256_against_dense_256_on_a_torus() {
     let t = Instant::now();
     let out = mise(&torus, &cfg).unwrap();
     let t_mise = t.elapsed().as_secs_f64();
-    let np = cfg.final_points_per_axis();
+    let np = (cfg.resolution0 << cfg.upsampling_steps) + 1;
     let t = Instant::now();
     let dense = Grid::sample(&torus, [np; 3], cfg.min, cfg.max, 65_536, &dev, DType::F32).unwrap();
     let dm = marching_cubes(&dense, 0.0, Inside::Positive).unwrap();
@@ -175,7 +175,7 @@ fn mise_256_against_dense_256_on_a_trained_mlp() {
     let t = Instant::now();
     let out = mise(&net, &cfg).unwrap();
     let t_mise = t.elapsed().as_secs_f64();
-    let np = cfg.final_points_per_axis();
+    let np = (cfg.resolution0 << cfg.upsampling_steps) + 1;
     let t = Instant::now();
     let dense = Grid::sample(&net, [np; 3], cfg.min, cfg.max, 65_536, &dev, dtype).unwrap();
     let dm = marching_cubes(&dense, 0.0, Inside::Positive).unwrap();

@@ -10,7 +10,7 @@ use candle_nn::VarMap;
 use common::v64;
 use neural_fields::field::ConditionalField;
 use neural_fields::nn::{build_seeded, mlp, pointnet_encoder, MlpConfig, PointNetConfig};
-use neural_fields::occupancy::losses::{kl_standard_normal, occupancy_loss, reparameterize};
+use neural_fields::occupancy::{kl_standard_normal, reconstruction_loss, reparameterize};
 use neural_fields::rng::SplitMix64;
 
 fn config() -> PointNetConfig {
@@ -110,7 +110,7 @@ fn variational_step_reaches_the_encoder_with_finite_gradients() {
         .unwrap()
         .reshape((b, k))
         .unwrap();
-    let loss = (occupancy_loss(&logits, &occ).unwrap()
+    let loss = (reconstruction_loss(&logits, &occ).unwrap()
         + kl_standard_normal(&mean, &logvar)
             .unwrap()
             .mean_all()

@@ -5,11 +5,11 @@
 //! Logits of an implicit surface are `s = σ·(f − τ)` (inside positive for both
 //! occupancy logits and SDFs, see [`crate::dvr::march`](mod@crate::dvr::march)).
 
+use crate::camera::{Intersection, Rays};
 use crate::error::{
     check_float, check_points, check_same, check_same_shape, check_scalar, check_shape,
 };
 use crate::error::{Dim, Error, Result};
-use crate::camera::{Intersection, Rays};
 use crate::field::{ImplicitSurface, Inside};
 use crate::numerics::bce_with_logits;
 use crate::rng::SplitMix64;

@@ -46,6 +46,6 @@ pub use losses::{
     AlphaSchedule, Photometric,
 };
 pub use march::{
-    march, secant_point, sphere_trace, Hits, MarchConfig, RayStatus, SecantRule,
-    SphereTraceConfig, StepSchedule,
+    march, secant_point, sphere_trace, Hits, MarchConfig, RayStatus, SecantRule, SphereTraceConfig,
+    StepSchedule,
 };

@@ -240,8 +240,7 @@ impl OnetDecoder {
     }
 
     /// The current [`NormMode`].
-    #[must_use]
-    pub fn mode(&self) -> NormMode {
+    fn mode(&self) -> NormMode {
         *lock(&self.mode)
     }
 

@@ -24,7 +24,6 @@ use crate::error::{check_scalar, Error, Result};
 use crate::field::{ImplicitSurface, Inside};
 use candle_core::{DType, Device, Tensor};
 use rayon::prelude::*;
-use std::collections::HashMap;
 use std::sync::OnceLock;
 
 /// A dense grid of samples of a scalar field: `dims = [nx, ny, nz]` grid points spanning
@@ -100,17 +99,6 @@ impl Grid {
     #[must_use]
     pub fn spacing(&self) -> [f64; 3] {
         std::array::from_fn(|c| (self.max[c] - self.min[c]) / (self.dims[c] - 1) as f64)
-    }
-
-    /// The position of grid point `(i, j, k)`.
-    #[must_use]
-    pub fn point(&self, i: usize, j: usize, k: usize) -> [f64; 3] {
-        let h = self.spacing();
-        [
-            self.min[0] + i as f64 * h[0],
-            self.min[1] + j as f64 * h[1],
-            self.min[2] + k as f64 * h[2],
-        ]
     }
 
     /// Samples a closure at every grid point (in parallel).
@@ -430,10 +418,10 @@ fn triangulate(lp: &[u8], out: &mut Vec<[u8; 3]>) -> bool {
 }
 
 /// Number of the 256 cases whose loops could not be triangulated without a diagonal on
-/// a cube face (0; checked by a test).
-#[doc(hidden)]
-#[must_use]
-pub fn cases_needing_fallback() -> usize {
+/// a cube face (0; checked by the unit test below).
+#[cfg(test)]
+fn cases_needing_fallback() -> usize {
+    use std::collections::HashMap;
     (0..256usize)
         .filter(|&config| {
             let t = &case_table()[config];
@@ -594,4 +582,12 @@ pub fn marching_cubes(grid: &Grid, level: f64, inside: Inside) -> Result<Mesh> {
         faces: faces.concat(),
         normals: None,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn no_case_draws_a_diagonal_on_a_cube_face() {
+        assert_eq!(super::cases_needing_fallback(), 0);
+    }
 }

@@ -3,7 +3,7 @@
 //! used by the marching-cubes tests.
 //!
 //! Vertices are `f64` on the host (meshes are inputs and outputs of the pipeline, not
-//! part of a gradient); [`Mesh::vertex_tensor`] moves them to any device and dtype.
+//! part of a gradient); [`points_tensor`] moves them to any device and dtype.
 //!
 //! Files written here load in standard tools: `assimp info` (assimp 5.2.5, Debian's
 //! `assimp-utils`) imports the binary PLY written by `examples/fit_occupancy.rs`
@@ -32,13 +32,17 @@ pub struct Mesh {
 /// Surface samples: points `[n][3]` and the unit normals of their faces `[n][3]`.
 pub type SurfaceSamples = (Vec<[f64; 3]>, Vec<[f64; 3]>);
 
-/// The encoding of a PLY file written by [`Mesh::to_ply_bytes`].
+/// A mesh file format, for [`Mesh::to_bytes`] and [`Mesh::from_bytes`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum PlyFormat {
-    /// `format ascii 1.0`.
-    Ascii,
-    /// `format binary_little_endian 1.0`.
-    BinaryLittleEndian,
+pub enum MeshFormat {
+    /// PLY, written as `format ascii 1.0`. Reading accepts every PLY encoding (the
+    /// header names it), whichever PLY variant is passed.
+    PlyAscii,
+    /// PLY, written as `format binary_little_endian 1.0`. Reading accepts every PLY
+    /// encoding.
+    PlyBinary,
+    /// Wavefront OBJ (ASCII).
+    Obj,
 }
 
 pub(crate) fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
@@ -193,12 +197,6 @@ impl Mesh {
         acc
     }
 
-    /// Total surface area.
-    #[must_use]
-    pub fn area(&self) -> f64 {
-        self.face_areas().iter().sum()
-    }
-
     /// Signed volume `Σ a·(b × c) / 6` over the faces: positive for a closed mesh whose
     /// faces are counter-clockwise seen from outside (outward normals).
     #[must_use]
@@ -338,21 +336,13 @@ impl Mesh {
         Ok((pts, nrm))
     }
 
-    /// The vertices as a `[V, 3]` tensor of the given dtype on the given device.
-    ///
-    /// # Errors
-    /// candle's.
-    pub fn vertex_tensor(&self, device: &Device, dtype: DType) -> Result<Tensor> {
-        points_tensor(&self.vertices, device, dtype)
-    }
-
     // ------------------------------------------------------------------ files
 
     /// Reads a `.ply` or `.obj` file (by extension, case-insensitive).
     ///
     /// # Errors
     /// I/O errors ([`Error::Io`] with the path); unknown extension; parse errors of
-    /// [`Mesh::from_ply_bytes`] / [`Mesh::from_obj_str`].
+    /// [`Mesh::from_bytes`].
     pub fn load(path: impl AsRef<Path>) -> Result<Self> {
         let path = path.as_ref();
         let bytes = std::fs::read(path).map_err(|source| Error::Io {
@@ -360,8 +350,8 @@ impl Mesh {
             source,
         })?;
         match extension(path).as_str() {
-            "ply" => Self::from_ply_bytes(&bytes),
-            "obj" => Self::from_obj_str(&String::from_utf8_lossy(&bytes)),
+            "ply" => Self::from_ply(&bytes),
+            "obj" => Self::from_obj(&String::from_utf8_lossy(&bytes)),
             other => Err(file_err(
                 "path",
                 "a .ply or .obj file",
@@ -377,8 +367,8 @@ impl Mesh {
     pub fn save(&self, path: impl AsRef<Path>) -> Result<()> {
         let path = path.as_ref();
         let bytes = match extension(path).as_str() {
-            "ply" => self.to_ply_bytes(PlyFormat::BinaryLittleEndian)?,
-            "obj" => self.to_obj_string()?.into_bytes(),
+            "ply" => self.to_bytes(MeshFormat::PlyBinary)?,
+            "obj" => self.to_bytes(MeshFormat::Obj)?,
             other => {
                 return Err(file_err(
                     "path",
@@ -393,20 +383,70 @@ impl Mesh {
         })
     }
 
-    /// Serialises to PLY: `element vertex` with `float x, y, z` (and `nx, ny, nz` when
-    /// normals are present; coordinates are written as 32-bit floats, the common
-    /// convention read by every tool), `element face` with `list uchar int
-    /// vertex_indices`.
+    /// Serialises the mesh in `format`.
+    ///
+    /// - PLY: `element vertex` with `float x, y, z` (and `nx, ny, nz` when normals are
+    ///   present; coordinates are written as 32-bit floats, the common convention read
+    ///   by every tool), `element face` with `list uchar int vertex_indices`.
+    /// - OBJ: `v x y z`, `vn` lines when normals are present, and 1-based `f a b c` (or
+    ///   `f a//a b//b c//c` with normals).
+    ///
+    /// ```
+    /// use neural_fields::occupancy::{Mesh, MeshFormat};
+    ///
+    /// let tri = Mesh::new(vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], vec![[0, 1, 2]])?;
+    /// for format in [MeshFormat::PlyAscii, MeshFormat::PlyBinary, MeshFormat::Obj] {
+    ///     let back = Mesh::from_bytes(&tri.to_bytes(format)?, format)?;
+    ///     assert_eq!(back.faces, tri.faces);
+    /// }
+    /// # Ok::<(), neural_fields::Error>(())
+    /// ```
     ///
     /// # Errors
     /// Invalid mesh ([`Mesh::validate`]).
-    pub fn to_ply_bytes(&self, format: PlyFormat) -> Result<Vec<u8>> {
+    pub fn to_bytes(&self, format: MeshFormat) -> Result<Vec<u8>> {
+        match format {
+            MeshFormat::PlyAscii => self.to_ply(false),
+            MeshFormat::PlyBinary => self.to_ply(true),
+            MeshFormat::Obj => Ok(self.to_obj()?.into_bytes()),
+        }
+    }
+
+    /// Parses a mesh file's bytes in `format` (PLY in any encoding, or OBJ).
+    ///
+    /// - PLY (ASCII, binary little- or big-endian): reads `element vertex` (`x, y, z`,
+    ///   optional `nx, ny, nz`; any other properties are skipped) and `element face` (a
+    ///   list property named `vertex_indices` or `vertex_index`, any count and index
+    ///   types). Other elements are skipped. Polygons with more than three vertices are
+    ///   triangulated as fans `(0, i, i+1)`.
+    /// - OBJ: `v` (extra components such as `w` or colours ignored), `vn`, and `f` with
+    ///   `a`, `a/b`, `a//c` or `a/b/c` references, 1-based or negative (relative).
+    ///   Polygons are fan-triangulated. Other statements (`vt`, `o`, `g`, `usemtl`,
+    ///   `mtllib`, `s`, `l`, `p`) are ignored. Normals are kept only when every face
+    ///   corner names the normal with the same index as its vertex (as
+    ///   [`Mesh::to_bytes`] writes them); otherwise they are dropped. Invalid UTF-8 is
+    ///   replaced.
+    ///
+    /// # Errors
+    /// A malformed header or body, naming the line (ASCII and header) or the byte offset
+    /// (binary) where it went wrong; a truncated file; faces with fewer than 3 vertices;
+    /// malformed numbers or references; then [`Mesh::validate`].
+    pub fn from_bytes(bytes: &[u8], format: MeshFormat) -> Result<Self> {
+        match format {
+            MeshFormat::PlyAscii | MeshFormat::PlyBinary => Self::from_ply(bytes),
+            MeshFormat::Obj => Self::from_obj(&String::from_utf8_lossy(bytes)),
+        }
+    }
+
+    /// PLY bytes (see [`Mesh::to_bytes`]).
+    fn to_ply(&self, binary: bool) -> Result<Vec<u8>> {
         self.validate()?;
         let has_n = self.normals.is_some();
         let mut out = Vec::new();
-        let fmt = match format {
-            PlyFormat::Ascii => "ascii",
-            PlyFormat::BinaryLittleEndian => "binary_little_endian",
+        let fmt = if binary {
+            "binary_little_endian"
+        } else {
+            "ascii"
         };
         let mut header = format!(
             "ply\nformat {fmt} 1.0\ncomment neural-fields\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\n",
@@ -422,8 +462,8 @@ impl Mesh {
         out.extend_from_slice(header.as_bytes());
         let empty = Vec::new();
         let normals = self.normals.as_ref().unwrap_or(&empty);
-        match format {
-            PlyFormat::Ascii => {
+        if !binary {
+            {
                 let mut s = String::new();
                 for (i, v) in self.vertices.iter().enumerate() {
                     s.push_str(&format!("{} {} {}", v[0] as f32, v[1] as f32, v[2] as f32));
@@ -438,7 +478,8 @@ impl Mesh {
                 }
                 out.extend_from_slice(s.as_bytes());
             }
-            PlyFormat::BinaryLittleEndian => {
+        } else {
+            {
                 for (i, v) in self.vertices.iter().enumerate() {
                     for c in v {
                         out.extend_from_slice(&(*c as f32).to_le_bytes());
@@ -460,18 +501,8 @@ impl Mesh {
         Ok(out)
     }
 
-    /// Parses a PLY file (ASCII, binary little- or big-endian).
-    ///
-    /// Reads `element vertex` (`x, y, z`, optional `nx, ny, nz`; any other properties
-    /// are skipped) and `element face` (a list property named `vertex_indices` or
-    /// `vertex_index`, any count and index types). Other elements are skipped. Polygons
-    /// with more than three vertices are triangulated as fans `(0, i, i+1)`.
-    ///
-    /// # Errors
-    /// A malformed header or body, naming the line (ASCII and header) or the byte offset
-    /// (binary) where it went wrong; a truncated file; faces with fewer than 3 vertices;
-    /// then [`Mesh::validate`].
-    pub fn from_ply_bytes(bytes: &[u8]) -> Result<Self> {
+    /// Parses PLY bytes (see [`Mesh::from_bytes`]).
+    fn from_ply(bytes: &[u8]) -> Result<Self> {
         let header = parse_ply_header(bytes)?;
         let mut mesh = Mesh::default();
         let mut normals = Vec::new();
@@ -552,12 +583,8 @@ impl Mesh {
         Ok(mesh)
     }
 
-    /// Serialises to Wavefront OBJ: `v x y z`, `vn` lines when normals are present, and
-    /// 1-based `f a b c` (or `f a//a b//b c//c` with normals).
-    ///
-    /// # Errors
-    /// Invalid mesh.
-    pub fn to_obj_string(&self) -> Result<String> {
+    /// OBJ text (see [`Mesh::to_bytes`]).
+    fn to_obj(&self) -> Result<String> {
         self.validate()?;
         let mut s = String::from("# neural-fields\n");
         for v in &self.vertices {
@@ -580,16 +607,8 @@ impl Mesh {
         Ok(s)
     }
 
-    /// Parses Wavefront OBJ: `v` (extra components such as `w` or colours ignored), `vn`,
-    /// and `f` with `a`, `a/b`, `a//c` or `a/b/c` references, 1-based or negative
-    /// (relative). Polygons are fan-triangulated. Other statements (`vt`, `o`, `g`,
-    /// `usemtl`, `mtllib`, `s`, `l`, `p`) are ignored. Normals are kept only when every
-    /// face corner names the normal with the same index as its vertex (as written by
-    /// [`Mesh::to_obj_string`]); otherwise they are dropped.
-    ///
-    /// # Errors
-    /// Malformed numbers or references, naming the line; then [`Mesh::validate`].
-    pub fn from_obj_str(text: &str) -> Result<Self> {
+    /// Parses OBJ text (see [`Mesh::from_bytes`]).
+    fn from_obj(text: &str) -> Result<Self> {
         let mut mesh = Mesh::default();
         let mut vn: Vec<[f64; 3]> = Vec::new();
         let mut normals_match = true;

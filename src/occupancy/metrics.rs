@@ -128,10 +128,7 @@ impl KdTree {
 ///
 /// # Errors
 /// As [`KdTree::new`] on `reference`.
-pub fn nearest_distances(
-    queries: &[[f64; 3]],
-    reference: &[[f64; 3]],
-) -> Result<Vec<(usize, f64)>> {
+fn nearest_distances(queries: &[[f64; 3]], reference: &[[f64; 3]]) -> Result<Vec<(usize, f64)>> {
     let tree = KdTree::new(reference)?;
     Ok(queries.par_iter().map(|&q| tree.nearest(q)).collect())
 }

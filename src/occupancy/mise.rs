@@ -64,12 +64,6 @@ impl MiseConfig {
             dtype,
         }
     }
-
-    /// Points per axis of the final grid, `r₀·2ᵏ + 1`.
-    #[must_use]
-    pub fn final_points_per_axis(&self) -> usize {
-        (self.resolution0 << self.upsampling_steps) + 1
-    }
 }
 
 /// The logit of a probability threshold, `ln(p / (1 − p))`: MISE thresholds logits, so

@@ -18,15 +18,15 @@
 //! ```
 //! use candle_core::{DType, Device};
 //! use neural_fields::field::{SignedDistance, Torus};
-//! use neural_fields::occupancy::{mesh_metrics, mise, MiseConfig, PlyFormat, Mesh};
+//! use neural_fields::occupancy::{mesh_metrics, mise, Mesh, MeshFormat, MiseConfig};
 //!
 //! // Any ImplicitSurface works: an analytic torus here, a trained `Mlp` in practice.
 //! let torus = Torus::new([0.0; 3], 0.3, 0.1, &Device::Cpu, DType::F32)?.occupancy(10.0);
 //! let out = mise(&torus, &MiseConfig::new(16, 2, &Device::Cpu, DType::F32))?; // 64³
 //! assert!(out.mesh.is_watertight_and_oriented());
 //! assert!(out.evaluations < 65 * 65 * 65 / 4);
-//! let bytes = out.mesh.to_ply_bytes(PlyFormat::BinaryLittleEndian)?;
-//! let back = Mesh::from_ply_bytes(&bytes)?;
+//! let bytes = out.mesh.to_bytes(MeshFormat::PlyBinary)?;
+//! let back = Mesh::from_bytes(&bytes, MeshFormat::PlyBinary)?;
 //! let m = mesh_metrics(&back, &out.mesh, 10_000, 0.01, 0)?;
 //! assert!(m.chamfer_l1 < 0.01 && m.normal_consistency.is_some_and(|n| n > 0.95));
 //! # Ok::<(), neural_fields::Error>(())
@@ -39,7 +39,12 @@ pub mod metrics;
 pub mod mise;
 pub mod sampling;
 
+pub use losses::{kl_standard_normal, reconstruction_loss, reparameterize};
 pub use marching_cubes::{marching_cubes, Grid};
-pub use mesh::{Mesh, PlyFormat};
+pub use mesh::{points_tensor, Mesh, MeshFormat, SurfaceSamples};
 pub use metrics::{iou, mesh_metrics, surface_metrics, KdTree, SurfaceMetrics};
 pub use mise::{logit_threshold, mise, refine_vertices, MiseConfig, MiseOutput, RefineConfig};
+pub use sampling::{
+    from_tensor, inside_mesh, near_surface, uniform_in_padded_cube, winding_numbers,
+    winding_numbers_exact,
+};

@@ -241,14 +241,6 @@ pub fn inside_mesh(mesh: &Mesh, points: &[[f64; 3]]) -> Result<Vec<bool>> {
         .collect())
 }
 
-/// Host points (e.g. from [`near_surface`]) as a `[n, 3]` tensor; re-exported helper.
-///
-/// # Errors
-/// candle's.
-pub fn to_tensor(points: &[[f64; 3]], device: &Device, dtype: DType) -> Result<Tensor> {
-    super::mesh::points_tensor(points, device, dtype)
-}
-
 /// A tensor `[n, 3]` back to host points.
 ///
 /// # Errors

@@ -189,14 +189,8 @@ pub fn composite(
     config: &CompositeConfig,
 ) -> Result<Composite> {
     check_samples(sigmas, Some((colors, "colors")), intervals)?;
-    let (color, opacity, depth) = composite_with(
-        sigmas,
-        colors,
-        intervals,
-        rays,
-        config,
-        KernelBuild::Avx512,
-    )?;
+    let (color, opacity, depth) =
+        composite_with(sigmas, colors, intervals, rays, config, KernelBuild::Avx512)?;
     finish(color, opacity, depth, config)
 }
 
@@ -213,14 +207,7 @@ pub(crate) fn composite_with(
     let layout = &intervals.layout;
     if !sigmas.device().is_cpu() || config.force_reference {
         let (deltas, t_mids) = deltas_and_depths(intervals, rays)?;
-        return reference::composite(
-            sigmas,
-            colors,
-            &deltas,
-            &t_mids,
-            layout,
-            config.opaque_last,
-        );
+        return reference::composite(sigmas, colors, &deltas, &t_mids, layout, config.opaque_last);
     }
     let norms = intervals.direction_norms(rays)?;
     let constant = !intervals.starts.track_op()

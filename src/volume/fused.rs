@@ -129,8 +129,15 @@ struct FusedComposite {
 
 /// A ray's δ and t, from slices of the inputs or formed from its intervals.
 enum Geo<'a, T> {
-    Slices { del: &'a [T], tm: &'a [T] },
-    Intervals { s: &'a [T], e: &'a [T], norms: Option<&'a [f64]> },
+    Slices {
+        del: &'a [T],
+        tm: &'a [T],
+    },
+    Intervals {
+        s: &'a [T],
+        e: &'a [T],
+        norms: Option<&'a [f64]>,
+    },
 }
 
 /// ln 2 split for Cody–Waite range reduction (fdlibm constants): `LN2_HI` has trailing

@@ -324,7 +324,7 @@ impl Intervals {
         let d = (&self.ends - &self.starts)?;
         match self.direction_norms(rays)? {
             None => Ok(d),
-            Some(norms) => Ok(self.per_sample(&norms)?.mul(&d)?),
+            Some(norms) => Ok(d.broadcast_mul(&self.per_sample(&norms)?)?),
         }
     }
 
@@ -556,7 +556,12 @@ pub(crate) fn check_samples(
     check_float(sigmas, "sigmas")?;
     check_same(&intervals.starts, "intervals", sigmas, "sigmas")?;
     check_same(&intervals.ends, "intervals", sigmas, "sigmas")?;
-    let sample_dims: Vec<Dim> = intervals.starts.dims().iter().map(|&d| Dim::Is(d)).collect();
+    let sample_dims: Vec<Dim> = intervals
+        .starts
+        .dims()
+        .iter()
+        .map(|&d| Dim::Is(d))
+        .collect();
     if intervals.ends.dims() != intervals.starts.dims() {
         return Err(Error::invalid(
             "intervals",
@@ -566,7 +571,11 @@ pub(crate) fn check_samples(
     }
     match &intervals.layout {
         Layout::Batched => {
-            check_shape(&intervals.starts, "intervals", &[Dim::Any("R"), Dim::Any("S")])?;
+            check_shape(
+                &intervals.starts,
+                "intervals",
+                &[Dim::Any("R"), Dim::Any("S")],
+            )?;
         }
         Layout::Packed(p) => {
             check_shape(&intervals.starts, "intervals", &[Dim::Is(p.n_samples())])?;
@@ -578,9 +587,7 @@ pub(crate) fn check_samples(
         check_same(v, arg, sigmas, "sigmas")?;
         let mut pattern = sample_dims.clone();
         pattern.push(Dim::Any("C"));
-        c = *check_shape(v, arg, &pattern)?
-            .last()
-            .unwrap_or(&0);
+        c = *check_shape(v, arg, &pattern)?.last().unwrap_or(&0);
     }
     check_nonneg_finite(sigmas, "sigmas")?;
     Ok(c)

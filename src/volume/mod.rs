@@ -57,9 +57,7 @@ pub use composite::{
 };
 pub use grid::{GridConfig, GridMarchConfig, GridSamples, OccupancyGrid};
 pub use layout::{Intervals, Layout, Packed, Weights, X_MAX};
-pub use regularizers::{
-    depth_smoothness, distortion_loss, log_linear_schedule,
-};
+pub use regularizers::{depth_smoothness, distortion_loss, log_linear_schedule};
 pub use sampling::{
     anneal_near_far, merge_sorted, sample_pdf, step_cdf, stratified, Jitter, ANNEAL_MID_RATIO,
     ANNEAL_P_START, PDF_PADDING,
