@@ -9,7 +9,7 @@ use candle_nn::VarMap;
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use glam::DVec3;
 use neural_fields::camera::{ray_sphere, Camera, Convention, Intrinsics, Rays};
-use neural_fields::dvr::{implicit_surface, march_bounded, ImplicitConfig, MarchConfig};
+use neural_fields::dvr::{implicit_surface, march, ImplicitConfig, MarchConfig};
 use neural_fields::field::ImplicitSurface;
 use neural_fields::nn::{build_seeded, mlp, Activation, Mlp, MlpConfig};
 use std::time::Duration;
@@ -35,7 +35,7 @@ fn setup(side: usize) -> (VarMap, Mlp, Rays, neural_fields::camera::Intersection
     )
     .unwrap();
     let rays = cam.rays(&dev, DType::F32).unwrap();
-    let bounds = ray_sphere(&rays.origins, &rays.directions, [0.0; 3], 1.0).unwrap();
+    let bounds = ray_sphere(&rays, [0.0; 3], 1.0).unwrap();
     (varmap, net, rays, bounds)
 }
 
@@ -51,7 +51,7 @@ fn bench(c: &mut Criterion) {
             ..MarchConfig::default()
         };
         g.bench_with_input(BenchmarkId::new("steps+8_secant", steps), &cfg, |b, cfg| {
-            b.iter(|| march_bounded(&net, &rays, &bounds, cfg).unwrap())
+            b.iter(|| march(&net, &rays, &bounds, cfg).unwrap())
         });
     }
     g.finish();
@@ -61,7 +61,7 @@ fn bench(c: &mut Criterion) {
         secant_steps: 8,
         ..MarchConfig::default()
     };
-    let hits = march_bounded(&net, &rays, &bounds, &cfg).unwrap();
+    let hits = march(&net, &rays, &bounds, &cfg).unwrap();
     let idx = Tensor::from_vec(
         hits.surface_indices(),
         hits.surface_indices().len(),
@@ -78,11 +78,11 @@ fn bench(c: &mut Criterion) {
     });
     let ic = ImplicitConfig::default();
     g.bench_function("implicit_surface", |b| {
-        b.iter(|| implicit_surface(&net, &rays.origins, &rays.directions, &hits, &ic).unwrap())
+        b.iter(|| implicit_surface(&net, &rays, &hits, &ic).unwrap())
     });
     g.bench_function("implicit_surface+backward", |b| {
         b.iter(|| {
-            let s = implicit_surface(&net, &rays.origins, &rays.directions, &hits, &ic).unwrap();
+            let s = implicit_surface(&net, &rays, &hits, &ic).unwrap();
             s.depth.sum_all().unwrap().backward().unwrap()
         })
     });

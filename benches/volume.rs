@@ -5,8 +5,7 @@
 
 use candle_core::{CpuStorage, CustomOp3, DType, Device, Layout, Shape, Tensor, Var};
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use neural_fields::volume::composite::{composite_reference, Composite, CompositeOptions};
-use neural_fields::volume::fused::composite_fused;
+use neural_fields::volume::{composite, CompositeConfig, Intervals};
 use std::hint::black_box;
 
 const RAYS: usize = 4096;
@@ -15,8 +14,10 @@ const SAMPLES: usize = 192;
 struct Inputs {
     sigmas: Var,
     colors: Var,
+    /// Constant intervals `[k·δ, (k + 1)·δ]` (built once, outside the timed loop).
+    intervals: Intervals,
+    /// δ as a tensor, the null op's geometry input.
     deltas: Tensor,
-    t_mids: Tensor,
 }
 
 fn inputs() -> Inputs {
@@ -30,33 +31,40 @@ fn inputs() -> Inputs {
         .collect();
     let delta = 4.0 / SAMPLES as f32;
     let deltas = Tensor::full(delta, (RAYS, SAMPLES), &dev).unwrap();
-    let t_mids = (Tensor::arange(0f32, SAMPLES as f32, &dev).unwrap() * f64::from(delta))
-        .unwrap()
-        .unsqueeze(0)
-        .unwrap()
-        .broadcast_as((RAYS, SAMPLES))
-        .unwrap()
-        .contiguous()
-        .unwrap();
+    let edges = |k0: f32| {
+        (Tensor::arange(k0, k0 + SAMPLES as f32, &dev).unwrap() * f64::from(delta))
+            .unwrap()
+            .unsqueeze(0)
+            .unwrap()
+            .broadcast_as((RAYS, SAMPLES))
+            .unwrap()
+            .contiguous()
+            .unwrap()
+    };
+    let intervals = Intervals::new(edges(0.0), edges(1.0)).unwrap();
     Inputs {
         sigmas: Var::from_tensor(&Tensor::from_vec(sig, (RAYS, SAMPLES), &dev).unwrap()).unwrap(),
         colors: Var::from_tensor(&Tensor::from_vec(col, (RAYS, SAMPLES, 3), &dev).unwrap())
             .unwrap(),
+        intervals,
         deltas,
-        t_mids,
     }
 }
 
-type CompositeFn =
-    fn(&Tensor, &Tensor, &Tensor, &Tensor, &CompositeOptions) -> neural_fields::Result<Composite>;
-
-fn step(f: CompositeFn, x: &Inputs) {
-    let out = f(
+/// One forward + backward step of `composite` on constant intervals with unit
+/// directions (`rays: None`): the fused CPU kernel, or the candle-op reference path
+/// with `force_reference`.
+fn step(force_reference: bool, x: &Inputs) {
+    let config = CompositeConfig {
+        force_reference,
+        ..CompositeConfig::default()
+    };
+    let out = composite(
         x.sigmas.as_tensor(),
         x.colors.as_tensor(),
-        &x.deltas,
-        &x.t_mids,
-        &CompositeOptions::default(),
+        &x.intervals,
+        None,
+        &config,
     )
     .unwrap();
     let loss = ((out.color.sum_all().unwrap() + out.depth.sum_all().unwrap()).unwrap()
@@ -137,8 +145,8 @@ fn bench(c: &mut Criterion) {
     let mut g = c.benchmark_group("composite_4096x192_rgb_f32_fwd_bwd");
     g.throughput(Throughput::Elements((RAYS * SAMPLES) as u64));
     g.sample_size(10);
-    g.bench_function("fused", |b| b.iter(|| step(composite_fused, &x)));
-    g.bench_function("reference", |b| b.iter(|| step(composite_reference, &x)));
+    g.bench_function("fused", |b| b.iter(|| step(false, &x)));
+    g.bench_function("reference", |b| b.iter(|| step(true, &x)));
     // What candle's backprop itself spends on the two gradients of any compositing op:
     // `GradStore::or_insert` makes zeros the size of each input, then adds the op's
     // gradient into them. A floor no op can go under through `backward()`.

@@ -14,7 +14,7 @@ use candle_core::{DType, Device};
 use candle_nn::VarMap;
 use glam::DVec3;
 use neural_fields::camera::{ray_sphere, Camera, Convention, Intrinsics};
-use neural_fields::dvr::{implicit_surface, march_bounded, ImplicitConfig, MarchConfig};
+use neural_fields::dvr::{implicit_surface, march, ImplicitConfig, MarchConfig};
 use neural_fields::nn::{build_seeded, mlp, Activation, MlpConfig};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -86,7 +86,7 @@ fn main() -> neural_fields::Result<()> {
         Convention::OpenGl,
     )?;
     let rays = cam.rays(&dev, DType::F32)?; // 16 384 rays
-    let bounds = ray_sphere(&rays.origins, &rays.directions, [0.0; 3], 1.0)?;
+    let bounds = ray_sphere(&rays, [0.0; 3], 1.0)?;
     println!("| steps | secant | rays | hits | field evaluations | march peak (MiB) | implicit + backward peak (MiB) | step peak (MiB) | peak / peak(16) | time (s) |");
     println!("|---|---|---|---|---|---|---|---|---|---|");
     let mut first = None;
@@ -101,22 +101,21 @@ fn main() -> neural_fields::Result<()> {
         PEAK.store(base, Ordering::Relaxed);
         let start = Instant::now();
         let (n_hits, evals, march_peak, implicit_peak) = {
-            let hits = march_bounded(&net, &rays, &bounds, &config)?;
+            let hits = march(&net, &rays, &bounds, &config)?;
             let march_peak = PEAK.load(Ordering::Relaxed) - base;
             let mid = CURRENT.load(Ordering::Relaxed);
             PEAK.store(mid, Ordering::Relaxed);
-            let surf = implicit_surface(
-                &net,
-                &rays.origins,
-                &rays.directions,
-                &hits,
-                &ImplicitConfig::default(),
-            )?;
+            let surf = implicit_surface(&net, &rays, &hits, &ImplicitConfig::default())?;
             let loss = surf.depth.sum_all()?;
             let grads = loss.backward()?;
             drop(grads);
             let implicit_peak = PEAK.load(Ordering::Relaxed) - base;
-            (surf.len(), hits.evaluations, march_peak, implicit_peak)
+            (
+                surf.indices.dim(0)?,
+                hits.evaluations,
+                march_peak,
+                implicit_peak,
+            )
         };
         let secs = start.elapsed().as_secs_f64();
         let peak = march_peak.max(implicit_peak);

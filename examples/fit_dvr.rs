@@ -5,7 +5,7 @@
 //! ```
 //!
 //! The "images" are depth maps and object masks of an analytic torus (R = 0.3, r = 0.12)
-//! seen by 8 cameras around it (64 × 64 pixels, rendered once with `dvr::march_bounded`
+//! seen by 8 cameras around it (64 × 64 pixels, rendered once with `dvr::march`
 //! on the exact field). A 4 × 64 ReLU MLP on frequency-encoded points, first fitted to a
 //! sphere so that rays find a surface from the start, is then trained only from those
 //! pixels, DVR's way (Adam, learning rate 3e-3):
@@ -30,20 +30,24 @@
 //! The curve is not monotone: IoU dips around step 100 while the hole opens.
 
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
-use glam::DVec3;
-use neural_fields::camera::{ray_aabb, Camera, Convention, Intersection, Intrinsics, Rays};
-use neural_fields::dvr::losses::{
-    depth_loss, freespace_loss, occupancy_loss, random_points_on_rays,
+use candle_nn::Optimizer;
+use neural_fields::camera::{ray_aabb, Camera, Intersection, Rays};
+use neural_fields::dvr::{
+    depth_loss, freespace_loss, implicit_surface, march, missed_foreground_loss,
+    random_points_on_rays, ImplicitConfig, MarchConfig,
 };
-use neural_fields::dvr::{implicit_surface, march_bounded, ImplicitConfig, MarchConfig};
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::{ImplicitSurface, SignedDistance, Sphere, Torus};
-use neural_fields::nn::{build_seeded, mlp, Activation, Mlp, MlpConfig};
+use neural_fields::glam::DVec3;
+use neural_fields::nn::{Activation, Mlp, MlpConfig};
 use neural_fields::numerics::bce_with_logits;
 use neural_fields::rng::SplitMix64;
 use neural_fields::Result;
 use std::time::Instant;
+
+#[path = "common/cameras.rs"]
+mod cameras;
+mod common;
 
 const BOX: f64 = 0.55;
 const SIDE: usize = 64;
@@ -59,16 +63,15 @@ struct View {
 }
 
 fn camera(angle: f64, height: f64) -> Result<Camera> {
-    let k = Intrinsics::from_fov_y(SIDE, SIDE, 0.9)?;
     let eye = DVec3::new(1.1 * angle.cos(), 1.1 * angle.sin(), height);
-    Camera::look_at(k, eye, DVec3::ZERO, DVec3::Z, Convention::OpenGl)
+    cameras::looking_at_origin(SIDE, 0.9, eye)
 }
 
 /// Rays of `cam` and the depth/mask that `field` gives them.
 fn view(cam: &Camera, field: &dyn ImplicitSurface, config: &MarchConfig) -> Result<View> {
     let rays = cam.rays(&Device::Cpu, DType::F32)?;
-    let bounds = ray_aabb(&rays.origins, &rays.directions, [-BOX; 3], [BOX; 3])?;
-    let hits = march_bounded(field, &rays, &bounds, config)?;
+    let bounds = ray_aabb(&rays, [-BOX; 3], [BOX; 3])?;
+    let hits = march(field, &rays, &bounds, config)?;
     Ok(View {
         depth: hits.depth.to_vec1::<f32>()?,
         mask: hits.status.iter().map(|s| s.has_surface()).collect(),
@@ -95,7 +98,7 @@ fn evaluate(net: &Mlp, truth: &View, config: &MarchConfig) -> Result<(f64, f64)>
 }
 
 fn view_of(net: &Mlp, truth: &View, config: &MarchConfig) -> Result<View> {
-    let hits = march_bounded(net, &truth.rays, &truth.bounds, config)?;
+    let hits = march(net, &truth.rays, &truth.bounds, config)?;
     Ok(View {
         depth: hits.depth.to_vec1::<f32>()?,
         mask: hits.status.iter().map(|s| s.has_surface()).collect(),
@@ -108,6 +111,17 @@ fn view_of(net: &Mlp, truth: &View, config: &MarchConfig) -> Result<View> {
 fn rows(t: &Tensor, idx: &[u32]) -> Result<Tensor> {
     let i = Tensor::from_slice(idx, idx.len(), t.device())?;
     Ok(t.index_select(&i, 0)?)
+}
+
+/// Rays `idx` of `rays` and their bounds.
+fn select(rays: &Rays, bounds: &Intersection, idx: &[u32]) -> Result<(Rays, Intersection)> {
+    let rays = Rays::new(rows(rays.origins(), idx)?, rows(rays.directions(), idx)?)?;
+    let bounds = Intersection {
+        near: rows(&bounds.near, idx)?,
+        far: rows(&bounds.far, idx)?,
+        hit: rows(&bounds.hit, idx)?,
+    };
+    Ok((rays, bounds))
 }
 
 fn main() -> Result<()> {
@@ -145,17 +159,22 @@ fn main() -> Result<()> {
         let parts: Vec<Tensor> = views.iter().map(f).collect();
         Ok(Tensor::cat(&parts, 0)?)
     };
-    let origins = cat(&|v| v.rays.origins.clone())?;
-    let directions = cat(&|v| v.rays.directions.clone())?;
-    let near = cat(&|v| v.bounds.near.clone())?;
-    let far = cat(&|v| v.bounds.far.clone())?;
-    let hit = cat(&|v| v.bounds.hit.clone())?;
+    let all_rays = Rays::new(
+        cat(&|v| v.rays.origins().clone())?,
+        cat(&|v| v.rays.directions().clone())?,
+    )?;
+    let all_bounds = Intersection {
+        near: cat(&|v| v.bounds.near.clone())?,
+        far: cat(&|v| v.bounds.far.clone())?,
+        hit: cat(&|v| v.bounds.hit.clone())?,
+    };
     let depth: Vec<f32> = views.iter().flat_map(|v| v.depth.clone()).collect();
     let mask: Vec<bool> = views.iter().flat_map(|v| v.mask.clone()).collect();
     // Pixels whose ray meets the box (the others are never marched).
     let in_box: Vec<bool> = {
-        let (n, f) = (near.to_vec1::<f32>()?, far.to_vec1::<f32>()?);
-        let h = hit.to_vec1::<u8>()?;
+        let n = all_bounds.near.to_vec1::<f32>()?;
+        let f = all_bounds.far.to_vec1::<f32>()?;
+        let h = all_bounds.hit.to_vec1::<u8>()?;
         h.iter()
             .zip(n.iter().zip(&f))
             .map(|(&h, (n, f))| h != 0 && f > n)
@@ -171,14 +190,7 @@ fn main() -> Result<()> {
         encoding: PointEncoding::Frequency(FrequencyEncoding::new(3, 4)?),
         ..MlpConfig::default()
     };
-    let varmap = VarMap::new();
-    let net = build_seeded(&varmap, dtype, &device, 0, |vb| mlp(&config, vb))?;
-    let params = ParamsAdamW {
-        lr: 3e-3,
-        weight_decay: 0.0,
-        ..Default::default()
-    };
-    let mut opt = AdamW::new(varmap.all_vars(), params)?;
+    let (net, mut opt) = common::seeded_mlp(&config, 0, 3e-3, &device, dtype)?;
     let ball = Sphere::new([0.0; 3], 0.35, &device, dtype)?.occupancy(10.0);
     let mut rng = SplitMix64::new(1);
     for _ in 0..100 {
@@ -203,23 +215,9 @@ fn main() -> Result<()> {
         let idx: Vec<u32> = (0..batch)
             .map(|_| rng.below(pixels as u64) as u32) // invariant: pixels < 2³²
             .collect();
-        let rays = Rays {
-            origins: rows(&origins, &idx)?,
-            directions: rows(&directions, &idx)?,
-        };
-        let bounds = Intersection {
-            near: rows(&near, &idx)?,
-            far: rows(&far, &idx)?,
-            hit: rows(&hit, &idx)?,
-        };
-        let hits = march_bounded(&net, &rays, &bounds, &march_config)?;
-        let surf = implicit_surface(
-            &net,
-            &rays.origins,
-            &rays.directions,
-            &hits,
-            &ImplicitConfig::default(),
-        )?;
+        let (rays, bounds) = select(&all_rays, &all_bounds, &idx)?;
+        let hits = march(&net, &rays, &bounds, &march_config)?;
+        let surf = implicit_surface(&net, &rays, &hits, &ImplicitConfig::default())?;
         // Split the rays: foreground (inside the mask) with a surface (depth) or without
         // (occupancy at a random point), background inside the box with a surface
         // (freespace at that point) or without (freespace at a random point).
@@ -241,13 +239,8 @@ fn main() -> Result<()> {
             }
         }
         let random_points = |which: &[u32], seed: u64| -> Result<Tensor> {
-            random_points_on_rays(
-                &rows(&rays.origins, which)?,
-                &rows(&rays.directions, which)?,
-                &rows(&bounds.near, which)?,
-                &rows(&bounds.far, which)?,
-                seed,
-            )
+            let (rays, bounds) = select(&rays, &bounds, which)?;
+            random_points_on_rays(&rays, &bounds, seed)
         };
         let mut loss = Tensor::zeros((), dtype, &device)?;
         if !on.is_empty() {
@@ -273,7 +266,7 @@ fn main() -> Result<()> {
         }
         if !missed.is_empty() {
             let points = random_points(&missed, 2 * step as u64 + 1)?;
-            loss = (loss + occupancy_loss(&net, &points)?)?;
+            loss = (loss + missed_foreground_loss(&net, &points)?)?;
         }
         opt.backward_step(&loss)?;
         if step % 50 == 0 || step == steps {

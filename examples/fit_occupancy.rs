@@ -17,17 +17,19 @@
 //! samples on each mesh, with the wall time. The final mesh is written as binary PLY.
 
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
+use candle_nn::Optimizer;
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::ImplicitSurface;
-use neural_fields::nn::{build_seeded, mlp, Activation, MlpConfig};
-use neural_fields::occupancy::losses::bce_with_logits;
-use neural_fields::occupancy::sampling::{
-    from_tensor, inside_mesh, near_surface, to_tensor, uniform_in_padded_cube,
+use neural_fields::nn::{Activation, MlpConfig};
+use neural_fields::numerics::bce_with_logits;
+use neural_fields::occupancy::{
+    from_tensor, inside_mesh, iou, mesh_metrics, mise, near_surface, points_tensor,
+    uniform_in_padded_cube, Mesh, MiseConfig,
 };
-use neural_fields::occupancy::{iou, mesh_metrics, mise, Mesh, MiseConfig};
 use neural_fields::rng::SplitMix64;
 use std::time::Instant;
+
+mod common;
 
 const DEFAULT: &str = "/usr/share/assimp/models/PLY/Wuson.ply";
 
@@ -77,8 +79,8 @@ fn main() -> neural_fields::Result<()> {
         DType::F64,
     )?)?;
     let eval_truth = inside_mesh(&gt, &eval_pts)?;
-    let eval_tensor = to_tensor(&eval_pts, &device, dtype)?;
-    let pool_t = to_tensor(&pool, &device, dtype)?;
+    let eval_tensor = points_tensor(&eval_pts, &device, dtype)?;
+    let pool_t = points_tensor(&pool, &device, dtype)?;
     let labels_t = Tensor::from_vec(labels, pool.len(), &device)?;
     println!(
         "labelled {} training and {} IoU points in {:.1} s (occupied fraction {:.3})",
@@ -95,16 +97,7 @@ fn main() -> neural_fields::Result<()> {
         encoding: PointEncoding::Frequency(FrequencyEncoding::new(3, 6)?),
         ..MlpConfig::default()
     };
-    let varmap = VarMap::new();
-    let net = build_seeded(&varmap, dtype, &device, 0, |vb| mlp(&config, vb))?;
-    let mut opt = AdamW::new(
-        varmap.all_vars(),
-        ParamsAdamW {
-            lr: 2e-3,
-            weight_decay: 0.0,
-            ..Default::default()
-        },
-    )?;
+    let (net, mut opt) = common::seeded_mlp(&config, 0, 2e-3, &device, dtype)?;
     let mut rng = SplitMix64::new(5);
     let batch = 4096;
     let mise_cfg = MiseConfig::new(32, 2, &device, dtype);

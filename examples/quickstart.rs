@@ -14,19 +14,23 @@
 //! Finishes in well under a minute on 2 cores.
 
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
-use glam::DVec3;
-use neural_fields::camera::{ray_aabb, Camera, Convention, Intrinsics};
-use neural_fields::dvr::{march_bounded, MarchConfig};
+use candle_nn::Optimizer;
+use neural_fields::camera::ray_aabb;
+use neural_fields::dvr::{march, MarchConfig};
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::{ImplicitSurface, SignedDistance, Torus};
-use neural_fields::nn::{build_seeded, mlp, Activation, Mlp, MlpConfig};
+use neural_fields::glam::DVec3;
+use neural_fields::nn::{Activation, Mlp, MlpConfig};
 use neural_fields::numerics::bce_with_logits;
 use neural_fields::occupancy::{mesh_metrics, mise, Grid, MiseConfig};
 use neural_fields::rng::SplitMix64;
 use std::time::Instant;
 
+#[path = "common/cameras.rs"]
+mod cameras;
 mod common;
+#[path = "common/image.rs"]
+mod image;
 
 const BOX: f64 = 0.55;
 
@@ -60,16 +64,7 @@ fn main() -> neural_fields::Result<()> {
         encoding: PointEncoding::Frequency(FrequencyEncoding::new(3, 4)?),
         ..MlpConfig::default()
     };
-    let varmap = VarMap::new();
-    let net = build_seeded(&varmap, dtype, &device, 0, |vb| mlp(&config, vb))?;
-    let mut opt = AdamW::new(
-        varmap.all_vars(),
-        ParamsAdamW {
-            lr: 2e-3,
-            weight_decay: 0.0,
-            ..Default::default()
-        },
-    )?;
+    let (net, mut opt) = common::seeded_mlp(&config, 0, 2e-3, &device, dtype)?;
 
     let mut rng = SplitMix64::new(1);
     let eval_points = rng.uniform_tensor(&[100_000, 3], -BOX, BOX, dtype, &device)?;
@@ -133,18 +128,16 @@ fn main() -> neural_fields::Result<()> {
 fn render(net: &Mlp, path: &std::path::Path) -> neural_fields::Result<()> {
     let t = Instant::now();
     let side = 160;
-    let k = Intrinsics::from_fov_y(side, side, 0.75)?;
-    let eye = DVec3::new(0.45, -0.75, 0.8);
-    let cam = Camera::look_at(k, eye, DVec3::ZERO, DVec3::Z, Convention::OpenGl)?;
+    let cam = cameras::looking_at_origin(side, 0.75, DVec3::new(0.45, -0.75, 0.8))?;
     let rays = cam.rays(&Device::Cpu, DType::F32)?;
-    let bounds = ray_aabb(&rays.origins, &rays.directions, [-BOX; 3], [BOX; 3])?;
+    let bounds = ray_aabb(&rays, [-BOX; 3], [BOX; 3])?;
     // 64 samples + 8 secant steps per ray: the depth error is far below a pixel here.
     let config = MarchConfig {
         steps: 64,
         secant_steps: 8,
         ..MarchConfig::default()
     };
-    let hits = march_bounded(net, &rays, &bounds, &config)?;
+    let hits = march(net, &rays, &bounds, &config)?;
     // Occupancy logits are positive inside: the outward normal is −∇f/‖∇f‖.
     let (_, grad) = net.value_and_grad(&hits.points)?;
     let grad = grad.to_dtype(DType::F64)?.to_vec2::<f64>()?;
@@ -161,9 +154,9 @@ fn render(net: &Mlp, path: &std::path::Path) -> neural_fields::Result<()> {
             }
         })
         .collect();
-    common::write_png(path, side, side, png::ColorType::Grayscale, &pixels)?;
+    image::write_png(path, side, side, png::ColorType::Grayscale, &pixels)?;
     println!(
-        "rendered {side}×{side} with dvr::march_bounded ({} field evaluations) in {:.2} s: wrote {}",
+        "rendered {side}×{side} with dvr::march ({} field evaluations) in {:.2} s: wrote {}",
         hits.evaluations,
         t.elapsed().as_secs_f64(),
         path.display()

@@ -20,8 +20,8 @@
 //!   unit sphere ([`stratified`]), composited in the batched layout ([`composite`]);
 //! - **grid**: an [`OccupancyGrid`] (32³ cells over [−1, 1]³) updated from the network's
 //!   density every 16 steps; rays are marched with the same step length (2/48) and keep
-//!   only intervals in occupied cells, composited in the packed layout
-//!   ([`composite_packed`]). After warm-up it evaluates a fraction of the samples.
+//!   only intervals in occupied cells, composited in the packed layout (the same
+//!   [`composite`]). After warm-up it evaluates a fraction of the samples.
 //!
 //! Prints the held-out PSNR against training time (held-out renders left out) for both,
 //! and writes the held-out view as `reference | stratified | grid` to a PNG. About 85 s
@@ -34,21 +34,25 @@
 //! do the same, or set `GLIBC_TUNABLES` as docs/benchmarks.md describes.
 
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
-use glam::DVec3;
-use neural_fields::camera::{ray_sphere, Camera, Convention, Intrinsics, Rays};
+use candle_nn::Optimizer;
+use neural_fields::camera::{ray_sphere, Camera, Rays};
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::Field;
-use neural_fields::nn::{build_seeded, mlp, Activation, Mlp, MlpConfig};
+use neural_fields::glam::DVec3;
+use neural_fields::nn::{Activation, Mlp, MlpConfig};
 use neural_fields::rng::SplitMix64;
-use neural_fields::volume::activations::trunc_exp;
-use neural_fields::volume::composite::{composite, composite_packed, Composite, CompositeOptions};
-use neural_fields::volume::grid::{GridConfig, MarchOptions, OccupancyGrid};
-use neural_fields::volume::sampling::{stratified, Jitter};
+use neural_fields::volume::{
+    composite, stratified, trunc_exp, Composite, CompositeConfig, GridConfig, GridMarchConfig,
+    Jitter, OccupancyGrid,
+};
 use neural_fields::Result;
 use std::time::Instant;
 
+#[path = "common/cameras.rs"]
+mod cameras;
 mod common;
+#[path = "common/image.rs"]
+mod image;
 
 // candle allocates fresh tensors every step; see the module docs.
 #[global_allocator]
@@ -92,7 +96,7 @@ fn scene_rgb(p: &Tensor) -> Result<Tensor> {
 
 /// The model's density `[N]` and colour `[N, 3]` at `points: [N, 3]`.
 fn radiance(net: &Mlp, points: &Tensor) -> Result<(Tensor, Tensor)> {
-    let raw = net.forward(points)?;
+    let raw = Field::forward(net, points)?;
     let sigma = trunc_exp(&raw.narrow(1, 0, 1)?.squeeze(1)?.affine(1.0, -1.0)?)?;
     let rgb = candle_nn::ops::sigmoid(&raw.narrow(1, 1, 3)?)?;
     Ok((sigma, rgb))
@@ -108,28 +112,23 @@ fn render_stratified(
     seed: Option<u64>,
     field: impl Fn(&Tensor) -> Result<(Tensor, Tensor)>,
 ) -> Result<Composite> {
-    let (o, d) = (&rays.origins, &rays.directions);
-    let bounds = ray_sphere(o, d, [0.0; 3], 1.0)?;
+    let bounds = ray_sphere(rays, [0.0; 3], 1.0)?;
     let jitter = if seed.is_some() {
         Jitter::PerSample
     } else {
         Jitter::None
     };
     let iv = stratified(&bounds.near, &bounds.far, n, jitter, seed.unwrap_or(0))?;
-    let mids = iv.midpoints()?;
     let r = rays.len();
-    // Sample positions o + t·d: [R, n, 3] → [R·n, 3].
-    let pos = o
-        .unsqueeze(1)?
-        .broadcast_add(&d.unsqueeze(1)?.broadcast_mul(&mids.unsqueeze(2)?)?)?
-        .reshape((r * n, 3))?;
+    // Sample positions o + t·d at the midpoints: [R, n, 3] → [R·n, 3].
+    let pos = iv.positions(rays)?.reshape((r * n, 3))?;
     let (sigma, rgb) = field(&pos)?;
     composite(
         &sigma.reshape((r, n))?,
         &rgb.reshape((r, n, 3))?,
-        &iv.deltas(Some(d))?,
-        &mids,
-        &CompositeOptions::default(),
+        &iv,
+        Some(rays),
+        &CompositeConfig::default(),
     )
 }
 
@@ -137,18 +136,11 @@ fn render_stratified(
 /// occupied cells, the network at their midpoints, packed compositing. Also returns the
 /// number of samples evaluated.
 fn render_grid(rays: &Rays, grid: &OccupancyGrid, net: &Mlp) -> Result<(Composite, usize)> {
-    let (o, d) = (&rays.origins, &rays.directions);
-    let samples = grid.sample(o, d, &MarchOptions::new(0.0, f64::INFINITY, GRID_STEP))?;
-    let m = samples.starts.dims1()?;
-    let (sigma, rgb) = radiance(net, &samples.positions(o, d)?)?;
-    let out = composite_packed(
-        &sigma,
-        &rgb,
-        &samples.deltas(d)?,
-        &samples.midpoints()?,
-        &samples.packed,
-        &CompositeOptions::default(),
-    )?;
+    let march = GridMarchConfig::new(0.0, f64::INFINITY, GRID_STEP);
+    let iv = grid.sample(rays, &march)?.intervals;
+    let m = iv.starts.dims1()?;
+    let (sigma, rgb) = radiance(net, &iv.positions(rays)?)?;
+    let out = composite(&sigma, &rgb, &iv, Some(rays), &CompositeConfig::default())?;
     Ok((out, m))
 }
 
@@ -183,6 +175,12 @@ fn render_view(
     Ok((Tensor::cat(&colours, 0)?, evaluated))
 }
 
+/// The fraction of the grid's cells that are occupied.
+fn occupied_fraction(grid: &OccupancyGrid) -> f64 {
+    let occupied = grid.occupied();
+    occupied.iter().filter(|&&o| o).count() as f64 / occupied.len() as f64
+}
+
 fn psnr(a: &Tensor, b: &Tensor) -> Result<f64> {
     let mse = (a - b)?
         .sqr()?
@@ -208,25 +206,17 @@ fn train(
         encoding: PointEncoding::Frequency(FrequencyEncoding::new(3, 6)?),
         ..MlpConfig::default()
     };
-    let varmap = VarMap::new();
-    let net = build_seeded(&varmap, dtype, device, 0, |vb| mlp(&config, vb))?;
-    let mut opt = AdamW::new(
-        varmap.all_vars(),
-        ParamsAdamW {
-            lr: 5e-3,
-            weight_decay: 0.0,
-            ..Default::default()
-        },
-    )?;
+    let (net, mut opt) = common::seeded_mlp(&config, 0, 5e-3, device, dtype)?;
     // nerfacc's decay (0.95 per update) suits its 20 000-step schedules: a cell that saw
     // the initial density (≈ e⁻¹) needs ~70 updates to fall below the threshold. This
     // run is 50× shorter, so the grid forgets faster and updates more often.
-    let grid_config = GridConfig {
+    let mut grid = OccupancyGrid::new(GridConfig {
+        aabb: [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0],
+        resolution: 32,
+        levels: 1,
         decay: 0.6,
         ..GridConfig::default()
-    };
-    let mut grid =
-        OccupancyGrid::with_config([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0], 32, 1, grid_config)?;
+    })?;
     let held_out = cameras[HELD_OUT].rays(device, dtype)?;
     let mut rng = SplitMix64::new(7);
     let name = match mode {
@@ -250,8 +240,8 @@ fn train(
             let v = 1 + rng.below((VIEWS - 1) as u64) as usize;
             let (rays, idx) =
                 cameras[v].random_rays(RAYS_PER_VIEW, rng.next_u64(), device, dtype)?;
-            os.push(rays.origins);
-            ds.push(rays.directions);
+            os.push(rays.origins().clone());
+            ds.push(rays.directions().clone());
             targets.push(images[v].index_select(&idx, 0)?);
         }
         let rays = Rays::new(Tensor::cat(&os, 0)?, Tensor::cat(&ds, 0)?)?;
@@ -276,7 +266,7 @@ fn train(
                 loss.to_dtype(DType::F64)?.to_scalar::<f64>()?,
                 psnr(&image, &images[HELD_OUT])?,
                 evaluated as f64 / rays.len() as f64,
-                100.0 * grid.occupied_fraction(),
+                100.0 * occupied_fraction(&grid),
                 train_time,
             );
         }
@@ -293,7 +283,7 @@ fn train(
     if mode == Mode::Grid {
         println!(
             "grid: {:.1} % of its cells occupied",
-            100.0 * grid.occupied_fraction()
+            100.0 * occupied_fraction(&grid)
         );
     }
     Ok(image)
@@ -307,14 +297,13 @@ fn main() -> Result<()> {
         .unwrap_or_else(|| "tiny_nerf.png".into());
 
     // Cameras on a sphere of radius 3 looking at the origin (a golden-angle spiral).
-    let k = Intrinsics::from_fov_y(SIDE, SIDE, 0.55)?;
     let cameras = (0..VIEWS)
         .map(|i| {
             let z = 0.8 - 1.6 * (i as f64 + 0.5) / VIEWS as f64;
             let phi = i as f64 * 2.399_963;
             let rxy = (1.0 - z * z).sqrt();
             let eye = 3.0 * DVec3::new(rxy * phi.cos(), rxy * phi.sin(), z);
-            Camera::look_at(k, eye, DVec3::ZERO, DVec3::Z, Convention::OpenGl)
+            cameras::looking_at_origin(SIDE, 0.55, eye)
         })
         .collect::<Result<Vec<_>>>()?;
     let t = Instant::now();
@@ -360,5 +349,5 @@ fn write_png(path: &str, panels: &[&Tensor]) -> Result<()> {
             }
         }
     }
-    common::write_png(std::path::Path::new(path), w, h, png::ColorType::Rgb, &data)
+    image::write_png(std::path::Path::new(path), w, h, png::ColorType::Rgb, &data)
 }

@@ -40,7 +40,11 @@ pub type Result<T> = std::result::Result<T, Error>;
 impl Error {
     /// Builds an [`Error::InvalidArgument`].
     #[must_use]
-    pub(crate) fn invalid(arg: &'static str, expected: impl Into<String>, got: impl Into<String>) -> Self {
+    pub(crate) fn invalid(
+        arg: &'static str,
+        expected: impl Into<String>,
+        got: impl Into<String>,
+    ) -> Self {
         Error::InvalidArgument {
             arg,
             expected: expected.into(),
@@ -138,7 +142,12 @@ pub(crate) fn check_float(t: &Tensor, arg: &'static str) -> Result<DType> {
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `arg` when either differs.
-pub(crate) fn check_same(t: &Tensor, arg: &'static str, reference: &Tensor, ref_arg: &str) -> Result<()> {
+pub(crate) fn check_same(
+    t: &Tensor,
+    arg: &'static str,
+    reference: &Tensor,
+    ref_arg: &str,
+) -> Result<()> {
     if t.dtype() != reference.dtype() {
         return Err(Error::invalid(
             arg,

@@ -4,8 +4,10 @@
 //! return an `Err` whose message starts with the argument's name (`"points: …"`).
 //! Each row also runs once with a good tensor and must succeed, so a row cannot pass
 //! because its set-up is broken.
+//! `Rays::new`, which validates rays once for every ray function, is fed the same and
+//! non-finite values and zero directions.
 
-use candle_core::{DType, Device, Module, Tensor};
+use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use neural_fields::encoding::{
     integrated_pe, Encoding, FourierFeatures, FrequencyEncoding, PointEncoding,
@@ -340,10 +342,6 @@ fn mlp_and_conditioned_reject_bad_points_codes_and_rays_naming_them() {
     let (p_, c_, r_) = (&p, &codes, &rays);
     let cases = vec![
         points_case(
-            "Mlp::forward_points",
-            Box::new(move |x| ok(plain.forward_points(x, None))),
-        ),
-        points_case(
             "Mlp::forward_with_jacobian",
             Box::new(move |x| ok(plain.forward_with_jacobian(x, None))),
         ),
@@ -364,10 +362,6 @@ fn mlp_and_conditioned_reject_bad_points_codes_and_rays_naming_them() {
             Box::new(move |x| ok(cond.value_and_grad_with_code(x, c_))),
         ),
         codes_case(
-            "Mlp::forward_points (codes)",
-            Box::new(move |c| ok(cond.forward_points(p_, Some(c)))),
-        ),
-        codes_case(
             "Mlp::forward_with_jacobian (codes)",
             Box::new(move |c| ok(cond.forward_with_jacobian(p_, Some(c)))),
         ),
@@ -379,17 +373,6 @@ fn mlp_and_conditioned_reject_bad_points_codes_and_rays_naming_them() {
             "Mlp::value_and_grad_with_code (codes)",
             Box::new(move |c| ok(cond.value_and_grad_with_code(p_, c))),
         ),
-        Case {
-            what: "Mlp as candle_nn::Module::forward".into(),
-            arg: "xs",
-            good: good_points(),
-            bad: bad_points(),
-            call: Box::new(move |xs| {
-                Module::forward(plain, xs)
-                    .map(|_| ())
-                    .map_err(|e| e.to_string())
-            }),
-        },
         Case {
             what: "Conditioned::value_on_rays (rays)".into(),
             arg: "rays",
@@ -408,6 +391,48 @@ fn mlp_and_conditioned_reject_bad_points_codes_and_rays_naming_them() {
             "Conditioned::value_on_rays (points)",
             Box::new(move |x| ok(per_ray.value_on_rays(x, r_))),
         ),
+    ];
+    run(cases);
+}
+
+#[test]
+fn rays_new_rejects_bad_origins_and_directions_naming_them() {
+    use neural_fields::camera::Rays;
+    let dirs = || Tensor::new(&[[0.0f64, 0.0, 1.0]; N], &Device::Cpu).unwrap();
+    let with = |row: [f64; 3]| {
+        let mut v = [[0.3f64, 0.1, 1.0]; N];
+        v[N - 1] = row;
+        Tensor::from_vec(v.concat(), (N, 3), &Device::Cpu).unwrap()
+    };
+    let cases = vec![
+        Case {
+            what: "Rays::new (origins)".into(),
+            arg: "origins",
+            good: good_points(),
+            bad: [
+                bad_points(),
+                vec![with([f64::NAN, 0.0, 0.0]), with([0.0, f64::INFINITY, 0.0])],
+            ]
+            .concat(),
+            call: Box::new(move |o| ok(Rays::new(o.clone(), dirs()))),
+        },
+        Case {
+            what: "Rays::new (directions)".into(),
+            arg: "directions",
+            good: with([0.0, 0.0, -1.0]),
+            bad: [
+                bad_points(),
+                vec![
+                    with([f64::NAN, 0.0, 1.0]),
+                    with([0.0, 0.0, f64::NEG_INFINITY]),
+                    with([0.0, 0.0, 0.0]),
+                    t(&[N - 1, 3], DType::F64),
+                    t(&[N, 3], DType::F32),
+                ],
+            ]
+            .concat(),
+            call: Box::new(move |d| ok(Rays::new(good_points(), d.clone()))),
+        },
     ];
     run(cases);
 }

@@ -43,6 +43,23 @@ fn arg_of<T: std::fmt::Debug>(r: Result<T, Error>) -> &'static str {
     }
 }
 
+/// Validated rays from `[N, 3]` origin and direction rows.
+fn rays_of(o: &[[f64; 3]], d: &[[f64; 3]], dtype: DType) -> Rays {
+    Rays::new(rows(o, dtype), rows(d, dtype)).unwrap()
+}
+
+/// Rays whose origins and directions are the variables themselves (gradients reach them).
+fn var_rays(o: &Var, d: &Var) -> Rays {
+    Rays::new(o.as_tensor().clone(), d.as_tensor().clone()).unwrap()
+}
+
+/// Camera-space directions of pixel coordinates: the ray directions of a camera with the
+/// identity pose (`Intrinsics::camera_directions` is crate-private).
+fn camera_dirs(i: Intrinsics, px: &Tensor, conv: Convention) -> neural_fields::Result<Tensor> {
+    let cam = Camera::new(i, DAffine3::IDENTITY, conv)?;
+    Ok(cam.rays_for_pixels(px)?.directions().clone())
+}
+
 fn intr() -> Intrinsics {
     Intrinsics::new(50.0, 40.0, 32.0, 24.0, 64, 48).unwrap()
 }
@@ -74,7 +91,7 @@ fn principal_point_ray_is_the_optical_axis_in_both_conventions() {
                 .unwrap()
                 .to_dtype(dtype)
                 .unwrap();
-            let dc = v2(&i.camera_directions(&px, conv).unwrap())[0].clone();
+            let dc = v2(&camera_dirs(i, &px, conv).unwrap())[0].clone();
             let z = if conv == Convention::OpenCv {
                 1.0
             } else {
@@ -84,8 +101,8 @@ fn principal_point_ray_is_the_optical_axis_in_both_conventions() {
             let cam = Camera::new(i, pose, conv).unwrap();
             let rays = cam.rays_for_pixels(&px).unwrap();
             let axis = pose.matrix3.z_axis * z;
-            let d = &v2(&rays.directions)[0];
-            let o = &v2(&rays.origins)[0];
+            let d = &v2(rays.directions())[0];
+            let o = &v2(rays.origins())[0];
             for k in 0..3 {
                 assert!(
                     close(d[k], axis[k], tol(dtype)),
@@ -102,7 +119,7 @@ fn pixel_directions_follow_the_documented_formulas() {
     let i = intr();
     let px = Tensor::new(&[[10.25f64, 3.5], [63.0, 47.75]], &dev()).unwrap();
     for conv in CONVENTIONS {
-        let d = v2(&i.camera_directions(&px, conv).unwrap());
+        let d = v2(&camera_dirs(i, &px, conv).unwrap());
         for (row, p) in d.iter().zip([[10.25, 3.5], [63.0, 47.75]]) {
             let x = (p[0] - i.cx) / i.fx;
             let y = (p[1] - i.cy) / i.fy;
@@ -149,7 +166,7 @@ fn look_at_centre_ray_hits_the_target_and_image_up_is_world_up() {
                 );
             }
             // a pixel in the upper half of the image (smaller row) looks more upwards
-            let d = v2(&rays.directions);
+            let d = v2(rays.directions());
             let up_component = |r: &Vec<f64>| DVec3::new(r[0], r[1], r[2]).normalize().dot(up);
             assert!(up_component(&d[1]) > up_component(&d[0]) + 0.1, "{conv:?}");
         }
@@ -164,7 +181,7 @@ fn rays_cover_all_pixels_row_major() {
         let rays = cam.rays(&dev(), dtype).unwrap();
         assert_eq!(rays.len(), 12);
         assert!(!rays.is_empty());
-        assert_eq!(rays.directions.dtype(), dtype);
+        assert_eq!(rays.directions().dtype(), dtype);
         let grid = v2(&cam.pixel_grid(&dev(), dtype).unwrap());
         assert_eq!(grid.len(), 12);
         for (idx, g) in grid.iter().enumerate() {
@@ -178,10 +195,10 @@ fn rays_cover_all_pixels_row_major() {
                     .unwrap(),
             )
             .unwrap();
-        assert_eq!(v2(&rays.directions)[5], v2(&manual.directions)[0]);
+        assert_eq!(v2(rays.directions())[5], v2(manual.directions())[0]);
         let chunk = rays.narrow(4, 4).unwrap();
         assert_eq!(chunk.len(), 4);
-        assert_eq!(v2(&chunk.directions)[1], v2(&rays.directions)[5]);
+        assert_eq!(v2(chunk.directions())[1], v2(rays.directions())[5]);
     }
 }
 
@@ -205,14 +222,14 @@ fn random_rays_are_seeded_uniform_and_match_the_full_image() {
         assert!((9_600..10_400).contains(&c), "{counts:?}");
     }
     let all = cam.rays(&dev(), DType::F64).unwrap();
-    let picked = all.directions.index_select(&idx, 0).unwrap();
-    assert_eq!(v2(&picked), v2(&rays.directions));
+    let picked = all.directions().index_select(&idx, 0).unwrap();
+    assert_eq!(v2(&picked), v2(rays.directions()));
 }
 
 // ---------------------------------------------------------------- ray–box
 
 fn aabb1(o: [f64; 3], d: [f64; 3], dtype: DType) -> Intersection {
-    ray_aabb(&rows(&[o], dtype), &rows(&[d], dtype), [-1.0; 3], [1.0; 3]).unwrap()
+    ray_aabb(&rays_of(&[o], &[d], dtype), [-1.0; 3], [1.0; 3]).unwrap()
 }
 
 fn nfh(x: &Intersection) -> (f64, f64, u8) {
@@ -302,70 +319,85 @@ fn aabb_tiny_directions_are_scale_invariant() {
 
 #[test]
 fn aabb_parameter_overflow_is_an_error_not_infinity() {
-    let r = ray_aabb(
-        &rows(&[[-2.0, 0.0, 0.0]], DType::F32),
-        &rows(&[[1e-40, 0.0, 0.0]], DType::F32),
-        [-1.0; 3],
-        [1.0; 3],
-    );
+    let rays = rays_of(&[[-2.0, 0.0, 0.0]], &[[1e-40, 0.0, 0.0]], DType::F32);
+    let r = ray_aabb(&rays, [-1.0; 3], [1.0; 3]);
     assert_eq!(arg_of(r), "directions");
 }
 
+/// A zero direction used to be rejected by `ray_aabb`, `ray_sphere` and
+/// `Rays::normalized` separately; `Rays::new` now rejects it once, before any of them can
+/// see it, and the batch without it goes through all three.
 #[test]
-fn zero_direction_is_an_error() {
+fn zero_direction_is_rejected_by_rays_new() {
     for dtype in DTYPES {
         let o = rows(&[[0.0, 0.0, -3.0], [0.0, 0.0, -3.0]], dtype);
         let d = rows(&[[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]], dtype);
-        assert_eq!(arg_of(ray_aabb(&o, &d, [-1.0; 3], [1.0; 3])), "directions");
-        assert_eq!(arg_of(ray_sphere(&o, &d, [0.0; 3], 1.0)), "directions");
-        let rays = Rays::new(o, d).unwrap();
-        assert_eq!(arg_of(rays.normalized()), "directions");
+        assert_eq!(arg_of(Rays::new(o.clone(), d.clone())), "directions");
+        // the zero row first in the batch, and alone
+        let zero_first = rows(&[[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype);
+        assert_eq!(arg_of(Rays::new(o.clone(), zero_first)), "directions");
+        assert_eq!(
+            arg_of(Rays::new(
+                o.narrow(0, 1, 1).unwrap(),
+                d.narrow(0, 1, 1).unwrap()
+            )),
+            "directions"
+        );
+        let good = Rays::new(o.narrow(0, 0, 1).unwrap(), d.narrow(0, 0, 1).unwrap()).unwrap();
+        assert_eq!(
+            mask(&ray_aabb(&good, [-1.0; 3], [1.0; 3]).unwrap().hit),
+            vec![1]
+        );
+        assert_eq!(
+            mask(&ray_sphere(&good, [0.0; 3], 1.0).unwrap().hit),
+            vec![1]
+        );
+        assert_eq!(
+            v2(good.normalized().unwrap().directions()),
+            vec![vec![0.0, 0.0, 1.0]]
+        );
     }
 }
 
+/// Non-finite origins or directions used to be rejected by `ray_aabb` and `ray_sphere`;
+/// `Rays::new` now rejects them once, naming the same argument.
 #[test]
-fn nan_or_infinite_inputs_are_errors() {
+fn nan_or_infinite_inputs_are_rejected_by_rays_new() {
     for dtype in DTYPES {
         let good = rows(&[[0.0, 0.0, 1.0]], dtype);
-        for bad in [f64::NAN, f64::INFINITY] {
+        for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
             let b = rows(&[[0.0, bad, 1.0]], dtype);
-            assert_eq!(arg_of(ray_aabb(&b, &good, [-1.0; 3], [1.0; 3])), "origins");
-            assert_eq!(arg_of(ray_sphere(&b, &good, [0.0; 3], 1.0)), "origins");
-            assert_eq!(
-                arg_of(ray_aabb(&good, &b, [-1.0; 3], [1.0; 3])),
-                "directions"
-            );
-            assert_eq!(arg_of(ray_sphere(&good, &b, [0.0; 3], 1.0)), "directions");
+            assert_eq!(arg_of(Rays::new(b.clone(), good.clone())), "origins");
+            assert_eq!(arg_of(Rays::new(good.clone(), b.clone())), "directions");
+            // both bad: origins are checked first
+            assert_eq!(arg_of(Rays::new(b.clone(), b.clone())), "origins");
         }
+        // the finite pair is accepted and intersects
+        let rays = Rays::new(good.clone(), good).unwrap();
+        assert!(ray_aabb(&rays, [-1.0; 3], [1.0; 3]).is_ok());
+        assert!(ray_sphere(&rays, [0.0; 3], 1.0).is_ok());
     }
 }
 
 #[test]
 fn bad_box_and_sphere_parameters_are_errors() {
-    let o = rows(&[[0.0, 0.0, -3.0]], DType::F64);
-    let d = rows(&[[0.0, 0.0, 1.0]], DType::F64);
-    assert_eq!(arg_of(ray_aabb(&o, &d, [0.0, 2.0, 0.0], [1.0; 3])), "max");
+    let r = rays_of(&[[0.0, 0.0, -3.0]], &[[0.0, 0.0, 1.0]], DType::F64);
+    assert_eq!(arg_of(ray_aabb(&r, [0.0, 2.0, 0.0], [1.0; 3])), "max");
+    assert_eq!(arg_of(ray_aabb(&r, [f64::NAN, 0.0, 0.0], [1.0; 3])), "min");
     assert_eq!(
-        arg_of(ray_aabb(&o, &d, [f64::NAN, 0.0, 0.0], [1.0; 3])),
-        "min"
-    );
-    assert_eq!(
-        arg_of(ray_aabb(&o, &d, [0.0; 3], [f64::INFINITY, 1.0, 1.0])),
+        arg_of(ray_aabb(&r, [0.0; 3], [f64::INFINITY, 1.0, 1.0])),
         "max"
     );
-    assert_eq!(arg_of(ray_sphere(&o, &d, [0.0; 3], 0.0)), "radius");
-    assert_eq!(arg_of(ray_sphere(&o, &d, [0.0; 3], -1.0)), "radius");
-    assert_eq!(arg_of(ray_sphere(&o, &d, [0.0; 3], f64::NAN)), "radius");
-    assert_eq!(
-        arg_of(ray_sphere(&o, &d, [0.0, f64::NAN, 0.0], 1.0)),
-        "center"
-    );
+    assert_eq!(arg_of(ray_sphere(&r, [0.0; 3], 0.0)), "radius");
+    assert_eq!(arg_of(ray_sphere(&r, [0.0; 3], -1.0)), "radius");
+    assert_eq!(arg_of(ray_sphere(&r, [0.0; 3], f64::NAN)), "radius");
+    assert_eq!(arg_of(ray_sphere(&r, [0.0, f64::NAN, 0.0], 1.0)), "center");
 }
 
 // ---------------------------------------------------------------- ray–sphere
 
 fn sphere1(o: [f64; 3], d: [f64; 3], dtype: DType) -> (f64, f64, u8) {
-    nfh(&ray_sphere(&rows(&[o], dtype), &rows(&[d], dtype), [1.0, 2.0, 3.0], 1.0).unwrap())
+    nfh(&ray_sphere(&rays_of(&[o], &[d], dtype), [1.0, 2.0, 3.0], 1.0).unwrap())
 }
 
 fn shift(p: [f64; 3]) -> [f64; 3] {
@@ -475,9 +507,10 @@ fn missed_parallel_and_tangent_rays_have_finite_gradients() {
         &dev(),
     )
     .unwrap();
+    let rays = var_rays(&o, &d);
     for x in [
-        ray_sphere(&o, &d, [0.0; 3], 1.0).unwrap(),
-        ray_aabb(&o, &d, [-1.0; 3], [1.0; 3]).unwrap(),
+        ray_sphere(&rays, [0.0; 3], 1.0).unwrap(),
+        ray_aabb(&rays, [-1.0; 3], [1.0; 3]).unwrap(),
     ] {
         let (go, gd) = grads_of(&x, &o, &d, 1.0, 1.0);
         for g in go.iter().chain(&gd).flatten() {
@@ -487,11 +520,11 @@ fn missed_parallel_and_tangent_rays_have_finite_gradients() {
 }
 
 fn near_far_f64(o: [f64; 3], d: [f64; 3], sphere: bool) -> (f64, f64) {
-    let (ot, dt) = (rows(&[o], DType::F64), rows(&[d], DType::F64));
+    let rays = rays_of(&[o], &[d], DType::F64);
     let x = if sphere {
-        ray_sphere(&ot, &dt, [0.1, -0.2, 0.3], 0.9).unwrap()
+        ray_sphere(&rays, [0.1, -0.2, 0.3], 0.9).unwrap()
     } else {
-        ray_aabb(&ot, &dt, [-0.5, -0.7, -0.6], [0.8, 0.5, 0.4]).unwrap()
+        ray_aabb(&rays, [-0.5, -0.7, -0.6], [0.8, 0.5, 0.4]).unwrap()
     };
     let (n, f, h) = nfh(&x);
     assert_eq!(h, 1);
@@ -504,10 +537,11 @@ fn check_fd(o: [f64; 3], d: [f64; 3], sphere: bool) -> Result<(), TestCaseError>
     let (wn, wf) = (0.7, -1.3);
     let ov = Var::new(&[o], &dev()).unwrap();
     let dv = Var::new(&[d], &dev()).unwrap();
+    let rays = var_rays(&ov, &dv);
     let x = if sphere {
-        ray_sphere(&ov, &dv, [0.1, -0.2, 0.3], 0.9).unwrap()
+        ray_sphere(&rays, [0.1, -0.2, 0.3], 0.9).unwrap()
     } else {
-        ray_aabb(&ov, &dv, [-0.5, -0.7, -0.6], [0.8, 0.5, 0.4]).unwrap()
+        ray_aabb(&rays, [-0.5, -0.7, -0.6], [0.8, 0.5, 0.4]).unwrap()
     };
     prop_assume!(mask(&x.hit)[0] == 1);
     let (go, gd) = grads_of(&x, &ov, &dv, wn, wf);
@@ -609,7 +643,10 @@ fn pose_param_round_trips_and_matches_camera_rays() {
         for conv in CONVENTIONS {
             let cam = Camera::new(intr(), pose, conv).unwrap();
             let p = cam.pose_param(&dev(), dtype).unwrap();
-            assert_eq!(p.vars().len(), 2);
+            // the optimiser's variables (`PoseParam::vars()` is gone: the fields are public)
+            assert_eq!(p.rotation.dims(), [4]);
+            assert_eq!(p.translation.dims(), [3]);
+            assert_eq!((p.rotation.dtype(), p.translation.dtype()), (dtype, dtype));
             let back = p.to_affine().unwrap();
             assert!(back.abs_diff_eq(pose, 10.0 * tol(dtype)), "{back:?}");
             let px = Tensor::new(&[[0.5f64, 0.5], [40.0, 7.25]], &dev())
@@ -618,14 +655,14 @@ fn pose_param_round_trips_and_matches_camera_rays() {
                 .unwrap();
             let a = cam.rays_for_pixels(&px).unwrap();
             let b = p.rays(cam.intrinsics(), conv, &px).unwrap();
-            for (x, y) in v2(&a.directions)
+            for (x, y) in v2(a.directions())
                 .iter()
                 .flatten()
-                .zip(v2(&b.directions).iter().flatten())
+                .zip(v2(b.directions()).iter().flatten())
             {
                 assert!(close(*x, *y, 10.0 * tol(dtype)));
             }
-            assert_eq!(v2(&a.origins), v2(&b.origins));
+            assert_eq!(v2(a.origins()), v2(b.origins()));
         }
     }
 }
@@ -817,14 +854,16 @@ fn degenerate_cameras_are_errors() {
 // ---------------------------------------------------------------- argument validation
 
 #[test]
-fn camera_directions_rejects_bad_pixels() {
+fn camera_rays_reject_bad_pixels() {
     let i = intr();
     let bad_shape = Tensor::zeros((4, 3), DType::F32, &dev()).unwrap();
     let bad_rank = Tensor::zeros(4, DType::F32, &dev()).unwrap();
     let bad_dtype = Tensor::zeros((4, 2), DType::U32, &dev()).unwrap();
     let nan = Tensor::new(&[[f32::NAN, 0.0]], &dev()).unwrap();
-    for t in [&bad_shape, &bad_rank, &bad_dtype, &nan] {
-        assert_eq!(arg_of(i.camera_directions(t, Convention::OpenCv)), "pixels");
+    for conv in CONVENTIONS {
+        for t in [&bad_shape, &bad_rank, &bad_dtype, &nan] {
+            assert_eq!(arg_of(camera_dirs(i, t, conv)), "pixels");
+        }
     }
     let cam = Camera::look_at(i, DVec3::ZERO, DVec3::Z, DVec3::Y, Convention::OpenCv).unwrap();
     for t in [&bad_shape, &bad_rank, &bad_dtype, &nan] {
@@ -861,10 +900,13 @@ fn rays_new_rejects_bad_origins_and_directions() {
 
 type Intersect = fn(&Tensor, &Tensor) -> neural_fields::Result<Intersection>;
 
+/// Wrong shapes and dtypes of the rays used to be rejected by `ray_aabb` and `ray_sphere`
+/// themselves; they now take validated `Rays`, so the error comes from `Rays::new` on the
+/// way in, naming the same argument.
 #[test]
-fn intersections_reject_bad_shapes_and_dtypes() {
-    let aabb: Intersect = |o, d| ray_aabb(o, d, [-1.0; 3], [1.0; 3]);
-    let sphere: Intersect = |o, d| ray_sphere(o, d, [0.0; 3], 1.0);
+fn intersection_inputs_with_bad_shapes_and_dtypes_are_rejected() {
+    let aabb: Intersect = |o, d| ray_aabb(&Rays::new(o.clone(), d.clone())?, [-1.0; 3], [1.0; 3]);
+    let sphere: Intersect = |o, d| ray_sphere(&Rays::new(o.clone(), d.clone())?, [0.0; 3], 1.0);
     let ok = rows(&[[0.0, 0.0, -3.0], [0.0, 0.0, -3.0]], DType::F32);
     let ok64 = rows(&[[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]], DType::F64);
     let dir = rows(&[[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]], DType::F32);
@@ -879,6 +921,34 @@ fn intersections_reject_bad_shapes_and_dtypes() {
         assert_eq!(arg_of(f(&ok, &ints)), "directions");
         assert_eq!(arg_of(f(&ok, &short)), "directions");
         assert_eq!(arg_of(f(&ok, &ok64)), "directions");
+    }
+}
+
+#[test]
+fn intersection_new_marks_every_ray_hit_and_rejects_far_below_near() {
+    for dtype in DTYPES {
+        let t = |v: &[f64]| Tensor::new(v, &dev()).unwrap().to_dtype(dtype).unwrap();
+        // near = far is an empty range, allowed
+        let x = Intersection::new(t(&[0.0, 1.0, 2.0]), t(&[3.0, 1.0, 2.5])).unwrap();
+        assert_eq!(mask(&x.hit), vec![1, 1, 1]);
+        assert_eq!(v64(&x.near), vec![0.0, 1.0, 2.0]);
+        assert_eq!(v64(&x.far), vec![3.0, 1.0, 2.5]);
+        assert_eq!(x.near.dtype(), dtype);
+        let empty = Intersection::new(t(&[]), t(&[])).unwrap();
+        assert_eq!(empty.hit.dims(), [0]);
+        assert_eq!(
+            arg_of(Intersection::new(t(&[0.0, 1.0]), t(&[1.0, 0.5]))),
+            "far"
+        );
+        assert_eq!(
+            arg_of(Intersection::new(t(&[0.0, f64::NAN]), t(&[1.0, 1.0]))),
+            "near"
+        );
+        assert_eq!(
+            arg_of(Intersection::new(t(&[0.0, 0.0]), t(&[1.0, f64::INFINITY]))),
+            "far"
+        );
+        assert_eq!(arg_of(Intersection::new(t(&[0.0]), t(&[1.0, 1.0]))), "far");
     }
 }
 
@@ -910,7 +980,7 @@ fn rays_methods_reject_bad_arguments() {
         .at(&Tensor::new(&[2.0f32, 0.5], &dev()).unwrap())
         .unwrap());
     assert_eq!(p, vec![vec![0.0, 0.0, 2.0], vec![1.0, 1.0, 0.0]]);
-    let n = v2(&rays.normalized().unwrap().directions);
+    let n = v2(rays.normalized().unwrap().directions());
     assert_eq!(n, vec![vec![0.0, 0.0, 1.0], vec![0.0, 1.0, 0.0]]);
 }
 
@@ -988,10 +1058,11 @@ fn stiff_batches_give_finite_values_and_gradients_and_f32_agrees_with_f64() {
         let ov = Var::from_tensor(&rows(&o, dtype)).unwrap();
         let dv = Var::from_tensor(&rows(&d, dtype)).unwrap();
         for sphere in [false, true] {
+            let rays = var_rays(&ov, &dv);
             let x = if sphere {
-                ray_sphere(&ov, &dv, [0.0; 3], 0.5).unwrap()
+                ray_sphere(&rays, [0.0; 3], 0.5).unwrap()
             } else {
-                ray_aabb(&ov, &dv, [-0.5; 3], [0.5; 3]).unwrap()
+                ray_aabb(&rays, [-0.5; 3], [0.5; 3]).unwrap()
             };
             let (go, gd) = grads_of(&x, &ov, &dv, 1.0, 1.0);
             for g in go.iter().chain(&gd).flatten() {
@@ -1047,7 +1118,7 @@ fn normalized_and_camera_directions_gradients_match_finite_differences() {
                 .unwrap()
                 .normalized()
                 .unwrap();
-            (r.directions * &w).unwrap().sum_all().unwrap()
+            (r.directions() * &w).unwrap().sum_all().unwrap()
         };
         let g = v2(f(&dv).backward().unwrap().get(&dv).unwrap())[0].clone();
         let h = 1e-6 * d0.iter().fold(0.0f64, |a, b| a.max(b.abs()));
@@ -1070,7 +1141,7 @@ fn normalized_and_camera_directions_gradients_match_finite_differences() {
     let i = intr();
     for (conv, sy) in [(Convention::OpenCv, 1.0), (Convention::OpenGl, -1.0)] {
         let px = Var::new(&[[3.0f64, 4.0]], &dev()).unwrap();
-        let d = i.camera_directions(&px, conv).unwrap();
+        let d = camera_dirs(i, &px, conv).unwrap();
         let g = v2(d.sum_all().unwrap().backward().unwrap().get(&px).unwrap());
         assert!(
             close(g[0][0], 1.0 / i.fx, 1e-15) && close(g[0][1], sy / i.fy, 1e-15),

@@ -21,27 +21,27 @@
 //! `-- --nocapture` for the largest error of every comparison.
 #![cfg(feature = "cuda")]
 
+mod common;
+
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarMap;
-use glam::DVec3;
-use neural_fields::camera::{ray_aabb, ray_sphere, Camera, Convention, Intrinsics, Rays};
+use common::v64;
+use neural_fields::camera::{
+    ray_aabb, ray_sphere, Camera, Convention, Intersection, Intrinsics, Rays,
+};
 use neural_fields::dvr::{
-    implicit_surface, march, march_bounded, sphere_trace, ImplicitConfig, MarchConfig,
-    SphereTraceConfig,
+    implicit_surface, march, sphere_trace, ImplicitConfig, MarchConfig, SphereTraceConfig,
 };
 use neural_fields::encoding::PointEncoding;
 use neural_fields::encoding::{integrated_pe, Encoding, FourierFeatures, FrequencyEncoding};
 use neural_fields::field::{Cuboid, ImplicitSurface, Inside, Plane, SignedDistance, Sphere, Torus};
+use neural_fields::glam::DVec3;
 use neural_fields::nn::{build_seeded, mlp, Activation, MlpConfig};
 use neural_fields::occupancy::{marching_cubes, mise, Grid, MiseConfig};
 use neural_fields::rng::SplitMix64;
-use neural_fields::volume::composite::{
-    composite, composite_packed, composite_packed_reference, composite_reference, render_weights,
-    visible_mask, CompositeOptions, Packed, WeightOptions,
-};
-use neural_fields::volume::regularizers::distortion_loss;
-use neural_fields::volume::sampling::{
-    anneal_near_far, merge_sorted, sample_pdf, step_cdf, stratified, Intervals, Jitter,
+use neural_fields::volume::{
+    anneal_near_far, composite, distortion_loss, merge_sorted, render_weights, sample_pdf,
+    step_cdf, stratified, visible_mask, CompositeConfig, Intervals, Jitter, Packed,
     ANNEAL_MID_RATIO, ANNEAL_P_START, PDF_PADDING,
 };
 use neural_fields::Result;
@@ -68,14 +68,6 @@ enum Out {
 }
 
 type Outs = Vec<(String, Out)>;
-
-fn host(t: &Tensor) -> Result<Vec<f64>> {
-    Ok(t.detach()
-        .to_device(&Device::Cpu)?
-        .to_dtype(DType::F64)?
-        .flatten_all()?
-        .to_vec1::<f64>()?)
-}
 
 fn rel_tol(dtype: DType) -> f64 {
     if dtype == DType::F32 {
@@ -154,10 +146,7 @@ fn compare_out(
                     b.dtype()
                 ));
             }
-            let (va, vb) = (
-                host(a).map_err(|e| e.to_string())?,
-                host(b).map_err(|e| e.to_string())?,
-            );
+            let (va, vb) = (v64(a), v64(b));
             let (tol, relative) = match gpu {
                 Out::Abs(_, t32, t64) => (if dtype == DType::F32 { *t32 } else { *t64 }, false),
                 Out::Rel(_, t32, t64) => (if dtype == DType::F32 { *t32 } else { *t64 }, true),
@@ -258,7 +247,7 @@ fn uniform(
 /// The gradient of `var` in `grads` (an error if there is none).
 fn grad(grads: &candle_core::backprop::GradStore, var: &Var, what: &str) -> Result<Out> {
     grads.get(var).map(|g| Out::T(g.clone())).ok_or_else(|| {
-        neural_fields::Error::invalid("grads", format!("a gradient for {what}"), "none")
+        candle_core::Error::Msg(format!("grads: expected a gradient for {what}, got none")).into()
     })
 }
 
@@ -274,41 +263,49 @@ fn composite_case(dev: &Device, dtype: DType) -> Result<Outs> {
     let (r, s, c) = (48, 40, 3);
     let mut rng = SplitMix64::new(11);
     let cpu = Device::Cpu;
-    // Densities with exact zeros (relu of a shifted uniform), short intervals.
+    // Densities with exact zeros (relu of a shifted uniform), short intervals from t = 2.
     let sig = rng
         .uniform_tensor(&[r, s], -1.0, 6.0, dtype, &cpu)?
         .relu()?;
     let del = rng.uniform_tensor(&[r, s], 0.01, 0.08, dtype, &cpu)?;
-    let t_mids = (del.cumsum(1)? + 2.0)?;
+    let (st_h, en_h) = common::intervals::starts_ends(&v64(&del), &vec![s; r]);
+    let from_host = |v: Vec<f64>| -> Result<Var> {
+        let t = Tensor::from_vec(v, (r, s), &cpu)?.affine(1.0, 2.0)?;
+        Ok(Var::from_tensor(&t.to_dtype(dtype)?.to_device(dev)?)?)
+    };
+    let (starts, ends) = (from_host(st_h)?, from_host(en_h)?);
+    let iv = Intervals::new(starts.as_tensor().clone(), ends.as_tensor().clone())?;
     let col = rng.uniform_tensor(&[r, s, c], 0.0, 1.0, dtype, &cpu)?;
     let bg = rng.uniform_tensor(&[c], 0.0, 1.0, dtype, &cpu)?;
+    // Directions of norms in [0.5, 2) (δ scaled per ray).
+    let dirs = rng.uniform_tensor(&[r, 3], 0.3, 1.1, dtype, &cpu)?;
     let sig = Var::from_tensor(&sig.to_device(dev)?)?;
-    let del = Var::from_tensor(&del.to_device(dev)?)?;
     let col = Var::from_tensor(&col.to_device(dev)?)?;
     let bg = Var::from_tensor(&bg.to_device(dev)?)?;
-    let t_mids = t_mids.to_device(dev)?;
-    let opts = CompositeOptions {
+    let dirs = Var::from_tensor(&dirs.to_device(dev)?)?;
+    let rays = Rays::new(Tensor::zeros((r, 3), dtype, dev)?, dirs.as_tensor().clone())?;
+    let cfg = CompositeConfig {
         opaque_last: false,
         background: Some(bg.as_tensor().clone()),
+        force_reference: false,
+    };
+    let reference = CompositeConfig {
+        force_reference: true,
+        ..cfg.clone()
     };
     let mut out: Outs = Vec::new();
 
     // `composite` is the fused kernel on the CPU and the reference path on CUDA, so its
-    // comparison is CUDA reference against CPU fused; `composite_reference` is the
+    // comparison is CUDA reference against CPU fused; `force_reference` runs the
     // reference path on both.
-    type CompositeFn = fn(
-        &Tensor,
-        &Tensor,
-        &Tensor,
-        &Tensor,
-        &CompositeOptions,
-    ) -> Result<neural_fields::volume::composite::Composite>;
-    for (label, f) in [
-        ("composite", composite as CompositeFn),
-        ("composite_reference", composite_reference),
+    for (label, config, with_rays) in [
+        ("composite", &cfg, false),
+        ("composite_reference", &reference, false),
+        ("composite_rays", &cfg, true),
+        ("composite_rays_reference", &reference, true),
     ] {
         let mut up = SplitMix64::new(5);
-        let res = f(&sig, &col, &del, &t_mids, &opts)?;
+        let res = composite(&sig, &col, &iv, with_rays.then_some(&rays), config)?;
         let loss = ((probe(&res.color, &mut up)? + probe(&res.opacity, &mut up)?)?
             + probe(&res.depth, &mut up)?)?;
         let g = loss.backward()?;
@@ -320,15 +317,26 @@ fn composite_case(dev: &Device, dtype: DType) -> Result<Outs> {
             Out::T(res.normalized_depth(1e-3)?),
         ));
         out.push((format!("{label}.d/dsigmas"), grad(&g, &sig, "sigmas")?));
-        out.push((format!("{label}.d/ddeltas"), grad(&g, &del, "deltas")?));
+        out.push((format!("{label}.d/dstarts"), grad(&g, &starts, "starts")?));
+        out.push((format!("{label}.d/dends"), grad(&g, &ends, "ends")?));
         out.push((format!("{label}.d/dcolors"), grad(&g, &col, "colors")?));
         out.push((
             format!("{label}.d/dbackground"),
             grad(&g, &bg, "background")?,
         ));
+        if with_rays {
+            out.push((
+                format!("{label}.d/ddirections"),
+                grad(&g, &dirs, "directions")?,
+            ));
+        }
     }
     // Render weights, opaque last interval.
-    let w = render_weights(&sig, &del, &WeightOptions { opaque_last: true })?;
+    let opaque = CompositeConfig {
+        opaque_last: true,
+        ..CompositeConfig::default()
+    };
+    let w = render_weights(&sig, &iv, None, &opaque)?;
     let mut up = SplitMix64::new(6);
     let g = probe(&w.weights, &mut up)?.backward()?;
     out.push(("render_weights.weights".into(), Out::T(w.weights.clone())));
@@ -338,38 +346,40 @@ fn composite_case(dev: &Device, dtype: DType) -> Result<Outs> {
     ));
     out.push(("render_weights.alphas".into(), Out::T(w.alphas.clone())));
     out.push(("render_weights.d/dsigmas".into(), grad(&g, &sig, "sigmas")?));
-    out.push(("render_weights.d/ddeltas".into(), grad(&g, &del, "deltas")?));
+    out.push((
+        "render_weights.d/dstarts".into(),
+        grad(&g, &starts, "starts")?,
+    ));
+    out.push(("render_weights.d/dends".into(), grad(&g, &ends, "ends")?));
 
     // Early termination and the packed layout.
-    let mask = visible_mask(&sig, &del, 1e-3)?;
+    let mask = visible_mask(&sig, &iv, None, 1e-3)?;
     out.push(("visible_mask".into(), Out::T(mask.clone())));
     let (packed, idx) = Packed::from_mask(&mask)?;
     out.push(("packed.offsets".into(), Out::T(packed.offsets.clone())));
     let m = packed.n_samples();
     let ps = sig.as_tensor().flatten_all()?.index_select(&idx, 0)?;
-    let pd = del.as_tensor().flatten_all()?.index_select(&idx, 0)?;
-    let pt = t_mids.flatten_all()?.index_select(&idx, 0)?;
+    let pst = starts.as_tensor().flatten_all()?.index_select(&idx, 0)?;
+    let pen = ends.as_tensor().flatten_all()?.index_select(&idx, 0)?;
     let pc = col.as_tensor().reshape((r * s, c))?.index_select(&idx, 0)?;
+    let piv = Intervals::new_packed(pst, pen, packed.clone())?;
     let ps = Var::from_tensor(&ps)?;
     let pc = Var::from_tensor(&pc)?;
-    let popts = CompositeOptions {
+    let pcfg = CompositeConfig {
         opaque_last: true,
         background: Some(bg.as_tensor().clone()),
+        force_reference: false,
     };
-    type PackedFn = fn(
-        &Tensor,
-        &Tensor,
-        &Tensor,
-        &Tensor,
-        &Packed,
-        &CompositeOptions,
-    ) -> Result<neural_fields::volume::composite::Composite>;
-    for (label, f) in [
-        ("composite_packed", composite_packed as PackedFn),
-        ("composite_packed_reference", composite_packed_reference),
+    let preference = CompositeConfig {
+        force_reference: true,
+        ..pcfg.clone()
+    };
+    for (label, config) in [
+        ("composite_packed", &pcfg),
+        ("composite_packed_reference", &preference),
     ] {
         let mut up = SplitMix64::new(7);
-        let res = f(&ps, &pc, &pd, &pt, &packed, &popts)?;
+        let res = composite(&ps, &pc, &piv, None, config)?;
         let loss = ((probe(&res.color, &mut up)? + probe(&res.opacity, &mut up)?)?
             + probe(&res.depth, &mut up)?)?;
         let g = loss.backward()?;
@@ -387,11 +397,8 @@ fn composite_case(dev: &Device, dtype: DType) -> Result<Outs> {
     }
     out.push(("packed.n_samples".into(), Out::Eq(format!("{m}"))));
 
-    // Distortion loss on intervals around the midpoints.
-    let half = (del.as_tensor() * 0.5)?;
-    let starts = (&t_mids - &half)?;
-    let ends = (&t_mids + &half)?;
-    let dl = distortion_loss(&w.weights, &starts, &ends)?;
+    // Distortion loss on the same intervals.
+    let dl = distortion_loss(&w.weights, &iv)?;
     let g = dl.sum_all()?.backward()?;
     out.push(("distortion_loss".into(), Out::T(dl)));
     out.push((
@@ -409,6 +416,7 @@ fn sampling_case(dev: &Device, dtype: DType) -> Result<Outs> {
     let near = Var::from_tensor(&near_h.to_device(dev)?)?;
     let far = Var::from_tensor(&far_h.to_device(dev)?)?;
     let dirs = uniform(&mut rng, &[r, 3], -1.0, 1.0, dtype, dev)?;
+    let rays = Rays::new(Tensor::zeros((r, 3), dtype, dev)?, dirs)?;
     let mut out: Outs = Vec::new();
     for (label, jitter) in [
         ("none", Jitter::None),
@@ -432,19 +440,23 @@ fn sampling_case(dev: &Device, dtype: DType) -> Result<Outs> {
     }
     let iv = stratified(&near, &far, 32, Jitter::PerSample, 10)?;
     let mids = iv.midpoints()?;
-    let deltas = iv.deltas(Some(&dirs))?;
-    let edges = iv.edges()?;
+    let deltas = iv.deltas(Some(&rays))?;
     out.push(("midpoints".into(), Out::T(mids.clone())));
     out.push(("deltas".into(), Out::T(deltas.clone())));
-    out.push(("edges".into(), Out::T(edges.clone())));
+    // The bins of `sample_pdf` (0.1's `edges`): the starts and the last end.
+    out.push(("intervals.starts".into(), Out::T(iv.starts.clone())));
+    out.push(("intervals.ends".into(), Out::T(iv.ends.clone())));
+    out.push(("positions".into(), Out::T(iv.positions(&rays)?)));
     let sig = rng
         .uniform_tensor(&[r, 32], -2.0, 8.0, dtype, &Device::Cpu)?
         .relu()?
         .to_device(dev)?;
-    let w = render_weights(&sig, &deltas.detach(), &WeightOptions::default())?.weights;
+    let w = render_weights(&sig, &iv, Some(&rays), &CompositeConfig::default())?
+        .weights
+        .detach();
     out.push(("step_cdf".into(), Out::T(step_cdf(&w, PDF_PADDING)?)));
     for (label, det) in [("deterministic", true), ("random", false)] {
-        let fine = sample_pdf(&edges, &w, 48, det, 4, PDF_PADDING)?;
+        let fine = sample_pdf(&iv, &w, 48, det, 4, PDF_PADDING)?;
         out.push((format!("sample_pdf.{label}"), Out::T(fine.clone())));
         let merged = merge_sorted(&mids, &fine)?;
         out.push((format!("merge_sorted.{label}"), Out::T(merged.clone())));
@@ -551,7 +563,9 @@ fn encoding_case(dev: &Device, dtype: DType) -> Result<Outs> {
     let mut out: Outs = Vec::new();
     let freq = FrequencyEncoding::new(3, 10)?;
     let fourier = FourierFeatures::new(3, 16, 10.0, 5, dev, dtype)?;
-    let plain = FrequencyEncoding::new(3, 8)?.without_pi().without_input();
+    let mut plain = FrequencyEncoding::new(3, 8)?;
+    plain.use_pi = false;
+    plain.include_input = false;
     let encs: [(&str, &dyn Encoding); 3] = [
         ("frequency", &freq),
         ("frequency_no_pi", &plain),
@@ -595,12 +609,12 @@ fn camera_case(dev: &Device, dtype: DType) -> Result<Outs> {
     let rays = cam.rays(dev, dtype)?;
     let (rr, idx) = cv.random_rays(100, 3, dev, dtype)?;
     let mut out: Outs = vec![
-        ("rays.origins".into(), Out::T(rays.origins.clone())),
-        ("rays.directions".into(), Out::T(rays.directions.clone())),
-        ("random_rays.origins".into(), Out::T(rr.origins.clone())),
+        ("rays.origins".into(), Out::T(rays.origins().clone())),
+        ("rays.directions".into(), Out::T(rays.directions().clone())),
+        ("random_rays.origins".into(), Out::T(rr.origins().clone())),
         (
             "random_rays.directions".into(),
-            Out::T(rr.directions.clone()),
+            Out::T(rr.directions().clone()),
         ),
         ("random_rays.pixels".into(), Out::T(idx)),
     ];
@@ -609,19 +623,22 @@ fn camera_case(dev: &Device, dtype: DType) -> Result<Outs> {
     let pixels = cv.pixel_grid(dev, dtype)?;
     let pr = pose.rays(cv.intrinsics(), cv.convention(), &pixels)?;
     let mut up = SplitMix64::new(4);
-    let g = probe(&pr.directions, &mut up)?.backward()?;
-    out.push(("pose.directions".into(), Out::T(pr.directions.clone())));
-    let vars = pose.vars();
-    out.push(("pose.d/drotation".into(), grad(&g, &vars[0], "rotation")?));
+    let g = probe(pr.directions(), &mut up)?.backward()?;
+    out.push(("pose.directions".into(), Out::T(pr.directions().clone())));
+    out.push((
+        "pose.d/drotation".into(),
+        grad(&g, &pose.rotation, "rotation")?,
+    ));
 
-    let o = Var::from_tensor(&rays.origins)?;
-    let d = Var::from_tensor(&rays.directions)?;
+    let o = Var::from_tensor(rays.origins())?;
+    let d = Var::from_tensor(rays.directions())?;
+    let vrays = Rays::new(o.as_tensor().clone(), d.as_tensor().clone())?;
     for (label, hit) in [
         (
             "ray_aabb",
-            ray_aabb(&o, &d, [-1.0, -0.8, -0.9], [1.0, 0.8, 0.9])?,
+            ray_aabb(&vrays, [-1.0, -0.8, -0.9], [1.0, 0.8, 0.9])?,
         ),
-        ("ray_sphere", ray_sphere(&o, &d, [0.1, 0.0, -0.1], 0.9)?),
+        ("ray_sphere", ray_sphere(&vrays, [0.1, 0.0, -0.1], 0.9)?),
     ] {
         let mut up = SplitMix64::new(5);
         let g = (probe(&hit.near, &mut up)? + probe(&hit.far, &mut up)?)?.backward()?;
@@ -709,18 +726,18 @@ fn dvr_case(dev: &Device, dtype: DType) -> Result<Outs> {
         Convention::OpenGl,
     )?;
     let rays = cam.rays(dev, dtype)?;
-    let o = Var::from_tensor(&rays.origins)?;
-    let d = Var::from_tensor(&rays.directions)?;
+    let o = Var::from_tensor(rays.origins())?;
+    let d = Var::from_tensor(rays.directions())?;
     let rays = Rays::new(o.as_tensor().clone(), d.as_tensor().clone())?;
     let bounds = ray_sphere(
-        &rays.origins.detach(),
-        &rays.directions.detach(),
+        &Rays::new(rays.origins().detach(), rays.directions().detach())?,
         [0.0; 3],
         1.0,
     )?;
     let mut out: Outs = Vec::new();
 
-    let hits = march_bounded(&sdf, &rays, &bounds, &MarchConfig::default())?;
+    // The march bounded by a sphere (0.1's `march_bounded`).
+    let hits = march(&sdf, &rays, &bounds, &MarchConfig::default())?;
     out.push(("march_bounded.depth".into(), depth_tol(&hits.depth)));
     out.push((
         "march_bounded.points".into(),
@@ -735,7 +752,7 @@ fn dvr_case(dev: &Device, dtype: DType) -> Result<Outs> {
         "march_bounded.evaluations".into(),
         Out::Eq(format!("{}", hits.evaluations)),
     ));
-    let surf = implicit_surface(&sdf, &o, &d, &hits, &ImplicitConfig::default())?;
+    let surf = implicit_surface(&sdf, &rays, &hits, &ImplicitConfig::default())?;
     let mut up = SplitMix64::new(7);
     let g = (surf.depth.sum_all()? + probe(&surf.points, &mut up)?)?.backward()?;
     out.push(("implicit.indices".into(), Out::T(surf.indices.clone())));
@@ -763,7 +780,8 @@ fn dvr_case(dev: &Device, dtype: DType) -> Result<Outs> {
     let far = Tensor::full(4.5f64, r, &Device::Cpu)?
         .to_dtype(dtype)?
         .to_device(dev)?;
-    let st = sphere_trace(&sdf, &o, &d, &near, &far, &SphereTraceConfig::default())?;
+    let range = Intersection::new(near, far)?;
+    let st = sphere_trace(&sdf, &rays, &range, &SphereTraceConfig::default())?;
     out.push(("sphere_trace.depth".into(), depth_tol(&st.depth)));
     out.push((
         "sphere_trace.status".into(),
@@ -813,8 +831,9 @@ fn mlp_dvr(
         Convention::OpenGl,
     )?;
     let rays = cam.rays(dev, dtype)?;
-    let o = Var::from_tensor(&rays.origins)?;
-    let d = Var::from_tensor(&rays.directions)?;
+    let o = Var::from_tensor(rays.origins())?;
+    let d = Var::from_tensor(rays.directions())?;
+    let rays = Rays::new(o.as_tensor().clone(), d.as_tensor().clone())?;
     let r = rays.len();
     let near = Tensor::full(0.5f64, r, &Device::Cpu)?
         .to_dtype(dtype)?
@@ -825,13 +844,14 @@ fn mlp_dvr(
     let (cfg, _) = mlp_configs()?;
     let vm = VarMap::new();
     let net = build_seeded(&vm, dtype, dev, 42, |vb| mlp(&cfg, vb))?;
-    let hits = march(&net, &o, &d, &near, &far, &MarchConfig::default())?;
+    let range = Intersection::new(near, far)?;
+    let hits = march(&net, &rays, &range, &MarchConfig::default())?;
     out.push((format!("{label}.march.depth"), depth_tol(&hits.depth)));
     out.push((
         format!("{label}.march.status"),
         Out::Eq(format!("{:?}", hits.status)),
     ));
-    let surf = implicit_surface(&net, &o, &d, &hits, &ImplicitConfig::default())?;
+    let surf = implicit_surface(&net, &rays, &hits, &ImplicitConfig::default())?;
     let g = surf.depth.sum_all()?.backward()?;
     out.push((format!("{label}.implicit.depth"), depth_tol(&surf.depth)));
     out.push((

@@ -10,9 +10,10 @@ mod common;
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
 use common::counting::Counting;
+use common::hits::count;
 use common::{central_diff, close, v64};
 use glam::DVec3;
-use neural_fields::camera::{Camera, Convention, Intrinsics};
+use neural_fields::camera::{Camera, Convention, Intersection, Intrinsics, Rays};
 use neural_fields::dvr::{
     implicit_surface, march, Hits, ImplicitConfig, MarchConfig, RayStatus, SecantRule,
     SurfacePoints,
@@ -62,6 +63,14 @@ fn rays(seed: u64, r: usize, center: [f64; 3], spread: f64) -> (Tensor, Tensor, 
     )
 }
 
+/// Validated rays `(o, w)` (sharing their graph) and the range `[n, fa]` on each.
+fn problem(o: &Tensor, w: &Tensor, n: &Tensor, fa: &Tensor) -> (Rays, Intersection) {
+    (
+        Rays::new(o.clone(), w.clone()).unwrap(),
+        Intersection::new(n.clone(), fa.clone()).unwrap(),
+    )
+}
+
 /// `L = Σ cᵢ tᵢ` over the rays, from a high-accuracy march.
 fn loss_from_march<F: ImplicitSurface + ?Sized>(
     f: &F,
@@ -71,7 +80,8 @@ fn loss_from_march<F: ImplicitSurface + ?Sized>(
     fa: &Tensor,
     c: &[f64],
 ) -> f64 {
-    let h = march(f, o, w, n, fa, &accurate()).unwrap();
+    let (rays, range) = problem(o, w, n, fa);
+    let h = march(f, &rays, &range, &accurate()).unwrap();
     v64(&h.depth).iter().zip(c).map(|(t, c)| t * c).sum()
 }
 
@@ -108,8 +118,9 @@ fn hitting_rays<F: ImplicitSurface + ?Sized>(
 ) -> (Tensor, Tensor, Tensor, Tensor, Tensor) {
     let n = 4 * r;
     let (o, w, near, far) = rays(seed, n, [0.0; 3], 0.15);
-    let h = march(f, &o, &w, &near, &far, &accurate()).unwrap();
-    let s = implicit_surface(f, &o, &w, &h, &ImplicitConfig::default()).unwrap();
+    let (rays, range) = problem(&o, &w, &near, &far);
+    let h = march(f, &rays, &range, &accurate()).unwrap();
+    let s = implicit_surface(f, &rays, &h, &ImplicitConfig::default()).unwrap();
     let keep: Vec<u32> = clean_hits(&s, &w, &h)
         .iter()
         .enumerate()
@@ -132,11 +143,13 @@ fn implicit_loss<F: ImplicitSurface + ?Sized>(
     fa: &Tensor,
     c: &[f64],
 ) -> Option<(Tensor, Hits)> {
-    let h = march(f, &o.detach(), &w.detach(), n, fa, &accurate()).unwrap();
+    let (detached, range) = problem(&o.detach(), &w.detach(), n, fa);
+    let h = march(f, &detached, &range, &accurate()).unwrap();
     if h.status.iter().any(|s| *s != RayStatus::Hit) {
         return None;
     }
-    let s = implicit_surface(f, o, w, &h, &ImplicitConfig::default()).unwrap();
+    let rays = Rays::new(o.clone(), w.clone()).unwrap();
+    let s = implicit_surface(f, &rays, &h, &ImplicitConfig::default()).unwrap();
     if clean_hits(&s, w, &h).contains(&false) {
         return None;
     }
@@ -422,11 +435,11 @@ fn depth_gradient_reaches_the_camera_pose_and_matches_finite_differences() {
     let n = Tensor::zeros(3, DType::F64, &DEV).unwrap();
     let fa = Tensor::new(&[5.0f64, 5.0, 5.0], &DEV).unwrap();
     let rays = pose.rays(&k, Convention::OpenGl, &pixels).unwrap();
-    let (l, _) = implicit_loss(&field, &rays.origins, &rays.directions, &n, &fa, &c).unwrap();
+    let (l, _) = implicit_loss(&field, rays.origins(), rays.directions(), &n, &fa, &c).unwrap();
     let grads = l.backward().unwrap();
     let mut loss = || {
         let r = pose.rays(&k, Convention::OpenGl, &pixels).unwrap();
-        loss_from_march(&field, &r.origins, &r.directions, &n, &fa, &c)
+        loss_from_march(&field, r.origins(), r.directions(), &n, &fa, &c)
     };
     let gq = v64(grads.get(&pose.rotation).unwrap());
     let gt = v64(grads.get(&pose.translation).unwrap());
@@ -461,8 +474,9 @@ fn f32_surface_points_equal_the_march_and_have_finite_gradients() {
     let w = Tensor::new(&[[0.0f32, 0.0, 1.0], [0.0, 0.0, 2.0]], &DEV).unwrap();
     let n = Tensor::zeros(2, DType::F32, &DEV).unwrap();
     let fa = Tensor::new(&[4.0f32, 2.0], &DEV).unwrap();
-    let h = march(&field, &o, &w, &n, &fa, &MarchConfig::default()).unwrap();
-    let s = implicit_surface(&field, &o, &w, &h, &ImplicitConfig::default()).unwrap();
+    let (rays, range) = problem(&o, &w, &n, &fa);
+    let h = march(&field, &rays, &range, &MarchConfig::default()).unwrap();
+    let s = implicit_surface(&field, &rays, &h, &ImplicitConfig::default()).unwrap();
     assert_eq!(s.depth.dtype(), DType::F32);
     assert_eq!(v64(&s.depth), v64(&h.depth));
     let p = v64(&s.points);
@@ -500,9 +514,10 @@ fn grazing_ray_gets_a_guarded_finite_gradient_with_the_right_sign() {
         secant_steps: 40,
         ..MarchConfig::default()
     };
-    let h = march(&field, &o, &w, &n, &fa, &cfg).unwrap();
+    let (rays, range) = problem(&o, &w, &n, &fa);
+    let h = march(&field, &rays, &range, &cfg).unwrap();
     assert_eq!(h.status, vec![RayStatus::Grazing]);
-    let s = implicit_surface(&field, &o, &w, &h, &ImplicitConfig::default()).unwrap();
+    let s = implicit_surface(&field, &rays, &h, &ImplicitConfig::default()).unwrap();
     assert_eq!(v64(&s.guarded.to_dtype(DType::F64).unwrap()), vec![1.0]);
     let g = v64(s
         .depth
@@ -531,27 +546,13 @@ fn rays_without_surface_are_excluded_and_get_zero_gradient() {
     .unwrap();
     let n = Tensor::zeros(3, DType::F64, &DEV).unwrap();
     let fa = Tensor::new(&[4.0f64, 4.0, 4.0], &DEV).unwrap();
-    let h = march(
-        &field,
-        o.as_tensor(),
-        w.as_tensor(),
-        &n,
-        &fa,
-        &MarchConfig::default(),
-    )
-    .unwrap();
+    let (rays, range) = problem(o.as_tensor(), w.as_tensor(), &n, &fa);
+    let h = march(&field, &rays, &range, &MarchConfig::default()).unwrap();
     assert_eq!(
         h.status,
         vec![RayStatus::Hit, RayStatus::StartsInside, RayStatus::Miss]
     );
-    let s = implicit_surface(
-        &field,
-        o.as_tensor(),
-        w.as_tensor(),
-        &h,
-        &ImplicitConfig::default(),
-    )
-    .unwrap();
+    let s = implicit_surface(&field, &rays, &h, &ImplicitConfig::default()).unwrap();
     assert_eq!(s.indices.to_vec1::<u32>().unwrap(), vec![0]);
     let grads = s.points.sum_all().unwrap().backward().unwrap();
     let go = v64(grads.get(&o).unwrap());
@@ -560,24 +561,17 @@ fn rays_without_surface_are_excluded_and_get_zero_gradient() {
     // ∂t/∂o_z = −∇f_z/(∇f·w) = −1 on the axis; p̂_z = o_z + t̂ → ∂p̂_z/∂o_z = 0.
     assert!(go[2].abs() < 1e-12, "{go:?}");
     // No hits at all: empty outputs.
-    let miss = march(
-        &field,
+    let (miss_rays, miss_range) = problem(
         &o.as_tensor().narrow(0, 2, 1).unwrap(),
         &w.as_tensor().narrow(0, 2, 1).unwrap(),
         &n.narrow(0, 0, 1).unwrap(),
         &fa.narrow(0, 0, 1).unwrap(),
-        &MarchConfig::default(),
-    )
-    .unwrap();
-    let e = implicit_surface(
-        &field,
-        &o.as_tensor().narrow(0, 2, 1).unwrap(),
-        &w.as_tensor().narrow(0, 2, 1).unwrap(),
-        &miss,
-        &ImplicitConfig::default(),
-    )
-    .unwrap();
-    assert!(e.is_empty());
+    );
+    let miss = march(&field, &miss_rays, &miss_range, &MarchConfig::default()).unwrap();
+    let e = implicit_surface(&field, &miss_rays, &miss, &ImplicitConfig::default()).unwrap();
+    assert_eq!(e.indices.dim(0).unwrap(), 0);
+    assert_eq!(e.depth.dims(), [0]);
+    assert_eq!(e.points.dims(), [0, 3]);
 }
 
 /// ∇f = 0 at the surface (a step field): the denominator is floored, nothing is NaN.
@@ -603,16 +597,14 @@ fn zero_spatial_gradient_is_guarded_without_nan() {
     let field = Step(a.clone());
     let o = Tensor::new(&[[0.0f64, 0.0, 0.0]], &DEV).unwrap();
     let w = Tensor::new(&[[0.0f64, 0.0, 1.0]], &DEV).unwrap();
-    let h = march(
-        &field,
+    let (rays, range) = problem(
         &o,
         &w,
         &Tensor::new(&[0.0f64], &DEV).unwrap(),
         &Tensor::new(&[1.0f64], &DEV).unwrap(),
-        &MarchConfig::default(),
-    )
-    .unwrap();
-    let s = implicit_surface(&field, &o, &w, &h, &ImplicitConfig::default()).unwrap();
+    );
+    let h = march(&field, &rays, &range, &MarchConfig::default()).unwrap();
+    let s = implicit_surface(&field, &rays, &h, &ImplicitConfig::default()).unwrap();
     assert_eq!(v64(&s.guarded.to_dtype(DType::F64).unwrap()), vec![1.0]);
     let g = v64(s
         .depth
@@ -632,15 +624,18 @@ fn implicit_surface_rejects_hits_of_other_rays() {
     let w = Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.0, 1.0]], &DEV).unwrap();
     let n = Tensor::zeros(2, DType::F64, &DEV).unwrap();
     let fa = Tensor::new(&[4.0f64, 4.0], &DEV).unwrap();
-    let h = march(&field, &o, &w, &n, &fa, &MarchConfig::default()).unwrap();
-    let o1 = o.narrow(0, 0, 1).unwrap();
-    let w1 = w.narrow(0, 0, 1).unwrap();
-    match implicit_surface(&field, &o1, &w1, &h, &ImplicitConfig::default()).unwrap_err() {
+    let (rays, range) = problem(&o, &w, &n, &fa);
+    let h = march(&field, &rays, &range, &MarchConfig::default()).unwrap();
+    assert!(implicit_surface(&field, &rays, &h, &ImplicitConfig::default()).is_ok());
+    let first = rays.narrow(0, 1).unwrap();
+    match implicit_surface(&field, &first, &h, &ImplicitConfig::default()).unwrap_err() {
         neural_fields::Error::InvalidArgument { arg, .. } => assert_eq!(arg, "hits"),
         e => panic!("{e}"),
     }
+    // A zero direction, which implicit_surface used to reject, cannot reach it any more:
+    // `Rays::new` rejects it, naming the same argument.
     let zero = Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.0, 0.0]], &DEV).unwrap();
-    match implicit_surface(&field, &o, &zero, &h, &ImplicitConfig::default()).unwrap_err() {
+    match Rays::new(o.clone(), zero).unwrap_err() {
         neural_fields::Error::InvalidArgument { arg, .. } => assert_eq!(arg, "directions"),
         e => panic!("{e}"),
     }
@@ -661,8 +656,9 @@ fn implicit_gradient_is_exact_for_very_short_directions() {
         let w = Tensor::new(&[[0.0f64, 0.0, lambda]], &DEV).unwrap();
         let n = Tensor::new(&[0.0f64], &DEV).unwrap();
         let fa = Tensor::new(&[4.0 / lambda], &DEV).unwrap();
-        let h = march(&field, &o, &w, &n, &fa, &accurate()).unwrap();
-        let s = implicit_surface(&field, &o, &w, &h, &ImplicitConfig::default()).unwrap();
+        let (rays, range) = problem(&o, &w, &n, &fa);
+        let h = march(&field, &rays, &range, &accurate()).unwrap();
+        let s = implicit_surface(&field, &rays, &h, &ImplicitConfig::default()).unwrap();
         v64(s
             .depth
             .sum_all()
@@ -721,12 +717,13 @@ fn per_ray_codes_give_each_ray_its_own_surface() {
     let n = Tensor::zeros(3, DType::F64, &DEV).unwrap();
     let fa = Tensor::new(&[4.0f64; 3], &DEV).unwrap();
     let field = Conditioned::new(&CodedSphere, z.as_tensor().clone()).unwrap();
-    let h = march(&field, &o, &w, &n, &fa, &MarchConfig::default()).unwrap();
+    let (rays, range) = problem(&o, &w, &n, &fa);
+    let h = march(&field, &rays, &range, &MarchConfig::default()).unwrap();
     assert_eq!(h.status, vec![RayStatus::Hit; 3]);
     for (t, r) in v64(&h.depth).iter().zip(radii) {
         assert!((t - (2.0 - r)).abs() < 1e-10, "{t} vs {}", 2.0 - r);
     }
-    let s = implicit_surface(&field, &o, &w, &h, &ImplicitConfig::default()).unwrap();
+    let s = implicit_surface(&field, &rays, &h, &ImplicitConfig::default()).unwrap();
     for r in 0..3 {
         let g = s.depth.get(r).unwrap().backward().unwrap();
         let gz = v64(g.get(&z).unwrap());
@@ -738,16 +735,14 @@ fn per_ray_codes_give_each_ray_its_own_surface() {
     let shared = Tensor::new(&[0.5f64], &DEV).unwrap();
     let hs = march(
         &Conditioned::new(&CodedSphere, shared).unwrap(),
-        &o,
-        &w,
-        &n,
-        &fa,
+        &rays,
+        &range,
         &MarchConfig::default(),
     )
     .unwrap();
     assert!(v64(&hs.depth).iter().all(|t| (t - 1.5).abs() < 1e-10));
     let short = Conditioned::new(&CodedSphere, z.as_tensor().narrow(0, 0, 2).unwrap()).unwrap();
-    match march(&short, &o, &w, &n, &fa, &MarchConfig::default()) {
+    match march(&short, &rays, &range, &MarchConfig::default()) {
         Err(neural_fields::Error::InvalidArgument { arg, .. }) => assert_eq!(arg, "code"),
         other => panic!("{other:?}"),
     }
@@ -769,17 +764,18 @@ fn implicit_surface_evaluates_the_field_once_over_exactly_the_hit_rays() {
     let z = Tensor::full(0.5f64, (r, 1), &DEV).unwrap();
     let coded = Conditioned::new(&CodedSphere, z).unwrap();
     let fields: [(&str, &dyn ImplicitSurface); 2] = [("sphere", &sphere), ("coded", &coded)];
+    let (rays, range) = problem(&o, &w, &n, &fa);
     for (name, field) in fields {
-        let h = march(field, &o, &w, &n, &fa, &MarchConfig::default()).unwrap();
+        let h = march(field, &rays, &range, &MarchConfig::default()).unwrap();
         let hit = h.status.iter().filter(|s| s.has_surface()).count();
         assert!(
-            hit > 0 && h.count(RayStatus::Miss) > 0 && h.count(RayStatus::StartsInside) == 1,
+            hit > 0 && count(&h, RayStatus::Miss) > 0 && count(&h, RayStatus::StartsInside) == 1,
             "{name}: {:?}",
             h.status
         );
         let counted = Counting::new(field);
-        let s = implicit_surface(&counted, &o, &w, &h, &ImplicitConfig::default()).unwrap();
-        assert_eq!(s.len(), hit, "{name}");
+        let s = implicit_surface(&counted, &rays, &h, &ImplicitConfig::default()).unwrap();
+        assert_eq!(s.indices.dim(0).unwrap(), hit, "{name}");
         assert_eq!(counted.calls.get(), 1, "{name}: calls");
         assert_eq!(counted.points.get(), hit, "{name}: points");
         assert_eq!(counted.max_call.get(), hit, "{name}: points in the call");
@@ -788,17 +784,10 @@ fn implicit_surface_evaluates_the_field_once_over_exactly_the_hit_rays() {
     let miss_o = Tensor::new(&[[0.0f64, 3.0, -2.0]], &DEV).unwrap();
     let miss_w = Tensor::new(&[[0.0f64, 0.0, 1.0]], &DEV).unwrap();
     let one = |x: f64| Tensor::new(&[x], &DEV).unwrap();
-    let h = march(
-        &sphere,
-        &miss_o,
-        &miss_w,
-        &one(0.0),
-        &one(4.0),
-        &MarchConfig::default(),
-    )
-    .unwrap();
+    let (miss_rays, miss_range) = problem(&miss_o, &miss_w, &one(0.0), &one(4.0));
+    let h = march(&sphere, &miss_rays, &miss_range, &MarchConfig::default()).unwrap();
     let counted = Counting::new(&sphere);
-    let s = implicit_surface(&counted, &miss_o, &miss_w, &h, &ImplicitConfig::default()).unwrap();
-    assert!(s.is_empty());
+    let s = implicit_surface(&counted, &miss_rays, &h, &ImplicitConfig::default()).unwrap();
+    assert_eq!(s.indices.dim(0).unwrap(), 0);
     assert_eq!((counted.calls.get(), counted.points.get()), (0, 0));
 }

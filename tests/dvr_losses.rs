@@ -7,10 +7,11 @@ mod common;
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
 use common::{central_diff, close, v64};
-use neural_fields::dvr::losses::{
-    depth_loss, eikonal_loss, freespace_loss, idr_mask_loss, most_inside_along_rays,
-    normal_smoothness_loss, occupancy_loss, photometric_loss, random_points_on_rays, AlphaSchedule,
-    Photometric,
+use neural_fields::camera::{Intersection, Rays};
+use neural_fields::dvr::{
+    depth_loss, eikonal_loss, freespace_loss, idr_mask_loss, missed_foreground_loss,
+    most_inside_along_rays, normal_smoothness_loss, photometric_loss, random_points_on_rays,
+    AlphaSchedule, Photometric,
 };
 use neural_fields::field::{ImplicitSurface, Inside, Plane, SignedDistance, Sphere};
 use neural_fields::nn::{build_seeded, mlp, Activation, MlpConfig};
@@ -80,7 +81,7 @@ fn photometric_and_depth_losses_average_over_masked_pixels() {
 }
 
 #[test]
-fn freespace_and_occupancy_losses_are_bce_of_inside_positive_logits_and_finite_at_extremes() {
+fn freespace_and_missed_foreground_losses_are_inside_positive_bce_finite_at_extremes() {
     let r = Var::new(0.5f64, &DEV).unwrap();
     let sphere = Sphere {
         center: Tensor::zeros(3, DType::F64, &DEV).unwrap(),
@@ -92,7 +93,7 @@ fn freespace_and_occupancy_losses_are_bce_of_inside_positive_logits_and_finite_a
     let fs = scalar(&freespace_loss(&sdf, &p).unwrap());
     let bce = |x: f64, y: f64| x.max(0.0) - x * y + (1.0 + (-x.abs()).exp()).ln();
     assert!((fs - 0.5 * (bce(0.3, 0.0) + bce(-0.4, 0.0))).abs() < 1e-12);
-    let oc = scalar(&occupancy_loss(&sdf, &p).unwrap());
+    let oc = scalar(&missed_foreground_loss(&sdf, &p).unwrap());
     assert!((oc - 0.5 * (bce(0.3, 1.0) + bce(-0.4, 1.0))).abs() < 1e-12);
     // Freespace at an inside point pushes the surface away: ∂L/∂r > 0.
     let inside = Tensor::new(&[[0.0f64, 0.0, 0.2]], &DEV).unwrap();
@@ -109,7 +110,7 @@ fn freespace_and_occupancy_losses_are_bce_of_inside_positive_logits_and_finite_a
     let sharp = sphere.occupancy(1e7);
     for l in [
         freespace_loss(&sharp, &p).unwrap(),
-        occupancy_loss(&sharp, &p).unwrap(),
+        missed_foreground_loss(&sharp, &p).unwrap(),
     ] {
         assert!(scalar(&l).is_finite());
         let g = scalar(l.backward().unwrap().get(&r).unwrap());
@@ -125,13 +126,19 @@ fn random_points_lie_on_the_rays_between_near_and_far() {
     let w = Tensor::new(&[[0.0f64, 0.0, 2.0], [1.0, 0.0, 0.0]], &DEV).unwrap();
     let near = Tensor::new(&[0.5f64, 1.0], &DEV).unwrap();
     let far = Tensor::new(&[1.0f64, 3.0], &DEV).unwrap();
-    let p = v64(&random_points_on_rays(&o, &w, &near, &far, 9).unwrap());
-    assert_eq!(
-        p,
-        v64(&random_points_on_rays(&o, &w, &near, &far, 9).unwrap())
-    );
+    let rays = Rays::new(o, w).unwrap();
+    let range = Intersection::new(near, far).unwrap();
+    let p = v64(&random_points_on_rays(&rays, &range, 9).unwrap());
+    assert_eq!(p, v64(&random_points_on_rays(&rays, &range, 9).unwrap()));
     assert!(p[0] == 0.0 && p[1] == 0.0 && (1.0..=2.0).contains(&p[2]));
     assert!((2.0..=4.0).contains(&p[3]) && p[4] == 1.0 && p[5] == 1.0);
+    // A range for other rays is an error naming its bound.
+    let three = Intersection::new(
+        Tensor::zeros(3, DType::F64, &DEV).unwrap(),
+        Tensor::ones(3, DType::F64, &DEV).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(arg_of(random_points_on_rays(&rays, &three, 9)), "near");
 }
 
 #[test]
@@ -203,7 +210,9 @@ fn most_inside_value_is_the_minimum_distance_along_the_ray_with_gradient() {
     let w = Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.0, 1.0]], &DEV).unwrap();
     let n = Tensor::zeros(2, DType::F64, &DEV).unwrap();
     let f = Tensor::new(&[4.0f64, 4.0], &DEV).unwrap();
-    let v = most_inside_along_rays(&sdf, &o, &w, &n, &f, 101).unwrap();
+    let rays = Rays::new(o, w).unwrap();
+    let range = Intersection::new(n, f).unwrap();
+    let v = most_inside_along_rays(&sdf, &rays, &range, 101).unwrap();
     let got = v64(&v);
     assert!(
         (got[0] - 0.2).abs() < 1e-12 && (got[1] + 0.3).abs() < 1e-12,

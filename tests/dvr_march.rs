@@ -8,11 +8,12 @@ mod common;
 
 use candle_core::{DType, Device, Tensor, Var};
 use common::counting::Counting;
+use common::hits::count;
 use common::v64;
 use neural_fields::camera::{ray_aabb, Intersection, Rays};
 use neural_fields::dvr::{
-    implicit_surface, march, march_bounded, secant_point, sphere_trace, Hits, ImplicitConfig,
-    MarchConfig, RayStatus, SecantRule, SphereTraceConfig, StepSchedule,
+    implicit_surface, march, secant_point, sphere_trace, Hits, ImplicitConfig, MarchConfig,
+    RayStatus, SecantRule, SphereTraceConfig, StepSchedule,
 };
 use neural_fields::field::{Cuboid, ImplicitSurface, Inside, Plane, SignedDistance, Sphere, Torus};
 use neural_fields::rng::SplitMix64;
@@ -194,7 +195,8 @@ fn rays_at(shape: &Shape, r: usize, seed: u64, dtype: DType) -> Batch {
     }
 }
 
-fn tensors(b: &Batch, dtype: DType) -> (Tensor, Tensor, Tensor, Tensor) {
+/// The rays of `b` and the search range `[0, far]` on each.
+fn tensors(b: &Batch, dtype: DType) -> (Rays, Intersection) {
     let r = b.o.len();
     let flat = |v: &Vec<[f64; 3]>| {
         Tensor::from_vec(
@@ -211,7 +213,10 @@ fn tensors(b: &Batch, dtype: DType) -> (Tensor, Tensor, Tensor, Tensor) {
         .unwrap()
         .to_dtype(dtype)
         .unwrap();
-    (flat(&b.o), flat(&b.w), near, far)
+    (
+        Rays::new(flat(&b.o), flat(&b.w)).unwrap(),
+        Intersection::new(near, far).unwrap(),
+    )
 }
 
 fn shapes() -> Vec<(&'static str, Shape)> {
@@ -263,8 +268,8 @@ fn accuracy(dtype: DType, bound: f64) {
                 shape.sdf_surface(dtype)
             };
             let b = rays_at(&shape, 64, 11, dtype);
-            let (o, w, near, far) = tensors(&b, dtype);
-            let hits = march(field.as_ref(), &o, &w, &near, &far, &cfg).unwrap();
+            let (rays, range) = tensors(&b, dtype);
+            let hits = march(field.as_ref(), &rays, &range, &cfg).unwrap();
             let depth = v64(&hits.depth);
             let mut checked = 0;
             let mut worst: f64 = 0.0;
@@ -321,16 +326,16 @@ fn evaluations_per_ray_are_exactly_steps_plus_secant_steps() {
             };
             let field = Counting::new(inner.as_ref());
             let b = rays_at(&sphere, 20, 3, DType::F64);
-            let (o, w, near, far) = tensors(&b, DType::F64);
+            let (rays, range) = tensors(&b, DType::F64);
             let cfg = MarchConfig {
                 steps,
                 secant_steps: secant,
                 chunk_points: chunk,
                 ..MarchConfig::default()
             };
-            let hits = march(&field, &o, &w, &near, &far, &cfg).unwrap();
+            let hits = march(&field, &rays, &range, &cfg).unwrap();
             assert_eq!(
-                hits.count(RayStatus::Hit) + hits.count(RayStatus::NotConverged),
+                count(&hits, RayStatus::Hit) + count(&hits, RayStatus::NotConverged),
                 20
             );
             assert_eq!(
@@ -344,16 +349,18 @@ fn evaluations_per_ray_are_exactly_steps_plus_secant_steps() {
     // Misses cost `steps` only.
     let inner = sphere.sdf_surface(DType::F64);
     let field = Counting::new(inner.as_ref());
-    let o = Tensor::new(&[[0.0f64, 0.0, -2.0], [0.0, 2.0, -2.0]], &DEV).unwrap();
-    let w = Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.0, 1.0]], &DEV).unwrap();
-    let near = Tensor::zeros(2, DType::F64, &DEV).unwrap();
-    let far = Tensor::new(&[4.0f64, 4.0], &DEV).unwrap();
+    let (rays, range) = problem(
+        Tensor::new(&[[0.0f64, 0.0, -2.0], [0.0, 2.0, -2.0]], &DEV).unwrap(),
+        Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.0, 1.0]], &DEV).unwrap(),
+        Tensor::zeros(2, DType::F64, &DEV).unwrap(),
+        Tensor::new(&[4.0f64, 4.0], &DEV).unwrap(),
+    );
     let cfg = MarchConfig {
         steps: 50,
         secant_steps: 6,
         ..MarchConfig::default()
     };
-    let hits = march(&field, &o, &w, &near, &far, &cfg).unwrap();
+    let hits = march(&field, &rays, &range, &cfg).unwrap();
     assert_eq!(hits.status, vec![RayStatus::Hit, RayStatus::Miss]);
     assert_eq!(field.points.get(), 56 + 50);
 }
@@ -367,7 +374,7 @@ fn chunk_size_bounds_every_call_and_does_not_change_results() {
     };
     let inner = torus.sdf_surface(DType::F64);
     let b = rays_at(&torus, 30, 5, DType::F64);
-    let (o, w, near, far) = tensors(&b, DType::F64);
+    let (rays, range) = tensors(&b, DType::F64);
     let mut reference: Option<Hits> = None;
     for chunk in [1usize, 7, 100, 1 << 20] {
         let field = Counting::new(inner.as_ref());
@@ -377,7 +384,7 @@ fn chunk_size_bounds_every_call_and_does_not_change_results() {
             chunk_points: chunk,
             ..MarchConfig::default()
         };
-        let hits = march(&field, &o, &w, &near, &far, &cfg).unwrap();
+        let hits = march(&field, &rays, &range, &cfg).unwrap();
         // No single call sees more than `chunk_points` points (the sampling gathers
         // whole rays, but the evaluator splits them into chunks).
         assert!(
@@ -399,12 +406,27 @@ fn chunk_size_bounds_every_call_and_does_not_change_results() {
     }
 }
 
-fn one_ray(o: [f64; 3], w: [f64; 3], near: f64, far: f64) -> (Tensor, Tensor, Tensor, Tensor) {
+/// Rays `(o, w)` and the search range `[near, far]` on each (every ray marked hit).
+fn problem(o: Tensor, w: Tensor, near: Tensor, far: Tensor) -> (Rays, Intersection) {
     (
-        Tensor::new(&[o], &DEV).unwrap(),
-        Tensor::new(&[w], &DEV).unwrap(),
-        Tensor::new(&[near], &DEV).unwrap(),
-        Tensor::new(&[far], &DEV).unwrap(),
+        Rays::new(o, w).unwrap(),
+        Intersection::new(near, far).unwrap(),
+    )
+}
+
+/// One f64 ray and its search range `[near, far]`.
+fn one_ray(o: [f64; 3], w: [f64; 3], near: f64, far: f64) -> (Rays, Intersection) {
+    (
+        Rays::new(
+            Tensor::new(&[o], &DEV).unwrap(),
+            Tensor::new(&[w], &DEV).unwrap(),
+        )
+        .unwrap(),
+        Intersection::new(
+            Tensor::new(&[near], &DEV).unwrap(),
+            Tensor::new(&[far], &DEV).unwrap(),
+        )
+        .unwrap(),
     )
 }
 
@@ -420,16 +442,15 @@ fn all_finite(h: &Hits) {
 /// also checked finite.
 fn implicit_and_backward<F: ImplicitSurface + ?Sized>(
     field: &F,
-    o: &Tensor,
-    w: &Tensor,
+    rays: &Rays,
     hits: &Hits,
     vars: &[&Var],
 ) -> Vec<Vec<f64>> {
-    let s = implicit_surface(field, o, w, hits, &ImplicitConfig::default()).unwrap();
-    let on: Vec<usize> = (0..hits.len())
+    let s = implicit_surface(field, rays, hits, &ImplicitConfig::default()).unwrap();
+    let on: Vec<usize> = (0..hits.status.len())
         .filter(|&i| hits.status[i].has_surface())
         .collect();
-    assert_eq!(s.len(), on.len());
+    assert_eq!(s.indices.dim(0).unwrap(), on.len());
     let march_depth = v64(&hits.depth);
     let want: Vec<f64> = on.iter().map(|&i| march_depth[i]).collect();
     assert_eq!(v64(&s.depth), want, "t̂ is the march's depth");
@@ -459,9 +480,13 @@ fn implicit_and_backward<F: ImplicitSurface + ?Sized>(
     grads_of(&sum(&s.depth))
 }
 
-/// `(o, w)` of `one_ray` as variables, so that the implicit step differentiates them.
-fn ray_vars(o: &Tensor, w: &Tensor) -> (Var, Var) {
-    (Var::from_tensor(o).unwrap(), Var::from_tensor(w).unwrap())
+/// The origins and directions of `rays` as variables, and rays built from them, so that
+/// the implicit step differentiates them.
+fn ray_vars(rays: &Rays) -> (Var, Var, Rays) {
+    let o = Var::from_tensor(rays.origins()).unwrap();
+    let w = Var::from_tensor(rays.directions()).unwrap();
+    let vrays = Rays::new(o.as_tensor().clone(), w.as_tensor().clone()).unwrap();
+    (o, w, vrays)
 }
 
 /// `|a − b| ≤ 1e-9`, with a message.
@@ -476,8 +501,8 @@ fn ray_starting_inside_is_reported_with_depth_near() {
         Box::new(s.clone().sdf()) as Box<dyn ImplicitSurface>,
         Box::new(s.occupancy(4.0)),
     ] {
-        let (o, w, n, f) = one_ray([0.0, 0.0, 0.1], [0.0, 0.0, 1.0], 0.25, 3.0);
-        let h = march(field.as_ref(), &o, &w, &n, &f, &MarchConfig::default()).unwrap();
+        let (rays, range) = one_ray([0.0, 0.0, 0.1], [0.0, 0.0, 1.0], 0.25, 3.0);
+        let h = march(field.as_ref(), &rays, &range, &MarchConfig::default()).unwrap();
         assert_eq!(h.status, vec![RayStatus::StartsInside]);
         assert_eq!(v64(&h.depth), vec![0.25]);
         assert_eq!(v64(&h.mask.to_dtype(DType::F64).unwrap()), vec![0.0]);
@@ -488,8 +513,8 @@ fn ray_starting_inside_is_reported_with_depth_near() {
 #[test]
 fn missing_ray_is_reported_with_depth_far() {
     let field = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64).unwrap().sdf();
-    let (o, w, n, f) = one_ray([0.0, 0.7, -2.0], [0.0, 0.0, 1.0], 0.0, 4.0);
-    let h = march(&field, &o, &w, &n, &f, &MarchConfig::default()).unwrap();
+    let (rays, range) = one_ray([0.0, 0.7, -2.0], [0.0, 0.0, 1.0], 0.0, 4.0);
+    let h = march(&field, &rays, &range, &MarchConfig::default()).unwrap();
     assert_eq!(h.status, vec![RayStatus::Miss]);
     assert_eq!(v64(&h.depth), vec![4.0]);
     all_finite(&h);
@@ -499,19 +524,19 @@ fn missing_ray_is_reported_with_depth_far() {
 fn tangent_ray_misses_and_nearly_tangent_ray_is_grazing() {
     let field = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64).unwrap().sdf();
     // Exactly tangent: touches without entering.
-    let (o, w, n, f) = one_ray([0.0, 0.5, -2.0], [0.0, 0.0, 1.0], 0.0, 4.0);
-    let h = march(&field, &o, &w, &n, &f, &MarchConfig::default()).unwrap();
+    let (rays, range) = one_ray([0.0, 0.5, -2.0], [0.0, 0.0, 1.0], 0.0, 4.0);
+    let h = march(&field, &rays, &range, &MarchConfig::default()).unwrap();
     assert_eq!(h.status, vec![RayStatus::Miss]);
     // Enters by 1e-9: a crossing exists (the samples are placed to see it), at cos ≈ 6e-5.
     let y = 0.5 - 1e-9;
     let t_mid = 2.0;
-    let (o, w, n, f) = one_ray([0.0, y, -2.0], [0.0, 0.0, 1.0], t_mid - 1.0, t_mid + 1e-6);
+    let (rays, range) = one_ray([0.0, y, -2.0], [0.0, 0.0, 1.0], t_mid - 1.0, t_mid + 1e-6);
     let cfg = MarchConfig {
         steps: 2,
         secant_steps: 30,
         ..MarchConfig::default()
     };
-    let h = march(&field, &o, &w, &n, &f, &cfg).unwrap();
+    let h = march(&field, &rays, &range, &cfg).unwrap();
     assert_eq!(h.status, vec![RayStatus::Grazing]);
     let expected = t_mid - (0.25 - y * y).sqrt();
     assert!(
@@ -537,14 +562,14 @@ fn two_crossings_the_first_is_found() {
         radius: r.as_tensor().clone(),
     };
     let union = Union(sphere(&near_c, &near_r).sdf(), sphere(&far_c, &far_r).sdf());
-    let (o, w, n, f) = one_ray([0.0, 0.0, -2.0], [0.0, 0.0, 1.0], 0.0, 4.0);
-    let (ov, wv) = ray_vars(&o, &w);
+    let (rays, range) = one_ray([0.0, 0.0, -2.0], [0.0, 0.0, 1.0], 0.0, 4.0);
+    let (ov, wv, vrays) = ray_vars(&rays);
     for steps in [16, 256] {
         let cfg = MarchConfig {
             steps,
             ..MarchConfig::default()
         };
-        let h = march(&union, &o, &w, &n, &f, &cfg).unwrap();
+        let h = march(&union, &rays, &range, &cfg).unwrap();
         assert_eq!(h.status, vec![RayStatus::Hit]);
         assert!(
             (v64(&h.depth)[0] - 1.25).abs() < 1e-12,
@@ -553,8 +578,7 @@ fn two_crossings_the_first_is_found() {
         );
         let g = implicit_and_backward(
             &union,
-            ov.as_tensor(),
-            wv.as_tensor(),
+            &vrays,
             &h,
             &[&near_c, &near_r, &far_c, &far_r, &ov, &wv],
         );
@@ -573,22 +597,16 @@ fn two_crossings_the_first_is_found() {
         minor: minor.as_tensor().clone(),
     }
     .sdf();
-    let (o, w, n, f) = one_ray([-2.0, 0.0, 0.0], [1.0, 0.0, 0.0], 0.0, 4.0);
-    let h = march(&torus, &o, &w, &n, &f, &MarchConfig::default()).unwrap();
+    let (rays, range) = one_ray([-2.0, 0.0, 0.0], [1.0, 0.0, 0.0], 0.0, 4.0);
+    let h = march(&torus, &rays, &range, &MarchConfig::default()).unwrap();
     assert_eq!(h.status, vec![RayStatus::Hit]);
     assert!(
         (v64(&h.depth)[0] - 1.375).abs() < 1e-12,
         "{:?}",
         v64(&h.depth)
     );
-    let (ov, wv) = ray_vars(&o, &w);
-    let g = implicit_and_backward(
-        &torus,
-        ov.as_tensor(),
-        wv.as_tensor(),
-        &h,
-        &[&major, &minor, &ov, &wv],
-    );
+    let (ov, wv, vrays) = ray_vars(&rays);
+    let g = implicit_and_backward(&torus, &vrays, &h, &[&major, &minor, &ov, &wv]);
     near_eq(g[0][0], -1.0, "∂t/∂R");
     near_eq(g[1][0], -1.0, "∂t/∂r");
 }
@@ -629,8 +647,8 @@ fn field_exactly_at_level_at_a_sample_is_found_exactly() {
         Box::new(plane.clone().sdf()) as Box<dyn ImplicitSurface>,
         Box::new(plane.occupancy(3.0)),
     ] {
-        let (o, w, n, f) = one_ray([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], 0.0, 1.0);
-        let (ov, wv) = ray_vars(&o, &w);
+        let (rays, range) = one_ray([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], 0.0, 1.0);
+        let (ov, wv, vrays) = ray_vars(&rays);
         for secant in [0, 1, 8] {
             let cfg = MarchConfig {
                 steps: 5,
@@ -638,17 +656,12 @@ fn field_exactly_at_level_at_a_sample_is_found_exactly() {
                 tolerance: 1.0,
                 ..MarchConfig::default()
             };
-            let h = march(field.as_ref(), &o, &w, &n, &f, &cfg).unwrap();
+            let h = march(field.as_ref(), &rays, &range, &cfg).unwrap();
             assert_eq!(h.status, vec![RayStatus::Hit], "secant {secant}");
             assert_eq!(v64(&h.depth), vec![0.5]);
             all_finite(&h);
-            let g = implicit_and_backward(
-                field.as_ref(),
-                ov.as_tensor(),
-                wv.as_tensor(),
-                &h,
-                &[&normal, &offset, &ov, &wv],
-            );
+            let g =
+                implicit_and_backward(field.as_ref(), &vrays, &h, &[&normal, &offset, &ov, &wv]);
             near_eq(g[1][0], -1.0, "∂t/∂o (plane offset)");
             near_eq(g[2][2], -1.0, "∂t/∂o_z (ray origin)");
         }
@@ -680,13 +693,13 @@ fn secant_denominator_zero_falls_back_to_bisection() {
     assert_eq!(secant_point(1.0, -1.0, 3.0, 1.0), (2.0, false));
     assert_eq!(secant_point(1.0, 0.0, 3.0, 5.0), (1.0, false));
     // A march on a field whose every secant denominator overflows: bisection converges.
-    let (o, w, n, f) = one_ray([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], 0.0, 1.0);
+    let (rays, range) = one_ray([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], 0.0, 1.0);
     let cfg = MarchConfig {
         steps: 11,
         secant_steps: 30,
         ..MarchConfig::default()
     };
-    let h = march(&Step, &o, &w, &n, &f, &cfg).unwrap();
+    let h = march(&Step, &rays, &range, &cfg).unwrap();
     // ∇f = 0: the status says the normal is degenerate.
     assert_eq!(h.status, vec![RayStatus::Grazing]);
     assert!((v64(&h.depth)[0] - 0.3).abs() < 1e-9, "{:?}", v64(&h.depth));
@@ -695,7 +708,7 @@ fn secant_denominator_zero_falls_back_to_bisection() {
         grazing_threshold: None,
         ..cfg
     };
-    let h = march(&Step, &o, &w, &n, &f, &cfg).unwrap();
+    let h = march(&Step, &rays, &range, &cfg).unwrap();
     assert_eq!(h.status, vec![RayStatus::Hit]);
     // The same with a learnable offset θ (f = ±f64::MAX + θ, θ = 0): the secant steps
     // still overflow, and the implicit step has ∇f = 0, so its denominator is floored
@@ -708,7 +721,7 @@ fn secant_denominator_zero_falls_back_to_bisection() {
             grazing_threshold,
             ..cfg.clone()
         };
-        let h = march(&field, &o, &w, &n, &f, &cfg).unwrap();
+        let h = march(&field, &rays, &range, &cfg).unwrap();
         let want = if grazing_threshold.is_some() {
             RayStatus::Grazing
         } else {
@@ -716,23 +729,10 @@ fn secant_denominator_zero_falls_back_to_bisection() {
         };
         assert_eq!(h.status, vec![want]);
         assert!((v64(&h.depth)[0] - 0.3).abs() < 1e-9, "{:?}", v64(&h.depth));
-        let (ov, wv) = ray_vars(&o, &w);
-        let s = implicit_surface(
-            &field,
-            ov.as_tensor(),
-            wv.as_tensor(),
-            &h,
-            &ImplicitConfig::default(),
-        )
-        .unwrap();
+        let (ov, wv, vrays) = ray_vars(&rays);
+        let s = implicit_surface(&field, &vrays, &h, &ImplicitConfig::default()).unwrap();
         assert_eq!(v64(&s.guarded.to_dtype(DType::F64).unwrap()), vec![1.0]);
-        let g = implicit_and_backward(
-            &field,
-            ov.as_tensor(),
-            wv.as_tensor(),
-            &h,
-            &[&theta, &ov, &wv],
-        );
+        let g = implicit_and_backward(&field, &vrays, &h, &[&theta, &ov, &wv]);
         assert!((g[0][0] + 1e15).abs() <= 1.0, "∂t/∂θ = {:e}", g[0][0]);
         assert!(g[1].iter().chain(&g[2]).all(|&x| x == 0.0), "{g:?}");
     }
@@ -755,20 +755,20 @@ impl ImplicitSurface for ShiftedStep {
 #[test]
 fn not_converged_is_reported_when_the_refinement_is_too_short() {
     let field = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64).unwrap().sdf();
-    let (o, w, n, f) = one_ray([0.1, 0.2, -2.0], [0.0, 0.0, 1.0], 0.0, 4.0);
+    let (rays, range) = one_ray([0.1, 0.2, -2.0], [0.0, 0.0, 1.0], 0.0, 4.0);
     let cfg = MarchConfig {
         steps: 8,
         secant_steps: 0,
         tolerance: 1e-6,
         ..MarchConfig::default()
     };
-    let h = march(&field, &o, &w, &n, &f, &cfg).unwrap();
+    let h = march(&field, &rays, &range, &cfg).unwrap();
     assert_eq!(h.status, vec![RayStatus::NotConverged]);
     let cfg = MarchConfig {
         secant_steps: 12,
         ..cfg
     };
-    let h = march(&field, &o, &w, &n, &f, &cfg).unwrap();
+    let h = march(&field, &rays, &range, &cfg).unwrap();
     assert_eq!(h.status, vec![RayStatus::Hit]);
 }
 
@@ -777,7 +777,7 @@ fn illinois_beats_plain_regula_falsi_on_a_curved_crossing() {
     let field = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64)
         .unwrap()
         .occupancy(10.0);
-    let (o, w, n, f) = one_ray([0.3, 0.0, -2.0], [0.0, 0.0, 1.0], 0.0, 4.0);
+    let (rays, range) = one_ray([0.3, 0.0, -2.0], [0.0, 0.0, 1.0], 0.0, 4.0);
     let exact = 2.0 - (0.25f64 - 0.09).sqrt();
     let err = |rule| {
         let cfg = MarchConfig {
@@ -786,7 +786,7 @@ fn illinois_beats_plain_regula_falsi_on_a_curved_crossing() {
             rule,
             ..MarchConfig::default()
         };
-        (v64(&march(&field, &o, &w, &n, &f, &cfg).unwrap().depth)[0] - exact).abs()
+        (v64(&march(&field, &rays, &range, &cfg).unwrap().depth)[0] - exact).abs()
     };
     let (e_rf, e_il) = (err(SecantRule::RegulaFalsi), err(SecantRule::Illinois));
     assert!(
@@ -817,73 +817,66 @@ fn bad_input_errs_naming_the_argument() {
     let n = Tensor::new(&[0.0f64, 0.0], &DEV).unwrap();
     let f = Tensor::new(&[4.0f64, 4.0], &DEV).unwrap();
     let c = MarchConfig::default();
-    let w1 = w.narrow(0, 0, 1).unwrap();
-    assert_eq!(err_arg(march(&field, &o, &w1, &n, &f, &c)), "directions");
-    let bad_o = Tensor::new(&[[0.0f64, f64::NAN, -2.0], [0.0, 0.0, -2.0]], &DEV).unwrap();
-    assert_eq!(err_arg(march(&field, &bad_o, &w, &n, &f, &c)), "origins");
-    let inf_o = Tensor::new(&[[0.0f64, f64::INFINITY, -2.0], [0.0, 0.0, -2.0]], &DEV).unwrap();
-    assert_eq!(err_arg(march(&field, &inf_o, &w, &n, &f, &c)), "origins");
-    let zero_w = Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.0, 0.0]], &DEV).unwrap();
-    assert_eq!(
-        err_arg(march(&field, &o, &zero_w, &n, &f, &c)),
-        "directions"
-    );
-    let f_eq = Tensor::new(&[4.0f64, 0.0], &DEV).unwrap();
-    assert_eq!(err_arg(march(&field, &o, &w, &n, &f_eq, &c)), "far");
-    let f_lt = Tensor::new(&[-1.0f64, 4.0], &DEV).unwrap();
-    assert_eq!(err_arg(march(&field, &o, &w, &n, &f_lt, &c)), "far");
-    let n3 = Tensor::new(&[0.0f64, 0.0, 0.0], &DEV).unwrap();
-    assert_eq!(err_arg(march(&field, &o, &w, &n3, &f, &c)), "near");
-    let n32 = n.to_dtype(DType::F32).unwrap();
-    assert_eq!(err_arg(march(&field, &o, &w, &n32, &f, &c)), "near");
-    let o2 = Tensor::new(&[[0.0f64, 0.0], [0.0, 0.0]], &DEV).unwrap();
-    assert_eq!(err_arg(march(&field, &o2, &w, &n, &f, &c)), "origins");
-    let w32 = w.to_dtype(DType::F32).unwrap();
-    assert_eq!(err_arg(march(&field, &o, &w32, &n, &f, &c)), "directions");
-    let c1 = MarchConfig {
-        steps: 1,
-        ..MarchConfig::default()
-    };
-    assert_eq!(err_arg(march(&field, &o, &w, &n, &f, &c1)), "config.steps");
-    let c0 = MarchConfig {
-        chunk_points: 0,
-        ..MarchConfig::default()
-    };
-    assert_eq!(
-        err_arg(march(&field, &o, &w, &n, &f, &c0)),
-        "config.chunk_points"
-    );
     let st = SphereTraceConfig::default();
-    assert_eq!(err_arg(sphere_trace(&field, &o, &w, &n, &f_eq, &st)), "far");
-    let occ = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64)
-        .unwrap()
-        .occupancy(2.0);
-    assert_eq!(err_arg(sphere_trace(&occ, &o, &w, &n, &f, &st)), "field");
-    assert_eq!(err_arg(StepSchedule::new(vec![(5, 16)])), "milestones");
+    let ic = ImplicitConfig::default();
+    let rays = Rays::new(o.clone(), w.clone()).unwrap();
+    let range = Intersection::new(n.clone(), f.clone()).unwrap();
+    assert!(march(&field, &rays, &range, &c).is_ok());
+    assert!(sphere_trace(&field, &rays, &range, &st).is_ok());
 
-    // Non-finite directions.
+    // Bad rays: march, sphere_trace and implicit_surface take validated `Rays`, so what
+    // they used to reject (naming `origins` / `directions`) is now rejected by
+    // `Rays::new`, naming the same argument.
+    let w1 = w.narrow(0, 0, 1).unwrap();
+    assert_eq!(err_arg(Rays::new(o.clone(), w1.clone())), "directions");
+    let bad_o = Tensor::new(&[[0.0f64, f64::NAN, -2.0], [0.0, 0.0, -2.0]], &DEV).unwrap();
+    assert_eq!(err_arg(Rays::new(bad_o, w.clone())), "origins");
+    let inf_o = Tensor::new(&[[0.0f64, f64::INFINITY, -2.0], [0.0, 0.0, -2.0]], &DEV).unwrap();
+    assert_eq!(err_arg(Rays::new(inf_o, w.clone())), "origins");
+    let zero_w = Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.0, 0.0]], &DEV).unwrap();
+    assert_eq!(err_arg(Rays::new(o.clone(), zero_w)), "directions");
+    let o2 = Tensor::new(&[[0.0f64, 0.0], [0.0, 0.0]], &DEV).unwrap();
+    assert_eq!(err_arg(Rays::new(o2, w.clone())), "origins");
+    let w32 = w.to_dtype(DType::F32).unwrap();
+    assert_eq!(err_arg(Rays::new(o.clone(), w32.clone())), "directions");
+    let w4 = Tensor::new(&[[0.0f64, 0.0, 1.0, 0.0], [0.0, 0.1, 1.0, 0.0]], &DEV).unwrap();
+    assert_eq!(err_arg(Rays::new(o.clone(), w4)), "directions");
     for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
         let bad_w = Tensor::new(&[[0.0f64, 0.0, 1.0], [bad, 0.0, 1.0]], &DEV).unwrap();
-        assert_eq!(err_arg(march(&field, &o, &bad_w, &n, &f, &c)), "directions");
-        assert_eq!(
-            err_arg(sphere_trace(&field, &o, &bad_w, &n, &f, &st)),
-            "directions"
-        );
+        assert_eq!(err_arg(Rays::new(o.clone(), bad_w)), "directions");
     }
-    // `far` of the wrong shape, dtype or with non-finite values.
-    let f3 = Tensor::new(&[4.0f64, 4.0, 4.0], &DEV).unwrap();
-    assert_eq!(err_arg(march(&field, &o, &w, &n, &f3, &c)), "far");
-    let f21 = f.unsqueeze(1).unwrap();
-    assert_eq!(err_arg(march(&field, &o, &w, &n, &f21, &c)), "far");
-    let f32_ = f.to_dtype(DType::F32).unwrap();
-    assert_eq!(err_arg(march(&field, &o, &w, &n, &f32_, &c)), "far");
-    let f_nan = Tensor::new(&[4.0f64, f64::NAN], &DEV).unwrap();
-    assert_eq!(err_arg(march(&field, &o, &w, &n, &f_nan, &c)), "far");
 
-    // march_bounded with bad bounds.
-    let rays = Rays::new(o.clone(), w.clone()).unwrap();
-    let good = ray_aabb(&o, &w, [-0.55; 3], [0.55; 3]).unwrap();
-    assert!(march_bounded(&field, &rays, &good, &c).is_ok());
+    // Bad ranges from `Intersection::new`: `far < near` names `far` (on any ray; it marks
+    // every ray hit), and so do a `far` of the wrong shape, dtype or with non-finite
+    // values.
+    let f_lt = Tensor::new(&[-1.0f64, 4.0], &DEV).unwrap();
+    assert_eq!(err_arg(Intersection::new(n.clone(), f_lt.clone())), "far");
+    let f3 = Tensor::new(&[4.0f64, 4.0, 4.0], &DEV).unwrap();
+    assert_eq!(err_arg(Intersection::new(n.clone(), f3.clone())), "far");
+    let f21 = f.unsqueeze(1).unwrap();
+    assert_eq!(err_arg(Intersection::new(n.clone(), f21.clone())), "far");
+    let f32_ = f.to_dtype(DType::F32).unwrap();
+    assert_eq!(err_arg(Intersection::new(n.clone(), f32_)), "far");
+    let f_nan = Tensor::new(&[4.0f64, f64::NAN], &DEV).unwrap();
+    assert_eq!(err_arg(Intersection::new(n.clone(), f_nan.clone())), "far");
+    let n32 = n.to_dtype(DType::F32).unwrap();
+    assert_eq!(err_arg(Intersection::new(n32.clone(), f.clone())), "far");
+    let n_inf = Tensor::new(&[f64::INFINITY, 0.0], &DEV).unwrap();
+    assert_eq!(err_arg(Intersection::new(n_inf.clone(), f.clone())), "near");
+    let n21 = n.unsqueeze(1).unwrap();
+    assert_eq!(err_arg(Intersection::new(n21.clone(), f21.clone())), "near");
+    let n_int = Tensor::new(&[0u32, 0], &DEV).unwrap();
+    assert_eq!(err_arg(Intersection::new(n_int, f.clone())), "near");
+    // A valid range for 3 rays does not fit 2: its hit mask is checked first.
+    let n3 = Tensor::new(&[0.0f64, 0.0, 0.0], &DEV).unwrap();
+    let range3 = Intersection::new(n3.clone(), f3.clone()).unwrap();
+    assert_eq!(err_arg(march(&field, &rays, &range3, &c)), "hit");
+    assert_eq!(err_arg(sphere_trace(&field, &rays, &range3, &st)), "hit");
+
+    // Bad ranges built field by field (as from a bounding volume): march and
+    // sphere_trace name the bad field.
+    let good = ray_aabb(&rays, [-0.55; 3], [0.55; 3]).unwrap();
+    assert!(march(&field, &rays, &good, &c).is_ok());
     let with = |near: &Tensor, far: &Tensor, hit: &Tensor| Intersection {
         near: near.clone(),
         far: far.clone(),
@@ -892,25 +885,21 @@ fn bad_input_errs_naming_the_argument() {
     let hit2 = Tensor::new(&[1u8, 1], &DEV).unwrap();
     let cases = [
         (with(&n3, &f, &hit2), "near"),
-        (with(&n.unsqueeze(1).unwrap(), &f, &hit2), "near"),
+        (with(&n21, &f, &hit2), "near"),
         (with(&n, &f3, &hit2), "far"),
         (with(&n, &f21, &hit2), "far"),
         (with(&n, &f, &Tensor::new(&[1u8], &DEV).unwrap()), "hit"),
         (with(&n32, &f, &hit2), "near"),
+        (with(&n, &f.to_dtype(DType::F32).unwrap(), &hit2), "far"),
         (with(&n, &f_nan, &hit2), "far"),
-        (
-            with(
-                &Tensor::new(&[f64::INFINITY, 0.0], &DEV).unwrap(),
-                &f,
-                &hit2,
-            ),
-            "near",
-        ),
+        (with(&n_inf, &f, &hit2), "near"),
         // far < near on a ray with hit = 1 (on a ray with hit = 0 it is ignored).
         (with(&f, &n, &hit2), "far"),
+        (with(&n, &f_lt, &hit2), "far"),
     ];
     for (bounds, arg) in &cases {
-        assert_eq!(err_arg(march_bounded(&field, &rays, bounds, &c)), *arg);
+        assert_eq!(err_arg(march(&field, &rays, bounds, &c)), *arg);
+        assert_eq!(err_arg(sphere_trace(&field, &rays, bounds, &st)), *arg);
     }
     let hit01 = Tensor::new(&[1u8, 0], &DEV).unwrap();
     let swapped = with(
@@ -918,61 +907,106 @@ fn bad_input_errs_naming_the_argument() {
         &Tensor::new(&[4.0f64, 1.0], &DEV).unwrap(),
         &hit01,
     );
-    let h = march_bounded(&field, &rays, &swapped, &c).unwrap();
+    let h = march(&field, &rays, &swapped, &c).unwrap();
     assert_eq!(h.status[1], RayStatus::Miss);
-    let short_rays = Rays {
-        origins: o.clone(),
-        directions: w1.clone(),
+    assert_eq!(v64(&h.depth)[1], 0.0);
+    let h = sphere_trace(&field, &rays, &swapped, &st).unwrap();
+    assert_eq!(h.status[1], RayStatus::Miss);
+    assert_eq!(v64(&h.depth)[1], 0.0);
+    // Fewer rays than the range covers.
+    let one = Rays::new(o.narrow(0, 0, 1).unwrap(), w1.clone()).unwrap();
+    assert_eq!(err_arg(march(&field, &one, &good, &c)), "hit");
+
+    // Configurations and fields.
+    let c1 = MarchConfig {
+        steps: 1,
+        ..MarchConfig::default()
+    };
+    assert_eq!(err_arg(march(&field, &rays, &range, &c1)), "config.steps");
+    let c0 = MarchConfig {
+        chunk_points: 0,
+        ..MarchConfig::default()
     };
     assert_eq!(
-        err_arg(march_bounded(&field, &short_rays, &good, &c)),
-        "directions"
+        err_arg(march(&field, &rays, &range, &c0)),
+        "config.chunk_points"
     );
+    let occ = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64)
+        .unwrap()
+        .occupancy(2.0);
+    assert_eq!(err_arg(sphere_trace(&occ, &rays, &range, &st)), "field");
+    assert_eq!(err_arg(StepSchedule::new(vec![(5, 16)])), "milestones");
 
-    // sphere_trace shape errors.
+    // implicit_surface: hits of other rays (a valid march of these two rays).
+    let hits = march(&field, &rays, &range, &c).unwrap();
+    assert!(implicit_surface(&field, &rays, &hits, &ic).is_ok());
+    assert_eq!(err_arg(implicit_surface(&field, &one, &hits, &ic)), "hits");
+    let rays32 = Rays::new(o.to_dtype(DType::F32).unwrap(), w32).unwrap();
     assert_eq!(
-        err_arg(sphere_trace(&field, &o2, &w, &n, &f, &st)),
-        "origins"
-    );
-    assert_eq!(
-        err_arg(sphere_trace(&field, &o, &w1, &n, &f, &st)),
-        "directions"
-    );
-    assert_eq!(err_arg(sphere_trace(&field, &o, &w, &n3, &f, &st)), "near");
-    assert_eq!(err_arg(sphere_trace(&field, &o, &w, &n, &f3, &st)), "far");
-    assert_eq!(err_arg(sphere_trace(&field, &o, &w, &n, &f21, &st)), "far");
-
-    // implicit_surface shape errors (with a valid march of these two rays).
-    let hits = march(&field, &o, &w, &n, &f, &c).unwrap();
-    let ic = ImplicitConfig::default();
-    assert_eq!(
-        err_arg(implicit_surface(&field, &o2, &w, &hits, &ic)),
-        "origins"
-    );
-    assert_eq!(
-        err_arg(implicit_surface(&field, &o, &w1, &hits, &ic)),
-        "directions"
-    );
-    let w4 = Tensor::new(&[[0.0f64, 0.0, 1.0, 0.0], [0.0, 0.1, 1.0, 0.0]], &DEV).unwrap();
-    assert_eq!(
-        err_arg(implicit_surface(&field, &o, &w4, &hits, &ic)),
-        "directions"
-    );
-    let nan_w = Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, f64::NAN, 1.0]], &DEV).unwrap();
-    assert_eq!(
-        err_arg(implicit_surface(&field, &o, &nan_w, &hits, &ic)),
-        "directions"
-    );
-    let o1 = o.narrow(0, 0, 1).unwrap();
-    assert_eq!(
-        err_arg(implicit_surface(&field, &o1, &w1, &hits, &ic)),
+        err_arg(implicit_surface(&field, &rays32, &hits, &ic)),
         "hits"
     );
-    let o32 = o.to_dtype(DType::F32).unwrap();
-    assert_eq!(
-        err_arg(implicit_surface(&field, &o32, &w32, &hits, &ic)),
-        "hits"
+}
+
+/// A ray whose range is empty (`near = far`) used to be an error naming `far`; it is now
+/// a miss at depth 0 that costs no evaluation, in `march` and `sphere_trace` alike, and
+/// the other rays of the batch are unaffected.
+#[test]
+fn ray_with_near_equal_far_is_a_miss_without_evaluation() {
+    let inner = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64).unwrap().sdf();
+    let o = Tensor::new(&[[0.0f64, 0.0, -2.0], [0.0, 0.0, -2.0]], &DEV).unwrap();
+    let w = Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.1, 1.0]], &DEV).unwrap();
+    let n = Tensor::new(&[0.0f64, 0.0], &DEV).unwrap();
+    let (rays, range) = problem(
+        o.clone(),
+        w.clone(),
+        n.clone(),
+        Tensor::new(&[4.0f64, 0.0], &DEV).unwrap(),
     );
+    let cfg = MarchConfig {
+        steps: 16,
+        secant_steps: 4,
+        ..MarchConfig::default()
+    };
+    let field = Counting::new(&inner);
+    let h = march(&field, &rays, &range, &cfg).unwrap();
+    assert_eq!(h.status, vec![RayStatus::Hit, RayStatus::Miss]);
+    let d = v64(&h.depth);
+    assert!((d[0] - 1.5).abs() < 1e-9, "{d:?}");
+    assert_eq!(d[1], 0.0);
+    assert_eq!(v64(&h.mask.to_dtype(DType::F64).unwrap()), vec![1.0, 0.0]);
+    // Only ray 0 was evaluated: 16 samples and 4 secant steps.
+    assert_eq!(field.points.get(), 20);
+    assert_eq!(h.evaluations, 20);
+
+    let field = Counting::new(&inner);
+    let h = sphere_trace(&field, &rays, &range, &SphereTraceConfig::default()).unwrap();
+    assert!(h.status[0].has_surface(), "{:?}", h.status);
+    assert_eq!(h.status[1], RayStatus::Miss);
+    assert_eq!(v64(&h.depth)[1], 0.0);
+    // Every point evaluated lies on ray 0 (x = y = 0), none on ray 1.
+    let single = problem(
+        o.narrow(0, 0, 1).unwrap(),
+        w.narrow(0, 0, 1).unwrap(),
+        n.narrow(0, 0, 1).unwrap(),
+        Tensor::new(&[4.0f64], &DEV).unwrap(),
+    );
+    let alone = Counting::new(&inner);
+    sphere_trace(&alone, &single.0, &single.1, &SphereTraceConfig::default()).unwrap();
+    assert_eq!(field.points.get(), alone.points.get());
+
+    // A non-zero empty range (near = far = 3 on a hit ray) is a miss at depth 0 too.
+    let (rays, range) = problem(
+        o.clone(),
+        w.clone(),
+        Tensor::new(&[0.0f64, 3.0], &DEV).unwrap(),
+        Tensor::new(&[4.0f64, 3.0], &DEV).unwrap(),
+    );
+    let field = Counting::new(&inner);
+    let h = march(&field, &rays, &range, &cfg).unwrap();
+    assert_eq!(h.status, vec![RayStatus::Hit, RayStatus::Miss]);
+    assert_eq!(v64(&h.depth)[1], 0.0);
+    assert_eq!(field.points.get(), 20);
 }
 
 #[test]
@@ -984,22 +1018,15 @@ fn sphere_tracing_agrees_with_the_march_on_sdfs() {
         for dtype in [DType::F64, DType::F32] {
             let field = shape.sdf_surface(dtype);
             let b = rays_at(&shape, 48, 21, dtype);
-            let (o, w, near, far) = tensors(&b, dtype);
+            let (rays, range) = tensors(&b, dtype);
             let cfg = MarchConfig {
                 steps: 256,
                 secant_steps: 12,
                 ..MarchConfig::default()
             };
-            let m = march(field.as_ref(), &o, &w, &near, &far, &cfg).unwrap();
-            let s = sphere_trace(
-                field.as_ref(),
-                &o,
-                &w,
-                &near,
-                &far,
-                &SphereTraceConfig::default(),
-            )
-            .unwrap();
+            let m = march(field.as_ref(), &rays, &range, &cfg).unwrap();
+            let s =
+                sphere_trace(field.as_ref(), &rays, &range, &SphereTraceConfig::default()).unwrap();
             let (dm, ds) = (v64(&m.depth), v64(&s.depth));
             let tol = if dtype == DType::F64 { 1e-4 } else { 2e-4 };
             for i in 0..b.o.len() {
@@ -1040,23 +1067,25 @@ fn sphere_tracing_falls_back_to_sampling_and_steps_back_on_overshoot() {
         }
     }
     let field = Overshoot(Sphere::new([0.0; 3], 0.5, &DEV, DType::F64).unwrap().sdf());
-    let o = Tensor::new(
-        &[[0.0f64, 0.0, -2.0], [0.2, 0.1, -2.0], [0.0, 0.0, -0.2]],
-        &DEV,
-    )
-    .unwrap();
-    let w = Tensor::new(
-        &[[0.0f64, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]],
-        &DEV,
-    )
-    .unwrap();
-    let n = Tensor::zeros(3, DType::F64, &DEV).unwrap();
-    let f = Tensor::new(&[4.0f64, 4.0, 4.0], &DEV).unwrap();
+    let (rays, range) = problem(
+        Tensor::new(
+            &[[0.0f64, 0.0, -2.0], [0.2, 0.1, -2.0], [0.0, 0.0, -0.2]],
+            &DEV,
+        )
+        .unwrap(),
+        Tensor::new(
+            &[[0.0f64, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]],
+            &DEV,
+        )
+        .unwrap(),
+        Tensor::zeros(3, DType::F64, &DEV).unwrap(),
+        Tensor::new(&[4.0f64, 4.0, 4.0], &DEV).unwrap(),
+    );
     let cfg = SphereTraceConfig {
         max_iters: 3,
         ..SphereTraceConfig::default()
     };
-    let h = sphere_trace(&field, &o, &w, &n, &f, &cfg).unwrap();
+    let h = sphere_trace(&field, &rays, &range, &cfg).unwrap();
     let d = v64(&h.depth);
     assert_eq!(h.status[2], RayStatus::StartsInside);
     for (i, expected) in [(0, 1.5), (1, 2.0 - (0.25f64 - 0.05).sqrt())] {
@@ -1070,7 +1099,7 @@ fn sphere_tracing_falls_back_to_sampling_and_steps_back_on_overshoot() {
 }
 
 #[test]
-fn march_bounded_skips_rays_outside_the_box_without_evaluating_them() {
+fn march_skips_rays_outside_the_box_without_evaluating_them() {
     let inner = Sphere::new([0.0; 3], 0.5, &DEV, DType::F64).unwrap().sdf();
     let field = Counting::new(&inner);
     let rays = Rays::new(
@@ -1078,15 +1107,16 @@ fn march_bounded_skips_rays_outside_the_box_without_evaluating_them() {
         Tensor::new(&[[0.0f64, 0.0, 1.0], [0.0, 0.0, 1.0]], &DEV).unwrap(),
     )
     .unwrap();
-    let bounds = ray_aabb(&rays.origins, &rays.directions, [-0.55; 3], [0.55; 3]).unwrap();
+    let bounds = ray_aabb(&rays, [-0.55; 3], [0.55; 3]).unwrap();
     let cfg = MarchConfig {
         steps: 32,
         secant_steps: 8,
         ..MarchConfig::default()
     };
-    let h = march_bounded(&field, &rays, &bounds, &cfg).unwrap();
+    let h = march(&field, &rays, &bounds, &cfg).unwrap();
     assert_eq!(h.status, vec![RayStatus::Hit, RayStatus::Miss]);
     assert!((v64(&h.depth)[0] - 1.5).abs() < 1e-12);
+    assert_eq!(v64(&h.depth)[1], 0.0, "a ray outside the box has depth 0");
     assert_eq!(field.points.get(), 40);
 }
 
@@ -1094,7 +1124,8 @@ fn march_bounded_skips_rays_outside_the_box_without_evaluating_them() {
 fn step_schedule_goes_coarse_to_fine() {
     let s = StepSchedule::coarse_to_fine();
     assert_eq!(
-        [0, 49_999, 50_000, 150_000, 10_000_000].map(|i| s.steps_at(i)),
+        [0, 49_999, 50_000, 150_000, 10_000_000]
+            .map(|i| s.config_at(i, &MarchConfig::default()).steps),
         [16, 16, 32, 64, 128]
     );
     let custom = StepSchedule::new(vec![(0, 8), (10, 24)]).unwrap();

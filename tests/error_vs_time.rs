@@ -16,6 +16,14 @@ mod volume;
 #[path = "../examples/error_vs_time/dvr.rs"]
 mod dvr;
 
+// What the DVR study shares with the examples.
+#[cfg(feature = "dvr")]
+#[path = "../examples/common/cameras.rs"]
+mod cameras;
+#[cfg(feature = "dvr")]
+#[path = "../examples/common/mod.rs"]
+mod common;
+
 #[cfg(feature = "occupancy")]
 #[path = "../examples/error_vs_time/mise.rs"]
 mod mise;

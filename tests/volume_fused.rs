@@ -1,18 +1,18 @@
-//! The fused compositing op against the reference path and central finite differences,
-//! on extreme inputs, and its stiff cases.
+//! The fused compositing op (the CPU default of `composite`) against the reference path
+//! (`force_reference`) and central finite differences, on extreme inputs, and its stiff
+//! cases. The comparisons of kernel builds live inside the crate
+//! (`src/volume/fused_tests.rs`): the build is crate-private.
 #![cfg(feature = "volume")]
 
 mod common;
 
 use candle_core::{DType, Device, Tensor, Var};
+use common::intervals::{batched_from_deltas, packed_from_deltas};
 use common::v64;
+use neural_fields::camera::Rays;
 use neural_fields::rng::SplitMix64;
-use neural_fields::volume::composite::{
-    composite_packed_reference, composite_reference, render_weights, Composite, CompositeOptions,
-    Packed, WeightOptions,
-};
-use neural_fields::volume::fused::{
-    accumulate_fused, composite_fused, composite_packed_fused, limit_kernel_build, KernelBuild,
+use neural_fields::volume::{
+    accumulate, composite, render_weights, Composite, CompositeConfig, Intervals, Layout, Packed,
 };
 use proptest::prelude::*;
 
@@ -20,9 +20,9 @@ fn dev() -> Device {
     Device::Cpu
 }
 
-/// Random extreme inputs for `r` rays of `s` samples: σ in {0, 10^[−30, 30], moderate
-/// thickness}, δ in {10^[−30, 10], moderate}.
-fn inputs(seed: u64, n: usize, c: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>) {
+/// Random extreme inputs for `n` samples: σ in {0, 10^[−30, 30], moderate thickness},
+/// δ in {10^[−30, 10], moderate}; colours in [0, 1).
+fn inputs(seed: u64, n: usize, c: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
     let mut rng = SplitMix64::new(seed);
     let mut sig = Vec::with_capacity(n);
     let mut del = Vec::with_capacity(n);
@@ -42,8 +42,7 @@ fn inputs(seed: u64, n: usize, c: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>, Vec<f
         del.push(d);
     }
     let col = (0..n * c).map(|_| rng.uniform()).collect();
-    let tm = (0..n).map(|_| 10.0 * rng.uniform()).collect();
-    (sig, del, col, tm)
+    (sig, del, col)
 }
 
 /// Loss weights: one per colour channel, one for opacity, one for depth.
@@ -69,52 +68,79 @@ fn loss(out: &Composite, lw: &[f64]) -> Tensor {
     ((lc + lo).unwrap() + ld).unwrap()
 }
 
+/// Gradients of the loss; `starts`/`ends` are empty when the intervals were constant.
 struct Grads {
     loss: f64,
     sig: Vec<f64>,
-    del: Vec<f64>,
     col: Vec<f64>,
-    tm: Vec<f64>,
+    starts: Vec<f64>,
+    ends: Vec<f64>,
 }
 
-type Path<'a> = &'a dyn Fn(&Tensor, &Tensor, &Tensor, &Tensor) -> Composite;
-
-fn grads(path: Path, sig: &Tensor, col: &Tensor, del: &Tensor, tm: &Tensor, lw: &[f64]) -> Grads {
-    grads_with(path, sig, col, del, tm, lw, true)
-}
-
-/// As [`grads`]; with `t_var = false` the depths are a constant of the graph (the fused
-/// op then reads them in place instead of stacking them under δ) and `tm` is empty.
-fn grads_with(
-    path: Path,
+/// `composite` on the fused path (`fused = true`, the CPU default) or the reference.
+fn run(
+    fused: bool,
     sig: &Tensor,
     col: &Tensor,
-    del: &Tensor,
-    tm: &Tensor,
+    iv: &Intervals,
+    rays: Option<&Rays>,
+    config: &CompositeConfig,
+) -> Composite {
+    composite(
+        sig,
+        col,
+        iv,
+        rays,
+        &CompositeConfig {
+            force_reference: !fused,
+            ..config.clone()
+        },
+    )
+    .unwrap()
+}
+
+/// Gradients of `loss` through the path `fused` names. With `geo_var` the interval
+/// bounds are variables (the fused op then takes δ and t as tensors and differentiates
+/// them); without, they are constants of the graph (the fused op forms δ and t from the
+/// bounds in place) and `rays` may scale δ.
+#[allow(clippy::too_many_arguments)]
+fn grads(
+    fused: bool,
+    sig: &Tensor,
+    col: &Tensor,
+    iv: &Intervals,
+    rays: Option<&Rays>,
+    config: &CompositeConfig,
     lw: &[f64],
-    t_var: bool,
+    geo_var: bool,
 ) -> Grads {
-    let (s, c, d, t) = (
+    let (s, c) = (
         Var::from_tensor(sig).unwrap(),
         Var::from_tensor(col).unwrap(),
-        Var::from_tensor(del).unwrap(),
-        Var::from_tensor(tm).unwrap(),
     );
-    let t_in = if t_var {
-        t.as_tensor().clone()
+    let (sv, ev) = (
+        Var::from_tensor(&iv.starts).unwrap(),
+        Var::from_tensor(&iv.ends).unwrap(),
+    );
+    let iv_in = if geo_var {
+        Intervals {
+            starts: sv.as_tensor().clone(),
+            ends: ev.as_tensor().clone(),
+            layout: iv.layout.clone(),
+        }
     } else {
-        tm.clone()
+        iv.clone()
     };
-    let out = path(s.as_tensor(), c.as_tensor(), d.as_tensor(), &t_in);
+    let out = run(fused, s.as_tensor(), c.as_tensor(), &iv_in, rays, config);
     let l = loss(&out, lw);
     let g = l.backward().unwrap();
     let get = |v: &Var| v64(g.get(v.as_tensor()).expect("gradient present"));
     Grads {
         loss: v64(&l)[0],
         sig: get(&s),
-        del: get(&d),
         col: get(&c),
-        tm: if t_var { get(&t) } else { Vec::new() },
+        starts: if geo_var { get(&sv) } else { Vec::new() },
+        ends: if geo_var { get(&ev) } else { Vec::new() },
     }
 }
 
@@ -122,24 +148,30 @@ fn all_finite(g: &Grads) -> bool {
     g.loss.is_finite()
         && g.sig
             .iter()
-            .chain(&g.del)
             .chain(&g.col)
-            .chain(&g.tm)
+            .chain(&g.starts)
+            .chain(&g.ends)
             .all(|v| v.is_finite())
 }
 
-/// Per-sample magnitude scale of ∂L/∂xⱼ: |∂L/∂xⱼ| ≤ Tⱼ·max|u| with uᵢ = Σₖ gₖcᵢₖ + g_O
-/// + g_D·tᵢ; values below 1e-290 count as zero (the kernel stops a ray once T < 1e-300).
+/// Per-sample magnitude scale of ∂L/∂xⱼ: |∂L/∂xⱼ| ≤ Tⱼ·max|u| with
+/// uᵢ = Σₖ gₖcᵢₖ + g_O + g_D·tᵢ (tᵢ the midpoints); values below 1e-290 count as zero (the kernel stops a
+/// ray once T < 1e-300). Also returns T.
 fn x_scale(
     sig: &Tensor,
-    del: &Tensor,
+    iv: &Intervals,
+    rays: Option<&Rays>,
     col: &[f64],
-    tm: &[f64],
     lw: &[f64],
     opaque_last: bool,
-) -> Vec<f64> {
-    let w = render_weights(sig, del, &WeightOptions { opaque_last }).unwrap();
+) -> (Vec<f64>, Vec<f64>) {
+    let cfg = CompositeConfig {
+        opaque_last,
+        ..Default::default()
+    };
+    let w = render_weights(sig, iv, rays, &cfg).unwrap();
     let t = v64(&w.transmittance);
+    let tm = v64(&iv.midpoints().unwrap());
     let c = lw.len() - 2;
     let umax = (0..t.len())
         .map(|i| {
@@ -150,13 +182,21 @@ fn x_scale(
             u.abs()
         })
         .fold(0.0, f64::max);
-    t.iter().map(|ti| (ti.max(1e-290)) * umax).collect()
+    (t.iter().map(|ti| (ti.max(1e-290)) * umax).collect(), t)
+}
+
+/// Scale of ∂L/∂starts and ∂L/∂ends = ∓∂L/∂δ + ½·∂L/∂t (unit directions): the δ part
+/// is at most xⱼ-scale·σⱼ, the t part (wⱼ·g_D) at most Tⱼ·|g_D|.
+fn geo_scale(xs: &[f64], t: &[f64], sig: &[f64], g_d: f64) -> Vec<f64> {
+    (0..xs.len())
+        .map(|i| xs[i] * sig[i] + t[i].max(1e-290) * g_d.abs())
+        .collect()
 }
 
 /// Scale floor for gradients of the form w·g (colours, depths) under `check_close` at
 /// rel 1e-10: the kernel drops the weights after T < 1e-300 (its documented stop), an
 /// absolute error below 1e-300·max|g|, which is 1e-10 × this floor (regression:
-/// `fused_stops_after_transmittance_below_1e_300`).
+/// `a_sample_behind_transmittance_below_1e_300_gets_zero_weight`).
 fn stop_floor(lw: &[f64], len: usize) -> Vec<f64> {
     let gmax = lw.iter().fold(0.0f64, |m, w| m.max(w.abs()));
     vec![1e-290 * gmax; len]
@@ -169,6 +209,7 @@ fn check_close(
     scale: &[f64],
     rel: f64,
 ) -> Result<(), TestCaseError> {
+    prop_assert_eq!(a.len(), b.len(), "{}: lengths", name);
     for i in 0..a.len() {
         let tol = rel * (a[i].abs().max(b[i].abs()) + scale[i]);
         prop_assert!(
@@ -181,14 +222,33 @@ fn check_close(
     Ok(())
 }
 
-fn batched(r: usize, s: usize, c: usize, seed: u64) -> (Tensor, Tensor, Tensor, Tensor) {
-    let (sig, del, col, tm) = inputs(seed, r * s, c);
+/// `r` rays of `s` samples from [`inputs`]: densities, colours and contiguous intervals
+/// with those lengths (each ray from t = 0; a tiny δ after a large t rounds, as it would
+/// in any interval of that t), all f64.
+fn batched(r: usize, s: usize, c: usize, seed: u64) -> (Tensor, Tensor, Intervals) {
+    let (sig, del, col) = inputs(seed, r * s, c);
     (
         Tensor::from_vec(sig, (r, s), &dev()).unwrap(),
         Tensor::from_vec(col, (r, s, c), &dev()).unwrap(),
-        Tensor::from_vec(del, (r, s), &dev()).unwrap(),
-        Tensor::from_vec(tm, (r, s), &dev()).unwrap(),
+        batched_from_deltas(&del, r, s, DType::F64, &dev()),
     )
+}
+
+/// `r` constant rays with directions of norms between 0.5 and 2 (which scale δ).
+fn scaled_rays(r: usize, seed: u64) -> Rays {
+    let mut rng = SplitMix64::new(seed ^ 0xd1);
+    let mut d = Vec::with_capacity(3 * r);
+    for _ in 0..r {
+        let v = [rng.normal(), rng.normal(), rng.normal()];
+        let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-3);
+        let want = 0.5 + 1.5 * rng.uniform();
+        d.extend(v.iter().map(|x| x / n * want));
+    }
+    Rays::new(
+        Tensor::zeros((r, 3), DType::F64, &dev()).unwrap(),
+        Tensor::from_vec(d, (r, 3), &dev()).unwrap(),
+    )
+    .unwrap()
 }
 
 fn sample_count() -> impl Strategy<Value = usize> {
@@ -200,65 +260,80 @@ proptest! {
 
     /// Fused and reference gradients agree to 1e-10 relative (f64), measured against the
     /// magnitude of the terms each gradient is made of; 1–8 channels cover the kernels
-    /// specialised for 1–4 channels and the general one, and the depths are either
-    /// differentiated (stacked under δ) or constant (read in place).
+    /// specialised for 1–4 channels and the general one, and the intervals are either
+    /// differentiated (δ and t as tensors) or constant (formed in the kernel, with rays
+    /// whose direction norms scale δ).
     #[test]
     fn fused_gradients_equal_reference_gradients(
         seed in any::<u64>(), r in 1usize..4, s in sample_count(), c in 1usize..9, opaque_last in any::<bool>(),
-        t_var in any::<bool>(),
+        geo_var in any::<bool>(),
     ) {
-        let (sig, col, del, tm) = batched(r, s, c, seed);
+        let (sig, col, iv) = batched(r, s, c, seed);
         let lw = loss_weights(seed, c);
-        let opts = CompositeOptions { opaque_last, ..Default::default() };
-        let gf = grads_with(&|a, b, d, e| composite_fused(a, b, d, e, &opts).unwrap(), &sig, &col, &del, &tm, &lw, t_var);
-        let gr = grads_with(&|a, b, d, e| composite_reference(a, b, d, e, &opts).unwrap(), &sig, &col, &del, &tm, &lw, t_var);
+        let cfg = CompositeConfig { opaque_last, ..Default::default() };
+        let rays = scaled_rays(r, seed);
+        let rays = if geo_var { None } else { Some(&rays) };
+        let gf = grads(true, &sig, &col, &iv, rays, &cfg, &lw, geo_var);
+        let gr = grads(false, &sig, &col, &iv, rays, &cfg, &lw, geo_var);
         prop_assert!(all_finite(&gf) && all_finite(&gr));
         prop_assert!((gf.loss - gr.loss).abs() <= 1e-12 * (1.0 + gr.loss.abs()));
-        let xs = x_scale(&sig, &del, &v64(&col), &v64(&tm), &lw, opaque_last);
-        let (sv, dv) = (v64(&sig), v64(&del));
+        let (xs, t) = x_scale(&sig, &iv, rays, &v64(&col), &lw, opaque_last);
+        let (sv, dv) = (v64(&sig), v64(&iv.deltas(rays).unwrap()));
         let ss: Vec<f64> = xs.iter().zip(&dv).map(|(x, d)| x * d).collect();
-        let sd: Vec<f64> = xs.iter().zip(&sv).map(|(x, s)| x * s).collect();
         check_close("sigmas", &gf.sig, &gr.sig, &ss, 1e-10)?;
-        check_close("deltas", &gf.del, &gr.del, &sd, 1e-10)?;
         let zero_c = stop_floor(&lw, gf.col.len());
         check_close("colors", &gf.col, &gr.col, &zero_c, 1e-10)?;
-        prop_assert_eq!(gf.tm.len(), gr.tm.len());
-        check_close("t_mids", &gf.tm, &gr.tm, &zero_c[..gf.tm.len()], 1e-10)?;
+        prop_assert_eq!(gf.starts.len(), if geo_var { r * s } else { 0 });
+        let geo = geo_scale(&xs, &t, &sv, lw[c + 1]);
+        check_close("starts", &gf.starts, &gr.starts, &geo, 1e-10)?;
+        check_close("ends", &gf.ends, &gr.ends, &geo, 1e-10)?;
     }
 
-    /// Fused gradients against central finite differences (relative steps; a one-sided
-    /// second-order difference at σ = 0), to 1e-6 relative plus the difference quotient's
-    /// rounding floor.
+    /// Fused gradients against central finite differences (relative steps; one-sided
+    /// second-order differences at the domain's edge), to 1e-6 relative plus the
+    /// difference quotient's rounding floor. Every interval starts at t = 0 here (the
+    /// compositing functions do not need sorted intervals), so that its length δ = end is
+    /// exact down to 1e-30 and can be stepped relatively.
     #[test]
     fn fused_gradients_match_finite_differences(
         seed in any::<u64>(), s in sample_count(), opaque_last in any::<bool>()
     ) {
         let (r, c) = (2, 3);
-        let (sig, col, del, tm) = batched(r, s, c, seed);
+        let (sv, dv, cv) = inputs(seed, r * s, c);
+        let st0 = vec![0.0; r * s];
+        let geo = |st: &[f64], en: &[f64]| Intervals {
+            starts: Tensor::from_slice(st, (r, s), &dev()).unwrap(),
+            ends: Tensor::from_slice(en, (r, s), &dev()).unwrap(),
+            layout: Layout::Batched,
+        };
+        let iv = geo(&st0, &dv);
+        let sig = Tensor::from_slice(&sv, (r, s), &dev()).unwrap();
+        let col = Tensor::from_slice(&cv, (r, s, c), &dev()).unwrap();
         let lw = loss_weights(seed, c);
-        let opts = CompositeOptions { opaque_last, ..Default::default() };
-        let g = grads(&|a, b, d, e| composite_fused(a, b, d, e, &opts).unwrap(), &sig, &col, &del, &tm, &lw);
-        let xs = x_scale(&sig, &del, &v64(&col), &v64(&tm), &lw, opaque_last);
-        let (sv, dv, cv, tv) = (v64(&sig), v64(&del), v64(&col), v64(&tm));
-        let eval = |sv: &[f64], dv: &[f64], cv: &[f64], tv: &[f64]| -> f64 {
-            let out = composite_fused(
+        let cfg = CompositeConfig { opaque_last, ..Default::default() };
+        let g = grads(true, &sig, &col, &iv, None, &cfg, &lw, true);
+        let (xs, t) = x_scale(&sig, &iv, None, &cv, &lw, opaque_last);
+        let eval = |sv: &[f64], st: &[f64], en: &[f64], cv: &[f64]| -> f64 {
+            let out = run(
+                true,
                 &Tensor::from_slice(sv, (r, s), &dev()).unwrap(),
                 &Tensor::from_slice(cv, (r, s, c), &dev()).unwrap(),
-                &Tensor::from_slice(dv, (r, s), &dev()).unwrap(),
-                &Tensor::from_slice(tv, (r, s), &dev()).unwrap(),
-                &opts,
-            ).unwrap();
+                &geo(st, en),
+                None,
+                &cfg,
+            );
             v64(&loss(&out, &lw))[0]
         };
         let mut rng = SplitMix64::new(seed ^ 77);
         let picks: Vec<usize> = if r * s <= 24 { (0..r * s).collect() } else { (0..24).map(|_| rng.below((r * s) as u64) as usize).collect() };
         let l0 = g.loss.abs().max(1.0);
+        let g_d = lw[c + 1].abs();
         for &i in &picks {
-            // d/dσ_i and d/dδ_i: the step moves x = σδ by at least 1e-8 (a relative step
-            // alone is meaningless at σ = 1e-30); one-sided second-order differences where
-            // the central one would leave the domain (σ, δ ≥ 0).
-            let fd_at = |f: &dyn Fn(f64) -> f64, x0: f64, h: f64| {
-                if x0 >= 2.0 * h {
+            // d/dσ_i, d/dend_i and d/dstart_i: the step moves x = σδ by at least 1e-8 (a
+            // relative step alone is meaningless at σ = 1e-30); one-sided second-order
+            // differences where the central one would leave the domain (σ ≥ 0, δ ≥ 0).
+            let fd_at = |f: &dyn Fn(f64) -> f64, x0: f64, h: f64, room: f64| {
+                if room >= 2.0 * h {
                     (f(x0 + h) - f(x0 - h)) / (2.0 * h)
                 } else {
                     (-3.0 * f(x0) + 4.0 * f(x0 + h) - f(x0 + 2.0 * h)) / (2.0 * h)
@@ -266,85 +341,90 @@ proptest! {
             };
             let (s0, d0) = (sv[i], dv[i]);
             let h = 1e-5 * s0.max(1e-3 / d0);
-            let fd = fd_at(&|x: f64| { let mut v = sv.clone(); v[i] = x; eval(&v, &dv, &cv, &tv) }, s0, h);
+            let fd = fd_at(&|x: f64| { let mut v = sv.clone(); v[i] = x; eval(&v, &st0, &dv, &cv) }, s0, h, s0);
             let tol = 1e-6 * (g.sig[i].abs() + xs[i] * d0) + 20.0 * f64::EPSILON * l0 / h;
             prop_assert!((fd - g.sig[i]).abs() <= tol, "dσ[{i}] σ={s0:e} δ={d0:e}: fd {fd:e} vs {:e} (tol {tol:e})", g.sig[i]);
+            // The end moves δ and the midpoint: ∂L/∂end = ∂L/∂δ + ½∂L/∂t.
             let h = if s0 > 0.0 { 1e-5 * d0.max(1e-3 / s0) } else { 1e-5 * d0 };
-            let fd = fd_at(&|x: f64| { let mut v = dv.clone(); v[i] = x; eval(&sv, &v, &cv, &tv) }, d0, h);
-            let tol = 1e-6 * (g.del[i].abs() + xs[i] * s0) + 20.0 * f64::EPSILON * l0 / h;
-            prop_assert!((fd - g.del[i]).abs() <= tol, "dδ[{i}] σ={s0:e} δ={d0:e}: fd {fd:e} vs {:e} (tol {tol:e})", g.del[i]);
-            // d/dt_i and d/dc_i0 (linear: differences are exact up to rounding)
-            let f = |x: f64| { let mut v = tv.clone(); v[i] = x; eval(&sv, &dv, &cv, &v) };
-            let fd = (f(tv[i] + 1e-3) - f(tv[i] - 1e-3)) / 2e-3;
-            prop_assert!((fd - g.tm[i]).abs() <= 1e-6 * g.tm[i].abs() + 1e-11 * l0, "dt[{i}]");
-            let f = |x: f64| { let mut v = cv.clone(); v[i * c] = x; eval(&sv, &dv, &v, &tv) };
+            let geo_tol = |gi: f64| 1e-6 * (gi.abs() + xs[i] * s0 + t[i] * g_d);
+            let fd = fd_at(&|x: f64| { let mut v = dv.clone(); v[i] = x; eval(&sv, &st0, &v, &cv) }, d0, h, d0);
+            let tol = geo_tol(g.ends[i]) + 20.0 * f64::EPSILON * l0 / h;
+            prop_assert!((fd - g.ends[i]).abs() <= tol, "dend[{i}] σ={s0:e} δ={d0:e}: fd {fd:e} vs {:e} (tol {tol:e})", g.ends[i]);
+            // The start (at 0) moves δ the other way: ∂L/∂start = −∂L/∂δ + ½∂L/∂t; stepped
+            // downwards, where δ = end − start grows, when δ leaves no room above.
+            let f = |x: f64| { let mut v = st0.clone(); v[i] = x; eval(&sv, &v, &dv, &cv) };
+            let fd = if d0 >= 2.0 * h {
+                (f(h) - f(-h)) / (2.0 * h)
+            } else {
+                (3.0 * f(0.0) - 4.0 * f(-h) + f(-2.0 * h)) / (2.0 * h)
+            };
+            let tol = geo_tol(g.starts[i]) + 20.0 * f64::EPSILON * l0 / h;
+            prop_assert!((fd - g.starts[i]).abs() <= tol, "dstart[{i}] σ={s0:e} δ={d0:e}: fd {fd:e} vs {:e} (tol {tol:e})", g.starts[i]);
+            // d/dc_i0 (linear: differences are exact up to rounding)
+            let f = |x: f64| { let mut v = cv.clone(); v[i * c] = x; eval(&sv, &st0, &dv, &v) };
             let fd = (f(cv[i * c] + 1e-3) - f(cv[i * c] - 1e-3)) / 2e-3;
             prop_assert!((fd - g.col[i * c]).abs() <= 1e-6 * g.col[i * c].abs() + 1e-11 * l0, "dc[{i}]");
         }
     }
 
-    /// Packed layout with empty rays: fused equals reference, values and gradients.
+    /// Packed layout with empty rays: fused equals reference, values and gradients, with
+    /// the intervals differentiated or constant (then with rays that scale δ).
     #[test]
     fn packed_fused_equals_packed_reference_with_empty_rays(
-        seed in any::<u64>(), counts in prop::collection::vec(prop_oneof![Just(0usize), 1usize..40], 1..8), opaque_last in any::<bool>()
+        seed in any::<u64>(), counts in prop::collection::vec(prop_oneof![Just(0usize), 1usize..40], 1..8), opaque_last in any::<bool>(),
+        geo_var in any::<bool>(),
     ) {
         let c = 3;
         let packed = Packed::from_counts(&counts, &dev()).unwrap();
         let m = packed.n_samples();
         prop_assume!(m > 0);
-        let (sig, del, col, tm) = inputs(seed, m, c);
+        let (sig, del, col) = inputs(seed, m, c);
         let sig = Tensor::from_vec(sig, m, &dev()).unwrap();
-        let del = Tensor::from_vec(del, m, &dev()).unwrap();
+        let iv = packed_from_deltas(&del, &packed, DType::F64);
         let col = Tensor::from_vec(col, (m, c), &dev()).unwrap();
-        let tm = Tensor::from_vec(tm, m, &dev()).unwrap();
         let lw = loss_weights(seed, c);
         let bg = Tensor::new(&[0.3f64, 0.6, 0.9], &dev()).unwrap();
-        let opts = CompositeOptions { opaque_last, background: Some(bg) };
-        let gf = grads(&|a, b, d, e| composite_packed_fused(a, b, d, e, &packed, &opts).unwrap(), &sig, &col, &del, &tm, &lw);
-        let gr = grads(&|a, b, d, e| composite_packed_reference(a, b, d, e, &packed, &opts).unwrap(), &sig, &col, &del, &tm, &lw);
+        let cfg = CompositeConfig { opaque_last, background: Some(bg), force_reference: false };
+        let rays = scaled_rays(counts.len(), seed);
+        let rays = if geo_var { None } else { Some(&rays) };
+        let gf = grads(true, &sig, &col, &iv, rays, &cfg, &lw, geo_var);
+        let gr = grads(false, &sig, &col, &iv, rays, &cfg, &lw, geo_var);
         prop_assert!(all_finite(&gf) && all_finite(&gr));
         prop_assert!((gf.loss - gr.loss).abs() <= 1e-12 * (1.0 + gr.loss.abs()));
         // Scale per sample from the packed reference weights.
-        let tr = v64(&neural_fields::volume::composite::render_weights_packed(&sig, &del, &packed, &opts.weight_options()).unwrap().transmittance);
-        let umax = 10.0 * lw.iter().map(|x| x.abs()).sum::<f64>();
-        let (sv, dv) = (v64(&sig), v64(&del));
+        let tr = v64(&render_weights(&sig, &iv, rays, &cfg).unwrap().transmittance);
+        // |u| ≤ Σ|colour and opacity weights| + |g_D|·max t (colours in [0, 1)); the
+        // midpoints t grow with the lengths (up to 1e10 each).
+        let tmax = v64(&iv.midpoints().unwrap()).into_iter().fold(1.0, f64::max);
+        let umax = 10.0 * (lw[..=c].iter().map(|x| x.abs()).sum::<f64>() + lw[c + 1].abs() * tmax);
+        let (sv, dv) = (v64(&sig), v64(&iv.deltas(rays).unwrap()));
         let ss: Vec<f64> = (0..m).map(|i| tr[i].max(1e-290) * umax * dv[i]).collect();
-        let sd: Vec<f64> = (0..m).map(|i| tr[i].max(1e-290) * umax * sv[i]).collect();
+        let sd: Vec<f64> = (0..m).map(|i| tr[i].max(1e-290) * (umax * sv[i] + lw[c + 1].abs())).collect();
         check_close("sigmas", &gf.sig, &gr.sig, &ss, 1e-10)?;
-        check_close("deltas", &gf.del, &gr.del, &sd, 1e-10)?;
         let floor = stop_floor(&lw, 3 * m);
         check_close("colors", &gf.col, &gr.col, &floor, 1e-10)?;
-        check_close("t_mids", &gf.tm, &gr.tm, &floor[..m], 1e-10)?;
+        check_close("starts", &gf.starts, &gr.starts, &sd, 1e-10)?;
+        check_close("ends", &gf.ends, &gr.ends, &sd, 1e-10)?;
     }
 }
 
 #[test]
 fn fused_equals_reference_in_f32() {
-    let (sig, col, del, tm) = batched(64, 192, 3, 7);
-    let (sig, col, del, tm) = (
+    let (sig, col, iv) = batched(64, 192, 3, 7);
+    let (sig, col) = (
         sig.to_dtype(DType::F32).unwrap(),
         col.to_dtype(DType::F32).unwrap(),
-        del.to_dtype(DType::F32).unwrap(),
-        tm.to_dtype(DType::F32).unwrap(),
     );
+    // Rounding sorted f64 bounds to f32 keeps them sorted.
+    let iv = Intervals::new(
+        iv.starts.to_dtype(DType::F32).unwrap(),
+        iv.ends.to_dtype(DType::F32).unwrap(),
+    )
+    .unwrap();
     let lw = loss_weights(7, 3);
-    let opts = CompositeOptions::default();
-    let gf = grads(
-        &|a, b, d, e| composite_fused(a, b, d, e, &opts).unwrap(),
-        &sig,
-        &col,
-        &del,
-        &tm,
-        &lw,
-    );
-    let gr = grads(
-        &|a, b, d, e| composite_reference(a, b, d, e, &opts).unwrap(),
-        &sig,
-        &col,
-        &del,
-        &tm,
-        &lw,
-    );
+    let cfg = CompositeConfig::default();
+    let gf = grads(true, &sig, &col, &iv, None, &cfg, &lw, true);
+    let gr = grads(false, &sig, &col, &iv, None, &cfg, &lw, true);
     assert!(all_finite(&gf) && all_finite(&gr));
     assert!(
         (gf.loss - gr.loss).abs() < 1e-4 * (1.0 + gr.loss.abs()),
@@ -356,13 +436,13 @@ fn fused_equals_reference_in_f32() {
     for (a, b) in gf.col.iter().zip(&gr.col) {
         assert!((a - b).abs() < 1e-5 * max_c);
     }
-    // σ and δ gradients, measured against the size of the terms they are formed from
-    // (as in the f64 proptest): f32 rounding of the reference's exclusive sum (a matmul)
-    // and exponentials sets the tolerance.
-    let xs = x_scale(&sig, &del, &v64(&col), &v64(&tm), &lw, false);
-    let (sv, dv) = (v64(&sig), v64(&del));
+    // σ and interval gradients, measured against the size of the terms they are formed
+    // from (as in the f64 proptest): f32 rounding of the reference's exclusive sum (a
+    // matmul) and exponentials sets the tolerance.
+    let (xs, t) = x_scale(&sig, &iv, None, &v64(&col), &lw, false);
+    let (sv, dv) = (v64(&sig), v64(&iv.deltas(None).unwrap()));
     let ss: Vec<f64> = xs.iter().zip(&dv).map(|(x, d)| x * d).collect();
-    let sd: Vec<f64> = xs.iter().zip(&sv).map(|(x, s)| x * s).collect();
+    let sd = geo_scale(&xs, &t, &sv, lw[4]);
     let worst = |a: &[f64], b: &[f64], scale: &[f64]| {
         a.iter()
             .zip(b)
@@ -370,14 +450,21 @@ fn fused_equals_reference_in_f32() {
             .map(|((a, b), s)| (a - b).abs() / (a.abs().max(b.abs()) + s))
             .fold(0.0, f64::max)
     };
-    let (ws, wd) = (worst(&gf.sig, &gr.sig, &ss), worst(&gf.del, &gr.del, &sd));
-    eprintln!("f32 fused vs reference: worst relative deviation d/dsigma {ws:e}, d/ddelta {wd:e}");
+    let (ws, wst, we) = (
+        worst(&gf.sig, &gr.sig, &ss),
+        worst(&gf.starts, &gr.starts, &sd),
+        worst(&gf.ends, &gr.ends, &sd),
+    );
+    eprintln!(
+        "f32 fused vs reference: worst relative deviation d/dsigma {ws:e}, d/dstarts {wst:e}, d/dends {we:e}"
+    );
     check_close("sigmas", &gf.sig, &gr.sig, &ss, F32_GRAD_TOL).unwrap();
-    check_close("deltas", &gf.del, &gr.del, &sd, F32_GRAD_TOL).unwrap();
+    check_close("starts", &gf.starts, &gr.starts, &sd, F32_GRAD_TOL).unwrap();
+    check_close("ends", &gf.ends, &gr.ends, &sd, F32_GRAD_TOL).unwrap();
 }
 
-/// Tolerance of f32 σ and δ gradients, fused against reference, relative to the size of
-/// their terms (measured: 7.3e-7 at most on this data).
+/// Tolerance of f32 σ and interval gradients, fused against reference, relative to the
+/// size of their terms.
 const F32_GRAD_TOL: f64 = 1e-5;
 
 /// Stiff inputs in f32 and f64, both paths: outputs and gradients finite, and the
@@ -410,6 +497,11 @@ fn stiff_cases_have_finite_outputs_and_gradients() {
             vec![3.0e38, 0.0, 1.0],
             vec![1.0, 1e-30, 1.0],
         ),
+        (
+            "max f32 density, tiny first interval",
+            vec![0.0, 3.0e38, 1.0],
+            vec![1e-30, 1.0, 1.0],
+        ),
         ("zero deltas", vec![1e30, 5.0, 0.0], vec![0.0, 0.0, 0.0]),
     ];
     for dt in [DType::F32, DType::F64] {
@@ -421,52 +513,24 @@ fn stiff_cases_have_finite_outputs_and_gradients() {
                     .unwrap()
                     .to_dtype(dt)
                     .unwrap();
-                let del = Tensor::new(d.as_slice(), &dev())
-                    .unwrap()
-                    .unsqueeze(0)
-                    .unwrap()
-                    .to_dtype(dt)
-                    .unwrap();
+                let iv = batched_from_deltas(d, 1, 3, dt, &dev());
                 let col = Tensor::ones((1, 3, 3), dt, &dev()).unwrap();
-                let tm = Tensor::new(&[[1.0f64, 2.0, 3.0]], &dev())
-                    .unwrap()
-                    .to_dtype(dt)
-                    .unwrap();
                 let lw = [1.0, -1.0, 0.5, 2.0, 0.1];
-                let opts = CompositeOptions {
+                let cfg = CompositeConfig {
                     opaque_last,
                     ..Default::default()
                 };
-                for (pname, g) in [
-                    (
-                        "fused",
-                        grads(
-                            &|a, b, c, e| composite_fused(a, b, c, e, &opts).unwrap(),
-                            &sig,
-                            &col,
-                            &del,
-                            &tm,
-                            &lw,
-                        ),
-                    ),
-                    (
-                        "reference",
-                        grads(
-                            &|a, b, c, e| composite_reference(a, b, c, e, &opts).unwrap(),
-                            &sig,
-                            &col,
-                            &del,
-                            &tm,
-                            &lw,
-                        ),
-                    ),
-                ] {
-                    assert!(
-                        all_finite(&g),
-                        "{name} {dt:?} {pname} opaque_last={opaque_last}: {:?} {:?}",
-                        g.sig,
-                        g.del
-                    );
+                for (pname, fused) in [("fused", true), ("reference", false)] {
+                    for geo_var in [true, false] {
+                        let g = grads(fused, &sig, &col, &iv, None, &cfg, &lw, geo_var);
+                        assert!(
+                            all_finite(&g),
+                            "{name} {dt:?} {pname} opaque_last={opaque_last} geo_var={geo_var}: {:?} {:?} {:?}",
+                            g.sig,
+                            g.starts,
+                            g.ends
+                        );
+                    }
                 }
             }
         }
@@ -477,12 +541,10 @@ fn stiff_cases_have_finite_outputs_and_gradients() {
             .unwrap()
             .to_dtype(dt)
             .unwrap();
-        let del = sig.ones_like().unwrap();
+        let iv = batched_from_deltas(&[1.0; 3], 1, 3, dt, &dev());
         let col = Tensor::ones((1, 3, 1), dt, &dev()).unwrap();
-        for out in [
-            composite_fused(&sig, &col, &del, &del, &CompositeOptions::default()).unwrap(),
-            composite_reference(&sig, &col, &del, &del, &CompositeOptions::default()).unwrap(),
-        ] {
+        for fused in [true, false] {
+            let out = run(fused, &sig, &col, &iv, None, &CompositeConfig::default());
             let o = v64(&out.opacity)[0];
             assert!((o / 3e-30 - 1.0).abs() < 1e-6, "{dt:?}: {o:e}");
         }
@@ -495,22 +557,16 @@ fn one_dense_interval_gives_one_hot_weights_and_gradient_only_up_to_it() {
     let mut s = vec![0.0; n];
     s[9] = 1e10;
     let sig = Tensor::from_vec(s, (1, n), &dev()).unwrap();
-    let del = Tensor::full(0.01f64, (1, n), &dev()).unwrap();
+    let iv = batched_from_deltas(&vec![0.01; n], 1, n, DType::F64, &dev());
     let col = Tensor::arange(0.0f64, n as f64, &dev())
         .unwrap()
         .reshape((1, n, 1))
         .unwrap();
-    let out = composite_fused(&sig, &col, &del, &del, &CompositeOptions::default()).unwrap();
+    let cfg = CompositeConfig::default();
+    let out = run(true, &sig, &col, &iv, None, &cfg);
     assert_eq!(v64(&out.color)[0], 9.0, "colour of the one-hot sample");
     assert_eq!(v64(&out.opacity)[0], 1.0);
-    let g = grads(
-        &|a, b, d, e| composite_fused(a, b, d, e, &CompositeOptions::default()).unwrap(),
-        &sig,
-        &col,
-        &del,
-        &del,
-        &[1.0, 0.0, 0.0],
-    );
+    let g = grads(true, &sig, &col, &iv, None, &cfg, &[1.0, 0.0, 0.0], true);
     assert_eq!(g.col[9], 1.0);
     assert!(g.col.iter().enumerate().all(|(i, v)| i == 9 || *v == 0.0));
     assert!(
@@ -523,19 +579,17 @@ fn one_dense_interval_gives_one_hot_weights_and_gradient_only_up_to_it() {
 fn f32_long_rays_underflow_without_nan_in_fused_gradients() {
     let (r, n) = (4, 1024);
     let sig = Tensor::full(2.0f32, (r, n), &dev()).unwrap();
-    let del = Tensor::full(0.5f32, (r, n), &dev()).unwrap();
+    let iv = batched_from_deltas(&vec![0.5; r * n], r, n, DType::F32, &dev());
     let col = Tensor::full(0.5f32, (r, n, 3), &dev()).unwrap();
-    let tm = Tensor::arange(0.0f32, (r * n) as f32, &dev())
-        .unwrap()
-        .reshape((r, n))
-        .unwrap();
     let g = grads(
-        &|a, b, d, e| composite_fused(a, b, d, e, &CompositeOptions::default()).unwrap(),
+        true,
         &sig,
         &col,
-        &del,
-        &tm,
+        &iv,
+        None,
+        &CompositeConfig::default(),
         &[1.0, 1.0, 1.0, 1.0, 1.0],
+        true,
     );
     assert!(all_finite(&g));
     assert!(g.sig[n - 1] == 0.0 && g.sig[0] != 0.0);
@@ -546,130 +600,70 @@ fn packed_with_only_empty_rays_gives_background() {
     let packed = Packed::from_counts(&[0, 0], &dev()).unwrap();
     let z = Tensor::zeros(0, DType::F32, &dev()).unwrap();
     let zc = Tensor::zeros((0, 3), DType::F32, &dev()).unwrap();
+    let iv = Intervals::new_packed(z.clone(), z.clone(), packed).unwrap();
     let bg = Tensor::new(&[0.25f32, 0.5, 1.0], &dev()).unwrap();
-    let opts = CompositeOptions {
+    let cfg = CompositeConfig {
         opaque_last: false,
         background: Some(bg),
+        force_reference: false,
     };
-    for out in [
-        composite_packed_fused(&z, &zc, &z, &z, &packed, &opts).unwrap(),
-        composite_packed_reference(&z, &zc, &z, &z, &packed, &opts).unwrap(),
-    ] {
+    for fused in [true, false] {
+        let out = run(fused, &z, &zc, &iv, None, &cfg);
         assert_eq!(v64(&out.color), vec![0.25, 0.5, 1.0, 0.25, 0.5, 1.0]);
         assert_eq!(v64(&out.opacity), vec![0.0, 0.0]);
     }
 }
 
+/// `composite` with values as colours (0.1's `accumulate_fused`): `.color` is Σwv and
+/// `.opacity` is Σw of the reference weights.
 #[test]
-fn accumulate_fused_matches_weights_times_values() {
-    let (sig, col, del, _) = batched(3, 17, 2, 99);
-    let out = accumulate_fused(&sig, &del, &col, false).unwrap();
-    let w = render_weights(&sig, &del, &WeightOptions::default()).unwrap();
-    let want = neural_fields::volume::composite::accumulate(&w.weights, &col).unwrap();
-    let got = v64(&out.narrow(1, 0, 2).unwrap());
+fn composite_of_values_equals_weights_times_values() {
+    let (sig, col, iv) = batched(3, 17, 2, 99);
+    let out = run(true, &sig, &col, &iv, None, &CompositeConfig::default());
+    let w = render_weights(&sig, &iv, None, &CompositeConfig::default()).unwrap();
+    let want = accumulate(&w.weights, &col, &Layout::Batched).unwrap();
+    let got = v64(&out.color);
     for (a, b) in got.iter().zip(v64(&want)) {
         assert!((a - b).abs() < 1e-13);
     }
-    let op = v64(&out.narrow(1, 2, 1).unwrap());
+    let op = v64(&out.opacity);
     for (a, b) in op.iter().zip(v64(&w.weights.sum(1).unwrap())) {
         assert!((a - b).abs() < 1e-13);
     }
 }
 
-/// `accumulate_fused` for 0–7 channels (the kernels specialised for 1–4 channels and
-/// the general one, including no channels at all: opacity only) equals weights × values
-/// from the reference path, values and gradients, on every kernel build the CPU has
-/// (baseline, AVX2 + FMA, AVX-512).
-#[test]
-fn every_channel_count_and_both_kernel_builds_match_the_reference() {
-    for build in [
-        KernelBuild::Baseline,
-        KernelBuild::Avx2Fma,
-        KernelBuild::Avx512,
-    ] {
-        limit_kernel_build(build);
-        for k in 0..8 {
-            let (sig, col, del, _) = batched(3, 37, k, 7 + k as u64);
-            let run = |fused: bool| {
-                let (s, c, d) = (
-                    Var::from_tensor(&sig).unwrap(),
-                    Var::from_tensor(&col).unwrap(),
-                    Var::from_tensor(&del).unwrap(),
-                );
-                let out = if fused {
-                    accumulate_fused(s.as_tensor(), d.as_tensor(), c.as_tensor(), false).unwrap()
-                } else {
-                    let w = render_weights(s.as_tensor(), d.as_tensor(), &WeightOptions::default())
-                        .unwrap();
-                    let opacity = w.weights.sum_keepdim(1).unwrap();
-                    if k == 0 {
-                        opacity
-                    } else {
-                        let acc =
-                            neural_fields::volume::composite::accumulate(&w.weights, c.as_tensor())
-                                .unwrap();
-                        Tensor::cat(&[&acc, &opacity], 1).unwrap()
-                    }
-                };
-                let lw = Tensor::new(&loss_weights(k as u64, k)[..k + 1], &dev()).unwrap();
-                let l = out.broadcast_mul(&lw).unwrap().sum_all().unwrap();
-                let g = l.backward().unwrap();
-                let get = |v: &Var| v64(g.get(v.as_tensor()).unwrap());
-                // With no channels candle drops the empty values from the reference graph.
-                let gc = g.get(c.as_tensor()).map(v64).unwrap_or_default();
-                (v64(&out), get(&s), get(&d), gc)
-            };
-            let (fo, fs, fd, fc) = run(true);
-            let (ro, rs, rd, rc) = run(false);
-            // ∂L/∂xⱼ = Tⱼ₊₁uⱼ − Σ_{i>j} wᵢuᵢ cancels down from |u| ≤ Σ|loss weights|
-            // (values in [0, 1]); ∂L/∂σ = δ·∂L/∂x and ∂L/∂δ = σ·∂L/∂x.
-            let umax: f64 = loss_weights(k as u64, k)[..k + 1]
-                .iter()
-                .map(|w| w.abs())
-                .sum();
-            let (sv, dv) = (v64(&sig), v64(&del));
-            let ss: Vec<f64> = dv.iter().map(|d| d * umax).collect();
-            let sd: Vec<f64> = sv.iter().map(|s| s * umax).collect();
-            let one = vec![1.0; fo.len().max(fc.len())];
-            for (name, a, b, scale) in [
-                ("out", &fo, &ro, &one),
-                ("sigmas", &fs, &rs, &ss),
-                ("deltas", &fd, &rd, &sd),
-                ("values", &fc, &rc, &one),
-            ] {
-                assert_eq!(a.len(), b.len(), "k = {k}: {name}");
-                for ((x, y), sc) in a.iter().zip(b.iter()).zip(scale.iter()) {
-                    assert!(
-                        (x - y).abs() <= 1e-10 * (sc + y.abs()),
-                        "k = {k}, {build:?}: {name} {x} vs {y}"
-                    );
-                }
-            }
-        }
-    }
-    limit_kernel_build(KernelBuild::Avx512);
-}
-
 #[test]
 fn fused_rejects_non_contiguous_nothing_and_bad_input_with_names() {
     // Non-contiguous inputs are fine (copied); bad values are named.
-    let (sig, col, del, tm) = batched(3, 5, 3, 1);
+    let (sig, col, iv) = batched(3, 5, 3, 1);
     let sig_t = sig.t().unwrap().contiguous().unwrap().t().unwrap();
-    let a = composite_fused(&sig_t, &col, &del, &tm, &CompositeOptions::default()).unwrap();
-    let b = composite_reference(&sig, &col, &del, &tm, &CompositeOptions::default()).unwrap();
+    let cfg = CompositeConfig::default();
+    let a = run(true, &sig_t, &col, &iv, None, &cfg);
+    let b = run(false, &sig, &col, &iv, None, &cfg);
     for (x, y) in v64(&a.color).iter().zip(v64(&b.color)) {
         assert!((x - y).abs() < 1e-13);
     }
-    let neg = (del.clone() * -1.0).unwrap();
-    match composite_fused(&sig, &col, &neg, &tm, &CompositeOptions::default()) {
-        Err(neural_fields::Error::InvalidArgument { arg, .. }) => assert_eq!(arg, "deltas"),
+    // Inverted intervals (built without `Intervals::new`, which would reject them).
+    let neg = Intervals {
+        starts: iv.ends.clone(),
+        ends: iv.starts.clone(),
+        layout: Layout::Batched,
+    };
+    match composite(&sig, &col, &neg, None, &cfg) {
+        Err(neural_fields::Error::InvalidArgument { arg, .. }) => assert_eq!(arg, "intervals"),
         other => panic!("{other:?}"),
     }
 }
 
 mod activations {
     use super::*;
-    use neural_fields::volume::activations::{softplus, trunc_exp};
+    use neural_fields::numerics;
+    use neural_fields::volume::trunc_exp;
+
+    /// Softplus with β = 1.
+    fn softplus(x: &Tensor) -> neural_fields::Result<Tensor> {
+        numerics::softplus(x, 1.0)
+    }
 
     fn value_and_grad(
         f: fn(&Tensor) -> neural_fields::Result<Tensor>,
@@ -776,13 +770,9 @@ mod activations {
                 )
                 .unwrap();
                 let sig = act(raw.as_tensor()).unwrap();
-                let del = Tensor::full(0.1f64, (1, 5), &dev())
-                    .unwrap()
-                    .to_dtype(dt)
-                    .unwrap();
+                let iv = batched_from_deltas(&[0.1; 5], 1, 5, dt, &dev());
                 let col = Tensor::ones((1, 5, 3), dt, &dev()).unwrap();
-                let out =
-                    composite_fused(&sig, &col, &del, &del, &CompositeOptions::default()).unwrap();
+                let out = run(true, &sig, &col, &iv, None, &CompositeConfig::default());
                 let g = out.color.sum_all().unwrap().backward().unwrap();
                 let gr = v64(g.get(raw.as_tensor()).unwrap());
                 assert!(gr.iter().all(|v| v.is_finite()), "{dt:?}: {gr:?}");
@@ -792,54 +782,74 @@ mod activations {
     }
 }
 
-/// When δ and t are plain tensors (no gradient), the op skips their gradients; the
-/// gradients it does produce are unchanged.
+/// When the intervals are plain tensors (no gradient), the fused op forms δ and t in
+/// place and skips their gradients; the gradients it does produce are the reference's,
+/// with unit directions and with rays whose norms scale δ.
 #[test]
-fn gradients_with_constant_deltas_match_reference() {
-    let (sig, col, del, tm) = batched(5, 33, 3, 4242);
-    let run = |f: &dyn Fn(&Tensor, &Tensor) -> Composite| {
-        let s = Var::from_tensor(&sig).unwrap();
-        let c = Var::from_tensor(&col).unwrap();
-        let out = f(s.as_tensor(), c.as_tensor());
-        let l = loss(&out, &[0.3, -1.0, 2.0, 0.7, -0.2]);
-        let g = l.backward().unwrap();
-        (
-            v64(g.get(s.as_tensor()).unwrap()),
-            v64(g.get(c.as_tensor()).unwrap()),
-        )
-    };
-    let opts = CompositeOptions::default();
-    let (gs_f, gc_f) = run(&|s, c| composite_fused(s, c, &del, &tm, &opts).unwrap());
-    let (gs_r, gc_r) = run(&|s, c| composite_reference(s, c, &del, &tm, &opts).unwrap());
-    for (a, b) in gs_f.iter().zip(&gs_r).chain(gc_f.iter().zip(&gc_r)) {
-        assert!((a - b).abs() <= 1e-10 * (1.0 + b.abs()), "{a} vs {b}");
+fn gradients_with_constant_intervals_match_reference() {
+    let (sig, col, iv) = batched(5, 33, 3, 4242);
+    let rays = scaled_rays(5, 4242);
+    for rays in [None, Some(&rays)] {
+        let grads_of = |fused: bool| {
+            let s = Var::from_tensor(&sig).unwrap();
+            let c = Var::from_tensor(&col).unwrap();
+            let out = run(
+                fused,
+                s.as_tensor(),
+                c.as_tensor(),
+                &iv,
+                rays,
+                &CompositeConfig::default(),
+            );
+            let l = loss(&out, &[0.3, -1.0, 2.0, 0.7, -0.2]);
+            let g = l.backward().unwrap();
+            (
+                v64(g.get(s.as_tensor()).unwrap()),
+                v64(g.get(c.as_tensor()).unwrap()),
+            )
+        };
+        let (gs_f, gc_f) = grads_of(true);
+        let (gs_r, gc_r) = grads_of(false);
+        // Measured against the size of the terms each gradient is made of (as in the
+        // proptests): ∂L/∂σ = δ·∂L/∂x with |∂L/∂x| ≤ T·max|u|, and |u| grows with the
+        // midpoints t, which grow with δ (up to 1e10 here).
+        let lw = [0.3, -1.0, 2.0, 0.7, -0.2];
+        let (xs, _) = x_scale(&sig, &iv, rays, &v64(&col), &lw, false);
+        let dv = v64(&iv.deltas(rays).unwrap());
+        let ss: Vec<f64> = xs.iter().zip(&dv).map(|(x, d)| x * d + 1.0).collect();
+        let sc: Vec<f64> = vec![1.0; gc_r.len()];
+        let what = format!("rays {}", rays.is_some());
+        check_close(&format!("{what}: sigmas"), &gs_f, &gs_r, &ss, 1e-10).unwrap();
+        check_close(&format!("{what}: colors"), &gc_f, &gc_r, &sc, 1e-10).unwrap();
     }
 }
 
-/// Regression (session 2, proptest seed 6506839704322377247): a ray whose transmittance
+/// Found as a proptest failure (seed 6506839704322377247): a ray whose transmittance
 /// fell to 9.5e-301 before an opaque sample. The reference gives that sample weight
-/// 9.5e-301 (here 5.0e-301); the kernel stops once T < 1e-300 and gives it 0. The colour gradients
-/// differ by that weight, below the documented 1e-300 bound, and everything is finite.
+/// T (here 5.0e-301); the kernel stops once T < 1e-300 and gives it 0. The colour
+/// gradients differ by that weight, below the documented 1e-300 bound, and everything is
+/// finite.
 #[test]
-fn fused_stops_after_transmittance_below_1e_300() {
-    let dt = DType::F64;
-    // x = σδ: 691.5 takes T to e^{-691.5} ≈ 5.0e-301, then an opaque sample.
+fn a_sample_behind_transmittance_below_1e_300_gets_zero_weight() {
+    // x = σδ: 691.5 takes T to e^{-691.5} ≈ 5.0e-301, then an opaque sample. Intervals
+    // [0, 1], [1, 2], [2, 3]: δ = 1, midpoints 0.5, 1.5, 2.5.
     let sig = Tensor::new(&[[691.5f64, 1e18, 1.0]], &dev()).unwrap();
-    let del = Tensor::ones((1, 3), dt, &dev()).unwrap();
-    let tm = Tensor::new(&[[0.5f64, 1.5, 2.5]], &dev()).unwrap();
-    let col = Tensor::ones((1, 3, 1), dt, &dev()).unwrap();
-    let run = |fused: bool| {
+    let iv = batched_from_deltas(&[1.0; 3], 1, 3, DType::F64, &dev());
+    let col = Tensor::ones((1, 3, 1), DType::F64, &dev()).unwrap();
+    let grads_of = |fused: bool| {
         let c = Var::from_tensor(&col).unwrap();
-        let opts = CompositeOptions::default();
-        let out = if fused {
-            composite_fused(&sig, c.as_tensor(), &del, &tm, &opts).unwrap()
-        } else {
-            composite_reference(&sig, c.as_tensor(), &del, &tm, &opts).unwrap()
-        };
+        let out = run(
+            fused,
+            &sig,
+            c.as_tensor(),
+            &iv,
+            None,
+            &CompositeConfig::default(),
+        );
         let g = out.color.sum_all().unwrap().backward().unwrap();
         v64(g.get(c.as_tensor()).unwrap())
     };
-    let (f, r) = (run(true), run(false));
+    let (f, r) = (grads_of(true), grads_of(false));
     assert!(
         r[1] > 0.0 && r[1] < 1e-300,
         "reference keeps the tiny weight: {r:?}"
@@ -848,87 +858,4 @@ fn fused_stops_after_transmittance_below_1e_300() {
     for (a, b) in f.iter().zip(&r) {
         assert!(a.is_finite() && (a - b).abs() <= 1e-300, "{a} vs {b}");
     }
-}
-
-/// The scans run in blocks of 4 samples and fall back to one sample at a time in the
-/// block where T drops below 1e-300 (and in the last S mod 4 samples). With the drop at
-/// every position of 3 blocks and a tail (S = 13), every kernel build gives the
-/// reference's colour, opacity and depth, and gradients equal to the reference's up to
-/// the dropped weights (each below 1e-300), with exactly zero gradient past the drop.
-#[test]
-fn blocked_scan_stops_in_the_block_where_transmittance_falls_below_1e_300() {
-    let s = 13;
-    let dt = DType::F64;
-    for build in [
-        KernelBuild::Baseline,
-        KernelBuild::Avx2Fma,
-        KernelBuild::Avx512,
-    ] {
-        limit_kernel_build(build);
-        for drop_at in 0..s {
-            // x = σδ = 0.3 before the drop, 700 at it (T falls by e^{-700} ≈ 1e-304),
-            // 0.2 after it.
-            let sig: Vec<f64> = (0..s)
-                .map(|i| match i.cmp(&drop_at) {
-                    std::cmp::Ordering::Less => 0.3,
-                    std::cmp::Ordering::Equal => 700.0,
-                    std::cmp::Ordering::Greater => 0.2,
-                })
-                .collect();
-            let sig = Tensor::from_vec(sig, (1, s), &dev()).unwrap();
-            let del = Tensor::ones((1, s), dt, &dev()).unwrap();
-            let tm = Tensor::arange(0.0f64, s as f64, &dev())
-                .unwrap()
-                .reshape((1, s))
-                .unwrap();
-            let col = Tensor::from_vec(
-                (0..s * 2)
-                    .map(|i| 0.1 + 0.05 * i as f64)
-                    .collect::<Vec<_>>(),
-                (1, s, 2),
-                &dev(),
-            )
-            .unwrap();
-            let run = |fused: bool| {
-                let (sv, cv) = (
-                    Var::from_tensor(&sig).unwrap(),
-                    Var::from_tensor(&col).unwrap(),
-                );
-                let opts = CompositeOptions::default();
-                let f = if fused {
-                    composite_fused
-                } else {
-                    composite_reference
-                };
-                let out = f(sv.as_tensor(), cv.as_tensor(), &del, &tm, &opts).unwrap();
-                let l = loss(&out, &[0.7, -1.3, 0.4, 0.9]);
-                let g = l.backward().unwrap();
-                let vals = [v64(&out.color), v64(&out.opacity), v64(&out.depth)].concat();
-                (
-                    vals,
-                    v64(g.get(sv.as_tensor()).unwrap()),
-                    v64(g.get(cv.as_tensor()).unwrap()),
-                )
-            };
-            let ((fv, fs, fc), (rv, rs, rc)) = (run(true), run(false));
-            for (name, a, b) in [
-                ("outputs", &fv, &rv),
-                ("d/dsigma", &fs, &rs),
-                ("d/dcolor", &fc, &rc),
-            ] {
-                for (x, y) in a.iter().zip(b.iter()) {
-                    assert!(
-                        x.is_finite() && (x - y).abs() <= 1e-13 * (1.0 + y.abs()) + 1e-290,
-                        "{build:?}, drop at {drop_at}: {name} {x:e} vs {y:e}"
-                    );
-                }
-            }
-            assert!(
-                fs[drop_at + 1..].iter().all(|g| *g == 0.0)
-                    && fc[2 * (drop_at + 1)..].iter().all(|g| *g == 0.0),
-                "{build:?}, drop at {drop_at}: gradient past the drop {fs:?}"
-            );
-        }
-    }
-    limit_kernel_build(KernelBuild::Avx512);
 }

@@ -4,8 +4,11 @@
 #![cfg(feature = "volume")]
 
 use candle_core::{DType, Device, Tensor};
-use neural_fields::volume::composite::{composite_packed, CompositeOptions};
-use neural_fields::volume::grid::{GridConfig, GridSamples, MarchOptions, OccupancyGrid};
+use neural_fields::camera::Rays;
+use neural_fields::volume::{
+    composite, CompositeConfig, GridConfig, GridMarchConfig, GridSamples, Layout, OccupancyGrid,
+    Packed,
+};
 use neural_fields::{Error, Result};
 use std::time::Instant;
 
@@ -36,6 +39,45 @@ fn ball_color(p: &Tensor) -> Result<Tensor> {
     Ok(p.affine(1.0, 0.5)?)
 }
 
+/// A grid on `aabb` with `resolution`³ cells per level, the other settings from `cfg`.
+fn grid_with(
+    aabb: [f64; 6],
+    resolution: usize,
+    levels: usize,
+    cfg: GridConfig,
+) -> Result<OccupancyGrid> {
+    OccupancyGrid::new(GridConfig {
+        aabb,
+        resolution,
+        levels,
+        ..cfg
+    })
+}
+
+/// A grid with the default settings.
+fn grid_new(aabb: [f64; 6], resolution: usize, levels: usize) -> Result<OccupancyGrid> {
+    grid_with(aabb, resolution, levels, GridConfig::default())
+}
+
+/// The fraction of occupied cells, over all levels.
+fn occupied_fraction(grid: &OccupancyGrid) -> f64 {
+    let occ = grid.occupied();
+    occ.iter().filter(|&&o| o).count() as f64 / occ.len() as f64
+}
+
+/// The packed layout of the grid's samples.
+fn packed(s: &GridSamples) -> &Packed {
+    match &s.intervals.layout {
+        Layout::Packed(p) => p,
+        Layout::Batched => panic!("the grid emits packed intervals"),
+    }
+}
+
+/// The number of samples the grid emitted.
+fn n_samples(s: &GridSamples) -> usize {
+    s.intervals.starts.dims()[0]
+}
+
 fn arg_of(e: Error) -> &'static str {
     match e {
         Error::InvalidArgument { arg, .. } => arg,
@@ -45,7 +87,7 @@ fn arg_of(e: Error) -> &'static str {
 
 /// A pinhole camera at (0, 0, −3) looking along +z; directions have unit z (not unit
 /// length), as the camera module returns them.
-fn rays(side: usize, dt: DType) -> (Tensor, Tensor) {
+fn rays(side: usize, dt: DType) -> Rays {
     let mut o = Vec::new();
     let mut d = Vec::new();
     for i in 0..side {
@@ -58,7 +100,7 @@ fn rays(side: usize, dt: DType) -> (Tensor, Tensor) {
     }
     let dev = Device::Cpu;
     let n = side * side;
-    (
+    Rays::new(
         Tensor::from_vec(o, (n, 3), &dev)
             .unwrap()
             .to_dtype(dt)
@@ -68,6 +110,7 @@ fn rays(side: usize, dt: DType) -> (Tensor, Tensor) {
             .to_dtype(dt)
             .unwrap(),
     )
+    .unwrap()
 }
 
 fn max_abs_diff(a: &Tensor, b: &Tensor) -> f64 {
@@ -85,19 +128,16 @@ fn max_abs_diff(a: &Tensor, b: &Tensor) -> f64 {
         .unwrap()
 }
 
-fn render(s: &GridSamples, origins: &Tensor, dirs: &Tensor, r: f64) -> Tensor {
-    let pos = s.positions(origins, dirs).unwrap();
+fn render(s: &GridSamples, rays: &Rays, r: f64) -> Tensor {
+    let pos = s.intervals.positions(rays).unwrap();
     let sigma = ball(r)(&pos).unwrap();
     let rgb = ball_color(&pos).unwrap();
-    let deltas = s.deltas(dirs).unwrap();
-    let mids = s.midpoints().unwrap();
-    composite_packed(
+    composite(
         &sigma,
         &rgb,
-        &deltas,
-        &mids,
-        &s.packed,
-        &CompositeOptions::default(),
+        &s.intervals,
+        Some(rays),
+        &CompositeConfig::default(),
     )
     .unwrap()
     .color
@@ -117,16 +157,16 @@ fn skipping_empty_space_matches_the_full_render_with_ten_times_fewer_samples() {
         (BALL_R_95, DType::F64),
     ] {
         let ball_sigma = ball(r);
-        let (o, d) = rays(48, dt);
+        let rays = rays(48, dt);
         let aabb = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0];
-        let full_grid = OccupancyGrid::new(aabb, 32, 2).unwrap();
+        let full_grid = grid_new(aabb, 32, 2).unwrap();
         // The default grid is conservative (`dilate: true`); one jittered point per cell
         // misses thin slivers of the ball at cell corners, and nerfacc's rule
         // (`dilate: false`) is measured and printed too.
         let cfg = GridConfig::default();
         assert!(cfg.dilate);
-        let mut grid = OccupancyGrid::with_config(aabb, 32, 2, cfg.clone()).unwrap();
-        let mut plain = OccupancyGrid::with_config(
+        let mut grid = grid_with(aabb, 32, 2, cfg.clone()).unwrap();
+        let mut plain = grid_with(
             aabb,
             32,
             2,
@@ -146,31 +186,31 @@ fn skipping_empty_space_matches_the_full_render_with_ten_times_fewer_samples() {
         for step in 0..UPDATES {
             assert!(plain.update(step, 1, &Device::Cpu, dt, ball_sigma).unwrap());
         }
-        let occ = grid.occupied_fraction();
+        let occ = occupied_fraction(&grid);
         let step = 4.0 / 512.0; // in t (|d| ≈ 1): 512 steps across the level-1 box
         let clock = Instant::now();
         let full = full_grid
-            .sample(&o, &d, &MarchOptions::new(0.0, f64::INFINITY, step))
+            .sample(&rays, &GridMarchConfig::new(0.0, f64::INFINITY, step))
             .unwrap();
         let t_march_full = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
         let skip = grid
-            .sample(&o, &d, &MarchOptions::new(0.0, f64::INFINITY, step))
+            .sample(&rays, &GridMarchConfig::new(0.0, f64::INFINITY, step))
             .unwrap();
         let t_march_skip = clock.elapsed().as_secs_f64();
         assert_eq!(full.n_marched, skip.n_marched);
         assert_eq!(
-            full.starts.dims()[0],
+            n_samples(&full),
             full.n_marched,
             "a fresh grid keeps every sample"
         );
-        let m_full = full.starts.dims()[0];
-        let m_skip = skip.starts.dims()[0];
+        let m_full = n_samples(&full);
+        let m_skip = n_samples(&skip);
         let clock = Instant::now();
-        let c_full = render(&full, &o, &d, r);
+        let c_full = render(&full, &rays, r);
         let t_render_full = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
-        let c_skip = render(&skip, &o, &d, r);
+        let c_skip = render(&skip, &rays, r);
         let t_render_skip = clock.elapsed().as_secs_f64();
         let err = max_abs_diff(&c_full, &c_skip);
         let max_c = c_skip
@@ -184,9 +224,9 @@ fn skipping_empty_space_matches_the_full_render_with_ten_times_fewer_samples() {
             .unwrap();
         let ratio = m_full as f64 / m_skip as f64;
         let undilated = plain
-            .sample(&o, &d, &MarchOptions::new(0.0, f64::INFINITY, step))
+            .sample(&rays, &GridMarchConfig::new(0.0, f64::INFINITY, step))
             .unwrap();
-        let err_plain = max_abs_diff(&c_full, &render(&undilated, &o, &d, r));
+        let err_plain = max_abs_diff(&c_full, &render(&undilated, &rays, r));
         println!(
             "grid skipping (ball r = {r}, {dt:?}, 48x48 rays, 2 levels of 32^3, occupied {:.2}% of cells): \
              {m_full} samples without skipping, {m_skip} with ({ratio:.1}x fewer); \
@@ -195,8 +235,8 @@ fn skipping_empty_space_matches_the_full_render_with_ten_times_fewer_samples() {
         );
         println!(
             "  nerfacc rule (no dilation): {} samples ({:.1}x fewer), max |colour error| {:.3e}",
-            undilated.starts.dims()[0],
-            m_full as f64 / undilated.starts.dims()[0] as f64,
+            n_samples(&undilated),
+            m_full as f64 / n_samples(&undilated) as f64,
             err_plain,
         );
         println!(
@@ -221,16 +261,16 @@ fn skipping_empty_space_matches_the_full_render_with_ten_times_fewer_samples() {
 fn cells_of_a_field_that_becomes_empty_are_emptied_by_the_ema() {
     let aabb = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0];
     let cfg = GridConfig::default();
-    let mut grid = OccupancyGrid::with_config(aabb, 16, 1, cfg.clone()).unwrap();
+    let mut grid = grid_with(aabb, 16, 1, cfg.clone()).unwrap();
     let dev = Device::Cpu;
     for step in 0..4 {
         grid.update(step, 1, &dev, DType::F32, ball_sigma).unwrap();
     }
     let ball_cells = grid.occupied().iter().filter(|&&o| o).count();
     assert!(
-        ball_cells > 0 && grid.occupied_fraction() < 0.1,
+        ball_cells > 0 && occupied_fraction(&grid) < 0.1,
         "{}",
-        grid.occupied_fraction()
+        occupied_fraction(&grid)
     );
     assert!(grid.is_occupied([0.0, 0.0, 0.0]));
     assert!(!grid.is_occupied([0.9, 0.9, 0.9]));
@@ -243,11 +283,11 @@ fn cells_of_a_field_that_becomes_empty_are_emptied_by_the_ema() {
         grid.update(4 + k, 1, &dev, DType::F32, empty).unwrap();
         if k == 1 {
             assert!(
-                grid.occupied_fraction() > 0.0,
+                occupied_fraction(&grid) > 0.0,
                 "one decay step must not empty the grid"
             );
         }
-        if grid.occupied_fraction() == 0.0 {
+        if occupied_fraction(&grid) == 0.0 {
             emptied_at = Some(k);
             break;
         }
@@ -268,7 +308,7 @@ fn updates_run_every_n_steps_and_sample_a_subset_after_warm_up() {
         warmup_steps: 2,
         ..GridConfig::default()
     };
-    let mut grid = OccupancyGrid::with_config(aabb, 8, 2, cfg).unwrap();
+    let mut grid = grid_with(aabb, 8, 2, cfg).unwrap();
     let dev = Device::Cpu;
     let points = std::cell::Cell::new(0usize);
     let f = |p: &Tensor| {
@@ -305,7 +345,7 @@ fn updates_run_every_n_steps_and_sample_a_subset_after_warm_up() {
 #[test]
 fn marched_intervals_are_sorted_contiguous_and_inside_the_box() {
     let aabb = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0];
-    let grid = OccupancyGrid::new(aabb, 8, 1).unwrap();
+    let grid = grid_new(aabb, 8, 1).unwrap();
     let dev = Device::Cpu;
     // Along +x through the centre from x = −3: box entry t = 2, exit t = 4.
     let o = Tensor::new(
@@ -318,10 +358,11 @@ fn marched_intervals_are_sorted_contiguous_and_inside_the_box() {
         &dev,
     )
     .unwrap();
+    let rays = Rays::new(o.clone(), d.clone()).unwrap();
     let s = grid
-        .sample(&o, &d, &MarchOptions::new(0.0, 100.0, 0.1))
+        .sample(&rays, &GridMarchConfig::new(0.0, 100.0, 0.1))
         .unwrap();
-    let off = s.packed.offsets_host().to_vec();
+    let off = packed(&s).offsets_host().to_vec();
     assert_eq!(off[1] - off[0], 20, "2 units / 0.1");
     assert_eq!(
         off[2] - off[1],
@@ -330,8 +371,8 @@ fn marched_intervals_are_sorted_contiguous_and_inside_the_box() {
     );
     // From the centre along +z with |d| = 2: t in [0, 0.5], 5 steps of 0.1.
     assert_eq!(off[3] - off[2], 5);
-    let st = s.starts.to_vec1::<f64>().unwrap();
-    let en = s.ends.to_vec1::<f64>().unwrap();
+    let st = s.intervals.starts.to_vec1::<f64>().unwrap();
+    let en = s.intervals.ends.to_vec1::<f64>().unwrap();
     assert!((st[0] - 2.0).abs() < 1e-12 && (en[19] - 4.0).abs() < 1e-12);
     for i in 0..st.len() {
         assert!(st[i] < en[i]);
@@ -339,18 +380,25 @@ fn marched_intervals_are_sorted_contiguous_and_inside_the_box() {
             assert!((en[i] - st[i + 1]).abs() < 1e-15);
         }
     }
-    let deltas = s.deltas(&d).unwrap().to_vec1::<f64>().unwrap();
+    let deltas = s
+        .intervals
+        .deltas(Some(&rays))
+        .unwrap()
+        .to_vec1::<f64>()
+        .unwrap();
     assert!((deltas[20] - 0.2).abs() < 1e-12, "δ scaled by |d| = 2");
     // Cone stepping: steps grow with t, so fewer samples.
     let c = grid
         .sample(
-            &o,
-            &d,
-            &MarchOptions::new(0.0, 100.0, 0.01).with_cone_angle(0.02),
+            &rays,
+            &GridMarchConfig {
+                cone_angle: 0.02,
+                ..GridMarchConfig::new(0.0, 100.0, 0.01)
+            },
         )
         .unwrap();
     let f = grid
-        .sample(&o, &d, &MarchOptions::new(0.0, 100.0, 0.01))
+        .sample(&rays, &GridMarchConfig::new(0.0, 100.0, 0.01))
         .unwrap();
     assert!(
         c.n_marched < f.n_marched,
@@ -359,59 +407,61 @@ fn marched_intervals_are_sorted_contiguous_and_inside_the_box() {
         f.n_marched
     );
     // f32 rays give f32 intervals.
+    let rays32 = Rays::new(
+        o.to_dtype(DType::F32).unwrap(),
+        d.to_dtype(DType::F32).unwrap(),
+    )
+    .unwrap();
     let s32 = grid
-        .sample(
-            &o.to_dtype(DType::F32).unwrap(),
-            &d.to_dtype(DType::F32).unwrap(),
-            &MarchOptions::new(0.0, 100.0, 0.1),
-        )
+        .sample(&rays32, &GridMarchConfig::new(0.0, 100.0, 0.1))
         .unwrap();
-    assert_eq!(s32.starts.dtype(), DType::F32);
-    assert_eq!(s32.packed.ray_indices.dims()[0], s32.starts.dims()[0]);
+    assert_eq!(s32.intervals.starts.dtype(), DType::F32);
+    assert_eq!(packed(&s32).ray_indices.dims()[0], n_samples(&s32));
 }
 
 #[test]
 fn grid_bad_input_errs_naming_the_argument() {
     assert_eq!(
-        arg_of(OccupancyGrid::new([0.0, 0.0, 0.0, 1.0, -1.0, 1.0], 8, 1).unwrap_err()),
-        "aabb"
+        arg_of(grid_new([0.0, 0.0, 0.0, 1.0, -1.0, 1.0], 8, 1).unwrap_err()),
+        "config.aabb"
     );
     assert_eq!(
-        arg_of(OccupancyGrid::new([0.0, 0.0, 0.0, 1.0, 1.0, 1.0], 0, 1).unwrap_err()),
-        "resolution"
+        arg_of(grid_new([0.0, 0.0, 0.0, 1.0, 1.0, 1.0], 0, 1).unwrap_err()),
+        "config.resolution"
     );
     assert_eq!(
-        arg_of(OccupancyGrid::new([0.0, 0.0, 0.0, 1.0, 1.0, 1.0], 8, 0).unwrap_err()),
-        "levels"
+        arg_of(grid_new([0.0, 0.0, 0.0, 1.0, 1.0, 1.0], 8, 0).unwrap_err()),
+        "config.levels"
     );
     assert_eq!(
-        arg_of(OccupancyGrid::new([0.0, 0.0, 0.0, 1.0, 1.0, 1.0], 4096, 4).unwrap_err()),
-        "resolution"
+        arg_of(grid_new([0.0, 0.0, 0.0, 1.0, 1.0, 1.0], 4096, 4).unwrap_err()),
+        "config.resolution"
     );
-    let grid = OccupancyGrid::new([0.0, 0.0, 0.0, 1.0, 1.0, 1.0], 8, 1).unwrap();
+    let grid = grid_new([0.0, 0.0, 0.0, 1.0, 1.0, 1.0], 8, 1).unwrap();
     let dev = Device::Cpu;
     let o = Tensor::zeros((2, 3), DType::F32, &dev).unwrap();
     let d = Tensor::ones((2, 3), DType::F32, &dev).unwrap();
+    let rays = Rays::new(o.clone(), d.clone()).unwrap();
     assert!(grid
-        .sample(&o, &d, &MarchOptions::new(0.0, 1.0, 0.1))
+        .sample(&rays, &GridMarchConfig::new(0.0, 1.0, 0.1))
         .is_ok());
     assert_eq!(
         arg_of(
-            grid.sample(&o, &d, &MarchOptions::new(2.0, 1.0, 0.1))
+            grid.sample(&rays, &GridMarchConfig::new(2.0, 1.0, 0.1))
                 .unwrap_err()
         ),
         "far"
     );
     assert_eq!(
         arg_of(
-            grid.sample(&o, &d, &MarchOptions::new(-1.0, 1.0, 0.1))
+            grid.sample(&rays, &GridMarchConfig::new(-1.0, 1.0, 0.1))
                 .unwrap_err()
         ),
         "near"
     );
     assert_eq!(
         arg_of(
-            grid.sample(&o, &d, &MarchOptions::new(0.0, 1.0, 0.0))
+            grid.sample(&rays, &GridMarchConfig::new(0.0, 1.0, 0.0))
                 .unwrap_err()
         ),
         "step_size"
@@ -419,9 +469,11 @@ fn grid_bad_input_errs_naming_the_argument() {
     assert_eq!(
         arg_of(
             grid.sample(
-                &o,
-                &d,
-                &MarchOptions::new(0.0, 1.0, 0.1).with_cone_angle(-1.0)
+                &rays,
+                &GridMarchConfig {
+                    cone_angle: -1.0,
+                    ..GridMarchConfig::new(0.0, 1.0, 0.1)
+                }
             )
             .unwrap_err()
         ),
@@ -429,41 +481,24 @@ fn grid_bad_input_errs_naming_the_argument() {
     );
     assert_eq!(
         arg_of(
-            grid.sample(&o, &d, &MarchOptions::new(0.0, 1.0, 1e-9))
+            grid.sample(&rays, &GridMarchConfig::new(0.0, 1.0, 1e-9))
                 .unwrap_err()
         ),
         "step_size"
     );
+    // Zero, mismatched and mistyped directions and bad origins are rejected where the
+    // rays are built (`Rays::new`), before any march.
     let zero = Tensor::zeros((2, 3), DType::F32, &dev).unwrap();
-    let inf = MarchOptions::new(0.0, f64::INFINITY, 0.1);
     assert_eq!(
-        arg_of(grid.sample(&o, &zero, &inf).unwrap_err()),
+        arg_of(Rays::new(o.clone(), zero).unwrap_err()),
         "directions"
     );
     let d3 = Tensor::ones((3, 3), DType::F32, &dev).unwrap();
-    assert_eq!(
-        arg_of(
-            grid.sample(&o, &d3, &MarchOptions::new(0.0, 1.0, 0.1))
-                .unwrap_err()
-        ),
-        "directions"
-    );
+    assert_eq!(arg_of(Rays::new(o.clone(), d3).unwrap_err()), "directions");
     let d64 = Tensor::ones((2, 3), DType::F64, &dev).unwrap();
-    assert_eq!(
-        arg_of(
-            grid.sample(&o, &d64, &MarchOptions::new(0.0, 1.0, 0.1))
-                .unwrap_err()
-        ),
-        "directions"
-    );
+    assert_eq!(arg_of(Rays::new(o.clone(), d64).unwrap_err()), "directions");
     let o2 = Tensor::zeros((2, 2), DType::F32, &dev).unwrap();
-    assert_eq!(
-        arg_of(
-            grid.sample(&o2, &d, &MarchOptions::new(0.0, 1.0, 0.1))
-                .unwrap_err()
-        ),
-        "origins"
-    );
+    assert_eq!(arg_of(Rays::new(o2, d).unwrap_err()), "origins");
 }
 
 /// A field with many occupied and empty regions at every level.
@@ -483,13 +518,13 @@ fn jumping_over_empty_cells_gives_exactly_the_step_by_step_march() {
         dilate: false,
         ..GridConfig::default()
     };
-    let mut grid = OccupancyGrid::with_config(aabb, 16, 3, cfg).unwrap();
+    let mut grid = grid_with(aabb, 16, 3, cfg).unwrap();
     for step in 0..4 {
         grid.update(step, 1, &dev, DType::F64, blobs).unwrap();
     }
-    let occ = grid.occupied_fraction();
+    let occ = occupied_fraction(&grid);
     assert!(occ > 0.05 && occ < 0.95, "occupied fraction {occ}");
-    let full_grid = OccupancyGrid::new(aabb, 16, 3).unwrap();
+    let full_grid = grid_new(aabb, 16, 3).unwrap();
     // Random rays from outside and inside, plus rays along cell faces and level boundaries.
     let mut rng = neural_fields::rng::SplitMix64::new(9);
     let mut o = Vec::new();
@@ -514,16 +549,17 @@ fn jumping_over_empty_cells_gives_exactly_the_step_by_step_march() {
     let n = o.len() / 3;
     let o = Tensor::from_vec(o, (n, 3), &dev).unwrap();
     let d = Tensor::from_vec(d, (n, 3), &dev).unwrap();
+    let rays = Rays::new(o.clone(), d.clone()).unwrap();
     for h in [0.01, 0.0137, 0.05] {
-        let opts = MarchOptions::new(0.0, f64::INFINITY, h);
-        let full = full_grid.sample(&o, &d, &opts).unwrap();
-        let skip = grid.sample(&o, &d, &opts).unwrap();
+        let opts = GridMarchConfig::new(0.0, f64::INFINITY, h);
+        let full = full_grid.sample(&rays, &opts).unwrap();
+        let skip = grid.sample(&rays, &opts).unwrap();
         assert_eq!(full.n_marched, skip.n_marched);
         // The step-by-step answer: every interval of the full march whose midpoint's
         // cell is occupied.
-        let fs = full.starts.to_vec1::<f64>().unwrap();
-        let fe = full.ends.to_vec1::<f64>().unwrap();
-        let fr = full.packed.ray_indices.to_vec1::<u32>().unwrap();
+        let fs = full.intervals.starts.to_vec1::<f64>().unwrap();
+        let fe = full.intervals.ends.to_vec1::<f64>().unwrap();
+        let fr = packed(&full).ray_indices.to_vec1::<u32>().unwrap();
         let oh = o.to_vec2::<f64>().unwrap();
         let dh = d.to_vec2::<f64>().unwrap();
         let mut want = Vec::new();
@@ -539,9 +575,9 @@ fn jumping_over_empty_cells_gives_exactly_the_step_by_step_march() {
                 want.push((r as u32, fs[i], fe[i]));
             }
         }
-        let ss = skip.starts.to_vec1::<f64>().unwrap();
-        let se = skip.ends.to_vec1::<f64>().unwrap();
-        let sr = skip.packed.ray_indices.to_vec1::<u32>().unwrap();
+        let ss = skip.intervals.starts.to_vec1::<f64>().unwrap();
+        let se = skip.intervals.ends.to_vec1::<f64>().unwrap();
+        let sr = packed(&skip).ray_indices.to_vec1::<u32>().unwrap();
         let got: Vec<(u32, f64, f64)> = (0..ss.len()).map(|i| (sr[i], ss[i], se[i])).collect();
         println!(
             "step {h}: {} intervals marched, {} kept (occupied {:.1}% of cells)",

@@ -3,14 +3,34 @@
 #![cfg(feature = "volume")]
 
 use candle_core::{DType, Device, Tensor, Var};
-use neural_fields::volume::regularizers::{
-    depth_smoothness, depth_smoothness_weight, distortion_loss, log_linear_schedule,
+use neural_fields::volume::{
+    depth_smoothness, distortion_loss, log_linear_schedule, Intervals, Layout,
 };
 use neural_fields::Error;
 use proptest::prelude::*;
 
 fn t2(v: &[f64], r: usize, c: usize) -> Tensor {
     Tensor::from_vec(v.to_vec(), (r, c), &Device::Cpu).unwrap()
+}
+
+/// Validated batched intervals.
+fn iv(starts: &Tensor, ends: &Tensor) -> Intervals {
+    Intervals::new(starts.clone(), ends.clone()).unwrap()
+}
+
+/// Batched intervals built without `Intervals::new`'s validation, so that
+/// `distortion_loss`'s own checks are exercised.
+fn raw_iv(starts: &Tensor, ends: &Tensor) -> Intervals {
+    Intervals {
+        starts: starts.clone(),
+        ends: ends.clone(),
+        layout: Layout::Batched,
+    }
+}
+
+/// RegNeRF's depth-smoothness weight: 400 → 0.1 log-linearly over 512 steps.
+fn depth_smoothness_weight(step: usize) -> f64 {
+    log_linear_schedule(step, 400.0, 0.1, 512)
 }
 
 fn arg_of(e: Error) -> &'static str {
@@ -88,7 +108,7 @@ proptest! {
             s.extend(a);
             e.extend(b);
         }
-        let got = distortion_loss(&t2(&w, r, n), &t2(&s, r, n), &t2(&e, r, n))
+        let got = distortion_loss(&t2(&w, r, n), &iv(&t2(&s, r, n), &t2(&e, r, n)))
             .unwrap()
             .to_vec1::<f64>()
             .unwrap();
@@ -100,8 +120,10 @@ proptest! {
         // f32 agrees to its precision.
         let got32 = distortion_loss(
             &t2(&w, r, n).to_dtype(DType::F32).unwrap(),
-            &t2(&s, r, n).to_dtype(DType::F32).unwrap(),
-            &t2(&e, r, n).to_dtype(DType::F32).unwrap(),
+            &iv(
+                &t2(&s, r, n).to_dtype(DType::F32).unwrap(),
+                &t2(&e, r, n).to_dtype(DType::F32).unwrap(),
+            ),
         ).unwrap().to_dtype(DType::F64).unwrap().to_vec1::<f64>().unwrap();
         for k in 0..r {
             let wsum: f64 = w[k * n..(k + 1) * n].iter().sum();
@@ -126,7 +148,7 @@ proptest! {
         let wv = Var::from_tensor(&t2(&w, r, n)).unwrap();
         let sv = Var::from_tensor(&t2(&s, r, n)).unwrap();
         let ev = Var::from_tensor(&t2(&e, r, n)).unwrap();
-        let l = distortion_loss(wv.as_tensor(), sv.as_tensor(), ev.as_tensor()).unwrap();
+        let l = distortion_loss(wv.as_tensor(), &iv(sv.as_tensor(), ev.as_tensor())).unwrap();
         let g = l.sum_all().unwrap().backward().unwrap();
         let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f64>().unwrap();
         let gw = flat(g.get(wv.as_tensor()).unwrap());
@@ -194,7 +216,7 @@ fn extreme_weights_and_lengths_give_finite_values_and_gradients() {
             let wv = Var::from_tensor(&t2(&w, 1, n).to_dtype(dt).unwrap()).unwrap();
             let sv = Var::from_tensor(&t2(&s, 1, n).to_dtype(dt).unwrap()).unwrap();
             let ev = Var::from_tensor(&t2(&e, 1, n).to_dtype(dt).unwrap()).unwrap();
-            let l = distortion_loss(wv.as_tensor(), sv.as_tensor(), ev.as_tensor()).unwrap();
+            let l = distortion_loss(wv.as_tensor(), &iv(sv.as_tensor(), ev.as_tensor())).unwrap();
             let g = l.sum_all().unwrap().backward().unwrap();
             let all_finite = |t: &Tensor| {
                 t.to_dtype(DType::F64)
@@ -222,13 +244,12 @@ fn extreme_weights_and_lengths_give_finite_values_and_gradients() {
 #[test]
 fn distortion_of_a_single_interval_and_of_two_point_masses() {
     // One interval: only the intra term, w²δ/3.
-    let l = distortion_loss(&t2(&[0.6], 1, 1), &t2(&[0.2], 1, 1), &t2(&[0.5], 1, 1)).unwrap();
+    let l = distortion_loss(&t2(&[0.6], 1, 1), &iv(&t2(&[0.2], 1, 1), &t2(&[0.5], 1, 1))).unwrap();
     assert!((l.to_vec1::<f64>().unwrap()[0] - 0.36 * 0.3 / 3.0).abs() < 1e-15);
     // Two zero-length intervals at 0 and 1 with weights a, b: 2ab.
     let l = distortion_loss(
         &t2(&[0.3, 0.5], 1, 2),
-        &t2(&[0.0, 1.0], 1, 2),
-        &t2(&[0.0, 1.0], 1, 2),
+        &iv(&t2(&[0.0, 1.0], 1, 2), &t2(&[0.0, 1.0], 1, 2)),
     )
     .unwrap();
     assert!((l.to_vec1::<f64>().unwrap()[0] - 0.3).abs() < 1e-15);
@@ -239,22 +260,35 @@ fn distortion_bad_input_errs_naming_the_argument() {
     let w = t2(&[0.1, 0.2], 1, 2);
     let s = t2(&[0.0, 0.5], 1, 2);
     let e = t2(&[0.4, 0.9], 1, 2);
-    assert!(distortion_loss(&w, &s, &e).is_ok());
+    assert!(distortion_loss(&w, &iv(&s, &e)).is_ok());
     assert_eq!(
-        arg_of(distortion_loss(&t2(&[0.1, 0.2, 0.3], 1, 3), &s, &e).unwrap_err()),
+        arg_of(distortion_loss(&t2(&[0.1, 0.2, 0.3], 1, 3), &iv(&s, &e)).unwrap_err()),
         "starts"
     );
+    // Intervals that `Intervals::new` would reject are still rejected by the loss
+    // itself (the fields are public), naming the same argument.
     assert_eq!(
-        arg_of(distortion_loss(&w, &s, &t2(&[0.4], 1, 1)).unwrap_err()),
+        arg_of(distortion_loss(&w, &raw_iv(&s, &t2(&[0.4], 1, 1))).unwrap_err()),
         "ends"
     );
     assert_eq!(
-        arg_of(distortion_loss(&w, &t2(&[0.5, 0.0], 1, 2), &e).unwrap_err()),
+        arg_of(Intervals::new(s.clone(), t2(&[0.4], 1, 1)).unwrap_err()),
+        "ends"
+    );
+    assert_eq!(
+        arg_of(distortion_loss(&w, &raw_iv(&t2(&[0.5, 0.0], 1, 2), &e)).unwrap_err()),
         "starts"
     );
-    assert_eq!(arg_of(distortion_loss(&w, &e, &s).unwrap_err()), "starts");
     assert_eq!(
-        arg_of(distortion_loss(&w, &s.to_dtype(DType::F32).unwrap(), &e).unwrap_err()),
+        arg_of(distortion_loss(&w, &raw_iv(&e, &s)).unwrap_err()),
+        "starts"
+    );
+    assert_eq!(
+        arg_of(distortion_loss(&w, &raw_iv(&s.to_dtype(DType::F32).unwrap(), &e)).unwrap_err()),
+        "starts"
+    );
+    assert_eq!(
+        arg_of(distortion_loss(&w.to_dtype(DType::F32).unwrap(), &iv(&s, &e)).unwrap_err()),
         "starts"
     );
 }

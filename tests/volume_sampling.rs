@@ -3,7 +3,8 @@
 #![cfg(feature = "volume")]
 
 use candle_core::{DType, Device, Tensor, Var};
-use neural_fields::volume::sampling::{
+use neural_fields::camera::Rays;
+use neural_fields::volume::{
     anneal_near_far, merge_sorted, sample_pdf, step_cdf, stratified, Intervals, Jitter,
 };
 use neural_fields::Error;
@@ -22,6 +23,13 @@ fn t2(v: &[f64], r: usize, c: usize, dt: DType) -> Tensor {
         .unwrap()
         .to_dtype(dt)
         .unwrap()
+}
+
+/// The intervals whose bins are `bins` (`[R, S + 1]` edges): starts `bins[.., ..S]`,
+/// ends `bins[.., 1..]`.
+fn bins_iv(bins: &Tensor) -> Intervals {
+    let s = bins.dim(1).unwrap() - 1;
+    Intervals::new(bins.narrow(1, 0, s).unwrap(), bins.narrow(1, 1, s).unwrap()).unwrap()
 }
 
 fn rows(t: &Tensor) -> Vec<Vec<f64>> {
@@ -188,8 +196,10 @@ fn deltas_are_scaled_by_the_direction_norm() {
         let near = t1(&[0.0, 1.0], dt);
         let far = t1(&[1.0, 3.0], dt);
         let iv = stratified(&near, &far, 4, Jitter::None, 0).unwrap();
+        let origins = t2(&[0.0; 6], 2, 3, dt);
         let dirs = t2(&[0.0, 0.0, 1.0, 3.0, 4.0, 1.0], 2, 3, dt);
-        let d = rows(&iv.deltas(Some(&dirs)).unwrap());
+        let rays = Rays::new(origins.clone(), dirs).unwrap();
+        let d = rows(&iv.deltas(Some(&rays)).unwrap());
         let plain = rows(&iv.deltas(None).unwrap());
         let norm1 = (26.0f64).sqrt();
         for k in 0..4 {
@@ -197,10 +207,20 @@ fn deltas_are_scaled_by_the_direction_norm() {
             assert!((plain[1][k] - 0.5).abs() < 1e-6);
             assert!((d[1][k] - 0.5 * norm1).abs() < 1e-5);
         }
+        // Zero and misshapen directions cannot make rays; rays that do not match the
+        // intervals are named.
         let zero = t2(&[0.0; 6], 2, 3, dt);
-        assert_eq!(arg_of(iv.deltas(Some(&zero)).unwrap_err()), "directions");
+        assert_eq!(
+            arg_of(Rays::new(origins.clone(), zero).unwrap_err()),
+            "directions"
+        );
         let bad = t2(&[0.0; 4], 2, 2, dt);
-        assert_eq!(arg_of(iv.deltas(Some(&bad)).unwrap_err()), "directions");
+        assert_eq!(
+            arg_of(Rays::new(origins.clone(), bad).unwrap_err()),
+            "directions"
+        );
+        let three = Rays::new(t2(&[0.0; 9], 3, 3, dt), t2(&[1.0; 9], 3, 3, dt)).unwrap();
+        assert_eq!(arg_of(iv.deltas(Some(&three)).unwrap_err()), "rays");
     }
 }
 
@@ -220,7 +240,7 @@ fn samples_from_a_one_hot_step_function_land_exactly_in_that_bin() {
             let bins = t2(&edges, 1, 6, dt);
             let weights = t2(&w, 1, 5, dt);
             for det in [true, false] {
-                let t = sample_pdf(&bins, &weights, 257, det, 3, 0.0).unwrap();
+                let t = sample_pdf(&bins_iv(&bins), &weights, 257, det, 3, 0.0).unwrap();
                 assert_eq!(t.dtype(), dt);
                 for x in &rows(&t)[0] {
                     assert!(
@@ -233,7 +253,7 @@ fn samples_from_a_one_hot_step_function_land_exactly_in_that_bin() {
             }
             // NeRF's padding of 1e-5 with deterministic u still keeps every sample in
             // the hot bin: the padded mass outside is far below 1/(2n).
-            let t = sample_pdf(&bins, &weights, 64, true, 0, 1e-5).unwrap();
+            let t = sample_pdf(&bins_iv(&bins), &weights, 64, true, 0, 1e-5).unwrap();
             for x in &rows(&t)[0] {
                 assert!(*x >= eh[hot] && *x <= eh[hot + 1]);
             }
@@ -255,7 +275,7 @@ fn histogram_of_a_million_importance_samples_matches_the_pdf() {
     let weights = Tensor::from_vec(w.repeat(rays), (rays, s), &dev()).unwrap();
     for (dt, seed) in [(DType::F64, 11u64), (DType::F32, 12)] {
         let t = sample_pdf(
-            &bins.to_dtype(dt).unwrap(),
+            &bins_iv(&bins.to_dtype(dt).unwrap()),
             &weights.to_dtype(dt).unwrap(),
             n,
             false,
@@ -305,7 +325,15 @@ fn importance_samples_are_sorted_and_detached() {
         let bins = Var::from_tensor(&t2(&edges, 1, 17, dt)).unwrap();
         let weights = Var::from_tensor(&t2(&w, 1, 16, dt)).unwrap();
         for det in [true, false] {
-            let t = sample_pdf(bins.as_tensor(), weights.as_tensor(), 100, det, 5, 1e-5).unwrap();
+            let t = sample_pdf(
+                &bins_iv(bins.as_tensor()),
+                weights.as_tensor(),
+                100,
+                det,
+                5,
+                1e-5,
+            )
+            .unwrap();
             let row = &rows(&t)[0];
             assert!(row.windows(2).all(|p| p[0] <= p[1]), "not sorted");
             assert!(row[0] >= edges[0] && row[99] <= edges[16]);
@@ -345,7 +373,7 @@ fn cdf_starts_at_exactly_zero_and_ends_at_exactly_one() {
         assert_eq!(c, &vec![0.0, 0.25, 0.5, 0.75, 1.0]);
         // Deterministic samples of a uniform PDF are the bin-centred linspace.
         let bins = t2(&[0.0, 1.0, 2.0, 3.0, 4.0], 1, 5, dt);
-        let t = sample_pdf(&bins, &t2(&[1.0; 4], 1, 4, dt), 4, true, 0, 0.0).unwrap();
+        let t = sample_pdf(&bins_iv(&bins), &t2(&[1.0; 4], 1, 4, dt), 4, true, 0, 0.0).unwrap();
         assert_eq!(rows(&t)[0], vec![0.5, 1.5, 2.5, 3.5]);
     }
 }
@@ -357,7 +385,7 @@ fn merged_samples_are_sorted_complete_and_carry_gradients_to_coarse() {
     let iv = stratified(&near, &far, 8, Jitter::PerSample, 1).unwrap();
     let coarse = Var::from_tensor(&iv.midpoints().unwrap()).unwrap();
     let w = Tensor::rand(0f64, 1.0, (2, 8), &dev()).unwrap();
-    let fine = sample_pdf(&iv.edges().unwrap(), &w, 16, false, 2, 1e-5).unwrap();
+    let fine = sample_pdf(&iv, &w, 16, false, 2, 1e-5).unwrap();
     let merged = merge_sorted(coarse.as_tensor(), &fine).unwrap();
     assert_eq!(merged.dims(), &[2, 24]);
     let m = rows(&merged);
@@ -456,7 +484,7 @@ fn bad_input_errs_naming_the_argument() {
         "near"
     );
 
-    let bins = t2(&[0.0, 1.0, 2.0, 3.0], 1, 4, dt);
+    let bins = bins_iv(&t2(&[0.0, 1.0, 2.0, 3.0], 1, 4, dt));
     let w = t2(&[0.2, 0.3, 0.5], 1, 3, dt);
     assert!(sample_pdf(&bins, &w, 8, true, 0, 1e-5).is_ok());
     assert_eq!(
@@ -468,20 +496,28 @@ fn bad_input_errs_naming_the_argument() {
         arg_of(sample_pdf(&bins, &neg, 8, true, 0, 1e-5).unwrap_err()),
         "weights"
     );
+    // Unsorted bins no longer make intervals: edges [0, 2, 1, 3] give the inverted
+    // interval [2, 1].
     let unsorted = t2(&[0.0, 2.0, 1.0, 3.0], 1, 4, dt);
     assert_eq!(
-        arg_of(sample_pdf(&unsorted, &w, 8, true, 0, 1e-5).unwrap_err()),
-        "bins"
+        arg_of(
+            Intervals::new(
+                unsorted.narrow(1, 0, 3).unwrap(),
+                unsorted.narrow(1, 1, 3).unwrap()
+            )
+            .unwrap_err()
+        ),
+        "ends"
     );
-    let short = t2(&[0.0, 1.0, 2.0], 1, 3, dt);
+    let short = bins_iv(&t2(&[0.0, 1.0, 2.0], 1, 3, dt));
     assert_eq!(
         arg_of(sample_pdf(&short, &w, 8, true, 0, 1e-5).unwrap_err()),
-        "bins"
+        "intervals"
     );
-    let two_rays = t2(&[0.0, 1.0, 2.0, 3.0, 0.0, 1.0, 2.0, 3.0], 2, 4, dt);
+    let two_rays = bins_iv(&t2(&[0.0, 1.0, 2.0, 3.0, 0.0, 1.0, 2.0, 3.0], 2, 4, dt));
     assert_eq!(
         arg_of(sample_pdf(&two_rays, &w, 8, true, 0, 1e-5).unwrap_err()),
-        "bins"
+        "intervals"
     );
     assert_eq!(
         arg_of(sample_pdf(&bins, &w, 8, true, 0, -1.0).unwrap_err()),
@@ -489,7 +525,7 @@ fn bad_input_errs_naming_the_argument() {
     );
     assert_eq!(
         arg_of(sample_pdf(&bins, &w.to_dtype(DType::F64).unwrap(), 8, true, 0, 0.0).unwrap_err()),
-        "bins"
+        "intervals"
     );
     let nan_w = t2(&[0.2, f64::NAN, 0.5], 1, 3, dt);
     assert_eq!(
@@ -556,7 +592,7 @@ proptest! {
         // The edges as the dtype holds them (rounding keeps them sorted).
         let bins = t2(&edges, 1, s + 1, dt);
         let eh = rows(&bins)[0].clone();
-        let t = sample_pdf(&bins, &t2(&w, 1, s, dt), n, deterministic, seed, 0.0).unwrap();
+        let t = sample_pdf(&bins_iv(&bins), &t2(&w, 1, s, dt), n, deterministic, seed, 0.0).unwrap();
         let row = &rows(&t)[0];
         let wh = rows(&t2(&w, 1, s, dt))[0].clone();
         let all_zero = wh.iter().all(|x| *x == 0.0);
@@ -592,11 +628,10 @@ fn bump_exact() -> f64 {
 }
 
 fn render_bump(iv: &Intervals) -> Vec<f64> {
-    use neural_fields::volume::composite::{composite, CompositeOptions};
+    use neural_fields::volume::{composite, CompositeConfig};
     let mids = iv.midpoints().unwrap();
     let (sigma, rgb) = bump_field(&mids);
-    let deltas = iv.deltas(None).unwrap();
-    composite(&sigma, &rgb, &deltas, &mids, &CompositeOptions::default())
+    composite(&sigma, &rgb, iv, None, &CompositeConfig::default())
         .unwrap()
         .color
         .flatten_all()
@@ -607,7 +642,7 @@ fn render_bump(iv: &Intervals) -> Vec<f64> {
 
 #[test]
 fn coarse_to_fine_importance_sampling_beats_stratified_at_small_budgets() {
-    use neural_fields::volume::composite::{render_weights, WeightOptions};
+    use neural_fields::volume::{render_weights, CompositeConfig};
     let exact = bump_exact();
     let r = 256;
     let near = Tensor::zeros(r, DType::F64, &dev()).unwrap();
@@ -626,14 +661,10 @@ fn coarse_to_fine_importance_sampling_beats_stratified_at_small_budgets() {
         let coarse = stratified(&near, &far, nc, Jitter::PerSample, 2).unwrap();
         let cm = coarse.midpoints().unwrap();
         let (sigma, _) = bump_field(&cm);
-        let w = render_weights(
-            &sigma,
-            &coarse.deltas(None).unwrap(),
-            &WeightOptions::default(),
-        )
-        .unwrap()
-        .weights;
-        let fine = sample_pdf(&coarse.edges().unwrap(), &w, nf, false, 3, 1e-5).unwrap();
+        let w = render_weights(&sigma, &coarse, None, &CompositeConfig::default())
+            .unwrap()
+            .weights;
+        let fine = sample_pdf(&coarse, &w, nf, false, 3, 1e-5).unwrap();
         let merged = merge_sorted(&cm, &fine).unwrap();
         let iv = Intervals::from_samples(&merged, &near, &far).unwrap();
         let err_imp = mean_err(&render_bump(&iv));

@@ -1,28 +1,35 @@
-//! Helpers shared by the examples.
+//! Set-up shared by the examples: the seeded model and its optimiser.
+//!
+//! Helpers that only some examples need live in sibling files that those examples
+//! include themselves (`#[path = "common/cameras.rs"] mod cameras;`): `cameras.rs`
+//! (cameras looking at the origin), `image.rs` (PNG output).
 
-use std::path::Path;
+use candle_core::{DType, Device};
+use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
+use neural_fields::nn::{build_seeded, mlp, Mlp, MlpConfig};
 
-/// Writes 8-bit pixels (`width × height`, row-major, channels as `color` says) to a
-/// PNG at `path`; errors are reported as [`neural_fields::Error::Io`] naming the path.
-pub fn write_png(
-    path: &Path,
-    width: usize,
-    height: usize,
-    color: png::ColorType,
-    pixels: &[u8],
-) -> neural_fields::Result<()> {
-    let io = |source: std::io::Error| neural_fields::Error::Io {
-        path: path.display().to_string(),
-        source,
+/// The model of an example: an [`Mlp`] built from `config` with its weights drawn from
+/// `seed` (so that every run is the same), and Adam at learning rate `lr` (AdamW without
+/// weight decay) over its parameters.
+pub fn seeded_mlp(
+    config: &MlpConfig,
+    seed: u64,
+    lr: f64,
+    device: &Device,
+    dtype: DType,
+) -> neural_fields::Result<(Mlp, AdamW)> {
+    let varmap = VarMap::new();
+    let net = build_seeded(&varmap, dtype, device, seed, |vb| mlp(config, vb))?;
+    Ok((net, adam(&varmap, lr)?))
+}
+
+/// Adam (AdamW without weight decay) at learning rate `lr` over every variable of
+/// `varmap`.
+pub fn adam(varmap: &VarMap, lr: f64) -> neural_fields::Result<AdamW> {
+    let params = ParamsAdamW {
+        lr,
+        weight_decay: 0.0,
+        ..Default::default()
     };
-    let png_err = |e: png::EncodingError| io(std::io::Error::other(e.to_string()));
-    let file = std::fs::File::create(path).map_err(io)?;
-    let mut encoder = png::Encoder::new(std::io::BufWriter::new(file), width as u32, height as u32);
-    encoder.set_color(color);
-    encoder.set_depth(png::BitDepth::Eight);
-    encoder
-        .write_header()
-        .map_err(png_err)?
-        .write_image_data(pixels)
-        .map_err(png_err)
+    Ok(AdamW::new(varmap.all_vars(), params)?)
 }

@@ -5,26 +5,18 @@
 
 use crate::report::{median_seconds, v64, Row, Table, TIME_PER_CALL};
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
-use glam::DVec3;
-use neural_fields::camera::{ray_sphere, Camera, Convention, Intersection, Intrinsics, Rays};
-use neural_fields::dvr::{march_bounded, sphere_trace, Hits, MarchConfig, SphereTraceConfig};
+use candle_nn::Optimizer;
+use neural_fields::camera::{ray_sphere, Intersection, Rays};
+use neural_fields::dvr::{march, sphere_trace, Hits, MarchConfig, SphereTraceConfig};
 use neural_fields::field::{ImplicitSurface, SignedDistance, Torus};
-use neural_fields::nn::{build_seeded, mlp, Activation, Mlp, MlpConfig};
+use neural_fields::glam::DVec3;
+use neural_fields::nn::{Activation, Mlp, MlpConfig};
 use neural_fields::rng::SplitMix64;
 
 fn scene(side: usize, dtype: DType) -> (Rays, Intersection) {
-    let k = Intrinsics::from_fov_y(side, side, 0.7).unwrap();
-    let cam = Camera::look_at(
-        k,
-        DVec3::new(0.4, 1.6, 1.8),
-        DVec3::ZERO,
-        DVec3::Z,
-        Convention::OpenGl,
-    )
-    .unwrap();
+    let cam = crate::cameras::looking_at_origin(side, 0.7, DVec3::new(0.4, 1.6, 1.8)).unwrap();
     let rays = cam.rays(&Device::Cpu, dtype).unwrap();
-    let bounds = ray_sphere(&rays.origins, &rays.directions, [0.0; 3], 1.0).unwrap();
+    let bounds = ray_sphere(&rays, [0.0; 3], 1.0).unwrap();
     (rays, bounds)
 }
 
@@ -66,7 +58,7 @@ fn reference_scene<F: ImplicitSurface + ?Sized>(
     quick: bool,
 ) -> (Rays, Intersection, Hits, Vec<f64>) {
     let (rays, bounds) = scene(if quick { 16 } else { 32 }, dtype);
-    let reference = march_bounded(field, &rays, &bounds, &accurate(quick)).unwrap();
+    let reference = march(field, &rays, &bounds, &accurate(quick)).unwrap();
     let far = v64(&bounds.far);
     (rays, bounds, reference, far)
 }
@@ -117,14 +109,14 @@ fn march_table<F: ImplicitSurface + ?Sized>(
                 n,
                 reps,
                 (&reference, &far),
-                || march_bounded(field, &rays, &bounds, &cfg).unwrap(),
+                || march(field, &rays, &bounds, &cfg).unwrap(),
             ));
         }
     }
     Table {
         title: title.into(),
         description: format!(
-            "{what}; {} camera rays clipped to the unit sphere; `march_bounded` with n evenly \
+            "{what}; {} camera rays clipped to the unit sphere; `march` with n evenly \
              spaced samples and k secant steps (Illinois); error = mean |t − t_ref| over the \
              rays the reference (4096 steps + 40 secant; 1024 in quick mode) hits, a ray with no surface counting \
              with its far bound; time = median wall time of one march of all rays.",
@@ -177,13 +169,13 @@ fn sphere_trace_table<F: ImplicitSurface + ?Sized>(
                 fallback: fallback.clone(),
                 ..SphereTraceConfig::default()
             };
-            // Rays missing the bounding sphere have near = far = 0; trace only the others.
+            // Rays that miss the bounding sphere (hit = 0) are misses, never evaluated.
             rows.push(depth_row(
                 series.into(),
                 it,
                 reps,
                 (&reference, &far),
-                || trace_active(field, &rays, &bounds, &cfg),
+                || sphere_trace(field, &rays, &bounds, &cfg).unwrap(),
             ));
         }
     }
@@ -206,71 +198,18 @@ fn sphere_trace_table<F: ImplicitSurface + ?Sized>(
     }
 }
 
-/// Sphere-traces the rays that meet the bounding sphere; the others are misses.
-fn trace_active<F: ImplicitSurface + ?Sized>(
-    field: &F,
-    rays: &Rays,
-    bounds: &Intersection,
-    cfg: &SphereTraceConfig,
-) -> Hits {
-    let hit = bounds.hit.to_vec1::<u8>().unwrap();
-    let idx: Vec<u32> = (0..hit.len() as u32)
-        .filter(|&i| hit[i as usize] != 0)
-        .collect();
-    let it = Tensor::from_vec(idx.clone(), idx.len(), &Device::Cpu).unwrap();
-    let sel = |t: &Tensor| t.index_select(&it, 0).unwrap();
-    let sub = sphere_trace(
-        field,
-        &sel(&rays.origins),
-        &sel(&rays.directions),
-        &sel(&bounds.near),
-        &sel(&bounds.far),
-        cfg,
-    )
-    .unwrap();
-    // Scatter back into a full-size Hits.
-    let n = hit.len();
-    let mut depth = vec![0.0; n];
-    let mut status = vec![neural_fields::dvr::RayStatus::Miss; n];
-    let d = v64(&sub.depth);
-    for (k, &i) in idx.iter().enumerate() {
-        depth[i as usize] = d[k];
-        status[i as usize] = sub.status[k];
-    }
-    Hits {
-        depth: Tensor::from_vec(depth, n, &Device::Cpu)
-            .unwrap()
-            .to_dtype(rays.origins.dtype())
-            .unwrap(),
-        points: Tensor::zeros((n, 3), rays.origins.dtype(), &Device::Cpu).unwrap(),
-        mask: Tensor::zeros(n, DType::U8, &Device::Cpu).unwrap(),
-        status,
-        evaluations: sub.evaluations,
-    }
-}
-
 /// A 4×64 ReLU Mlp started from IDR's geometric initialisation (a sphere of radius 0.5)
 /// and fitted to the torus's SDF by Adam on mean |f − sdf| over uniform points in
 /// [−1, 1]³. Returns the network and its final mean |f − sdf| on fresh points.
-fn trained_mlp(torus: &dyn ImplicitSurface, quick: bool) -> (VarMap, Mlp, f64) {
+fn trained_mlp(torus: &dyn ImplicitSurface, quick: bool) -> (Mlp, f64) {
     let (dev, dt) = (Device::Cpu, DType::F32);
-    let varmap = VarMap::new();
     let cfg = MlpConfig {
         hidden: 64,
         depth: 4,
         activation: Activation::Relu,
         ..MlpConfig::sdf(0.5)
     };
-    let net = build_seeded(&varmap, dt, &dev, 3, |vb| mlp(&cfg, vb)).unwrap();
-    let mut opt = AdamW::new(
-        varmap.all_vars(),
-        ParamsAdamW {
-            lr: 1e-3,
-            weight_decay: 0.0,
-            ..Default::default()
-        },
-    )
-    .unwrap();
+    let (net, mut opt) = crate::common::seeded_mlp(&cfg, 3, 1e-3, &dev, dt).unwrap();
     let mut rng = SplitMix64::new(17);
     let mut batch = |n: usize| {
         let p = rng.uniform_tensor(&[n, 3], -1.0, 1.0, dt, &dev).unwrap();
@@ -295,7 +234,7 @@ fn trained_mlp(torus: &dyn ImplicitSurface, quick: bool) -> (VarMap, Mlp, f64) {
     }
     let (p, target) = batch(65_536);
     let err = l1(&net, &p, &target).to_scalar::<f32>().unwrap();
-    (varmap, net, f64::from(err))
+    (net, f64::from(err))
 }
 
 /// The DVR studies (see the module docs).
@@ -303,7 +242,7 @@ pub fn run(quick: bool) -> Vec<Table> {
     let torus = Torus::new([0.0; 3], 0.5, 0.2, &Device::Cpu, DType::F64)
         .unwrap()
         .sdf();
-    let (_vm, net, fit) = trained_mlp(&torus, quick);
+    let (net, fit) = trained_mlp(&torus, quick);
     let net_what = format!(
         "4×64 ReLU Mlp, IDR geometric initialisation then fitted to the torus's SDF (mean \
          |f − sdf| = {fit:.1e}), f32, against its own f32 reference march"

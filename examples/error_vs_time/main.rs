@@ -12,6 +12,13 @@
 //! log–log SVG per table under `DIR/plots/`. Each module contributes a study file;
 //! studies of features that are not enabled are left out.
 
+// The examples' shared set-up (the DVR study trains an Mlp and looks through a camera).
+#[cfg(feature = "dvr")]
+#[path = "../common/cameras.rs"]
+mod cameras;
+#[cfg(feature = "dvr")]
+#[path = "../common/mod.rs"]
+mod common;
 #[cfg(feature = "dvr")]
 mod dvr;
 mod encoding;

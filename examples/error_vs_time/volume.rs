@@ -4,13 +4,12 @@
 
 use crate::report::{median_seconds, Row, Table, TIME_PER_CALL};
 use candle_core::{DType, Device, Tensor};
+use neural_fields::camera::Rays;
 use neural_fields::rng::SplitMix64;
-use neural_fields::volume::composite::{
-    composite, composite_packed, render_weights, visible_mask, CompositeOptions, Packed,
-    WeightOptions, DEFAULT_TERMINATION_EPS,
+use neural_fields::volume::{
+    composite, merge_sorted, render_weights, sample_pdf, stratified, visible_mask, CompositeConfig,
+    GridConfig, GridMarchConfig, Intervals, Jitter, OccupancyGrid, Packed, DEFAULT_TERMINATION_EPS,
 };
-use neural_fields::volume::grid::{MarchOptions, OccupancyGrid};
-use neural_fields::volume::sampling::{merge_sorted, sample_pdf, stratified, Intervals, Jitter};
 use neural_fields::Result;
 
 const L: f64 = 1.0;
@@ -67,30 +66,22 @@ impl Scene {
 /// samples composited.
 fn render(scene: &Scene, iv: &Intervals, early: bool) -> Result<(Tensor, usize)> {
     let t = iv.midpoints()?;
-    let delta = iv.deltas(None)?;
-    let opts = CompositeOptions::default();
+    let opts = CompositeConfig::default();
     if !early {
         let sigma = scene.sigma(&t)?;
-        let color = composite(&sigma, &t.unsqueeze(2)?, &delta, &t, &opts)?.color;
+        let color = composite(&sigma, &t.unsqueeze(2)?, iv, None, &opts)?.color;
         return Ok((color, t.elem_count()));
     }
     // Visibility from a cheap detached pass (here the same closed-form density), then
     // evaluate and composite only the visible samples in the packed layout.
     let sigma_probe = scene.sigma(&t)?;
-    let mask = visible_mask(&sigma_probe, &delta, DEFAULT_TERMINATION_EPS)?;
+    let mask = visible_mask(&sigma_probe, iv, None, DEFAULT_TERMINATION_EPS)?;
     let (packed, idx) = Packed::from_mask(&mask)?;
-    let flat_t = t.flatten_all()?.index_select(&idx, 0)?;
-    let flat_d = delta.flatten_all()?.index_select(&idx, 0)?;
-    let flat_s = sigma_probe.flatten_all()?.index_select(&idx, 0)?;
-    let color = composite_packed(
-        &flat_s,
-        &flat_t.unsqueeze(1)?,
-        &flat_d,
-        &flat_t,
-        &packed,
-        &opts,
-    )?
-    .color;
+    let select = |x: &Tensor| x.flatten_all()?.index_select(&idx, 0);
+    let visible = Intervals::new_packed(select(&iv.starts)?, select(&iv.ends)?, packed)?;
+    let flat_t = visible.midpoints()?;
+    let flat_s = select(&sigma_probe)?;
+    let color = composite(&flat_s, &flat_t.unsqueeze(1)?, &visible, None, &opts)?.color;
     Ok((color, idx.elem_count()))
 }
 
@@ -104,11 +95,12 @@ fn importance_iv(scene: &Scene, n: usize) -> Result<Intervals> {
     let t = coarse.midpoints()?;
     let w = render_weights(
         &scene.sigma(&t)?,
-        &coarse.deltas(None)?,
-        &WeightOptions::default(),
+        &coarse,
+        None,
+        &CompositeConfig::default(),
     )?
     .weights;
-    let fine = sample_pdf(&coarse.edges()?, &w, n - (n / 3).max(2), true, 0, 1e-5)?;
+    let fine = sample_pdf(&coarse, &w, n - (n / 3).max(2), true, 0, 1e-5)?;
     Intervals::from_samples(&merge_sorted(&t, &fine)?, &scene.near, &scene.far)
 }
 
@@ -188,7 +180,7 @@ fn ball_sigma(p: &Tensor) -> Result<Tensor> {
 /// Camera rays from (0, 0, −EYE) along (u, v, 1), u, v ∈ [−0.45, 0.45] on a `side²`
 /// grid, and their exact colour through the ball with colour 1 on black:
 /// C = 1 − exp(−σ₀ L), L = 2·sqrt(r² − b²) the chord at distance b from the centre.
-fn ball_rays(side: usize, dtype: DType) -> Result<(Tensor, Tensor, Vec<f64>)> {
+fn ball_rays(side: usize, dtype: DType) -> Result<(Rays, Vec<f64>)> {
     let (mut o, mut d, mut exact) = (Vec::new(), Vec::new(), Vec::new());
     for i in 0..side {
         for j in 0..side {
@@ -204,31 +196,27 @@ fn ball_rays(side: usize, dtype: DType) -> Result<(Tensor, Tensor, Vec<f64>)> {
     }
     let n = side * side;
     let dev = Device::Cpu;
-    Ok((
+    let rays = Rays::new(
         Tensor::from_vec(o, (n, 3), &dev)?.to_dtype(dtype)?,
         Tensor::from_vec(d, (n, 3), &dev)?.to_dtype(dtype)?,
-        exact,
-    ))
+    )?;
+    Ok((rays, exact))
 }
 
 /// Marches `grid`, evaluates the ball at the emitted samples and composites them.
 /// Returns the colours `[R, 1]` and the number of samples evaluated.
-fn render_grid(
-    grid: &OccupancyGrid,
-    origins: &Tensor,
-    dirs: &Tensor,
-    step: f64,
-) -> Result<(Tensor, usize)> {
-    let s = grid.sample(origins, dirs, &MarchOptions::new(0.0, f64::INFINITY, step))?;
-    let sigma = ball_sigma(&s.positions(origins, dirs)?)?;
+fn render_grid(grid: &OccupancyGrid, rays: &Rays, step: f64) -> Result<(Tensor, usize)> {
+    let iv = grid
+        .sample(rays, &GridMarchConfig::new(0.0, f64::INFINITY, step))?
+        .intervals;
+    let sigma = ball_sigma(&iv.positions(rays)?)?;
     let m = sigma.elem_count();
-    let color = composite_packed(
+    let color = composite(
         &sigma,
         &sigma.ones_like()?.unsqueeze(1)?,
-        &s.deltas(dirs)?,
-        &s.midpoints()?,
-        &s.packed,
-        &CompositeOptions::default(),
+        &iv,
+        Some(rays),
+        &CompositeConfig::default(),
     )?
     .color;
     Ok((color, m))
@@ -239,17 +227,23 @@ fn grid_table(quick: bool) -> Result<Table> {
     let side = if quick { 16 } else { 64 };
     let reps = if quick { 1 } else { 5 };
     let dtype = DType::F32;
-    let (origins, dirs, exact) = ball_rays(side, dtype)?;
-    let aabb = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0];
+    let (rays, exact) = ball_rays(side, dtype)?;
     let (resolution, updates) = (32, 16);
-    let every = OccupancyGrid::new(aabb, resolution, 1)?;
-    let mut grid = OccupancyGrid::new(aabb, resolution, 1)?;
+    let config = GridConfig {
+        aabb: [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0],
+        resolution,
+        levels: 1,
+        ..GridConfig::default()
+    };
+    let every = OccupancyGrid::new(config.clone())?;
+    let mut grid = OccupancyGrid::new(config)?;
     let clock = std::time::Instant::now();
     for step in 0..updates {
         grid.update(step, 1, &Device::Cpu, dtype, ball_sigma)?;
     }
     let update_ms = 1e3 * clock.elapsed().as_secs_f64() / updates as f64;
-    let occupied = grid.occupied_fraction();
+    let occupied =
+        grid.occupied().iter().filter(|&&o| o).count() as f64 / grid.occupied().len() as f64;
     let counts: &[usize] = if quick {
         &[32, 128]
     } else {
@@ -263,7 +257,7 @@ fn grid_table(quick: bool) -> Result<Table> {
             ("every sample (all cells occupied)", &every),
             ("occupancy-grid skipping", &grid),
         ] {
-            let (color, work) = render_grid(g, &origins, &dirs, step)?;
+            let (color, work) = render_grid(g, &rays, step)?;
             let c = crate::report::v64(&color);
             let error = c
                 .iter()
@@ -272,7 +266,7 @@ fn grid_table(quick: bool) -> Result<Table> {
                 .sum::<f64>()
                 / c.len() as f64;
             let seconds = median_seconds(reps, || {
-                drop(render_grid(g, &origins, &dirs, step).expect("render"));
+                drop(render_grid(g, &rays, step).expect("render"));
             });
             rows.push(Row {
                 series: series.into(),
@@ -292,7 +286,7 @@ fn grid_table(quick: bool) -> Result<Table> {
              are occupied after {updates} warm-up updates ({update_ms:.1} ms each, not counted \
              below). Knob: fixed marching steps across the box's depth. Error = mean \
              |C − C_exact| against C = 1 − exp(−σ₀·chord). Time = median of {reps} calls of \
-             `OccupancyGrid::sample` + ball density at the samples + `composite_packed`; the \
+             `OccupancyGrid::sample` + ball density at the samples + `composite` (packed); the \
              work column counts the samples evaluated. Both series give the same image (the \
              grid only drops empty samples); skipping evaluates far fewer samples, which pays \
              when the field is an MLP.",

@@ -819,7 +819,7 @@ impl FusedComposite {
                     let (s, e) = (s.to_f64(), e.to_f64());
                     let d = (e - s) * norm;
                     // NaN fails the comparison, so NaN and ±∞ bounds are caught here.
-                    let good = d >= 0.0 && d <= f64::MAX && s.is_finite();
+                    let good = (0.0..=f64::MAX).contains(&d) && s.is_finite();
                     ok &= good;
                     del.push(T::from_f64(if good { d } else { 0.0 }));
                     tm.push(T::from_f64(0.5 * s + 0.5 * e));
@@ -1092,3 +1092,7 @@ pub(crate) fn composite(
     let opacity = out.narrow(1, c + 1, 1)?.squeeze(1)?;
     Ok((color, opacity, depth))
 }
+
+#[cfg(test)]
+#[path = "fused_tests.rs"]
+mod tests;

@@ -3,6 +3,10 @@
 #![allow(dead_code)]
 
 pub mod counting;
+#[cfg(feature = "dvr")]
+pub mod hits;
+#[cfg(feature = "volume")]
+pub mod intervals;
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;

@@ -1,0 +1,249 @@
+//! Kernel builds against the reference path. The kernel build is chosen per call
+//! ([`KernelBuild`], crate-private), so the tests that run every build in turn live
+//! here, inside the crate (moved from `tests/volume_fused.rs`).
+
+use super::{composite as fused_composite, FusedGeometry, KernelBuild};
+use crate::rng::SplitMix64;
+use crate::volume::composite::{composite_with, CompositeConfig};
+use crate::volume::layout::{Intervals, Layout};
+use crate::volume::reference;
+use candle_core::{DType, Device, Tensor, Var};
+
+const BUILDS: [KernelBuild; 3] = [
+    KernelBuild::Baseline,
+    KernelBuild::Avx2Fma,
+    KernelBuild::Avx512,
+];
+
+fn dev() -> Device {
+    Device::Cpu
+}
+
+/// Flattens any float tensor into a `Vec<f64>`.
+fn v64(t: &Tensor) -> Vec<f64> {
+    t.to_dtype(DType::F64)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap()
+}
+
+/// Random extreme inputs (as in `tests/volume_fused.rs`): σ in {0, 10^[−30, 30],
+/// moderate thickness}, δ in {10^[−30, 10], moderate}, colours in [0, 1).
+fn inputs(seed: u64, n: usize, c: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>) {
+    let mut rng = SplitMix64::new(seed);
+    let mut sig = Vec::with_capacity(n);
+    let mut del = Vec::with_capacity(n);
+    for _ in 0..n {
+        let d = if rng.uniform() < 0.4 {
+            10f64.powf(-30.0 + 40.0 * rng.uniform())
+        } else {
+            0.001 + 0.1 * rng.uniform()
+        };
+        let s = match rng.below(10) {
+            0 | 1 => 0.0,
+            2 | 3 => 10f64.powf(-30.0 + 60.0 * rng.uniform()),
+            4..=6 => 2.0 * rng.uniform() / d,
+            _ => 0.05 * rng.uniform() / d,
+        };
+        sig.push(s);
+        del.push(d);
+    }
+    let col = (0..n * c).map(|_| rng.uniform()).collect();
+    let tm = (0..n).map(|_| 10.0 * rng.uniform()).collect();
+    (sig, del, col, tm)
+}
+
+fn loss_weights(seed: u64, c: usize) -> Vec<f64> {
+    let mut rng = SplitMix64::new(seed ^ 0x5eed);
+    (0..c + 2).map(|_| rng.normal()).collect()
+}
+
+fn batched(r: usize, s: usize, c: usize, seed: u64) -> (Tensor, Tensor, Tensor, Tensor) {
+    let (sig, del, col, tm) = inputs(seed, r * s, c);
+    (
+        Tensor::from_vec(sig, (r, s), &dev()).unwrap(),
+        Tensor::from_vec(col, (r, s, c), &dev()).unwrap(),
+        Tensor::from_vec(del, (r, s), &dev()).unwrap(),
+        Tensor::from_vec(tm, (r, s), &dev()).unwrap(),
+    )
+}
+
+/// Σwv and Σw for 0–7 channels (the kernels specialised for 1–4 channels and the
+/// general one, including no channels at all: opacity only) equal weights × values
+/// from the reference path, values and gradients (σ, δ and the values), on every kernel
+/// build the CPU has (baseline, AVX2 + FMA, AVX-512).
+#[test]
+fn every_channel_count_and_every_kernel_build_match_the_reference() {
+    for build in BUILDS {
+        for k in 0..8 {
+            let (sig, col, del, tm) = batched(3, 37, k, 7 + k as u64);
+            let run = |fused: bool| {
+                let (s, c, d) = (
+                    Var::from_tensor(&sig).unwrap(),
+                    Var::from_tensor(&col).unwrap(),
+                    Var::from_tensor(&del).unwrap(),
+                );
+                let out = if fused {
+                    let geometry = FusedGeometry::Tensors {
+                        deltas: d.as_tensor(),
+                        t_mids: &tm,
+                    };
+                    let (color, opacity, _) = fused_composite(
+                        s.as_tensor(),
+                        c.as_tensor(),
+                        geometry,
+                        &Layout::Batched,
+                        false,
+                        build,
+                    )
+                    .unwrap();
+                    let opacity = opacity.unsqueeze(1).unwrap();
+                    if k == 0 {
+                        opacity
+                    } else {
+                        Tensor::cat(&[&color, &opacity], 1).unwrap()
+                    }
+                } else {
+                    let w =
+                        reference::weights(s.as_tensor(), d.as_tensor(), &Layout::Batched, false)
+                            .unwrap();
+                    let opacity = w.weights.sum_keepdim(1).unwrap();
+                    if k == 0 {
+                        opacity
+                    } else {
+                        let acc =
+                            reference::accumulate(&w.weights, c.as_tensor(), &Layout::Batched)
+                                .unwrap();
+                        Tensor::cat(&[&acc, &opacity], 1).unwrap()
+                    }
+                };
+                let lw = Tensor::new(&loss_weights(k as u64, k)[..k + 1], &dev()).unwrap();
+                let l = out.broadcast_mul(&lw).unwrap().sum_all().unwrap();
+                let g = l.backward().unwrap();
+                let get = |v: &Var| v64(g.get(v.as_tensor()).unwrap());
+                // With no channels candle drops the empty values from the reference graph.
+                let gc = g.get(c.as_tensor()).map(v64).unwrap_or_default();
+                (v64(&out), get(&s), get(&d), gc)
+            };
+            let (fo, fs, fd, fc) = run(true);
+            let (ro, rs, rd, rc) = run(false);
+            // ∂L/∂xⱼ = Tⱼ₊₁uⱼ − Σ_{i>j} wᵢuᵢ cancels down from |u| ≤ Σ|loss weights|
+            // (values in [0, 1]); ∂L/∂σ = δ·∂L/∂x and ∂L/∂δ = σ·∂L/∂x.
+            let umax: f64 = loss_weights(k as u64, k)[..k + 1]
+                .iter()
+                .map(|w| w.abs())
+                .sum();
+            let (sv, dv) = (v64(&sig), v64(&del));
+            let ss: Vec<f64> = dv.iter().map(|d| d * umax).collect();
+            let sd: Vec<f64> = sv.iter().map(|s| s * umax).collect();
+            let one = vec![1.0; fo.len().max(fc.len())];
+            for (name, a, b, scale) in [
+                ("out", &fo, &ro, &one),
+                ("sigmas", &fs, &rs, &ss),
+                ("deltas", &fd, &rd, &sd),
+                ("values", &fc, &rc, &one),
+            ] {
+                assert_eq!(a.len(), b.len(), "k = {k}: {name}");
+                for ((x, y), sc) in a.iter().zip(b.iter()).zip(scale.iter()) {
+                    assert!(
+                        (x - y).abs() <= 1e-10 * (sc + y.abs()),
+                        "k = {k}, {build:?}: {name} {x} vs {y}"
+                    );
+                }
+            }
+        }
+    }
+}
+
+/// The scans run in blocks of 4 samples and fall back to one sample at a time in the
+/// block where T drops below 1e-300 (and in the last S mod 4 samples). With the drop at
+/// every position of 3 blocks and a tail (S = 13), every kernel build gives the
+/// reference's colour, opacity and depth, and gradients equal to the reference's up to
+/// the dropped weights (each below 1e-300), with exactly zero gradient past the drop.
+/// The intervals are constant (`[k, k + 1]`), so the kernel forms δ and t in place.
+#[test]
+fn blocked_scan_stops_in_the_block_where_transmittance_falls_below_1e_300() {
+    let s = 13;
+    let ks = Tensor::arange(0.0f64, s as f64, &dev())
+        .unwrap()
+        .reshape((1, s))
+        .unwrap();
+    let intervals = Intervals::new(ks.clone(), (&ks + 1.0).unwrap()).unwrap();
+    for build in BUILDS {
+        for drop_at in 0..s {
+            // x = σδ = 0.3 before the drop, 700 at it (T falls by e^{-700} ≈ 1e-304),
+            // 0.2 after it.
+            let sig: Vec<f64> = (0..s)
+                .map(|i| match i.cmp(&drop_at) {
+                    std::cmp::Ordering::Less => 0.3,
+                    std::cmp::Ordering::Equal => 700.0,
+                    std::cmp::Ordering::Greater => 0.2,
+                })
+                .collect();
+            let sig = Tensor::from_vec(sig, (1, s), &dev()).unwrap();
+            let col = Tensor::from_vec(
+                (0..s * 2)
+                    .map(|i| 0.1 + 0.05 * i as f64)
+                    .collect::<Vec<_>>(),
+                (1, s, 2),
+                &dev(),
+            )
+            .unwrap();
+            let run = |fused: bool| {
+                let (sv, cv) = (
+                    Var::from_tensor(&sig).unwrap(),
+                    Var::from_tensor(&col).unwrap(),
+                );
+                let config = CompositeConfig {
+                    force_reference: !fused,
+                    ..CompositeConfig::default()
+                };
+                let (color, opacity, depth) = composite_with(
+                    sv.as_tensor(),
+                    cv.as_tensor(),
+                    &intervals,
+                    None,
+                    &config,
+                    build,
+                )
+                .unwrap();
+                let lw = [0.7, -1.3, 0.4, 0.9];
+                let lc = color
+                    .broadcast_mul(&Tensor::new(&[[lw[0], lw[1]]], &dev()).unwrap())
+                    .unwrap()
+                    .sum_all()
+                    .unwrap();
+                let l = ((lc + (opacity.sum_all().unwrap() * lw[2]).unwrap()).unwrap()
+                    + (depth.sum_all().unwrap() * lw[3]).unwrap())
+                .unwrap();
+                let g = l.backward().unwrap();
+                let vals = [v64(&color), v64(&opacity), v64(&depth)].concat();
+                (
+                    vals,
+                    v64(g.get(sv.as_tensor()).unwrap()),
+                    v64(g.get(cv.as_tensor()).unwrap()),
+                )
+            };
+            let ((fv, fs, fc), (rv, rs, rc)) = (run(true), run(false));
+            for (name, a, b) in [
+                ("outputs", &fv, &rv),
+                ("d/dsigma", &fs, &rs),
+                ("d/dcolor", &fc, &rc),
+            ] {
+                for (x, y) in a.iter().zip(b.iter()) {
+                    assert!(
+                        x.is_finite() && (x - y).abs() <= 1e-13 * (1.0 + y.abs()) + 1e-290,
+                        "{build:?}, drop at {drop_at}: {name} {x:e} vs {y:e}"
+                    );
+                }
+            }
+            assert!(
+                fs[drop_at + 1..].iter().all(|g| *g == 0.0)
+                    && fc[2 * (drop_at + 1)..].iter().all(|g| *g == 0.0),
+                "{build:?}, drop at {drop_at}: gradient past the drop {fs:?}"
+            );
+        }
+    }
+}
