@@ -592,6 +592,25 @@ fn reverse_scan<const FMA: bool>(u: &mut [f64], t_next: &[f64], w: &[f64]) {
     }
 }
 
+/// One ray's geometry from its interval bounds: `del[i] = (e[i] − s[i])·norm` and
+/// `tm[i] = s[i]/2 + e[i]/2`, in f64 and stored in the dtype. Branch-free (vectorised);
+/// returns `false` when some length is NaN, negative or infinite or some bound is not
+/// finite (that length is stored as 0).
+#[inline(always)]
+fn fill_geometry<T: WithDType>(s: &[T], e: &[T], norm: f64, del: &mut [T], tm: &mut [T]) -> bool {
+    let mut ok = true;
+    for (((d, t), &a), &b) in del.iter_mut().zip(tm.iter_mut()).zip(s).zip(e) {
+        let (a, b) = (a.to_f64(), b.to_f64());
+        let len = (b - a) * norm;
+        // NaN fails both comparisons, so NaN and ±∞ bounds are caught here.
+        let good = (len >= 0.0) & (len <= f64::MAX) & (a.abs() <= f64::MAX);
+        ok &= good;
+        *d = T::from_f64(if good { len } else { 0.0 });
+        *t = T::from_f64(0.5 * a + 0.5 * b);
+    }
+    ok
+}
+
 /// The instruction-set builds of the per-ray kernels, in increasing order. The same
 /// code is compiled once per build and chosen at run time by CPU feature detection, so
 /// the results differ only by the rounding of fused multiply–adds (the baseline build
@@ -644,6 +663,19 @@ impl Isa {
         }
     }
 
+    /// [`fill_geometry`] in this build.
+    #[inline(always)]
+    fn fill<T: WithDType>(self, s: &[T], e: &[T], norm: f64, del: &mut [T], tm: &mut [T]) -> bool {
+        match self.0 {
+            // SAFETY: as in `forward`.
+            #[cfg(target_arch = "x86_64")]
+            KernelBuild::Avx512 => unsafe { x86::fill_geometry_avx512(s, e, norm, del, tm) },
+            #[cfg(target_arch = "x86_64")]
+            KernelBuild::Avx2Fma => unsafe { x86::fill_geometry_avx2(s, e, norm, del, tm) },
+            _ => fill_geometry(s, e, norm, del, tm),
+        }
+    }
+
     #[inline(always)]
     fn backward<T: WithDType>(
         self,
@@ -669,9 +701,21 @@ mod x86 {
     use super::{RayGrads, RayIn, Scratch};
     use candle_core::WithDType;
 
-    /// The forward and backward kernel entry points compiled with `$features`.
+    /// The forward, backward and interval-geometry entry points compiled with
+    /// `$features`.
     macro_rules! kernel_build {
-        ($features:literal, $fwd:ident, $bwd:ident) => {
+        ($features:literal, $fwd:ident, $bwd:ident, $fill:ident) => {
+            #[target_feature(enable = $features)]
+            pub(super) fn $fill<T: WithDType>(
+                s: &[T],
+                e: &[T],
+                norm: f64,
+                del: &mut [T],
+                tm: &mut [T],
+            ) -> bool {
+                super::fill_geometry(s, e, norm, del, tm)
+            }
+
             #[target_feature(enable = $features)]
             pub(super) fn $fwd<T: WithDType>(ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) {
                 super::forward_ray::<T, true>(ray, sc, o)
@@ -689,11 +733,17 @@ mod x86 {
         };
     }
 
-    kernel_build!("avx2,fma", forward_ray_avx2, backward_ray_avx2);
+    kernel_build!(
+        "avx2,fma",
+        forward_ray_avx2,
+        backward_ray_avx2,
+        fill_geometry_avx2
+    );
     kernel_build!(
         "avx2,fma,avx512f,avx512vl",
         forward_ray_avx512,
-        backward_ray_avx512
+        backward_ray_avx512,
+        fill_geometry_avx512
     );
 }
 
@@ -811,23 +861,14 @@ impl FusedComposite {
             Geo::Slices { del, tm } => (&del[a..b], &tm[a..b]),
             Geo::Intervals { s, e, norms } => {
                 let norm = norms.map_or(1.0, |n| n[r]);
-                let (del, tm) = (&mut buf.0, &mut buf.1);
-                del.clear();
-                tm.clear();
-                let mut ok = true;
-                for (&s, &e) in s[a..b].iter().zip(&e[a..b]) {
-                    let (s, e) = (s.to_f64(), e.to_f64());
-                    let d = (e - s) * norm;
-                    // NaN fails the comparison, so NaN and ±∞ bounds are caught here.
-                    let good = (0.0..=f64::MAX).contains(&d) && s.is_finite();
-                    ok &= good;
-                    del.push(T::from_f64(if good { d } else { 0.0 }));
-                    tm.push(T::from_f64(0.5 * s + 0.5 * e));
-                }
-                if !ok {
+                let n = b - a;
+                buf.0.resize(n, T::zero());
+                buf.1.resize(n, T::zero());
+                let (del, tm) = (&mut buf.0[..n], &mut buf.1[..n]);
+                if !self.isa.fill(&s[a..b], &e[a..b], norm, del, tm) {
                     self.bad.store(true, Ordering::Relaxed);
                 }
-                (&buf.0[..], &buf.1[..])
+                (&buf.0[..n], &buf.1[..n])
             }
         };
         RayIn {
