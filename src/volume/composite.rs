@@ -47,7 +47,7 @@
 //! ```
 
 use super::fused::{self, FusedGeometry, KernelBuild};
-use super::layout::{check_samples, host_f64, Intervals, Layout, Weights};
+use super::layout::{check_nonneg_finite, check_samples, host_f64, Intervals, Layout, Weights};
 use super::reference;
 use crate::camera::Rays;
 use crate::error::{check_float, check_same, check_scalar, check_shape, Dim, Error, Result};
@@ -137,11 +137,18 @@ fn finish(
 }
 
 /// δ and t of the samples as tensors (the reference path, and the fused path when the
-/// intervals or the rays carry a graph), with δ checked finite and ≥ 0.
+/// intervals or the rays carry a graph), with δ checked finite and ≥ 0. The lengths in
+/// `t` are formed once and serve both: δ = (e − s)·‖d‖ and t = s + (e − s)/2 (the
+/// midpoint; any overflow of e − s is caught by the check).
 fn deltas_and_depths(intervals: &Intervals, rays: Option<&Rays>) -> Result<(Tensor, Tensor)> {
-    let deltas = intervals.deltas(rays)?;
-    super::layout::check_nonneg_finite(&deltas, "intervals")?;
-    Ok((deltas, intervals.midpoints()?))
+    let span = (&intervals.ends - &intervals.starts)?;
+    let t_mids = (&intervals.starts + span.affine(0.5, 0.0)?)?;
+    let deltas = match intervals.direction_norms(rays)? {
+        None => span,
+        Some(norms) => span.broadcast_mul(&intervals.per_sample(&norms)?)?,
+    };
+    check_nonneg_finite(&deltas, "intervals")?;
+    Ok((deltas, t_mids))
 }
 
 /// Composites the samples of a batch of rays into colour, opacity and expected depth.
@@ -206,6 +213,7 @@ pub(crate) fn composite_with(
 ) -> Result<(Tensor, Tensor, Tensor)> {
     let layout = &intervals.layout;
     if !sigmas.device().is_cpu() || config.force_reference {
+        check_nonneg_finite(sigmas, "sigmas")?;
         let (deltas, t_mids) = deltas_and_depths(intervals, rays)?;
         return reference::composite(sigmas, colors, &deltas, &t_mids, layout, config.opaque_last);
     }
@@ -264,6 +272,7 @@ pub fn render_weights(
     config: &CompositeConfig,
 ) -> Result<Weights> {
     check_samples(sigmas, None, intervals)?;
+    check_nonneg_finite(sigmas, "sigmas")?;
     let (deltas, _) = deltas_and_depths(intervals, rays)?;
     reference::weights(sigmas, &deltas, &intervals.layout, config.opaque_last)
 }
@@ -345,6 +354,7 @@ pub fn visible_mask(
 ) -> Result<Tensor> {
     check_scalar(eps, "eps", true)?;
     check_samples(sigmas, None, intervals)?;
+    check_nonneg_finite(sigmas, "sigmas")?;
     let (deltas, _) = deltas_and_depths(intervals, rays)?;
     let x = host_f64(&reference::thickness(&sigmas.detach(), &deltas.detach())?)?;
     // Compare in log space: T ≥ ε  ⇔  Σ_{j<i} x_j ≤ −ln ε.

@@ -56,7 +56,7 @@
 //! (no second order), and it only computes the gradients of inputs that are part of the
 //! autograd graph.
 
-use super::layout::{bad_intervals, host_f64, Layout as SampleLayout, X_MAX};
+use super::layout::{bad_intervals, check_nonneg_finite, host_f64, Layout as SampleLayout, X_MAX};
 use crate::error::{Error, Result};
 use crate::parallel::for_each_init;
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Shape, Storage, Tensor, WithDType};
@@ -123,7 +123,8 @@ struct FusedComposite {
     geometry: Geometry,
     opaque_last: bool,
     isa: Isa,
-    /// Set by the forward when an interval has a non-finite or negative length.
+    /// Set by the forward when a density is not finite and ≥ 0 or an interval has a
+    /// non-finite or negative length.
     bad: Arc<AtomicBool>,
 }
 
@@ -208,30 +209,36 @@ fn alpha_and_decay<const D: usize, const FMA: bool>(x: f64) -> (f64, f64) {
 
 /// For each sample: xᵢ = min(σᵢδᵢ, X_MAX), αᵢ = −expm1(−xᵢ) and e^{−xᵢ}, both to full
 /// relative accuracy of the storage dtype (f64: degree 13, f32: degree 7). `alpha` and
-/// `decay` must have the length of `sig`.
+/// `decay` must have the length of `sig`. Returns whether every σᵢ is finite and ≥ 0
+/// (checked in the same pass, so the entry points need no pass of their own).
 #[inline(always)]
 fn alpha_decay<T: WithDType, const FMA: bool>(
     sig: &[T],
     del: &[T],
     alpha: &mut [f64],
     decay: &mut [f64],
-) {
+) -> bool {
     #[inline(always)]
     fn run<T: WithDType, const D: usize, const FMA: bool>(
         sig: &[T],
         del: &[T],
         alpha: &mut [f64],
         decay: &mut [f64],
-    ) {
+    ) -> bool {
+        let mut ok = true;
         for (((s, d), a), e) in sig
             .iter()
             .zip(del)
             .zip(alpha.iter_mut())
             .zip(decay.iter_mut())
         {
-            let x = (s.to_f64() * d.to_f64()).min(X_MAX);
+            let s = s.to_f64();
+            // NaN fails both comparisons.
+            ok &= (s >= 0.0) & (s <= f64::MAX);
+            let x = (s * d.to_f64()).min(X_MAX);
             (*a, *e) = alpha_and_decay::<D, FMA>(x);
         }
+        ok
     }
     if T::DTYPE == DType::F32 {
         run::<T, 7, FMA>(sig, del, alpha, decay)
@@ -260,6 +267,9 @@ struct RayIn<'a, T> {
     vals: &'a [T],
     k: usize,
     opaque_last: bool,
+    /// Whether `sc.alpha` and `sc.decay` already hold this ray's αᵢ and e^{−xᵢ} (formed
+    /// with its δ and t by [`bounds_alpha_decay`]).
+    prepared: bool,
 }
 
 /// The gradient outputs of one ray (each present only when requested).
@@ -281,12 +291,14 @@ struct ScanOut {
     depth: f64,
     /// Σwᵢ.
     opacity: f64,
+    /// Whether every σᵢ was finite and ≥ 0.
+    valid: bool,
 }
 
 /// Forward scan of one ray with `k` channels (a constant after inlining into a
 /// specialised caller; `k = 0` for weights only, as the backward needs). Accumulates
-/// Σwᵢvᵢₖ into `acc[..k]` (zeroed here) and, when `store`, writes `sc.w[i]` = wᵢ and
-/// `sc.t_next[i]` = Tᵢ₊₁.
+/// Σwᵢvᵢₖ into `acc[..k]` (zeroed here) and, when `store` (the backward), writes
+/// `sc.w[i]` = wᵢ and `sc.t_next[i]` = Tᵢ₊₁ instead of accumulating the depth.
 #[inline(always)]
 fn scan_ray<T: WithDType, const FMA: bool>(
     ray: &RayIn<'_, T>,
@@ -304,7 +316,8 @@ fn scan_ray<T: WithDType, const FMA: bool>(
         sc.w.resize(n, 0.0);
         sc.t_next.resize(n, 0.0);
     }
-    alpha_decay::<T, FMA>(ray.sig, ray.del, &mut sc.alpha, &mut sc.decay);
+    let valid =
+        ray.prepared || alpha_decay::<T, FMA>(ray.sig, ray.del, &mut sc.alpha, &mut sc.decay);
     if ray.opaque_last && n > 0 {
         sc.alpha[n - 1] = 1.0;
         sc.decay[n - 1] = 0.0;
@@ -317,7 +330,8 @@ fn scan_ray<T: WithDType, const FMA: bool>(
     } else {
         (&mut [], &mut [])
     };
-    let tm = ray.tm.map(|t| &t[..n]);
+    // The backward (`store`) needs the weights, not the depth sum.
+    let tm = if store { None } else { ray.tm.map(|t| &t[..n]) };
     let vals = &ray.vals[..n * k];
     let (mut t, mut opacity, mut depth) = (1.0f64, 0.0f64, 0.0f64);
     let mut live = n;
@@ -383,6 +397,7 @@ fn scan_ray<T: WithDType, const FMA: bool>(
         live,
         depth,
         opacity,
+        valid,
     }
 }
 
@@ -406,7 +421,11 @@ macro_rules! specialise_k {
 
 /// Forward of one ray into its output row `o` (`[K + G]`).
 #[inline(always)]
-fn forward_ray<T: WithDType, const FMA: bool>(ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) {
+fn forward_ray<T: WithDType, const FMA: bool>(
+    ray: &RayIn<'_, T>,
+    sc: &mut Scratch,
+    o: &mut [T],
+) -> bool {
     specialise_k!(forward_ray_k::<T, FMA>(ray.k; ray, sc, o))
 }
 
@@ -417,7 +436,7 @@ fn forward_ray_k<T: WithDType, const K: usize, const FMA: bool>(
     ray: &RayIn<'_, T>,
     sc: &mut Scratch,
     o: &mut [T],
-) {
+) -> bool {
     let k = if K == 0 { ray.k } else { K };
     let mut fixed = [0.0f64; MAX_FIXED_K];
     let mut general = std::mem::take(&mut sc.acc);
@@ -436,6 +455,7 @@ fn forward_ray_k<T: WithDType, const K: usize, const FMA: bool>(
     }
     o[o.len() - 1] = T::from_f64(res.opacity);
     sc.acc = general;
+    res.valid
 }
 
 /// Backward of one ray given its upstream gradient row `grad` (`[K + G]`).
@@ -592,23 +612,66 @@ fn reverse_scan<const FMA: bool>(u: &mut [f64], t_next: &[f64], w: &[f64]) {
     }
 }
 
-/// One ray's geometry from its interval bounds: `del[i] = (e[i] − s[i])·norm` and
-/// `tm[i] = s[i]/2 + e[i]/2`, in f64 and stored in the dtype. Branch-free (vectorised);
-/// returns `false` when some length is NaN, negative or infinite or some bound is not
-/// finite (that length is stored as 0).
+/// One ray's geometry from its interval bounds, with its αᵢ and e^{−xᵢ} in the same
+/// vectorised pass: `del[i] = (e[i] − s[i])·norm` and `tm[i] = s[i]/2 + e[i]/2` in the
+/// storage dtype, exactly as the reference path forms them
+/// ([`super::Intervals::deltas`], [`super::Intervals::midpoints`]), then α and the decay
+/// as [`alpha_decay`] computes them (all slices of the ray's length). Returns `false`
+/// when some length is NaN, negative or infinite, some start is not finite, or some σ is
+/// not finite and ≥ 0 (such a length is stored as 0).
+#[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn fill_geometry<T: WithDType>(s: &[T], e: &[T], norm: f64, del: &mut [T], tm: &mut [T]) -> bool {
-    let mut ok = true;
-    for (((d, t), &a), &b) in del.iter_mut().zip(tm.iter_mut()).zip(s).zip(e) {
-        let (a, b) = (a.to_f64(), b.to_f64());
-        let len = (b - a) * norm;
-        // NaN fails both comparisons, so NaN and ±∞ bounds are caught here.
-        let good = (len >= 0.0) & (len <= f64::MAX) & (a.abs() <= f64::MAX);
-        ok &= good;
-        *d = T::from_f64(if good { len } else { 0.0 });
-        *t = T::from_f64(0.5 * a + 0.5 * b);
+fn bounds_alpha_decay<T: WithDType, const FMA: bool>(
+    sig: &[T],
+    s: &[T],
+    e: &[T],
+    norm: T,
+    del: &mut [T],
+    tm: &mut [T],
+    alpha: &mut [f64],
+    decay: &mut [f64],
+) -> bool {
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn run<T: WithDType, const D: usize, const FMA: bool>(
+        sig: &[T],
+        s: &[T],
+        e: &[T],
+        norm: T,
+        del: &mut [T],
+        tm: &mut [T],
+        alpha: &mut [f64],
+        decay: &mut [f64],
+    ) -> bool {
+        let half = T::from_f64(0.5);
+        let mut ok = true;
+        let outs = del
+            .iter_mut()
+            .zip(tm.iter_mut())
+            .zip(alpha.iter_mut().zip(decay.iter_mut()));
+        for (((d, t), (al, de)), ((&a, &b), sg)) in outs.zip(s.iter().zip(e).zip(sig)) {
+            let len = (b - a) * norm;
+            let (l, sg) = (len.to_f64(), sg.to_f64());
+            // NaN fails every comparison, so NaN and ±∞ bounds or densities are caught.
+            let good = (l >= 0.0) & (l <= f64::MAX) & (a.to_f64().abs() <= f64::MAX);
+            ok &= good & (sg >= 0.0) & (sg <= f64::MAX);
+            let l = if good { l } else { 0.0 };
+            *d = if good { len } else { T::zero() };
+            *t = a * half + b * half;
+            (*al, *de) = alpha_and_decay::<D, FMA>((sg * l).min(X_MAX));
+        }
+        ok
     }
-    ok
+    let args = (sig, s, e, norm, del, tm, alpha, decay);
+    if T::DTYPE == DType::F32 {
+        run::<T, 7, FMA>(
+            args.0, args.1, args.2, args.3, args.4, args.5, args.6, args.7,
+        )
+    } else {
+        run::<T, 13, FMA>(
+            args.0, args.1, args.2, args.3, args.4, args.5, args.6, args.7,
+        )
+    }
 }
 
 /// The instruction-set builds of the per-ray kernels, in increasing order. The same
@@ -651,7 +714,7 @@ impl Isa {
     }
 
     #[inline(always)]
-    fn forward<T: WithDType>(self, ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) {
+    fn forward<T: WithDType>(self, ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) -> bool {
         match self.0 {
             // SAFETY: `detect` picks these builds only when the running CPU reports
             // every feature they are compiled with.
@@ -663,16 +726,34 @@ impl Isa {
         }
     }
 
-    /// [`fill_geometry`] in this build.
+    /// [`bounds_alpha_decay`] in this build, into `buf` (δ, t) and `sc` (α, decays)
+    /// resized to the ray's length.
     #[inline(always)]
-    fn fill<T: WithDType>(self, s: &[T], e: &[T], norm: f64, del: &mut [T], tm: &mut [T]) -> bool {
+    fn prepare<T: WithDType>(
+        self,
+        sig: &[T],
+        (s, e, norm): (&[T], &[T], T),
+        buf: &mut (Vec<T>, Vec<T>),
+        sc: &mut Scratch,
+    ) -> bool {
+        let n = sig.len();
+        buf.0.resize(n, T::zero());
+        buf.1.resize(n, T::zero());
+        sc.alpha.resize(n, 0.0);
+        sc.decay.resize(n, 0.0);
+        let (del, tm) = (&mut buf.0[..n], &mut buf.1[..n]);
+        let (alpha, decay) = (&mut sc.alpha[..n], &mut sc.decay[..n]);
         match self.0 {
             // SAFETY: as in `forward`.
             #[cfg(target_arch = "x86_64")]
-            KernelBuild::Avx512 => unsafe { x86::fill_geometry_avx512(s, e, norm, del, tm) },
+            KernelBuild::Avx512 => unsafe {
+                x86::prepare_avx512(sig, s, e, norm, del, tm, alpha, decay)
+            },
             #[cfg(target_arch = "x86_64")]
-            KernelBuild::Avx2Fma => unsafe { x86::fill_geometry_avx2(s, e, norm, del, tm) },
-            _ => fill_geometry(s, e, norm, del, tm),
+            KernelBuild::Avx2Fma => unsafe {
+                x86::prepare_avx2(sig, s, e, norm, del, tm, alpha, decay)
+            },
+            _ => bounds_alpha_decay::<T, false>(sig, s, e, norm, del, tm, alpha, decay),
         }
     }
 
@@ -706,18 +787,26 @@ mod x86 {
     macro_rules! kernel_build {
         ($features:literal, $fwd:ident, $bwd:ident, $fill:ident) => {
             #[target_feature(enable = $features)]
+            #[allow(clippy::too_many_arguments)]
             pub(super) fn $fill<T: WithDType>(
+                sig: &[T],
                 s: &[T],
                 e: &[T],
-                norm: f64,
+                norm: T,
                 del: &mut [T],
                 tm: &mut [T],
+                alpha: &mut [f64],
+                decay: &mut [f64],
             ) -> bool {
-                super::fill_geometry(s, e, norm, del, tm)
+                super::bounds_alpha_decay::<T, true>(sig, s, e, norm, del, tm, alpha, decay)
             }
 
             #[target_feature(enable = $features)]
-            pub(super) fn $fwd<T: WithDType>(ray: &RayIn<'_, T>, sc: &mut Scratch, o: &mut [T]) {
+            pub(super) fn $fwd<T: WithDType>(
+                ray: &RayIn<'_, T>,
+                sc: &mut Scratch,
+                o: &mut [T],
+            ) -> bool {
                 super::forward_ray::<T, true>(ray, sc, o)
             }
 
@@ -737,13 +826,13 @@ mod x86 {
         "avx2,fma",
         forward_ray_avx2,
         backward_ray_avx2,
-        fill_geometry_avx2
+        prepare_avx2
     );
     kernel_build!(
         "avx2,fma,avx512f,avx512vl",
         forward_ray_avx512,
         backward_ray_avx512,
-        fill_geometry_avx512
+        prepare_avx512
     );
 }
 
@@ -847,7 +936,8 @@ impl FusedComposite {
         }
     }
 
-    /// The inputs of ray `r`; δ and t of constant intervals are formed in `buf`.
+    /// The inputs of ray `r`; for constant intervals its δ and t are formed in `buf` and
+    /// its α and decays in `sc` (flagging invalid values in `bad`).
     fn ray<'a, T: WithDType>(
         &self,
         r: usize,
@@ -855,29 +945,28 @@ impl FusedComposite {
         geo: &Geo<'a, T>,
         vals: &'a [T],
         buf: &'a mut (Vec<T>, Vec<T>),
+        sc: &mut Scratch,
     ) -> RayIn<'a, T> {
         let (a, b) = self.seg.range(r);
-        let (del, tm): (&[T], &[T]) = match geo {
-            Geo::Slices { del, tm } => (&del[a..b], &tm[a..b]),
+        let sig = &sig[a..b];
+        let (del, tm, prepared): (&[T], &[T], bool) = match geo {
+            Geo::Slices { del, tm } => (&del[a..b], &tm[a..b], false),
             Geo::Intervals { s, e, norms } => {
-                let norm = norms.map_or(1.0, |n| n[r]);
-                let n = b - a;
-                buf.0.resize(n, T::zero());
-                buf.1.resize(n, T::zero());
-                let (del, tm) = (&mut buf.0[..n], &mut buf.1[..n]);
-                if !self.isa.fill(&s[a..b], &e[a..b], norm, del, tm) {
+                let norm = T::from_f64(norms.map_or(1.0, |n| n[r]));
+                if !self.isa.prepare(sig, (&s[a..b], &e[a..b], norm), buf, sc) {
                     self.bad.store(true, Ordering::Relaxed);
                 }
-                (&buf.0[..n], &buf.1[..n])
+                (&buf.0[..], &buf.1[..], true)
             }
         };
         RayIn {
-            sig: &sig[a..b],
+            sig,
             del,
             tm: Some(tm),
             vals: &vals[a * self.k..b * self.k],
             k: self.k,
             opaque_last: self.opaque_last,
+            prepared,
         }
     }
 
@@ -888,7 +977,10 @@ impl FusedComposite {
         let rows: Vec<_> = out.chunks_mut(width).enumerate().collect();
         let init = || (Scratch::default(), (Vec::new(), Vec::new()));
         for_each_init(rows, init, |(sc, buf), (ray, o)| {
-            isa.forward(&self.ray(ray, sig, &geo, vals, buf), sc, o);
+            let input = self.ray(ray, sig, &geo, vals, buf, sc);
+            if !isa.forward(&input, sc, o) {
+                self.bad.store(true, Ordering::Relaxed);
+            }
         });
         out
     }
@@ -939,7 +1031,8 @@ impl FusedComposite {
                 tm: gt,
             };
             let g = &grad[ray * width..(ray + 1) * width];
-            isa.backward(&self.ray(ray, sig, &geo, vals, buf), g, sc, &mut out);
+            let input = self.ray(ray, sig, &geo, vals, buf, sc);
+            isa.backward(&input, g, sc, &mut out);
         });
         for (v, (on, len)) in [&mut gs, &mut ggeo, &mut gv]
             .into_iter()
@@ -1068,8 +1161,9 @@ pub(crate) enum FusedGeometry<'a> {
 /// kernel build the call may use.
 ///
 /// # Errors
-/// `sigmas` when not on the CPU; `intervals` when a constant interval has a non-finite or
-/// negative length (checked in the kernel's own pass).
+/// `sigmas` when not on the CPU or when a density is NaN, negative or infinite;
+/// `intervals` when a constant interval has a non-finite or negative length (both
+/// checked in the kernel's own pass; the entry points need no pass of their own).
 pub(crate) fn composite(
     sigmas: &Tensor,
     colors: &Tensor,
@@ -1126,6 +1220,8 @@ pub(crate) fn composite(
         .contiguous()?
         .apply_op3(&geo, &colors.contiguous()?, op)?;
     if bad.load(Ordering::Relaxed) {
+        // The kernel only knows that some value was bad: name it (and where it is).
+        check_nonneg_finite(sigmas, "sigmas")?;
         return Err(bad_intervals());
     }
     let color = out.narrow(1, 0, c)?;

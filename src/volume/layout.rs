@@ -545,9 +545,11 @@ pub(crate) fn bad_intervals() -> Error {
     )
 }
 
-/// Checks `sigmas` against the intervals' layout (`[R, S]` or `[M]`, float, same dtype
-/// and device, finite and ≥ 0) and, when given, `values` as `[R, S, C]` / `[M, C]`
-/// (`arg` names them). Returns the channel count `C` (0 without values).
+/// Checks the shapes of `sigmas` against the intervals' layout (`[R, S]` or `[M]`,
+/// float, same dtype and device) and, when given, `values` as `[R, S, C]` / `[M, C]`
+/// (`arg` names them). Returns the channel count `C` (0 without values). The values of
+/// `sigmas` (finite, ≥ 0) are checked by the caller: by [`check_nonneg_finite`] on the
+/// reference path, inside the fused kernel's own pass on the CPU.
 pub(crate) fn check_samples(
     sigmas: &Tensor,
     values: Option<(&Tensor, &'static str)>,
@@ -589,6 +591,5 @@ pub(crate) fn check_samples(
         pattern.push(Dim::Any("C"));
         c = *check_shape(v, arg, &pattern)?.last().unwrap_or(&0);
     }
-    check_nonneg_finite(sigmas, "sigmas")?;
     Ok(c)
 }

@@ -146,12 +146,14 @@ pub(crate) fn composite(
 ) -> Result<(Tensor, Tensor, Tensor)> {
     let w = weights(sigmas, deltas, layout, opaque_last)?.weights;
     let color = accumulate(&w, colors, layout)?;
-    let wt = Tensor::stack(&[&w, &(&w * t_mids)?], w.rank())?;
-    let od = match layout {
-        Layout::Batched => wt.sum(1)?,
-        Layout::Packed(_) => accumulate(&w.ones_like()?, &wt, layout)?,
-    };
-    let opacity = od.narrow(1, 0, 1)?.squeeze(1)?;
-    let depth = od.narrow(1, 1, 1)?.squeeze(1)?;
-    Ok((color, opacity, depth))
+    let wt = (&w * t_mids)?;
+    match layout {
+        Layout::Batched => Ok((color, w.sum(1)?, wt.sum(1)?)),
+        Layout::Packed(_) => {
+            let od = accumulate(&w.ones_like()?, &Tensor::stack(&[&w, &wt], 1)?, layout)?;
+            let opacity = od.narrow(1, 0, 1)?.squeeze(1)?;
+            let depth = od.narrow(1, 1, 1)?.squeeze(1)?;
+            Ok((color, opacity, depth))
+        }
+    }
 }
