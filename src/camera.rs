@@ -585,7 +585,7 @@ pub struct Intersection {
 
 impl Intersection {
     /// The range `[near, far]` on every ray, all marked hit: the search range of
-    /// [`crate::dvr::march`] and [`crate::dvr::sphere_trace`] when it does not come from
+    /// [`crate::dvr::march()`] and [`crate::dvr::sphere_trace`] when it does not come from
     /// [`ray_aabb`] or [`ray_sphere`]. A ray with `near = far` has an empty range.
     ///
     /// # Errors

@@ -73,7 +73,7 @@
 //! ```
 //!
 //! **5. Volume rendering (NeRF).** Samplers return [`volume::Intervals`] along the rays;
-//! evaluate your field at their positions and [`volume::composite`] them into pixels
+//! evaluate your field at their positions and [`volume::composite()`] them into pixels
 //! (the fused CPU kernel on the CPU, candle ops elsewhere; either the batched `[R, S]`
 //! or the packed layout of the [`volume::OccupancyGrid`], which skips empty space):
 //!

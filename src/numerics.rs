@@ -132,8 +132,9 @@ fn log1p_exp_neg_abs(x: &Tensor) -> Result<Tensor> {
 /// `σ(βx)` (exactly 1/2 at 0). As β → ∞ it tends to ReLU; IDR uses β = 100.
 ///
 /// On the CPU this is one fused pass forward and one backward (a candle `CustomOp1`,
-/// several times faster than the composed form in an MLP); elsewhere it is
-/// [`softplus_reference`].
+/// several times faster than the composed form in an MLP); elsewhere the same value and
+/// gradient are composed from candle ops (the reference the CPU kernel is tested
+/// against).
 ///
 /// * `x`: any shape, f32 or f64; `beta > 0` and finite. Output: same shape and dtype.
 /// * Differentiable (first order) w.r.t. `x`.

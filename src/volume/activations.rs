@@ -2,7 +2,7 @@
 //! [`crate::numerics::softplus`]).
 //!
 //! Both (trunc-exp and softplus) map a raw network output x ∈ ℝ to a density σ ≥ 0 whose value and gradient are
-//! finite for every finite x, so that [`super::composite`] never sees ∞.
+//! finite for every finite x, so that [`super::composite()`] never sees ∞.
 //!
 //! - `trunc_exp(x) = exp(min(x, m))` with m = 88 in f32 (e⁸⁸ ≈ 1.65e38 < f32::MAX) and
 //!   709 in f64; its *gradient* is defined as `exp(clamp(x, −15, 15))` (nerfstudio's

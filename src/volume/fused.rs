@@ -234,7 +234,7 @@ fn alpha_decay<T: WithDType, const FMA: bool>(
         {
             let s = s.to_f64();
             // NaN fails both comparisons.
-            ok &= (s >= 0.0) & (s <= f64::MAX);
+            ok &= (0.0..=f64::MAX).contains(&s);
             let x = (s * d.to_f64()).min(X_MAX);
             (*a, *e) = alpha_and_decay::<D, FMA>(x);
         }
@@ -653,8 +653,8 @@ fn bounds_alpha_decay<T: WithDType, const FMA: bool>(
             let len = (b - a) * norm;
             let (l, sg) = (len.to_f64(), sg.to_f64());
             // NaN fails every comparison, so NaN and ±∞ bounds or densities are caught.
-            let good = (l >= 0.0) & (l <= f64::MAX) & (a.to_f64().abs() <= f64::MAX);
-            ok &= good & (sg >= 0.0) & (sg <= f64::MAX);
+            let good = (0.0..=f64::MAX).contains(&l) & (a.to_f64().abs() <= f64::MAX);
+            ok &= good & (0.0..=f64::MAX).contains(&sg);
             let l = if good { l } else { 0.0 };
             *d = if good { len } else { T::zero() };
             *t = a * half + b * half;

@@ -176,7 +176,7 @@ impl FixedMarch {
 type RayMarch = std::result::Result<(Vec<(f64, f64)>, usize), usize>;
 
 /// Samples emitted by [`OccupancyGrid::sample`]: packed [`Intervals`] (ready for
-/// [`crate::volume::composite`] and [`Intervals::positions`]) and the work they saved.
+/// [`crate::volume::composite()`] and [`Intervals::positions`]) and the work they saved.
 #[derive(Clone, Debug)]
 #[non_exhaustive]
 pub struct GridSamples {

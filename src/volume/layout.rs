@@ -1,8 +1,8 @@
 //! The sample layouts and the checks shared by every compositing path.
 //!
-//! This module sits below the reference path ([`super::reference`], crate-private), the
-//! fused CPU kernel ([`super::fused`], crate-private) and the entry points
-//! ([`super::composite`]): it imports none of them.
+//! This module sits below the reference path (candle ops) and the fused CPU kernel, both
+//! crate-private, and the entry points ([`super::composite`](mod@super::composite)): it
+//! imports none of them.
 //!
 //! Samples along rays are described by [`Intervals`]: per sample an interval
 //! `[start, end]` in ray parameter `t`, in one of two [`Layout`]s:
