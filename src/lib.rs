@@ -148,9 +148,18 @@ pub mod rng;
 pub mod volume;
 
 pub use error::{Error, Result};
+
+/// Test helpers shared with the integration tests (`tests/common/host.rs`), whose
+/// `super::SplitMix64` is this crate's generator.
+#[cfg(test)]
+#[path = "../tests/common/host.rs"]
+#[allow(dead_code)] // `extreme_inputs` serves the `volume` tests only.
+mod test_host;
 /// glam, whose types ([`glam::DAffine3`], [`glam::DVec3`]) poses and cameras take:
 /// re-exported so that users need not pin the same version by hand.
 pub use glam;
+#[cfg(test)]
+use rng::SplitMix64;
 
 /// The README's code blocks, compiled and run as doc tests.
 #[doc = include_str!("../README.md")]

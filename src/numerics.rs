@@ -326,14 +326,7 @@ mod tests {
     use super::*;
     use candle_core::{Device, Var};
 
-    fn vec64(t: &Tensor) -> Vec<f64> {
-        t.to_dtype(DType::F64)
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1()
-            .unwrap()
-    }
+    use crate::test_host::v64 as vec64;
 
     #[test]
     fn safe_sin_is_accurate_for_huge_f32_arguments() {

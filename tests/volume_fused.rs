@@ -7,6 +7,7 @@
 mod common;
 
 use candle_core::{DType, Device, Tensor, Var};
+use common::host::extreme_inputs as inputs;
 use common::intervals::{batched_from_deltas, packed_from_deltas};
 use common::v64;
 use neural_fields::camera::Rays;
@@ -18,31 +19,6 @@ use proptest::prelude::*;
 
 fn dev() -> Device {
     Device::Cpu
-}
-
-/// Random extreme inputs for `n` samples: σ in {0, 10^[−30, 30], moderate thickness},
-/// δ in {10^[−30, 10], moderate}; colours in [0, 1).
-fn inputs(seed: u64, n: usize, c: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
-    let mut rng = SplitMix64::new(seed);
-    let mut sig = Vec::with_capacity(n);
-    let mut del = Vec::with_capacity(n);
-    for _ in 0..n {
-        let d = if rng.uniform() < 0.4 {
-            10f64.powf(-30.0 + 40.0 * rng.uniform())
-        } else {
-            0.001 + 0.1 * rng.uniform()
-        };
-        let s = match rng.below(10) {
-            0 | 1 => 0.0,
-            2 | 3 => 10f64.powf(-30.0 + 60.0 * rng.uniform()),
-            4..=6 => 2.0 * rng.uniform() / d,
-            _ => 0.05 * rng.uniform() / d,
-        };
-        sig.push(s);
-        del.push(d);
-    }
-    let col = (0..n * c).map(|_| rng.uniform()).collect();
-    (sig, del, col)
 }
 
 /// Loss weights: one per colour channel, one for opacity, one for depth.

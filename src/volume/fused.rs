@@ -612,36 +612,44 @@ fn reverse_scan<const FMA: bool>(u: &mut [f64], t_next: &[f64], w: &[f64]) {
     }
 }
 
+/// One ray's constant interval bounds and densities, the inputs of
+/// [`bounds_alpha_decay`] (slices of the ray's length).
+struct BoundsIn<'a, T> {
+    sig: &'a [T],
+    s: &'a [T],
+    e: &'a [T],
+    norm: T,
+}
+
+/// The outputs of [`bounds_alpha_decay`] (slices of the ray's length).
+struct BoundsOut<'a, T> {
+    del: &'a mut [T],
+    tm: &'a mut [T],
+    alpha: &'a mut [f64],
+    decay: &'a mut [f64],
+}
+
 /// One ray's geometry from its interval bounds, with its αᵢ and e^{−xᵢ} in the same
 /// vectorised pass: `del[i] = (e[i] − s[i])·norm` and `tm[i] = s[i]/2 + e[i]/2` in the
 /// storage dtype, exactly as the reference path forms them
 /// ([`super::Intervals::deltas`], [`super::Intervals::midpoints`]), then α and the decay
-/// as [`alpha_decay`] computes them (all slices of the ray's length). Returns `false`
-/// when some length is NaN, negative or infinite, some start is not finite, or some σ is
-/// not finite and ≥ 0 (such a length is stored as 0).
-#[allow(clippy::too_many_arguments)]
+/// as [`alpha_decay`] computes them. Returns `false` when some length is NaN, negative or
+/// infinite, some start is not finite, or some σ is not finite and ≥ 0 (such a length is
+/// stored as 0).
 #[inline(always)]
 fn bounds_alpha_decay<T: WithDType, const FMA: bool>(
-    sig: &[T],
-    s: &[T],
-    e: &[T],
-    norm: T,
-    del: &mut [T],
-    tm: &mut [T],
-    alpha: &mut [f64],
-    decay: &mut [f64],
+    inp: BoundsIn<'_, T>,
+    out: BoundsOut<'_, T>,
 ) -> bool {
-    #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     fn run<T: WithDType, const D: usize, const FMA: bool>(
-        sig: &[T],
-        s: &[T],
-        e: &[T],
-        norm: T,
-        del: &mut [T],
-        tm: &mut [T],
-        alpha: &mut [f64],
-        decay: &mut [f64],
+        BoundsIn { sig, s, e, norm }: BoundsIn<'_, T>,
+        BoundsOut {
+            del,
+            tm,
+            alpha,
+            decay,
+        }: BoundsOut<'_, T>,
     ) -> bool {
         let half = T::from_f64(0.5);
         let mut ok = true;
@@ -662,15 +670,10 @@ fn bounds_alpha_decay<T: WithDType, const FMA: bool>(
         }
         ok
     }
-    let args = (sig, s, e, norm, del, tm, alpha, decay);
     if T::DTYPE == DType::F32 {
-        run::<T, 7, FMA>(
-            args.0, args.1, args.2, args.3, args.4, args.5, args.6, args.7,
-        )
+        run::<T, 7, FMA>(inp, out)
     } else {
-        run::<T, 13, FMA>(
-            args.0, args.1, args.2, args.3, args.4, args.5, args.6, args.7,
-        )
+        run::<T, 13, FMA>(inp, out)
     }
 }
 
@@ -741,19 +744,20 @@ impl Isa {
         buf.1.resize(n, T::zero());
         sc.alpha.resize(n, 0.0);
         sc.decay.resize(n, 0.0);
-        let (del, tm) = (&mut buf.0[..n], &mut buf.1[..n]);
-        let (alpha, decay) = (&mut sc.alpha[..n], &mut sc.decay[..n]);
+        let inp = BoundsIn { sig, s, e, norm };
+        let out = BoundsOut {
+            del: &mut buf.0[..n],
+            tm: &mut buf.1[..n],
+            alpha: &mut sc.alpha[..n],
+            decay: &mut sc.decay[..n],
+        };
         match self.0 {
             // SAFETY: as in `forward`.
             #[cfg(target_arch = "x86_64")]
-            KernelBuild::Avx512 => unsafe {
-                x86::prepare_avx512(sig, s, e, norm, del, tm, alpha, decay)
-            },
+            KernelBuild::Avx512 => unsafe { x86::prepare_avx512(inp, out) },
             #[cfg(target_arch = "x86_64")]
-            KernelBuild::Avx2Fma => unsafe {
-                x86::prepare_avx2(sig, s, e, norm, del, tm, alpha, decay)
-            },
-            _ => bounds_alpha_decay::<T, false>(sig, s, e, norm, del, tm, alpha, decay),
+            KernelBuild::Avx2Fma => unsafe { x86::prepare_avx2(inp, out) },
+            _ => bounds_alpha_decay::<T, false>(inp, out),
         }
     }
 
@@ -779,7 +783,7 @@ impl Isa {
 /// The per-ray kernels compiled with AVX2 + FMA and with AVX-512 enabled.
 #[cfg(target_arch = "x86_64")]
 mod x86 {
-    use super::{RayGrads, RayIn, Scratch};
+    use super::{BoundsIn, BoundsOut, RayGrads, RayIn, Scratch};
     use candle_core::WithDType;
 
     /// The forward, backward and interval-geometry entry points compiled with
@@ -787,18 +791,8 @@ mod x86 {
     macro_rules! kernel_build {
         ($features:literal, $fwd:ident, $bwd:ident, $fill:ident) => {
             #[target_feature(enable = $features)]
-            #[allow(clippy::too_many_arguments)]
-            pub(super) fn $fill<T: WithDType>(
-                sig: &[T],
-                s: &[T],
-                e: &[T],
-                norm: T,
-                del: &mut [T],
-                tm: &mut [T],
-                alpha: &mut [f64],
-                decay: &mut [f64],
-            ) -> bool {
-                super::bounds_alpha_decay::<T, true>(sig, s, e, norm, del, tm, alpha, decay)
+            pub(super) fn $fill<T: WithDType>(inp: BoundsIn<'_, T>, out: BoundsOut<'_, T>) -> bool {
+                super::bounds_alpha_decay::<T, true>(inp, out)
             }
 
             #[target_feature(enable = $features)]

@@ -4,10 +4,11 @@
 
 use super::{composite as fused_composite, FusedGeometry, KernelBuild};
 use crate::rng::SplitMix64;
+use crate::test_host::{extreme_inputs, v64};
 use crate::volume::composite::{composite_with, CompositeConfig};
 use crate::volume::layout::{Intervals, Layout};
 use crate::volume::reference;
-use candle_core::{DType, Device, Tensor, Var};
+use candle_core::{Device, Tensor, Var};
 
 const BUILDS: [KernelBuild; 3] = [
     KernelBuild::Baseline,
@@ -19,38 +20,11 @@ fn dev() -> Device {
     Device::Cpu
 }
 
-/// Flattens any float tensor into a `Vec<f64>`.
-fn v64(t: &Tensor) -> Vec<f64> {
-    t.to_dtype(DType::F64)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1()
-        .unwrap()
-}
-
-/// Random extreme inputs (as in `tests/volume_fused.rs`): σ in {0, 10^[−30, 30],
-/// moderate thickness}, δ in {10^[−30, 10], moderate}, colours in [0, 1).
+/// Random extreme inputs (`extreme_inputs`, shared with `tests/volume_fused.rs`) and
+/// sample depths in [0, 10).
 fn inputs(seed: u64, n: usize, c: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>) {
-    let mut rng = SplitMix64::new(seed);
-    let mut sig = Vec::with_capacity(n);
-    let mut del = Vec::with_capacity(n);
-    for _ in 0..n {
-        let d = if rng.uniform() < 0.4 {
-            10f64.powf(-30.0 + 40.0 * rng.uniform())
-        } else {
-            0.001 + 0.1 * rng.uniform()
-        };
-        let s = match rng.below(10) {
-            0 | 1 => 0.0,
-            2 | 3 => 10f64.powf(-30.0 + 60.0 * rng.uniform()),
-            4..=6 => 2.0 * rng.uniform() / d,
-            _ => 0.05 * rng.uniform() / d,
-        };
-        sig.push(s);
-        del.push(d);
-    }
-    let col = (0..n * c).map(|_| rng.uniform()).collect();
+    let (sig, del, col) = extreme_inputs(seed, n, c);
+    let mut rng = SplitMix64::new(seed ^ 0x7e57);
     let tm = (0..n).map(|_| 10.0 * rng.uniform()).collect();
     (sig, del, col, tm)
 }

@@ -5,22 +5,14 @@
 pub mod counting;
 #[cfg(feature = "dvr")]
 pub mod hits;
+pub mod host;
 #[cfg(feature = "volume")]
 pub mod intervals;
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;
+pub use host::v64;
 use neural_fields::rng::SplitMix64;
-
-/// Flattens any float tensor into a `Vec<f64>`.
-pub fn v64(t: &Tensor) -> Vec<f64> {
-    t.to_dtype(DType::F64)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1()
-        .unwrap()
-}
 
 /// A `[rows, cols]` tensor of uniform numbers in `[lo, hi)`.
 pub fn uniform(
