@@ -300,7 +300,7 @@ fn composite_case(dev: &Device, dtype: DType) -> Result<Outs> {
     // reference path on both.
     for (label, config, with_rays) in [
         ("composite", &cfg, false),
-        ("composite_reference", &reference, false),
+        ("composite (force_reference)", &reference, false),
         ("composite_rays", &cfg, true),
         ("composite_rays_reference", &reference, true),
     ] {
@@ -375,8 +375,8 @@ fn composite_case(dev: &Device, dtype: DType) -> Result<Outs> {
         ..pcfg.clone()
     };
     for (label, config) in [
-        ("composite_packed", &pcfg),
-        ("composite_packed_reference", &preference),
+        ("composite (packed)", &pcfg),
+        ("composite (packed, force_reference)", &preference),
     ] {
         let mut up = SplitMix64::new(7);
         let res = composite(&ps, &pc, &piv, None, config)?;
@@ -738,18 +738,18 @@ fn dvr_case(dev: &Device, dtype: DType) -> Result<Outs> {
 
     // The march bounded by a sphere (0.1's `march_bounded`).
     let hits = march(&sdf, &rays, &bounds, &MarchConfig::default())?;
-    out.push(("march_bounded.depth".into(), depth_tol(&hits.depth)));
+    out.push(("march_in_sphere.depth".into(), depth_tol(&hits.depth)));
     out.push((
-        "march_bounded.points".into(),
+        "march_in_sphere.points".into(),
         Out::Abs(hits.points.clone(), 1e-5, 1e-10),
     ));
     out.push((
-        "march_bounded.status".into(),
+        "march_in_sphere.status".into(),
         Out::Eq(format!("{:?}", hits.status)),
     ));
-    out.push(("march_bounded.mask".into(), Out::T(hits.mask.clone())));
+    out.push(("march_in_sphere.mask".into(), Out::T(hits.mask.clone())));
     out.push((
-        "march_bounded.evaluations".into(),
+        "march_in_sphere.evaluations".into(),
         Out::Eq(format!("{}", hits.evaluations)),
     ));
     let surf = implicit_surface(&sdf, &rays, &hits, &ImplicitConfig::default())?;
