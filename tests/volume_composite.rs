@@ -814,3 +814,45 @@ fn visible_mask_drops_only_samples_after_transmittance_falls_below_eps() {
     assert!(err <= eps * cmax, "{err}");
     assert!(err > 0.0, "the test must actually drop weight");
 }
+
+/// Pins a panic: the fused kernel's output for zero rays was a `[0, C + 2]` tensor whose
+/// colour, depth and opacity views started past their (empty) storage, so reading them
+/// (`to_vec1`) panicked inside candle. Every path and layout must return readable empty
+/// results, and zero samples per ray must give the background.
+#[test]
+fn composite_of_zero_rays_returns_readable_empty_tensors() {
+    for dtype in [DType::F32, DType::F64] {
+        for force_reference in [false, true] {
+            let config = CompositeConfig {
+                force_reference,
+                ..CompositeConfig::default()
+            };
+            let dev = Device::Cpu;
+            // Batched, R = 0.
+            let z = Tensor::zeros((0, 4), dtype, &dev).unwrap();
+            let iv = Intervals::new(z.clone(), z.clone()).unwrap();
+            let colors = Tensor::zeros((0, 4, 3), dtype, &dev).unwrap();
+            let out = composite(&z, &colors, &iv, None, &config).unwrap();
+            assert_eq!(out.color.dims(), &[0, 3]);
+            assert_eq!(v64(&out.color).len(), 0);
+            assert_eq!(v64(&out.depth).len(), 0);
+            assert_eq!(v64(&out.opacity).len(), 0);
+            // Packed, R = 0 and M = 0.
+            let packed = Packed::from_counts(&[], &dev).unwrap();
+            let e = Tensor::zeros(0, dtype, &dev).unwrap();
+            let piv = Intervals::new_packed(e.clone(), e.clone(), packed).unwrap();
+            let pcol = Tensor::zeros((0, 3), dtype, &dev).unwrap();
+            let out = composite(&e, &pcol, &piv, None, &config).unwrap();
+            assert_eq!(out.color.dims(), &[0, 3]);
+            assert_eq!(v64(&out.depth).len() + v64(&out.opacity).len(), 0);
+            // Batched, S = 0: every ray is background (black), opacity 0.
+            let z = Tensor::zeros((2, 0), dtype, &dev).unwrap();
+            let iv = Intervals::new(z.clone(), z.clone()).unwrap();
+            let colors = Tensor::zeros((2, 0, 3), dtype, &dev).unwrap();
+            let out = composite(&z, &colors, &iv, None, &config).unwrap();
+            assert_eq!(v64(&out.color), vec![0.0; 6]);
+            assert_eq!(v64(&out.opacity), vec![0.0; 2]);
+            assert_eq!(v64(&out.depth), vec![0.0; 2]);
+        }
+    }
+}

@@ -212,6 +212,15 @@ pub(crate) fn composite_with(
     build: KernelBuild,
 ) -> Result<(Tensor, Tensor, Tensor)> {
     let layout = &intervals.layout;
+    if intervals.n_rays() == 0 {
+        // No rays, hence no samples: empty results, still on the inputs' graph. (Both
+        // paths split a `[0, K]` result with `narrow`, whose views would start past their
+        // empty storage and panic when read.)
+        return Ok(match layout {
+            Layout::Batched => (colors.sum(1)?, sigmas.sum(1)?, sigmas.sum(1)?),
+            Layout::Packed(_) => (colors.clone(), sigmas.clone(), sigmas.clone()),
+        });
+    }
     if !sigmas.device().is_cpu() || config.force_reference {
         check_nonneg_finite(sigmas, "sigmas")?;
         let (deltas, t_mids) = deltas_and_depths(intervals, rays)?;
