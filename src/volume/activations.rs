@@ -78,6 +78,16 @@ impl CustomOp1 for TruncExp {
 /// Shapes: any; f32 or f64; any device (CustomOp on CPU, composed elsewhere).
 /// Differentiable (first order) with respect to `x`.
 ///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::volume::trunc_exp;
+///
+/// let y = trunc_exp(&Tensor::new(&[0.0f32, 1e3], &Device::Cpu)?)?.to_vec1::<f32>()?;
+/// assert_eq!(y[0], 1.0);
+/// assert!(y[1].is_finite());                                           // e⁸⁸, not ∞
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
 /// # Errors
 /// `x` when not f32/f64.
 pub fn trunc_exp(x: &Tensor) -> Result<Tensor> {

@@ -40,6 +40,18 @@ fn exclusive_cumsum(x: &Tensor) -> Result<Tensor> {
 /// (docs/math.md, "Distortion loss") are `∂L/∂w_k = 2 Σⱼ wⱼ|m_k − mⱼ| + ⅔ w_k δ_k`,
 /// `∂L/∂m_k = 2 w_k (Σ_{j<k} wⱼ − Σ_{j>k} wⱼ)` and `∂L/∂δ_k = ⅓ w_k²`.
 ///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::volume::{distortion_loss, Intervals};
+///
+/// let dev = Device::Cpu;
+/// let iv = Intervals::new(Tensor::new(&[[0.0f64, 0.5]], &dev)?, Tensor::new(&[[0.5f64, 1.0]], &dev)?)?;
+/// // All weight in the first interval: only its ⅓·w²·δ term remains.
+/// let l = distortion_loss(&Tensor::new(&[[1.0f64, 0.0]], &dev)?, &iv)?;   // [R = 1]
+/// assert!((l.to_vec1::<f64>()?[0] - 0.5 / 3.0).abs() < 1e-15);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
 /// # Errors
 /// Naming `weights`, `starts` or `ends` for wrong shapes, dtypes or devices; `starts`
 /// when the intervals are inverted or unsorted along a ray (read back on the host: the
@@ -100,6 +112,15 @@ pub fn distortion_loss(weights: &Tensor, intervals: &Intervals) -> Result<Tensor
 ///
 /// * `depth`: `[P, k, k]` (square or not: `[P, H, W]` with `H, W ≥ 2`), f32 or f64;
 ///   returns `[P]`. Differentiable w.r.t. `depth`.
+///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::volume::depth_smoothness;
+///
+/// let flat = Tensor::full(3.0f32, (1, 8, 8), &Device::Cpu)?;          // one 8×8 patch
+/// assert_eq!(depth_smoothness(&flat)?.to_vec1::<f32>()?, vec![0.0]);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
 ///
 /// # Errors
 /// Naming `depth` for a wrong rank or dtype or a patch side below 2.

@@ -77,6 +77,19 @@ impl Intervals {
     /// intervals from merged coarse and fine samples. Differentiable w.r.t. `t`, `near`
     /// and `far`.
     ///
+    /// ```
+    /// use candle_core::{Device, Tensor};
+    /// use neural_fields::volume::Intervals;
+    ///
+    /// let dev = Device::Cpu;
+    /// let t = Tensor::new(&[[1.0f64, 2.0, 4.0]], &dev)?;                  // sorted samples
+    /// let (near, far) = (Tensor::new(&[0.0f64], &dev)?, Tensor::new(&[5.0f64], &dev)?);
+    /// let iv = Intervals::from_samples(&t, &near, &far)?;
+    /// assert_eq!(iv.starts.to_vec2::<f64>()?, vec![vec![0.0, 1.5, 3.0]]);
+    /// assert_eq!(iv.ends.to_vec2::<f64>()?, vec![vec![1.5, 3.0, 5.0]]);
+    /// # Ok::<(), neural_fields::Error>(())
+    /// ```
+    ///
     /// # Errors
     /// Naming `samples` for a wrong shape, dtype or device, unsorted rows, or samples
     /// outside `[near, far]`; naming `near`/`far` as [`stratified`] does.
@@ -196,6 +209,19 @@ pub(crate) fn check_near_far(near: &Tensor, far: &Tensor) -> Result<usize> {
 ///
 /// Differentiable w.r.t. `near` and `far` (the edges are affine in them).
 ///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::volume::{stratified, Jitter};
+///
+/// let dev = Device::Cpu;
+/// let (near, far) = (Tensor::new(&[2.0f32, 0.0], &dev)?, Tensor::new(&[6.0f32, 1.0], &dev)?);
+/// let iv = stratified(&near, &far, 4, Jitter::None, 0)?;             // [R = 2, S = 4]
+/// assert_eq!(iv.starts.to_vec2::<f32>()?[0], vec![2.0, 3.0, 4.0, 5.0]);
+/// let jittered = stratified(&near, &far, 4, Jitter::PerSample, 7)?;  // a new seed per step
+/// assert_eq!(jittered.ends.to_vec2::<f32>()?[1][3], 1.0);            // still ends at far
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
 /// # Errors
 /// Naming `near`/`far` for wrong shapes or dtypes, non-finite values or `near > far`;
 /// naming `n` for `n = 0`.
@@ -306,6 +332,15 @@ fn check_weights(weights: &Tensor, padding: f64) -> Result<(Vec<f64>, usize, usi
 /// between (uniform when `W = 0`). Computed on the host in f64, returned detached on the
 /// weights' device in their dtype.
 ///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::volume::step_cdf;
+///
+/// let cdf = step_cdf(&Tensor::new(&[[1.0f64, 1.0, 2.0]], &Device::Cpu)?, 0.0)?;
+/// assert_eq!(cdf.to_vec2::<f64>()?, vec![vec![0.0, 0.25, 0.5, 1.0]]);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
 /// # Errors
 /// As [`sample_pdf`] for `weights` and `padding`.
 pub fn step_cdf(weights: &Tensor, padding: f64) -> Result<Tensor> {
@@ -337,6 +372,19 @@ pub fn step_cdf(weights: &Tensor, padding: f64) -> Result<Tensor> {
 ///
 /// The inversion runs on the host in f64 (the result carries no graph, so nothing is
 /// lost): it reads `R·(2S + 1)` values back and copies `R·n` to the device.
+///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::volume::{sample_pdf, stratified, Jitter};
+///
+/// let dev = Device::Cpu;
+/// let (near, far) = (Tensor::new(&[0.0f32], &dev)?, Tensor::new(&[4.0f32], &dev)?);
+/// let coarse = stratified(&near, &far, 4, Jitter::None, 0)?;          // bins [0,1] … [3,4]
+/// let w = Tensor::new(&[[0.0f32, 0.0, 1.0, 0.0]], &dev)?;             // all weight in [2, 3]
+/// let fine = sample_pdf(&coarse, &w, 8, true, 0, 0.0)?;               // [R = 1, 8], detached
+/// assert!(fine.to_vec2::<f32>()?[0].iter().all(|&t| (2.0..=3.0).contains(&t)));
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
 ///
 /// # Errors
 /// Naming `weights` for a wrong shape or dtype, negative or non-finite values; `intervals`
@@ -410,6 +458,16 @@ pub fn sample_pdf(
 /// fine samples of [`sample_pdf`] are detached already). On CUDA, candle's sort limits a
 /// row to the sizes its bitonic kernel supports.
 ///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::volume::merge_sorted;
+///
+/// let dev = Device::Cpu;
+/// let m = merge_sorted(&Tensor::new(&[[0.5f32, 2.5]], &dev)?, &Tensor::new(&[[1.0f32, 3.0]], &dev)?)?;
+/// assert_eq!(m.to_vec2::<f32>()?, vec![vec![0.5, 1.0, 2.5, 3.0]]);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
 /// # Errors
 /// Naming `coarse` or `fine` for wrong shapes, dtypes or devices.
 pub fn merge_sorted(coarse: &Tensor, fine: &Tensor) -> Result<Tensor> {
@@ -439,6 +497,19 @@ pub fn merge_sorted(coarse: &Tensor, fine: &Tensor) -> Result<Tensor> {
 ///
 /// `near`, `far`: `[R]`; the outputs have the same shape, device and dtype, and are
 /// differentiable w.r.t. `near` and `far`.
+///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::volume::{anneal_near_far, ANNEAL_MID_RATIO, ANNEAL_P_START};
+///
+/// let dev = Device::Cpu;
+/// let (near, far) = (Tensor::new(&[0.0f64], &dev)?, Tensor::new(&[4.0f64], &dev)?);
+/// let (n0, f0) = anneal_near_far(&near, &far, 0, 256, ANNEAL_P_START, ANNEAL_MID_RATIO)?;
+/// assert_eq!((n0.to_vec1::<f64>()?, f0.to_vec1::<f64>()?), (vec![1.0], vec![3.0])); // step 0
+/// let (n1, f1) = anneal_near_far(&near, &far, 256, 256, ANNEAL_P_START, ANNEAL_MID_RATIO)?;
+/// assert_eq!((n1.to_vec1::<f64>()?, f1.to_vec1::<f64>()?), (vec![0.0], vec![4.0])); // done
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
 ///
 /// # Errors
 /// Naming `near`/`far` as [`stratified`] does; `p_start` or `mid_ratio` outside
