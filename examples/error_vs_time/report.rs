@@ -47,7 +47,6 @@ pub struct Row {
     pub work: f64,
 }
 
-/// Median wall time of `reps` runs of `f` (at least one), in seconds.
 /// Flattens any float tensor into a `Vec<f64>`.
 pub fn v64(t: &Tensor) -> Vec<f64> {
     t.to_dtype(DType::F64)
@@ -58,6 +57,7 @@ pub fn v64(t: &Tensor) -> Vec<f64> {
         .unwrap()
 }
 
+/// Median wall time of `reps` runs of `f` (at least one), in seconds.
 pub fn median_seconds(reps: usize, mut f: impl FnMut()) -> f64 {
     let mut times: Vec<f64> = (0..reps.max(1))
         .map(|_| {
