@@ -75,8 +75,8 @@ pub struct SurfacePoints {
 ///
 /// * `field`: the field that was marched (possibly [`crate::field::Conditioned`] with a
 ///   shared `[D]` code or one `[R, D]` code per ray; gradients then reach the code).
-/// * `origins, directions: [R, 3]`: the rays that were marched, *with* their graph (e.g.
-///   from [`crate::camera::PoseParam::rays`]) so that gradients reach the camera.
+/// * `rays`: the `R` rays that were marched, *with* their graph (e.g. from
+///   [`crate::camera::PoseParam::rays`]) so that gradients reach the camera.
 /// * `hits`: the march's result for these rays; only its detached depths and statuses
 ///   are read.
 ///
@@ -87,8 +87,8 @@ pub struct SurfacePoints {
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `hits` if it has a different number of rays or dtype
-/// than `rays`,
-/// `config.grazing_eps` / `config.min_gradient` unless finite and > 0; field errors.
+/// than `rays`, `config.grazing_eps` / `config.min_gradient` unless finite and > 0; field
+/// errors.
 pub fn implicit_surface<F: ImplicitSurface + ?Sized>(
     field: &F,
     rays: &Rays,
