@@ -118,7 +118,7 @@ fn bad_files_and_bad_meshes_name_the_problem() {
         1
     );
     let cases: Vec<(String, &str)> = vec![
-        (good.replace("3 0 1 2\n", ""), "line 13"), // truncated: missing face row
+        (good.replace("3 0 1 2\n", ""), "truncated"), // missing face row: too few bytes left
         (good.replace("1 0 0\n", "1 0\n"), "line 11"), // short vertex row
         (good.replace("1 0 0\n", "1 zero 0\n"), "line 11"), // not a number
         (
@@ -235,4 +235,70 @@ fn assimp_test_models_load() {
     )
     .unwrap();
     assert_eq!(back.faces, wuson.faces);
+}
+
+/// Binary PLY whose header declares `extra` before a one-triangle mesh (`vertex` and
+/// `face` elements, little-endian).
+fn ply_with_element_before_the_mesh(extra: &str) -> Vec<u8> {
+    let mut b = format!(
+        "ply\nformat binary_little_endian 1.0\n{extra}element vertex 3\nproperty float x\n\
+         property float y\nproperty float z\nelement face 1\n\
+         property list uchar int vertex_indices\nend_header\n"
+    )
+    .into_bytes();
+    for v in [[0.0f32, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]] {
+        for c in v {
+            b.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    b.push(3);
+    for k in 0..3i32 {
+        b.extend_from_slice(&k.to_le_bytes());
+    }
+    b
+}
+
+/// Runs `f` on another thread and fails the test if it takes more than 20 s (a reader
+/// whose work follows a number in the header instead of the file's size).
+fn within_20_s<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> T {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let _ = tx.send(f());
+    });
+    rx.recv_timeout(std::time::Duration::from_secs(20))
+        .expect("the reader did not return within 20 s")
+}
+
+/// Pins a hang: a binary PLY whose header declares an element with no properties and a
+/// count of 2⁶⁴ − 1 before the vertex element kept the reader looping (each row reads
+/// zero bytes). Such an element holds no data and is skipped; the mesh after it loads.
+#[test]
+fn ply_element_without_properties_and_a_huge_count_does_not_hang() {
+    let b = ply_with_element_before_the_mesh("element junk 18446744073709551615\n");
+    let m = within_20_s(move || Mesh::from_bytes(&b, MeshFormat::PlyBinary)).unwrap();
+    assert_eq!(m.faces, vec![[0, 1, 2]]);
+}
+
+/// Pins the same class of defect with properties: a header may not make the reader loop
+/// over more rows than the rest of the file can hold; the error names the element, its
+/// count and the bytes that remain, before any row is read.
+#[test]
+fn ply_element_count_beyond_the_file_size_is_an_error_naming_it() {
+    let b = ply_with_element_before_the_mesh(
+        "element junk 18446744073709551615\nproperty uchar flag\n",
+    );
+    let e = within_20_s(move || Mesh::from_bytes(&b, MeshFormat::PlyBinary))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("element junk") && e.contains("18446744073709551615") && e.contains("remain"),
+        "{e}"
+    );
+    // ASCII: one row per line, so a count above the bytes left is refused too.
+    let text = "ply\nformat ascii 1.0\nelement vertex 1000000\nproperty float x\n\
+                property float y\nproperty float z\nend_header\n0 0 0\n";
+    let e = within_20_s(move || Mesh::from_bytes(text.as_bytes(), MeshFormat::PlyAscii))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("element vertex") && e.contains("1000000"), "{e}");
 }

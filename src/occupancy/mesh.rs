@@ -530,6 +530,13 @@ impl Mesh {
                     format!("header line {}: none", el.line),
                 ));
             }
+            if el.props.is_empty() {
+                // A property-less element holds no values in any encoding: there is
+                // nothing to read, whatever its count (iterating a count such as 2⁶⁴ − 1
+                // would never end).
+                continue;
+            }
+            src.check_room(el)?;
             for row in 0..el.count {
                 src.begin_row()?;
                 let mut scalars = vec![0.0f64; el.props.len()];
@@ -969,6 +976,36 @@ impl<'a> PlySource<'a> {
     }
 
     fn end_row(&mut self) -> Result<()> {
+        Ok(())
+    }
+
+    /// Checks, before any row is read, that the bytes left can hold `el.count` rows of
+    /// the element's smallest size (binary: its scalars and list counts; ASCII: one
+    /// character and a newline), so that the work of the loop is bounded by the file's
+    /// size, not by a number in its header.
+    fn check_room(&self, el: &PlyElement) -> Result<()> {
+        let min_row = match self.enc {
+            PlyEncoding::Ascii => 2,
+            _ => el
+                .props
+                .iter()
+                .map(|p| p.list.unwrap_or(p.ty).size())
+                .sum::<usize>(),
+        };
+        let left = self.bytes.len().saturating_sub(self.pos);
+        // The last ASCII row needs no newline.
+        let room = (left + 1) / min_row.max(1);
+        if el.count > room {
+            return Err(file_err(
+                "ply",
+                "element counts that the rest of the file can hold",
+                format!(
+                    "header line {}: element {} declares {} rows of at least {min_row} bytes, \
+                     but {left} bytes remain (truncated or a lying header)",
+                    el.line, el.name, el.count
+                ),
+            ));
+        }
         Ok(())
     }
 
