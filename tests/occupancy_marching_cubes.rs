@@ -157,3 +157,36 @@ fn no_crossing_gives_an_empty_mesh_and_bad_grids_are_rejected() {
     assert!(Grid::new(vec![0.0; 4], [1, 2, 2], [0.0; 3], [1.0; 3]).is_err());
     assert!(marching_cubes(&g, f64::NAN, Inside::Negative).is_err());
 }
+
+/// Pins panics from `Grid` struct literals (its fields are public): fewer values than
+/// its dims indexed out of bounds, dims `[0, 0, 0]` overflowed a capacity, and dims whose
+/// product overflows `usize` could not even be counted. `marching_cubes` re-runs
+/// `Grid::new`'s checks and names the field instead.
+#[test]
+fn marching_cubes_on_an_inconsistent_grid_literal_is_an_error_not_a_panic() {
+    let literal = |values: Vec<f32>, dims: [usize; 3]| Grid {
+        values,
+        dims,
+        min: [0.0; 3],
+        max: [1.0; 3],
+    };
+    let cases = [
+        (literal(vec![0.0; 7], [2, 2, 2]), "values"),
+        (literal(vec![], [0, 0, 0]), "dims"),
+        (literal(vec![0.0; 8], [usize::MAX, usize::MAX, 2]), "values"),
+        (literal(vec![f32::NAN; 8], [2, 2, 2]), "values"),
+    ];
+    for (grid, arg) in cases {
+        let e = marching_cubes(&grid, 0.0, Inside::Positive).unwrap_err();
+        assert!(e.to_string().starts_with(arg), "{arg}: {e}");
+    }
+    let mut ok = literal(vec![-1.0; 8], [2, 2, 2]);
+    ok.values[0] = 1.0;
+    assert_eq!(
+        marching_cubes(&ok, 0.0, Inside::Positive)
+            .unwrap()
+            .faces
+            .len(),
+        1
+    );
+}

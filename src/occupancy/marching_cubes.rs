@@ -71,12 +71,32 @@ impl Grid {
     /// A dimension below 2, `values.len() ≠ nx·ny·nz`, a NaN value (±∞ is allowed: it is
     /// unambiguously on one side), non-finite bounds or `max ≤ min`.
     pub fn new(values: Vec<f32>, dims: [usize; 3], min: [f64; 3], max: [f64; 3]) -> Result<Self> {
-        check_box(dims, min, max)?;
-        let n = dims[0] * dims[1] * dims[2];
-        if values.len() != n {
+        let grid = Self {
+            values,
+            dims,
+            min,
+            max,
+        };
+        grid.check()?;
+        Ok(grid)
+    }
+
+    /// The checks of [`Grid::new`], run again by [`marching_cubes`] because the fields
+    /// are public (a struct literal can hold any values).
+    fn check(&self) -> Result<()> {
+        let (dims, values) = (self.dims, &self.values);
+        check_box(dims, self.min, self.max)?;
+        let n = dims[0]
+            .checked_mul(dims[1])
+            .and_then(|n| n.checked_mul(dims[2]));
+        if n != Some(values.len()) {
+            let expected = match n {
+                Some(n) => format!("{n} values (nx·ny·nz for dims {dims:?})"),
+                None => format!("nx·ny·nz values for dims {dims:?}, beyond usize"),
+            };
             return Err(Error::invalid(
                 "values",
-                format!("{n} values (nx·ny·nz for dims {dims:?})"),
+                expected,
                 format!("{}", values.len()),
             ));
         }
@@ -87,12 +107,7 @@ impl Grid {
                 format!("NaN at index {i}"),
             ));
         }
-        Ok(Self {
-            values,
-            dims,
-            min,
-            max,
-        })
+        Ok(())
     }
 
     /// The grid spacing per axis, `(max − min)/(dims − 1)`.
@@ -451,9 +466,11 @@ fn cases_needing_fallback() -> usize {
 /// [`Mesh::validate`] reports that as an error if you need a surface.
 ///
 /// # Errors
-/// Non-finite `level`.
+/// Non-finite `level`; naming `dims`, `min`, `max` or `values` when `grid` (whose fields
+/// are public) does not hold what [`Grid::new`] checks.
 pub fn marching_cubes(grid: &Grid, level: f64, inside: Inside) -> Result<Mesh> {
     check_scalar(level, "level", false)?;
+    grid.check()?;
     let table = case_table();
     let edges = edges();
     let [nx, ny, nz] = grid.dims;
