@@ -302,7 +302,7 @@ impl Mesh {
     /// √u v)`), with the unit normals of their faces. Same `seed`, same points.
     ///
     /// # Errors
-    /// Invalid mesh, or zero total area.
+    /// Invalid mesh, or zero total area; naming `n` when `n` points cannot be allocated.
     pub fn sample_surface(&self, n: usize, seed: u64) -> Result<SurfaceSamples> {
         self.validate()?;
         let areas = self.face_areas();
@@ -317,8 +317,15 @@ impl Mesh {
         }
         let normals = self.face_normals();
         let mut rng = SplitMix64::new(seed);
-        let mut pts = Vec::with_capacity(n);
-        let mut nrm = Vec::with_capacity(n);
+        let (mut pts, mut nrm) = (Vec::new(), Vec::new());
+        // A count that cannot be allocated is an error, not an abort.
+        if pts.try_reserve_exact(n).is_err() || nrm.try_reserve_exact(n).is_err() {
+            return Err(Error::invalid(
+                "n",
+                "a sample count whose points fit in memory",
+                format!("{n}"),
+            ));
+        }
         for _ in 0..n {
             let t = rng.uniform() * acc;
             let fi = cdf.partition_point(|&c| c <= t).min(cdf.len() - 1);

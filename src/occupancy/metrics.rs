@@ -153,7 +153,8 @@ pub struct SurfaceMetrics {
 /// normals (one per point), see the module docs.
 ///
 /// # Errors
-/// Empty or non-finite point sets, normals of the wrong length, a non-positive threshold.
+/// Empty or non-finite point sets, normals of the wrong length, a non-positive threshold;
+/// naming `pred` when a metric overflows f64 (coordinates near 1e300).
 pub fn surface_metrics(
     pred: &[[f64; 3]],
     pred_normals: Option<&[[f64; 3]]>,
@@ -206,10 +207,27 @@ pub fn surface_metrics(
         }
         _ => None,
     };
+    let chamfer_l1 = 0.5 * (accuracy + completeness);
+    // Finite inputs can still overflow here (coordinates near 1e300, or normals of such
+    // length): a metric that f64 cannot represent is an error, not `inf` or NaN.
+    let finite = [accuracy, completeness, chamfer_l1, f_score]
+        .iter()
+        .chain(normal_consistency.iter())
+        .all(|x| x.is_finite());
+    if !finite {
+        return Err(Error::invalid(
+            "pred",
+            "point sets whose distances (and normal products) are finite in f64",
+            format!(
+                "accuracy {accuracy}, completeness {completeness}, normal consistency \
+                 {normal_consistency:?}"
+            ),
+        ));
+    }
     Ok(SurfaceMetrics {
         accuracy,
         completeness,
-        chamfer_l1: 0.5 * (accuracy + completeness),
+        chamfer_l1,
         normal_consistency,
         f_score,
     })
