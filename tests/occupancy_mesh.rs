@@ -331,3 +331,37 @@ fn surface_metrics_that_overflow_f64_are_errors_not_inf() {
     let m = neural_fields::occupancy::surface_metrics(&ok, None, &near, None, 0.01).unwrap();
     assert!(m.chamfer_l1.is_finite());
 }
+
+/// Pins a misleading error: a UTF-16 OBJ was read lossily as UTF-8 and reported as an
+/// "empty mesh"; the error now names the encoding.
+#[test]
+fn utf16_obj_is_refused_naming_the_encoding() {
+    let text = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n";
+    for bom in [[0xFFu8, 0xFE], [0xFE, 0xFF]] {
+        let mut b = bom.to_vec();
+        for u in text.encode_utf16() {
+            let pair = if bom[0] == 0xFF {
+                u.to_le_bytes()
+            } else {
+                u.to_be_bytes()
+            };
+            b.extend_from_slice(&pair);
+        }
+        let e = Mesh::from_bytes(&b, MeshFormat::Obj)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("UTF-16"), "{e}");
+        // Without its byte-order mark too.
+        let e = Mesh::from_bytes(&b[2..], MeshFormat::Obj)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("UTF-16"), "{e}");
+    }
+    assert_eq!(
+        Mesh::from_bytes(text.as_bytes(), MeshFormat::Obj)
+            .unwrap()
+            .faces
+            .len(),
+        1
+    );
+}

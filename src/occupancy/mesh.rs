@@ -357,8 +357,8 @@ impl Mesh {
             source,
         })?;
         match extension(path).as_str() {
-            "ply" => Self::from_ply(&bytes),
-            "obj" => Self::from_obj(&String::from_utf8_lossy(&bytes)),
+            "ply" => Self::from_bytes(&bytes, MeshFormat::PlyBinary),
+            "obj" => Self::from_bytes(&bytes, MeshFormat::Obj),
             other => Err(file_err(
                 "path",
                 "a .ply or .obj file",
@@ -432,7 +432,7 @@ impl Mesh {
     ///   `mtllib`, `s`, `l`, `p`) are ignored. Normals are kept only when every face
     ///   corner names the normal with the same index as its vertex (as
     ///   [`Mesh::to_bytes`] writes them); otherwise they are dropped. Invalid UTF-8 is
-    ///   replaced.
+    ///   replaced; UTF-16 text is refused with an error naming the encoding.
     ///
     /// # Errors
     /// A malformed header or body, naming the line (ASCII and header) or the byte offset
@@ -441,7 +441,10 @@ impl Mesh {
     pub fn from_bytes(bytes: &[u8], format: MeshFormat) -> Result<Self> {
         match format {
             MeshFormat::PlyAscii | MeshFormat::PlyBinary => Self::from_ply(bytes),
-            MeshFormat::Obj => Self::from_obj(&String::from_utf8_lossy(bytes)),
+            MeshFormat::Obj => {
+                check_not_utf16(bytes)?;
+                Self::from_obj(&String::from_utf8_lossy(bytes))
+            }
         }
     }
 
@@ -711,6 +714,21 @@ pub fn points_tensor(points: &[[f64; 3]], device: &Device, dtype: DType) -> Resu
     Ok(Tensor::from_vec(flat, (points.len(), 3), &Device::Cpu)?
         .to_dtype(dtype)?
         .to_device(device)?)
+}
+
+/// Refuses UTF-16 text (a byte-order mark, or NUL bytes among the first kilobyte, which
+/// ASCII and UTF-8 text never holds), naming the encoding: read lossily as UTF-8 it
+/// would parse as an empty mesh.
+fn check_not_utf16(bytes: &[u8]) -> Result<()> {
+    let bom = bytes.starts_with(&[0xFF, 0xFE]) || bytes.starts_with(&[0xFE, 0xFF]);
+    if bom || bytes.iter().take(1024).any(|&b| b == 0) {
+        return Err(file_err(
+            "obj",
+            "ASCII or UTF-8 text",
+            "UTF-16 (or other NUL-bearing) text: convert the file to UTF-8",
+        ));
+    }
+    Ok(())
 }
 
 fn extension(path: &Path) -> String {
