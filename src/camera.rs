@@ -461,8 +461,12 @@ impl Rays {
         check_same(&directions, "directions", &origins, "origins")?;
         check_finite(&origins, "origins")?;
         check_finite(&directions, "directions")?;
+        let rays = Self {
+            origins,
+            directions,
+        };
         if n > 0 {
-            let m = directions.detach().abs()?.max_keepdim(1)?;
+            let m = direction_scale(&rays)?;
             if scalar_f64(&m.min_all()?)?.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
                 return Err(Error::invalid(
                     "directions",
@@ -471,10 +475,7 @@ impl Rays {
                 ));
             }
         }
-        Ok(Self {
-            origins,
-            directions,
-        })
+        Ok(rays)
     }
 
     /// Ray origins, `[N, 3]`.
@@ -519,20 +520,13 @@ impl Rays {
     /// w.r.t. the directions.
     ///
     /// # Errors
-    /// [`Error::InvalidArgument`] naming `directions` if a direction is zero.
+    /// Only candle errors (the rays were checked when built: no direction is zero).
     pub fn normalized(&self) -> Result<Rays> {
         if self.is_empty() {
             return Ok(self.clone());
         }
-        let m = self.directions.detach().abs()?.max_keepdim(1)?;
-        if scalar_f64(&m.min_all()?)?.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
-            return Err(Error::invalid(
-                "directions",
-                "non-zero rows",
-                "a zero direction",
-            ));
-        }
-        let dn = self.directions.broadcast_div(&m)?;
+        // m > 0 on every row: `Rays::new` rejects zero directions.
+        let dn = self.directions.broadcast_div(&direction_scale(self)?)?;
         let norm = dn.sqr()?.sum_keepdim(1)?.sqrt()?;
         Ok(Rays {
             origins: self.origins.clone(),

@@ -40,18 +40,19 @@
 //! ```compile_fail
 //! use candle_core::{DType, Device, Tensor};
 //! use neural_fields::volume::{composite, CompositeConfig};
-//! let z = Tensor::zeros((2, 4), DType::F32, &Device::Cpu).unwrap();
-//! let colors = Tensor::zeros((2, 4, 3), DType::F32, &Device::Cpu).unwrap();
+//! let z = Tensor::zeros((2, 4), DType::F32, &Device::Cpu)?;
+//! let colors = Tensor::zeros((2, 4, 3), DType::F32, &Device::Cpu)?;
 //! // The 0.1 signature `composite(sigmas, colors, deltas, t_mids, opts)`:
-//! let _ = composite(&z, &colors, &z, &z, &CompositeConfig::default());
+//! let _ = composite(&z, &colors, &z, &z, &CompositeConfig::default())?;
+//! # Ok::<(), neural_fields::Error>(())
 //! ```
 
 use super::fused::{self, FusedGeometry, KernelBuild};
 use super::layout::{check_nonneg_finite, check_samples, host_f64, Intervals, Layout, Weights};
 use super::reference;
 use crate::camera::Rays;
-use crate::error::{check_float, check_same, check_scalar, check_shape, Dim, Error, Result};
-use candle_core::{DType, Tensor};
+use crate::error::{check_float, check_same, check_scalar, check_shape, Dim, Result};
+use candle_core::Tensor;
 
 /// The default transmittance threshold ε of early termination ([`visible_mask`]): the
 /// value of Instant-NGP and nerfacc. Samples behind `T < ε` carry less than ε of the
@@ -136,19 +137,12 @@ fn finish(
     })
 }
 
-/// δ and t of the samples as tensors (the reference path, and the fused path when the
-/// intervals or the rays carry a graph), with δ checked finite and ≥ 0. The lengths in
-/// `t` are formed once and serve both: δ = (e − s)·‖d‖ and t = s + (e − s)/2 (the
-/// midpoint; any overflow of e − s is caught by the check).
-fn deltas_and_depths(intervals: &Intervals, rays: Option<&Rays>) -> Result<(Tensor, Tensor)> {
-    let span = (&intervals.ends - &intervals.starts)?;
-    let t_mids = (&intervals.starts + span.affine(0.5, 0.0)?)?;
-    let deltas = match intervals.direction_norms(rays)? {
-        None => span,
-        Some(norms) => span.broadcast_mul(&intervals.per_sample(&norms)?)?,
-    };
+/// δ = span·‖d‖ of the samples as a tensor, checked finite and ≥ 0 (the reference path,
+/// and the fused path when the intervals or the rays carry a graph).
+fn checked_deltas(intervals: &Intervals, span: Tensor, norms: Option<&Tensor>) -> Result<Tensor> {
+    let deltas = intervals.deltas_of(span, norms)?;
     check_nonneg_finite(&deltas, "intervals")?;
-    Ok((deltas, t_mids))
+    Ok(deltas)
 }
 
 /// Composites the samples of a batch of rays into colour, opacity and expected depth.
@@ -221,30 +215,32 @@ pub(crate) fn composite_with(
             Layout::Packed(_) => (colors.clone(), sigmas.clone(), sigmas.clone()),
         });
     }
-    if !sigmas.device().is_cpu() || config.force_reference {
-        check_nonneg_finite(sigmas, "sigmas")?;
-        let (deltas, t_mids) = deltas_and_depths(intervals, rays)?;
-        return reference::composite(sigmas, colors, &deltas, &t_mids, layout, config.opaque_last);
-    }
     let norms = intervals.direction_norms(rays)?;
     let constant = !intervals.starts.track_op()
         && !intervals.ends.track_op()
         && norms.as_ref().is_none_or(|n| !n.track_op());
-    if constant {
+    let reference = !sigmas.device().is_cpu() || config.force_reference;
+    if constant && !reference {
         let geometry = FusedGeometry::Intervals {
             starts: &intervals.starts,
             ends: &intervals.ends,
             norms: norms.as_ref(),
         };
-        fused::composite(sigmas, colors, geometry, layout, config.opaque_last, build)
-    } else {
-        let (deltas, t_mids) = deltas_and_depths(intervals, rays)?;
-        let geometry = FusedGeometry::Tensors {
-            deltas: &deltas,
-            t_mids: &t_mids,
-        };
-        fused::composite(sigmas, colors, geometry, layout, config.opaque_last, build)
+        return fused::composite(sigmas, colors, geometry, layout, config.opaque_last, build);
     }
+    // δ and t as tensors, formed from one span.
+    let span = intervals.span()?;
+    let t_mids = intervals.midpoints_of(&span)?;
+    let deltas = checked_deltas(intervals, span, norms.as_ref())?;
+    if reference {
+        check_nonneg_finite(sigmas, "sigmas")?;
+        return reference::composite(sigmas, colors, &deltas, &t_mids, layout, config.opaque_last);
+    }
+    let geometry = FusedGeometry::Tensors {
+        deltas: &deltas,
+        t_mids: &t_mids,
+    };
+    fused::composite(sigmas, colors, geometry, layout, config.opaque_last, build)
 }
 
 /// Per-sample compositing weights, transmittance and alphas (the reference path, on any
@@ -282,7 +278,8 @@ pub fn render_weights(
 ) -> Result<Weights> {
     check_samples(sigmas, None, intervals)?;
     check_nonneg_finite(sigmas, "sigmas")?;
-    let (deltas, _) = deltas_and_depths(intervals, rays)?;
+    let norms = intervals.direction_norms(rays)?;
+    let deltas = checked_deltas(intervals, intervals.span()?, norms.as_ref())?;
     reference::weights(sigmas, &deltas, &intervals.layout, config.opaque_last)
 }
 
@@ -364,7 +361,8 @@ pub fn visible_mask(
     check_scalar(eps, "eps", true)?;
     check_samples(sigmas, None, intervals)?;
     check_nonneg_finite(sigmas, "sigmas")?;
-    let (deltas, _) = deltas_and_depths(intervals, rays)?;
+    let norms = intervals.direction_norms(rays)?;
+    let deltas = checked_deltas(intervals, intervals.span()?, norms.as_ref())?;
     let x = host_f64(&reference::thickness(&sigmas.detach(), &deltas.detach())?)?;
     // Compare in log space: T ≥ ε  ⇔  Σ_{j<i} x_j ≤ −ln ε.
     let limit = -eps.ln();
@@ -390,12 +388,5 @@ pub fn visible_mask(
             }
         }
     }
-    if mask.len() != sigmas.elem_count() {
-        return Err(Error::invalid(
-            "sigmas",
-            "one value per sample",
-            format!("{:?}", sigmas.dims()),
-        ));
-    }
-    Ok(Tensor::from_vec(mask, sigmas.shape(), sigmas.device())?.to_dtype(DType::U8)?)
+    Ok(Tensor::from_vec(mask, sigmas.shape(), sigmas.device())?)
 }

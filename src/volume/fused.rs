@@ -258,12 +258,11 @@ struct Scratch {
     g: Vec<f64>,
 }
 
-/// The inputs of one ray: `vals` has `k` entries per sample, `tm` is present when the
-/// op accumulates depth.
+/// The inputs of one ray: `vals` has `k` entries per sample, `del` and `tm` its δ and t.
 struct RayIn<'a, T> {
     sig: &'a [T],
     del: &'a [T],
-    tm: Option<&'a [T]>,
+    tm: &'a [T],
     vals: &'a [T],
     k: usize,
     opaque_last: bool,
@@ -287,7 +286,7 @@ struct RayGrads<'a, T> {
 struct ScanOut {
     /// Samples scanned: after T < T_STOP the rest have zero weight.
     live: usize,
-    /// Σwᵢtᵢ (0 without depths).
+    /// Σwᵢtᵢ (0 in the backward's scan, which does not sum it).
     depth: f64,
     /// Σwᵢ.
     opacity: f64,
@@ -331,7 +330,7 @@ fn scan_ray<T: WithDType, const FMA: bool>(
         (&mut [], &mut [])
     };
     // The backward (`store`) needs the weights, not the depth sum.
-    let tm = if store { None } else { ray.tm.map(|t| &t[..n]) };
+    let tm = if store { None } else { Some(&ray.tm[..n]) };
     let vals = &ray.vals[..n * k];
     let (mut t, mut opacity, mut depth) = (1.0f64, 0.0f64, 0.0f64);
     let mut live = n;
@@ -419,7 +418,7 @@ macro_rules! specialise_k {
     };
 }
 
-/// Forward of one ray into its output row `o` (`[K + G]`).
+/// Forward of one ray into its output row `o` (`[K + 2]`).
 #[inline(always)]
 fn forward_ray<T: WithDType, const FMA: bool>(
     ray: &RayIn<'_, T>,
@@ -450,15 +449,13 @@ fn forward_ray_k<T: WithDType, const K: usize, const FMA: bool>(
     for (oo, aa) in o.iter_mut().zip(&acc[..k]) {
         *oo = T::from_f64(*aa);
     }
-    if ray.tm.is_some() {
-        o[k] = T::from_f64(res.depth);
-    }
-    o[o.len() - 1] = T::from_f64(res.opacity);
+    o[k] = T::from_f64(res.depth);
+    o[k + 1] = T::from_f64(res.opacity);
     sc.acc = general;
     res.valid
 }
 
-/// Backward of one ray given its upstream gradient row `grad` (`[K + G]`).
+/// Backward of one ray given its upstream gradient row `grad` (`[K + 2]`).
 #[inline(always)]
 fn backward_ray<T: WithDType, const FMA: bool>(
     ray: &RayIn<'_, T>,
@@ -498,11 +495,7 @@ fn backward_ray_k<T: WithDType, const K: usize, const FMA: bool>(
         &gk_fixed[..k]
     };
     let g_op = grad[grad.len() - 1].to_f64();
-    let g_dep = if ray.tm.is_some() {
-        grad[k].to_f64()
-    } else {
-        0.0
-    };
+    let g_dep = grad[k].to_f64();
     // Samples at index >= live have zero weight and zero gradient (the buffers start at 0).
     // 1. uⱼ = Σ_c g_c v_jc + g_O + g_D tⱼ (independent per sample: vectorises), stored
     //    in the (now free) alpha buffer.
@@ -517,10 +510,8 @@ fn backward_ray_k<T: WithDType, const K: usize, const FMA: bool>(
         }
         *uj = s;
     }
-    if let Some(tm) = ray.tm {
-        for (uj, t) in u.iter_mut().zip(tm) {
-            *uj = madd::<FMA>(g_dep, t.to_f64(), *uj);
-        }
+    for (uj, t) in u.iter_mut().zip(ray.tm) {
+        *uj = madd::<FMA>(g_dep, t.to_f64(), *uj);
     }
     // 2. Reverse scan: ∂L/∂xⱼ = Tⱼ₊₁uⱼ − Σ_{i>j} wᵢuᵢ, overwriting uⱼ.
     reverse_scan::<FMA>(u, &sc.t_next[..live], &sc.w[..live]);
@@ -630,8 +621,8 @@ struct BoundsOut<'a, T> {
 }
 
 /// One ray's geometry from its interval bounds, with its αᵢ and e^{−xᵢ} in the same
-/// vectorised pass: `del[i] = (e[i] − s[i])·norm` and `tm[i] = s[i]/2 + e[i]/2` in the
-/// storage dtype, exactly as the reference path forms them
+/// vectorised pass: `del[i] = (e[i] − s[i])·norm` and `tm[i] = s[i] + (e[i] − s[i])/2`
+/// in the storage dtype, exactly as the reference path forms them
 /// ([`super::Intervals::deltas`], [`super::Intervals::midpoints`]), then α and the decay
 /// as [`alpha_decay`] computes them. Returns `false` when some length is NaN, negative or
 /// infinite, some start is not finite, or some σ is not finite and ≥ 0 (such a length is
@@ -658,14 +649,15 @@ fn bounds_alpha_decay<T: WithDType, const FMA: bool>(
             .zip(tm.iter_mut())
             .zip(alpha.iter_mut().zip(decay.iter_mut()));
         for (((d, t), (al, de)), ((&a, &b), sg)) in outs.zip(s.iter().zip(e).zip(sig)) {
-            let len = (b - a) * norm;
+            let span = b - a;
+            let len = span * norm;
             let (l, sg) = (len.to_f64(), sg.to_f64());
             // NaN fails every comparison, so NaN and ±∞ bounds or densities are caught.
             let good = (0.0..=f64::MAX).contains(&l) & (a.to_f64().abs() <= f64::MAX);
             ok &= good & (0.0..=f64::MAX).contains(&sg);
             let l = if good { l } else { 0.0 };
             *d = if good { len } else { T::zero() };
-            *t = a * half + b * half;
+            *t = a + span * half;
             (*al, *de) = alpha_and_decay::<D, FMA>((sg * l).min(X_MAX));
         }
         ok
@@ -856,6 +848,19 @@ fn split_rays<'a, T>(
     out
 }
 
+/// The `m` samples of a tensor the op holds (t or the interval ends).
+fn captured_slice<'a, T: WithDType>(
+    st: &'a Storage,
+    l: &Layout,
+    m: usize,
+) -> candle_core::Result<&'a [T]> {
+    let x = cpu_slice::<T>(st, l, "geometry")?;
+    if x.len() != m {
+        candle_core::bail!("fused composite: expected {m} samples, got {}", x.len());
+    }
+    Ok(x)
+}
+
 fn cpu_slice<'a, T: WithDType>(
     st: &'a Storage,
     l: &Layout,
@@ -901,32 +906,25 @@ impl FusedComposite {
         f: impl FnOnce(Geo<'_, T>) -> candle_core::Result<R>,
     ) -> candle_core::Result<R> {
         let m = self.seg.n_samples();
-        let captured = |t: &Tensor, f: &mut dyn FnMut(&[T]) -> candle_core::Result<R>| {
-            let (st, l) = t.storage_and_layout();
-            let x = cpu_slice::<T>(&st, l, "geometry")?;
-            if x.len() != m {
-                candle_core::bail!("fused composite: expected {m} samples, got {}", x.len());
-            }
-            f(x)
-        };
-        let mut f = Some(f);
-        let mut call = |g: Geo<'_, T>| match f.take() {
-            Some(f) => f(g),
-            None => candle_core::bail!("fused composite: geometry visited twice"),
-        };
         match &self.geometry {
-            Geometry::Stacked => call(Geo::Slices {
+            Geometry::Stacked => f(Geo::Slices {
                 del: &geo[..m],
                 tm: &geo[m..],
             }),
-            Geometry::Deltas(t) => captured(t, &mut |tm| call(Geo::Slices { del: geo, tm })),
-            Geometry::Intervals { ends, norms } => captured(ends, &mut |e| {
-                call(Geo::Intervals {
+            Geometry::Deltas(t) => {
+                let (st, l) = t.storage_and_layout();
+                let tm = captured_slice::<T>(&st, l, m)?;
+                f(Geo::Slices { del: geo, tm })
+            }
+            Geometry::Intervals { ends, norms } => {
+                let (st, l) = ends.storage_and_layout();
+                let e = captured_slice::<T>(&st, l, m)?;
+                f(Geo::Intervals {
                     s: geo,
                     e,
                     norms: norms.as_deref(),
                 })
-            }),
+            }
         }
     }
 
@@ -956,7 +954,7 @@ impl FusedComposite {
         RayIn {
             sig,
             del,
-            tm: Some(tm),
+            tm,
             vals: &vals[a * self.k..b * self.k],
             k: self.k,
             opaque_last: self.opaque_last,
@@ -979,7 +977,7 @@ impl FusedComposite {
         out
     }
 
-    /// Gradients with respect to (sigmas, geometry, values) given `grad` `[R, K + G]`;
+    /// Gradients with respect to (sigmas, geometry, values) given `grad` `[R, K + 2]`;
     /// `need` says which of the three to produce (the others are returned empty and not
     /// computed, saving their allocation and writes).
     fn backward<T: WithDType>(

@@ -19,7 +19,7 @@
 use crate::camera::Rays;
 use crate::error::{check_float, check_same, check_shape, Dim, Error, Result};
 use crate::parallel::for_each_init;
-use candle_core::{DType, Device, Storage, Tensor};
+use candle_core::{DType, Device, Storage, Tensor, D};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
@@ -298,15 +298,15 @@ impl Intervals {
         }
     }
 
-    /// Midpoints `mᵢ = (startsᵢ + endsᵢ) / 2`, the shape of `starts`, where the field is
-    /// usually evaluated and the depth each sample contributes to the expected depth.
-    /// The intervals' dtype and device; differentiable w.r.t. `starts` and `ends`.
+    /// Midpoints `mᵢ = startsᵢ + (endsᵢ − startsᵢ)/2`, the shape of `starts`, where the
+    /// field is usually evaluated and the depth each sample contributes to the expected
+    /// depth (compositing forms them the same way, on every path). The intervals' dtype
+    /// and device; differentiable w.r.t. `starts` and `ends`.
     ///
     /// # Errors
     /// Only candle errors.
     pub fn midpoints(&self) -> Result<Tensor> {
-        // Halved before the sum, so that the midpoint of huge finite bounds stays finite.
-        Ok(((&self.starts * 0.5)? + (&self.ends * 0.5)?)?)
+        self.midpoints_of(&self.span()?)
     }
 
     /// Interval lengths in world units: `δᵢ = (endsᵢ − startsᵢ)·‖d_r‖` for the ray `r`
@@ -321,10 +321,25 @@ impl Intervals {
     /// Naming `rays` when their count differs from the intervals' or their dtype or
     /// device differs.
     pub fn deltas(&self, rays: Option<&Rays>) -> Result<Tensor> {
-        let d = (&self.ends - &self.starts)?;
-        match self.direction_norms(rays)? {
-            None => Ok(d),
-            Some(norms) => Ok(d.broadcast_mul(&self.per_sample(&norms)?)?),
+        self.deltas_of(self.span()?, self.direction_norms(rays)?.as_ref())
+    }
+
+    /// The lengths in `t`, `endsᵢ − startsᵢ`, from which [`Intervals::deltas`] and
+    /// [`Intervals::midpoints`] are both formed.
+    pub(crate) fn span(&self) -> Result<Tensor> {
+        Ok((&self.ends - &self.starts)?)
+    }
+
+    /// `startsᵢ + spanᵢ/2`.
+    pub(crate) fn midpoints_of(&self, span: &Tensor) -> Result<Tensor> {
+        Ok((&self.starts + span.affine(0.5, 0.0)?)?)
+    }
+
+    /// `spanᵢ·‖d_r‖` for per-ray norms `[R]` (`span` as is without them).
+    pub(crate) fn deltas_of(&self, span: Tensor, norms: Option<&Tensor>) -> Result<Tensor> {
+        match norms {
+            None => Ok(span),
+            Some(norms) => Ok(span.broadcast_mul(&self.per_sample(norms)?)?),
         }
     }
 
@@ -337,7 +352,7 @@ impl Intervals {
     /// device differs.
     pub fn positions(&self, rays: &Rays) -> Result<Tensor> {
         self.check_rays(rays)?;
-        let m = self.midpoints()?.unsqueeze(D_LAST_OF_SAMPLE)?;
+        let m = self.midpoints()?.unsqueeze(D::Minus1)?;
         let (o, d) = match &self.layout {
             Layout::Batched => (
                 rays.origins().unsqueeze(1)?,
@@ -413,9 +428,6 @@ impl Intervals {
         })
     }
 }
-
-/// The axis appended to the midpoints for positions (the last one).
-const D_LAST_OF_SAMPLE: candle_core::D = candle_core::D::Minus1;
 
 /// Per-sample compositing quantities returned by [`super::render_weights`]. All have the
 /// shape of the input densities (`[R, S]` or `[M]`) and its dtype.
