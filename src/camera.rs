@@ -27,7 +27,7 @@
 use crate::error::{check_finite, check_float, check_points, check_same, check_shape, Dim};
 use crate::error::{Error, Result};
 use candle_core::{DType, Device, Tensor, Var};
-use glam::{DAffine3, DMat3, DQuat, DVec3};
+use glam::{DAffine3, DMat3, DQuat, DVec2, DVec3};
 
 /// Camera axis convention; see the [module docs](self) for the pixel → direction formulas.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -407,6 +407,52 @@ impl Camera {
         let pixels = Tensor::from_vec(pix, (n, 2), device)?.to_dtype(dtype)?;
         let rays = self.rays_for_pixels(&pixels)?;
         Ok((rays, Tensor::from_vec(idx, n, device)?))
+    }
+
+    /// The world-space ray of one continuous pixel coordinate `pixel = (x, y)` (column,
+    /// row; the centre of pixel `(u, v)` is `(u + 0.5, v + 0.5)`), on the host in f64:
+    /// `(origin, direction)` with the same formulas as [`Camera::rays_for_pixels`] (the
+    /// direction is not normalised; its camera-space depth component is 1).
+    #[must_use]
+    pub fn ray(&self, pixel: DVec2) -> (DVec3, DVec3) {
+        let k = &self.intrinsics;
+        let x = (pixel.x - k.cx) / k.fx;
+        let y = (pixel.y - k.cy) / k.fy;
+        let d_cam = match self.convention {
+            Convention::OpenCv => DVec3::new(x, y, 1.0),
+            Convention::OpenGl => DVec3::new(x, -y, -1.0),
+        };
+        (
+            self.cam_to_world.translation,
+            self.cam_to_world.matrix3 * d_cam,
+        )
+    }
+
+    /// Projects a world point into the image: `(x, y, depth)` with `(x, y)` the continuous
+    /// pixel coordinate (column, row) and `depth` the camera-space depth along the viewing
+    /// axis (the ray parameter `t` of [`Camera::ray`], so `ray(x, y)` at `t = depth` is
+    /// `point`). `None` if the point is not in front of the camera (depth ≤ 0) or not finite.
+    /// The inverse of [`Camera::ray`] for points in front of the camera.
+    #[must_use]
+    pub fn project(&self, point: DVec3) -> Option<DVec3> {
+        let p = self.cam_to_world.inverse().transform_point3(point);
+        let depth = match self.convention {
+            Convention::OpenCv => p.z,
+            Convention::OpenGl => -p.z,
+        };
+        if !(depth > 0.0 && p.is_finite()) {
+            return None;
+        }
+        let k = &self.intrinsics;
+        let y_cam = match self.convention {
+            Convention::OpenCv => p.y,
+            Convention::OpenGl => -p.y,
+        };
+        Some(DVec3::new(
+            k.fx * p.x / depth + k.cx,
+            k.fy * y_cam / depth + k.cy,
+            depth,
+        ))
     }
 
     /// A differentiable copy of this camera's pose ([`PoseParam::from_affine`]).

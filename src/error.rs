@@ -32,6 +32,19 @@ pub enum Error {
         /// The underlying error.
         source: std::io::Error,
     },
+    /// A file's content is not what its format requires: `path` names the file, `field`
+    /// the key, element or member that failed (`frames[3].transform_matrix`,
+    /// `world_mat_2`), `expected` what the format requires and `got` what the file holds.
+    Format {
+        /// The file.
+        path: String,
+        /// The key, element or member of the file that failed.
+        field: String,
+        /// What the format requires there.
+        expected: String,
+        /// What the file holds.
+        got: String,
+    },
 }
 
 /// `Result` with this crate's [`Error`].
@@ -51,6 +64,22 @@ impl Error {
             got: got.into(),
         }
     }
+
+    /// Builds an [`Error::Format`] for the file at `path`.
+    #[must_use]
+    pub(crate) fn format(
+        path: impl AsRef<std::path::Path>,
+        field: impl Into<String>,
+        expected: impl Into<String>,
+        got: impl Into<String>,
+    ) -> Self {
+        Error::Format {
+            path: path.as_ref().display().to_string(),
+            field: field.into(),
+            expected: expected.into(),
+            got: got.into(),
+        }
+    }
 }
 
 impl fmt::Display for Error {
@@ -61,6 +90,12 @@ impl fmt::Display for Error {
             }
             Error::Candle(e) => write!(f, "candle: {e}"),
             Error::Io { path, source } => write!(f, "{path}: {source}"),
+            Error::Format {
+                path,
+                field,
+                expected,
+                got,
+            } => write!(f, "{path}: {field}: expected {expected}, got {got}"),
         }
     }
 }
@@ -70,7 +105,7 @@ impl std::error::Error for Error {
         match self {
             Error::Candle(e) => Some(e),
             Error::Io { source, .. } => Some(source),
-            Error::InvalidArgument { .. } => None,
+            Error::InvalidArgument { .. } | Error::Format { .. } => None,
         }
     }
 }

@@ -123,6 +123,7 @@
 //! | `occupancy` | yes | occupancy networks: losses, samplers, meshes, marching cubes, MISE, metrics |
 //! | `dvr` | yes | surface rendering with implicit gradients: ray marching + secant, sphere tracing, implicit surface points, DVR/IDR losses |
 //! | `volume` | yes | NeRF samplers, compositing (reference and fused CPU kernel), occupancy grid, regularisers |
+//! | `data` | yes | datasets (Blender, nerfstudio, IDR/DTU layouts), seeded ray and patch batches, PSNR/SSIM, PNG output, a Blender-layout writer |
 //! | `cuda` | no | candle's CUDA backend (needs nvcc) |
 //!
 //! The derivations behind every gradient are in `docs/math.md`.
@@ -131,6 +132,8 @@
 #![deny(missing_docs)]
 
 pub mod camera;
+#[cfg(feature = "data")]
+pub mod data;
 #[cfg(feature = "dvr")]
 pub mod dvr;
 pub mod encoding;

@@ -3,6 +3,8 @@
 #![allow(dead_code)]
 
 pub mod counting;
+#[cfg(feature = "data")]
+pub mod datasets;
 #[cfg(feature = "dvr")]
 pub mod hits;
 pub mod host;
@@ -11,6 +13,7 @@ pub mod intervals;
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;
+#[allow(unused_imports)] // not every test binary uses it
 pub use host::v64;
 use neural_fields::rng::SplitMix64;
 

@@ -1,0 +1,293 @@
+//! Ray batches: seeded random pixels and k×k patches across all views, and whole-image
+//! chunks for evaluation.
+
+use super::dataset::{Background, Dataset};
+use super::image::check_dtype;
+use crate::camera::Rays;
+use crate::error::{Error, Result};
+use crate::rng::SplitMix64;
+use candle_core::{DType, Device, Tensor};
+use glam::DVec2;
+
+/// The most rays one batch may hold (2²⁸): larger requests are refused before allocating.
+const MAX_BATCH: usize = 1 << 28;
+
+/// Rays with the pixels they image.
+///
+/// All tensors are on the caller's device; floats in the caller's dtype. `N` rays.
+#[derive(Clone, Debug)]
+pub struct RayBatch {
+    /// The rays (origins at the camera centres, directions with camera-space depth 1, see
+    /// [`crate::camera`]).
+    pub rays: Rays,
+    /// `[N, 3]` target colours in `[0, 1]`, composited on `backgrounds`.
+    pub colors: Tensor,
+    /// `[N, 3]` the background colour of each ray: composite the prediction on it
+    /// (`c + (1 − opacity)·b`) to compare with `colors`.
+    pub backgrounds: Tensor,
+    /// `[N]` mask values in `[0, 1]` (mask file, else alpha), if every view has one.
+    pub masks: Option<Tensor>,
+    /// `[N]` u32: the index of each ray's view in the dataset.
+    pub views: Tensor,
+    /// `[N, 2]` u32: each ray's pixel `(u, v)` (column, row); the ray passes through the
+    /// pixel's centre `(u + 0.5, v + 0.5)`.
+    pub pixels: Tensor,
+}
+
+impl RayBatch {
+    /// The number of rays.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.rays.len()
+    }
+
+    /// Whether the batch has no rays (never, for batches built by this module).
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.rays.is_empty()
+    }
+}
+
+/// Builds the batch of the pixels `picks = [(view, u, v)]` with per-ray backgrounds.
+fn gather(
+    dataset: &Dataset,
+    picks: &[(usize, usize, usize)],
+    backgrounds: &[[f64; 3]],
+    device: &Device,
+    dtype: DType,
+) -> Result<RayBatch> {
+    let n = picks.len();
+    let masked = dataset.views().iter().all(|v| v.has_mask());
+    let (mut o, mut d, mut c) = (
+        Vec::with_capacity(3 * n),
+        Vec::with_capacity(3 * n),
+        Vec::with_capacity(3 * n),
+    );
+    let mut m = Vec::with_capacity(if masked { n } else { 0 });
+    let (mut vi, mut px) = (Vec::with_capacity(n), Vec::with_capacity(2 * n));
+    for (&(view, u, v), bg) in picks.iter().zip(backgrounds) {
+        let vw = &dataset.views()[view];
+        let (origin, dir) = vw.camera().ray(DVec2::new(u as f64 + 0.5, v as f64 + 0.5));
+        o.extend_from_slice(&origin.to_array());
+        d.extend_from_slice(&dir.to_array());
+        c.extend_from_slice(&vw.color(u, v, *bg));
+        if masked {
+            m.push(vw.mask_value(u, v).unwrap_or(1.0));
+        }
+        vi.push(view as u32);
+        px.extend_from_slice(&[u as u32, v as u32]);
+    }
+    let float = |data: Vec<f64>, shape: &[usize]| -> Result<Tensor> {
+        Ok(Tensor::from_vec(data, shape, device)?.to_dtype(dtype)?)
+    };
+    let bgs: Vec<f64> = backgrounds.iter().flatten().copied().collect();
+    Ok(RayBatch {
+        rays: Rays::new(float(o, &[n, 3])?, float(d, &[n, 3])?)?,
+        colors: float(c, &[n, 3])?,
+        backgrounds: float(bgs, &[n, 3])?,
+        masks: if masked { Some(float(m, &[n])?) } else { None },
+        views: Tensor::from_vec(vi, n, device)?,
+        pixels: Tensor::from_vec(px, (n, 2), device)?,
+    })
+}
+
+fn check_count(n: usize, arg: &'static str) -> Result<()> {
+    if n == 0 || n > MAX_BATCH {
+        return Err(Error::invalid(
+            arg,
+            format!("between 1 and {MAX_BATCH} rays"),
+            n.to_string(),
+        ));
+    }
+    Ok(())
+}
+
+/// A seeded sampler of training rays across all views of a dataset.
+///
+/// Same seed, same batches, on every machine. Pixels are drawn uniformly over all pixels
+/// of all views (views of different sizes weigh by their pixel count), with replacement.
+///
+/// ```
+/// use neural_fields::camera::{Camera, Convention, Intrinsics};
+/// use neural_fields::data::{Background, Dataset, Image, RaySampler, View};
+/// use neural_fields::glam::DVec3;
+/// use candle_core::{DType, Device};
+///
+/// let k = Intrinsics::from_fov_y(8, 6, 0.8)?;
+/// let cam = Camera::look_at(k, DVec3::new(0.0, -3.0, 0.0), DVec3::ZERO, DVec3::Z, Convention::OpenGl)?;
+/// let image = Image::new(8, 6, 3, vec![128; 8 * 6 * 3])?;
+/// let data = Dataset::new(vec![View::new(cam, image, None, "grey".into())?], Background::default(), None)?;
+///
+/// let mut sampler = RaySampler::new(&data, 0, &Device::Cpu, DType::F32)?;
+/// let batch = sampler.pixels(1024)?;
+/// assert_eq!(batch.colors.dims(), &[1024, 3]);
+/// let patches = sampler.patches(16, 4)?; // 16 patches of 4 × 4 pixels
+/// assert_eq!(patches.len(), 16 * 16);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+#[derive(Clone, Debug)]
+pub struct RaySampler<'a> {
+    dataset: &'a Dataset,
+    rng: SplitMix64,
+    device: Device,
+    dtype: DType,
+    /// `ends[i]`: the number of pixels in views `0..=i`.
+    ends: Vec<u64>,
+}
+
+impl<'a> RaySampler<'a> {
+    /// A sampler drawing from `seed`, building batches in `dtype` (f32 or f64) on `device`.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64.
+    pub fn new(dataset: &'a Dataset, seed: u64, device: &Device, dtype: DType) -> Result<Self> {
+        check_dtype(dtype)?;
+        let mut total = 0u64;
+        let ends = dataset
+            .views()
+            .iter()
+            .map(|v| {
+                total += (v.image().width() * v.image().height()) as u64;
+                total
+            })
+            .collect();
+        Ok(Self {
+            dataset,
+            rng: SplitMix64::new(seed),
+            device: device.clone(),
+            dtype,
+            ends,
+        })
+    }
+
+    fn backgrounds(&mut self, n: usize) -> Vec<[f64; 3]> {
+        match self.dataset.background() {
+            Background::Color(c) => vec![c; n],
+            Background::Random => (0..n)
+                .map(|_| std::array::from_fn(|_| self.rng.uniform()))
+                .collect(),
+        }
+    }
+
+    /// `n` rays through pixel centres drawn uniformly over all pixels of all views.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `n` if 0 or above 2²⁸.
+    pub fn pixels(&mut self, n: usize) -> Result<RayBatch> {
+        check_count(n, "n")?;
+        let total = *self.ends.last().expect("a dataset has a view");
+        let picks: Vec<_> = (0..n)
+            .map(|_| {
+                let i = self.rng.below(total);
+                let view = self.ends.partition_point(|&e| e <= i);
+                let start = if view == 0 { 0 } else { self.ends[view - 1] };
+                let w = self.dataset.views()[view].image().width() as u64;
+                let local = i - start;
+                (view, (local % w) as usize, (local / w) as usize)
+            })
+            .collect();
+        let bgs = self.backgrounds(n);
+        gather(self.dataset, &picks, &bgs, &self.device, self.dtype)
+    }
+
+    /// `count` square patches of `k × k` adjacent pixels (RegNeRF's depth smoothness and
+    /// DVR's image-gradient loss need neighbours). A patch's top-left pixel is drawn
+    /// uniformly over all positions where the patch fits, across all views. Rays are ordered
+    /// patch by patch, row-major inside a patch: ray `p·k² + i·k + j` is pixel `(u₀ + j,
+    /// v₀ + i)` of patch `p`, so `colors.reshape((count, k, k, 3))` gives the patches. The
+    /// background colour is drawn per patch under [`Background::Random`].
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `count` if 0, `k` if 0 or larger than every view,
+    /// and `count` if `count · k²` is above 2²⁸.
+    pub fn patches(&mut self, count: usize, k: usize) -> Result<RayBatch> {
+        if count == 0 {
+            return Err(Error::invalid("count", "at least one patch", "0"));
+        }
+        let n = count
+            .checked_mul(k)
+            .and_then(|x| x.checked_mul(k))
+            .unwrap_or(usize::MAX);
+        if k == 0 {
+            return Err(Error::invalid("k", "a patch side ≥ 1", "0"));
+        }
+        check_count(n, "count")?;
+        let mut total = 0u64;
+        let ends: Vec<u64> = self
+            .dataset
+            .views()
+            .iter()
+            .map(|v| {
+                let (w, h) = (v.image().width(), v.image().height());
+                if w >= k && h >= k {
+                    total += ((w - k + 1) * (h - k + 1)) as u64;
+                }
+                total
+            })
+            .collect();
+        if total == 0 {
+            return Err(Error::invalid(
+                "k",
+                "a patch side that fits in at least one view",
+                k.to_string(),
+            ));
+        }
+        let mut picks = Vec::with_capacity(n);
+        let mut bgs = Vec::with_capacity(n);
+        for _ in 0..count {
+            let i = self.rng.below(total);
+            let view = ends.partition_point(|&e| e <= i);
+            let start = if view == 0 { 0 } else { ends[view - 1] };
+            let span = (self.dataset.views()[view].image().width() - k + 1) as u64;
+            let local = i - start;
+            let (u0, v0) = ((local % span) as usize, (local / span) as usize);
+            let bg = self.backgrounds(1)[0];
+            for i in 0..k {
+                for j in 0..k {
+                    picks.push((view, u0 + j, v0 + i));
+                    bgs.push(bg);
+                }
+            }
+        }
+        gather(self.dataset, &picks, &bgs, &self.device, self.dtype)
+    }
+}
+
+impl Dataset {
+    /// Rays of view `view` for the pixels `start .. start + len` in row-major order (pixel
+    /// `(u, v)` has index `v · width + u`), to render a whole image chunk by chunk for
+    /// evaluation. Colours are composited on [`Background::eval_color`].
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `view` if out of range, `len` if 0 or above 2²⁸, and
+    /// `start` if the chunk passes the image's end; `dtype` unless f32 or f64.
+    pub fn view_rays(
+        &self,
+        view: usize,
+        start: usize,
+        len: usize,
+        device: &Device,
+        dtype: DType,
+    ) -> Result<RayBatch> {
+        check_dtype(dtype)?;
+        let Some(v) = self.views().get(view) else {
+            return Err(Error::invalid(
+                "view",
+                format!("an index below {}", self.len()),
+                view.to_string(),
+            ));
+        };
+        check_count(len, "len")?;
+        let (w, h) = (v.image().width(), v.image().height());
+        if start.checked_add(len).is_none_or(|end| end > w * h) {
+            return Err(Error::invalid(
+                "start",
+                format!("a chunk inside the image's {} pixels", w * h),
+                format!("{start} + {len}"),
+            ));
+        }
+        let picks: Vec<_> = (start..start + len).map(|i| (view, i % w, i / w)).collect();
+        let bgs = vec![self.background().eval_color(); len];
+        gather(self, &picks, &bgs, device, dtype)
+    }
+}

@@ -1,0 +1,665 @@
+//! Views, datasets, the loading options and the loader entry point.
+
+use super::image::{check_dtype, Image};
+use crate::camera::{Camera, Convention, Intrinsics};
+use crate::error::{Error, Result};
+use candle_core::{DType, Device, Tensor};
+use glam::{DAffine3, DMat3, DVec3};
+use rayon::prelude::*;
+use std::path::{Path, PathBuf};
+
+/// One calibrated picture: a camera, its image and an optional mask.
+///
+/// The mask of a view is its mask file where the layout has one (DTU's `mask/`,
+/// nerfstudio's `mask_path`), else the image's alpha channel, else none.
+#[derive(Clone, Debug)]
+pub struct View {
+    camera: Camera,
+    image: Image,
+    mask: Option<Image>,
+    name: String,
+}
+
+impl View {
+    /// A view from a camera, an RGB or RGBA image of the camera's size, and an optional
+    /// one-channel mask of the same size; `name` is what error messages and writers call it
+    /// (for loaded views, the image file's path).
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `image` if it has 1 channel or its size is not the
+    /// camera's, and `mask` unless it has 1 channel and the camera's size.
+    pub fn new(camera: Camera, image: Image, mask: Option<Image>, name: String) -> Result<Self> {
+        let k = camera.intrinsics();
+        let size = |i: &Image| (i.width(), i.height());
+        if image.channels() == 1 || size(&image) != (k.width, k.height) {
+            return Err(Error::invalid(
+                "image",
+                format!(
+                    "an RGB or RGBA image of the camera's size {} × {}",
+                    k.width, k.height
+                ),
+                format!(
+                    "{} × {} with {} channels",
+                    image.width(),
+                    image.height(),
+                    image.channels()
+                ),
+            ));
+        }
+        if let Some(m) = &mask {
+            if m.channels() != 1 || size(m) != (k.width, k.height) {
+                return Err(Error::invalid(
+                    "mask",
+                    format!("a one-channel mask of size {} × {}", k.width, k.height),
+                    format!(
+                        "{} × {} with {} channels",
+                        m.width(),
+                        m.height(),
+                        m.channels()
+                    ),
+                ));
+            }
+        }
+        Ok(Self {
+            camera,
+            image,
+            mask,
+            name,
+        })
+    }
+
+    /// The camera.
+    #[must_use]
+    pub fn camera(&self) -> &Camera {
+        &self.camera
+    }
+
+    /// The image (RGB, or RGBA with straight alpha).
+    #[must_use]
+    pub fn image(&self) -> &Image {
+        &self.image
+    }
+
+    /// The mask file's image (one channel), if the view has one.
+    #[must_use]
+    pub fn mask_image(&self) -> Option<&Image> {
+        self.mask.as_ref()
+    }
+
+    /// The name: for loaded views, the path of the image file.
+    #[must_use]
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// Whether the view has a mask (a mask file or an alpha channel).
+    #[must_use]
+    pub fn has_mask(&self) -> bool {
+        self.mask.is_some() || self.image.channels() == 4
+    }
+
+    /// Colour of pixel `(u, v)` composited on `background`: `c·a + b·(1 − a)` with the
+    /// straight colour `c` and alpha `a` (1 without an alpha channel), all `byte / 255`.
+    pub(crate) fn color(&self, u: usize, v: usize, background: [f64; 3]) -> [f64; 3] {
+        let p = self.image.pixel(u, v).expect("pixel inside the image");
+        let a = if p.len() == 4 {
+            f64::from(p[3]) / 255.0
+        } else {
+            1.0
+        };
+        std::array::from_fn(|c| f64::from(p[c]) / 255.0 * a + background[c] * (1.0 - a))
+    }
+
+    /// The mask value of pixel `(u, v)` in `[0, 1]` (see the type's docs), if any.
+    pub(crate) fn mask_value(&self, u: usize, v: usize) -> Option<f64> {
+        match &self.mask {
+            Some(m) => Some(f64::from(m.pixel(u, v)?[0]) / 255.0),
+            None if self.image.channels() == 4 => {
+                Some(f64::from(self.image.pixel(u, v)?[3]) / 255.0)
+            }
+            None => None,
+        }
+    }
+
+    /// The whole image composited on `background` (see [`View::new`]'s mask rule for
+    /// alpha): `[H, W, 3]` in `dtype` (f32 or f64) on `device`, values in `[0, 1]`.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64.
+    pub fn rgb(&self, background: [f64; 3], device: &Device, dtype: DType) -> Result<Tensor> {
+        check_dtype(dtype)?;
+        let (w, h) = (self.image.width(), self.image.height());
+        let mut data = Vec::with_capacity(3 * w * h);
+        for v in 0..h {
+            for u in 0..w {
+                data.extend_from_slice(&self.color(u, v, background));
+            }
+        }
+        Ok(Tensor::from_vec(data, (h, w, 3), device)?.to_dtype(dtype)?)
+    }
+
+    /// The mask as `[H, W]` values in `[0, 1]` in `dtype` on `device`; `None` if the view
+    /// has none.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64.
+    pub fn mask(&self, device: &Device, dtype: DType) -> Result<Option<Tensor>> {
+        check_dtype(dtype)?;
+        if !self.has_mask() {
+            return Ok(None);
+        }
+        let (w, h) = (self.image.width(), self.image.height());
+        let mut data = Vec::with_capacity(w * h);
+        for v in 0..h {
+            for u in 0..w {
+                data.push(self.mask_value(u, v).unwrap_or(1.0));
+            }
+        }
+        Ok(Some(
+            Tensor::from_vec(data, (h, w), device)?.to_dtype(dtype)?,
+        ))
+    }
+}
+
+/// The colour behind transparent pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Background {
+    /// One colour (RGB in `[0, 1]`) for training and evaluation.
+    Color([f64; 3]),
+    /// A uniform random colour per ray in every training batch (so the field cannot
+    /// explain transparency by colour; nerfacc's recipe for the Blender scenes), white for
+    /// evaluation ([`Dataset::view_rays`]). Batches carry the colour used, to composite the
+    /// prediction on.
+    Random,
+}
+
+impl Default for Background {
+    /// White, the convention of the Blender synthetic scenes.
+    fn default() -> Self {
+        Background::Color([1.0; 3])
+    }
+}
+
+impl Background {
+    /// The colour used for evaluation.
+    #[must_use]
+    pub fn eval_color(&self) -> [f64; 3] {
+        match self {
+            Background::Color(c) => *c,
+            Background::Random => [1.0; 3],
+        }
+    }
+}
+
+/// The region a layout says the scene occupies, in the loaded (normalised) world frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Bounds {
+    /// An axis-aligned box.
+    Aabb {
+        /// Minimum corner.
+        min: [f64; 3],
+        /// Maximum corner.
+        max: [f64; 3],
+    },
+    /// A sphere (IDR/DTU: the unit sphere after `scale_mat`).
+    Sphere {
+        /// Centre.
+        center: [f64; 3],
+        /// Radius.
+        radius: f64,
+    },
+}
+
+/// Which frames of a dataset to load.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum Split {
+    /// Training frames.
+    #[default]
+    Train,
+    /// Validation frames.
+    Val,
+    /// Test frames.
+    Test,
+    /// Every frame: the three splits in the order train, val, test where the layout has
+    /// split files, else all frames in file order.
+    All,
+}
+
+impl Split {
+    /// The split's name in file names: `train`, `val`, `test`, `all`.
+    #[must_use]
+    pub fn name(&self) -> &'static str {
+        match self {
+            Split::Train => "train",
+            Split::Val => "val",
+            Split::Test => "test",
+            Split::All => "all",
+        }
+    }
+
+    /// For layouts without split files (nerfstudio's single `transforms.json`, IDR/DTU):
+    /// whether frame `i` belongs to the split by the hold-out rule of LLFF and mip-NeRF,
+    /// every 8th frame (`i % 8 == 0`) held out for validation and testing.
+    pub(crate) fn holds(&self, i: usize) -> bool {
+        match self {
+            Split::Train => !i.is_multiple_of(8),
+            Split::Val | Split::Test => i.is_multiple_of(8),
+            Split::All => true,
+        }
+    }
+}
+
+/// A dataset layout on disk.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum DatasetLayout {
+    /// The Blender synthetic layout (NeRF): `transforms_{train,val,test}.json` with
+    /// `camera_angle_x` and per-frame `file_path` / `transform_matrix` (OpenGL axes).
+    Blender,
+    /// The nerfstudio / instant-NGP layout: one `transforms.json` with pinhole intrinsics
+    /// (`fl_x, fl_y, cx, cy, w, h`, global or per frame).
+    Nerfstudio,
+    /// The IDR/DTU layout: `image/`, optional `mask/`, and `cameras.npz` (or
+    /// `cameras_sphere.npz`) with `world_mat_i` and `scale_mat_i`.
+    Dtu,
+}
+
+impl DatasetLayout {
+    /// The layout of the dataset in `dir`, from the files present: `transforms_train.json`
+    /// → Blender, `transforms.json` → nerfstudio, `cameras.npz` or `cameras_sphere.npz` →
+    /// IDR/DTU.
+    ///
+    /// # Errors
+    /// [`Error::Io`] naming `dir` if it is not a directory; [`Error::Format`] naming `dir`
+    /// if none of those files is there.
+    pub fn detect(dir: &Path) -> Result<Self> {
+        if !dir.is_dir() {
+            return Err(Error::Io {
+                path: dir.display().to_string(),
+                source: std::io::Error::new(std::io::ErrorKind::NotFound, "not a directory"),
+            });
+        }
+        if dir.join("transforms_train.json").is_file() {
+            Ok(Self::Blender)
+        } else if dir.join("transforms.json").is_file() {
+            Ok(Self::Nerfstudio)
+        } else if super::dtu::cameras_file(dir).is_some() {
+            Ok(Self::Dtu)
+        } else {
+            Err(Error::format(
+                dir,
+                "layout",
+                "transforms_train.json (Blender), transforms.json (nerfstudio) or cameras.npz (IDR/DTU)",
+                "none of them",
+            ))
+        }
+    }
+}
+
+/// How to load a dataset ([`load`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct LoadConfig {
+    /// The split to load (default train).
+    pub split: Split,
+    /// The layout; `None` detects it ([`DatasetLayout::detect`]).
+    pub layout: Option<DatasetLayout>,
+    /// The colour behind transparent pixels (default white).
+    pub background: Background,
+    /// Integer downscaling factor ≥ 1 (box filter; intrinsics scaled by `1/k`; default 1).
+    pub downscale: usize,
+    /// A subset of the split's frames by index in the split's order (sparse-view training:
+    /// "these 3 views"); `None` loads all.
+    pub frames: Option<Vec<usize>>,
+}
+
+impl Default for LoadConfig {
+    fn default() -> Self {
+        Self {
+            split: Split::Train,
+            layout: None,
+            background: Background::default(),
+            downscale: 1,
+            frames: None,
+        }
+    }
+}
+
+/// Calibrated views with a background rule and, where the layout gives them, scene bounds.
+#[derive(Clone, Debug)]
+pub struct Dataset {
+    views: Vec<View>,
+    background: Background,
+    bounds: Option<Bounds>,
+}
+
+impl Dataset {
+    /// A dataset from views (at least one), e.g. renders of an analytic scene to write with
+    /// [`crate::data::write_blender`].
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `views` if empty, `background` unless its colour is
+    /// in `[0, 1]`.
+    pub fn new(views: Vec<View>, background: Background, bounds: Option<Bounds>) -> Result<Self> {
+        if views.is_empty() {
+            return Err(Error::invalid("views", "at least one view", "none"));
+        }
+        if let Background::Color(c) = background {
+            if !c.iter().all(|x| (0.0..=1.0).contains(x)) {
+                return Err(Error::invalid(
+                    "background",
+                    "a colour in [0, 1]",
+                    format!("{c:?}"),
+                ));
+            }
+        }
+        Ok(Self {
+            views,
+            background,
+            bounds,
+        })
+    }
+
+    /// The views.
+    #[must_use]
+    pub fn views(&self) -> &[View] {
+        &self.views
+    }
+
+    /// The number of views (≥ 1).
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.views.len()
+    }
+
+    /// Always false: a dataset has at least one view.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.views.is_empty()
+    }
+
+    /// The background rule.
+    #[must_use]
+    pub fn background(&self) -> Background {
+        self.background
+    }
+
+    /// The scene bounds the layout states (nerfstudio's `aabb_scale`, IDR/DTU's unit
+    /// sphere); `None` for the Blender layout, which states none.
+    #[must_use]
+    pub fn bounds(&self) -> Option<Bounds> {
+        self.bounds
+    }
+
+    /// The number of decoded image and mask bytes held.
+    #[must_use]
+    pub fn image_bytes(&self) -> usize {
+        self.views
+            .iter()
+            .map(|v| v.image.data().len() + v.mask.as_ref().map_or(0, |m| m.data().len()))
+            .sum()
+    }
+}
+
+/// Loads the dataset in `dir` ([`DatasetLayout`]: Blender, nerfstudio or IDR/DTU).
+///
+/// Images are decoded in parallel and kept as bytes; every camera is validated (finite,
+/// rigid, of the image's size). Poses within 1e-3 of a rotation but not within 1e-6 (the
+/// rounding of some exporters) are orthonormalised; others are errors.
+///
+/// ```no_run
+/// use neural_fields::data::{load, LoadConfig, Split};
+/// let train = load("examples/data/wuson".as_ref(), &LoadConfig::default())?;
+/// let test = load(
+///     "examples/data/wuson".as_ref(),
+///     &LoadConfig { split: Split::Test, ..LoadConfig::default() },
+/// )?;
+/// println!("{} training views, {} test views", train.len(), test.len());
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
+/// # Errors
+/// [`Error::Io`] naming a missing or unreadable file; [`Error::Format`] naming the file and
+/// the field for malformed content (JSON without `frames`, a singular or non-rigid
+/// `transform_matrix`, NaN in a pose, an unsupported camera model or lens distortion, an
+/// image or mask of the wrong size, a truncated PNG, an empty split);
+/// [`Error::InvalidArgument`] naming `downscale` if 0 or larger than an image, `frames`
+/// for an index outside the split.
+pub fn load(dir: &Path, config: &LoadConfig) -> Result<Dataset> {
+    if config.downscale == 0 {
+        return Err(Error::invalid("downscale", "an integer ≥ 1", "0"));
+    }
+    if let Background::Color(c) = config.background {
+        if !c.iter().all(|x| (0.0..=1.0).contains(x)) {
+            return Err(Error::invalid(
+                "background",
+                "a colour in [0, 1]",
+                format!("{c:?}"),
+            ));
+        }
+    }
+    let layout = match config.layout {
+        Some(l) => l,
+        None => DatasetLayout::detect(dir)?,
+    };
+    let (frames, bounds) = match layout {
+        DatasetLayout::Blender | DatasetLayout::Nerfstudio => {
+            super::transforms::frames(dir, layout, config.split)?
+        }
+        DatasetLayout::Dtu => super::dtu::frames(dir, config.split)?,
+    };
+    let frames = select(frames, config.frames.as_deref())?;
+    let views = frames
+        .into_par_iter()
+        .map(|f| f.load(config.downscale))
+        .collect::<Result<Vec<View>>>()?;
+    Dataset::new(views, config.background, bounds)
+}
+
+fn select(frames: Vec<FrameSpec>, subset: Option<&[usize]>) -> Result<Vec<FrameSpec>> {
+    let Some(subset) = subset else {
+        return Ok(frames);
+    };
+    if subset.is_empty() {
+        return Err(Error::invalid("frames", "at least one index", "[]"));
+    }
+    let mut slots: Vec<Option<FrameSpec>> = frames.into_iter().map(Some).collect();
+    let n = slots.len();
+    subset
+        .iter()
+        .map(|&i| {
+            slots.get_mut(i).and_then(Option::take).ok_or_else(|| {
+                Error::invalid(
+                    "frames",
+                    format!("distinct indices below the split's {n} frames"),
+                    format!("{subset:?}"),
+                )
+            })
+        })
+        .collect()
+}
+
+/// The intrinsics a layout states for a frame, before the image's size is known.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) enum IntrinsicsSpec {
+    /// Horizontal (and optionally vertical) field of view, principal point at the centre.
+    Fov { angle_x: f64, angle_y: Option<f64> },
+    /// Focal lengths and principal point in pixels, with the image size if stated.
+    Pinhole {
+        fx: f64,
+        fy: f64,
+        cx: Option<f64>,
+        cy: Option<f64>,
+        size: Option<(usize, usize)>,
+    },
+}
+
+/// One frame as a layout describes it: where its files are and its camera.
+#[derive(Clone, Debug)]
+pub(crate) struct FrameSpec {
+    pub image: PathBuf,
+    pub mask: Option<PathBuf>,
+    pub intrinsics: IntrinsicsSpec,
+    pub cam_to_world: DAffine3,
+    pub convention: Convention,
+    /// The file the camera came from, and the field, for error messages.
+    pub source: PathBuf,
+    pub field: String,
+}
+
+impl FrameSpec {
+    fn load(self, downscale: usize) -> Result<View> {
+        let image = Image::decode(&self.image, false)?;
+        let (w, h) = (image.width(), image.height());
+        let intrinsics = match self.intrinsics {
+            IntrinsicsSpec::Fov { angle_x, angle_y } => {
+                let fx = 0.5 * w as f64 / (0.5 * angle_x).tan();
+                let fy = angle_y.map_or(fx, |a| 0.5 * h as f64 / (0.5 * a).tan());
+                (fx, fy, 0.5 * w as f64, 0.5 * h as f64)
+            }
+            IntrinsicsSpec::Pinhole {
+                fx,
+                fy,
+                cx,
+                cy,
+                size,
+            } => {
+                if let Some((sw, sh)) = size {
+                    if (sw, sh) != (w, h) {
+                        return Err(Error::format(
+                            &self.image,
+                            "image size",
+                            format!("{sw} × {sh} (w, h in {})", self.source.display()),
+                            format!("{w} × {h}"),
+                        ));
+                    }
+                }
+                (
+                    fx,
+                    fy,
+                    cx.unwrap_or(0.5 * w as f64),
+                    cy.unwrap_or(0.5 * h as f64),
+                )
+            }
+        };
+        let mask = match &self.mask {
+            Some(path) => {
+                let m = Image::decode(path, true)?;
+                if (m.width(), m.height()) != (w, h) {
+                    return Err(Error::format(
+                        path,
+                        "mask size",
+                        format!("{w} × {h}, the size of {}", self.image.display()),
+                        format!("{} × {}", m.width(), m.height()),
+                    ));
+                }
+                Some(m)
+            }
+            None => None,
+        };
+        if downscale > w.min(h) {
+            return Err(Error::invalid(
+                "downscale",
+                format!("at most the image's smaller side ({})", w.min(h)),
+                downscale.to_string(),
+            ));
+        }
+        let (image, mask) = (
+            image.downscale(downscale),
+            mask.map(|m| m.downscale(downscale)),
+        );
+        let s = downscale as f64;
+        let (fx, fy, cx, cy) = intrinsics;
+        let k = Intrinsics::new(
+            fx / s,
+            fy / s,
+            cx / s,
+            cy / s,
+            image.width(),
+            image.height(),
+        )
+        .map_err(|e| {
+            Error::format(
+                &self.source,
+                format!("{} intrinsics", self.field),
+                "valid pinhole intrinsics",
+                e.to_string(),
+            )
+        })?;
+        let camera = Camera::new(k, self.cam_to_world, self.convention).map_err(|e| {
+            Error::format(
+                &self.source,
+                &self.field,
+                "a rigid camera-to-world pose",
+                e.to_string(),
+            )
+        })?;
+        View::new(camera, image, mask, self.image.display().to_string())
+    }
+}
+
+/// A camera-to-world pose from the rows of a 3×4 or 4×4 matrix, checked: finite, last row
+/// `[0, 0, 0, 1]`, rotation part within 1e-3 of orthonormal with determinant +1.
+/// Orthonormalised (polar decomposition) where it deviates by more than 1e-6.
+pub(crate) fn pose_from_rows(rows: &[[f64; 4]], path: &Path, field: &str) -> Result<DAffine3> {
+    let bad = |expected: &str, got: String| Error::format(path, field, expected, got);
+    if rows.len() != 3 && rows.len() != 4 {
+        return Err(bad("a 3×4 or 4×4 matrix", format!("{} rows", rows.len())));
+    }
+    if rows.iter().flatten().any(|x| !x.is_finite()) {
+        return Err(bad("finite entries", format!("{rows:?}")));
+    }
+    if rows.len() == 4 {
+        let last = rows[3];
+        let dev = (0..4)
+            .map(|j| (last[j] - if j == 3 { 1.0 } else { 0.0 }).abs())
+            .fold(0.0, f64::max);
+        if dev > 1e-6 {
+            return Err(bad("a last row [0, 0, 0, 1]", format!("{last:?}")));
+        }
+    }
+    let col = |j: usize| DVec3::new(rows[0][j], rows[1][j], rows[2][j]);
+    let mut r = DMat3::from_cols(col(0), col(1), col(2));
+    let det = r.determinant();
+    let dev = orthonormality(&r);
+    if det.is_nan() || det <= 0.0 || dev > 1e-3 {
+        return Err(bad(
+            "a rigid transform (rotation part orthonormal within 1e-3, det +1)",
+            format!("max |RᵀR − I| = {dev:.3e}, det R = {det:.6}"),
+        ));
+    }
+    if dev > 1e-6 {
+        // Polar decomposition by Newton's iteration R ← (R + R⁻ᵀ)/2, quadratically
+        // convergent from this close.
+        for _ in 0..8 {
+            r = (r + r.inverse().transpose()) * 0.5;
+        }
+    }
+    Ok(DAffine3::from_mat3_translation(r, col(3)))
+}
+
+fn orthonormality(r: &DMat3) -> f64 {
+    (r.transpose() * *r - DMat3::IDENTITY)
+        .to_cols_array()
+        .iter()
+        .fold(0.0f64, |a, &b| a.max(b.abs()))
+}
+
+/// Reads a whole file of at most `cap` bytes.
+pub(crate) fn read_capped(path: &Path, cap: u64) -> Result<Vec<u8>> {
+    use std::io::Read;
+    let io = |source| Error::Io {
+        path: path.display().to_string(),
+        source,
+    };
+    let file = std::fs::File::open(path).map_err(io)?;
+    let mut bytes = Vec::new();
+    file.take(cap + 1).read_to_end(&mut bytes).map_err(io)?;
+    if bytes.len() as u64 > cap {
+        return Err(Error::format(
+            path,
+            "file size",
+            format!("at most {cap} bytes"),
+            "a larger file",
+        ));
+    }
+    Ok(bytes)
+}

@@ -1,0 +1,444 @@
+//! The `transforms*.json` layouts: Blender synthetic (NeRF) and nerfstudio / instant-NGP,
+//! and the Blender-layout writer.
+
+use super::dataset::{
+    pose_from_rows, read_capped, Bounds, Dataset, DatasetLayout, FrameSpec, IntrinsicsSpec, Split,
+};
+use super::output::write_atomic;
+use crate::camera::Convention;
+use crate::error::{Error, Result};
+use glam::{DAffine3, DMat3};
+use serde_json::{Map, Value};
+use std::path::{Path, PathBuf};
+
+/// The largest `transforms*.json` read (a million frames take about 300 MB; the published
+/// datasets take under 10 MB).
+const MAX_JSON_BYTES: u64 = 256 << 20;
+
+/// Image extensions tried, in order, for a `file_path` without one (the Blender synthetic
+/// files name `./train/r_0` for `./train/r_0.png`).
+const EXTENSIONS: [&str; 5] = ["png", "PNG", "jpg", "jpeg", "JPG"];
+
+/// Distortion coefficients of the nerfstudio layout; any non-zero one is refused.
+const DISTORTION: [&str; 6] = ["k1", "k2", "k3", "k4", "p1", "p2"];
+
+/// The frames (and stated bounds) of a Blender or nerfstudio dataset's split.
+pub(crate) fn frames(
+    dir: &Path,
+    layout: DatasetLayout,
+    split: Split,
+) -> Result<(Vec<FrameSpec>, Option<Bounds>)> {
+    match layout {
+        DatasetLayout::Blender => {
+            let names: &[&str] = match split {
+                Split::All => &["train", "val", "test"],
+                s => std::slice::from_ref(match s {
+                    Split::Train => &"train",
+                    Split::Val => &"val",
+                    _ => &"test",
+                }),
+            };
+            let mut all = Vec::new();
+            let mut bounds = None;
+            for name in names {
+                let path = dir.join(format!("transforms_{name}.json"));
+                let (frames, b) = parse(&path, |_| true)?;
+                all.extend(frames);
+                bounds = bounds.or(b);
+            }
+            Ok((all, bounds))
+        }
+        _ => parse(&dir.join("transforms.json"), |i| split.holds(i)),
+    }
+}
+
+fn parse(path: &Path, keep: impl Fn(usize) -> bool) -> Result<(Vec<FrameSpec>, Option<Bounds>)> {
+    let bytes = read_capped(path, MAX_JSON_BYTES)?;
+    let root: Value = serde_json::from_slice(&bytes)
+        .map_err(|e| Error::format(path, "JSON", "valid JSON", e.to_string()))?;
+    let Some(root) = root.as_object() else {
+        return Err(Error::format(
+            path,
+            "top level",
+            "a JSON object",
+            kind(&root),
+        ));
+    };
+    let Some(frames) = root.get("frames") else {
+        return Err(Error::format(
+            path,
+            "frames",
+            "a list of frames",
+            "no `frames` key",
+        ));
+    };
+    let Some(frames) = frames.as_array() else {
+        return Err(Error::format(
+            path,
+            "frames",
+            "a list of frames",
+            kind(frames),
+        ));
+    };
+    let dir = path.parent().unwrap_or(Path::new("."));
+    let (scale, offset) = scale_offset(root, path)?;
+    let mut out = Vec::new();
+    for (i, frame) in frames.iter().enumerate() {
+        if !keep(i) {
+            continue;
+        }
+        let field = format!("frames[{i}]");
+        let Some(obj) = frame.as_object() else {
+            return Err(Error::format(path, &field, "a JSON object", kind(frame)));
+        };
+        let intrinsics = intrinsics(obj, root, path, &field)?;
+        let rows = matrix(obj, path, &format!("{field}.transform_matrix"))?;
+        let pose = pose_from_rows(&rows, path, &format!("{field}.transform_matrix"))?;
+        let pose = DAffine3::from_mat3_translation(pose.matrix3, pose.translation * scale + offset);
+        let file = string(obj, "file_path", path, &field)?.ok_or_else(|| {
+            Error::format(path, format!("{field}.file_path"), "an image path", "none")
+        })?;
+        let mask = string(obj, "mask_path", path, &field)?.map(|m| dir.join(m));
+        out.push(FrameSpec {
+            image: resolve(dir, &file),
+            mask,
+            intrinsics,
+            cam_to_world: pose,
+            convention: Convention::OpenGl,
+            source: path.to_path_buf(),
+            field: format!("{field}.transform_matrix"),
+        });
+    }
+    if out.is_empty() {
+        return Err(Error::format(
+            path,
+            "frames",
+            "at least one frame in the split",
+            format!("none of {} frames", frames.len()),
+        ));
+    }
+    let bounds = match root.get("aabb_scale") {
+        Some(v) => {
+            let s = v
+                .as_f64()
+                .filter(|s| s.is_finite() && *s > 0.0)
+                .ok_or_else(|| {
+                    Error::format(path, "aabb_scale", "a positive number", v.to_string())
+                })?;
+            // instant-NGP: the scene extends `aabb_scale` unit cubes around the offset.
+            let c = offset.to_array();
+            Some(Bounds::Aabb {
+                min: c.map(|x| x - 0.5 * s),
+                max: c.map(|x| x + 0.5 * s),
+            })
+        }
+        None => None,
+    };
+    Ok((out, bounds))
+}
+
+/// `scale` and `offset` (instant-NGP): camera centres become `scale · t + offset`.
+fn scale_offset(root: &Map<String, Value>, path: &Path) -> Result<(f64, glam::DVec3)> {
+    let scale = match root.get("scale") {
+        Some(v) => v
+            .as_f64()
+            .filter(|s| s.is_finite() && *s > 0.0)
+            .ok_or_else(|| Error::format(path, "scale", "a positive number", v.to_string()))?,
+        None => 1.0,
+    };
+    let offset = match root.get("offset") {
+        Some(v) => {
+            let o: Option<Vec<f64>> = v.as_array().map(|a| {
+                a.iter()
+                    .filter_map(Value::as_f64)
+                    .filter(|x| x.is_finite())
+                    .collect()
+            });
+            match o {
+                Some(o) if o.len() == 3 => glam::DVec3::new(o[0], o[1], o[2]),
+                _ => {
+                    return Err(Error::format(
+                        path,
+                        "offset",
+                        "three finite numbers",
+                        v.to_string(),
+                    ))
+                }
+            }
+        }
+        None => glam::DVec3::ZERO,
+    };
+    Ok((scale, offset))
+}
+
+fn kind(v: &Value) -> String {
+    match v {
+        Value::Null => "null",
+        Value::Bool(_) => "a boolean",
+        Value::Number(_) => "a number",
+        Value::String(_) => "a string",
+        Value::Array(_) => "a list",
+        Value::Object(_) => "an object",
+    }
+    .to_string()
+}
+
+fn string(obj: &Map<String, Value>, key: &str, path: &Path, field: &str) -> Result<Option<String>> {
+    match obj.get(key) {
+        None | Some(Value::Null) => Ok(None),
+        Some(Value::String(s)) => Ok(Some(s.clone())),
+        Some(other) => Err(Error::format(
+            path,
+            format!("{field}.{key}"),
+            "a string",
+            kind(other),
+        )),
+    }
+}
+
+/// A number under `key` in the frame, else in the file's top level.
+fn number(
+    frame: &Map<String, Value>,
+    root: &Map<String, Value>,
+    key: &str,
+    path: &Path,
+    field: &str,
+) -> Result<Option<f64>> {
+    let (value, name) = match (frame.get(key), root.get(key)) {
+        (Some(v), _) => (v, format!("{field}.{key}")),
+        (None, Some(v)) => (v, key.to_string()),
+        (None, None) => return Ok(None),
+    };
+    match value.as_f64() {
+        Some(x) if x.is_finite() => Ok(Some(x)),
+        _ => Err(Error::format(
+            path,
+            name,
+            "a finite number",
+            value.to_string(),
+        )),
+    }
+}
+
+fn size(
+    frame: &Map<String, Value>,
+    root: &Map<String, Value>,
+    key: &str,
+    path: &Path,
+    field: &str,
+) -> Result<Option<usize>> {
+    match number(frame, root, key, path, field)? {
+        None => Ok(None),
+        Some(x) if x >= 1.0 && x.fract() == 0.0 && x <= f64::from(u32::MAX) => Ok(Some(x as usize)),
+        Some(x) => Err(Error::format(
+            path,
+            key,
+            "a positive integer",
+            x.to_string(),
+        )),
+    }
+}
+
+fn intrinsics(
+    frame: &Map<String, Value>,
+    root: &Map<String, Value>,
+    path: &Path,
+    field: &str,
+) -> Result<IntrinsicsSpec> {
+    let model = match (frame.get("camera_model"), root.get("camera_model")) {
+        (Some(v), _) | (None, Some(v)) => Some(v),
+        (None, None) => None,
+    };
+    if let Some(model) = model {
+        let name = model.as_str().unwrap_or_default();
+        if !matches!(
+            name,
+            "OPENCV" | "PINHOLE" | "SIMPLE_PINHOLE" | "PERSPECTIVE"
+        ) {
+            return Err(Error::format(
+                path,
+                "camera_model",
+                "a pinhole model (OPENCV, PINHOLE, SIMPLE_PINHOLE; fisheye and equirectangular cameras are not supported)",
+                model.to_string(),
+            ));
+        }
+    }
+    for key in DISTORTION {
+        if let Some(k) = number(frame, root, key, path, field)? {
+            if k != 0.0 {
+                return Err(Error::format(
+                    path,
+                    key,
+                    "no lens distortion (undistort the images first, e.g. with COLMAP's image_undistorter)",
+                    k.to_string(),
+                ));
+            }
+        }
+    }
+    let fx = number(frame, root, "fl_x", path, field)?;
+    let fy = number(frame, root, "fl_y", path, field)?;
+    let positive = |x: f64, key: &str| {
+        if x > 0.0 {
+            Ok(x)
+        } else {
+            Err(Error::format(path, key, "a positive number", x.to_string()))
+        }
+    };
+    if let Some(fx) = fx {
+        let fx = positive(fx, "fl_x")?;
+        let fy = positive(fy.unwrap_or(fx), "fl_y")?;
+        let w = size(frame, root, "w", path, field)?;
+        let h = size(frame, root, "h", path, field)?;
+        return Ok(IntrinsicsSpec::Pinhole {
+            fx,
+            fy,
+            cx: number(frame, root, "cx", path, field)?,
+            cy: number(frame, root, "cy", path, field)?,
+            size: w.zip(h),
+        });
+    }
+    let angle = |key: &str| -> Result<Option<f64>> {
+        match number(frame, root, key, path, field)? {
+            Some(a) if a > 0.0 && a < std::f64::consts::PI => Ok(Some(a)),
+            Some(a) => Err(Error::format(
+                path,
+                key,
+                "an angle in (0, π) radians",
+                a.to_string(),
+            )),
+            None => Ok(None),
+        }
+    };
+    match angle("camera_angle_x")? {
+        Some(angle_x) => Ok(IntrinsicsSpec::Fov {
+            angle_x,
+            angle_y: angle("camera_angle_y")?,
+        }),
+        None => Err(Error::format(
+            path,
+            "camera_angle_x",
+            "camera_angle_x or fl_x (the focal length)",
+            "neither",
+        )),
+    }
+}
+
+fn matrix(obj: &Map<String, Value>, path: &Path, field: &str) -> Result<Vec<[f64; 4]>> {
+    let Some(value) = obj.get("transform_matrix") else {
+        return Err(Error::format(path, field, "a 4×4 matrix", "no such key"));
+    };
+    let bad = || {
+        Error::format(
+            path,
+            field,
+            "a 3×4 or 4×4 matrix of numbers",
+            value.to_string(),
+        )
+    };
+    let rows = value.as_array().ok_or_else(bad)?;
+    if rows.len() > 4 {
+        return Err(bad());
+    }
+    rows.iter()
+        .map(|row| {
+            let row = row.as_array().filter(|r| r.len() == 4).ok_or_else(bad)?;
+            let mut out = [0.0; 4];
+            for (o, v) in out.iter_mut().zip(row) {
+                // NaN has no JSON spelling; `null` in its place is reported as NaN.
+                *o = if v.is_null() {
+                    f64::NAN
+                } else {
+                    v.as_f64().ok_or_else(bad)?
+                };
+            }
+            Ok(out)
+        })
+        .collect()
+}
+
+/// `dir/file`, with an image extension appended when `file` has none and the file without
+/// one does not exist.
+fn resolve(dir: &Path, file: &str) -> PathBuf {
+    let path = dir.join(file);
+    if path.extension().is_some() || path.is_file() {
+        return path;
+    }
+    EXTENSIONS
+        .iter()
+        .map(|e| dir.join(format!("{file}.{e}")))
+        .find(|p| p.is_file())
+        .unwrap_or(path)
+}
+
+/// Writes `dataset` as the `split` of a Blender-layout dataset in `dir` (created if
+/// needed): `transforms_{split}.json` and `{split}/r_{i}.png`.
+///
+/// The JSON holds `camera_angle_x` (from the first view) and, per frame, `file_path`
+/// (`./{split}/r_{i}`, without extension as in the published scenes), `transform_matrix`
+/// (camera-to-world in OpenGL axes; OpenCV cameras are converted exactly, by negating the
+/// second and third axes) and the exact pinhole intrinsics `fl_x, fl_y, cx, cy, w, h`, which
+/// [`load`](crate::data::load) prefers over `camera_angle_x`, so that a write → load round
+/// trip reproduces poses to rounding and pixels bit for bit. Images are written as RGBA
+/// PNG (RGB images with a mask file take the mask as alpha), masks otherwise dropped.
+///
+/// Every file is written to a temporary name beside its destination and renamed into
+/// place, the JSON last, so no file is left half-written and the JSON never names an image
+/// that is not complete.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `split` for [`Split::All`]; [`Error::Io`] naming the
+/// file that could not be written.
+pub fn write_blender(dir: &Path, split: Split, dataset: &Dataset) -> Result<()> {
+    if split == Split::All {
+        return Err(Error::invalid("split", "train, val or test", "all"));
+    }
+    let name = split.name();
+    let image_dir = dir.join(name);
+    std::fs::create_dir_all(&image_dir).map_err(|source| Error::Io {
+        path: image_dir.display().to_string(),
+        source,
+    })?;
+    let first = dataset.views()[0].camera().intrinsics();
+    let angle_x = 2.0 * (0.5 * first.width as f64 / first.fx).atan();
+    let mut frames = Vec::with_capacity(dataset.len());
+    for (i, view) in dataset.views().iter().enumerate() {
+        let image = view.image();
+        let rgba = match (image.channels(), view.mask_image()) {
+            (4, _) => image.data().to_vec(),
+            (_, mask) => image
+                .data()
+                .chunks_exact(3)
+                .enumerate()
+                .flat_map(|(p, c)| [c[0], c[1], c[2], mask.map_or(255, |m| m.data()[p])])
+                .collect(),
+        };
+        let png = super::output::encode_png(image.width(), image.height(), 4, &rgba)?;
+        write_atomic(&image_dir.join(format!("r_{i}.png")), &png)?;
+        let camera = view.camera();
+        let mut m = camera.cam_to_world().matrix3;
+        if camera.convention() == Convention::OpenCv {
+            m = DMat3::from_cols(m.x_axis, -m.y_axis, -m.z_axis);
+        }
+        let t = camera.cam_to_world().translation;
+        let rows: Vec<Value> = (0..3)
+            .map(|r| Value::from(vec![m.row(r).x, m.row(r).y, m.row(r).z, t[r]]))
+            .chain(std::iter::once(Value::from(vec![0.0, 0.0, 0.0, 1.0])))
+            .collect();
+        let k = camera.intrinsics();
+        frames.push(serde_json::json!({
+            "file_path": format!("./{name}/r_{i}"),
+            "rotation": 0.0,
+            "transform_matrix": rows,
+            "fl_x": k.fx, "fl_y": k.fy, "cx": k.cx, "cy": k.cy, "w": k.width, "h": k.height,
+        }));
+    }
+    let json = serde_json::json!({ "camera_angle_x": angle_x, "frames": frames });
+    let text = serde_json::to_string_pretty(&json).map_err(|e| Error::Io {
+        path: dir.display().to_string(),
+        source: std::io::Error::other(e),
+    })?;
+    write_atomic(
+        &dir.join(format!("transforms_{name}.json")),
+        text.as_bytes(),
+    )
+}
