@@ -1,0 +1,442 @@
+//! The committed dataset's cameras against Blender's own projections, and the ray batches:
+//! seeded, consistent with the camera module, with the colours, masks and backgrounds of
+//! their pixels.
+#![cfg(feature = "data")]
+
+mod common;
+
+use candle_core::{DType, Device, IndexOp, Tensor};
+use neural_fields::camera::{Camera, Convention, Intrinsics};
+use neural_fields::data::{
+    load, Background, Dataset, DatasetLayout, Image, LoadConfig, RaySampler, Split, View,
+};
+use neural_fields::glam::{DVec2, DVec3};
+use neural_fields::Error;
+use std::path::Path;
+
+const WUSON: &str = "examples/data/wuson";
+const WUSON_DTU: &str = "examples/data/wuson_dtu";
+
+fn json(path: &str) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+fn vec3(v: &serde_json::Value) -> DVec3 {
+    DVec3::new(
+        v[0].as_f64().unwrap(),
+        v[1].as_f64().unwrap(),
+        v[2].as_f64().unwrap(),
+    )
+}
+
+/// Checks that `point` projects with `camera` to Blender's pixel, and that the ray through
+/// Blender's pixel passes within half a pixel of `point`; returns the worst deviations in
+/// pixels.
+fn check_point(camera: &Camera, point: DVec3, blender: DVec2) -> (f64, f64) {
+    let p = camera
+        .project(point)
+        .expect("the point is in front of the camera");
+    let reprojection = (p.truncate() - blender).length();
+    let (o, d) = camera.ray(blender);
+    // Distance of the point from the ray, in pixels at the point's depth (d has unit depth).
+    let t = (point - o).dot(d) / d.length_squared();
+    let miss = (o + d * t - point).length() / t * camera.intrinsics().fx;
+    assert!(
+        reprojection < 0.5 && miss < 0.5,
+        "{reprojection} px, {miss} px"
+    );
+    (reprojection, miss)
+}
+
+#[test]
+fn committed_blender_dataset_rays_pass_through_blender_projected_vertices() {
+    let points = json(&format!("{WUSON}/points.json"));
+    let verts: Vec<DVec3> = points["points"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(vec3)
+        .collect();
+    let mut worst = (0.0f64, 0.0f64);
+    let mut checked = 0;
+    for (split, name) in [
+        (Split::Train, "train"),
+        (Split::Val, "val"),
+        (Split::Test, "test"),
+    ] {
+        let data = load(
+            Path::new(WUSON),
+            &LoadConfig {
+                split,
+                ..LoadConfig::default()
+            },
+        )
+        .unwrap();
+        let frames = points["frames"][name].as_array().unwrap();
+        assert_eq!(frames.len(), data.len());
+        for (view, frame) in data.views().iter().zip(frames) {
+            let file = frame["file_path"]
+                .as_str()
+                .unwrap()
+                .trim_start_matches("./");
+            assert!(
+                view.name().ends_with(&format!("{file}.png")),
+                "{}",
+                view.name()
+            );
+            for (vert, px) in verts.iter().zip(frame["pixels"].as_array().unwrap()) {
+                let px = DVec2::new(px[0].as_f64().unwrap(), px[1].as_f64().unwrap());
+                let (a, b) = check_point(view.camera(), *vert, px);
+                worst = (worst.0.max(a), worst.1.max(b));
+                checked += 1;
+            }
+        }
+    }
+    assert_eq!(checked, 80 * 8);
+    // Blender's own numbers agree to rounding, far inside the half pixel required.
+    assert!(worst.0 < 1e-3 && worst.1 < 1e-3, "{worst:?}");
+}
+
+#[test]
+fn committed_dtu_dataset_rays_pass_through_blender_projected_vertices() {
+    let points = json(&format!("{WUSON_DTU}/points.json"));
+    let scale = points["dtu_scale"].as_f64().unwrap() * 1.1; // scale_mat's radius (README)
+    let offset = vec3(&points["dtu_offset"]);
+    let verts: Vec<DVec3> = points["points"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| (vec3(p) - offset) / scale) // into the normalised frame of the cameras
+        .collect();
+    assert_eq!(
+        DatasetLayout::detect(Path::new(WUSON_DTU)).unwrap(),
+        DatasetLayout::Dtu
+    );
+    let data = load(
+        Path::new(WUSON_DTU),
+        &LoadConfig {
+            split: Split::All,
+            ..LoadConfig::default()
+        },
+    )
+    .unwrap();
+    let frames = points["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), data.len());
+    let mut worst = 0.0f64;
+    for (view, frame) in data.views().iter().zip(frames) {
+        assert!(view.name().ends_with(frame["image"].as_str().unwrap()));
+        assert!(view.mask_image().is_some());
+        for (vert, px) in verts.iter().zip(frame["pixels"].as_array().unwrap()) {
+            assert!(vert.length() < 1.0, "inside the unit sphere");
+            let px = DVec2::new(px[0].as_f64().unwrap(), px[1].as_f64().unwrap());
+            let (a, b) = check_point(view.camera(), *vert, px);
+            worst = worst.max(a).max(b);
+        }
+    }
+    assert!(worst < 1e-3, "{worst}");
+}
+
+#[test]
+fn committed_dataset_has_the_documented_splits_and_masks() {
+    let counts: Vec<usize> = [Split::Train, Split::Val, Split::Test, Split::All]
+        .into_iter()
+        .map(|split| {
+            load(
+                Path::new(WUSON),
+                &LoadConfig {
+                    split,
+                    ..LoadConfig::default()
+                },
+            )
+            .unwrap()
+            .len()
+        })
+        .collect();
+    assert_eq!(counts, [50, 10, 20, 80]);
+    let test = load(
+        Path::new(WUSON),
+        &LoadConfig {
+            split: Split::Test,
+            ..LoadConfig::default()
+        },
+    )
+    .unwrap();
+    let dtu = load(
+        Path::new(WUSON_DTU),
+        &LoadConfig {
+            split: Split::All,
+            ..LoadConfig::default()
+        },
+    )
+    .unwrap();
+    // The DTU copy's masks are the Blender renders' alpha ≥ 0.5.
+    for (a, b) in test.views().iter().zip(dtu.views()) {
+        let alpha = a
+            .mask(&Device::Cpu, DType::F64)
+            .unwrap()
+            .unwrap()
+            .ge(0.5)
+            .unwrap();
+        let mask = b
+            .mask(&Device::Cpu, DType::F64)
+            .unwrap()
+            .unwrap()
+            .ge(0.5)
+            .unwrap();
+        let differ = alpha
+            .ne(&mask)
+            .unwrap()
+            .to_dtype(DType::F64)
+            .unwrap()
+            .sum_all()
+            .unwrap();
+        assert_eq!(differ.to_scalar::<f64>().unwrap(), 0.0);
+    }
+}
+
+/// Two views of different sizes, RGBA with varying alpha.
+fn two_views() -> Dataset {
+    let views = [(10usize, 10usize, 0u8), (20, 12, 1)]
+        .into_iter()
+        .map(|(w, h, s)| {
+            let k = Intrinsics::new(12.0, 11.0, w as f64 / 2.0, h as f64 / 2.0, w, h).unwrap();
+            let eye = DVec3::new(3.0, -2.0 + f64::from(s), 1.0);
+            let cam = Camera::look_at(k, eye, DVec3::ZERO, DVec3::Z, Convention::OpenGl).unwrap();
+            let data = common::datasets::pattern(w, h, 4, s);
+            View::new(
+                cam,
+                Image::new(w, h, 4, data).unwrap(),
+                None,
+                format!("v{s}"),
+            )
+            .unwrap()
+        })
+        .collect();
+    Dataset::new(views, Background::Color([0.2, 0.4, 0.6]), None).unwrap()
+}
+
+fn u32s(t: &Tensor) -> Vec<u32> {
+    t.flatten_all().unwrap().to_vec1().unwrap()
+}
+
+fn f64s(t: &Tensor) -> Vec<f64> {
+    t.to_dtype(DType::F64)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap()
+}
+
+#[test]
+fn sampled_rays_colours_and_masks_are_those_of_their_pixels() {
+    let data = two_views();
+    for dtype in [DType::F32, DType::F64] {
+        let tol = if dtype == DType::F32 { 1e-6 } else { 1e-12 };
+        let mut sampler = RaySampler::new(&data, 7, &Device::Cpu, dtype).unwrap();
+        let batch = sampler.pixels(500).unwrap();
+        assert_eq!(batch.colors.dtype(), dtype);
+        let (views, pixels) = (u32s(&batch.views), u32s(&batch.pixels));
+        let colors = f64s(&batch.colors);
+        let masks = f64s(batch.masks.as_ref().unwrap());
+        let bgs = f64s(&batch.backgrounds);
+        for i in 0..500 {
+            let view = &data.views()[views[i] as usize];
+            let (u, v) = (pixels[2 * i] as usize, pixels[2 * i + 1] as usize);
+            let rgb = f64s(
+                &view
+                    .rgb([0.2, 0.4, 0.6], &Device::Cpu, DType::F64)
+                    .unwrap()
+                    .i((v, u))
+                    .unwrap(),
+            );
+            for c in 0..3 {
+                assert!((colors[3 * i + c] - rgb[c]).abs() < tol);
+                assert_eq!(bgs[3 * i + c] as f32, [0.2f32, 0.4, 0.6][c]);
+            }
+            let alpha = f64::from(view.image().pixel(u, v).unwrap()[3]) / 255.0;
+            assert!((masks[i] - alpha).abs() < tol);
+        }
+        // The rays are the camera module's rays through the pixel centres.
+        for view_index in 0..2u32 {
+            let rows: Vec<usize> = (0..500).filter(|&i| views[i] == view_index).collect();
+            let centres: Vec<f64> = rows
+                .iter()
+                .flat_map(|&i| {
+                    [
+                        f64::from(pixels[2 * i]) + 0.5,
+                        f64::from(pixels[2 * i + 1]) + 0.5,
+                    ]
+                })
+                .collect();
+            let centres = Tensor::from_vec(centres, (rows.len(), 2), &Device::Cpu)
+                .unwrap()
+                .to_dtype(dtype)
+                .unwrap();
+            let want = data.views()[view_index as usize]
+                .camera()
+                .rays_for_pixels(&centres)
+                .unwrap();
+            let idx = Tensor::new(
+                rows.iter().map(|&i| i as u32).collect::<Vec<_>>(),
+                &Device::Cpu,
+            )
+            .unwrap();
+            let got_d = f64s(&batch.rays.directions().index_select(&idx, 0).unwrap());
+            let got_o = f64s(&batch.rays.origins().index_select(&idx, 0).unwrap());
+            for (a, b) in got_d.iter().zip(f64s(want.directions())) {
+                assert!((a - b).abs() < 10.0 * tol, "{a} vs {b}");
+            }
+            for (a, b) in got_o.iter().zip(f64s(want.origins())) {
+                assert!((a - b).abs() < 10.0 * tol);
+            }
+        }
+    }
+}
+
+#[test]
+fn sampling_is_seeded_and_weighs_views_by_pixel_count() {
+    let data = two_views();
+    let draw = |seed| {
+        let mut s = RaySampler::new(&data, seed, &Device::Cpu, DType::F32).unwrap();
+        let b = s.pixels(30_000).unwrap();
+        (u32s(&b.views), u32s(&b.pixels))
+    };
+    let (a, b, c) = (draw(1), draw(1), draw(2));
+    assert_eq!(a, b);
+    assert_ne!(a.1, c.1);
+    // View 1 has 240 of the 340 pixels: that fraction of the rays, within 4.5 standard
+    // deviations.
+    let frac = a.0.iter().filter(|&&v| v == 1).count() as f64 / 30_000.0;
+    let q = 240.0 / 340.0;
+    let sd = (q * (1.0 - q) / 30_000.0f64).sqrt();
+    assert!((frac - q).abs() < 4.5 * sd, "{frac}");
+    // Every pixel index is inside its view.
+    for i in 0..30_000 {
+        let (w, h) = if a.0[i] == 0 { (10, 10) } else { (20, 12) };
+        assert!(a.1[2 * i] < w && a.1[2 * i + 1] < h);
+    }
+}
+
+#[test]
+fn patches_are_k_by_k_blocks_of_adjacent_pixels_in_one_view() {
+    let data = two_views();
+    let mut sampler = RaySampler::new(&data, 3, &Device::Cpu, DType::F64).unwrap();
+    let (count, k) = (40, 4);
+    let batch = sampler.patches(count, k).unwrap();
+    assert_eq!(batch.len(), count * k * k);
+    let (views, pixels) = (u32s(&batch.views), u32s(&batch.pixels));
+    for p in 0..count {
+        let base = p * k * k;
+        let (u0, v0) = (pixels[2 * base], pixels[2 * base + 1]);
+        for i in 0..k {
+            for j in 0..k {
+                let r = base + i * k + j;
+                assert_eq!(views[r], views[base]);
+                assert_eq!(
+                    (pixels[2 * r], pixels[2 * r + 1]),
+                    (u0 + j as u32, v0 + i as u32)
+                );
+            }
+        }
+    }
+    // `colors` reshapes into the patches.
+    assert_eq!(
+        batch.colors.reshape((count, k, k, 3)).unwrap().dims(),
+        &[count, k, k, 3]
+    );
+    // A patch as large as the smaller view still fits in both; larger fits only the wider.
+    assert!(sampler.patches(5, 10).is_ok());
+    let wide = sampler.patches(50, 11);
+    assert!(u32s(&wide.unwrap().views).iter().all(|&v| v == 1));
+    assert!(matches!(
+        sampler.patches(1, 13),
+        Err(Error::InvalidArgument { arg: "k", .. })
+    ));
+    assert!(matches!(
+        sampler.patches(0, 2),
+        Err(Error::InvalidArgument { arg: "count", .. })
+    ));
+    assert!(matches!(
+        sampler.patches(usize::MAX, 2),
+        Err(Error::InvalidArgument { arg: "count", .. })
+    ));
+    assert!(matches!(
+        sampler.pixels(0),
+        Err(Error::InvalidArgument { arg: "n", .. })
+    ));
+}
+
+#[test]
+fn random_backgrounds_are_drawn_per_ray_and_composited_into_the_targets() {
+    let views = two_views().views().to_vec();
+    let data = Dataset::new(views, Background::Random, None).unwrap();
+    let mut sampler = RaySampler::new(&data, 11, &Device::Cpu, DType::F64).unwrap();
+    let batch = sampler.pixels(2000).unwrap();
+    let (views, pixels) = (u32s(&batch.views), u32s(&batch.pixels));
+    let (colors, bgs) = (f64s(&batch.colors), f64s(&batch.backgrounds));
+    let mean_bg = bgs.iter().sum::<f64>() / bgs.len() as f64;
+    assert!((mean_bg - 0.5).abs() < 0.02, "{mean_bg}");
+    for i in 0..2000 {
+        let p = data.views()[views[i] as usize]
+            .image()
+            .pixel(pixels[2 * i] as usize, pixels[2 * i + 1] as usize)
+            .unwrap();
+        let a = f64::from(p[3]) / 255.0;
+        for c in 0..3 {
+            let want = f64::from(p[c]) / 255.0 * a + bgs[3 * i + c] * (1.0 - a);
+            assert!((colors[3 * i + c] - want).abs() < 1e-12);
+        }
+    }
+    // Evaluation chunks use white.
+    let chunk = data.view_rays(0, 0, 10, &Device::Cpu, DType::F64).unwrap();
+    assert!(f64s(&chunk.backgrounds).iter().all(|&b| b == 1.0));
+}
+
+#[test]
+fn view_chunks_cover_the_image_in_row_major_order() {
+    let data = two_views();
+    let (w, h) = (20usize, 12usize);
+    let mut colors = Vec::new();
+    let mut start = 0;
+    while start < w * h {
+        let len = 64.min(w * h - start);
+        let chunk = data
+            .view_rays(1, start, len, &Device::Cpu, DType::F32)
+            .unwrap();
+        let px = u32s(&chunk.pixels);
+        assert_eq!((px[0] as usize, px[1] as usize), (start % w, start / w));
+        colors.extend(f64s(&chunk.colors));
+        start += len;
+    }
+    let want = f64s(
+        &data.views()[1]
+            .rgb([0.2, 0.4, 0.6], &Device::Cpu, DType::F32)
+            .unwrap(),
+    );
+    assert_eq!(colors, want);
+    let arg = |r: neural_fields::Result<neural_fields::data::RayBatch>| match r {
+        Err(Error::InvalidArgument { arg, .. }) => arg,
+        other => panic!("{:?}", other.map(|b| b.len())),
+    };
+    assert_eq!(
+        arg(data.view_rays(2, 0, 1, &Device::Cpu, DType::F32)),
+        "view"
+    );
+    assert_eq!(
+        arg(data.view_rays(1, 239, 2, &Device::Cpu, DType::F32)),
+        "start"
+    );
+    assert_eq!(
+        arg(data.view_rays(1, usize::MAX, 2, &Device::Cpu, DType::F32)),
+        "start"
+    );
+    assert_eq!(
+        arg(data.view_rays(1, 0, 0, &Device::Cpu, DType::F32)),
+        "len"
+    );
+    assert_eq!(
+        arg(data.view_rays(1, 0, 1, &Device::Cpu, DType::U8)),
+        "dtype"
+    );
+}
