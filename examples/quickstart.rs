@@ -16,6 +16,7 @@
 use candle_core::{DType, Device, Tensor};
 use candle_nn::Optimizer;
 use neural_fields::camera::ray_aabb;
+use neural_fields::data::write_png;
 use neural_fields::dvr::{march, MarchConfig};
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::{ImplicitSurface, SignedDistance, Torus};
@@ -29,8 +30,6 @@ use std::time::Instant;
 #[path = "common/cameras.rs"]
 mod cameras;
 mod common;
-#[path = "common/image.rs"]
-mod image;
 
 const BOX: f64 = 0.55;
 
@@ -142,19 +141,19 @@ fn render(net: &Mlp, path: &std::path::Path) -> neural_fields::Result<()> {
     let (_, grad) = net.value_and_grad(&hits.points)?;
     let grad = grad.to_dtype(DType::F64)?.to_vec2::<f64>()?;
     let light = DVec3::new(0.6, -0.2, 0.8).normalize();
-    let pixels: Vec<u8> = grad
+    let pixels: Vec<f64> = grad
         .iter()
         .zip(&hits.status)
         .map(|(g, status)| {
             let n = -DVec3::new(g[0], g[1], g[2]).normalize_or_zero();
             if status.has_surface() {
-                (40.0 + 200.0 * n.dot(light).max(0.0)) as u8
+                (40.0 + 200.0 * n.dot(light).max(0.0)) / 255.0
             } else {
-                255
+                1.0
             }
         })
         .collect();
-    image::write_png(path, side, side, png::ColorType::Grayscale, &pixels)?;
+    write_png(path, &Tensor::from_vec(pixels, (side, side), &Device::Cpu)?)?;
     println!(
         "rendered {side}×{side} with dvr::march ({} field evaluations) in {:.2} s: wrote {}",
         hits.evaluations,

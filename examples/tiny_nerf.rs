@@ -36,6 +36,7 @@
 use candle_core::{DType, Device, Tensor};
 use candle_nn::Optimizer;
 use neural_fields::camera::{ray_sphere, Camera, Rays};
+use neural_fields::data::{psnr, write_png};
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::Field;
 use neural_fields::glam::DVec3;
@@ -51,8 +52,6 @@ use std::time::Instant;
 #[path = "common/cameras.rs"]
 mod cameras;
 mod common;
-#[path = "common/image.rs"]
-mod image;
 
 // candle allocates fresh tensors every step; see the module docs.
 #[global_allocator]
@@ -181,15 +180,6 @@ fn occupied_fraction(grid: &OccupancyGrid) -> f64 {
     occupied.iter().filter(|&&o| o).count() as f64 / occupied.len() as f64
 }
 
-fn psnr(a: &Tensor, b: &Tensor) -> Result<f64> {
-    let mse = (a - b)?
-        .sqr()?
-        .mean_all()?
-        .to_dtype(DType::F64)?
-        .to_scalar::<f64>()?;
-    Ok(-10.0 * mse.log10())
-}
-
 /// One training run; returns the held-out rendering.
 fn train(
     mode: Mode,
@@ -264,7 +254,7 @@ fn train(
             println!(
                 "{name:>10} {step:>5} {:>10.5} {:>8.2} {:>9.1} {:>9.1} {:>8.1}",
                 loss.to_dtype(DType::F64)?.to_scalar::<f64>()?,
-                psnr(&image, &images[HELD_OUT])?,
+                psnr(&image, &images[HELD_OUT], None)?,
                 evaluated as f64 / rays.len() as f64,
                 100.0 * occupied_fraction(&grid),
                 train_time,
@@ -275,7 +265,7 @@ fn train(
     println!(
         "{name}: held-out PSNR {:.2} dB after {STEPS} steps in {:.1} s of training; {:.1} \
          samples per ray evaluated in training on average, {:.1} to render the held-out view",
-        psnr(&image, &images[HELD_OUT])?,
+        psnr(&image, &images[HELD_OUT], None)?,
         start.elapsed().as_secs_f64() - eval_secs,
         evaluated_total as f64 / ((STEPS + 1) * VIEWS_PER_STEP * RAYS_PER_VIEW) as f64,
         evaluated as f64 / held_out.len() as f64,
@@ -326,28 +316,26 @@ fn main() -> Result<()> {
     );
     let strat = train(Mode::Stratified, &cameras, &images, &device, dtype)?;
     let grid = train(Mode::Grid, &cameras, &images, &device, dtype)?;
-    write_png(&path, &[&images[HELD_OUT], &strat, &grid])?;
+    write_panels(&path, &[&images[HELD_OUT], &strat, &grid])?;
     println!("wrote {path} (held-out view: reference | stratified | grid)");
     Ok(())
 }
 
 /// Writes `SIDE × SIDE` RGB images (`[SIDE², 3]` in [0, 1]) side by side, each pixel
 /// scaled up 4×, to an 8-bit PNG.
-fn write_png(path: &str, panels: &[&Tensor]) -> Result<()> {
+fn write_panels(path: &str, panels: &[&Tensor]) -> Result<()> {
     const UP: usize = 4;
-    let rows: Vec<Vec<Vec<f32>>> = panels
+    let images = panels
         .iter()
-        .map(|t| t.clamp(0.0, 1.0)?.to_dtype(DType::F32)?.to_vec2::<f32>())
-        .collect::<candle_core::Result<_>>()?;
-    let (w, h) = (SIDE * UP * panels.len(), SIDE * UP);
-    let mut data = Vec::with_capacity(w * h * 3);
-    for y in 0..h {
-        for rows in &rows {
-            for x in 0..SIDE * UP {
-                let px = &rows[(y / UP) * SIDE + x / UP];
-                data.extend(px.iter().map(|c| (c * 255.0).round() as u8));
-            }
-        }
-    }
-    image::write_png(std::path::Path::new(path), w, h, png::ColorType::Rgb, &data)
+        .map(|t| {
+            // [SIDE², 3] → [1, 3, SIDE, SIDE] for candle's nearest upsampling, and back.
+            let chw = t
+                .reshape((SIDE, SIDE, 3))?
+                .permute((2, 0, 1))?
+                .unsqueeze(0)?;
+            let up = chw.upsample_nearest2d(SIDE * UP, SIDE * UP)?;
+            Ok(up.squeeze(0)?.permute((1, 2, 0))?)
+        })
+        .collect::<Result<Vec<Tensor>>>()?;
+    write_png(std::path::Path::new(path), &Tensor::cat(&images, 1)?)
 }

@@ -431,7 +431,8 @@ impl Camera {
     /// Projects a world point into the image: `(x, y, depth)` with `(x, y)` the continuous
     /// pixel coordinate (column, row) and `depth` the camera-space depth along the viewing
     /// axis (the ray parameter `t` of [`Camera::ray`], so `ray(x, y)` at `t = depth` is
-    /// `point`). `None` if the point is not in front of the camera (depth ≤ 0) or not finite.
+    /// `point`). `None` if the point is not in front of the camera (depth ≤ 0), not finite,
+    /// or so close to the camera's plane that its pixel coordinates overflow f64.
     /// The inverse of [`Camera::ray`] for points in front of the camera.
     #[must_use]
     pub fn project(&self, point: DVec3) -> Option<DVec3> {
@@ -448,11 +449,13 @@ impl Camera {
             Convention::OpenCv => p.y,
             Convention::OpenGl => -p.y,
         };
-        Some(DVec3::new(
+        let projected = DVec3::new(
             k.fx * p.x / depth + k.cx,
             k.fy * y_cam / depth + k.cy,
             depth,
-        ))
+        );
+        // A point almost in the camera's plane projects beyond f64's range.
+        projected.is_finite().then_some(projected)
     }
 
     /// A differentiable copy of this camera's pose ([`PoseParam::from_affine`]).

@@ -2329,6 +2329,9 @@ fn stiff_cases_give_finite_outputs_and_gradients_or_err() {
     sweep_encodings(&mut s);
     sweep_mlp(&mut s);
     sweep_camera(&mut s);
+    sweep_camera_host(&mut s);
+    #[cfg(feature = "data")]
+    sweep_data(&mut s);
     sweep_rng(&mut s);
     #[cfg(feature = "volume")]
     sweep_volume(&mut s);
@@ -2352,6 +2355,8 @@ fn stiff_cases_give_finite_outputs_and_gradients_or_err() {
 
 /// Items swept above; kept in sync with the sweeps by `covered_matches_list`.
 const COVERED: &[&str] = &[
+    "camera::Camera::project",
+    "camera::Camera::ray",
     "camera::Camera::look_at",
     "camera::Camera::new",
     "camera::Camera::pixel_grid",
@@ -2396,6 +2401,28 @@ const COVERED: &[&str] = &[
     "numerics::softplus",
     "rng::SplitMix64::normal_tensor",
     "rng::SplitMix64::uniform_tensor",
+];
+
+/// Data items swept by `sweep_data`.
+const DATA_COVERED: &[&str] = &[
+    "data::batch::Dataset::view_rays",
+    "data::batch::RaySampler::new",
+    "data::batch::RaySampler::patches",
+    "data::batch::RaySampler::pixels",
+    "data::dataset::Dataset::new",
+    "data::dataset::View::mask",
+    "data::dataset::View::new",
+    "data::dataset::View::rgb",
+    "data::dataset::load",
+    "data::image::Image::from_tensor",
+    "data::image::Image::to_tensor",
+    "data::metrics::psnr",
+    "data::metrics::ssim",
+    "data::output::colorize_depth",
+    "data::output::colorize_normals",
+    "data::output::comparison_strip",
+    "data::output::write_png",
+    "data::transforms::write_blender",
 ];
 
 /// DVR items swept by `sweep_dvr`.
@@ -2495,6 +2522,32 @@ const OCCUPANCY_COVERED: &[&str] = &[
 /// Public items without floating-point input (or only reached through a swept item),
 /// with the reason. Matching is by prefix, so `"error::check_"` covers the checks.
 const EXEMPT: &[(&str, &str)] = &[
+    ("data::batch::RayBatch::is_empty", "getter"),
+    ("data::batch::RayBatch::len", "getter"),
+    ("data::dataset::Background::", "constants"),
+    ("data::dataset::Dataset::background", "getter"),
+    ("data::dataset::Dataset::bounds", "getter"),
+    ("data::dataset::Dataset::image_bytes", "integer count"),
+    ("data::dataset::Dataset::is_empty", "getter"),
+    ("data::dataset::Dataset::len", "getter"),
+    ("data::dataset::Dataset::views", "getter"),
+    (
+        "data::dataset::DatasetLayout::detect",
+        "file-system probe, no floats",
+    ),
+    ("data::dataset::LoadConfig::default", "constant"),
+    ("data::dataset::Split::name", "constant"),
+    ("data::dataset::View::camera", "getter"),
+    ("data::dataset::View::has_mask", "getter"),
+    ("data::dataset::View::image", "getter"),
+    ("data::dataset::View::mask_image", "getter"),
+    ("data::dataset::View::name", "getter"),
+    ("data::image::Image::channels", "getter"),
+    ("data::image::Image::data", "getter"),
+    ("data::image::Image::height", "getter"),
+    ("data::image::Image::new", "bytes, no floats"),
+    ("data::image::Image::pixel", "bytes, no floats"),
+    ("data::image::Image::width", "getter"),
     ("nn::onet::SimpleDecoderConfig::default", "constant"),
     ("nn::onet::SimpleDecoder::code_dim", "getter"),
     ("nn::onet::SimpleDecoder::config", "getter"),
@@ -2765,6 +2818,9 @@ fn covered() -> Vec<&'static str> {
     if cfg!(feature = "dvr") {
         v.extend(DVR_COVERED);
     }
+    if cfg!(feature = "data") {
+        v.extend(DATA_COVERED);
+    }
     v
 }
 
@@ -2774,6 +2830,7 @@ fn module_enabled(item: &str) -> bool {
         ("volume::", cfg!(feature = "volume")),
         ("dvr::", cfg!(feature = "dvr")),
         ("occupancy::", cfg!(feature = "occupancy")),
+        ("data::", cfg!(feature = "data")),
         // ONet's networks: `mod onet` / `mod pointnet` are behind `occupancy` in src/nn.
         ("nn::onet::", cfg!(feature = "occupancy")),
         ("nn::pointnet::", cfg!(feature = "occupancy")),
@@ -2822,4 +2879,301 @@ fn every_public_float_function_is_swept_or_exempt() {
         unknown.is_empty(),
         "COVERED names items that no longer exist: {unknown:?}"
     );
+}
+
+/// A host-side vector result as a `[3]` f64 tensor, so the suite checks it is finite.
+fn host3(v: DVec3) -> neural_fields::Result<Tensor> {
+    Ok(Tensor::new(&v.to_array(), &Device::Cpu)?)
+}
+
+fn sweep_camera_host(s: &mut Suite) {
+    let k = Intrinsics::new(500.0, 400.0, 32.0, 24.0, 64, 48).unwrap();
+    for convention in [Convention::OpenCv, Convention::OpenGl] {
+        let cam = Camera::look_at(
+            k,
+            DVec3::new(1.0, -2.0, 0.5),
+            DVec3::ZERO,
+            DVec3::Z,
+            convention,
+        )
+        .unwrap();
+        for &x in &magnitudes(DType::F64) {
+            s.case(
+                "camera::Camera::ray",
+                format!("{convention:?}, pixel ({x}, {x})"),
+                Expect::Finite,
+                &[],
+                || {
+                    let (o, d) = cam.ray(neural_fields::glam::DVec2::new(x, -x));
+                    Ok(vec![host3(o)?, host3(d)?])
+                },
+            );
+            // Points on and near the camera plane, behind it and far in front: `None` or a
+            // finite pixel, never an infinite one.
+            let c = cam.center();
+            let axis = cam.cam_to_world().matrix3.z_axis;
+            for p in [
+                c + DVec3::splat(x),
+                c + axis * x + DVec3::new(1.0, 0.0, 0.0),
+                DVec3::splat(x),
+            ] {
+                s.case(
+                    "camera::Camera::project",
+                    format!("{convention:?}, point {p}"),
+                    Expect::Finite,
+                    &[],
+                    || Ok(cam.project(p).map(host3).transpose()?.into_iter().collect()),
+                );
+            }
+        }
+    }
+}
+
+#[cfg(feature = "data")]
+fn sweep_data(s: &mut Suite) {
+    use neural_fields::data::{
+        colorize_depth, colorize_normals, comparison_strip, load, psnr, ssim, write_blender,
+        write_png, Background, Dataset, Image, LoadConfig, RaySampler, Split, View,
+    };
+    let d = Device::Cpu;
+    let scalar = |x: f64| Ok::<_, neural_fields::Error>(Tensor::new(x, &d)?);
+    let dir = std::env::temp_dir().join(format!("neural-fields-stiff-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for dtype in DTYPES {
+        for &x in &magnitudes(dtype) {
+            let tag = format!("{dtype:?}, {x}");
+            let full = |shape: &[usize]| Tensor::full(x, shape, &d).and_then(|t| t.to_dtype(dtype));
+            let half =
+                |shape: &[usize]| Tensor::full(0.5, shape, &d).and_then(|t| t.to_dtype(dtype));
+            s.case(
+                "data::metrics::psnr",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let p = psnr(&full(&[12, 12, 3])?, &half(&[12, 12, 3])?, None)?;
+                    // Identical images (x = 0.5) give +∞ by contract; never NaN or −∞.
+                    assert!(!p.is_nan() && p != f64::NEG_INFINITY);
+                    Ok(if p == f64::INFINITY {
+                        vec![]
+                    } else {
+                        vec![scalar(p)?]
+                    })
+                },
+            );
+            s.case(
+                "data::metrics::ssim",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let p = ssim(&full(&[12, 12, 3])?, &half(&[12, 12, 3])?, None)?;
+                    Ok(vec![scalar(p)?])
+                },
+            );
+            s.case(
+                "data::output::colorize_depth",
+                &tag,
+                Expect::Finite,
+                &[],
+                || {
+                    let depth = Tensor::cat(&[&full(&[2, 2])?, &half(&[2, 2])?], 1)?;
+                    let (rgb, (lo, hi)) = colorize_depth(&depth, None)?;
+                    Ok(vec![rgb, scalar(lo)?, scalar(hi)?])
+                },
+            );
+            s.case(
+                "data::output::colorize_normals",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || Ok(vec![colorize_normals(&full(&[2, 2, 3])?)?]),
+            );
+            s.case(
+                "data::output::comparison_strip",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    Ok(vec![comparison_strip(
+                        &half(&[2, 2, 3])?,
+                        &full(&[2, 2, 3])?,
+                    )?])
+                },
+            );
+            s.case(
+                "data::image::Image::from_tensor",
+                &tag,
+                Expect::Finite,
+                &[],
+                || {
+                    let img = Image::from_tensor(&full(&[2, 3, 4])?)?;
+                    Ok(vec![img.to_tensor(&d, dtype)?])
+                },
+            );
+            s.case("data::output::write_png", &tag, Expect::Finite, &[], || {
+                write_png(&dir.join("stiff.png"), &full(&[2, 3, 3])?)?;
+                Ok(vec![])
+            });
+            s.case(
+                "data::dataset::Dataset::new",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let k = Intrinsics::new(3.0, 3.0, 1.0, 1.0, 2, 2)?;
+                    let cam = Camera::new(k, DAffine3::IDENTITY, Convention::OpenCv)?;
+                    let view = View::new(cam, Image::new(2, 2, 3, vec![9; 12])?, None, "v".into())?;
+                    let data = Dataset::new(vec![view], Background::Color([x; 3]), None)?;
+                    Ok(vec![data.views()[0].rgb(
+                        [x.clamp(0.0, 1.0); 3],
+                        &d,
+                        dtype,
+                    )?])
+                },
+            );
+        }
+        s.case(
+            "data::image::Image::to_tensor",
+            format!("{dtype:?}, bytes 0 and 255"),
+            Expect::Finite,
+            &[],
+            || {
+                Ok(vec![
+                    Image::new(2, 1, 3, vec![0, 0, 0, 255, 255, 255])?.to_tensor(&d, dtype)?
+                ])
+            },
+        );
+        // Cameras at extreme focal lengths and distances: rays finite or an error.
+        for (f, eye) in [(1e-6, 1.0), (1e8, 1.0), (500.0, 1e10), (500.0, 1e-10)] {
+            let tag = format!("{dtype:?}, fx {f}, eye at {eye}");
+            let view = || -> neural_fields::Result<View> {
+                let k = Intrinsics::new(f, f, 2.0, 2.0, 4, 4)?;
+                let cam = Camera::look_at(
+                    k,
+                    DVec3::new(eye, 0.0, 0.0),
+                    DVec3::ZERO,
+                    DVec3::Z,
+                    Convention::OpenGl,
+                )?;
+                View::new(
+                    cam,
+                    Image::new(4, 4, 4, (0..64).map(|i| (i * 4) as u8).collect())?,
+                    None,
+                    "v".into(),
+                )
+            };
+            s.case(
+                "data::dataset::View::new",
+                &tag,
+                Expect::Finite,
+                &[],
+                || {
+                    let v = view()?;
+                    Ok(vec![
+                        v.rgb([0.0; 3], &d, dtype)?,
+                        v.mask(&d, dtype)?.expect("alpha"),
+                    ])
+                },
+            );
+            s.case(
+                "data::dataset::View::rgb",
+                &tag,
+                Expect::Finite,
+                &[],
+                || Ok(vec![view()?.rgb([1.0; 3], &d, dtype)?]),
+            );
+            s.case(
+                "data::dataset::View::mask",
+                &tag,
+                Expect::Finite,
+                &[],
+                || Ok(view()?.mask(&d, dtype)?.into_iter().collect()),
+            );
+            let data = Dataset::new(vec![view().unwrap()], Background::Random, None).unwrap();
+            s.case(
+                "data::batch::RaySampler::new",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    RaySampler::new(&data, 0, &d, dtype)?;
+                    Ok(vec![])
+                },
+            );
+            s.case(
+                "data::batch::RaySampler::pixels",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let b = RaySampler::new(&data, 0, &d, dtype)?.pixels(64)?;
+                    Ok(vec![
+                        b.rays.directions().clone(),
+                        b.rays.origins().clone(),
+                        b.colors,
+                        b.backgrounds,
+                    ])
+                },
+            );
+            s.case(
+                "data::batch::RaySampler::patches",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let b = RaySampler::new(&data, 0, &d, dtype)?.patches(4, 3)?;
+                    Ok(vec![b.rays.directions().clone(), b.colors])
+                },
+            );
+            s.case(
+                "data::batch::Dataset::view_rays",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let b = data.view_rays(0, 0, 16, &d, dtype)?;
+                    Ok(vec![b.rays.directions().clone(), b.colors])
+                },
+            );
+            s.case(
+                "data::transforms::write_blender",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let out = dir.join(format!("blender-{f}-{eye}"));
+                    write_blender(&out, Split::Test, &data)?;
+                    let back = load(
+                        &out,
+                        &LoadConfig {
+                            split: Split::Test,
+                            ..LoadConfig::default()
+                        },
+                    )?;
+                    Ok(vec![back.views()[0].rgb([0.0; 3], &d, dtype)?])
+                },
+            );
+        }
+    }
+    for downscale in [1, 7, 100, 101, usize::MAX] {
+        s.case(
+            "data::dataset::load",
+            format!("downscale {downscale}"),
+            Expect::FiniteOrErr,
+            &[],
+            || {
+                let data = load(
+                    std::path::Path::new("examples/data/wuson"),
+                    &LoadConfig {
+                        split: Split::Val,
+                        downscale,
+                        ..LoadConfig::default()
+                    },
+                )?;
+                Ok(vec![data.views()[0].rgb([1.0; 3], &d, DType::F32)?])
+            },
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -125,9 +125,11 @@ impl View {
     /// alpha): `[H, W, 3]` in `dtype` (f32 or f64) on `device`, values in `[0, 1]`.
     ///
     /// # Errors
-    /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64.
+    /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64, `background` unless in
+    /// `[0, 1]`.
     pub fn rgb(&self, background: [f64; 3], device: &Device, dtype: DType) -> Result<Tensor> {
         check_dtype(dtype)?;
+        check_background(&Background::Color(background))?;
         let (w, h) = (self.image.width(), self.image.height());
         let mut data = Vec::with_capacity(3 * w * h);
         for v in 0..h {
@@ -188,6 +190,17 @@ impl Background {
             Background::Color(c) => *c,
             Background::Random => [1.0; 3],
         }
+    }
+}
+
+fn check_background(background: &Background) -> Result<()> {
+    match background {
+        Background::Color(c) if !c.iter().all(|x| (0.0..=1.0).contains(x)) => Err(Error::invalid(
+            "background",
+            "a colour in [0, 1]",
+            format!("{c:?}"),
+        )),
+        _ => Ok(()),
     }
 }
 
@@ -342,15 +355,7 @@ impl Dataset {
         if views.is_empty() {
             return Err(Error::invalid("views", "at least one view", "none"));
         }
-        if let Background::Color(c) = background {
-            if !c.iter().all(|x| (0.0..=1.0).contains(x)) {
-                return Err(Error::invalid(
-                    "background",
-                    "a colour in [0, 1]",
-                    format!("{c:?}"),
-                ));
-            }
-        }
+        check_background(&background)?;
         Ok(Self {
             views,
             background,
@@ -405,7 +410,7 @@ impl Dataset {
 /// rigid, of the image's size). Poses within 1e-3 of a rotation but not within 1e-6 (the
 /// rounding of some exporters) are orthonormalised; others are errors.
 ///
-/// ```no_run
+/// ```
 /// use neural_fields::data::{load, LoadConfig, Split};
 /// let train = load("examples/data/wuson".as_ref(), &LoadConfig::default())?;
 /// let test = load(
@@ -427,15 +432,7 @@ pub fn load(dir: &Path, config: &LoadConfig) -> Result<Dataset> {
     if config.downscale == 0 {
         return Err(Error::invalid("downscale", "an integer ≥ 1", "0"));
     }
-    if let Background::Color(c) = config.background {
-        if !c.iter().all(|x| (0.0..=1.0).contains(x)) {
-            return Err(Error::invalid(
-                "background",
-                "a colour in [0, 1]",
-                format!("{c:?}"),
-            ));
-        }
-    }
+    check_background(&config.background)?;
     let layout = match config.layout {
         Some(l) => l,
         None => DatasetLayout::detect(dir)?,

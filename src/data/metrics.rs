@@ -86,8 +86,9 @@ fn mask_of(mask: Option<&Tensor>, h: usize, w: usize) -> Result<Option<Vec<bool>
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `pred` / `target` for another rank, an empty image,
-/// another dtype or non-finite values, `target` for a shape unlike `pred`'s, `mask` for a
-/// shape other than `[H, W]` or a mask that selects no pixel.
+/// another dtype or non-finite values, `pred` if values far outside `[0, 1]` overflow the
+/// squared error, `target` for a shape unlike `pred`'s, `mask` for a shape other than
+/// `[H, W]` or a mask that selects no pixel.
 pub fn psnr(pred: &Tensor, target: &Tensor, mask: Option<&Tensor>) -> Result<f64> {
     let ((h, w, c, p), t) = pair(pred, target)?;
     let keep = mask_of(mask, h, w)?;
@@ -102,11 +103,23 @@ pub fn psnr(pred: &Tensor, target: &Tensor, mask: Option<&Tensor>) -> Result<f64
         return Err(Error::invalid("mask", "at least one pixel ≥ 0.5", "none"));
     }
     let mse = sum / n as f64;
+    if !mse.is_finite() {
+        return Err(overflow(mse));
+    }
     Ok(if mse == 0.0 {
         f64::INFINITY
     } else {
         -10.0 * mse.log10()
     })
+}
+
+/// The error for values so large (images are in `[0, 1]`) that a metric overflows f64.
+fn overflow(got: f64) -> Error {
+    Error::invalid(
+        "pred",
+        "values for which the metric is finite in f64 (images in [0, 1])",
+        format!("an intermediate {got}"),
+    )
 }
 
 /// SSIM's window: a Gaussian of σ = 1.5 truncated at 3.5σ (radius 5, 11 taps), normalised.
@@ -169,8 +182,8 @@ fn blur(x: &[f64], h: usize, w: usize, taps: &[f64; 11]) -> Vec<f64> {
 /// (computed on the host in f64). Not differentiable.
 ///
 /// # Errors
-/// Those of [`psnr`], and `pred` if a side is below 11 pixels or the mask leaves no pixel
-/// inside the border.
+/// Those of [`psnr`], and `pred` if a side is below 11 pixels, or if values far outside
+/// `[0, 1]` overflow f64; `mask` if it leaves no pixel inside the border.
 pub fn ssim(pred: &Tensor, target: &Tensor, mask: Option<&Tensor>) -> Result<f64> {
     let ((h, w, c, p), t) = pair(pred, target)?;
     if h < 11 || w < 11 {
@@ -219,5 +232,9 @@ pub fn ssim(pred: &Tensor, target: &Tensor, mask: Option<&Tensor>) -> Result<f64
         }
         total += sum / n as f64;
     }
-    Ok(total / c as f64)
+    let mean = total / c as f64;
+    if !mean.is_finite() {
+        return Err(overflow(mean));
+    }
+    Ok(mean)
 }

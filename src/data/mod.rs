@@ -28,7 +28,7 @@
 //! [`colorize_normals`] and [`comparison_strip`]; [`write_blender`] turns any [`Dataset`]
 //! (e.g. renders of an analytic scene) into a Blender-layout dataset.
 //!
-//! ```no_run
+//! ```
 //! use candle_core::{DType, Device};
 //! use neural_fields::data::{load, LoadConfig, RaySampler};
 //!
