@@ -5,7 +5,16 @@
 
 mod common;
 
+/// The default configuration for one split.
+fn of_split(split: Split) -> LoadConfig {
+    LoadConfig {
+        split,
+        ..LoadConfig::default()
+    }
+}
+
 use candle_core::{DType, Device, IndexOp, Tensor};
+use common::v64;
 use neural_fields::camera::{Camera, Convention, Intrinsics};
 use neural_fields::data::{
     load, Background, Dataset, DatasetLayout, Image, LoadConfig, RaySampler, Split, View,
@@ -64,14 +73,7 @@ fn committed_blender_dataset_rays_pass_through_blender_projected_vertices() {
         (Split::Val, "val"),
         (Split::Test, "test"),
     ] {
-        let data = load(
-            Path::new(WUSON),
-            &LoadConfig {
-                split,
-                ..LoadConfig::default()
-            },
-        )
-        .unwrap();
+        let data = load(Path::new(WUSON), &of_split(split)).unwrap();
         let frames = points["frames"][name].as_array().unwrap();
         assert_eq!(frames.len(), data.len());
         for (view, frame) in data.views().iter().zip(frames) {
@@ -112,14 +114,7 @@ fn committed_dtu_dataset_rays_pass_through_blender_projected_vertices() {
         DatasetLayout::detect(Path::new(WUSON_DTU)).unwrap(),
         DatasetLayout::Dtu
     );
-    let data = load(
-        Path::new(WUSON_DTU),
-        &LoadConfig {
-            split: Split::All,
-            ..LoadConfig::default()
-        },
-    )
-    .unwrap();
+    let data = load(Path::new(WUSON_DTU), &of_split(Split::All)).unwrap();
     let frames = points["frames"].as_array().unwrap();
     assert_eq!(frames.len(), data.len());
     let mut worst = 0.0f64;
@@ -140,35 +135,11 @@ fn committed_dtu_dataset_rays_pass_through_blender_projected_vertices() {
 fn committed_dataset_has_the_documented_splits_and_masks() {
     let counts: Vec<usize> = [Split::Train, Split::Val, Split::Test, Split::All]
         .into_iter()
-        .map(|split| {
-            load(
-                Path::new(WUSON),
-                &LoadConfig {
-                    split,
-                    ..LoadConfig::default()
-                },
-            )
-            .unwrap()
-            .len()
-        })
+        .map(|split| load(Path::new(WUSON), &of_split(split)).unwrap().len())
         .collect();
     assert_eq!(counts, [50, 10, 20, 80]);
-    let test = load(
-        Path::new(WUSON),
-        &LoadConfig {
-            split: Split::Test,
-            ..LoadConfig::default()
-        },
-    )
-    .unwrap();
-    let dtu = load(
-        Path::new(WUSON_DTU),
-        &LoadConfig {
-            split: Split::All,
-            ..LoadConfig::default()
-        },
-    )
-    .unwrap();
+    let test = load(Path::new(WUSON), &of_split(Split::Test)).unwrap();
+    let dtu = load(Path::new(WUSON_DTU), &of_split(Split::All)).unwrap();
     // The DTU copy's masks are the Blender renders' alpha ≥ 0.5.
     for (a, b) in test.views().iter().zip(dtu.views()) {
         let alpha = a
@@ -219,15 +190,6 @@ fn u32s(t: &Tensor) -> Vec<u32> {
     t.flatten_all().unwrap().to_vec1().unwrap()
 }
 
-fn f64s(t: &Tensor) -> Vec<f64> {
-    t.to_dtype(DType::F64)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1()
-        .unwrap()
-}
-
 #[test]
 fn sampled_rays_colours_and_masks_are_those_of_their_pixels() {
     let data = two_views();
@@ -237,19 +199,17 @@ fn sampled_rays_colours_and_masks_are_those_of_their_pixels() {
         let batch = sampler.pixels(500).unwrap();
         assert_eq!(batch.colors.dtype(), dtype);
         let (views, pixels) = (u32s(&batch.views), u32s(&batch.pixels));
-        let colors = f64s(&batch.colors);
-        let masks = f64s(batch.masks.as_ref().unwrap());
-        let bgs = f64s(&batch.backgrounds);
+        let colors = v64(&batch.colors);
+        let masks = v64(batch.masks.as_ref().unwrap());
+        let bgs = v64(&batch.backgrounds);
         for i in 0..500 {
             let view = &data.views()[views[i] as usize];
             let (u, v) = (pixels[2 * i] as usize, pixels[2 * i + 1] as usize);
-            let rgb = f64s(
-                &view
-                    .rgb([0.2, 0.4, 0.6], &Device::Cpu, DType::F64)
-                    .unwrap()
-                    .i((v, u))
-                    .unwrap(),
-            );
+            let rgb = v64(&view
+                .rgb([0.2, 0.4, 0.6], &Device::Cpu, DType::F64)
+                .unwrap()
+                .i((v, u))
+                .unwrap());
             for c in 0..3 {
                 assert!((colors[3 * i + c] - rgb[c]).abs() < tol);
                 assert_eq!(bgs[3 * i + c] as f32, [0.2f32, 0.4, 0.6][c]);
@@ -282,12 +242,12 @@ fn sampled_rays_colours_and_masks_are_those_of_their_pixels() {
                 &Device::Cpu,
             )
             .unwrap();
-            let got_d = f64s(&batch.rays.directions().index_select(&idx, 0).unwrap());
-            let got_o = f64s(&batch.rays.origins().index_select(&idx, 0).unwrap());
-            for (a, b) in got_d.iter().zip(f64s(want.directions())) {
+            let got_d = v64(&batch.rays.directions().index_select(&idx, 0).unwrap());
+            let got_o = v64(&batch.rays.origins().index_select(&idx, 0).unwrap());
+            for (a, b) in got_d.iter().zip(v64(want.directions())) {
                 assert!((a - b).abs() < 10.0 * tol, "{a} vs {b}");
             }
-            for (a, b) in got_o.iter().zip(f64s(want.origins())) {
+            for (a, b) in got_o.iter().zip(v64(want.origins())) {
                 assert!((a - b).abs() < 10.0 * tol);
             }
         }
@@ -374,7 +334,7 @@ fn random_backgrounds_are_drawn_per_ray_and_composited_into_the_targets() {
     let mut sampler = RaySampler::new(&data, 11, &Device::Cpu, DType::F64).unwrap();
     let batch = sampler.pixels(2000).unwrap();
     let (views, pixels) = (u32s(&batch.views), u32s(&batch.pixels));
-    let (colors, bgs) = (f64s(&batch.colors), f64s(&batch.backgrounds));
+    let (colors, bgs) = (v64(&batch.colors), v64(&batch.backgrounds));
     let mean_bg = bgs.iter().sum::<f64>() / bgs.len() as f64;
     assert!((mean_bg - 0.5).abs() < 0.02, "{mean_bg}");
     for i in 0..2000 {
@@ -390,7 +350,7 @@ fn random_backgrounds_are_drawn_per_ray_and_composited_into_the_targets() {
     }
     // Evaluation chunks use white.
     let chunk = data.view_rays(0, 0, 10, &Device::Cpu, DType::F64).unwrap();
-    assert!(f64s(&chunk.backgrounds).iter().all(|&b| b == 1.0));
+    assert!(v64(&chunk.backgrounds).iter().all(|&b| b == 1.0));
 }
 
 #[test]
@@ -406,14 +366,12 @@ fn view_chunks_cover_the_image_in_row_major_order() {
             .unwrap();
         let px = u32s(&chunk.pixels);
         assert_eq!((px[0] as usize, px[1] as usize), (start % w, start / w));
-        colors.extend(f64s(&chunk.colors));
+        colors.extend(v64(&chunk.colors));
         start += len;
     }
-    let want = f64s(
-        &data.views()[1]
-            .rgb([0.2, 0.4, 0.6], &Device::Cpu, DType::F32)
-            .unwrap(),
-    );
+    let want = v64(&data.views()[1]
+        .rgb([0.2, 0.4, 0.6], &Device::Cpu, DType::F32)
+        .unwrap());
     assert_eq!(colors, want);
     let arg = |r: neural_fields::Result<neural_fields::data::RayBatch>| match r {
         Err(Error::InvalidArgument { arg, .. }) => arg,

@@ -5,6 +5,14 @@
 
 mod common;
 
+/// The default configuration for one split.
+fn of_split(split: Split) -> LoadConfig {
+    LoadConfig {
+        split,
+        ..LoadConfig::default()
+    }
+}
+
 use candle_core::{DType, Device};
 use common::datasets::{flat, npy, npz, pattern, png, scratch};
 use neural_fields::camera::{Camera, Convention, Intrinsics};
@@ -68,6 +76,17 @@ fn blender_sample(dir: &Path, split: &str, n: usize) {
     .unwrap();
 }
 
+/// Asserts that `result` is a format error naming a path ending in `file` and `field`.
+fn expect_format<T>(result: neural_fields::Result<T>, file: &str, field: &str) {
+    match result {
+        Err(Error::Format { path, field: f, .. }) => {
+            assert!(path.ends_with(file) && f == field, "{path}: {f}")
+        }
+        Err(other) => panic!("expected a format error, got {other}"),
+        Ok(_) => panic!("expected a format error naming {file}: {field}"),
+    }
+}
+
 fn format_field(e: &Error) -> (String, String) {
     match e {
         Error::Format { path, field, .. } => (path.clone(), field.clone()),
@@ -101,26 +120,13 @@ fn blender_sample_parses_to_its_cameras_and_pixels() {
         let got = rgb.get(1).unwrap().get(1).unwrap().get(0).unwrap();
         assert!((got.to_scalar::<f64>().unwrap() - want).abs() < 1e-12);
     }
-    let all = load(
-        &dir,
-        &LoadConfig {
-            split: Split::All,
-            ..LoadConfig::default()
-        },
-    );
+    let all = load(&dir, &of_split(Split::All));
     // No transforms_val.json: the error names it.
     match all {
         Err(Error::Io { path, .. }) => assert!(path.ends_with("transforms_val.json"), "{path}"),
         other => panic!("{other:?}"),
     }
-    let test = load(
-        &dir,
-        &LoadConfig {
-            split: Split::Test,
-            ..LoadConfig::default()
-        },
-    )
-    .unwrap();
+    let test = load(&dir, &of_split(Split::Test)).unwrap();
     assert_eq!(test.len(), 2);
 }
 
@@ -178,14 +184,7 @@ fn nerfstudio_sample_parses_with_global_and_per_frame_intrinsics() {
             max: [8.0; 3]
         })
     );
-    let test = load(
-        &dir,
-        &LoadConfig {
-            split: Split::Test,
-            ..LoadConfig::default()
-        },
-    )
-    .unwrap();
+    let test = load(&dir, &of_split(Split::Test)).unwrap();
     let names: Vec<&str> = test.views().iter().map(View::name).collect();
     assert!(names[0].ends_with("frame_00001.jpg") && names[1].ends_with("frame_00009.jpg"));
     // A frame subset, in the order given.
@@ -221,14 +220,7 @@ fn nerfstudio_scale_and_offset_move_camera_centres() {
         "frames": [{ "file_path": "a.png", "transform_matrix": look_rows(eyes()[0]) }],
     });
     std::fs::write(dir.join("transforms.json"), json.to_string()).unwrap();
-    let all = load(
-        &dir,
-        &LoadConfig {
-            split: Split::All,
-            ..LoadConfig::default()
-        },
-    )
-    .unwrap();
+    let all = load(&dir, &of_split(Split::All)).unwrap();
     let c = all.views()[0].camera().center();
     assert_eq!(c, eyes()[0] * 0.5 + DVec3::new(0.5, 0.25, -1.0));
 }
@@ -296,14 +288,7 @@ fn dtu_sample_decomposes_world_and_scale_matrices() {
     let dir = scratch("dtu-sample");
     let truth = dtu_sample(&dir, 3, 200.0, DVec3::new(30.0, -20.0, 500.0));
     assert_eq!(DatasetLayout::detect(&dir).unwrap(), DatasetLayout::Dtu);
-    let all = load(
-        &dir,
-        &LoadConfig {
-            split: Split::All,
-            ..LoadConfig::default()
-        },
-    )
-    .unwrap();
+    let all = load(&dir, &of_split(Split::All)).unwrap();
     assert_eq!(all.len(), 3);
     assert_eq!(
         all.bounds(),
@@ -325,14 +310,7 @@ fn dtu_sample_decomposes_world_and_scale_matrices() {
         assert!(view.mask_image().is_some());
     }
     // Hold-out rule: frame 0 is the test split.
-    let test = load(
-        &dir,
-        &LoadConfig {
-            split: Split::Test,
-            ..LoadConfig::default()
-        },
-    )
-    .unwrap();
+    let test = load(&dir, &of_split(Split::Test)).unwrap();
     assert_eq!(test.len(), 1);
 }
 
@@ -479,13 +457,6 @@ fn nerfstudio_one(dir: &Path, frame: serde_json::Value, top: serde_json::Value) 
     std::fs::write(dir.join("transforms.json"), json.to_string()).unwrap();
 }
 
-fn all_frames() -> LoadConfig {
-    LoadConfig {
-        split: Split::All,
-        ..LoadConfig::default()
-    }
-}
-
 #[test]
 fn malformed_transforms_are_errors_naming_file_and_field() {
     let ok_frame =
@@ -564,7 +535,7 @@ fn malformed_transforms_are_errors_naming_file_and_field() {
     for (name, frame, top, field) in cases {
         let dir = scratch(&format!("bad-{name}"));
         nerfstudio_one(&dir, frame, top);
-        let e = load(&dir, &all_frames()).expect_err(name);
+        let e = load(&dir, &of_split(Split::All)).expect_err(name);
         let (path, got) = format_field(&e);
         assert!(path.ends_with("transforms.json"), "{name}: {e}");
         assert_eq!(got, field, "{name}: {e}");
@@ -575,17 +546,17 @@ fn malformed_transforms_are_errors_naming_file_and_field() {
 fn json_without_frames_and_empty_splits_are_errors_naming_the_file() {
     let dir = scratch("no-frames");
     std::fs::write(dir.join("transforms.json"), r#"{"camera_angle_x": 0.7}"#).unwrap();
-    let e = load(&dir, &all_frames()).unwrap_err();
+    let e = load(&dir, &of_split(Split::All)).unwrap_err();
     assert_eq!(format_field(&e).1, "frames", "{e}");
     std::fs::write(
         dir.join("transforms.json"),
         r#"{"camera_angle_x": 0.7, "frames": []}"#,
     )
     .unwrap();
-    let e = load(&dir, &all_frames()).unwrap_err();
+    let e = load(&dir, &of_split(Split::All)).unwrap_err();
     assert_eq!(format_field(&e).1, "frames", "{e}");
     std::fs::write(dir.join("transforms.json"), "{\"frames\": [").unwrap();
-    let e = load(&dir, &all_frames()).unwrap_err();
+    let e = load(&dir, &of_split(Split::All)).unwrap_err();
     assert_eq!(format_field(&e).1, "JSON", "{e}");
     // One frame: the training split (every frame but each 8th) is empty.
     let one = scratch("one-frame");
@@ -611,34 +582,36 @@ fn missing_truncated_and_wrong_sized_images_are_errors_naming_the_image() {
         frame.clone(),
         serde_json::json!({ "fl_x": 3.0, "w": 5, "h": 3 }),
     );
-    let e = load(&dir, &all_frames()).unwrap_err();
+    let e = load(&dir, &of_split(Split::All)).unwrap_err();
     let (path, field) = format_field(&e);
     assert!(path.ends_with("a.png") && field == "image size", "{e}");
     // Truncated PNG.
     let bytes = std::fs::read(dir.join("a.png")).unwrap();
     std::fs::write(dir.join("a.png"), &bytes[..bytes.len() / 2]).unwrap();
-    let e = load(&dir, &all_frames()).unwrap_err();
+    let e = load(&dir, &of_split(Split::All)).unwrap_err();
     let (path, _) = format_field(&e);
     assert!(path.ends_with("a.png"), "{e}");
     // Not an image at all.
     std::fs::write(dir.join("a.png"), b"hello").unwrap();
-    assert!(format_field(&load(&dir, &all_frames()).unwrap_err())
-        .0
-        .ends_with("a.png"));
+    assert!(
+        format_field(&load(&dir, &of_split(Split::All)).unwrap_err())
+            .0
+            .ends_with("a.png")
+    );
     // Missing.
     std::fs::remove_file(dir.join("a.png")).unwrap();
-    match load(&dir, &all_frames()) {
+    match load(&dir, &of_split(Split::All)) {
         Err(Error::Io { path, .. }) => assert!(path.ends_with("a.png"), "{path}"),
         other => panic!("{other:?}"),
     }
     // A directory that is no dataset, and a missing directory.
     let empty = scratch("empty");
     assert_eq!(
-        format_field(&load(&empty, &all_frames()).unwrap_err()).1,
+        format_field(&load(&empty, &of_split(Split::All)).unwrap_err()).1,
         "layout"
     );
     assert!(matches!(
-        load(&empty.join("nope"), &all_frames()),
+        load(&empty.join("nope"), &of_split(Split::All)),
         Err(Error::Io { .. })
     ));
 }
@@ -648,22 +621,20 @@ fn dtu_masks_of_another_size_and_missing_matrices_are_errors() {
     let dir = scratch("dtu-bad-mask");
     dtu_sample(&dir, 2, 1.0, DVec3::ZERO);
     png(&dir.join("mask/001.png"), 5, 5, 1, &pattern(5, 5, 1, 0));
-    let e = load(&dir, &all_frames()).unwrap_err();
-    let (path, field) = format_field(&e);
-    assert!(
-        path.ends_with("mask/001.png") && field == "mask size",
-        "{e}"
+    expect_format(
+        load(&dir, &of_split(Split::All)),
+        "mask/001.png",
+        "mask size",
     );
 
     let dir = scratch("dtu-missing-matrix");
     dtu_sample(&dir, 2, 1.0, DVec3::ZERO);
     png(&dir.join("image/000002.png"), 6, 5, 3, &pattern(6, 5, 3, 2));
     png(&dir.join("mask/002.png"), 6, 5, 1, &pattern(6, 5, 1, 2));
-    let e = load(&dir, &all_frames()).unwrap_err();
-    let (path, field) = format_field(&e);
-    assert!(
-        path.ends_with("cameras.npz") && field == "world_mat_2",
-        "{e}"
+    expect_format(
+        load(&dir, &of_split(Split::All)),
+        "cameras.npz",
+        "world_mat_2",
     );
 
     let dir = scratch("dtu-singular");
@@ -672,7 +643,7 @@ fn dtu_masks_of_another_size_and_missing_matrices_are_errors() {
         &dir.join("cameras.npz"),
         &[("world_mat_0".into(), npy(&[4, 4], &[0.0; 16]))],
     );
-    let (path, field) = format_field(&load(&dir, &all_frames()).unwrap_err());
+    let (path, field) = format_field(&load(&dir, &of_split(Split::All)).unwrap_err());
     assert!(
         path.ends_with("cameras.npz") && field.starts_with("world_mat_0"),
         "{field}"
@@ -681,7 +652,7 @@ fn dtu_masks_of_another_size_and_missing_matrices_are_errors() {
     let dir = scratch("dtu-not-zip");
     dtu_sample(&dir, 1, 1.0, DVec3::ZERO);
     std::fs::write(dir.join("cameras.npz"), b"PK\x03\x04 truncated").unwrap();
-    let (path, _) = format_field(&load(&dir, &all_frames()).unwrap_err());
+    let (path, _) = format_field(&load(&dir, &of_split(Split::All)).unwrap_err());
     assert!(path.ends_with("cameras.npz"));
 }
 
@@ -692,7 +663,7 @@ fn slightly_non_orthonormal_poses_are_orthonormalised() {
     let rows = look_rows(eyes()[2]).map(|r| r.map(|x| (x * 1e5).round() / 1e5));
     let frame = serde_json::json!({ "file_path": "a.png", "transform_matrix": rows });
     nerfstudio_one(&dir, frame, serde_json::json!({ "fl_x": 3.0 }));
-    let data = load(&dir, &all_frames()).unwrap();
+    let data = load(&dir, &of_split(Split::All)).unwrap();
     let m = data.views()[0].camera().cam_to_world().matrix3;
     let dev = (m.transpose() * m - DMat3::IDENTITY)
         .to_cols_array()

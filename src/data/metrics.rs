@@ -134,7 +134,8 @@ fn gaussian_taps() -> [f64; 11] {
 }
 
 /// Separable 11-tap Gaussian filter of one `h × w` plane with half-sample-symmetric
-/// ("reflect": `d c b a | a b c d | d c b a`) borders, as `scipy.ndimage.gaussian_filter`.
+/// ("reflect": `d c b a | a b c d | d c b a`) borders, as `scipy.ndimage.gaussian_filter`:
+/// a pass along the rows, then one along the columns.
 fn blur(x: &[f64], h: usize, w: usize, taps: &[f64; 11]) -> Vec<f64> {
     let reflect = |i: isize, n: usize| -> usize {
         let n = n as isize;
@@ -145,27 +146,30 @@ fn blur(x: &[f64], h: usize, w: usize, taps: &[f64; 11]) -> Vec<f64> {
         }
         j as usize
     };
-    let mut rows = vec![0.0; h * w];
-    for r in 0..h {
-        for col in 0..w {
-            rows[r * w + col] = taps
-                .iter()
-                .enumerate()
-                .map(|(k, t)| t * x[r * w + reflect(col as isize + k as isize - 5, w)])
-                .sum();
+    // One pass: element (r, c) is the weighted sum of its neighbours along columns
+    // (`along_rows`) or along rows.
+    let pass = |x: &[f64], along_rows: bool| -> Vec<f64> {
+        let mut out = vec![0.0; h * w];
+        for r in 0..h {
+            for c in 0..w {
+                out[r * w + c] = taps
+                    .iter()
+                    .enumerate()
+                    .map(|(k, t)| {
+                        let off = k as isize - 5;
+                        let i = if along_rows {
+                            r * w + reflect(c as isize + off, w)
+                        } else {
+                            reflect(r as isize + off, h) * w + c
+                        };
+                        t * x[i]
+                    })
+                    .sum();
+            }
         }
-    }
-    let mut out = vec![0.0; h * w];
-    for r in 0..h {
-        for col in 0..w {
-            out[r * w + col] = taps
-                .iter()
-                .enumerate()
-                .map(|(k, t)| t * rows[reflect(r as isize + k as isize - 5, h) * w + col])
-                .sum();
-        }
-    }
-    out
+        out
+    };
+    pass(&pass(x, true), false)
 }
 
 /// Structural similarity (Wang et al. 2004) of images with values in `[0, 1]`, as
