@@ -66,6 +66,7 @@ impl Error {
     }
 
     /// Builds an [`Error::Format`] for the file at `path`.
+    #[cfg(feature = "data")]
     #[must_use]
     pub(crate) fn format(
         path: impl AsRef<std::path::Path>,
