@@ -2330,6 +2330,7 @@ fn stiff_cases_give_finite_outputs_and_gradients_or_err() {
     sweep_mlp(&mut s);
     sweep_camera(&mut s);
     sweep_camera_host(&mut s);
+    sweep_nerf(&mut s);
     #[cfg(feature = "data")]
     sweep_data(&mut s);
     sweep_rng(&mut s);
@@ -2355,6 +2356,9 @@ fn stiff_cases_give_finite_outputs_and_gradients_or_err() {
 
 /// Items swept above; kept in sync with the sweeps by `covered_matches_list`.
 const COVERED: &[&str] = &[
+    "nn::nerf::Nerf::density",
+    "nn::nerf::Nerf::radiance",
+    "nn::nerf::nerf",
     "camera::Camera::project",
     "camera::Camera::ray",
     "camera::Camera::look_at",
@@ -2445,6 +2449,7 @@ const DVR_COVERED: &[&str] = &[
 
 /// Volume items swept by `sweep_volume`.
 const VOLUME_COVERED: &[&str] = &[
+    "volume::layout::Intervals::retain",
     "volume::activations::trunc_exp",
     "volume::composite::Composite::normalized_depth",
     "volume::composite::accumulate",
@@ -2522,6 +2527,10 @@ const OCCUPANCY_COVERED: &[&str] = &[
 /// Public items without floating-point input (or only reached through a swept item),
 /// with the reason. Matching is by prefix, so `"error::check_"` covers the checks.
 const EXEMPT: &[(&str, &str)] = &[
+    ("nn::nerf::Nerf::config", "getter"),
+    ("nn::nerf::Nerf::forward", "swept through Nerf::density"),
+    ("nn::nerf::Nerf::out_dim", "constant"),
+    ("nn::nerf::NerfConfig::default", "constant"),
     ("data::batch::RayBatch::is_empty", "getter"),
     ("data::batch::RayBatch::len", "getter"),
     ("data::dataset::Background::", "constants"),
@@ -3176,4 +3185,90 @@ fn sweep_data(s: &mut Suite) {
         );
     }
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn sweep_nerf(s: &mut Suite) {
+    use neural_fields::nn::{nerf, DensityActivation, NerfConfig};
+    let d = Device::Cpu;
+    for dtype in DTYPES {
+        let big = if dtype == DType::F32 { 1e8 } else { 1e100 };
+        let pts = [
+            0.0, 0.0, 0.0, 1e-30, 0.0, 0.0, big, -big, big, 1e4, 1.0, -1e4,
+        ];
+        // Directions: zero, tiny, huge, ordinary.
+        let dirs = [
+            0.0, 0.0, 0.0, 1e-30, 0.0, 0.0, big, big, -big, 0.3, -0.4, 0.5,
+        ];
+        for (density, tag) in [
+            (DensityActivation::TruncExp { shift: -1.0 }, "trunc_exp"),
+            (DensityActivation::Softplus { shift: -1.0 }, "softplus"),
+        ] {
+            let config = NerfConfig {
+                density,
+                width: 16,
+                color_width: 8,
+                ..NerfConfig::default()
+            };
+            let varmap = candle_nn::VarMap::new();
+            let label = format!("{dtype:?}, {tag}, |x| up to {big:e}");
+            s.case("nn::nerf::nerf", &label, Expect::Finite, &[], || {
+                build_seeded(&varmap, dtype, &d, 5, |vb| nerf(&config, vb))?;
+                Ok(vec![])
+            });
+            let net = build_seeded(&varmap, dtype, &d, 5, |vb| nerf(&config, vb)).unwrap();
+            let vars = varmap.all_vars();
+            let (x, v) = (var(&pts, &[4, 3], dtype), var(&dirs, &[4, 3], dtype));
+            let mut wrt: Vec<&Var> = vars.iter().collect();
+            wrt.push(&x);
+            s.case(
+                "nn::nerf::Nerf::density",
+                &label,
+                Expect::Finite,
+                &wrt,
+                || Ok(vec![net.density(x.as_tensor())?]),
+            );
+            wrt.push(&v);
+            s.case(
+                "nn::nerf::Nerf::radiance",
+                &label,
+                Expect::Finite,
+                &wrt,
+                || {
+                    let (sigma, rgb) = net.radiance(x.as_tensor(), v.as_tensor())?;
+                    Ok(vec![sigma, rgb])
+                },
+            );
+        }
+    }
+    #[cfg(feature = "volume")]
+    for dtype in DTYPES {
+        use neural_fields::volume::{stratified, Jitter};
+        let top = if dtype == DType::F32 { 1e30 } else { 1e300 };
+        let near = Tensor::new(&[0.0, -top, 1e-30], &d)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap();
+        let far = Tensor::new(&[1.0, top, 2e-30], &d)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap();
+        s.case(
+            "volume::layout::Intervals::retain",
+            format!("{dtype:?}, ±{top:e}"),
+            Expect::FiniteOrErr,
+            &[],
+            || {
+                let iv = stratified(&near, &far, 4, Jitter::None, 0)?;
+                let mask = Tensor::new(&[[1u8, 0, 1, 0], [1, 1, 1, 1], [0, 0, 0, 1]], &d)?;
+                let (kept, idx) = iv.retain(&mask)?;
+                let (again, _) = kept.retain(&Tensor::ones(kept.starts.dims(), DType::U8, &d)?)?;
+                Ok(vec![
+                    kept.starts,
+                    kept.ends,
+                    again.midpoints()?,
+                    idx.to_dtype(DType::F64)?,
+                ])
+            },
+        );
+    }
 }

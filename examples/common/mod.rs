@@ -3,6 +3,7 @@
 //! Helpers that only some examples need live in sibling files that those examples
 //! include themselves (`#[path = "common/cameras.rs"] mod cameras;`): `cameras.rs`
 //! (cameras looking at the origin).
+#![allow(dead_code)] // each example uses a part
 
 use candle_core::{DType, Device};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};

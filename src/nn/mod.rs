@@ -6,16 +6,20 @@
 //!   conditional normalisation that is batch-independent at inference.
 //! * [`PointNetEncoder`] / [`pointnet_encoder`] (feature `occupancy`): the variational
 //!   ONet's encoder `q_ψ(z | points, occupancies)`.
+//! * [`Nerf`] / [`nerf`]: NeRF's radiance field (density trunk, view-dependent colour
+//!   head).
 //! * [`build_seeded`]: reproducible initialisation (candle's CPU generator cannot be
 //!   seeded; this draws every variable's initial value from a `u64` seed instead).
 
 mod mlp;
+mod nerf;
 #[cfg(feature = "occupancy")]
 mod onet;
 #[cfg(feature = "occupancy")]
 mod pointnet;
 
 pub use mlp::{mlp, Activation, Mlp, MlpConfig};
+pub use nerf::{nerf, DensityActivation, Nerf, NerfConfig};
 #[cfg(feature = "occupancy")]
 pub use onet::{
     onet_decoder, simple_decoder, NormMode, OnetConfig, OnetDecoder, SimpleDecoder,

@@ -289,6 +289,67 @@ impl Intervals {
         })
     }
 
+    /// The intervals where `mask` (u8, nonzero = keep; the intervals' sample shape, `[R, S]`
+    /// or `[M]`) is set, in the packed layout over the same `R` rays, and the `[K]` u32 flat
+    /// indices of the kept samples (into the row-major flattening of the sample shape) for
+    /// `index_select` on per-sample tensors. With [`super::visible_mask`] this is early
+    /// termination: evaluate the density, keep the visible samples, evaluate the colour
+    /// (and the graph) only there.
+    ///
+    /// ```
+    /// use candle_core::{Device, Tensor};
+    /// use neural_fields::volume::{stratified, Jitter};
+    ///
+    /// let dev = Device::Cpu;
+    /// let iv = stratified(&Tensor::new(&[0.0f32, 0.0], &dev)?, &Tensor::new(&[1.0f32, 1.0], &dev)?, 3, Jitter::None, 0)?;
+    /// let mask = Tensor::new(&[[1u8, 1, 0], [0, 0, 0]], &dev)?;
+    /// let (kept, idx) = iv.retain(&mask)?;
+    /// assert_eq!(idx.to_vec1::<u32>()?, vec![0, 1]);
+    /// assert_eq!(kept.n_rays(), 2);
+    /// # Ok::<(), neural_fields::Error>(())
+    /// ```
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `mask` unless u8 of the intervals' sample shape.
+    pub fn retain(&self, mask: &Tensor) -> Result<(Intervals, Tensor)> {
+        if mask.dtype() != DType::U8 || mask.dims() != self.starts.dims() {
+            return Err(Error::invalid(
+                "mask",
+                format!("u8 of the samples' shape {:?}", self.starts.dims()),
+                format!("{:?} {:?}", mask.dtype(), mask.dims()),
+            ));
+        }
+        let (packed, keep) = match &self.layout {
+            Layout::Batched => Packed::from_mask(mask)?,
+            Layout::Packed(p) => {
+                let host = mask.to_vec1::<u8>()?;
+                let off = p.offsets_host();
+                let mut counts = vec![0usize; p.n_rays];
+                let mut keep = Vec::new();
+                for (r, count) in counts.iter_mut().enumerate() {
+                    for (i, &m) in host.iter().enumerate().take(off[r + 1]).skip(off[r]) {
+                        if m != 0 {
+                            *count += 1;
+                            keep.push(i as u32);
+                        }
+                    }
+                }
+                let n = keep.len();
+                (
+                    Packed::from_counts(&counts, mask.device())?,
+                    Tensor::from_vec(keep, n, mask.device())?,
+                )
+            }
+        };
+        let pick = |t: &Tensor| -> Result<Tensor> { Ok(t.flatten_all()?.index_select(&keep, 0)?) };
+        let kept = Intervals {
+            starts: pick(&self.starts)?,
+            ends: pick(&self.ends)?,
+            layout: Layout::Packed(packed),
+        };
+        Ok((kept, keep))
+    }
+
     /// The number of rays `R`.
     #[must_use]
     pub fn n_rays(&self) -> usize {
