@@ -31,6 +31,12 @@
 //!   [`Intervals::retain`](neural_fields::volume::Intervals::retain)), and the full network runs, with its graph, on the rest.
 //! - `stratified`: `--samples` (64) jittered samples per ray between the ray's entry and
 //!   exit of the scene box.
+//! - `proposal`: two proposal networks (2 × 32 ReLU on a frequency encoding, L = 6) place
+//!   64 and then 32 samples, from which `--samples` intervals are drawn for the radiance
+//!   field ([`proposal_sample`](neural_fields::volume::proposal_sample)); the proposals
+//!   learn from the interlevel loss
+//!   ([`interlevel_loss`](neural_fields::volume::interlevel_loss)), added to the
+//!   photometric loss.
 //!
 //! The scene box is the layout's bounds (nerfstudio's `aabb_scale`, DTU's unit sphere) or,
 //! for layouts that state none (Blender), the cube of half-side `--aabb` (default 1.5,
@@ -57,10 +63,12 @@ use neural_fields::data::{
     colorize_depth, comparison_strip, load, psnr, ssim, write_png, Background, Bounds, Dataset,
     LoadConfig, RaySampler, Split,
 };
-use neural_fields::nn::{build_seeded, nerf, Nerf, NerfConfig};
+use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
+use neural_fields::nn::{build_seeded, mlp, nerf, Mlp, MlpConfig, Nerf, NerfConfig};
 use neural_fields::volume::{
-    composite, log_linear_schedule, stratified, visible_mask, Composite, CompositeConfig,
-    GridConfig, GridMarchConfig, Jitter, Layout, OccupancyGrid, DEFAULT_TERMINATION_EPS,
+    composite, interlevel_loss, log_linear_schedule, proposal_sample, render_weights, stratified,
+    trunc_exp, visible_mask, Composite, CompositeConfig, GridConfig, GridMarchConfig, Jitter,
+    Layout, OccupancyGrid, ProposalConfig, DEFAULT_TERMINATION_EPS,
 };
 use neural_fields::{Error, Result};
 use std::path::{Path, PathBuf};
@@ -78,6 +86,7 @@ const CHUNK: usize = 4096;
 enum Sampler {
     Grid,
     Stratified,
+    Proposal,
 }
 
 #[derive(Debug)]
@@ -101,7 +110,7 @@ struct Args {
 }
 
 const USAGE: &str = "usage: nerf [--data DIR] [--minutes M | --steps N] [--out DIR] [--seed S] \
-[--sampler grid|stratified] [--downscale K] [--rays N] [--samples N] [--aabb R] \
+[--sampler grid|stratified|proposal] [--downscale K] [--rays N] [--samples N] [--aabb R] \
 [--eval-every N] [--eval-views N] [--pictures N] [--resume FILE] [--lr LR] [--background random|white|black]";
 
 fn parse_args() -> std::result::Result<Args, String> {
@@ -151,7 +160,12 @@ fn parse_args() -> std::result::Result<Args, String> {
                 a.sampler = match value.as_str() {
                     "grid" => Sampler::Grid,
                     "stratified" => Sampler::Stratified,
-                    other => return Err(format!("--sampler: grid or stratified, not {other}")),
+                    "proposal" => Sampler::Proposal,
+                    other => {
+                        return Err(format!(
+                            "--sampler: grid, stratified or proposal, not {other}"
+                        ))
+                    }
                 }
             }
             "--downscale" => a.downscale = int(&value)?,
@@ -198,6 +212,7 @@ fn parse_args() -> std::result::Result<Args, String> {
 struct Renderer<'a> {
     net: &'a Nerf,
     grid: Option<&'a OccupancyGrid>,
+    proposals: &'a [Mlp],
     aabb: [f64; 6],
     step_size: f64,
     samples: usize,
@@ -211,11 +226,12 @@ impl Renderer<'_> {
         rays: &Rays,
         background: &Tensor,
         seed: Option<u64>,
-    ) -> Result<(Composite, usize)> {
+    ) -> Result<(Composite, usize, Tensor)> {
         let config = CompositeConfig {
             background: Some(background.clone()),
             ..CompositeConfig::default()
         };
+        let mut levels = Vec::new();
         let intervals = match self.grid {
             Some(grid) => {
                 let march = GridMarchConfig::new(0.0, f64::INFINITY, self.step_size);
@@ -225,6 +241,27 @@ impl Renderer<'_> {
                 let sigma = self.net.density(&iv.positions(rays)?)?.detach();
                 let mask = visible_mask(&sigma, &iv, Some(rays), DEFAULT_TERMINATION_EPS)?;
                 iv.retain(&mask)?.0
+            }
+            None if !self.proposals.is_empty() => {
+                let [x0, y0, z0, x1, y1, z1] = self.aabb;
+                let hit = ray_aabb(rays, [x0, y0, z0], [x1, y1, z1])?;
+                let mut coarse = |p: &Tensor| proposal_density(&self.proposals[0], p);
+                let mut fine = |p: &Tensor| proposal_density(&self.proposals[1], p);
+                let config = ProposalConfig {
+                    samples: vec![64, 32],
+                    final_samples: self.samples,
+                    padding: 0.01,
+                };
+                let out = proposal_sample(
+                    rays,
+                    &hit.near,
+                    &hit.far,
+                    &mut [&mut coarse, &mut fine],
+                    &config,
+                    seed,
+                )?;
+                levels = out.levels;
+                out.intervals
             }
             None => {
                 let [x0, y0, z0, x1, y1, z1] = self.aabb;
@@ -258,7 +295,16 @@ impl Renderer<'_> {
             }
             Layout::Packed(_) => (sigma, rgb),
         };
-        Ok((composite(&sigma, &rgb, &intervals, Some(rays), &config)?, n))
+        // The proposals learn from the interlevel loss against the field's weights.
+        let mut interlevel = Tensor::zeros((), sigma.dtype(), sigma.device())?;
+        if !levels.is_empty() {
+            let weights = render_weights(&sigma, &intervals, Some(rays), &config)?.weights;
+            for level in &levels {
+                interlevel = (interlevel + interlevel_loss(level, &intervals, &weights)?)?;
+            }
+        }
+        let out = composite(&sigma, &rgb, &intervals, Some(rays), &config)?;
+        Ok((out, n, interlevel))
     }
 
     /// Renders view `v` of `data` whole, in chunks, without keeping a graph: colour
@@ -270,7 +316,7 @@ impl Renderer<'_> {
         for start in (0..w * h).step_by(CHUNK) {
             let len = CHUNK.min(w * h - start);
             let batch = data.view_rays(v, start, len, &Device::Cpu, DType::F32)?;
-            let (out, _) = self.render(&batch.rays, &batch.backgrounds, None)?;
+            let (out, _, _) = self.render(&batch.rays, &batch.backgrounds, None)?;
             colors.push(out.color.detach());
             depths.push(out.normalized_depth(1e-6)?.detach());
             opacities.push(out.opacity.detach());
@@ -285,6 +331,25 @@ impl Renderer<'_> {
             opacity.reshape((h, w))?,
         ))
     }
+}
+
+/// A proposal network: 2 × 32 ReLU on a frequency encoding (L = 6), density
+/// `trunc_exp(raw − 1)`.
+fn proposal_net(vb: candle_nn::VarBuilder) -> Result<Mlp> {
+    mlp(
+        &MlpConfig {
+            hidden: 32,
+            depth: 2,
+            encoding: PointEncoding::Frequency(FrequencyEncoding::new(3, 6)?),
+            ..MlpConfig::default()
+        },
+        vb,
+    )
+}
+
+fn proposal_density(net: &Mlp, points: &Tensor) -> Result<Tensor> {
+    let raw = neural_fields::field::Field::forward(net, points)?.squeeze(1)?;
+    trunc_exp(&(raw - 1.0)?)
 }
 
 /// Stops on a NaN or infinity in `t`, naming the step and the tensor.
@@ -394,6 +459,16 @@ fn run(args: &Args) -> Result<()> {
     let net = build_seeded(&varmap, dtype, &device, args.seed, |vb| {
         nerf(&NerfConfig::default(), vb)
     })?;
+    let proposals = match args.sampler {
+        Sampler::Proposal => (0..2)
+            .map(|l| {
+                build_seeded(&varmap, dtype, &device, args.seed + 1 + l, |vb| {
+                    proposal_net(vb.pp(format!("proposal{l}")))
+                })
+            })
+            .collect::<Result<Vec<Mlp>>>()?,
+        _ => Vec::new(),
+    };
     if let Some(path) = &args.resume {
         varmap.load(path)?;
     }
@@ -409,7 +484,7 @@ fn run(args: &Args) -> Result<()> {
             seed: args.seed,
             ..GridConfig::default()
         })?),
-        Sampler::Stratified => None,
+        Sampler::Stratified | Sampler::Proposal => None,
     };
     let mut sampler = RaySampler::new(&train, args.seed, &device, dtype)?;
     let budget = args.minutes.map(|m| m * 60.0);
@@ -464,6 +539,7 @@ fn run(args: &Args) -> Result<()> {
         let renderer = Renderer {
             net: &net,
             grid: grid.as_ref(),
+            proposals: &proposals,
             aabb,
             step_size: match &grid {
                 Some(g) if occupied_fraction(g) > 0.25 => diag / 64.0,
@@ -472,13 +548,14 @@ fn run(args: &Args) -> Result<()> {
             samples: args.samples,
         };
         let batch = sampler.pixels(args.rays)?;
-        let (out, n) = renderer.render(
+        let (out, n, interlevel) = renderer.render(
             &batch.rays,
             &batch.backgrounds,
             Some(args.seed ^ step as u64),
         )?;
         samples_total += n;
-        let loss = (out.color - &batch.colors)?.sqr()?.mean_all()?;
+        let photometric = (out.color - &batch.colors)?.sqr()?.mean_all()?;
+        let loss = (&photometric + interlevel)?;
         check_finite(&loss, step, "the loss")?;
         let grads = loss.backward()?;
         for (name, var) in &vars {
@@ -488,7 +565,7 @@ fn run(args: &Args) -> Result<()> {
         }
         opt.step(&grads)?;
         step += 1;
-        let mse = loss.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+        let mse = photometric.to_dtype(DType::F64)?.to_scalar::<f64>()?;
         match args.steps {
             Some(_) => bar.set_position(step as u64),
             None => bar.set_position((start.elapsed().as_secs_f64() - eval_secs) as u64),
@@ -529,6 +606,7 @@ fn run(args: &Args) -> Result<()> {
     let renderer = Renderer {
         net: &net,
         grid: grid.as_ref(),
+        proposals: &proposals,
         aabb,
         step_size: diag / 256.0,
         samples: args.samples,
@@ -653,6 +731,10 @@ mod tests {
         args.resume = Some(out.join("weights.safetensors"));
         args.sampler = Sampler::Stratified;
         args.steps = Some(2);
+        run(&args).unwrap();
+        // The proposal sampler from scratch (its networks are not in the saved weights).
+        args.resume = None;
+        args.sampler = Sampler::Proposal;
         run(&args).unwrap();
         let _ = std::fs::remove_dir_all(&out);
     }

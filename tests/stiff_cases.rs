@@ -2449,6 +2449,8 @@ const DVR_COVERED: &[&str] = &[
 
 /// Volume items swept by `sweep_volume`.
 const VOLUME_COVERED: &[&str] = &[
+    "volume::proposal::interlevel_loss",
+    "volume::proposal::proposal_sample",
     "volume::layout::Intervals::retain",
     "volume::activations::trunc_exp",
     "volume::composite::Composite::normalized_depth",
@@ -2528,6 +2530,7 @@ const OCCUPANCY_COVERED: &[&str] = &[
 /// with the reason. Matching is by prefix, so `"error::check_"` covers the checks.
 const EXEMPT: &[(&str, &str)] = &[
     ("nn::nerf::Nerf::config", "getter"),
+    ("volume::proposal::ProposalConfig::default", "constant"),
     ("nn::nerf::Nerf::forward", "swept through Nerf::density"),
     ("nn::nerf::Nerf::out_dim", "constant"),
     ("nn::nerf::NerfConfig::default", "constant"),
@@ -3270,5 +3273,75 @@ fn sweep_nerf(s: &mut Suite) {
                 ])
             },
         );
+        sweep_proposal(s, dtype, top);
+    }
+}
+
+#[cfg(feature = "volume")]
+fn sweep_proposal(s: &mut Suite, dtype: DType, top: f64) {
+    use neural_fields::volume::{interlevel_loss, proposal_sample, ProposalConfig};
+    let d = Device::Cpu;
+    // Proposal sampling over extreme ranges and densities, and its loss's gradient.
+    for (range, density) in [(1e-6, 1e6), (1.0, 0.0), (1e4, 1e-6), (top / 1e10, 1.0)] {
+        let label = format!("{dtype:?}, range {range:e}, density {density:e}");
+        let rays = Rays::new(
+            Tensor::new(&[[0.0, 0.0, -1.0], [1.0, 2.0, 3.0]], &d)
+                .unwrap()
+                .to_dtype(dtype)
+                .unwrap(),
+            Tensor::new(&[[0.0, 0.0, 1.0], [1e-3, 0.0, -2.0]], &d)
+                .unwrap()
+                .to_dtype(dtype)
+                .unwrap(),
+        )
+        .unwrap();
+        let near = Tensor::zeros(2, dtype, &d).unwrap();
+        let far = Tensor::full(range, 2, &d).unwrap().to_dtype(dtype).unwrap();
+        let mut field = |p: &Tensor| -> neural_fields::Result<Tensor> {
+            Ok((p.narrow(1, 0, 1)?.squeeze(1)?.abs()?.affine(0.0, 1.0)? * density)?)
+        };
+        let config = ProposalConfig {
+            samples: vec![16],
+            final_samples: 8,
+            padding: 0.01,
+        };
+        let out = proposal_sample(&rays, &near, &far, &mut [&mut field], &config, Some(3));
+        let first = out.as_ref().map(|o| o.clone()).map_err(|e| e.to_string());
+        s.case(
+            "volume::proposal::proposal_sample",
+            &label,
+            Expect::FiniteOrErr,
+            &[],
+            || {
+                let out = first.map_err(|e| neural_fields::Error::InvalidArgument {
+                    arg: "proposal",
+                    expected: String::new(),
+                    got: e,
+                })?;
+                Ok(vec![
+                    out.intervals.starts,
+                    out.intervals.ends,
+                    out.levels[0].1.clone(),
+                ])
+            },
+        );
+        if let Ok(out) = out {
+            let w_hat = Var::from_tensor(&out.levels[0].1).unwrap();
+            let (r, n) = out.intervals.starts.dims2().unwrap();
+            let w = Tensor::full(0.5, (r, n), &d)
+                .unwrap()
+                .to_dtype(dtype)
+                .unwrap();
+            s.case(
+                "volume::proposal::interlevel_loss",
+                &label,
+                Expect::Finite,
+                &[&w_hat],
+                || {
+                    let level = (out.levels[0].0.clone(), w_hat.as_tensor().clone());
+                    Ok(vec![interlevel_loss(&level, &out.intervals, &w)?])
+                },
+            );
+        }
     }
 }

@@ -37,6 +37,7 @@
 //!   fused CPU kernel runs on the CPU, candle ops elsewhere.
 //! - [`grid`]: the [`OccupancyGrid`] estimator, whose [`OccupancyGrid::sample`] emits
 //!   samples only in occupied cells, in the packed layout.
+//! - [`proposal`]: proposal-network sampling (mip-NeRF 360) and its interlevel loss.
 //! - [`regularizers`]: distortion loss, depth smoothness; [`activations`]: trunc-exp.
 //!
 //! See `docs/math.md`, section "Volume compositing", for the derivations.
@@ -46,6 +47,7 @@ pub mod composite;
 mod fused;
 pub mod grid;
 pub mod layout;
+pub mod proposal;
 mod reference;
 pub mod regularizers;
 pub mod sampling;
@@ -57,6 +59,9 @@ pub use composite::{
 };
 pub use grid::{GridConfig, GridMarchConfig, GridSamples, OccupancyGrid};
 pub use layout::{Intervals, Layout, Packed, Weights, X_MAX};
+pub use proposal::{
+    interlevel_loss, proposal_sample, ProposalConfig, ProposalField, ProposalSamples,
+};
 pub use regularizers::{depth_smoothness, distortion_loss, log_linear_schedule};
 pub use sampling::{
     anneal_near_far, merge_sorted, sample_pdf, step_cdf, stratified, Jitter, ANNEAL_MID_RATIO,

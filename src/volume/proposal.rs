@@ -1,0 +1,252 @@
+//! Proposal sampling (mip-NeRF 360; nerfacc's `PropNetEstimator`): small density networks
+//! propose where the samples go, level by level, and the interlevel loss keeps each
+//! proposal's weights an upper bound of the next level's.
+//!
+//! Level 0 places `samples[0]` stratified intervals in `[near, far]`; proposal network `l`
+//! gives densities there, [`render_weights`] turns them into weights `ŵ`, and
+//! [`sample_pdf`] draws the next level's interval edges from that step function (detached, as
+//! in mip-NeRF 360): `n + 1` sorted draws bound `n` intervals, which therefore cover only
+//! where the proposal has weight (plus `padding`), not all of `[near, far]`. The last draw gives the intervals the radiance field is evaluated on. The
+//! proposals learn only from [`interlevel_loss`] against the final weights (detached), so
+//! the radiance field's photometric loss never reaches them.
+
+use super::composite::{render_weights, CompositeConfig};
+use super::layout::{Intervals, Layout};
+use super::sampling::{sample_pdf, stratified, Jitter};
+use crate::camera::Rays;
+use crate::error::{check_float, check_scalar, Error, Result};
+use candle_core::{DType, Tensor};
+
+/// A proposal network as [`proposal_sample`] takes it: positions `[N, 3]` → densities `[N]`.
+pub type ProposalField<'a> = &'a mut dyn FnMut(&Tensor) -> Result<Tensor>;
+
+/// Samples per level of a [`proposal_sample`] and the draw's settings.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ProposalConfig {
+    /// Samples per ray at each proposal level, coarse first (one entry per proposal
+    /// network). Default `[64, 32]` (nerfacc's Blender recipe uses `[256, 96]` on a GPU).
+    pub samples: Vec<usize>,
+    /// Samples per ray for the radiance field. Default 32.
+    pub final_samples: usize,
+    /// Weight added to every proposal bin before the draw, so that no bin is starved
+    /// (mip-NeRF 360's resampling padding). Default 0.01.
+    pub padding: f64,
+}
+
+impl Default for ProposalConfig {
+    fn default() -> Self {
+        Self {
+            samples: vec![64, 32],
+            final_samples: 32,
+            padding: 0.01,
+        }
+    }
+}
+
+/// The result of [`proposal_sample`].
+#[derive(Clone, Debug)]
+#[non_exhaustive]
+pub struct ProposalSamples {
+    /// `[R, final_samples]` intervals for the radiance field (detached).
+    pub intervals: Intervals,
+    /// Per proposal level: its intervals and its weights `[R, S_l]`, the weights
+    /// differentiable w.r.t. the proposal network's parameters (for [`interlevel_loss`]).
+    pub levels: Vec<(Intervals, Tensor)>,
+}
+
+/// Draws samples along `rays` through proposal networks (see the module docs).
+///
+/// `near`, `far`: `[R]` (f32 or f64); `proposals[l]` maps positions `[N, 3]` to densities
+/// `[N]` (≥ 0) of level `l` — one per entry of `config.samples`. `seed`: `Some` jitters the
+/// stratified level and draws the resampling at random (training), `None` is
+/// deterministic (evaluation).
+///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::camera::Rays;
+/// use neural_fields::volume::{proposal_sample, ProposalConfig};
+///
+/// let dev = Device::Cpu;
+/// let rays = Rays::new(Tensor::new(&[[0.0f64, 0.0, -3.0]], &dev)?, Tensor::new(&[[0.0f64, 0.0, 1.0]], &dev)?)?;
+/// let (near, far) = (Tensor::new(&[1.0f64], &dev)?, Tensor::new(&[5.0f64], &dev)?);
+/// // A proposal that sees a slab around z = 0 (t = 3).
+/// let mut slab = |p: &Tensor| -> neural_fields::Result<Tensor> {
+///     Ok((p.narrow(1, 2, 1)?.squeeze(1)?.abs()?.affine(-10.0, 2.0)?.relu()? * 50.0)?)
+/// };
+/// let config = ProposalConfig { samples: vec![64], final_samples: 8, padding: 0.0 };
+/// let out = proposal_sample(&rays, &near, &far, &mut [&mut slab], &config, None)?;
+/// let t = out.intervals.midpoints()?.to_vec2::<f64>()?;
+/// assert!(t[0].iter().all(|&t| (2.7..3.3).contains(&t)));     // all samples in the slab
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `proposals` if their number is not
+/// `config.samples.len()` (≥ 1), `config` for a zero sample count or a negative padding;
+/// those of [`stratified`], [`render_weights`] (a proposal returning a wrong shape or
+/// negative density) and [`sample_pdf`].
+pub fn proposal_sample(
+    rays: &Rays,
+    near: &Tensor,
+    far: &Tensor,
+    proposals: &mut [ProposalField<'_>],
+    config: &ProposalConfig,
+    seed: Option<u64>,
+) -> Result<ProposalSamples> {
+    if config.samples.is_empty() || proposals.len() != config.samples.len() {
+        return Err(Error::invalid(
+            "proposals",
+            format!(
+                "one proposal network per level of config.samples ({}, at least 1)",
+                config.samples.len()
+            ),
+            proposals.len().to_string(),
+        ));
+    }
+    if config.final_samples == 0 || config.samples.contains(&0) {
+        return Err(Error::invalid(
+            "config",
+            "at least one sample per level",
+            format!("{:?} then {}", config.samples, config.final_samples),
+        ));
+    }
+    check_scalar(config.padding, "config.padding", false)?;
+    if config.padding < 0.0 {
+        return Err(Error::invalid(
+            "config.padding",
+            "≥ 0",
+            config.padding.to_string(),
+        ));
+    }
+    let jitter = if seed.is_some() {
+        Jitter::PerSample
+    } else {
+        Jitter::None
+    };
+    let seed_of = |l: usize| seed.unwrap_or(0).wrapping_add(0x9E37_79B9 * (l as u64 + 1));
+    let mut intervals = stratified(near, far, config.samples[0], jitter, seed_of(0))?;
+    let mut levels = Vec::with_capacity(proposals.len());
+    for (l, proposal) in proposals.iter_mut().enumerate() {
+        let (r, s) = intervals.starts.dims2()?;
+        let positions = intervals.positions(rays)?.reshape((r * s, 3))?;
+        let sigma = proposal(&positions)?.reshape((r, s))?;
+        let weights =
+            render_weights(&sigma, &intervals, Some(rays), &CompositeConfig::default())?.weights;
+        let n = config
+            .samples
+            .get(l + 1)
+            .copied()
+            .unwrap_or(config.final_samples);
+        // n + 1 sorted draws are the edges of the next level's n intervals (mip-NeRF 360
+        // resamples interval edges), so every interval lies where the proposal has weight.
+        let t = sample_pdf(
+            &intervals,
+            &weights.detach(),
+            n + 1,
+            seed.is_none(),
+            seed_of(l + 1),
+            config.padding,
+        )?;
+        let next = Intervals::new(
+            t.narrow(1, 0, n)?.contiguous()?,
+            t.narrow(1, 1, n)?.contiguous()?,
+        )?;
+        levels.push((intervals, weights));
+        intervals = next;
+    }
+    Ok(ProposalSamples { intervals, levels })
+}
+
+/// The per-ray overlap matrix `M[r, i, j] = 1` where interval `i` of `fine` and interval
+/// `j` of `coarse` intersect in an open set (`ŝⱼ < eᵢ` and `êⱼ > sᵢ`), by a two-pointer
+/// sweep over the sorted intervals (O(S + Ŝ) per ray, plus the output).
+fn overlaps(fine: &Intervals, coarse: &Intervals) -> Result<Tensor> {
+    let (r, s) = fine.starts.dims2()?;
+    let (r2, sc) = coarse.starts.dims2()?;
+    if r != r2 {
+        return Err(Error::invalid(
+            "proposal",
+            format!("intervals of the same {r} rays"),
+            format!("{r2} rays"),
+        ));
+    }
+    let host = |t: &Tensor| -> Result<Vec<f64>> {
+        Ok(t.to_dtype(DType::F64)?.flatten_all()?.to_vec1::<f64>()?)
+    };
+    let (fs, fe) = (host(&fine.starts)?, host(&fine.ends)?);
+    let (cs, ce) = (host(&coarse.starts)?, host(&coarse.ends)?);
+    let mut m = vec![0f64; r * s * sc];
+    for ray in 0..r {
+        let mut first = 0; // first coarse interval that may still overlap
+        for i in 0..s {
+            let (a, b) = (fs[ray * s + i], fe[ray * s + i]);
+            while first < sc && ce[ray * sc + first] <= a {
+                first += 1;
+            }
+            let mut j = first;
+            while j < sc && cs[ray * sc + j] < b {
+                if ce[ray * sc + j] > a {
+                    m[(ray * s + i) * sc + j] = 1.0;
+                }
+                j += 1;
+            }
+        }
+    }
+    Ok(Tensor::from_vec(m, (r, s, sc), fine.starts.device())?.to_dtype(fine.starts.dtype())?)
+}
+
+/// mip-NeRF 360's interlevel (proposal) loss between a proposal level and the final
+/// weights:
+///
+/// `L = mean_r Σᵢ max(0, wᵢ − boundᵢ)² / (wᵢ + ε)`, `boundᵢ = Σⱼ ŵⱼ·[ĵ overlaps i]`,
+///
+/// the squared amount by which the final weight `wᵢ` of interval `i` exceeds the proposal
+/// weight that covers it, with `ε = 1e-7`. Minimising it makes every proposal an upper
+/// envelope of the final weights, so that resampling from it misses no surface.
+///
+/// * `proposal`: one of [`ProposalSamples::levels`] — intervals `[R, Ŝ]` and weights `ŵ:
+///   [R, Ŝ]`; the loss is differentiable w.r.t. `ŵ` (and so the proposal network);
+/// * `intervals`, `weights`: the final intervals `[R, S]` and the radiance field's weights
+///   `w: [R, S]`, **detached** inside (the proposal learns from the field, not the other
+///   way round, as in mip-NeRF 360 and nerfacc).
+///
+/// Both layouts must be batched (what [`proposal_sample`] produces). Returns a scalar in
+/// the weights' dtype.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `proposal` for packed intervals, other rays or a
+/// weight shape unlike its intervals', and `weights` likewise, or for another dtype.
+pub fn interlevel_loss(
+    proposal: &(Intervals, Tensor),
+    intervals: &Intervals,
+    weights: &Tensor,
+) -> Result<Tensor> {
+    let (coarse, w_hat) = proposal;
+    for (iv, w, arg) in [(coarse, w_hat, "proposal"), (intervals, weights, "weights")] {
+        check_float(w, arg)?;
+        if !matches!(iv.layout, Layout::Batched) || w.dims() != iv.starts.dims() {
+            return Err(Error::invalid(
+                arg,
+                format!(
+                    "batched intervals and weights of their shape {:?}",
+                    iv.starts.dims()
+                ),
+                format!("weights {:?}", w.dims()),
+            ));
+        }
+    }
+    if weights.dtype() != w_hat.dtype() {
+        return Err(Error::invalid(
+            "weights",
+            format!("{:?} like the proposal's", w_hat.dtype()),
+            format!("{:?}", weights.dtype()),
+        ));
+    }
+    let m = overlaps(intervals, coarse)?;
+    let (r, s) = weights.dims2()?;
+    let bound = m.matmul(&w_hat.unsqueeze(2)?)?.reshape((r, s))?;
+    let w = weights.detach();
+    let excess = (&w - &bound)?.relu()?;
+    let per = (excess.sqr()? / (w + 1e-7)?)?;
+    Ok((per.sum_all()? / r.max(1) as f64)?)
+}
