@@ -58,22 +58,25 @@
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{Optimizer, VarMap};
 use indicatif::{ProgressBar, ProgressStyle};
-use neural_fields::camera::{ray_aabb, Rays};
+use neural_fields::camera::{cameras_around, ray_aabb, Camera, Rays};
 use neural_fields::data::{
     colorize_depth, comparison_strip, load, psnr, ssim, write_png, Background, Bounds, Dataset,
     LoadConfig, RaySampler, Split,
 };
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
+use neural_fields::glam::DVec2;
 use neural_fields::nn::{build_seeded, mlp, nerf, Mlp, MlpConfig, Nerf, NerfConfig};
 use neural_fields::volume::{
-    composite, interlevel_loss, log_linear_schedule, proposal_sample, render_weights, stratified,
-    trunc_exp, visible_mask, Composite, CompositeConfig, GridConfig, GridMarchConfig, Jitter,
-    Layout, OccupancyGrid, ProposalConfig, DEFAULT_TERMINATION_EPS,
+    anneal_near_far, composite, depth_smoothness, interlevel_loss, log_linear_schedule,
+    proposal_sample, render_weights, stratified, trunc_exp, visible_mask, Composite,
+    CompositeConfig, GridConfig, GridMarchConfig, Jitter, Layout, OccupancyGrid, ProposalConfig,
+    ANNEAL_MID_RATIO, ANNEAL_P_START, DEFAULT_TERMINATION_EPS,
 };
 use neural_fields::{Error, Result};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+#[path = "common/mod.rs"]
 mod common;
 
 #[global_allocator]
@@ -83,35 +86,37 @@ static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
 const CHUNK: usize = 4096;
 
 #[derive(Clone, Copy, Debug, PartialEq)]
-enum Sampler {
+pub enum Sampler {
     Grid,
     Stratified,
     Proposal,
 }
 
 #[derive(Debug)]
-struct Args {
-    data: PathBuf,
-    minutes: Option<f64>,
-    steps: Option<usize>,
-    out: PathBuf,
-    seed: u64,
-    sampler: Sampler,
-    downscale: usize,
-    rays: usize,
-    samples: usize,
-    aabb: f64,
-    eval_every: usize,
-    eval_views: usize,
-    pictures: usize,
-    resume: Option<PathBuf>,
-    lr: f64,
-    background: Background,
+pub struct Args {
+    pub data: PathBuf,
+    pub minutes: Option<f64>,
+    pub steps: Option<usize>,
+    pub out: PathBuf,
+    pub seed: u64,
+    pub sampler: Sampler,
+    pub downscale: usize,
+    pub rays: usize,
+    pub samples: usize,
+    pub aabb: f64,
+    pub eval_every: usize,
+    pub eval_views: usize,
+    pub pictures: usize,
+    pub resume: Option<PathBuf>,
+    pub lr: f64,
+    pub background: Background,
+    pub frames: Option<Vec<usize>>,
+    pub regnerf: bool,
 }
 
 const USAGE: &str = "usage: nerf [--data DIR] [--minutes M | --steps N] [--out DIR] [--seed S] \
 [--sampler grid|stratified|proposal] [--downscale K] [--rays N] [--samples N] [--aabb R] \
-[--eval-every N] [--eval-views N] [--pictures N] [--resume FILE] [--lr LR] [--background random|white|black]";
+[--eval-every N] [--eval-views N] [--pictures N] [--resume FILE] [--lr LR] [--background random|white|black] [--frames I,J,K] [--regnerf on|off]";
 
 fn parse_args() -> std::result::Result<Args, String> {
     let mut a = Args {
@@ -131,6 +136,8 @@ fn parse_args() -> std::result::Result<Args, String> {
         resume: None,
         lr: 1e-3,
         background: Background::Random,
+        frames: None,
+        regnerf: false,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -177,6 +184,21 @@ fn parse_args() -> std::result::Result<Args, String> {
             "--pictures" => a.pictures = int(&value)?,
             "--resume" => a.resume = Some(value.into()),
             "--lr" => a.lr = num(&value)?,
+            "--frames" => {
+                let list: std::result::Result<Vec<usize>, _> = value
+                    .split(',')
+                    .map(|v| v.trim().parse::<usize>())
+                    .collect();
+                a.frames =
+                    Some(list.map_err(|_| format!("--frames: indices like 0,16,33, not {value}"))?);
+            }
+            "--regnerf" => {
+                a.regnerf = match value.as_str() {
+                    "on" => true,
+                    "off" => false,
+                    other => return Err(format!("--regnerf: on or off, not {other}")),
+                }
+            }
             "--background" => {
                 a.background = match value.as_str() {
                     "random" => Background::Random,
@@ -213,6 +235,8 @@ struct Renderer<'a> {
     net: &'a Nerf,
     grid: Option<&'a OccupancyGrid>,
     proposals: &'a [Mlp],
+    /// RegNeRF's annealed near/far at this training step (stratified sampler).
+    anneal: Option<usize>,
     aabb: [f64; 6],
     step_size: f64,
     samples: usize,
@@ -271,7 +295,18 @@ impl Renderer<'_> {
                 } else {
                     Jitter::None
                 };
-                stratified(&hit.near, &hit.far, self.samples, jitter, seed.unwrap_or(0))?
+                let (near, far) = match self.anneal {
+                    Some(step) => anneal_near_far(
+                        &hit.near,
+                        &hit.far,
+                        step,
+                        256,
+                        ANNEAL_P_START,
+                        ANNEAL_MID_RATIO,
+                    )?,
+                    None => (hit.near, hit.far),
+                };
+                stratified(&near, &far, self.samples, jitter, seed.unwrap_or(0))?
             }
         };
         let (positions, ray_of) = match &intervals.layout {
@@ -352,6 +387,37 @@ fn proposal_density(net: &Mlp, points: &Tensor) -> Result<Tensor> {
     trunc_exp(&(raw - 1.0)?)
 }
 
+/// RegNeRF's regulariser: the mean depth smoothness of 16 patches of 8 × 8 pixels, each
+/// rendered from a random camera around the training cameras ([`cameras_around`]).
+fn regnerf_depth_smoothness(r: &Renderer, cameras: &[Camera], seed: u64) -> Result<Tensor> {
+    const PATCHES: usize = 16;
+    const K: usize = 8;
+    let unseen = cameras_around(cameras, PATCHES, seed)?;
+    let mut rng = neural_fields::rng::SplitMix64::new(seed);
+    let (mut o, mut d) = (Vec::new(), Vec::new());
+    for cam in &unseen {
+        let k = cam.intrinsics();
+        let u0 = rng.below((k.width.saturating_sub(K) + 1) as u64) as f64;
+        let v0 = rng.below((k.height.saturating_sub(K) + 1) as u64) as f64;
+        for i in 0..K {
+            for j in 0..K {
+                let (origin, dir) = cam.ray(DVec2::new(u0 + j as f64 + 0.5, v0 + i as f64 + 0.5));
+                o.extend_from_slice(&origin.to_array());
+                d.extend_from_slice(&dir.to_array());
+            }
+        }
+    }
+    let n = PATCHES * K * K;
+    let rays = Rays::new(
+        Tensor::from_vec(o, (n, 3), &Device::Cpu)?.to_dtype(DType::F32)?,
+        Tensor::from_vec(d, (n, 3), &Device::Cpu)?.to_dtype(DType::F32)?,
+    )?;
+    let black = Tensor::zeros((n, 3), DType::F32, &Device::Cpu)?;
+    let (out, _, _) = r.render(&rays, &black, Some(seed))?;
+    let depth = out.normalized_depth(1e-6)?.reshape((PATCHES, K, K))?;
+    Ok(depth_smoothness(&depth)?.mean_all()?)
+}
+
 /// Stops on a NaN or infinity in `t`, naming the step and the tensor.
 fn check_finite(t: &Tensor, step: usize, what: &str) -> Result<()> {
     let s = t
@@ -417,11 +483,20 @@ fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
     })
 }
 
-fn run(args: &Args) -> Result<()> {
+/// What a run measured: held-out means, and per held-out view `[truth, colour, depth,
+/// opacity]`.
+#[allow(dead_code)] // read by examples/sparse_views.rs, which includes this file
+pub struct Summary {
+    pub psnr: f64,
+    pub renders: Vec<[Tensor; 4]>,
+}
+
+pub fn run(args: &Args) -> Result<Summary> {
     let (device, dtype) = (Device::Cpu, DType::F32);
     let train_config = LoadConfig {
         background: args.background,
         downscale: args.downscale,
+        frames: args.frames.clone(),
         ..LoadConfig::default()
     };
     let train = load(&args.data, &train_config)?;
@@ -487,6 +562,7 @@ fn run(args: &Args) -> Result<()> {
         Sampler::Stratified | Sampler::Proposal => None,
     };
     let mut sampler = RaySampler::new(&train, args.seed, &device, dtype)?;
+    let train_cameras: Vec<Camera> = train.views().iter().map(|v| *v.camera()).collect();
     let budget = args.minutes.map(|m| m * 60.0);
     let bar = match (args.steps, budget) {
         (Some(n), _) => ProgressBar::new(n as u64),
@@ -540,6 +616,7 @@ fn run(args: &Args) -> Result<()> {
             net: &net,
             grid: grid.as_ref(),
             proposals: &proposals,
+            anneal: args.regnerf.then_some(step),
             aabb,
             step_size: match &grid {
                 Some(g) if occupied_fraction(g) > 0.25 => diag / 64.0,
@@ -555,7 +632,13 @@ fn run(args: &Args) -> Result<()> {
         )?;
         samples_total += n;
         let photometric = (out.color - &batch.colors)?.sqr()?.mean_all()?;
-        let loss = (&photometric + interlevel)?;
+        let mut loss = (&photometric + interlevel)?;
+        if args.regnerf {
+            let weight = log_linear_schedule(step, 400.0, 0.1, 512);
+            let smooth =
+                regnerf_depth_smoothness(&renderer, &train_cameras, args.seed ^ step as u64)?;
+            loss = (loss + (smooth * weight)?)?;
+        }
         check_finite(&loss, step, "the loss")?;
         let grads = loss.backward()?;
         for (name, var) in &vars {
@@ -607,6 +690,7 @@ fn run(args: &Args) -> Result<()> {
         net: &net,
         grid: grid.as_ref(),
         proposals: &proposals,
+        anneal: None,
         aabb,
         step_size: diag / 256.0,
         samples: args.samples,
@@ -657,7 +741,7 @@ fn run(args: &Args) -> Result<()> {
         eval.len(),
         args.out.display()
     );
-    Ok(())
+    Ok(Summary { psnr: p, renders })
 }
 
 fn main() -> std::process::ExitCode {
@@ -669,7 +753,7 @@ fn main() -> std::process::ExitCode {
         }
     };
     match run(&args) {
-        Ok(()) => std::process::ExitCode::SUCCESS,
+        Ok(_) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("nerf: {e}");
             std::process::ExitCode::FAILURE
@@ -704,6 +788,8 @@ mod tests {
             resume: None,
             lr: 1e-3,
             background: Background::Random,
+            frames: None,
+            regnerf: false,
         };
         run(&args).unwrap();
         let metrics: serde_json::Value =

@@ -810,6 +810,120 @@ pub fn ray_sphere(rays: &Rays, center: [f64; 3], radius: f64) -> Result<Intersec
     finish(&t_enter, &t_exit, Some(&valid), &m)
 }
 
+/// Random cameras around a set of cameras, for regularising unobserved viewpoints
+/// (RegNeRF's sampled poses): the scene centre `c` is the point closest, in least squares,
+/// to every camera's optical axis; each new camera sits at the mean distance `r` of the
+/// cameras from `c` (scaled by `1 + N(0, 0.05²)`), in the direction from `c` of a random
+/// input camera perturbed by `N(0, 0.25²)` per axis (renormalised), looks at `c` plus
+/// `N(0, (0.05·r)²)` per axis, and takes the mean "up" of the input cameras, the convention
+/// and the intrinsics of the first. Reproducible from `seed`.
+///
+/// ```
+/// use neural_fields::camera::{cameras_around, Camera, Convention, Intrinsics};
+/// use neural_fields::glam::DVec3;
+///
+/// let k = Intrinsics::from_fov_y(8, 8, 0.7)?;
+/// let eyes = [DVec3::new(4.0, 0.0, 1.0), DVec3::new(0.0, 4.0, 1.0), DVec3::new(-4.0, 0.0, 1.0)];
+/// let cams: Vec<Camera> = eyes
+///     .iter()
+///     .map(|&e| Camera::look_at(k, e, DVec3::ZERO, DVec3::Z, Convention::OpenGl))
+///     .collect::<Result<_, _>>()?;
+/// let new = cameras_around(&cams, 16, 0)?;
+/// assert!(new.iter().all(|c| (c.center().length() - 4.12).abs() < 1.0));
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `cameras` if fewer than two are given, their axes
+/// are (nearly) parallel so that no centre is defined, or their up directions cancel;
+/// `count` if 0 or too large to allocate.
+pub fn cameras_around(cameras: &[Camera], count: usize, seed: u64) -> Result<Vec<Camera>> {
+    if cameras.len() < 2 {
+        return Err(Error::invalid(
+            "cameras",
+            "at least two cameras",
+            cameras.len().to_string(),
+        ));
+    }
+    if count == 0 || count > 1 << 24 {
+        return Err(Error::invalid(
+            "count",
+            "between 1 and 2^24 cameras",
+            count.to_string(),
+        ));
+    }
+    // Forward (viewing) axis and up axis of a camera in world space.
+    let axes = |c: &Camera| {
+        let m = c.cam_to_world.matrix3;
+        match c.convention {
+            Convention::OpenCv => (m.z_axis, -m.y_axis),
+            Convention::OpenGl => (-m.z_axis, m.y_axis),
+        }
+    };
+    // Least squares: Σ (I − f fᵀ) (c − o) = 0.
+    let (mut a, mut b) = (DMat3::ZERO, DVec3::ZERO);
+    for cam in cameras {
+        let (f, _) = axes(cam);
+        let f = f.normalize();
+        let p = DMat3::IDENTITY - DMat3::from_cols(f * f.x, f * f.y, f * f.z);
+        a += p;
+        b += p * cam.center();
+    }
+    let det = a.determinant();
+    if det.is_nan() || det.abs() <= 1e-9 * cameras.len().pow(3) as f64 {
+        return Err(Error::invalid(
+            "cameras",
+            "cameras whose optical axes are not all parallel",
+            format!("det = {det:e}"),
+        ));
+    }
+    let centre = a.inverse() * b;
+    let radius = cameras
+        .iter()
+        .map(|c| (c.center() - centre).length())
+        .sum::<f64>()
+        / cameras.len() as f64;
+    let up = cameras
+        .iter()
+        .map(|c| axes(c).1)
+        .fold(DVec3::ZERO, |s, u| s + u)
+        .normalize_or_zero();
+    if up == DVec3::ZERO || !centre.is_finite() || !(radius > 0.0 && radius.is_finite()) {
+        return Err(Error::invalid(
+            "cameras",
+            "cameras around a centre, with a common up direction",
+            format!("centre {centre:?}, radius {radius}, mean up {up:?}"),
+        ));
+    }
+    let mut rng = crate::rng::SplitMix64::new(seed);
+    let mut out = Vec::with_capacity(count.min(1 << 20));
+    let first = &cameras[0];
+    // Draws along `up` are redrawn; a bounded number of tries keeps a degenerate input
+    // from looping.
+    for _ in 0..count.saturating_mul(64) {
+        if out.len() == count {
+            break;
+        }
+        let base = cameras[rng.below(cameras.len() as u64) as usize].center() - centre;
+        let jitter = DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.25;
+        let dir = (base.normalize_or_zero() + jitter).normalize_or_zero();
+        let eye = centre + dir * radius * (1.0 + 0.05 * rng.normal());
+        let target = centre + DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.05 * radius;
+        // A direction (almost) along `up` has no defined roll: draw again.
+        if let Ok(cam) = Camera::look_at(first.intrinsics, eye, target, up, first.convention) {
+            out.push(cam);
+        }
+    }
+    if out.len() < count {
+        return Err(Error::invalid(
+            "cameras",
+            "cameras not all looking along their up direction",
+            format!("{} of {count} poses drawn", out.len()),
+        ));
+    }
+    Ok(out)
+}
+
 /// A differentiable camera-to-world pose: a quaternion `q = (w, x, y, z)` (any non-zero
 /// scale; the rotation is that of `q/|q|`) and a translation `t`, as candle variables for
 /// an optimiser.

@@ -1149,3 +1149,52 @@ fn normalized_and_camera_directions_gradients_match_finite_differences() {
         );
     }
 }
+
+#[test]
+fn cameras_around_sit_at_the_mean_distance_and_look_at_the_centre() {
+    use neural_fields::camera::cameras_around;
+    use neural_fields::glam::DVec2;
+    let k = Intrinsics::from_fov_y(20, 20, 0.7).unwrap();
+    let centre = DVec3::new(0.5, -0.2, 0.1);
+    let cams: Vec<Camera> = [0.0f64, 1.2, 2.5, 4.0]
+        .iter()
+        .map(|&a| {
+            let eye = centre + DVec3::new(a.cos(), a.sin(), 0.4) * 3.0;
+            Camera::look_at(k, eye, centre, DVec3::Z, Convention::OpenGl).unwrap()
+        })
+        .collect();
+    let radius = (DVec3::new(1.0, 0.0, 0.4) * 3.0).length();
+    let new = cameras_around(&cams, 200, 5).unwrap();
+    assert_eq!(new, cameras_around(&cams, 200, 5).unwrap(), "seeded");
+    for cam in &new {
+        assert!((cam.center() - centre).length() / radius - 1.0 < 0.3);
+        assert_eq!(cam.convention(), Convention::OpenGl);
+        // The principal ray passes within 0.25·r of the centre (target jitter 0.05·r).
+        let (o, d) = cam.ray(DVec2::new(10.0, 10.0));
+        let t = (centre - o).dot(d) / d.length_squared();
+        assert!((o + d * t - centre).length() < 0.25 * radius);
+        // Image up stays within 90° of the cameras' up (+z).
+        assert!(cam.cam_to_world().matrix3.y_axis.z > 0.0);
+    }
+    // Errors: one camera, parallel axes, zero count.
+    let arg = |r: neural_fields::Result<Vec<Camera>>| match r {
+        Err(neural_fields::Error::InvalidArgument { arg, .. }) => arg,
+        other => panic!("{:?}", other.map(|v| v.len())),
+    };
+    assert_eq!(arg(cameras_around(&cams[..1], 3, 0)), "cameras");
+    assert_eq!(arg(cameras_around(&cams, 0, 0)), "count");
+    let parallel: Vec<Camera> = [0.0, 1.0]
+        .iter()
+        .map(|&x| {
+            Camera::look_at(
+                k,
+                DVec3::new(x, 0.0, 3.0),
+                DVec3::new(x, 0.0, 0.0),
+                DVec3::Y,
+                Convention::OpenGl,
+            )
+            .unwrap()
+        })
+        .collect();
+    assert_eq!(arg(cameras_around(&parallel, 3, 0)), "cameras");
+}

@@ -2356,6 +2356,7 @@ fn stiff_cases_give_finite_outputs_and_gradients_or_err() {
 
 /// Items swept above; kept in sync with the sweeps by `covered_matches_list`.
 const COVERED: &[&str] = &[
+    "camera::cameras_around",
     "nn::nerf::Nerf::density",
     "nn::nerf::Nerf::radiance",
     "nn::nerf::nerf",
@@ -2900,6 +2901,30 @@ fn host3(v: DVec3) -> neural_fields::Result<Tensor> {
 
 fn sweep_camera_host(s: &mut Suite) {
     let k = Intrinsics::new(500.0, 400.0, 32.0, 24.0, 64, 48).unwrap();
+    for r in [1e-6, 1.0, 1e6, 1e150] {
+        s.case(
+            "camera::cameras_around",
+            format!("cameras at distance {r:e}"),
+            Expect::FiniteOrErr,
+            &[],
+            || {
+                let cams: Vec<Camera> = [DVec3::X, DVec3::Y, -DVec3::X]
+                    .iter()
+                    .map(|&e| {
+                        Camera::look_at(
+                            k,
+                            (e + DVec3::Z * 0.3) * r,
+                            DVec3::ZERO,
+                            DVec3::Z,
+                            Convention::OpenGl,
+                        )
+                    })
+                    .collect::<neural_fields::Result<_>>()?;
+                let around = neural_fields::camera::cameras_around(&cams, 8, 1)?;
+                around.iter().map(|c| host3(c.center())).collect()
+            },
+        );
+    }
     for convention in [Convention::OpenCv, Convention::OpenGl] {
         let cam = Camera::look_at(
             k,
