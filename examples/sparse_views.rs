@@ -119,6 +119,12 @@ fn run() -> Result<()> {
         }
     }
     base.minutes = minutes;
+    compare(&base)
+}
+
+/// Runs `base` without and with RegNeRF and writes the comparison to `base.out`.
+fn compare(base: &nerf::Args) -> Result<()> {
+    let minutes = base.minutes;
     let root = base.out.clone();
     let mut results = Vec::new();
     for regnerf in [false, true] {
@@ -130,7 +136,7 @@ fn run() -> Result<()> {
             frames: base.frames.clone(),
             data: base.data.clone(),
             resume: None,
-            ..base
+            ..*base
         };
         results.push(nerf::run(&args)?);
     }
@@ -186,5 +192,52 @@ fn main() -> std::process::ExitCode {
             eprintln!("sparse_views: {e}");
             std::process::ExitCode::FAILURE
         }
+    }
+}
+
+#[cfg(test)]
+mod sparse_tests {
+    use super::*;
+
+    /// Both runs for a few steps at a quarter of the resolution: the comparison files and
+    /// both runs' metrics are written.
+    #[test]
+    fn a_shortened_comparison_writes_both_runs_and_the_metrics() {
+        let out = std::env::temp_dir().join(format!("sparse-views-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&out);
+        let base = nerf::Args {
+            data: PathBuf::from("examples/data/wuson"),
+            minutes: None,
+            steps: Some(3),
+            out: out.clone(),
+            seed: 0,
+            sampler: nerf::Sampler::Stratified,
+            downscale: 4,
+            rays: 128,
+            samples: 16,
+            aabb: 1.5,
+            eval_every: 3,
+            eval_views: 1,
+            pictures: 1,
+            resume: None,
+            lr: 1e-3,
+            background: neural_fields::data::Background::Random,
+            frames: Some(vec![0, 17, 34]),
+            regnerf: false,
+        };
+        compare(&base).unwrap();
+        let m: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap())
+                .unwrap();
+        for run in ["plain", "regnerf"] {
+            for key in ["psnr", "depth_tv"] {
+                assert!(
+                    m[run][key].as_f64().is_some_and(f64::is_finite),
+                    "{run}.{key}: {m}"
+                );
+            }
+        }
+        assert!(out.join("compare_0.png").is_file() && out.join("depth_0.png").is_file());
+        let _ = std::fs::remove_dir_all(&out);
     }
 }
