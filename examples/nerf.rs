@@ -118,27 +118,34 @@ const USAGE: &str = "usage: nerf [--data DIR] [--minutes M | --steps N] [--out D
 [--sampler grid|stratified|proposal] [--downscale K] [--rays N] [--samples N] [--aabb R] \
 [--eval-every N] [--eval-views N] [--pictures N] [--resume FILE] [--lr LR] [--background random|white|black] [--frames I,J,K] [--regnerf on|off]";
 
+impl Default for Args {
+    /// The defaults of the command line.
+    fn default() -> Self {
+        Self {
+            data: PathBuf::from("examples/data/wuson"),
+            minutes: None,
+            steps: None,
+            out: PathBuf::from("out/nerf"),
+            seed: 0,
+            sampler: Sampler::Grid,
+            downscale: 1,
+            rays: 1024,
+            samples: 64,
+            aabb: 1.5,
+            eval_every: 250,
+            eval_views: 4,
+            pictures: 8,
+            resume: None,
+            lr: 1e-3,
+            background: Background::Random,
+            frames: None,
+            regnerf: false,
+        }
+    }
+}
+
 fn parse_args() -> std::result::Result<Args, String> {
-    let mut a = Args {
-        data: PathBuf::from("examples/data/wuson"),
-        minutes: None,
-        steps: None,
-        out: PathBuf::from("out/nerf"),
-        seed: 0,
-        sampler: Sampler::Grid,
-        downscale: 1,
-        rays: 1024,
-        samples: 64,
-        aabb: 1.5,
-        eval_every: 250,
-        eval_views: 4,
-        pictures: 8,
-        resume: None,
-        lr: 1e-3,
-        background: Background::Random,
-        frames: None,
-        regnerf: false,
-    };
+    let mut a = Args::default();
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
         if flag == "--help" || flag == "-h" {
@@ -772,24 +779,16 @@ mod tests {
         let out = std::env::temp_dir().join(format!("nerf-example-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&out);
         let mut args = Args {
-            data: PathBuf::from("examples/data/wuson"),
-            minutes: None,
             steps: Some(4),
             out: out.clone(),
             seed: 1,
-            sampler: Sampler::Grid,
             downscale: 4,
             rays: 128,
             samples: 16,
-            aabb: 1.5,
             eval_every: 2,
             eval_views: 1,
             pictures: 1,
-            resume: None,
-            lr: 1e-3,
-            background: Background::Random,
-            frames: None,
-            regnerf: false,
+            ..Args::default()
         };
         run(&args).unwrap();
         let metrics: serde_json::Value =

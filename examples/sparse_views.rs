@@ -61,24 +61,12 @@ fn depth_tv(depth: &Tensor) -> Result<f64> {
 fn run() -> Result<()> {
     let mut minutes = Some(3.0);
     let mut base = nerf::Args {
-        data: PathBuf::from("examples/data/wuson"),
-        minutes: None,
-        steps: None,
         out: PathBuf::from("out/sparse_views"),
-        seed: 0,
         sampler: nerf::Sampler::Stratified,
-        downscale: 1,
-        rays: 1024,
         samples: 32,
-        aabb: 1.5,
-        eval_every: 250,
-        eval_views: 4,
         pictures: 4,
-        resume: None,
-        lr: 1e-3,
-        background: neural_fields::data::Background::Random,
         frames: Some(vec![0, 17, 34]),
-        regnerf: false,
+        ..nerf::Args::default()
     };
     let mut it = std::env::args().skip(1);
     let bad = |m: String| Error::InvalidArgument {
@@ -206,24 +194,17 @@ mod sparse_tests {
         let out = std::env::temp_dir().join(format!("sparse-views-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&out);
         let base = nerf::Args {
-            data: PathBuf::from("examples/data/wuson"),
-            minutes: None,
             steps: Some(3),
             out: out.clone(),
-            seed: 0,
             sampler: nerf::Sampler::Stratified,
             downscale: 4,
             rays: 128,
             samples: 16,
-            aabb: 1.5,
             eval_every: 3,
             eval_views: 1,
             pictures: 1,
-            resume: None,
-            lr: 1e-3,
-            background: neural_fields::data::Background::Random,
             frames: Some(vec![0, 17, 34]),
-            regnerf: false,
+            ..nerf::Args::default()
         };
         compare(&base).unwrap();
         let m: serde_json::Value =
