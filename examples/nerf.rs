@@ -316,19 +316,21 @@ impl Renderer<'_> {
                 stratified(&near, &far, self.samples, jitter, seed.unwrap_or(0))?
             }
         };
-        let (positions, ray_of) = match &intervals.layout {
-            Layout::Packed(p) => (intervals.positions(rays)?, p.ray_indices.clone()),
+        let (positions, dirs) = match &intervals.layout {
+            Layout::Packed(p) => (
+                intervals.positions(rays)?,
+                rays.directions().index_select(&p.ray_indices, 0)?,
+            ),
             Layout::Batched => {
                 let (r, s) = intervals.starts.dims2()?;
-                let idx: Vec<u32> = (0..r as u32)
-                    .flat_map(|i| std::iter::repeat_n(i, s))
-                    .collect();
-                let idx = Tensor::from_vec(idx, r * s, rays.origins().device())?;
-                (intervals.positions(rays)?.reshape((r * s, 3))?, idx)
+                let dirs = rays.directions().unsqueeze(1)?.broadcast_as((r, s, 3))?;
+                (
+                    intervals.positions(rays)?.reshape((r * s, 3))?,
+                    dirs.reshape((r * s, 3))?,
+                )
             }
         };
         let n = positions.dim(0)?;
-        let dirs = rays.directions().index_select(&ray_of, 0)?;
         let (sigma, rgb) = self.net.radiance(&positions, &dirs)?;
         let (sigma, rgb) = match &intervals.layout {
             Layout::Batched => {
@@ -448,11 +450,6 @@ fn named_vars(varmap: &VarMap) -> Vec<(String, Var)> {
     let mut vars: Vec<_> = data.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
     vars.sort_by(|a, b| a.0.cmp(&b.0));
     vars
-}
-
-fn occupied_fraction(grid: &OccupancyGrid) -> f64 {
-    let occupied = grid.occupied();
-    occupied.iter().filter(|&&o| o).count() as f64 / occupied.len() as f64
 }
 
 fn scene_box(data: &Dataset, half: f64) -> [f64; 6] {
@@ -626,7 +623,7 @@ pub fn run(args: &Args) -> Result<Summary> {
             anneal: args.regnerf.then_some(step),
             aabb,
             step_size: match &grid {
-                Some(g) if occupied_fraction(g) > 0.25 => diag / 64.0,
+                Some(g) if g.occupied_fraction() > 0.25 => diag / 64.0,
                 _ => diag / 256.0,
             },
             samples: args.samples,
@@ -682,7 +679,7 @@ pub fn run(args: &Args) -> Result<Summary> {
                 println!(
                     "step {step}: loss {mse:.5}, held-out PSNR {p:.2} dB ({shown} views), {:.1} samples/ray{}",
                     n as f64 / args.rays as f64,
-                    grid.as_ref().map_or(String::new(), |g| format!(", {:.1} % of the grid occupied", 100.0 * occupied_fraction(g)))
+                    grid.as_ref().map_or(String::new(), |g| format!(", {:.1} % of the grid occupied", 100.0 * g.occupied_fraction()))
                 )
             });
             eval_secs += clock.elapsed().as_secs_f64();
@@ -705,7 +702,7 @@ pub fn run(args: &Args) -> Result<Summary> {
     if let Some(g) = &grid {
         println!(
             "grid: {:.1} % of the cells occupied",
-            100.0 * occupied_fraction(g)
+            100.0 * g.occupied_fraction()
         );
     }
     let (p, s, renders) = evaluate(&renderer, &eval, eval.len())?;

@@ -174,12 +174,6 @@ fn render_view(
     Ok((Tensor::cat(&colours, 0)?, evaluated))
 }
 
-/// The fraction of the grid's cells that are occupied.
-fn occupied_fraction(grid: &OccupancyGrid) -> f64 {
-    let occupied = grid.occupied();
-    occupied.iter().filter(|&&o| o).count() as f64 / occupied.len() as f64
-}
-
 /// One training run; returns the held-out rendering.
 fn train(
     mode: Mode,
@@ -256,7 +250,7 @@ fn train(
                 loss.to_dtype(DType::F64)?.to_scalar::<f64>()?,
                 psnr(&image, &images[HELD_OUT], None)?,
                 evaluated as f64 / rays.len() as f64,
-                100.0 * occupied_fraction(&grid),
+                100.0 * grid.occupied_fraction(),
                 train_time,
             );
         }
@@ -273,7 +267,7 @@ fn train(
     if mode == Mode::Grid {
         println!(
             "grid: {:.1} % of its cells occupied",
-            100.0 * occupied_fraction(&grid)
+            100.0 * grid.occupied_fraction()
         );
     }
     Ok(image)

@@ -24,7 +24,9 @@
 //! **Poses** are camera-to-world rigid transforms ([`glam::DAffine3`]): a camera-space
 //! point `p_c` maps to `R p_c + t`; the ray origin is `t`, the camera centre.
 
-use crate::error::{check_finite, check_float, check_points, check_same, check_shape, Dim};
+use crate::error::{
+    check_dtype, check_finite, check_float, check_points, check_same, check_shape, Dim,
+};
 use crate::error::{Error, Result};
 use candle_core::{DType, Device, Tensor, Var};
 use glam::{DAffine3, DMat3, DQuat, DVec2, DVec3};
@@ -56,13 +58,6 @@ pub struct Intrinsics {
     pub width: usize,
     /// Image height in pixels; > 0.
     pub height: usize,
-}
-
-fn check_dtype_arg(dtype: DType) -> Result<()> {
-    match dtype {
-        DType::F32 | DType::F64 => Ok(()),
-        other => Err(Error::invalid("dtype", "f32 or f64", format!("{other:?}"))),
-    }
 }
 
 /// The smallest magnitude whose square is still a normal number in `dtype`: below it a
@@ -175,6 +170,14 @@ impl Intrinsics {
     }
 }
 
+/// How far `m` is from orthonormal: `max |mᵀm − I|` over the entries.
+pub(crate) fn orthonormality(m: &DMat3) -> f64 {
+    (m.transpose() * *m - DMat3::IDENTITY)
+        .to_cols_array()
+        .iter()
+        .fold(0.0f64, |a, &b| a.max(b.abs()))
+}
+
 /// Checks that `pose` is a finite rigid transform: `RᵀR = I` within 1e-6 (max abs entry)
 /// and `det R = +1` within 1e-6.
 fn check_pose(pose: &DAffine3, arg: &'static str) -> Result<()> {
@@ -182,10 +185,7 @@ fn check_pose(pose: &DAffine3, arg: &'static str) -> Result<()> {
     if !m.is_finite() || !pose.translation.is_finite() {
         return Err(Error::invalid(arg, "finite entries", format!("{pose:?}")));
     }
-    let dev = (m.transpose() * m - DMat3::IDENTITY)
-        .to_cols_array()
-        .iter()
-        .fold(0.0f64, |a, &b| a.max(b.abs()));
+    let dev = orthonormality(&m);
     if dev > 1e-6 {
         return Err(Error::invalid(
             arg,
@@ -332,7 +332,7 @@ impl Camera {
     /// # Errors
     /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64.
     pub fn pixel_grid(&self, device: &Device, dtype: DType) -> Result<Tensor> {
-        check_dtype_arg(dtype)?;
+        check_dtype(dtype)?;
         let (w, h) = (self.intrinsics.width, self.intrinsics.height);
         let mut data = Vec::with_capacity(2 * w * h);
         for v in 0..h {
@@ -389,7 +389,7 @@ impl Camera {
         device: &Device,
         dtype: DType,
     ) -> Result<(Rays, Tensor)> {
-        check_dtype_arg(dtype)?;
+        check_dtype(dtype)?;
         if n == 0 {
             return Err(Error::invalid("n", "at least one ray", "0"));
         }
@@ -946,7 +946,7 @@ impl PoseParam {
     /// (as in [`Camera::new`]), `dtype` unless f32 or f64.
     pub fn from_affine(pose: &DAffine3, device: &Device, dtype: DType) -> Result<Self> {
         check_pose(pose, "pose")?;
-        check_dtype_arg(dtype)?;
+        check_dtype(dtype)?;
         let q = DQuat::from_mat3(&pose.matrix3).normalize();
         let t = pose.translation;
         let rotation =

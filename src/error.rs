@@ -159,6 +159,17 @@ pub(crate) fn check_shape(t: &Tensor, arg: &'static str, pattern: &[Dim]) -> Res
     }
 }
 
+/// Checks that a requested `dtype` argument is one this crate computes in (f32 or f64).
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `dtype` for any other.
+pub(crate) fn check_dtype(dtype: DType) -> Result<()> {
+    match dtype {
+        DType::F32 | DType::F64 => Ok(()),
+        other => Err(Error::invalid("dtype", "f32 or f64", format!("{other:?}"))),
+    }
+}
+
 /// Checks that `t` is a floating-point tensor this crate computes in (f32 or f64).
 ///
 /// # Errors

@@ -2532,6 +2532,10 @@ const OCCUPANCY_COVERED: &[&str] = &[
 const EXEMPT: &[(&str, &str)] = &[
     ("nn::nerf::Nerf::config", "getter"),
     ("volume::proposal::ProposalConfig::default", "constant"),
+    (
+        "volume::grid::OccupancyGrid::occupied_fraction",
+        "counts booleans; no float input",
+    ),
     ("nn::nerf::Nerf::forward", "swept through Nerf::density"),
     ("nn::nerf::Nerf::out_dim", "constant"),
     ("nn::nerf::NerfConfig::default", "constant"),

@@ -60,9 +60,12 @@ fn grid_new(aabb: [f64; 6], resolution: usize, levels: usize) -> Result<Occupanc
 }
 
 /// The fraction of occupied cells, over all levels.
+/// `OccupancyGrid::occupied_fraction`, checked against a count of `occupied()`.
 fn occupied_fraction(grid: &OccupancyGrid) -> f64 {
     let occ = grid.occupied();
-    occ.iter().filter(|&&o| o).count() as f64 / occ.len() as f64
+    let counted = occ.iter().filter(|&&o| o).count() as f64 / occ.len() as f64;
+    assert_eq!(grid.occupied_fraction(), counted);
+    counted
 }
 
 /// The packed layout of the grid's samples.

@@ -2,8 +2,8 @@
 //! chunks for evaluation.
 
 use super::dataset::{Background, Dataset};
-use super::image::check_dtype;
 use crate::camera::Rays;
+use crate::error::check_dtype;
 use crate::error::{Error, Result};
 use crate::rng::SplitMix64;
 use candle_core::{DType, Device, Tensor};
@@ -175,7 +175,8 @@ impl<'a> RaySampler<'a> {
     /// [`Error::InvalidArgument`] naming `n` if 0 or above 2²⁸.
     pub fn pixels(&mut self, n: usize) -> Result<RayBatch> {
         check_count(n, "n")?;
-        let total = *self.ends.last().expect("a dataset has a view");
+        // invariant: a Dataset holds at least one view (Dataset::new), so `ends` is non-empty.
+        let total = self.ends.last().copied().unwrap_or(0);
         let picks: Vec<_> = (0..n)
             .map(|_| {
                 let i = self.rng.below(total);

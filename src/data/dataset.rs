@@ -1,7 +1,8 @@
 //! Views, datasets, the loading options and the loader entry point.
 
-use super::image::{check_dtype, Image};
-use crate::camera::{Camera, Convention, Intrinsics};
+use super::image::Image;
+use crate::camera::{orthonormality, Camera, Convention, Intrinsics};
+use crate::error::check_dtype;
 use crate::error::{Error, Result};
 use candle_core::{DType, Device, Tensor};
 use glam::{DAffine3, DMat3, DVec3};
@@ -101,6 +102,7 @@ impl View {
     /// Colour of pixel `(u, v)` composited on `background`: `c·a + b·(1 − a)` with the
     /// straight colour `c` and alpha `a` (1 without an alpha channel), all `byte / 255`.
     pub(crate) fn color(&self, u: usize, v: usize, background: [f64; 3]) -> [f64; 3] {
+        // invariant: every caller (the samplers, `rgb`) passes (u, v) inside the image.
         let p = self.image.pixel(u, v).expect("pixel inside the image");
         let a = if p.len() == 4 {
             f64::from(p[3]) / 255.0
@@ -631,13 +633,6 @@ pub(crate) fn pose_from_rows(rows: &[[f64; 4]], path: &Path, field: &str) -> Res
         }
     }
     Ok(DAffine3::from_mat3_translation(r, col(3)))
-}
-
-fn orthonormality(r: &DMat3) -> f64 {
-    (r.transpose() * *r - DMat3::IDENTITY)
-        .to_cols_array()
-        .iter()
-        .fold(0.0f64, |a, &b| a.max(b.abs()))
 }
 
 /// Reads a whole file of at most `cap` bytes.

@@ -4,7 +4,7 @@
 use super::dataset::{pose_from_rows, read_capped, Bounds, FrameSpec, IntrinsicsSpec, Split};
 use crate::camera::Convention;
 use crate::error::{Error, Result};
-use glam::{DMat3, DVec3};
+use glam::{DMat3, DMat4, DVec3};
 use std::collections::HashMap;
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -99,9 +99,9 @@ pub(crate) fn frames(dir: &Path, split: Split) -> Result<(Vec<FrameSpec>, Option
                 "no such member",
             )
         })?;
-        let scale = matrix(&npz, &cameras, &format!("scale_mat_{i}"))?.unwrap_or(IDENTITY);
+        let scale = matrix(&npz, &cameras, &format!("scale_mat_{i}"))?.unwrap_or(DMat4::IDENTITY);
         let field = format!("world_mat_{i} · scale_mat_{i}");
-        let (k, pose) = decompose(&mul(&world, &scale), &cameras, &field)?;
+        let (k, pose) = decompose(&(world * scale), &cameras, &field)?;
         out.push(FrameSpec {
             image,
             mask: masks.as_ref().map(|m| m[i].clone()),
@@ -127,20 +127,8 @@ pub(crate) fn frames(dir: &Path, split: Split) -> Result<(Vec<FrameSpec>, Option
     Ok((out, Some(unit)))
 }
 
-type Mat4 = [[f64; 4]; 4];
-const IDENTITY: Mat4 = [
-    [1.0, 0.0, 0.0, 0.0],
-    [0.0, 1.0, 0.0, 0.0],
-    [0.0, 0.0, 1.0, 0.0],
-    [0.0, 0.0, 0.0, 1.0],
-];
-
-fn mul(a: &Mat4, b: &Mat4) -> Mat4 {
-    std::array::from_fn(|i| std::array::from_fn(|j| (0..4).map(|k| a[i][k] * b[k][j]).sum()))
-}
-
 /// The member `name` as a 4×4 matrix (a 3×4 one gains the row `[0, 0, 0, 1]`).
-fn matrix(npz: &HashMap<String, Npy>, path: &Path, name: &str) -> Result<Option<Mat4>> {
+fn matrix(npz: &HashMap<String, Npy>, path: &Path, name: &str) -> Result<Option<DMat4>> {
     let Some(m) = npz.get(name) else {
         return Ok(None);
     };
@@ -152,11 +140,12 @@ fn matrix(npz: &HashMap<String, Npy>, path: &Path, name: &str) -> Result<Option<
             format!("shape {:?}", m.shape),
         ));
     }
-    let mut out = IDENTITY;
+    let mut rows = DMat4::IDENTITY.to_cols_array_2d(); // symmetric: rows = columns
     for (r, row) in m.data.chunks_exact(4).enumerate() {
-        out[r].copy_from_slice(row);
+        rows[r].copy_from_slice(row);
     }
-    if out.iter().flatten().any(|x| !x.is_finite()) {
+    let out = DMat4::from_cols_array_2d(&rows).transpose();
+    if !out.is_finite() {
         return Err(Error::format(
             path,
             name,
@@ -172,11 +161,11 @@ fn matrix(npz: &HashMap<String, Npy>, path: &Path, name: &str) -> Result<Option<
 /// IDR: `M = K R` by an RQ decomposition (Gram–Schmidt on the rows of `M` from the last),
 /// `K` normalised to `K₃₃ = 1` with a positive diagonal, the centre `C = −M⁻¹ p₄`. A skew
 /// `K₀₁` is dropped if it moves no pixel of the image by more than 0.05 px, else refused.
-fn decompose(p: &Mat4, path: &Path, field: &str) -> Result<(IntrinsicsSpec, glam::DAffine3)> {
+fn decompose(p: &DMat4, path: &Path, field: &str) -> Result<(IntrinsicsSpec, glam::DAffine3)> {
     let bad =
         |got: String| Error::format(path, field, "a finite projection K·[R|t] of rank 3", got);
-    let mut rows: [DVec3; 3] = std::array::from_fn(|r| DVec3::new(p[r][0], p[r][1], p[r][2]));
-    let mut p4 = DVec3::new(p[0][3], p[1][3], p[2][3]);
+    let mut rows: [DVec3; 3] = std::array::from_fn(|r| p.row(r).truncate());
+    let mut p4 = p.w_axis.truncate();
     let det = DMat3::from_cols(rows[0], rows[1], rows[2]).determinant();
     let scale = rows.iter().map(|r| r.length()).fold(0.0, f64::max);
     if !(det.is_finite() && det.abs() > 1e-12 * scale.powi(3)) {
@@ -333,12 +322,7 @@ fn parse_npy(bytes: &[u8]) -> std::result::Result<Option<Npy>, String> {
     }
     let mut data: Vec<f64> = payload
         .chunks_exact(size)
-        .map(|c| match (size, little) {
-            (8, true) => f64::from_le_bytes(c.try_into().expect("8 bytes")),
-            (8, false) => f64::from_be_bytes(c.try_into().expect("8 bytes")),
-            (_, true) => f64::from(f32::from_le_bytes(c.try_into().expect("4 bytes"))),
-            (_, false) => f64::from(f32::from_be_bytes(c.try_into().expect("4 bytes"))),
-        })
+        .map(|c| element(c, little))
         .collect();
     if fortran && shape.len() == 2 {
         let (r, c) = (shape[0], shape[1]);
@@ -347,6 +331,20 @@ fn parse_npy(bytes: &[u8]) -> std::result::Result<Option<Npy>, String> {
         return Err("a Fortran-ordered array of rank > 2".into());
     }
     Ok(Some(Npy { shape, data }))
+}
+
+/// One little- or big-endian float of 4 or 8 bytes (`c.len()`), as f64.
+fn element(c: &[u8], little: bool) -> f64 {
+    let mut b = [0u8; 8];
+    let n = c.len().min(8);
+    b[..n].copy_from_slice(&c[..n]);
+    let b4 = [b[0], b[1], b[2], b[3]];
+    match (n, little) {
+        (8, true) => f64::from_le_bytes(b),
+        (8, false) => f64::from_be_bytes(b),
+        (_, true) => f64::from(f32::from_le_bytes(b4)),
+        (_, false) => f64::from(f32::from_be_bytes(b4)),
+    }
 }
 
 /// The text of `key`'s value in a Python dict literal such as
@@ -425,11 +423,13 @@ mod tests {
         );
         let kr = k * r;
         let kt = k * t;
-        let mut p = IDENTITY;
-        for i in 0..3 {
-            let row = kr.row(i) * 7.0; // an arbitrary positive scale
-            p[i] = [row.x, row.y, row.z, kt[i] * 7.0];
-        }
+        // K·[R|t] times an arbitrary positive scale.
+        let p = glam::DMat4::from_cols(
+            (kr.x_axis * 7.0).extend(0.0),
+            (kr.y_axis * 7.0).extend(0.0),
+            (kr.z_axis * 7.0).extend(0.0),
+            (kt * 7.0).extend(1.0),
+        );
         let (spec, pose) = decompose(&p, Path::new("x"), "P").unwrap();
         match spec {
             IntrinsicsSpec::Pinhole {
@@ -451,7 +451,7 @@ mod tests {
             .iter()
             .all(|x| x.abs() < 1e-12));
         // −P is the same camera.
-        let neg = p.map(|row| row.map(|x| -x));
+        let neg = -p;
         let (_, pose2) = decompose(&neg, Path::new("x"), "P").unwrap();
         assert!((pose2.translation - c).length() < 1e-12);
     }

@@ -1,6 +1,6 @@
 //! 8-bit images in memory, their decoding from PNG/JPEG files and integer downscaling.
 
-use crate::error::{Error, Result};
+use crate::error::{check_dtype, Error, Result};
 use candle_core::{DType, Device, Tensor};
 use std::path::Path;
 
@@ -71,23 +71,12 @@ impl Image {
     /// [`Error::InvalidArgument`] naming `image` for another rank or channel count, an
     /// empty image, or a NaN.
     pub fn from_tensor(image: &Tensor) -> Result<Self> {
-        let dims = image.dims().to_vec();
-        let (h, w, c) = match dims[..] {
-            [h, w] => (h, w, 1),
-            [h, w, c] => (h, w, c),
-            _ => {
-                return Err(Error::invalid(
-                    "image",
-                    "shape [H, W] or [H, W, C]",
-                    format!("{dims:?}"),
-                ))
-            }
-        };
-        if !matches!(c, 1 | 3 | 4) || h == 0 || w == 0 {
+        let (h, w, c) = image_shape(image, "image")?;
+        if !matches!(c, 1 | 3 | 4) {
             return Err(Error::invalid(
                 "image",
-                "a non-empty image with 1, 3 or 4 channels",
-                format!("shape {dims:?}"),
+                "an image with 1, 3 or 4 channels",
+                format!("shape {:?}", image.dims()),
             ));
         }
         let values = image
@@ -207,6 +196,7 @@ impl Image {
                 acc.fill(0.0);
                 for dv in 0..k {
                     for du in 0..k {
+                        // invariant: u·k + du < (width / k)·k ≤ width, and likewise for v.
                         let p = self
                             .pixel(u * k + du, v * k + dv)
                             .expect("block lies inside the image");
@@ -239,9 +229,29 @@ impl Image {
     }
 }
 
-pub(crate) fn check_dtype(dtype: DType) -> Result<()> {
-    match dtype {
-        DType::F32 | DType::F64 => Ok(()),
-        other => Err(Error::invalid("dtype", "f32 or f64", format!("{other:?}"))),
+/// The `(H, W, C)` of a non-empty image tensor `[H, W]` (C = 1) or `[H, W, C]`.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `arg` for another rank or an empty image.
+pub(crate) fn image_shape(t: &Tensor, arg: &'static str) -> Result<(usize, usize, usize)> {
+    let dims = t.dims();
+    let (h, w, c) = match dims[..] {
+        [h, w] => (h, w, 1),
+        [h, w, c] => (h, w, c),
+        _ => {
+            return Err(Error::invalid(
+                arg,
+                "an image [H, W] or [H, W, C]",
+                format!("shape {dims:?}"),
+            ))
+        }
+    };
+    if h == 0 || w == 0 || c == 0 {
+        return Err(Error::invalid(
+            arg,
+            "a non-empty image",
+            format!("shape {dims:?}"),
+        ));
     }
+    Ok((h, w, c))
 }

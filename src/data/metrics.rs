@@ -7,25 +7,7 @@ use candle_core::{DType, Tensor};
 type Host = (usize, usize, usize, Vec<f64>);
 
 fn host(t: &Tensor, arg: &'static str) -> Result<Host> {
-    let dims = t.dims().to_vec();
-    let (h, w, c) = match dims[..] {
-        [h, w] => (h, w, 1),
-        [h, w, c] => (h, w, c),
-        _ => {
-            return Err(Error::invalid(
-                arg,
-                "an image [H, W] or [H, W, C]",
-                format!("shape {dims:?}"),
-            ))
-        }
-    };
-    if h * w * c == 0 {
-        return Err(Error::invalid(
-            arg,
-            "a non-empty image",
-            format!("shape {dims:?}"),
-        ));
-    }
+    let (h, w, c) = super::image::image_shape(t, arg)?;
     if !matches!(t.dtype(), DType::F32 | DType::F64) {
         return Err(Error::invalid(
             arg,

@@ -30,13 +30,9 @@ pub(crate) fn frames(
 ) -> Result<(Vec<FrameSpec>, Option<Bounds>)> {
     match layout {
         DatasetLayout::Blender => {
-            let names: &[&str] = match split {
-                Split::All => &["train", "val", "test"],
-                s => std::slice::from_ref(match s {
-                    Split::Train => &"train",
-                    Split::Val => &"val",
-                    _ => &"test",
-                }),
+            let names = match split {
+                Split::All => vec!["train", "val", "test"],
+                one => vec![one.name()],
             };
             let mut all = Vec::new();
             let mut bounds = None;

@@ -50,6 +50,7 @@ impl Default for NerfConfig {
     /// NeRF's encodings (L = 10 for positions, 4 for directions) on a 4 × 64 trunk and a
     /// 64-wide colour head: the model that trains in minutes on a CPU.
     fn default() -> Self {
+        // invariant: 3-D inputs with 10 and 4 frequencies are valid encodings.
         Self {
             position_encoding: PointEncoding::Frequency(
                 FrequencyEncoding::new(3, 10).expect("3-D, 10 frequencies"),

@@ -97,9 +97,7 @@ pub struct MiseOutput {
 
 /// Checks that `dtype` is f32 or f64 and returns the level: `level`, or the field's own.
 fn dtype_and_level(surface: &dyn ImplicitSurface, dtype: DType, level: Option<f64>) -> Result<f64> {
-    if !matches!(dtype, DType::F32 | DType::F64) {
-        return Err(Error::invalid("dtype", "f32 or f64", format!("{dtype:?}")));
-    }
+    crate::error::check_dtype(dtype)?;
     let level = level.unwrap_or_else(|| surface.level());
     check_scalar(level, "level", false)?;
     Ok(level)

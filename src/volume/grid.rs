@@ -440,6 +440,13 @@ impl OccupancyGrid {
         }
     }
 
+    /// The fraction of cells (all levels) that are occupied, in `[0, 1]`.
+    #[must_use]
+    pub fn occupied_fraction(&self) -> f64 {
+        let occupied = self.occupied();
+        occupied.iter().filter(|&&o| o).count() as f64 / occupied.len().max(1) as f64
+    }
+
     /// Whether the point `p` lies in an occupied cell (false outside the last level).
     #[must_use]
     pub fn is_occupied(&self, p: [f64; 3]) -> bool {
@@ -472,9 +479,7 @@ impl OccupancyGrid {
         if every_n == 0 {
             return Err(Error::invalid("every_n", "at least 1", "0"));
         }
-        if !matches!(dtype, DType::F32 | DType::F64) {
-            return Err(Error::invalid("dtype", "f32 or f64", format!("{dtype:?}")));
-        }
+        crate::error::check_dtype(dtype)?;
         if !step.is_multiple_of(every_n) {
             return Ok(false);
         }
