@@ -142,6 +142,14 @@ impl FrequencyEncoding {
         }
     }
 
+    /// [`Encoding::forward`] from candle ops (any device, any float dtype): what the fused
+    /// CPU op is tested against.
+    pub(crate) fn forward_reference(&self, x: &Tensor) -> Result<Tensor> {
+        check_input(x, self.in_dim)?;
+        let (s, c) = self.sin_cos(&self.scaled(x)?)?;
+        self.assemble(x, &s, &c)
+    }
+
     fn assemble(&self, head: &Tensor, sin: &Tensor, cos: &Tensor) -> Result<Tensor> {
         // sin, cos: [..., L, D] → [..., L, 2D] → [..., 2LD]
         let rank = sin.rank();
@@ -165,15 +173,18 @@ impl Encoding for FrequencyEncoding {
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         check_input(x, self.in_dim)?;
-        let (s, c) = self.sin_cos(&self.scaled(x)?)?;
-        self.assemble(x, &s, &c)
+        if self.use_pi && x.device().is_cpu() && matches!(x.dtype(), DType::F32 | DType::F64) {
+            return Ok(x.contiguous()?.apply_op1(FusedFrequency(self.clone()))?);
+        }
+        self.forward_reference(x)
     }
 
     fn forward_jvp(&self, x: &Tensor, dx: &Tensor) -> Result<(Tensor, Tensor)> {
         let n = check_input(x, self.in_dim)?;
         let k = check_tangents(x, dx, n, self.in_dim)?;
         let (s, c) = self.sin_cos(&self.scaled(x)?)?;
-        let value = self.assemble(x, &s, &c)?;
+        // The value is `forward`'s (the fused op on the CPU), bit for bit.
+        let value = Encoding::forward(self, x)?;
         // d sin(ω2ᵏx) = ω2ᵏ cos(ω2ᵏx) dx,  d cos(ω2ᵏx) = −ω2ᵏ sin(ω2ᵏx) dx
         let omega = if self.use_pi {
             std::f64::consts::PI
@@ -194,6 +205,216 @@ impl Encoding for FrequencyEncoding {
         // ds, dc: [n, k, L, D], so the last dimension is out_dim().
         debug_assert_eq!(tangent.dims(), &[n, k, self.out_dim()]);
         Ok((value, tangent))
+    }
+}
+
+/// The frequency encoding with `2ᵏπ` as one CPU op: each output row written in one pass
+/// (no intermediate `[N, L, D]` tensors) and the backward pass
+/// `∂L/∂x_d = ḡ_{x_d} + Σ_k π2ᵏ (ḡ_{sin,k,d} cos(π2ᵏx_d) − ḡ_{cos,k,d} sin(π2ᵏx_d))`,
+/// recomputing the sines and cosines. The argument is reduced exactly, as
+/// [`crate::numerics::sin_pi`] does, and the sine and cosine come from one branch-free
+/// polynomial pass in f64 ([`sin_cos_pi`]), which the compiler vectorises; f32 inputs
+/// are widened (exactly) and the results rounded once, so they are at least as accurate as
+/// the reference path's f32 `sin(π·r)`.
+struct FusedFrequency(FrequencyEncoding);
+
+/// Rows per work item of the fused encoding (its f64 scratch stays in L2).
+const ENCODE_ROWS: usize = 256;
+
+/// `sin(πy)` and `cos(πy)` for every `y`, to about 1 ulp of f64.
+///
+/// Reduction (exact): `r = y − 2·round(y/2) ∈ [−1, 1]`, then `q = round(2r)` and
+/// `f = r − q/2 ∈ [−¼, ¼]`, so `πy ≡ πf + qπ/2`; the kernels are musl's minimax
+/// polynomials for `sin` and `cos` on `[−π/4, π/4]`, and the quadrant `q mod 4` swaps
+/// and negates them. Rounding to an integer uses the `1.5·2⁵²` shift (exact below 2⁵¹;
+/// larger values are already even integers after halving, or integers, and pass through),
+/// so the loop has no calls and no branches.
+// The coefficients are written with the decimals they were published with.
+#[allow(clippy::excessive_precision)]
+fn sin_cos_pi(y: &[f64], s: &mut [f64], c: &mut [f64]) {
+    const SHIFT: f64 = 6_755_399_441_055_744.0; // 1.5 · 2⁵²
+    const BIG: f64 = 2_251_799_813_685_248.0; // 2⁵¹
+    #[inline(always)]
+    fn round(v: f64) -> f64 {
+        let r = (v + SHIFT) - SHIFT;
+        if v.abs() < BIG {
+            r
+        } else {
+            v
+        }
+    }
+    const S: [f64; 6] = [
+        -1.666_666_666_666_663_243_48e-1,
+        8.333_333_333_322_489_461_24e-3,
+        -1.984_126_982_985_794_931_34e-4,
+        2.755_731_370_707_006_767_89e-6,
+        -2.505_076_025_340_686_341_95e-8,
+        1.589_690_995_211_550_102_21e-10,
+    ];
+    const C: [f64; 6] = [
+        4.166_666_666_666_660_190_37e-2,
+        -1.388_888_888_887_410_957_49e-3,
+        2.480_158_728_947_672_941_78e-5,
+        -2.755_731_435_139_066_330_35e-7,
+        2.087_572_321_298_174_827_90e-9,
+        -1.135_964_755_778_819_482_65e-11,
+    ];
+    for ((&y, s), c) in y.iter().zip(s.iter_mut()).zip(c.iter_mut()) {
+        let r = y - 2.0 * round(0.5 * y);
+        let q = round(2.0 * r);
+        let x = (r - 0.5 * q) * std::f64::consts::PI;
+        let z = x * x;
+        let ps = z * (S[0] + z * (S[1] + z * (S[2] + z * (S[3] + z * (S[4] + z * S[5])))));
+        let sin = x + x * ps;
+        let pc = C[0] + z * (C[1] + z * (C[2] + z * (C[3] + z * (C[4] + z * C[5]))));
+        let cos = (1.0 - 0.5 * z) + z * z * pc;
+        // q ∈ {−2, …, 2}; its quadrant q mod 4 ∈ {0, 1, 2, 3}.
+        let quadrant = (q as i64) & 3;
+        let (a, b) = if quadrant & 1 == 1 {
+            (cos, sin)
+        } else {
+            (sin, cos)
+        };
+        *s = if quadrant & 2 == 2 { -a } else { a };
+        *c = if (quadrant + 1) & 2 == 2 { -b } else { b };
+    }
+}
+
+/// Per-worker scratch of the fused encoding: arguments, sines, cosines.
+type Trig = (Vec<f64>, Vec<f64>, Vec<f64>);
+
+impl FusedFrequency {
+    fn width(&self) -> usize {
+        Encoding::out_dim(&self.0)
+    }
+
+    fn scratch(&self) -> Trig {
+        let m = ENCODE_ROWS * self.0.in_dim * self.0.n_freqs;
+        (vec![0.0; m], vec![0.0; m], vec![0.0; m])
+    }
+
+    /// Sines and cosines of `π2ᵏx` for the rows `x`, laid out `[row][k][d]` in `t.1`, `t.2`.
+    fn trig<T: candle_core::WithDType>(&self, x: &[T], t: &mut Trig) -> usize {
+        let (d, l) = (self.0.in_dim, self.0.n_freqs);
+        let m = x.len() * l;
+        for (row, args) in x.chunks(d).zip(t.0.chunks_mut((d * l).max(1))) {
+            for k in 0..l {
+                let scale = (k as f64).exp2();
+                for (a, &v) in args[k * d..(k + 1) * d].iter_mut().zip(row) {
+                    *a = v.to_f64() * scale;
+                }
+            }
+        }
+        sin_cos_pi(&t.0[..m], &mut t.1[..m], &mut t.2[..m]);
+        m
+    }
+
+    fn forward<T: candle_core::WithDType>(&self, x: &[T]) -> Vec<T> {
+        let (d, l, w) = (self.0.in_dim, self.0.n_freqs, self.width());
+        let head = if self.0.include_input { d } else { 0 };
+        let rows = x.len() / d;
+        let mut out = vec![T::from_f64(0.0); rows * w];
+        let items: Vec<_> = out
+            .chunks_mut(ENCODE_ROWS * w.max(1))
+            .zip(x.chunks(ENCODE_ROWS * d))
+            .collect();
+        crate::parallel::for_each_init(
+            items,
+            || self.scratch(),
+            |t, (out, x)| {
+                self.trig(x, t);
+                for (r, (o, xr)) in out.chunks_mut(w).zip(x.chunks(d)).enumerate() {
+                    o[..head].copy_from_slice(&xr[..head]);
+                    for k in 0..l {
+                        let src = (r * l + k) * d;
+                        let base = head + 2 * d * k;
+                        for j in 0..d {
+                            o[base + j] = T::from_f64(t.1[src + j]);
+                            o[base + d + j] = T::from_f64(t.2[src + j]);
+                        }
+                    }
+                }
+            },
+        );
+        out
+    }
+
+    fn backward<T: candle_core::WithDType>(&self, x: &[T], g: &[T]) -> Vec<T> {
+        let (d, l, w) = (self.0.in_dim, self.0.n_freqs, self.width());
+        let head = if self.0.include_input { d } else { 0 };
+        let mut gx = vec![T::from_f64(0.0); x.len()];
+        let items: Vec<_> = gx
+            .chunks_mut(ENCODE_ROWS * d)
+            .zip(x.chunks(ENCODE_ROWS * d))
+            .zip(g.chunks(ENCODE_ROWS * w.max(1)))
+            .collect();
+        crate::parallel::for_each_init(
+            items,
+            || self.scratch(),
+            |t, ((gx, x), g)| {
+                self.trig(x, t);
+                for (r, (gr, gi)) in gx.chunks_mut(d).zip(g.chunks(w)).enumerate() {
+                    for j in 0..d {
+                        let mut acc = if head > 0 { gi[j].to_f64() } else { 0.0 };
+                        for k in 0..l {
+                            let src = (r * l + k) * d + j;
+                            let base = head + 2 * d * k;
+                            let rate = std::f64::consts::PI * (k as f64).exp2();
+                            acc += rate
+                                * (gi[base + j].to_f64() * t.2[src]
+                                    - gi[base + d + j].to_f64() * t.1[src]);
+                        }
+                        gr[j] = T::from_f64(acc);
+                    }
+                }
+            },
+        );
+        gx
+    }
+}
+
+impl candle_core::CustomOp1 for FusedFrequency {
+    fn name(&self) -> &'static str {
+        "nf-frequency-encoding"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s: &candle_core::CpuStorage,
+        l: &candle_core::Layout,
+    ) -> candle_core::Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        use candle_core::CpuStorage;
+        let Some((a, b)) = l.contiguous_offsets() else {
+            candle_core::bail!("frequency encoding: input must be contiguous")
+        };
+        let rows = l.dims().first().copied().unwrap_or(0);
+        let out = match s {
+            CpuStorage::F32(v) => CpuStorage::F32(self.forward(&v[a..b])),
+            CpuStorage::F64(v) => CpuStorage::F64(self.forward(&v[a..b])),
+            _ => candle_core::bail!("frequency encoding: f32 or f64 input expected"),
+        };
+        Ok((out, candle_core::Shape::from((rows, self.width()))))
+    }
+
+    fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> candle_core::Result<Option<Tensor>> {
+        let grad = grad.contiguous()?;
+        let (xs, xl) = x.storage_and_layout();
+        let (gs, gl) = grad.storage_and_layout();
+        let op = "frequency encoding";
+        let gx = match x.dtype() {
+            DType::F32 => {
+                let v = crate::parallel::cpu_slice::<f32>(&xs, xl, op, "input")?;
+                let g = crate::parallel::cpu_slice::<f32>(&gs, gl, op, "gradient")?;
+                Tensor::from_vec(self.backward(v, g), x.shape(), x.device())?
+            }
+            DType::F64 => {
+                let v = crate::parallel::cpu_slice::<f64>(&xs, xl, op, "input")?;
+                let g = crate::parallel::cpu_slice::<f64>(&gs, gl, op, "gradient")?;
+                Tensor::from_vec(self.backward(v, g), x.shape(), x.device())?
+            }
+            other => candle_core::bail!("frequency encoding: unsupported dtype {other:?}"),
+        };
+        Ok(Some(gx))
     }
 }
 
@@ -415,4 +636,115 @@ pub fn integrated_pe(
     let sin = (safe_sin(&mu)? * &damp)?;
     let cos = (safe_cos(&mu)? * &damp)?;
     Ok(Tensor::cat(&[sin, cos], 2)?.reshape((n, 2 * l * d))?)
+}
+
+#[cfg(test)]
+mod fused_tests {
+    use super::{Encoding, FrequencyEncoding};
+    use crate::test_host::v64;
+    use candle_core::{DType, Device, Tensor, Var};
+
+    /// Inputs from tiny to huge (the exact reduction's regime), both signs.
+    fn inputs(dtype: DType) -> Tensor {
+        let mut v = Vec::new();
+        for (i, m) in [1e-7, 1e-3, 0.3, 1.0, 7.5, 1e3, 1e6].iter().enumerate() {
+            for j in 0..6 {
+                let s = if (i + j) % 2 == 0 { 1.0 } else { -1.0 };
+                v.push(s * m * (1.0 + 0.137 * j as f64));
+            }
+        }
+        Tensor::from_vec(v, (14, 3), &Device::Cpu)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap()
+    }
+
+    /// Value and the gradient of `Σ γ(x) ⊙ c` w.r.t. `x`, fused or reference.
+    fn run(pe: &FrequencyEncoding, x: &Var, fused: bool) -> (Vec<f64>, Vec<f64>) {
+        let y = if fused {
+            pe.forward(x.as_tensor()).unwrap()
+        } else {
+            pe.forward_reference(x.as_tensor()).unwrap()
+        };
+        let n = y.elem_count();
+        let c: Vec<f64> = (0..n)
+            .map(|i| ((i * 7919) % 101) as f64 / 50.0 - 1.0)
+            .collect();
+        let c = Tensor::from_vec(c, y.shape(), &Device::Cpu)
+            .unwrap()
+            .to_dtype(y.dtype())
+            .unwrap();
+        let g = (&y * c).unwrap().sum_all().unwrap().backward().unwrap();
+        (v64(&y), v64(g.get(x.as_tensor()).unwrap()))
+    }
+
+    #[test]
+    fn fused_frequency_encoding_equals_the_reference_path() {
+        for (dtype, tol) in [(DType::F64, 1e-12), (DType::F32, 1e-5)] {
+            for include_input in [true, false] {
+                let mut pe = FrequencyEncoding::new(3, 10).unwrap();
+                pe.include_input = include_input;
+                let x = Var::from_tensor(&inputs(dtype)).unwrap();
+                let (ya, ga) = run(&pe, &x, true);
+                let (yb, gb) = run(&pe, &x, false);
+                assert_eq!((ya.len(), ga.len()), (yb.len(), gb.len()));
+                for (a, b) in ya.iter().zip(&yb) {
+                    assert!((a - b).abs() <= tol, "{dtype:?} value {a} vs {b}");
+                }
+                // The gradient scales with π2⁹ ≈ 1.6e3.
+                for (a, b) in ga.iter().zip(&gb) {
+                    assert!((a - b).abs() <= tol * 2e3, "{dtype:?} gradient {a} vs {b}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn fused_frequency_gradient_matches_finite_differences() {
+        let pe = FrequencyEncoding::new(2, 4).unwrap();
+        let base = [0.31f64, -0.77, 2.5, 1e-4];
+        let x = Var::from_tensor(&Tensor::from_vec(base.to_vec(), (2, 2), &Device::Cpu).unwrap())
+            .unwrap();
+        let (_, g) = run(&pe, &x, true);
+        for i in 0..4 {
+            let f = |h: f64| {
+                let mut v = base.to_vec();
+                v[i] += h;
+                let x =
+                    Var::from_tensor(&Tensor::from_vec(v, (2, 2), &Device::Cpu).unwrap()).unwrap();
+                let y = run(&pe, &x, true).0;
+                let n = y.len();
+                (0..n)
+                    .map(|j| y[j] * (((j * 7919) % 101) as f64 / 50.0 - 1.0))
+                    .sum::<f64>()
+            };
+            let h = 1e-6;
+            let fd = (f(h) - f(-h)) / (2.0 * h);
+            assert!(
+                (fd - g[i]).abs() <= 1e-6 * fd.abs().max(1.0),
+                "{i}: fd {fd} vs {}",
+                g[i]
+            );
+        }
+    }
+
+    #[test]
+    fn fused_frequency_encoding_keeps_nan_and_empty_batches() {
+        let pe = FrequencyEncoding::new(3, 2).unwrap();
+        let x = Tensor::new(&[[f32::NAN, 0.0, 1.0]], &Device::Cpu).unwrap();
+        let y = v64(&pe.forward(&x).unwrap());
+        assert!(y[0].is_nan() && y[1] == 0.0);
+        let empty = Tensor::zeros((0, 3), DType::F32, &Device::Cpu).unwrap();
+        assert_eq!(pe.forward(&empty).unwrap().dims(), &[0, 15]);
+    }
+
+    /// The chunking of zero frequencies (a zero-sized chunk panicked inside candle's pool).
+    #[test]
+    fn fused_frequency_encoding_with_zero_frequencies_is_the_input() {
+        let pe = FrequencyEncoding::new(3, 0).unwrap();
+        let x = Var::from_tensor(&inputs(DType::F64)).unwrap();
+        let (y, g) = run(&pe, &x, true);
+        assert_eq!(y, v64(x.as_tensor()));
+        assert_eq!(g.len(), y.len());
+    }
 }

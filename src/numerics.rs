@@ -222,6 +222,8 @@ macro_rules! scalar_softplus {
     }};
 }
 
+pub(crate) use {scalar_sigmoid, scalar_softplus};
+
 /// CPU kernel of [`softplus`].
 struct SoftplusOp {
     beta: f64,

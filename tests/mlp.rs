@@ -68,7 +68,12 @@ fn check_value_and_grad(
     let p = v64(&points);
     let (mut checked, mut skipped) = (0, 0);
     for n in 0..4 {
-        prop_assert!((value[n] - full[2 * n]).abs() == 0.0, "value is channel 0");
+        // Channel 0 of the forward pass (the fused CPU op) and the forward-mode value (candle
+        // ops) are the same function summed in different orders: equal to rounding.
+        prop_assert!(
+            (value[n] - full[2 * n]).abs() <= 1e-12 * full[2 * n].abs().max(1.0),
+            "value is channel 0"
+        );
         let gnorm = (0..3).map(|j| grad[3 * n + j].powi(2)).sum::<f64>().sqrt();
         for j in 0..3 {
             let mut f = |x: f64| {

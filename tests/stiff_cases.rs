@@ -2720,6 +2720,18 @@ const EXEMPT: &[(&str, &str)] = &[
         "volume::fused::FusedComposite::",
         "CustomOp internals, swept via composite",
     ),
+    (
+        "nn::fused_mlp::FusedMlp::",
+        "CustomOp internals, swept via Mlp::forward",
+    ),
+    (
+        "nn::fused_mlp::FusedNerf::",
+        "CustomOp internals, swept via Nerf::radiance",
+    ),
+    (
+        "encoding::FusedFrequency::",
+        "CustomOp internals, swept via FrequencyEncoding::forward",
+    ),
     ("volume::grid::GridConfig::default", "constant"),
     ("volume::grid::OccupancyGrid::config", "getter"),
     ("volume::grid::OccupancyGrid::density", "getter"),

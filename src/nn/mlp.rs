@@ -39,12 +39,13 @@
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 
+use super::fused_mlp::{Act, FusedMlp, LayerPlan};
 use super::weight_jvp;
 use crate::encoding::PointEncoding;
 use crate::error::{check_float, check_points, check_same, check_shape, Dim, Error, Result};
 use crate::field::{ConditionalField, Field, ImplicitSurface, Inside};
 use crate::numerics::{sigmoid, softplus};
-use candle_core::{Tensor, D};
+use candle_core::{DType, Tensor, D};
 use candle_nn::{Init, VarBuilder};
 
 /// The hidden activation of an [`Mlp`].
@@ -82,6 +83,10 @@ pub struct MlpConfig {
     pub geometric_init: Option<f64>,
     /// Which side of channel 0's zero level is inside.
     pub inside: Inside,
+    /// Run the layers through candle's ops (the reference path) even on the CPU, where
+    /// the fused MLP op would run: for comparing the two. Off the CPU, and for dtypes
+    /// other than f32 and f64, the reference path runs regardless. Default `false`.
+    pub force_reference: bool,
 }
 
 impl Default for MlpConfig {
@@ -98,6 +103,7 @@ impl Default for MlpConfig {
             encoding: PointEncoding::Identity,
             geometric_init: None,
             inside: Inside::Positive,
+            force_reference: false,
         }
     }
 }
@@ -143,6 +149,8 @@ impl Layer {
 pub struct Mlp {
     layers: Vec<Layer>,
     config: MlpConfig,
+    /// The same layers' shapes for the fused CPU op.
+    plan: FusedMlp,
 }
 
 /// Gets a weight `[out, in]` as column blocks: the first `keep` input columns use `init`
@@ -240,6 +248,7 @@ pub fn mlp(config: &MlpConfig, vb: VarBuilder) -> Result<Mlp> {
     };
 
     let mut layers = Vec::with_capacity(config.depth + 1);
+    let mut plan = Vec::with_capacity(config.depth + 1);
     for l in 0..=config.depth {
         let input = match l {
             0 => a0,
@@ -247,6 +256,11 @@ pub fn mlp(config: &MlpConfig, vb: VarBuilder) -> Result<Mlp> {
             _ => h,
         };
         let out = if l == config.depth { config.out_dim } else { h };
+        plan.push(LayerPlan {
+            input,
+            out,
+            skip: config.skips.contains(&l),
+        });
         let lvb = vb.pp(format!("layer{l}"));
         let (weight, bias) = match geometric {
             None => {
@@ -300,9 +314,14 @@ pub fn mlp(config: &MlpConfig, vb: VarBuilder) -> Result<Mlp> {
             bias,
         });
     }
+    let act = match config.activation {
+        Activation::Relu => Act::Relu,
+        Activation::Softplus { beta } => Act::Softplus(beta),
+    };
     Ok(Mlp {
         layers,
         config: config.clone(),
+        plan: FusedMlp::new(plan, a0, act),
     })
 }
 
@@ -388,13 +407,44 @@ impl Mlp {
         Err(Error::invalid("mlp", "an output layer", "none"))
     }
 
+    /// The parameters as one flat tensor, in the fused op's order (each layer's
+    /// row-major weight, then its bias); differentiable, so the op's parameter gradient
+    /// reaches every variable.
+    pub(super) fn flat_params(&self) -> Result<Tensor> {
+        let mut parts = Vec::with_capacity(2 * self.layers.len());
+        for layer in &self.layers {
+            parts.push(layer.weight()?.flatten_all()?);
+            parts.push(layer.bias.clone());
+        }
+        Ok(Tensor::cat(&parts, 0)?)
+    }
+
+    /// The layers' shapes for the fused op.
+    pub(super) fn plan(&self) -> &FusedMlp {
+        &self.plan
+    }
+
+    /// Whether [`Mlp::run`]'s forward pass may run as the fused CPU op on `a0`.
+    pub(super) fn fused(&self, a0: &Tensor) -> bool {
+        !self.config.force_reference
+            && a0.device().is_cpu()
+            && matches!(a0.dtype(), DType::F32 | DType::F64)
+            && self.layers.iter().all(|l| l.bias.dtype() == a0.dtype())
+    }
+
     /// `y = f(points, codes)`: `points: [N, in_dim]`, `codes: [N, code_dim]` or `None`
     /// (only when `code_dim == 0`) → `[N, out_dim]`. Differentiable w.r.t. the weights,
-    /// the points and the codes. f32 or f64, any device. Users reach it through
+    /// the points and the codes. f32 or f64, any device: on the CPU the layers run as one
+    /// fused op (see the `fused_mlp` module), elsewhere (or with
+    /// [`MlpConfig::force_reference`]) as candle ops. Users reach it through
     /// [`Field::forward`] and [`ConditionalField::forward_with_code`].
     fn forward_points(&self, points: &Tensor, codes: Option<&Tensor>) -> Result<Tensor> {
         self.check_inputs(points, codes)?;
         let a0 = self.first_input(self.config.encoding.forward(points)?, codes)?;
+        if self.fused(&a0) {
+            let params = self.flat_params()?;
+            return Ok(a0.contiguous()?.apply_op2(&params, self.plan.clone())?);
+        }
         Ok(self.run(&a0, None)?.0)
     }
 

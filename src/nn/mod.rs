@@ -11,6 +11,7 @@
 //! * [`build_seeded`]: reproducible initialisation (candle's CPU generator cannot be
 //!   seeded; this draws every variable's initial value from a `u64` seed instead).
 
+mod fused_mlp;
 mod mlp;
 mod nerf;
 #[cfg(feature = "occupancy")]

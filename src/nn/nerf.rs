@@ -1,6 +1,7 @@
 //! The NeRF network: density from the position, colour from a feature and the view
 //! direction.
 
+use super::fused_mlp::FusedNerf;
 use super::mlp::{mlp, Activation, Mlp, MlpConfig};
 use crate::encoding::{FrequencyEncoding, PointEncoding};
 use crate::error::{check_points, check_same, check_shape, Dim, Error, Result};
@@ -44,6 +45,9 @@ pub struct NerfConfig {
     pub color_width: usize,
     /// The density activation (default `TruncExp { shift: −1 }`).
     pub density: DensityActivation,
+    /// Run both networks through candle's ops instead of the fused MLP op
+    /// ([`MlpConfig::force_reference`]). Default `false`.
+    pub force_reference: bool,
 }
 
 impl Default for NerfConfig {
@@ -63,6 +67,7 @@ impl Default for NerfConfig {
             skips: Vec::new(),
             color_width: 64,
             density: DensityActivation::TruncExp { shift: -1.0 },
+            force_reference: false,
         }
     }
 }
@@ -121,6 +126,7 @@ pub fn nerf(config: &NerfConfig, vb: VarBuilder) -> Result<Nerf> {
             activation: Activation::Relu,
             skips: config.skips.clone(),
             encoding: config.position_encoding.clone(),
+            force_reference: config.force_reference,
             ..MlpConfig::default()
         },
         vb.pp("trunk"),
@@ -136,6 +142,7 @@ pub fn nerf(config: &NerfConfig, vb: VarBuilder) -> Result<Nerf> {
                 .direction_encoding
                 .clone()
                 .unwrap_or(PointEncoding::Identity),
+            force_reference: config.force_reference,
             ..MlpConfig::default()
         },
         vb.pp("color"),
@@ -202,10 +209,23 @@ impl Nerf {
         let n = check_points(points, "points")?;
         check_shape(directions, "directions", &[Dim::Is(n), Dim::Is(3)])?;
         check_same(directions, "directions", points, "points")?;
-        let (sigma, feature) = self.trunk(points)?;
         // ‖d‖ floored at 1e-12 before the root, so a zero direction has a finite gradient.
         let norm = directions.sqr()?.sum_keepdim(1)?.maximum(1e-24)?.sqrt()?;
         let unit = directions.broadcast_div(&norm)?;
+        if self.trunk.fused(points) && self.head.fused(points) {
+            // Both networks in one CPU op: [N, 4] = raw density, raw colour.
+            let ep = self.trunk.config().encoding.forward(points)?.contiguous()?;
+            let ed = self.head.config().encoding.forward(&unit)?.contiguous()?;
+            let params = Tensor::cat(&[self.trunk.flat_params()?, self.head.flat_params()?], 0)?;
+            let op = FusedNerf {
+                trunk: self.trunk.plan().clone(),
+                head: self.head.plan().clone(),
+            };
+            let out = ep.apply_op3(&ed, &params, op)?;
+            let sigma = self.activate(&out.narrow(1, 0, 1)?.squeeze(1)?)?;
+            return Ok((sigma, candle_nn::ops::sigmoid(&out.narrow(1, 1, 3)?)?));
+        }
+        let (sigma, feature) = self.trunk(points)?;
         let raw = self.head.forward_with_code(&unit, &feature)?;
         Ok((sigma, candle_nn::ops::sigmoid(&raw)?))
     }

@@ -866,13 +866,7 @@ fn cpu_slice<'a, T: WithDType>(
     l: &Layout,
     what: &str,
 ) -> candle_core::Result<&'a [T]> {
-    match st {
-        Storage::Cpu(c) => match l.contiguous_offsets() {
-            Some((a, b)) => Ok(&c.as_slice::<T>()?[a..b]),
-            None => candle_core::bail!("fused composite: {what} must be contiguous"),
-        },
-        _ => candle_core::bail!("fused composite: {what} must be on the CPU"),
-    }
+    crate::parallel::cpu_slice(st, l, "fused composite", what)
 }
 
 impl FusedComposite {

@@ -1,0 +1,185 @@
+//! Seconds per training step of the models in `benches/torch/train_step.py`, the PyTorch
+//! twin: the same model, batch, loss and optimiser, so that the two can be run alternately
+//! on the same cores (`benches/compare_torch.sh`).
+//!
+//! ```text
+//! cargo bench --bench train_step -- --model nerf --steps 20 [--reference] [--phases]
+//! ```
+//!
+//! * `nerf`: 1024 rays × 64 jittered stratified samples in [2, 6], NeRF's frequency
+//!   encodings (L = 10 positions, L = 4 directions, input included), a 4 × 64 ReLU trunk
+//!   with a 64-wide feature, a 64-wide view-dependent colour head, trunc-exp density
+//!   (shift −1), fused compositing, MSE, Adam (lr 1e-3).
+//! * `occupancy`: 2¹⁶ points, a 4 × 64 ReLU occupancy MLP on raw coordinates, binary
+//!   cross-entropy with logits, Adam (lr 1e-3).
+//!
+//! `--reference` runs the MLPs through candle's ops instead of the fused MLP op;
+//! `--phases` reports forward, backward and optimiser medians separately. The output is
+//! one JSON line per run. The global allocator is the system's (glibc's malloc on Linux),
+//! as a user's program has by default.
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
+use neural_fields::camera::Rays;
+use neural_fields::field::Field;
+use neural_fields::nn::{build_seeded, mlp, nerf, MlpConfig, NerfConfig};
+use neural_fields::volume::{composite, stratified, CompositeConfig, Jitter};
+use std::time::Instant;
+
+struct Args {
+    model: String,
+    steps: usize,
+    warmup: usize,
+    reference: bool,
+    phases: bool,
+}
+
+fn parse() -> Args {
+    let mut a = Args {
+        model: "nerf".into(),
+        steps: 20,
+        warmup: 3,
+        reference: false,
+        phases: false,
+    };
+    let mut it = std::env::args().skip(1);
+    while let Some(flag) = it.next() {
+        match flag.as_str() {
+            "--model" => a.model = it.next().expect("--model nerf|occupancy"),
+            "--steps" => a.steps = it.next().and_then(|s| s.parse().ok()).expect("--steps N"),
+            "--warmup" => a.warmup = it.next().and_then(|s| s.parse().ok()).expect("--warmup N"),
+            "--reference" => a.reference = true,
+            "--phases" => a.phases = true,
+            "--bench" => {}
+            other => panic!("unknown flag {other}"),
+        }
+    }
+    a
+}
+
+/// A deterministic pseudo-random tensor in [lo, hi).
+fn uniform(shape: &[usize], lo: f32, hi: f32, seed: u64) -> Tensor {
+    let n: usize = shape.iter().product();
+    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    let v: Vec<f32> = (0..n)
+        .map(|_| {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            lo + (hi - lo) * ((s >> 40) as f32 / (1u64 << 24) as f32)
+        })
+        .collect();
+    Tensor::from_vec(v, shape, &Device::Cpu).expect("shape matches")
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+type Step<'a> = Box<dyn FnMut(usize) -> neural_fields::Result<Tensor> + 'a>;
+
+fn main() -> neural_fields::Result<()> {
+    let args = parse();
+    let dev = Device::Cpu;
+    let varmap = VarMap::new();
+    let mut forward: Step = match args.model.as_str() {
+        "nerf" => {
+            let config = NerfConfig {
+                force_reference: args.reference,
+                ..NerfConfig::default()
+            };
+            let net = build_seeded(&varmap, DType::F32, &dev, 0, |vb| nerf(&config, vb))?;
+            let rays_n = 1024;
+            let target = uniform(&[rays_n, 3], 0.0, 1.0, 1);
+            let aim = uniform(&[rays_n, 3], -0.5, 0.5, 2);
+            let origins = uniform(&[rays_n, 3], -1.0, 1.0, 3);
+            let norm = origins.sqr()?.sum_keepdim(1)?.sqrt()?;
+            let origins = origins.broadcast_div(&norm)?.affine(4.0, 0.0)?;
+            let dirs = (aim - &origins)?;
+            let dirs = dirs.broadcast_div(&dirs.sqr()?.sum_keepdim(1)?.sqrt()?)?;
+            let rays = Rays::new(origins, dirs)?;
+            let near = Tensor::full(2f32, rays_n, &dev)?;
+            let far = Tensor::full(6f32, rays_n, &dev)?;
+            Box::new(move |step| {
+                let iv = stratified(&near, &far, 64, Jitter::PerSample, step as u64)?;
+                let pos = iv.positions(&rays)?.reshape((rays_n * 64, 3))?;
+                let d = rays
+                    .directions()
+                    .unsqueeze(1)?
+                    .broadcast_as((rays_n, 64, 3))?
+                    .reshape((rays_n * 64, 3))?;
+                let (sigma, rgb) = net.radiance(&pos, &d)?;
+                let out = composite(
+                    &sigma.reshape((rays_n, 64))?,
+                    &rgb.reshape((rays_n, 64, 3))?,
+                    &iv,
+                    Some(&rays),
+                    &CompositeConfig::default(),
+                )?;
+                Ok((out.color - &target)?.sqr()?.mean_all()?)
+            })
+        }
+        "occupancy" => {
+            let config = MlpConfig {
+                force_reference: args.reference,
+                ..MlpConfig::default()
+            };
+            let net = build_seeded(&varmap, DType::F32, &dev, 0, |vb| mlp(&config, vb))?;
+            let n = 1 << 16;
+            let points = uniform(&[n, 3], -0.55, 0.55, 4);
+            let labels = points.sqr()?.sum(1)?.le(0.16)?.to_dtype(DType::F32)?;
+            Box::new(move |_| {
+                let logits = net.forward(&points)?.squeeze(1)?;
+                Ok(candle_nn::loss::binary_cross_entropy_with_logit(
+                    &logits, &labels,
+                )?)
+            })
+        }
+        other => panic!("unknown model {other}"),
+    };
+    let mut opt = AdamW::new(
+        varmap.all_vars(),
+        ParamsAdamW {
+            lr: 1e-3,
+            weight_decay: 0.0,
+            ..Default::default()
+        },
+    )?;
+    let (mut total, mut fwd, mut bwd, mut upd) = (vec![], vec![], vec![], vec![]);
+    let mut last = 0.0;
+    for step in 0..args.warmup + args.steps {
+        let t0 = Instant::now();
+        let loss = forward(step)?;
+        if args.phases {
+            // Force the forward (candle is eager; this only waits for nothing).
+            last = loss.to_scalar::<f32>()?;
+        }
+        let t1 = Instant::now();
+        let grads = loss.backward()?;
+        let t2 = Instant::now();
+        opt.step(&grads)?;
+        let t3 = Instant::now();
+        if !args.phases {
+            last = loss.to_scalar::<f32>()?;
+        }
+        if step >= args.warmup {
+            total.push((t3 - t0).as_secs_f64());
+            fwd.push((t1 - t0).as_secs_f64());
+            bwd.push((t2 - t1).as_secs_f64());
+            upd.push((t3 - t2).as_secs_f64());
+        }
+    }
+    println!(
+        "{{\"impl\": \"candle-{}\", \"model\": \"{}\", \"steps\": {}, \"median_s\": {:.5}, \"forward_s\": {:.5}, \"backward_s\": {:.5}, \"update_s\": {:.5}, \"final_loss\": {:.6}}}",
+        if args.reference { "reference" } else { "fused" },
+        args.model,
+        args.steps,
+        median(&mut total),
+        median(&mut fwd),
+        median(&mut bwd),
+        median(&mut upd),
+        last
+    );
+    Ok(())
+}

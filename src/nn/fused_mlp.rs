@@ -1,0 +1,917 @@
+//! The fused MLP op: every layer of an [`super::Mlp`] on a tile of points in one CPU pass,
+//! forward and backward, instead of one candle op (and one allocation) per matmul, bias,
+//! activation and concatenation.
+//!
+//! ## Math
+//! The layers are those of [`super::Mlp`]: `hₗ = Wₗxₗ + bₗ`, `aₗ = φ(hₗ)`, with
+//! `x₀ = a₀`, `xₗ = aₗ₋₁` or, at a skip layer, `xₗ = [aₗ₋₁, a₀]/√2`, and the output
+//! `y = h_L`. The backward pass, for an upstream gradient `ḡ_y = ∂L/∂y`, runs
+//!
+//! ```text
+//! ḡ_{h_L} = ḡ_y,   ∂L/∂Wₗ = Σ_rows ḡ_{hₗ} xₗᵀ,   ∂L/∂bₗ = Σ_rows ḡ_{hₗ},
+//! ḡ_{xₗ} = Wₗᵀ ḡ_{hₗ},   ḡ_{hₗ₋₁} = φ'(hₗ₋₁) ⊙ ḡ_{aₗ₋₁}
+//! ```
+//!
+//! with a skip layer's `ḡ_{xₗ}` split between `aₗ₋₁` and `a₀` (each scaled by 1/√2), and
+//! `∂L/∂a₀` the sum of the first layer's and every skip layer's share. φ' is `𝟙[h ≥ 0]`
+//! for ReLU (candle's own ReLU derivative, so the fused and reference paths agree at the
+//! kink) and `σ(βh)` for softplus.
+//!
+//! ## Execution
+//! The parameters travel as one flat tensor (each layer's row-major `[out, in]` weight,
+//! then its bias), joined by [`candle_core::Tensor::cat`] from the network's variables so
+//! that candle routes each slice of the parameter gradient back to its variable. Points are
+//! split into tiles of [`TILE`] rows whose activations stay in cache; each layer of a tile
+//! is one `gemm` call (the crate candle's own CPU matmul uses, with its runtime choice of
+//! SIMD kernels). The backward pass recomputes the tile's forward (cheaper than keeping
+//! every activation of the step alive between the passes) and accumulates the parameter
+//! gradient of [`CHUNK`] rows in one buffer per chunk; the chunks are summed in their
+//! order, so the gradient is the same bit for bit at any thread count. Tiles run on
+//! candle's CPU pool ([`crate::parallel`]).
+
+use crate::parallel::{cpu_slice, for_each_init};
+use candle_core::{CpuStorage, CustomOp2, CustomOp3, DType, Layout, Shape, Tensor, WithDType};
+
+/// Rows per tile: the activations of a tile of a 64-wide network (a few tens of KB) stay
+/// in the core's L2 cache.
+pub(crate) const TILE: usize = 128;
+/// Rows per gradient accumulator (fixed, so that the reduction order does not depend on
+/// the thread count).
+pub(crate) const CHUNK: usize = 2048;
+
+/// The hidden activation.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum Act {
+    Relu,
+    Softplus(f64),
+}
+
+/// One affine layer of the plan.
+#[derive(Clone, Debug)]
+pub(crate) struct LayerPlan {
+    /// Input columns: the previous activation's width (or `a₀`'s at layer 0), plus `a₀`'s
+    /// width at a skip layer.
+    pub input: usize,
+    /// Output rows.
+    pub out: usize,
+    /// Whether the input is `[aₗ₋₁, a₀]/√2`.
+    pub skip: bool,
+}
+
+/// The shapes of the network the op runs.
+#[derive(Clone, Debug)]
+pub(crate) struct FusedMlp {
+    layers: Vec<LayerPlan>,
+    a0: usize,
+    act: Act,
+    /// Offsets of each layer's weight and bias in the flat parameters.
+    offsets: Vec<(usize, usize)>,
+    n_params: usize,
+}
+
+impl FusedMlp {
+    /// The plan for `layers` (the last is the linear output layer) on inputs of width `a0`.
+    pub(crate) fn new(layers: Vec<LayerPlan>, a0: usize, act: Act) -> Self {
+        let mut offsets = Vec::with_capacity(layers.len());
+        let mut n = 0;
+        for l in &layers {
+            offsets.push((n, n + l.out * l.input));
+            n += l.out * l.input + l.out;
+        }
+        Self {
+            layers,
+            a0,
+            act,
+            offsets,
+            n_params: n,
+        }
+    }
+
+    fn out_dim(&self) -> usize {
+        self.layers.last().map_or(0, |l| l.out)
+    }
+
+    /// The width of the input of layer `l` that comes from the previous layer (all of it
+    /// but `a₀`'s share at a skip layer).
+    fn prev_width(&self, l: usize) -> usize {
+        let layer = &self.layers[l];
+        if layer.skip {
+            layer.input - self.a0
+        } else {
+            layer.input
+        }
+    }
+
+    /// Elements of a tile's hidden pre-activations (and as many activations).
+    fn hidden_len(&self) -> usize {
+        let n = self.layers.len().saturating_sub(1);
+        self.layers[..n].iter().map(|l| l.out).sum::<usize>() * TILE
+    }
+
+    fn max_width(&self) -> usize {
+        self.layers
+            .iter()
+            .map(|l| l.out.max(l.input))
+            .max()
+            .unwrap_or(0)
+            .max(self.a0)
+    }
+}
+
+/// The scalar types the op runs on.
+pub(crate) trait Real: WithDType {
+    fn act(self, act: Act) -> Self;
+    /// φ'(h).
+    fn slope(self, act: Act) -> Self;
+}
+
+macro_rules! real {
+    ($t:ty) => {
+        impl Real for $t {
+            #[inline]
+            fn act(self, act: Act) -> Self {
+                match act {
+                    // max(h, 0) as candle's relu (NaN propagates).
+                    Act::Relu => {
+                        if self < 0.0 {
+                            0.0
+                        } else {
+                            self
+                        }
+                    }
+                    Act::Softplus(beta) => crate::numerics::scalar_softplus!(self, beta as $t),
+                }
+            }
+
+            #[inline]
+            fn slope(self, act: Act) -> Self {
+                match act {
+                    Act::Relu => {
+                        if self >= 0.0 {
+                            1.0
+                        } else {
+                            0.0
+                        }
+                    }
+                    Act::Softplus(beta) => crate::numerics::scalar_sigmoid!(beta as $t * self),
+                }
+            }
+        }
+    };
+}
+real!(f32);
+real!(f64);
+
+/// A strided view of a matrix in a slice: element `(i, j)` at `off + i·rs + j·cs`.
+#[derive(Clone, Copy)]
+struct View {
+    off: usize,
+    rs: usize,
+    cs: usize,
+}
+
+impl View {
+    const fn rows(off: usize, rs: usize) -> Self {
+        Self { off, rs, cs: 1 }
+    }
+
+    /// The transpose of a row-major matrix with row stride `rs`.
+    const fn transposed(off: usize, rs: usize) -> Self {
+        Self { off, rs: 1, cs: rs }
+    }
+
+    /// One past the last element of an `m × n` matrix (0 when empty).
+    fn end(&self, m: usize, n: usize) -> usize {
+        if m == 0 || n == 0 {
+            0
+        } else {
+            self.off + (m - 1) * self.rs + (n - 1) * self.cs + 1
+        }
+    }
+}
+
+/// `dst[m×n] = (acc ? dst : 0) + scale · lhs[m×k] · rhs[k×n]`, one thread.
+#[allow(clippy::too_many_arguments)]
+fn matmul<T: Real>(
+    (m, n, k): (usize, usize, usize),
+    dst: &mut [T],
+    d: View,
+    acc: bool,
+    lhs: &[T],
+    a: View,
+    rhs: &[T],
+    b: View,
+    scale: T,
+) {
+    if m == 0 || n == 0 {
+        return;
+    }
+    // invariant: every caller derives the views from the plan's shapes and the buffers'
+    // sizes; this check is what makes the unsafe call below sound.
+    assert!(
+        d.end(m, n) <= dst.len() && a.end(m, k) <= lhs.len() && b.end(k, n) <= rhs.len(),
+        "fused MLP: a matrix view exceeds its buffer"
+    );
+    // SAFETY: the assertion above keeps every access inside the three slices; `dst` is a
+    // unique borrow and does not alias `lhs` or `rhs`.
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            dst.as_mut_ptr().add(d.off),
+            d.cs as isize,
+            d.rs as isize,
+            acc,
+            lhs.as_ptr().add(a.off),
+            a.cs as isize,
+            a.rs as isize,
+            rhs.as_ptr().add(b.off),
+            b.cs as isize,
+            b.rs as isize,
+            T::from_f64(1.0),
+            scale,
+            false,
+            false,
+            false,
+            gemm::Parallelism::None,
+        );
+    }
+}
+
+/// Per-worker scratch: a tile's pre-activations and activations of every hidden layer,
+/// and two gradient buffers.
+struct Scratch<T> {
+    h: Vec<T>,
+    a: Vec<T>,
+    g: Vec<T>,
+    gx: Vec<T>,
+}
+
+impl FusedMlp {
+    fn scratch<T: Real>(&self) -> Scratch<T> {
+        let hidden = self.hidden_len();
+        let w = self.max_width() * TILE;
+        Scratch {
+            h: vec![T::from_f64(0.0); hidden],
+            a: vec![T::from_f64(0.0); hidden],
+            g: vec![T::from_f64(0.0); w],
+            gx: vec![T::from_f64(0.0); w],
+        }
+    }
+
+    /// Runs the layers on the `rows` rows of `a0`, keeping the hidden pre-activations and
+    /// activations in `sc` (layer `l`'s at offset `TILE · Σ_{j<l} out_j`, row-major) and
+    /// writing the output rows to `y`.
+    fn forward_tile<T: Real>(
+        &self,
+        a0: &[T],
+        params: &[T],
+        rows: usize,
+        sc: &mut Scratch<T>,
+        y: &mut [T],
+    ) {
+        let inv_sqrt2 = T::from_f64(std::f64::consts::FRAC_1_SQRT_2);
+        let last = self.layers.len() - 1;
+        let mut off = 0;
+        let mut prev: Option<(usize, usize)> = None; // (offset in sc.a, width)
+        for (l, layer) in self.layers.iter().enumerate() {
+            let (w, b) = self.offsets[l];
+            let bias = &params[b..b + layer.out];
+            let (dst, dst_off) = if l == last {
+                (&mut *y, 0)
+            } else {
+                (&mut sc.h[..], off)
+            };
+            for r in 0..rows {
+                let o = dst_off + r * layer.out;
+                dst[o..o + layer.out].copy_from_slice(bias);
+            }
+            let d = View::rows(dst_off, layer.out);
+            let weight_t = |col: usize| View::transposed(w + col, layer.input);
+            match prev {
+                None => matmul(
+                    (rows, layer.out, self.a0),
+                    dst,
+                    d,
+                    true,
+                    a0,
+                    View::rows(0, self.a0),
+                    params,
+                    weight_t(0),
+                    T::from_f64(1.0),
+                ),
+                Some((p_off, p_w)) => {
+                    let scale = if layer.skip {
+                        inv_sqrt2
+                    } else {
+                        T::from_f64(1.0)
+                    };
+                    matmul(
+                        (rows, layer.out, p_w),
+                        dst,
+                        d,
+                        true,
+                        &sc.a,
+                        View::rows(p_off, p_w),
+                        params,
+                        weight_t(0),
+                        scale,
+                    );
+                    if layer.skip {
+                        matmul(
+                            (rows, layer.out, self.a0),
+                            dst,
+                            d,
+                            true,
+                            a0,
+                            View::rows(0, self.a0),
+                            params,
+                            weight_t(p_w),
+                            scale,
+                        );
+                    }
+                }
+            }
+            if l < last {
+                let n = rows * layer.out;
+                for (a, &h) in sc.a[off..off + n].iter_mut().zip(&sc.h[off..off + n]) {
+                    *a = h.act(self.act);
+                }
+                prev = Some((off, layer.out));
+                off += TILE * layer.out;
+            }
+        }
+    }
+
+    /// The backward pass of one tile: recomputes its forward (unless `recompute` is
+    /// false: `sc` then holds this tile's [`FusedMlp::forward_tile`]), then accumulates
+    /// the parameter gradient into `gp` and writes `∂L/∂a₀` of its rows into `ga0` (when
+    /// given).
+    #[allow(clippy::too_many_arguments)]
+    fn backward_tile<T: Real>(
+        &self,
+        a0: &[T],
+        params: &[T],
+        gy: &[T],
+        rows: usize,
+        sc: &mut Scratch<T>,
+        gp: &mut [T],
+        mut ga0: Option<&mut [T]>,
+        recompute: bool,
+    ) {
+        let inv_sqrt2 = T::from_f64(std::f64::consts::FRAC_1_SQRT_2);
+        let last = self.layers.len() - 1;
+        if recompute {
+            // The output goes to the gradient scratch (overwritten below).
+            let mut y = std::mem::take(&mut sc.g);
+            self.forward_tile(a0, params, rows, sc, &mut y);
+            sc.g = y;
+        }
+        let out = self.layers[last].out;
+        sc.g[..rows * out].copy_from_slice(&gy[..rows * out]);
+        if let Some(g) = ga0.as_deref_mut() {
+            g.fill(T::from_f64(0.0));
+        }
+        // Offsets of each hidden layer's buffers in sc.h / sc.a.
+        let mut offs = Vec::with_capacity(last);
+        let mut off = 0;
+        for layer in &self.layers[..last] {
+            offs.push(off);
+            off += TILE * layer.out;
+        }
+        for l in (0..=last).rev() {
+            let layer = &self.layers[l];
+            let (w, b) = self.offsets[l];
+            let (o, i) = (layer.out, layer.input);
+            let scale = if layer.skip {
+                inv_sqrt2
+            } else {
+                T::from_f64(1.0)
+            };
+            let g_view = View::rows(0, o);
+            // ∂L/∂b = Σ_rows ḡ_h.
+            for r in 0..rows {
+                for (acc, &g) in gp[b..b + o].iter_mut().zip(&sc.g[r * o..r * o + o]) {
+                    *acc += g;
+                }
+            }
+            // ∂L/∂W = ḡ_hᵀ x (per input part).
+            let p_w = self.prev_width(l);
+            if l == 0 {
+                matmul(
+                    (o, self.a0, rows),
+                    gp,
+                    View::rows(w, i),
+                    true,
+                    &sc.g,
+                    View::transposed(0, o),
+                    a0,
+                    View::rows(0, self.a0),
+                    T::from_f64(1.0),
+                );
+            } else {
+                matmul(
+                    (o, p_w, rows),
+                    gp,
+                    View::rows(w, i),
+                    true,
+                    &sc.g,
+                    View::transposed(0, o),
+                    &sc.a,
+                    View::rows(offs[l - 1], p_w),
+                    scale,
+                );
+                if layer.skip {
+                    matmul(
+                        (o, self.a0, rows),
+                        gp,
+                        View::rows(w + p_w, i),
+                        true,
+                        &sc.g,
+                        View::transposed(0, o),
+                        a0,
+                        View::rows(0, self.a0),
+                        scale,
+                    );
+                }
+            }
+            // ḡ_x = ḡ_h W, split into the previous layer's part and a₀'s.
+            if l == 0 {
+                if let Some(g) = ga0.as_deref_mut() {
+                    matmul(
+                        (rows, self.a0, o),
+                        g,
+                        View::rows(0, self.a0),
+                        true,
+                        &sc.g,
+                        g_view,
+                        params,
+                        View::rows(w, i),
+                        T::from_f64(1.0),
+                    );
+                }
+                break;
+            }
+            if layer.skip {
+                if let Some(g) = ga0.as_deref_mut() {
+                    matmul(
+                        (rows, self.a0, o),
+                        g,
+                        View::rows(0, self.a0),
+                        true,
+                        &sc.g,
+                        g_view,
+                        params,
+                        View::rows(w + p_w, i),
+                        scale,
+                    );
+                }
+            }
+            matmul(
+                (rows, p_w, o),
+                &mut sc.gx,
+                View::rows(0, p_w),
+                false,
+                &sc.g,
+                g_view,
+                params,
+                View::rows(w, i),
+                scale,
+            );
+            // ḡ_h of the layer below: φ'(h) ⊙ ḡ_a.
+            let h = &sc.h[offs[l - 1]..offs[l - 1] + rows * p_w];
+            for ((g, &gx), &h) in sc.g[..rows * p_w].iter_mut().zip(&sc.gx).zip(h) {
+                *g = gx * h.slope(self.act);
+            }
+        }
+    }
+
+    fn forward<T: Real>(&self, a0: &[T], params: &[T], n: usize) -> Vec<T> {
+        let out = self.out_dim();
+        let mut y = vec![T::from_f64(0.0); n * out];
+        let items: Vec<_> = y
+            .chunks_mut(TILE * out)
+            .zip(a0.chunks(TILE * self.a0))
+            .collect();
+        for_each_init(
+            items,
+            || self.scratch::<T>(),
+            |sc, (y, a0)| {
+                let rows = y.len() / out;
+                self.forward_tile(a0, params, rows, sc, y);
+            },
+        );
+        y
+    }
+
+    /// `(∂L/∂a₀ if wanted, ∂L/∂params)`.
+    fn backward<T: Real>(
+        &self,
+        a0: &[T],
+        params: &[T],
+        gy: &[T],
+        n: usize,
+        want_a0: bool,
+    ) -> (Option<Vec<T>>, Vec<T>) {
+        let out = self.out_dim();
+        let chunks = n.div_ceil(CHUNK);
+        let mut gp = vec![T::from_f64(0.0); chunks.max(1) * self.n_params];
+        let mut ga0 = want_a0.then(|| vec![T::from_f64(0.0); n * self.a0]);
+        let ga0_chunks = chunk_rows(ga0.as_mut(), self.a0, chunks);
+        let items: Vec<_> = gp
+            .chunks_mut(self.n_params)
+            .zip(a0.chunks(CHUNK * self.a0))
+            .zip(gy.chunks(CHUNK * out))
+            .zip(ga0_chunks)
+            .collect();
+        for_each_init(
+            items,
+            || self.scratch::<T>(),
+            |sc, (((gp, a0), gy), mut ga0)| {
+                let rows = gy.len() / out;
+                for t in (0..rows).step_by(TILE) {
+                    let r = TILE.min(rows - t);
+                    let ga = ga0
+                        .as_deref_mut()
+                        .map(|g| &mut g[t * self.a0..(t + r) * self.a0]);
+                    self.backward_tile(
+                        &a0[t * self.a0..(t + r) * self.a0],
+                        params,
+                        &gy[t * out..(t + r) * out],
+                        r,
+                        sc,
+                        gp,
+                        ga,
+                        true,
+                    );
+                }
+            },
+        );
+        // Sum the chunks' parameter gradients in chunk order.
+        sum_chunks(&mut gp, self.n_params);
+        (ga0, gp)
+    }
+
+    fn check(&self, n_a0: usize, n_params: usize) -> candle_core::Result<usize> {
+        if n_params != self.n_params {
+            candle_core::bail!(
+                "fused MLP: expected {} parameters, got {n_params}",
+                self.n_params
+            )
+        }
+        if self.a0 == 0 || !n_a0.is_multiple_of(self.a0) {
+            candle_core::bail!(
+                "fused MLP: input length {n_a0} is not a multiple of {}",
+                self.a0
+            )
+        }
+        Ok(n_a0 / self.a0)
+    }
+}
+
+/// Per-chunk row blocks of a per-point gradient buffer of width `w` (or `chunks` Nones).
+fn chunk_rows<T>(g: Option<&mut Vec<T>>, w: usize, chunks: usize) -> Vec<Option<&mut [T]>> {
+    match g {
+        Some(g) => g.chunks_mut(CHUNK * w).map(Some).collect(),
+        None => (0..chunks).map(|_| None).collect(),
+    }
+}
+
+/// Sums the per-chunk parameter gradients (`n` each) into the first, in chunk order, and
+/// keeps only it.
+fn sum_chunks<T: Real>(gp: &mut Vec<T>, n: usize) {
+    let (first, rest) = gp.split_at_mut(n);
+    for chunk in rest.chunks(n) {
+        for (a, &b) in first.iter_mut().zip(chunk) {
+            *a += b;
+        }
+    }
+    gp.truncate(n);
+}
+
+impl CustomOp2 for FusedMlp {
+    fn name(&self) -> &'static str {
+        "nf-fused-mlp"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (Some((a1, b1)), Some((a2, b2))) = (l1.contiguous_offsets(), l2.contiguous_offsets())
+        else {
+            candle_core::bail!("fused MLP: inputs must be contiguous")
+        };
+        let (storage, n) = match (s1, s2) {
+            (CpuStorage::F32(x), CpuStorage::F32(p)) => {
+                let (x, p) = (&x[a1..b1], &p[a2..b2]);
+                let n = self.check(x.len(), p.len())?;
+                (CpuStorage::F32(self.forward(x, p, n)), n)
+            }
+            (CpuStorage::F64(x), CpuStorage::F64(p)) => {
+                let (x, p) = (&x[a1..b1], &p[a2..b2]);
+                let n = self.check(x.len(), p.len())?;
+                (CpuStorage::F64(self.forward(x, p, n)), n)
+            }
+            _ => candle_core::bail!("fused MLP: inputs must both be f32 or both f64"),
+        };
+        Ok((storage, Shape::from((n, self.out_dim()))))
+    }
+
+    fn bwd(
+        &self,
+        a0: &Tensor,
+        params: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let grad = grad.contiguous()?;
+        let want_a0 = a0.track_op();
+        let (xs, xl) = a0.storage_and_layout();
+        let (ps, pl) = params.storage_and_layout();
+        let (gs, gl) = grad.storage_and_layout();
+        let dev = a0.device();
+        macro_rules! run {
+            ($t:ty) => {{
+                let x = cpu_slice::<$t>(&xs, xl, "fused MLP", "input")?;
+                let p = cpu_slice::<$t>(&ps, pl, "fused MLP", "parameters")?;
+                let g = cpu_slice::<$t>(&gs, gl, "fused MLP", "gradient")?;
+                let n = self.check(x.len(), p.len())?;
+                if g.len() != n * self.out_dim() {
+                    candle_core::bail!("fused MLP: gradient of {} elements", g.len())
+                }
+                let (ga0, gp) = self.backward(x, p, g, n, want_a0);
+                let ga0 = match ga0 {
+                    Some(v) => Some(Tensor::from_vec(v, a0.shape(), dev)?),
+                    None => None,
+                };
+                (ga0, Some(Tensor::from_vec(gp, params.shape(), dev)?))
+            }};
+        }
+        Ok(match a0.dtype() {
+            DType::F32 => run!(f32),
+            DType::F64 => run!(f64),
+            other => candle_core::bail!("fused MLP: unsupported dtype {other:?}"),
+        })
+    }
+}
+
+/// NeRF's two networks as one op ([`super::Nerf`]): the trunk on the encoded position
+/// `[N, E_p]` gives the raw density and a feature `[N, W]`; the colour head runs on
+/// `[encoded direction, feature]`. Output `[N, 4]`: the raw density and the raw colour
+/// (activations are applied outside). Parameters: the trunk's flat parameters, then the
+/// head's. The feature never leaves the tile, so the pass allocates nothing per point
+/// beyond its output, and the backward pass hands the head's input gradient straight to
+/// the trunk.
+#[derive(Clone, Debug)]
+pub(crate) struct FusedNerf {
+    pub trunk: FusedMlp,
+    pub head: FusedMlp,
+}
+
+/// Per-worker scratch of [`FusedNerf`]: each network's, the trunk's output, the head's
+/// input and output, and their gradients.
+struct NerfScratch<T> {
+    trunk: Scratch<T>,
+    head: Scratch<T>,
+    yt: Vec<T>,
+    ha0: Vec<T>,
+    yh: Vec<T>,
+    g_ha0: Vec<T>,
+    g_yt: Vec<T>,
+}
+
+impl FusedNerf {
+    /// Widths: encoded direction, trunk output (1 + feature), head input.
+    fn widths(&self) -> (usize, usize, usize) {
+        let t_out = self.trunk.out_dim();
+        let h_in = self.head.a0;
+        (h_in + 1 - t_out, t_out, h_in)
+    }
+
+    fn scratch<T: Real>(&self) -> NerfScratch<T> {
+        let (_, t_out, h_in) = self.widths();
+        let z = T::from_f64(0.0);
+        NerfScratch {
+            trunk: self.trunk.scratch(),
+            head: self.head.scratch(),
+            yt: vec![z; TILE * t_out],
+            ha0: vec![z; TILE * h_in],
+            yh: vec![z; TILE * self.head.out_dim()],
+            g_ha0: vec![z; TILE * h_in],
+            g_yt: vec![z; TILE * t_out],
+        }
+    }
+
+    /// The trunk and the head's input of one tile (left in `sc`); returns the rows.
+    fn trunk_tile<T: Real>(&self, ep: &[T], ed: &[T], pt: &[T], sc: &mut NerfScratch<T>) -> usize {
+        let (dd, t_out, h_in) = self.widths();
+        let rows = ep.len() / self.trunk.a0;
+        self.trunk
+            .forward_tile(ep, pt, rows, &mut sc.trunk, &mut sc.yt);
+        for r in 0..rows {
+            let row = &mut sc.ha0[r * h_in..(r + 1) * h_in];
+            row[..dd].copy_from_slice(&ed[r * dd..(r + 1) * dd]);
+            row[dd..].copy_from_slice(&sc.yt[r * t_out + 1..(r + 1) * t_out]);
+        }
+        rows
+    }
+
+    fn forward<T: Real>(&self, ep: &[T], ed: &[T], params: &[T], n: usize) -> Vec<T> {
+        let (dd, _, _) = self.widths();
+        let (pt, ph) = params.split_at(self.trunk.n_params);
+        let mut y = vec![T::from_f64(0.0); n * 4];
+        let items: Vec<_> = y
+            .chunks_mut(TILE * 4)
+            .zip(ep.chunks(TILE * self.trunk.a0))
+            .zip(ed.chunks(TILE * dd))
+            .collect();
+        let t_out = self.trunk.out_dim();
+        for_each_init(
+            items,
+            || self.scratch::<T>(),
+            |sc, ((y, ep), ed)| {
+                let rows = self.trunk_tile(ep, ed, pt, sc);
+                let (ha0, yh) = (&sc.ha0, &mut sc.yh);
+                self.head.forward_tile(ha0, ph, rows, &mut sc.head, yh);
+                for r in 0..rows {
+                    y[4 * r] = sc.yt[r * t_out];
+                    y[4 * r + 1..4 * r + 4].copy_from_slice(&sc.yh[3 * r..3 * r + 3]);
+                }
+            },
+        );
+        y
+    }
+
+    /// `(∂L/∂enc_pos, ∂L/∂enc_dir)` where wanted, and `∂L/∂params`.
+    #[allow(clippy::type_complexity)]
+    fn backward<T: Real>(
+        &self,
+        ep: &[T],
+        ed: &[T],
+        params: &[T],
+        gy: &[T],
+        n: usize,
+        want: (bool, bool),
+    ) -> (Option<Vec<T>>, Option<Vec<T>>, Vec<T>) {
+        let (dd, t_out, h_in) = self.widths();
+        let (pt, ph) = params.split_at(self.trunk.n_params);
+        let (a0p, np) = (self.trunk.a0, params.len());
+        let chunks = n.div_ceil(CHUNK);
+        let mut gp = vec![T::from_f64(0.0); chunks.max(1) * np];
+        let mut gep = want.0.then(|| vec![T::from_f64(0.0); n * a0p]);
+        let mut ged = want.1.then(|| vec![T::from_f64(0.0); n * dd]);
+        let items: Vec<_> = gp
+            .chunks_mut(np)
+            .zip(ep.chunks(CHUNK * a0p))
+            .zip(ed.chunks(CHUNK * dd))
+            .zip(gy.chunks(CHUNK * 4))
+            .zip(
+                chunk_rows(gep.as_mut(), a0p, chunks)
+                    .into_iter()
+                    .zip(chunk_rows(ged.as_mut(), dd, chunks)),
+            )
+            .collect();
+        for_each_init(
+            items,
+            || self.scratch::<T>(),
+            |sc, ((((gp, ep), ed), gy), (mut gep, mut ged))| {
+                let (gpt, gph) = gp.split_at_mut(self.trunk.n_params);
+                let rows = gy.len() / 4;
+                for t in (0..rows).step_by(TILE) {
+                    let r = TILE.min(rows - t);
+                    self.trunk_tile(
+                        &ep[t * a0p..(t + r) * a0p],
+                        &ed[t * dd..(t + r) * dd],
+                        pt,
+                        sc,
+                    );
+                    for i in 0..r {
+                        sc.yh[3 * i..3 * i + 3]
+                            .copy_from_slice(&gy[4 * (t + i) + 1..4 * (t + i) + 4]);
+                    }
+                    let (ha0, yh, g_ha0) = (&sc.ha0, &sc.yh, &mut sc.g_ha0[..r * h_in]);
+                    self.head
+                        .backward_tile(ha0, ph, yh, r, &mut sc.head, gph, Some(g_ha0), true);
+                    for i in 0..r {
+                        sc.g_yt[i * t_out] = gy[4 * (t + i)];
+                        sc.g_yt[i * t_out + 1..(i + 1) * t_out]
+                            .copy_from_slice(&sc.g_ha0[i * h_in + dd..(i + 1) * h_in]);
+                        if let Some(g) = ged.as_deref_mut() {
+                            g[(t + i) * dd..(t + i + 1) * dd]
+                                .copy_from_slice(&sc.g_ha0[i * h_in..i * h_in + dd]);
+                        }
+                    }
+                    let gp_rows = gep.as_deref_mut().map(|g| &mut g[t * a0p..(t + r) * a0p]);
+                    self.trunk.backward_tile(
+                        &ep[t * a0p..(t + r) * a0p],
+                        pt,
+                        &sc.g_yt,
+                        r,
+                        &mut sc.trunk,
+                        gpt,
+                        gp_rows,
+                        false,
+                    );
+                }
+            },
+        );
+        sum_chunks(&mut gp, np);
+        (gep, ged, gp)
+    }
+
+    fn check(&self, n_ep: usize, n_ed: usize, n_params: usize) -> candle_core::Result<usize> {
+        let (dd, _, _) = self.widths();
+        let n = self.trunk.check(n_ep, self.trunk.n_params)?;
+        if n_params != self.trunk.n_params + self.head.n_params || n_ed != n * dd {
+            candle_core::bail!("fused NeRF: {n_ed} direction features or {n_params} parameters do not match {n} points")
+        }
+        Ok(n)
+    }
+}
+
+impl CustomOp3 for FusedNerf {
+    fn name(&self) -> &'static str {
+        "nf-fused-nerf"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (Some((a1, b1)), Some((a2, b2)), Some((a3, b3))) = (
+            l1.contiguous_offsets(),
+            l2.contiguous_offsets(),
+            l3.contiguous_offsets(),
+        ) else {
+            candle_core::bail!("fused NeRF: inputs must be contiguous")
+        };
+        let (storage, n) = match (s1, s2, s3) {
+            (CpuStorage::F32(x), CpuStorage::F32(d), CpuStorage::F32(p)) => {
+                let (x, d, p) = (&x[a1..b1], &d[a2..b2], &p[a3..b3]);
+                let n = self.check(x.len(), d.len(), p.len())?;
+                (CpuStorage::F32(self.forward(x, d, p, n)), n)
+            }
+            (CpuStorage::F64(x), CpuStorage::F64(d), CpuStorage::F64(p)) => {
+                let (x, d, p) = (&x[a1..b1], &d[a2..b2], &p[a3..b3]);
+                let n = self.check(x.len(), d.len(), p.len())?;
+                (CpuStorage::F64(self.forward(x, d, p, n)), n)
+            }
+            _ => candle_core::bail!("fused NeRF: inputs must all be f32 or all f64"),
+        };
+        Ok((storage, Shape::from((n, 4))))
+    }
+
+    fn bwd(
+        &self,
+        ep: &Tensor,
+        ed: &Tensor,
+        params: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let grad = grad.contiguous()?;
+        let want = (ep.track_op(), ed.track_op());
+        let (xs, xl) = ep.storage_and_layout();
+        let (ds, dl) = ed.storage_and_layout();
+        let (ps, pl) = params.storage_and_layout();
+        let (gs, gl) = grad.storage_and_layout();
+        let dev = ep.device();
+        macro_rules! run {
+            ($t:ty) => {{
+                let x = cpu_slice::<$t>(&xs, xl, "fused NeRF", "positions")?;
+                let d = cpu_slice::<$t>(&ds, dl, "fused NeRF", "directions")?;
+                let p = cpu_slice::<$t>(&ps, pl, "fused NeRF", "parameters")?;
+                let g = cpu_slice::<$t>(&gs, gl, "fused NeRF", "gradient")?;
+                let n = self.check(x.len(), d.len(), p.len())?;
+                if g.len() != n * 4 {
+                    candle_core::bail!("fused NeRF: gradient of {} elements", g.len())
+                }
+                let (a, b, c) = self.backward(x, d, p, g, n, want);
+                let wrap =
+                    |v: Option<Vec<$t>>, t: &Tensor| -> candle_core::Result<Option<Tensor>> {
+                        v.map(|v| Tensor::from_vec(v, t.shape(), dev)).transpose()
+                    };
+                (
+                    wrap(a, ep)?,
+                    wrap(b, ed)?,
+                    Some(Tensor::from_vec(c, params.shape(), dev)?),
+                )
+            }};
+        }
+        Ok(match ep.dtype() {
+            DType::F32 => run!(f32),
+            DType::F64 => run!(f64),
+            other => candle_core::bail!("fused NeRF: unsupported dtype {other:?}"),
+        })
+    }
+}
