@@ -231,7 +231,8 @@ const ENCODE_ROWS: usize = 256;
 /// so the loop has no calls and no branches.
 // The coefficients are written with the decimals they were published with.
 #[allow(clippy::excessive_precision)]
-fn sin_cos_pi(y: &[f64], s: &mut [f64], c: &mut [f64]) {
+#[inline(always)]
+fn sin_cos_pi_body(y: &[f64], s: &mut [f64], c: &mut [f64]) {
     const SHIFT: f64 = 6_755_399_441_055_744.0; // 1.5 · 2⁵²
     const BIG: f64 = 2_251_799_813_685_248.0; // 2⁵¹
     #[inline(always)]
@@ -268,16 +269,46 @@ fn sin_cos_pi(y: &[f64], s: &mut [f64], c: &mut [f64]) {
         let sin = x + x * ps;
         let pc = C[0] + z * (C[1] + z * (C[2] + z * (C[3] + z * (C[4] + z * C[5]))));
         let cos = (1.0 - 0.5 * z) + z * z * pc;
-        // q ∈ {−2, …, 2}; its quadrant q mod 4 ∈ {0, 1, 2, 3}.
-        let quadrant = (q as i64) & 3;
-        let (a, b) = if quadrant & 1 == 1 {
-            (cos, sin)
-        } else {
-            (sin, cos)
-        };
-        *s = if quadrant & 2 == 2 { -a } else { a };
-        *c = if (quadrant + 1) & 2 == 2 { -b } else { b };
+        // q ∈ {−2, …, 2}: sin(πy) = (s, c, −s, −c)[q mod 4], cos(πy) = (c, −s, −c, s)[q mod 4],
+        // written as comparisons so that the loop stays vectorisable.
+        let odd = q.abs() == 1.0;
+        let (a, b) = if odd { (cos, sin) } else { (sin, cos) };
+        *s = if (-0.5..=1.5).contains(&q) { a } else { -a };
+        *c = if (-1.5..=0.5).contains(&q) { b } else { -b };
     }
+}
+
+/// `sin(πy)` and `cos(πy)` for every `y`, to about 1 ulp of f64.
+///
+/// Reduction (exact): `r = y − 2·round(y/2) ∈ [−1, 1]`, then `q = round(2r)` and
+/// `f = r − q/2 ∈ [−¼, ¼]`, so `πy ≡ πf + qπ/2`; the kernels are musl's minimax
+/// polynomials for `sin` and `cos` on `[−π/4, π/4]`, and the quadrant `q mod 4` swaps
+/// and negates them. Rounding to an integer uses the `1.5·2⁵²` shift (exact below 2⁵¹;
+/// larger values are already even integers after halving, or integers, and pass through),
+/// so the loop has no calls and no branches; it runs compiled for AVX-512 or AVX2 where
+/// the CPU has them.
+fn sin_cos_pi(y: &[f64], s: &mut [f64], c: &mut [f64]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx512f,avx512dq,avx512vl,fma")]
+        fn avx512(y: &[f64], s: &mut [f64], c: &mut [f64]) {
+            sin_cos_pi_body(y, s, c)
+        }
+        #[target_feature(enable = "avx2,fma")]
+        fn avx2(y: &[f64], s: &mut [f64], c: &mut [f64]) {
+            sin_cos_pi_body(y, s, c)
+        }
+        use std::arch::is_x86_feature_detected as has;
+        if has!("avx512f") && has!("avx512dq") && has!("avx512vl") && has!("fma") {
+            // SAFETY: the CPU has the features the function was compiled for.
+            return unsafe { avx512(y, s, c) };
+        }
+        if has!("avx2") && has!("fma") {
+            // SAFETY: as above.
+            return unsafe { avx2(y, s, c) };
+        }
+    }
+    sin_cos_pi_body(y, s, c)
 }
 
 /// Per-worker scratch of the fused encoding: arguments, sines, cosines.
@@ -298,11 +329,12 @@ impl FusedFrequency {
         let (d, l) = (self.0.in_dim, self.0.n_freqs);
         let m = x.len() * l;
         for (row, args) in x.chunks(d).zip(t.0.chunks_mut((d * l).max(1))) {
+            let mut scale = 1.0;
             for k in 0..l {
-                let scale = (k as f64).exp2();
                 for (a, &v) in args[k * d..(k + 1) * d].iter_mut().zip(row) {
                     *a = v.to_f64() * scale;
                 }
+                scale *= 2.0;
             }
         }
         sin_cos_pi(&t.0[..m], &mut t.1[..m], &mut t.2[..m]);
@@ -356,13 +388,14 @@ impl FusedFrequency {
                 for (r, (gr, gi)) in gx.chunks_mut(d).zip(g.chunks(w)).enumerate() {
                     for j in 0..d {
                         let mut acc = if head > 0 { gi[j].to_f64() } else { 0.0 };
+                        let mut rate = std::f64::consts::PI; // π2ᵏ
                         for k in 0..l {
                             let src = (r * l + k) * d + j;
                             let base = head + 2 * d * k;
-                            let rate = std::f64::consts::PI * (k as f64).exp2();
                             acc += rate
                                 * (gi[base + j].to_f64() * t.2[src]
                                     - gi[base + d + j].to_f64() * t.1[src]);
+                            rate *= 2.0;
                         }
                         gr[j] = T::from_f64(acc);
                     }

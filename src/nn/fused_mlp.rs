@@ -29,6 +29,9 @@
 //! order, so the gradient is the same bit for bit at any thread count. Tiles run on
 //! candle's CPU pool ([`crate::parallel`]).
 
+#[cfg(target_arch = "x86_64")]
+mod simd;
+
 use crate::parallel::{cpu_slice, for_each_init};
 use candle_core::{CpuStorage, CustomOp2, CustomOp3, DType, Layout, Shape, Tensor, WithDType};
 
@@ -212,6 +215,29 @@ fn matmul<T: Real>(
         d.end(m, n) <= dst.len() && a.end(m, k) <= lhs.len() && b.end(k, n) <= rhs.len(),
         "fused MLP: a matrix view exceeds its buffer"
     );
+    #[cfg(target_arch = "x86_64")]
+    if std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>()
+        && b.cs == 1
+        && d.cs == 1
+        && simd::available()
+    {
+        // SAFETY: T is f32 (checked above), so the casts are identity casts; the assertion
+        // keeps every access inside the slices; `available()` checked the CPU.
+        unsafe {
+            simd::matmul_f32(
+                (m, n, k),
+                dst.as_mut_ptr().add(d.off).cast::<f32>(),
+                d.rs,
+                acc,
+                lhs.as_ptr().add(a.off).cast::<f32>(),
+                (a.rs, a.cs),
+                rhs.as_ptr().add(b.off).cast::<f32>(),
+                b.rs,
+                scale.to_f64() as f32,
+            );
+        }
+        return;
+    }
     // SAFETY: the assertion above keeps every access inside the three slices; `dst` is a
     // unique borrow and does not alias `lhs` or `rhs`.
     unsafe {
@@ -237,6 +263,15 @@ fn matmul<T: Real>(
             gemm::Parallelism::None,
         );
     }
+}
+
+/// The flat parameters and, at the same offsets, every weight transposed (`[in, out]`,
+/// row-major; the bias slots unused), so that every product of the forward pass reads both
+/// operands by rows.
+#[derive(Clone, Copy)]
+struct Params<'a, T> {
+    p: &'a [T],
+    wt: &'a [T],
 }
 
 /// Per-worker scratch: a tile's pre-activations and activations of every hidden layer,
@@ -266,7 +301,7 @@ impl FusedMlp {
     fn forward_tile<T: Real>(
         &self,
         a0: &[T],
-        params: &[T],
+        params: Params<'_, T>,
         rows: usize,
         sc: &mut Scratch<T>,
         y: &mut [T],
@@ -277,7 +312,7 @@ impl FusedMlp {
         let mut prev: Option<(usize, usize)> = None; // (offset in sc.a, width)
         for (l, layer) in self.layers.iter().enumerate() {
             let (w, b) = self.offsets[l];
-            let bias = &params[b..b + layer.out];
+            let bias = &params.p[b..b + layer.out];
             let (dst, dst_off) = if l == last {
                 (&mut *y, 0)
             } else {
@@ -288,7 +323,8 @@ impl FusedMlp {
                 dst[o..o + layer.out].copy_from_slice(bias);
             }
             let d = View::rows(dst_off, layer.out);
-            let weight_t = |col: usize| View::transposed(w + col, layer.input);
+            // Rows `col..` of Wᵀ ([in, out], row-major at W's offset).
+            let weight_t = |col: usize| View::rows(w + col * layer.out, layer.out);
             match prev {
                 None => matmul(
                     (rows, layer.out, self.a0),
@@ -297,7 +333,7 @@ impl FusedMlp {
                     true,
                     a0,
                     View::rows(0, self.a0),
-                    params,
+                    params.wt,
                     weight_t(0),
                     T::from_f64(1.0),
                 ),
@@ -314,7 +350,7 @@ impl FusedMlp {
                         true,
                         &sc.a,
                         View::rows(p_off, p_w),
-                        params,
+                        params.wt,
                         weight_t(0),
                         scale,
                     );
@@ -326,7 +362,7 @@ impl FusedMlp {
                             true,
                             a0,
                             View::rows(0, self.a0),
-                            params,
+                            params.wt,
                             weight_t(p_w),
                             scale,
                         );
@@ -352,7 +388,7 @@ impl FusedMlp {
     fn backward_tile<T: Real>(
         &self,
         a0: &[T],
-        params: &[T],
+        params: Params<'_, T>,
         gy: &[T],
         rows: usize,
         sc: &mut Scratch<T>,
@@ -446,7 +482,7 @@ impl FusedMlp {
                         true,
                         &sc.g,
                         g_view,
-                        params,
+                        params.p,
                         View::rows(w, i),
                         T::from_f64(1.0),
                     );
@@ -462,7 +498,7 @@ impl FusedMlp {
                         true,
                         &sc.g,
                         g_view,
-                        params,
+                        params.p,
                         View::rows(w + p_w, i),
                         scale,
                     );
@@ -475,7 +511,7 @@ impl FusedMlp {
                 false,
                 &sc.g,
                 g_view,
-                params,
+                params.p,
                 View::rows(w, i),
                 scale,
             );
@@ -487,7 +523,22 @@ impl FusedMlp {
         }
     }
 
+    /// The weights of `p` transposed, at their offsets ([`Params::wt`]).
+    fn transposed<T: Real>(&self, p: &[T]) -> Vec<T> {
+        let mut wt = p.to_vec();
+        for (layer, &(w, _)) in self.layers.iter().zip(&self.offsets) {
+            for o in 0..layer.out {
+                for i in 0..layer.input {
+                    wt[w + i * layer.out + o] = p[w + o * layer.input + i];
+                }
+            }
+        }
+        wt
+    }
+
     fn forward<T: Real>(&self, a0: &[T], params: &[T], n: usize) -> Vec<T> {
+        let wt = self.transposed(params);
+        let params = Params { p: params, wt: &wt };
         let out = self.out_dim();
         let mut y = vec![T::from_f64(0.0); n * out];
         let items: Vec<_> = y
@@ -514,6 +565,8 @@ impl FusedMlp {
         n: usize,
         want_a0: bool,
     ) -> (Option<Vec<T>>, Vec<T>) {
+        let wt = self.transposed(params);
+        let params = Params { p: params, wt: &wt };
         let out = self.out_dim();
         let chunks = n.div_ceil(CHUNK);
         let mut gp = vec![T::from_f64(0.0); chunks.max(1) * self.n_params];
@@ -708,7 +761,13 @@ impl FusedNerf {
     }
 
     /// The trunk and the head's input of one tile (left in `sc`); returns the rows.
-    fn trunk_tile<T: Real>(&self, ep: &[T], ed: &[T], pt: &[T], sc: &mut NerfScratch<T>) -> usize {
+    fn trunk_tile<T: Real>(
+        &self,
+        ep: &[T],
+        ed: &[T],
+        pt: Params<'_, T>,
+        sc: &mut NerfScratch<T>,
+    ) -> usize {
         let (dd, t_out, h_in) = self.widths();
         let rows = ep.len() / self.trunk.a0;
         self.trunk
@@ -721,9 +780,26 @@ impl FusedNerf {
         rows
     }
 
+    /// The trunk's and the head's [`Params`] views of `params`, with `wt` holding both
+    /// networks' transposed weights.
+    fn split<'a, T: Real>(&self, params: &'a [T], wt: &'a [T]) -> (Params<'a, T>, Params<'a, T>) {
+        let (pt, ph) = params.split_at(self.trunk.n_params);
+        let (wtt, wth) = wt.split_at(self.trunk.n_params);
+        (Params { p: pt, wt: wtt }, Params { p: ph, wt: wth })
+    }
+
+    /// Both networks' transposed weights, trunk then head.
+    fn transposed<T: Real>(&self, params: &[T]) -> Vec<T> {
+        let (pt, ph) = params.split_at(self.trunk.n_params);
+        let mut wt = self.trunk.transposed(pt);
+        wt.extend(self.head.transposed(ph));
+        wt
+    }
+
     fn forward<T: Real>(&self, ep: &[T], ed: &[T], params: &[T], n: usize) -> Vec<T> {
         let (dd, _, _) = self.widths();
-        let (pt, ph) = params.split_at(self.trunk.n_params);
+        let wt = self.transposed(params);
+        let (pt, ph) = self.split(params, &wt);
         let mut y = vec![T::from_f64(0.0); n * 4];
         let items: Vec<_> = y
             .chunks_mut(TILE * 4)
@@ -759,7 +835,8 @@ impl FusedNerf {
         want: (bool, bool),
     ) -> (Option<Vec<T>>, Option<Vec<T>>, Vec<T>) {
         let (dd, t_out, h_in) = self.widths();
-        let (pt, ph) = params.split_at(self.trunk.n_params);
+        let wt = self.transposed(params);
+        let (pt, ph) = self.split(params, &wt);
         let (a0p, np) = (self.trunk.a0, params.len());
         let chunks = n.div_ceil(CHUNK);
         let mut gp = vec![T::from_f64(0.0); chunks.max(1) * np];
