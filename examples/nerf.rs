@@ -397,7 +397,8 @@ fn proposal_density(net: &Mlp, points: &Tensor) -> Result<Tensor> {
 }
 
 /// RegNeRF's regulariser: the mean depth smoothness of 16 patches of 8 × 8 pixels, each
-/// rendered from a random camera around the training cameras ([`cameras_around`]).
+/// rendered from a random camera around the training cameras ([`cameras_around`]),
+/// weighted by the detached opacity as in RegNeRF's DTU configuration.
 fn regnerf_depth_smoothness(r: &Renderer, cameras: &[Camera], seed: u64) -> Result<Tensor> {
     const PATCHES: usize = 16;
     const K: usize = 8;
@@ -424,7 +425,10 @@ fn regnerf_depth_smoothness(r: &Renderer, cameras: &[Camera], seed: u64) -> Resu
     let black = Tensor::zeros((n, 3), DType::F32, &Device::Cpu)?;
     let (out, _, _) = r.render(&rays, &black, Some(seed))?;
     let depth = out.normalized_depth(1e-6)?.reshape((PATCHES, K, K))?;
-    Ok(depth_smoothness(&depth)?.mean_all()?)
+    // RegNeRF's DTU weighting: each pixel by its own opacity, detached, so that pixels of
+    // empty space (whose normalised depth means nothing) do not smooth their neighbours.
+    let opacity = out.opacity.detach().reshape((PATCHES, K, K))?;
+    Ok(depth_smoothness(&depth, Some(&opacity))?.mean_all()?)
 }
 
 /// Stops on a NaN or infinity in `t`, naming the step and the tensor.

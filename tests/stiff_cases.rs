@@ -1218,7 +1218,7 @@ fn sweep_volume(s: &mut Suite) {
             format!("{label}, depths ±{dbig:e}"),
             Expect::Finite,
             &[&depth],
-            || Ok(vec![depth_smoothness(depth.as_tensor())?]),
+            || Ok(vec![depth_smoothness(depth.as_tensor(), None)?]),
         );
         // (400, 0.1, 512) is 0.1's `depth_smoothness_weight`.
         for (a, b) in [(400.0, 0.1), (1e-30, 1e30)] {
@@ -2727,6 +2727,10 @@ const EXEMPT: &[(&str, &str)] = &[
     (
         "nn::fused_mlp::FusedNerf::",
         "CustomOp internals, swept via Nerf::radiance",
+    ),
+    (
+        "nn::fused_mlp::FusedMlpJvp::",
+        "CustomOp internals, swept via Mlp::forward_with_jacobian",
     ),
     (
         "encoding::FusedFrequency::",

@@ -293,6 +293,33 @@ fn distortion_bad_input_errs_naming_the_argument() {
     );
 }
 
+/// RegNeRF's opacity weighting: each top-left pixel's two differences scaled by its weight
+/// (hand-computed), the last row and column of the weights unused, and a weight of the
+/// wrong shape an error naming `weights`.
+#[test]
+fn weighted_depth_smoothness_scales_each_pixel_by_its_weight() {
+    #[rustfmt::skip]
+    let d = [1.0, 2.0, 4.0,
+             0.0, 3.0, 3.0,
+             5.0, 5.0, 5.0];
+    #[rustfmt::skip]
+    let m = [1.0, 0.0, 9.0,
+             0.5, 0.25, 9.0,
+             9.0, 9.0, 9.0];
+    let t = |v: &[f64]| Tensor::from_vec(v.to_vec(), (1, 3, 3), &Device::Cpu).unwrap();
+    // Pixel terms 2, 5, 34, 4 (see below) weighted 1, 0, 0.5, 0.25: (2 + 17 + 1)/4 = 5.
+    let l = depth_smoothness(&t(&d), Some(&t(&m)))
+        .unwrap()
+        .to_vec1::<f64>()
+        .unwrap();
+    assert_eq!(l, vec![5.0]);
+    let bad = Tensor::ones((1, 2, 3), DType::F64, &Device::Cpu).unwrap();
+    assert_eq!(
+        arg_of(depth_smoothness(&t(&d), Some(&bad)).unwrap_err()),
+        "weights"
+    );
+}
+
 #[test]
 fn depth_smoothness_matches_a_hand_computed_patch() {
     #[rustfmt::skip]
@@ -306,25 +333,26 @@ fn depth_smoothness_matches_a_hand_computed_patch() {
         7.0, 7.0, 7.0,
     ];
     // Pixel (0,0): (1−2)² + (1−0)² = 2; (0,1): (2−4)² + (2−3)² = 5;
-    // (1,0): (0−3)² + (0−5)² = 34; (1,1): (3−3)² + (3−5)² = 4. Sum 45.
+    // (1,0): (0−3)² + (0−5)² = 34; (1,1): (3−3)² + (3−5)² = 4. Mean 45/4.
     for dt in [DType::F32, DType::F64] {
         let t = Tensor::from_vec(d.to_vec(), (2, 3, 3), &Device::Cpu)
             .unwrap()
             .to_dtype(dt)
             .unwrap();
-        let l = depth_smoothness(&t)
+        let l = depth_smoothness(&t, None)
             .unwrap()
             .to_dtype(DType::F64)
             .unwrap()
             .to_vec1::<f64>()
             .unwrap();
-        assert_eq!(l, vec![45.0, 0.0]);
+        assert_eq!(l, vec![11.25, 0.0]);
     }
     // Gradient of the first patch at pixel (1,1): from its own term 2(3−3) + 2(3−5) = −4,
-    // from (0,1)'s vertical term −2(2−3) = 2 and (1,0)'s horizontal term −2(0−3) = 6: 4.
+    // from (0,1)'s vertical term −2(2−3) = 2 and (1,0)'s horizontal term −2(0−3) = 6: 4,
+    // over the 4 positions of the mean: 1.
     let v =
         Var::from_tensor(&Tensor::from_vec(d.to_vec(), (2, 3, 3), &Device::Cpu).unwrap()).unwrap();
-    let g = depth_smoothness(v.as_tensor())
+    let g = depth_smoothness(v.as_tensor(), None)
         .unwrap()
         .sum_all()
         .unwrap()
@@ -337,14 +365,14 @@ fn depth_smoothness_matches_a_hand_computed_patch() {
         .unwrap()
         .to_vec1::<f64>()
         .unwrap();
-    assert_eq!(gv[4], 4.0);
+    assert_eq!(gv[4], 1.0);
     // Central differences everywhere (the loss is quadratic: exact up to rounding).
     for idx in 0..18 {
         let f = |h: f64| {
             let mut d2 = d.to_vec();
             d2[idx] += h;
             let t = Tensor::from_vec(d2, (2, 3, 3), &Device::Cpu).unwrap();
-            depth_smoothness(&t)
+            depth_smoothness(&t, None)
                 .unwrap()
                 .sum_all()
                 .unwrap()
@@ -359,9 +387,9 @@ fn depth_smoothness_matches_a_hand_computed_patch() {
         );
     }
     let bad = Tensor::zeros((2, 1, 1), DType::F32, &Device::Cpu).unwrap();
-    assert_eq!(arg_of(depth_smoothness(&bad).unwrap_err()), "depth");
+    assert_eq!(arg_of(depth_smoothness(&bad, None).unwrap_err()), "depth");
     let bad = Tensor::zeros((3, 3), DType::F32, &Device::Cpu).unwrap();
-    assert_eq!(arg_of(depth_smoothness(&bad).unwrap_err()), "depth");
+    assert_eq!(arg_of(depth_smoothness(&bad, None).unwrap_err()), "depth");
 }
 
 #[test]

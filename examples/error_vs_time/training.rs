@@ -62,6 +62,58 @@ fn run_example(example: &str, args: &[String]) -> Result<String, String> {
     Ok(String::from_utf8_lossy(&out.stdout).into_owned())
 }
 
+/// Minutes of training per sampler in the NeRF curves.
+const NERF_MINUTES: &str = "2";
+
+/// The NeRF example on the committed dataset, once per sampler: its `curve.csv` rows
+/// (`step,train_seconds,psnr`) as held-out MSE against training seconds.
+fn nerf_curves(rows: &mut Vec<Row>, notes: &mut Vec<String>) {
+    for sampler in ["grid", "stratified", "proposal"] {
+        let out = std::env::temp_dir().join(format!("nf_nerf_{sampler}"));
+        let args: Vec<String> = [
+            "--minutes",
+            NERF_MINUTES,
+            "--sampler",
+            sampler,
+            "--pictures",
+            "0",
+            "--out",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .chain([out.to_string_lossy().into_owned()])
+        .collect();
+        if let Err(why) = run_example("nerf", &args) {
+            notes.push(format!("`nerf --sampler {sampler}` did not run ({why})"));
+            continue;
+        }
+        let csv = match std::fs::read_to_string(out.join("curve.csv")) {
+            Ok(s) => s,
+            Err(e) => {
+                notes.push(format!(
+                    "`nerf --sampler {sampler}` wrote no curve.csv ({e})"
+                ));
+                continue;
+            }
+        };
+        for line in csv.lines().skip(1) {
+            let v: Vec<f64> = line
+                .split(',')
+                .filter_map(|t| t.trim().parse().ok())
+                .collect();
+            if let [step, seconds, psnr] = v[..] {
+                rows.push(Row {
+                    series: format!("nerf (wuson, {sampler}): held-out MSE"),
+                    knob: step,
+                    error: Metric::MseOfPsnr.error(psnr),
+                    seconds,
+                    work: 0.0,
+                });
+            }
+        }
+    }
+}
+
 /// The rows of numbers with exactly `columns` entries in `stdout`; with a `label`, only
 /// the lines that start with it (the label itself not counted).
 fn numeric_rows(stdout: &str, columns: usize, label: Option<&str>) -> Vec<Vec<f64>> {
@@ -161,6 +213,7 @@ pub fn run(quick: bool) -> Vec<Table> {
             }
         }
     }
+    nerf_curves(&mut rows, &mut notes);
     vec![Table {
         title: "End-to-end training: error vs wall time".into(),
         description: format!(
@@ -174,7 +227,10 @@ pub fn run(quick: bool) -> Vec<Table> {
              (fit_occupancy). IoU on held-out uniform points of the padded cube; Chamfer-L1 of \
              the MISE mesh against the input mesh (100 000 samples each, unscaled: the ONet \
              papers print ×10); held-out MSE = 10^(−PSNR/10) of tiny_nerf's held-out view \
-             (the training time excludes rendering it).{}",
+             (the training time excludes rendering it); NeRF on the committed dataset \
+             (`cargo run --release --example nerf -- --minutes 2 --sampler S`, once per \
+             sampler), the held-out MSE of its `curve.csv` (PSNR on the first 4 test views \
+             every 250 steps) against training seconds (evaluation excluded).{}",
             if notes.is_empty() {
                 String::new()
             } else {

@@ -126,6 +126,9 @@ pub(crate) trait Real: WithDType {
     fn act(self, act: Act) -> Self;
     /// φ'(h).
     fn slope(self, act: Act) -> Self;
+    /// φ''(h): 0 for ReLU (as the reference path, whose slope 𝟙[h ≥ 0] is a constant of
+    /// the graph), `β σ(βh)(1 − σ(βh))` for softplus.
+    fn curvature(self, act: Act) -> Self;
 }
 
 macro_rules! real {
@@ -157,6 +160,17 @@ macro_rules! real {
                         }
                     }
                     Act::Softplus(beta) => crate::numerics::scalar_sigmoid!(beta as $t * self),
+                }
+            }
+
+            #[inline]
+            fn curvature(self, act: Act) -> Self {
+                match act {
+                    Act::Relu => 0.0,
+                    Act::Softplus(beta) => {
+                        let s = crate::numerics::scalar_sigmoid!(beta as $t * self);
+                        beta as $t * s * (1.0 - s)
+                    }
                 }
             }
         }
@@ -274,6 +288,34 @@ struct Params<'a, T> {
     wt: &'a [T],
 }
 
+/// The rows of a tile: `values` rows of points, then, for forward-mode tangents,
+/// `values · tangents` rows (point-major: the row of point `p`'s tangent `j` is
+/// `values + p·tangents + j`), which go through the same products without the bias and
+/// through `φ'(h)` of their point instead of `φ`.
+#[derive(Clone, Copy, Debug)]
+struct Rows {
+    values: usize,
+    tangents: usize,
+}
+
+impl Rows {
+    fn plain(values: usize) -> Self {
+        Self {
+            values,
+            tangents: 0,
+        }
+    }
+
+    fn total(self) -> usize {
+        self.values * (1 + self.tangents)
+    }
+
+    /// The point of tangent row `r ≥ values`.
+    fn point(self, r: usize) -> usize {
+        (r - self.values) / self.tangents
+    }
+}
+
 /// Per-worker scratch: a tile's pre-activations and activations of every hidden layer,
 /// and two gradient buffers.
 struct Scratch<T> {
@@ -302,10 +344,11 @@ impl FusedMlp {
         &self,
         a0: &[T],
         params: Params<'_, T>,
-        rows: usize,
+        tile: Rows,
         sc: &mut Scratch<T>,
         y: &mut [T],
     ) {
+        let rows = tile.total();
         let inv_sqrt2 = T::from_f64(std::f64::consts::FRAC_1_SQRT_2);
         let last = self.layers.len() - 1;
         let mut off = 0;
@@ -320,7 +363,11 @@ impl FusedMlp {
             };
             for r in 0..rows {
                 let o = dst_off + r * layer.out;
-                dst[o..o + layer.out].copy_from_slice(bias);
+                if r < tile.values {
+                    dst[o..o + layer.out].copy_from_slice(bias);
+                } else {
+                    dst[o..o + layer.out].fill(T::from_f64(0.0));
+                }
             }
             let d = View::rows(dst_off, layer.out);
             // Rows `col..` of Wᵀ ([in, out], row-major at W's offset).
@@ -370,9 +417,16 @@ impl FusedMlp {
                 }
             }
             if l < last {
-                let n = rows * layer.out;
+                let (o, n) = (layer.out, tile.values * layer.out);
                 for (a, &h) in sc.a[off..off + n].iter_mut().zip(&sc.h[off..off + n]) {
                     *a = h.act(self.act);
+                }
+                // Tangent rows: ȧ = φ'(h of the point) ⊙ ḣ.
+                for r in tile.values..rows {
+                    let (hp, tr) = (off + tile.point(r) * o, off + r * o);
+                    for c in 0..o {
+                        sc.a[tr + c] = sc.h[hp + c].slope(self.act) * sc.h[tr + c];
+                    }
                 }
                 prev = Some((off, layer.out));
                 off += TILE * layer.out;
@@ -390,18 +444,19 @@ impl FusedMlp {
         a0: &[T],
         params: Params<'_, T>,
         gy: &[T],
-        rows: usize,
+        tile: Rows,
         sc: &mut Scratch<T>,
         gp: &mut [T],
         mut ga0: Option<&mut [T]>,
         recompute: bool,
     ) {
+        let rows = tile.total();
         let inv_sqrt2 = T::from_f64(std::f64::consts::FRAC_1_SQRT_2);
         let last = self.layers.len() - 1;
         if recompute {
             // The output goes to the gradient scratch (overwritten below).
             let mut y = std::mem::take(&mut sc.g);
-            self.forward_tile(a0, params, rows, sc, &mut y);
+            self.forward_tile(a0, params, tile, sc, &mut y);
             sc.g = y;
         }
         let out = self.layers[last].out;
@@ -426,8 +481,8 @@ impl FusedMlp {
                 T::from_f64(1.0)
             };
             let g_view = View::rows(0, o);
-            // ∂L/∂b = Σ_rows ḡ_h.
-            for r in 0..rows {
+            // ∂L/∂b = Σ_rows ḡ_h over the value rows (tangents carry no bias).
+            for r in 0..tile.values {
                 for (acc, &g) in gp[b..b + o].iter_mut().zip(&sc.g[r * o..r * o + o]) {
                     *acc += g;
                 }
@@ -515,10 +570,26 @@ impl FusedMlp {
                 View::rows(w, i),
                 scale,
             );
-            // ḡ_h of the layer below: φ'(h) ⊙ ḡ_a.
-            let h = &sc.h[offs[l - 1]..offs[l - 1] + rows * p_w];
-            for ((g, &gx), &h) in sc.g[..rows * p_w].iter_mut().zip(&sc.gx).zip(h) {
-                *g = gx * h.slope(self.act);
+            // ḡ_h of the layer below: φ'(h) ⊙ ḡ_a on value rows, plus, from the tangents
+            // ȧ_j = φ'(h) ⊙ ḣ_j, Σ_j φ''(h) ⊙ ḣ_j ⊙ ḡ_ȧj; φ'(h of the point) ⊙ ḡ_ȧ on
+            // tangent rows.
+            let base = offs[l - 1];
+            let h = &sc.h[base..base + rows * p_w];
+            for r in 0..rows {
+                let hp = if r < tile.values { r } else { tile.point(r) };
+                for c in 0..p_w {
+                    sc.g[r * p_w + c] = sc.gx[r * p_w + c] * h[hp * p_w + c].slope(self.act);
+                }
+            }
+            for r in tile.values..rows {
+                let p = tile.point(r);
+                for c in 0..p_w {
+                    let hv = h[p * p_w + c];
+                    let k = hv.curvature(self.act);
+                    if k != T::from_f64(0.0) {
+                        sc.g[p * p_w + c] += k * h[r * p_w + c] * sc.gx[r * p_w + c];
+                    }
+                }
             }
         }
     }
@@ -550,7 +621,7 @@ impl FusedMlp {
             || self.scratch::<T>(),
             |sc, (y, a0)| {
                 let rows = y.len() / out;
-                self.forward_tile(a0, params, rows, sc, y);
+                self.forward_tile(a0, params, Rows::plain(rows), sc, y);
             },
         );
         y
@@ -592,7 +663,7 @@ impl FusedMlp {
                         &a0[t * self.a0..(t + r) * self.a0],
                         params,
                         &gy[t * out..(t + r) * out],
-                        r,
+                        Rows::plain(r),
                         sc,
                         gp,
                         ga,
@@ -771,7 +842,7 @@ impl FusedNerf {
         let (dd, t_out, h_in) = self.widths();
         let rows = ep.len() / self.trunk.a0;
         self.trunk
-            .forward_tile(ep, pt, rows, &mut sc.trunk, &mut sc.yt);
+            .forward_tile(ep, pt, Rows::plain(rows), &mut sc.trunk, &mut sc.yt);
         for r in 0..rows {
             let row = &mut sc.ha0[r * h_in..(r + 1) * h_in];
             row[..dd].copy_from_slice(&ed[r * dd..(r + 1) * dd]);
@@ -813,7 +884,8 @@ impl FusedNerf {
             |sc, ((y, ep), ed)| {
                 let rows = self.trunk_tile(ep, ed, pt, sc);
                 let (ha0, yh) = (&sc.ha0, &mut sc.yh);
-                self.head.forward_tile(ha0, ph, rows, &mut sc.head, yh);
+                self.head
+                    .forward_tile(ha0, ph, Rows::plain(rows), &mut sc.head, yh);
                 for r in 0..rows {
                     y[4 * r] = sc.yt[r * t_out];
                     y[4 * r + 1..4 * r + 4].copy_from_slice(&sc.yh[3 * r..3 * r + 3]);
@@ -872,8 +944,16 @@ impl FusedNerf {
                             .copy_from_slice(&gy[4 * (t + i) + 1..4 * (t + i) + 4]);
                     }
                     let (ha0, yh, g_ha0) = (&sc.ha0, &sc.yh, &mut sc.g_ha0[..r * h_in]);
-                    self.head
-                        .backward_tile(ha0, ph, yh, r, &mut sc.head, gph, Some(g_ha0), true);
+                    self.head.backward_tile(
+                        ha0,
+                        ph,
+                        yh,
+                        Rows::plain(r),
+                        &mut sc.head,
+                        gph,
+                        Some(g_ha0),
+                        true,
+                    );
                     for i in 0..r {
                         sc.g_yt[i * t_out] = gy[4 * (t + i)];
                         sc.g_yt[i * t_out + 1..(i + 1) * t_out]
@@ -888,7 +968,7 @@ impl FusedNerf {
                         &ep[t * a0p..(t + r) * a0p],
                         pt,
                         &sc.g_yt,
-                        r,
+                        Rows::plain(r),
                         &mut sc.trunk,
                         gpt,
                         gp_rows,
@@ -989,6 +1069,262 @@ impl CustomOp3 for FusedNerf {
             DType::F32 => run!(f32),
             DType::F64 => run!(f64),
             other => candle_core::bail!("fused NeRF: unsupported dtype {other:?}"),
+        })
+    }
+}
+
+/// The MLP with forward-mode tangents as one op ([`super::Mlp::forward_with_jacobian`]):
+/// inputs `a₀: [N, A]`, their tangents `ȧ₀: [N, K, A]` (K directions per point) and the
+/// flat parameters; output `[N, (1 + K)·out]`, per point the value `y` and then the K
+/// tangents `ẏⱼ = J_y ȧ₀ⱼ`. The tangents run through the same products as extra rows of
+/// the tile (no bias; `φ'(h)` of their point instead of `φ`), and the backward pass
+/// differentiates both, the value rows receiving `Σⱼ φ''(h) ⊙ ḣⱼ ⊙ ḡ_ȧⱼ` from the
+/// tangents: normals and eikonal losses reach the weights through this op as through the
+/// reference path.
+#[derive(Clone, Debug)]
+pub(crate) struct FusedMlpJvp {
+    pub mlp: FusedMlp,
+    pub tangents: usize,
+}
+
+/// Per-worker scratch of [`FusedMlpJvp`]: the network's, the tile's input rows, output
+/// rows, output gradient rows and input gradient rows.
+struct JvpScratch<T> {
+    net: Scratch<T>,
+    x0: Vec<T>,
+    y: Vec<T>,
+    gx0: Vec<T>,
+}
+
+impl FusedMlpJvp {
+    /// Points per tile: the tile's `TILE` rows hold each point's value and its tangents.
+    fn points_per_tile(&self) -> usize {
+        (TILE / (1 + self.tangents)).max(1)
+    }
+
+    fn scratch<T: Real>(&self) -> JvpScratch<T> {
+        let z = T::from_f64(0.0);
+        let rows = self.points_per_tile() * (1 + self.tangents);
+        JvpScratch {
+            net: self.mlp.scratch(),
+            x0: vec![z; rows * self.mlp.a0],
+            y: vec![z; rows * self.mlp.out_dim()],
+            gx0: vec![z; rows * self.mlp.a0],
+        }
+    }
+
+    /// Copies the tile's values and tangents into the row layout of [`Rows`].
+    fn gather<T: Real>(&self, a0: &[T], da0: &[T], x0: &mut [T]) -> Rows {
+        let a = self.mlp.a0;
+        let values = a0.len() / a;
+        x0[..a0.len()].copy_from_slice(a0);
+        x0[a0.len()..a0.len() + da0.len()].copy_from_slice(da0);
+        Rows {
+            values,
+            tangents: self.tangents,
+        }
+    }
+
+    fn width(&self) -> usize {
+        (1 + self.tangents) * self.mlp.out_dim()
+    }
+
+    fn forward<T: Real>(&self, a0: &[T], da0: &[T], params: &[T], n: usize) -> Vec<T> {
+        let wt = self.mlp.transposed(params);
+        let params = Params { p: params, wt: &wt };
+        let (a, k, o, ppt) = (
+            self.mlp.a0,
+            self.tangents,
+            self.mlp.out_dim(),
+            self.points_per_tile(),
+        );
+        let mut y = vec![T::from_f64(0.0); n * self.width()];
+        let items: Vec<_> = y
+            .chunks_mut(ppt * self.width())
+            .zip(a0.chunks(ppt * a))
+            .zip(da0.chunks(ppt * k * a))
+            .collect();
+        for_each_init(
+            items,
+            || self.scratch::<T>(),
+            |sc, ((y, a0), da0)| {
+                let tile = self.gather(a0, da0, &mut sc.x0);
+                let mut out = std::mem::take(&mut sc.y);
+                self.mlp
+                    .forward_tile(&sc.x0, params, tile, &mut sc.net, &mut out);
+                for p in 0..tile.values {
+                    let dst = &mut y[p * (1 + k) * o..(p + 1) * (1 + k) * o];
+                    dst[..o].copy_from_slice(&out[p * o..(p + 1) * o]);
+                    let t0 = (tile.values + p * k) * o;
+                    dst[o..].copy_from_slice(&out[t0..t0 + k * o]);
+                }
+                sc.y = out;
+            },
+        );
+        y
+    }
+
+    /// `(∂L/∂a₀, ∂L/∂ȧ₀)` where wanted, and `∂L/∂params`.
+    #[allow(clippy::type_complexity)]
+    fn backward<T: Real>(
+        &self,
+        a0: &[T],
+        da0: &[T],
+        params: &[T],
+        gy: &[T],
+        n: usize,
+        want: (bool, bool),
+    ) -> (Option<Vec<T>>, Option<Vec<T>>, Vec<T>) {
+        let wt = self.mlp.transposed(params);
+        let params = Params { p: params, wt: &wt };
+        let (a, k, o, ppt) = (
+            self.mlp.a0,
+            self.tangents,
+            self.mlp.out_dim(),
+            self.points_per_tile(),
+        );
+        let np = self.mlp.n_params;
+        let chunks = n.div_ceil(CHUNK);
+        let mut gp = vec![T::from_f64(0.0); chunks.max(1) * np];
+        let mut ga0 = want.0.then(|| vec![T::from_f64(0.0); n * a]);
+        let mut gda0 = want.1.then(|| vec![T::from_f64(0.0); n * k * a]);
+        let items: Vec<_> = gp
+            .chunks_mut(np)
+            .zip(a0.chunks(CHUNK * a))
+            .zip(da0.chunks(CHUNK * k * a))
+            .zip(gy.chunks(CHUNK * self.width()))
+            .zip(
+                chunk_rows(ga0.as_mut(), a, chunks)
+                    .into_iter()
+                    .zip(chunk_rows(gda0.as_mut(), k * a, chunks)),
+            )
+            .collect();
+        let need_x = want.0 || want.1;
+        for_each_init(
+            items,
+            || self.scratch::<T>(),
+            |sc, ((((gp, a0), da0), gy), (mut ga0, mut gda0))| {
+                let points = a0.len() / a;
+                for t in (0..points).step_by(ppt) {
+                    let r = ppt.min(points - t);
+                    let tile = self.gather(
+                        &a0[t * a..(t + r) * a],
+                        &da0[t * k * a..(t + r) * k * a],
+                        &mut sc.x0,
+                    );
+                    // The output gradient in the row layout.
+                    for p in 0..r {
+                        let src = &gy[(t + p) * (1 + k) * o..(t + p + 1) * (1 + k) * o];
+                        sc.y[p * o..(p + 1) * o].copy_from_slice(&src[..o]);
+                        let t0 = (r + p * k) * o;
+                        sc.y[t0..t0 + k * o].copy_from_slice(&src[o..]);
+                    }
+                    let rows = tile.total();
+                    let gx = need_x.then_some(&mut sc.gx0[..rows * a]);
+                    let (x0, y) = (&sc.x0, &sc.y);
+                    self.mlp
+                        .backward_tile(x0, params, y, tile, &mut sc.net, gp, gx, true);
+                    if let Some(g) = ga0.as_deref_mut() {
+                        g[t * a..(t + r) * a].copy_from_slice(&sc.gx0[..r * a]);
+                    }
+                    if let Some(g) = gda0.as_deref_mut() {
+                        g[t * k * a..(t + r) * k * a].copy_from_slice(&sc.gx0[r * a..rows * a]);
+                    }
+                }
+            },
+        );
+        sum_chunks(&mut gp, np);
+        (ga0, gda0, gp)
+    }
+
+    fn check(&self, n_a0: usize, n_da0: usize, n_params: usize) -> candle_core::Result<usize> {
+        let n = self.mlp.check(n_a0, n_params)?;
+        if n_da0 != n * self.tangents * self.mlp.a0 {
+            candle_core::bail!("fused MLP tangents: {n_da0} tangent entries for {n} points")
+        }
+        Ok(n)
+    }
+}
+
+impl CustomOp3 for FusedMlpJvp {
+    fn name(&self) -> &'static str {
+        "nf-fused-mlp-jvp"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (Some((a1, b1)), Some((a2, b2)), Some((a3, b3))) = (
+            l1.contiguous_offsets(),
+            l2.contiguous_offsets(),
+            l3.contiguous_offsets(),
+        ) else {
+            candle_core::bail!("fused MLP tangents: inputs must be contiguous")
+        };
+        let (storage, n) = match (s1, s2, s3) {
+            (CpuStorage::F32(x), CpuStorage::F32(d), CpuStorage::F32(p)) => {
+                let (x, d, p) = (&x[a1..b1], &d[a2..b2], &p[a3..b3]);
+                let n = self.check(x.len(), d.len(), p.len())?;
+                (CpuStorage::F32(self.forward(x, d, p, n)), n)
+            }
+            (CpuStorage::F64(x), CpuStorage::F64(d), CpuStorage::F64(p)) => {
+                let (x, d, p) = (&x[a1..b1], &d[a2..b2], &p[a3..b3]);
+                let n = self.check(x.len(), d.len(), p.len())?;
+                (CpuStorage::F64(self.forward(x, d, p, n)), n)
+            }
+            _ => candle_core::bail!("fused MLP tangents: inputs must all be f32 or all f64"),
+        };
+        Ok((storage, Shape::from((n, self.width()))))
+    }
+
+    fn bwd(
+        &self,
+        a0: &Tensor,
+        da0: &Tensor,
+        params: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let grad = grad.contiguous()?;
+        let want = (a0.track_op(), da0.track_op());
+        let (xs, xl) = a0.storage_and_layout();
+        let (ds, dl) = da0.storage_and_layout();
+        let (ps, pl) = params.storage_and_layout();
+        let (gs, gl) = grad.storage_and_layout();
+        let dev = a0.device();
+        let op = "fused MLP tangents";
+        macro_rules! run {
+            ($t:ty) => {{
+                let x = cpu_slice::<$t>(&xs, xl, op, "inputs")?;
+                let d = cpu_slice::<$t>(&ds, dl, op, "tangents")?;
+                let p = cpu_slice::<$t>(&ps, pl, op, "parameters")?;
+                let g = cpu_slice::<$t>(&gs, gl, op, "gradient")?;
+                let n = self.check(x.len(), d.len(), p.len())?;
+                if g.len() != n * self.width() {
+                    candle_core::bail!("{op}: gradient of {} elements", g.len())
+                }
+                let (a, b, c) = self.backward(x, d, p, g, n, want);
+                let wrap =
+                    |v: Option<Vec<$t>>, t: &Tensor| -> candle_core::Result<Option<Tensor>> {
+                        v.map(|v| Tensor::from_vec(v, t.shape(), dev)).transpose()
+                    };
+                (
+                    wrap(a, a0)?,
+                    wrap(b, da0)?,
+                    Some(Tensor::from_vec(c, params.shape(), dev)?),
+                )
+            }};
+        }
+        Ok(match a0.dtype() {
+            DType::F32 => run!(f32),
+            DType::F64 => run!(f64),
+            other => candle_core::bail!("{op}: unsupported dtype {other:?}"),
         })
     }
 }

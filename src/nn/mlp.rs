@@ -39,7 +39,7 @@
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 
-use super::fused_mlp::{Act, FusedMlp, LayerPlan};
+use super::fused_mlp::{Act, FusedMlp, FusedMlpJvp, LayerPlan};
 use super::weight_jvp;
 use crate::encoding::PointEncoding;
 use crate::error::{check_float, check_points, check_same, check_shape, Dim, Error, Result};
@@ -452,6 +452,8 @@ impl Mlp {
     /// `[N, out_dim]` and `[N, in_dim, out_dim]` with `J[n, j, c] = ∂y[n, c]/∂points[n, j]`.
     ///
     /// Both outputs are differentiable w.r.t. the weights and the codes (and the points).
+    /// On the CPU (f32/f64) values and tangents run as one fused op, elsewhere (or with
+    /// [`MlpConfig::force_reference`]) as candle ops.
     ///
     /// # Errors
     /// Shapes, dtypes or devices that do not match the configuration.
@@ -475,6 +477,20 @@ impl Mlp {
             }
             _ => denc,
         };
+        if self.fused(&a0) {
+            // Values and tangents through the fused op: [N, (1 + D)·out].
+            let out = self.config.out_dim;
+            let op = FusedMlpJvp {
+                mlp: self.plan.clone(),
+                tangents: d,
+            };
+            let yj = a0
+                .contiguous()?
+                .apply_op3(&da0.contiguous()?, &self.flat_params()?, op)?;
+            let y = yj.narrow(1, 0, out)?;
+            let dy = yj.narrow(1, out, d * out)?.reshape((n, d, out))?;
+            return Ok((y, dy));
+        }
         let (y, dy) = self.run(&a0, Some(&da0))?;
         // invariant: tangents were passed in, so run() returns them.
         let dy = dy.ok_or_else(|| Error::invalid("tangents", "propagated", "none"))?;

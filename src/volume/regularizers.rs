@@ -104,27 +104,35 @@ pub fn distortion_loss(weights: &Tensor, intervals: &Intervals) -> Result<Tensor
 
 /// RegNeRF's depth smoothness on rendered depth patches, per patch:
 ///
-/// `L_p = Σ_{i<k−1} Σ_{j<k−1} (d[i,j] − d[i,j+1])² + (d[i,j] − d[i+1,j])²`,
+/// `L_p = 1/((k−1)²) · Σ_{i<k−1} Σ_{j<k−1} m[i,j] · ((d[i,j] − d[i,j+1])² + (d[i,j] − d[i+1,j])²)`,
 ///
-/// over the `(k−1)×(k−1)` top-left pixels of each `k×k` patch, as in RegNeRF's code
-/// (both differences are taken from the same pixel). RegNeRF uses 8×8 patches and
-/// averages; multiply by RegNeRF's weight, [`log_linear_schedule`]`(step, 400.0, 0.1, 512)`, and take the mean over patches.
+/// the mean over the `(k−1)×(k−1)` top-left pixels of each `k×k` patch, as RegNeRF's code
+/// computes it (`compute_tv_norm(depth, weighting).mean()`; both differences are taken
+/// from the same pixel), so that RegNeRF's weight,
+/// [`log_linear_schedule`]`(step, 400.0, 0.1, 512)`, applies as published. `m = 1`
+/// without `weights`; RegNeRF's DTU configuration weights each pixel by its rendered
+/// opacity, detached (`weights = Some(&opacity.detach())`), so that pixels that see
+/// nothing do not pull their neighbours' depth. RegNeRF uses 8×8 patches; take the mean
+/// over patches.
 ///
 /// * `depth`: `[P, k, k]` (square or not: `[P, H, W]` with `H, W ≥ 2`), f32 or f64;
-///   returns `[P]`. Differentiable w.r.t. `depth`.
+///   `weights`: `None` or the same shape, dtype and device (only the top-left
+///   `(H−1)×(W−1)` entries are used); returns `[P]`. Differentiable w.r.t. `depth` and
+///   `weights`.
 ///
 /// ```
 /// use candle_core::{Device, Tensor};
 /// use neural_fields::volume::depth_smoothness;
 ///
 /// let flat = Tensor::full(3.0f32, (1, 8, 8), &Device::Cpu)?;          // one 8×8 patch
-/// assert_eq!(depth_smoothness(&flat)?.to_vec1::<f32>()?, vec![0.0]);
+/// assert_eq!(depth_smoothness(&flat, None)?.to_vec1::<f32>()?, vec![0.0]);
 /// # Ok::<(), neural_fields::Error>(())
 /// ```
 ///
 /// # Errors
-/// Naming `depth` for a wrong rank or dtype or a patch side below 2.
-pub fn depth_smoothness(depth: &Tensor) -> Result<Tensor> {
+/// Naming `depth` for a wrong rank or dtype or a patch side below 2; `weights` for another
+/// shape, dtype or device than `depth`'s.
+pub fn depth_smoothness(depth: &Tensor, weights: Option<&Tensor>) -> Result<Tensor> {
     check_float(depth, "depth")?;
     let dims = check_shape(
         depth,
@@ -142,8 +150,13 @@ pub fn depth_smoothness(depth: &Tensor) -> Result<Tensor> {
     let d00 = depth.narrow(1, 0, h - 1)?.narrow(2, 0, w - 1)?;
     let d01 = depth.narrow(1, 0, h - 1)?.narrow(2, 1, w - 1)?;
     let d10 = depth.narrow(1, 1, h - 1)?.narrow(2, 0, w - 1)?;
-    let l = ((&d00 - &d01)?.sqr()? + (&d00 - &d10)?.sqr()?)?;
-    Ok(l.flatten_from(1)?.sum(1)?)
+    let mut l = ((&d00 - &d01)?.sqr()? + (&d00 - &d10)?.sqr()?)?;
+    if let Some(m) = weights {
+        check_same(m, "weights", depth, "depth")?;
+        check_shape(m, "weights", &[Dim::Is(dims[0]), Dim::Is(h), Dim::Is(w)])?;
+        l = (l * m.narrow(1, 0, h - 1)?.narrow(2, 0, w - 1)?)?;
+    }
+    Ok(l.flatten_from(1)?.mean(1)?)
 }
 
 /// Log-linear schedule from `start` to `end` over `n_steps`:
