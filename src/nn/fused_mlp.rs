@@ -991,88 +991,6 @@ impl FusedNerf {
     }
 }
 
-impl CustomOp3 for FusedNerf {
-    fn name(&self) -> &'static str {
-        "nf-fused-nerf"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-        s3: &CpuStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (Some((a1, b1)), Some((a2, b2)), Some((a3, b3))) = (
-            l1.contiguous_offsets(),
-            l2.contiguous_offsets(),
-            l3.contiguous_offsets(),
-        ) else {
-            candle_core::bail!("fused NeRF: inputs must be contiguous")
-        };
-        let (storage, n) = match (s1, s2, s3) {
-            (CpuStorage::F32(x), CpuStorage::F32(d), CpuStorage::F32(p)) => {
-                let (x, d, p) = (&x[a1..b1], &d[a2..b2], &p[a3..b3]);
-                let n = self.check(x.len(), d.len(), p.len())?;
-                (CpuStorage::F32(self.forward(x, d, p, n)), n)
-            }
-            (CpuStorage::F64(x), CpuStorage::F64(d), CpuStorage::F64(p)) => {
-                let (x, d, p) = (&x[a1..b1], &d[a2..b2], &p[a3..b3]);
-                let n = self.check(x.len(), d.len(), p.len())?;
-                (CpuStorage::F64(self.forward(x, d, p, n)), n)
-            }
-            _ => candle_core::bail!("fused NeRF: inputs must all be f32 or all f64"),
-        };
-        Ok((storage, Shape::from((n, 4))))
-    }
-
-    fn bwd(
-        &self,
-        ep: &Tensor,
-        ed: &Tensor,
-        params: &Tensor,
-        _res: &Tensor,
-        grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let grad = grad.contiguous()?;
-        let want = (ep.track_op(), ed.track_op());
-        let (xs, xl) = ep.storage_and_layout();
-        let (ds, dl) = ed.storage_and_layout();
-        let (ps, pl) = params.storage_and_layout();
-        let (gs, gl) = grad.storage_and_layout();
-        let dev = ep.device();
-        macro_rules! run {
-            ($t:ty) => {{
-                let x = cpu_slice::<$t>(&xs, xl, "fused NeRF", "positions")?;
-                let d = cpu_slice::<$t>(&ds, dl, "fused NeRF", "directions")?;
-                let p = cpu_slice::<$t>(&ps, pl, "fused NeRF", "parameters")?;
-                let g = cpu_slice::<$t>(&gs, gl, "fused NeRF", "gradient")?;
-                let n = self.check(x.len(), d.len(), p.len())?;
-                if g.len() != n * 4 {
-                    candle_core::bail!("fused NeRF: gradient of {} elements", g.len())
-                }
-                let (a, b, c) = self.backward(x, d, p, g, n, want);
-                let wrap =
-                    |v: Option<Vec<$t>>, t: &Tensor| -> candle_core::Result<Option<Tensor>> {
-                        v.map(|v| Tensor::from_vec(v, t.shape(), dev)).transpose()
-                    };
-                (
-                    wrap(a, ep)?,
-                    wrap(b, ed)?,
-                    Some(Tensor::from_vec(c, params.shape(), dev)?),
-                )
-            }};
-        }
-        Ok(match ep.dtype() {
-            DType::F32 => run!(f32),
-            DType::F64 => run!(f64),
-            other => candle_core::bail!("fused NeRF: unsupported dtype {other:?}"),
-        })
-    }
-}
-
 /// The MLP with forward-mode tangents as one op ([`super::Mlp::forward_with_jacobian`]):
 /// inputs `a₀: [N, A]`, their tangents `ȧ₀: [N, K, A]` (K directions per point) and the
 /// flat parameters; output `[N, (1 + K)·out]`, per point the value `y` and then the K
@@ -1246,85 +1164,188 @@ impl FusedMlpJvp {
     }
 }
 
-impl CustomOp3 for FusedMlpJvp {
-    fn name(&self) -> &'static str {
-        "nf-fused-mlp-jvp"
+/// A fused op over `(x, y, parameters)`, all f32 or all f64 on the CPU, whose output has
+/// `width()` columns per point: [`FusedNerf`] and [`FusedMlpJvp`] share their candle
+/// plumbing (contiguity, dtype dispatch, which inputs want a gradient) through it.
+trait Fused3: Send + Sync {
+    const NAME: &'static str;
+    /// Output columns per point.
+    fn width(&self) -> usize;
+    /// The number of points, after checking the three inputs' lengths.
+    fn points(&self, n_x: usize, n_y: usize, n_params: usize) -> candle_core::Result<usize>;
+    fn run_forward<T: Real>(&self, x: &[T], y: &[T], params: &[T], n: usize) -> Vec<T>;
+    /// `(∂L/∂x, ∂L/∂y)` where wanted, and `∂L/∂params`.
+    #[allow(clippy::type_complexity)]
+    fn run_backward<T: Real>(
+        &self,
+        x: &[T],
+        y: &[T],
+        params: &[T],
+        grad: &[T],
+        n: usize,
+        want: (bool, bool),
+    ) -> (Option<Vec<T>>, Option<Vec<T>>, Vec<T>);
+}
+
+impl Fused3 for FusedNerf {
+    const NAME: &'static str = "fused NeRF";
+
+    fn width(&self) -> usize {
+        4
     }
 
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-        s3: &CpuStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (Some((a1, b1)), Some((a2, b2)), Some((a3, b3))) = (
-            l1.contiguous_offsets(),
-            l2.contiguous_offsets(),
-            l3.contiguous_offsets(),
-        ) else {
-            candle_core::bail!("fused MLP tangents: inputs must be contiguous")
-        };
-        let (storage, n) = match (s1, s2, s3) {
-            (CpuStorage::F32(x), CpuStorage::F32(d), CpuStorage::F32(p)) => {
-                let (x, d, p) = (&x[a1..b1], &d[a2..b2], &p[a3..b3]);
-                let n = self.check(x.len(), d.len(), p.len())?;
-                (CpuStorage::F32(self.forward(x, d, p, n)), n)
-            }
-            (CpuStorage::F64(x), CpuStorage::F64(d), CpuStorage::F64(p)) => {
-                let (x, d, p) = (&x[a1..b1], &d[a2..b2], &p[a3..b3]);
-                let n = self.check(x.len(), d.len(), p.len())?;
-                (CpuStorage::F64(self.forward(x, d, p, n)), n)
-            }
-            _ => candle_core::bail!("fused MLP tangents: inputs must all be f32 or all f64"),
-        };
-        Ok((storage, Shape::from((n, self.width()))))
+    fn points(&self, n_x: usize, n_y: usize, n_params: usize) -> candle_core::Result<usize> {
+        self.check(n_x, n_y, n_params)
     }
 
-    fn bwd(
+    fn run_forward<T: Real>(&self, x: &[T], y: &[T], params: &[T], n: usize) -> Vec<T> {
+        self.forward(x, y, params, n)
+    }
+
+    fn run_backward<T: Real>(
         &self,
-        a0: &Tensor,
-        da0: &Tensor,
-        params: &Tensor,
-        _res: &Tensor,
-        grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let grad = grad.contiguous()?;
-        let want = (a0.track_op(), da0.track_op());
-        let (xs, xl) = a0.storage_and_layout();
-        let (ds, dl) = da0.storage_and_layout();
-        let (ps, pl) = params.storage_and_layout();
-        let (gs, gl) = grad.storage_and_layout();
-        let dev = a0.device();
-        let op = "fused MLP tangents";
-        macro_rules! run {
-            ($t:ty) => {{
-                let x = cpu_slice::<$t>(&xs, xl, op, "inputs")?;
-                let d = cpu_slice::<$t>(&ds, dl, op, "tangents")?;
-                let p = cpu_slice::<$t>(&ps, pl, op, "parameters")?;
-                let g = cpu_slice::<$t>(&gs, gl, op, "gradient")?;
-                let n = self.check(x.len(), d.len(), p.len())?;
-                if g.len() != n * self.width() {
-                    candle_core::bail!("{op}: gradient of {} elements", g.len())
-                }
-                let (a, b, c) = self.backward(x, d, p, g, n, want);
-                let wrap =
-                    |v: Option<Vec<$t>>, t: &Tensor| -> candle_core::Result<Option<Tensor>> {
-                        v.map(|v| Tensor::from_vec(v, t.shape(), dev)).transpose()
-                    };
-                (
-                    wrap(a, a0)?,
-                    wrap(b, da0)?,
-                    Some(Tensor::from_vec(c, params.shape(), dev)?),
-                )
-            }};
+        x: &[T],
+        y: &[T],
+        params: &[T],
+        grad: &[T],
+        n: usize,
+        want: (bool, bool),
+    ) -> (Option<Vec<T>>, Option<Vec<T>>, Vec<T>) {
+        self.backward(x, y, params, grad, n, want)
+    }
+}
+
+impl Fused3 for FusedMlpJvp {
+    const NAME: &'static str = "fused MLP tangents";
+
+    fn width(&self) -> usize {
+        FusedMlpJvp::width(self)
+    }
+
+    fn points(&self, n_x: usize, n_y: usize, n_params: usize) -> candle_core::Result<usize> {
+        self.check(n_x, n_y, n_params)
+    }
+
+    fn run_forward<T: Real>(&self, x: &[T], y: &[T], params: &[T], n: usize) -> Vec<T> {
+        self.forward(x, y, params, n)
+    }
+
+    fn run_backward<T: Real>(
+        &self,
+        x: &[T],
+        y: &[T],
+        params: &[T],
+        grad: &[T],
+        n: usize,
+        want: (bool, bool),
+    ) -> (Option<Vec<T>>, Option<Vec<T>>, Vec<T>) {
+        self.backward(x, y, params, grad, n, want)
+    }
+}
+
+/// The candle side of every [`Fused3`] op.
+macro_rules! custom_op3 {
+    ($ty:ty, $name:literal) => {
+        impl CustomOp3 for $ty {
+            fn name(&self) -> &'static str {
+                $name
+            }
+
+            fn cpu_fwd(
+                &self,
+                s1: &CpuStorage,
+                l1: &Layout,
+                s2: &CpuStorage,
+                l2: &Layout,
+                s3: &CpuStorage,
+                l3: &Layout,
+            ) -> candle_core::Result<(CpuStorage, Shape)> {
+                fused3_cpu_fwd(self, (s1, l1), (s2, l2), (s3, l3))
+            }
+
+            fn bwd(
+                &self,
+                x: &Tensor,
+                y: &Tensor,
+                params: &Tensor,
+                _res: &Tensor,
+                grad: &Tensor,
+            ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+                fused3_bwd(self, x, y, params, grad)
+            }
         }
-        Ok(match a0.dtype() {
-            DType::F32 => run!(f32),
-            DType::F64 => run!(f64),
-            other => candle_core::bail!("{op}: unsupported dtype {other:?}"),
-        })
+    };
+}
+custom_op3!(FusedNerf, "nf-fused-nerf");
+custom_op3!(FusedMlpJvp, "nf-fused-mlp-jvp");
+
+fn fused3_cpu_fwd<K: Fused3>(
+    k: &K,
+    (s1, l1): (&CpuStorage, &Layout),
+    (s2, l2): (&CpuStorage, &Layout),
+    (s3, l3): (&CpuStorage, &Layout),
+) -> candle_core::Result<(CpuStorage, Shape)> {
+    let (Some((a1, b1)), Some((a2, b2)), Some((a3, b3))) = (
+        l1.contiguous_offsets(),
+        l2.contiguous_offsets(),
+        l3.contiguous_offsets(),
+    ) else {
+        candle_core::bail!("{}: inputs must be contiguous", K::NAME)
+    };
+    let (storage, n) = match (s1, s2, s3) {
+        (CpuStorage::F32(x), CpuStorage::F32(y), CpuStorage::F32(p)) => {
+            let (x, y, p) = (&x[a1..b1], &y[a2..b2], &p[a3..b3]);
+            let n = k.points(x.len(), y.len(), p.len())?;
+            (CpuStorage::F32(k.run_forward(x, y, p, n)), n)
+        }
+        (CpuStorage::F64(x), CpuStorage::F64(y), CpuStorage::F64(p)) => {
+            let (x, y, p) = (&x[a1..b1], &y[a2..b2], &p[a3..b3]);
+            let n = k.points(x.len(), y.len(), p.len())?;
+            (CpuStorage::F64(k.run_forward(x, y, p, n)), n)
+        }
+        _ => candle_core::bail!("{}: inputs must all be f32 or all f64", K::NAME),
+    };
+    Ok((storage, Shape::from((n, k.width()))))
+}
+
+fn fused3_bwd<K: Fused3>(
+    k: &K,
+    x: &Tensor,
+    y: &Tensor,
+    params: &Tensor,
+    grad: &Tensor,
+) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+    let grad = grad.contiguous()?;
+    let want = (x.track_op(), y.track_op());
+    let (xs, xl) = x.storage_and_layout();
+    let (ys, yl) = y.storage_and_layout();
+    let (ps, pl) = params.storage_and_layout();
+    let (gs, gl) = grad.storage_and_layout();
+    let dev = x.device();
+    macro_rules! run {
+        ($t:ty) => {{
+            let xv = cpu_slice::<$t>(&xs, xl, K::NAME, "first input")?;
+            let yv = cpu_slice::<$t>(&ys, yl, K::NAME, "second input")?;
+            let pv = cpu_slice::<$t>(&ps, pl, K::NAME, "parameters")?;
+            let gv = cpu_slice::<$t>(&gs, gl, K::NAME, "gradient")?;
+            let n = k.points(xv.len(), yv.len(), pv.len())?;
+            if gv.len() != n * k.width() {
+                candle_core::bail!("{}: gradient of {} elements", K::NAME, gv.len())
+            }
+            let (a, b, c) = k.run_backward(xv, yv, pv, gv, n, want);
+            let wrap = |v: Option<Vec<$t>>, t: &Tensor| -> candle_core::Result<Option<Tensor>> {
+                v.map(|v| Tensor::from_vec(v, t.shape(), dev)).transpose()
+            };
+            (
+                wrap(a, x)?,
+                wrap(b, y)?,
+                Some(Tensor::from_vec(c, params.shape(), dev)?),
+            )
+        }};
     }
+    Ok(match x.dtype() {
+        DType::F32 => run!(f32),
+        DType::F64 => run!(f64),
+        other => candle_core::bail!("{}: unsupported dtype {other:?}", K::NAME),
+    })
 }
