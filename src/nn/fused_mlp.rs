@@ -810,6 +810,11 @@ struct NerfScratch<T> {
 }
 
 impl FusedNerf {
+    /// Output columns: the raw density and the raw colour.
+    fn width(&self) -> usize {
+        4
+    }
+
     /// Widths: encoded direction, trunk output (1 + feature), head input.
     fn widths(&self) -> (usize, usize, usize) {
         let t_out = self.trunk.out_dim();
@@ -1187,61 +1192,40 @@ trait Fused3: Send + Sync {
     ) -> (Option<Vec<T>>, Option<Vec<T>>, Vec<T>);
 }
 
-impl Fused3 for FusedNerf {
-    const NAME: &'static str = "fused NeRF";
+/// [`Fused3`] for a type with inherent `forward`, `backward`, `check` and `width`.
+macro_rules! fused3 {
+    ($ty:ty, $name:literal) => {
+        impl Fused3 for $ty {
+            const NAME: &'static str = $name;
 
-    fn width(&self) -> usize {
-        4
-    }
+            fn width(&self) -> usize {
+                <$ty>::width(self)
+            }
 
-    fn points(&self, n_x: usize, n_y: usize, n_params: usize) -> candle_core::Result<usize> {
-        self.check(n_x, n_y, n_params)
-    }
+            fn points(&self, n_x: usize, n_y: usize, n_p: usize) -> candle_core::Result<usize> {
+                self.check(n_x, n_y, n_p)
+            }
 
-    fn run_forward<T: Real>(&self, x: &[T], y: &[T], params: &[T], n: usize) -> Vec<T> {
-        self.forward(x, y, params, n)
-    }
+            fn run_forward<T: Real>(&self, x: &[T], y: &[T], params: &[T], n: usize) -> Vec<T> {
+                self.forward(x, y, params, n)
+            }
 
-    fn run_backward<T: Real>(
-        &self,
-        x: &[T],
-        y: &[T],
-        params: &[T],
-        grad: &[T],
-        n: usize,
-        want: (bool, bool),
-    ) -> (Option<Vec<T>>, Option<Vec<T>>, Vec<T>) {
-        self.backward(x, y, params, grad, n, want)
-    }
+            fn run_backward<T: Real>(
+                &self,
+                x: &[T],
+                y: &[T],
+                params: &[T],
+                grad: &[T],
+                n: usize,
+                want: (bool, bool),
+            ) -> (Option<Vec<T>>, Option<Vec<T>>, Vec<T>) {
+                self.backward(x, y, params, grad, n, want)
+            }
+        }
+    };
 }
-
-impl Fused3 for FusedMlpJvp {
-    const NAME: &'static str = "fused MLP tangents";
-
-    fn width(&self) -> usize {
-        FusedMlpJvp::width(self)
-    }
-
-    fn points(&self, n_x: usize, n_y: usize, n_params: usize) -> candle_core::Result<usize> {
-        self.check(n_x, n_y, n_params)
-    }
-
-    fn run_forward<T: Real>(&self, x: &[T], y: &[T], params: &[T], n: usize) -> Vec<T> {
-        self.forward(x, y, params, n)
-    }
-
-    fn run_backward<T: Real>(
-        &self,
-        x: &[T],
-        y: &[T],
-        params: &[T],
-        grad: &[T],
-        n: usize,
-        want: (bool, bool),
-    ) -> (Option<Vec<T>>, Option<Vec<T>>, Vec<T>) {
-        self.backward(x, y, params, grad, n, want)
-    }
-}
+fused3!(FusedNerf, "fused NeRF");
+fused3!(FusedMlpJvp, "fused MLP tangents");
 
 /// The candle side of every [`Fused3`] op.
 macro_rules! custom_op3 {
