@@ -59,6 +59,64 @@ class Nerf(torch.nn.Module):
         return sigma, rgb
 
 
+class SdfNet(torch.nn.Module):
+    """4 x 64 softplus(beta = 100) on the frequency encoding L = 4, IDR's geometric
+    initialisation to the SDF of a sphere of radius 0.35 (as MlpConfig::sdf)."""
+
+    def __init__(self, width=64, depth=4, radius=0.35):
+        super().__init__()
+        dims = [27] + [width] * depth
+        self.layers = torch.nn.ModuleList(
+            [torch.nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:])])
+        self.out = torch.nn.Linear(width, 1)
+        with torch.no_grad():
+            for i, lin in enumerate(self.layers):
+                torch.nn.init.normal_(lin.weight, 0.0, math.sqrt(2.0) / math.sqrt(lin.out_features))
+                torch.nn.init.zeros_(lin.bias)
+                if i == 0:
+                    lin.weight[:, 3:] = 0.0  # only the raw coordinates at initialisation
+            torch.nn.init.normal_(self.out.weight, math.sqrt(math.pi) / math.sqrt(width), 1e-4)
+            self.out.bias.fill_(-radius)
+        self.act = torch.nn.Softplus(beta=100)
+
+    def forward(self, x):
+        h = freq_encode(x, 4)
+        for lin in self.layers:
+            h = self.act(lin(h))
+        return self.out(h)[:, 0]
+
+
+def ray_box(o, d, lo=-0.55, hi=0.55):
+    inv = 1.0 / d
+    t0, t1 = (lo - o) * inv, (hi - o) * inv
+    near = torch.minimum(t0, t1).amax(1).clamp_min(0.0)
+    far = torch.maximum(t0, t1).amin(1)
+    return near, far
+
+
+def march(net, o, d, near, far, n=64, secant=8):
+    """DVR's march without a graph: n samples with both ends, the first crossing from
+    outside (f > 0) to inside, refined by secant steps. Returns the depth and a hit mask."""
+    with torch.no_grad():
+        r = o.shape[0]
+        t = near[:, None] + (far - near)[:, None] * torch.linspace(0, 1, n)[None]
+        f = net((o[:, None] + t[..., None] * d[:, None]).reshape(-1, 3)).reshape(r, n)
+        cross = (f[:, :-1] > 0) & (f[:, 1:] <= 0)
+        hit = cross.any(1) & (f[:, 0] > 0)
+        i = cross.float().argmax(1)
+        ta, tb = t.gather(1, i[:, None])[:, 0], t.gather(1, i[:, None] + 1)[:, 0]
+        fa, fb = f.gather(1, i[:, None])[:, 0], f.gather(1, i[:, None] + 1)[:, 0]
+        ta, tb, fa, fb = ta[hit], tb[hit], fa[hit], fb[hit]
+        oh, dh = o[hit], d[hit]
+        for _ in range(secant):
+            tm = ta - fa * (tb - ta) / (fb - fa)
+            fm = net(oh + tm[:, None] * dh)
+            inside = fm <= 0
+            tb, fb = torch.where(inside, tm, tb), torch.where(inside, fm, fb)
+            ta, fa = torch.where(inside, ta, tm), torch.where(inside, fa, fm)
+        return ta - fa * (tb - ta) / (fb - fa), hit
+
+
 def composite(sigma, rgb, starts, ends, norms):
     # sigma [R, S], rgb [R, S, 3]; w_i = T_i (1 - exp(-sigma_i delta_i)).
     delta = (ends - starts) * norms[:, None]
@@ -71,7 +129,7 @@ def composite(sigma, rgb, starts, ends, norms):
 
 def main():
     p = argparse.ArgumentParser()
-    p.add_argument("--model", default="nerf", choices=["nerf", "occupancy"])
+    p.add_argument("--model", default="nerf", choices=["nerf", "occupancy", "dvr"])
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--threads", type=int, default=os.cpu_count())
@@ -104,6 +162,27 @@ def main():
             color = composite(sigma.reshape(r, s), rgb.reshape(r, s, 3), starts, ends,
                               dirs.norm(dim=1))
             return ((color - target) ** 2).mean()
+    elif a.model == "dvr":
+        net = SdfNet()
+        r = 2048
+        o = torch.rand(r, 3) * 2 - 1
+        o = 1.5 * o / o.norm(dim=1, keepdim=True)
+        d = (torch.rand(r, 3) * 0.3 - 0.15) - o
+        d = d / d.norm(dim=1, keepdim=True)
+        near, far = ray_box(o, d)
+        # Depth of the sphere of radius 0.3 that every ray meets (the target).
+        b = (o * d).sum(1)
+        truth = -b - torch.sqrt(b * b - (o * o).sum(1) + 0.09)
+
+        def forward(step):
+            t, hit = march(net, o, d, near, far)
+            oh, dh = o[hit], d[hit]
+            p = (oh + t[:, None] * dh).requires_grad_(True)
+            f = net(p)
+            (g,) = torch.autograd.grad(f.sum(), p, retain_graph=True)
+            # The implicit depth: value t, gradient -(df/dtheta) / (grad f . d).
+            t_hat = t - (f - f.detach()) / (g * dh).sum(1).detach()
+            return (t_hat - truth[hit]).abs().mean()
     else:
         layers, d = [], 3
         for _ in range(4):

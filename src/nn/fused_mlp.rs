@@ -29,6 +29,7 @@
 //! order, so the gradient is the same bit for bit at any thread count. Tiles run on
 //! candle's CPU pool ([`crate::parallel`]).
 
+mod activation;
 #[cfg(target_arch = "x86_64")]
 mod simd;
 
@@ -418,15 +419,16 @@ impl FusedMlp {
             }
             if l < last {
                 let (o, n) = (layer.out, tile.values * layer.out);
-                for (a, &h) in sc.a[off..off + n].iter_mut().zip(&sc.h[off..off + n]) {
-                    *a = h.act(self.act);
-                }
+                activation::activate(self.act, &sc.h[off..off + n], &mut sc.a[off..off + n]);
                 // Tangent rows: ȧ = φ'(h of the point) ⊙ ḣ.
                 for r in tile.values..rows {
                     let (hp, tr) = (off + tile.point(r) * o, off + r * o);
-                    for c in 0..o {
-                        sc.a[tr + c] = sc.h[hp + c].slope(self.act) * sc.h[tr + c];
-                    }
+                    activation::slope_times(
+                        self.act,
+                        &sc.h[hp..hp + o],
+                        &sc.h[tr..tr + o],
+                        &mut sc.a[tr..tr + o],
+                    );
                 }
                 prev = Some((off, layer.out));
                 off += TILE * layer.out;
@@ -577,9 +579,12 @@ impl FusedMlp {
             let h = &sc.h[base..base + rows * p_w];
             for r in 0..rows {
                 let hp = if r < tile.values { r } else { tile.point(r) };
-                for c in 0..p_w {
-                    sc.g[r * p_w + c] = sc.gx[r * p_w + c] * h[hp * p_w + c].slope(self.act);
-                }
+                activation::slope_times(
+                    self.act,
+                    &h[hp * p_w..(hp + 1) * p_w],
+                    &sc.gx[r * p_w..(r + 1) * p_w],
+                    &mut sc.g[r * p_w..(r + 1) * p_w],
+                );
             }
             for r in tile.values..rows {
                 let p = tile.point(r);
