@@ -1093,6 +1093,10 @@ impl FusedMlpJvp {
     }
 
     /// `(∂L/∂a₀, ∂L/∂ȧ₀)` where wanted, and `∂L/∂params`.
+    ///
+    /// When no tangent output receives a gradient (the loss uses the values only, as DVR's
+    /// implicit depth does), every tangent row's gradient is zero — they are linear in
+    /// `ḡ_ẏ`, the second-order term included — so the pass runs the value rows alone.
     #[allow(clippy::type_complexity)]
     fn backward<T: Real>(
         &self,
@@ -1103,6 +1107,17 @@ impl FusedMlpJvp {
         n: usize,
         want: (bool, bool),
     ) -> (Option<Vec<T>>, Option<Vec<T>>, Vec<T>) {
+        let (o, w) = (self.mlp.out_dim(), self.width());
+        let zero = T::from_f64(0.0);
+        if gy.chunks(w).all(|row| row[o..].iter().all(|&g| g == zero)) {
+            let values: Vec<T> = gy
+                .chunks(w)
+                .flat_map(|row| row[..o].iter().copied())
+                .collect();
+            let (ga0, gp) = self.mlp.backward(a0, params, &values, n, want.0);
+            let gda0 = want.1.then(|| vec![zero; da0.len()]);
+            return (ga0, gda0, gp);
+        }
         let wt = self.mlp.transposed(params);
         let params = Params { p: params, wt: &wt };
         let (a, k, o, ppt) = (
