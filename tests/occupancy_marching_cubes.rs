@@ -27,7 +27,7 @@ fn sphere_is_watertight_outward_and_accurate_at_128() {
         (0, 0, 0),
         "boundary, non-manifold, misoriented"
     );
-    let vol = m.signed_volume();
+    let vol = m.signed_volume().unwrap();
     let exact = 4.0 / 3.0 * std::f64::consts::PI * 0.4f64.powi(3);
     assert!(
         vol > 0.0 && (vol - exact).abs() / exact < 1e-3,
@@ -49,6 +49,7 @@ fn sphere_is_watertight_outward_and_accurate_at_128() {
     // Normals point outwards: (b − a) × (c − a) · a > 0 for most faces of a sphere.
     let outward = m
         .face_normals()
+        .unwrap()
         .iter()
         .zip(&m.faces)
         .filter(|(n, f)| {
@@ -72,7 +73,7 @@ fn torus_is_watertight_with_genus_one() {
     .unwrap();
     let m = marching_cubes(&g, 0.0, Inside::Positive).unwrap();
     assert_eq!(m.edge_report(), (0, 0, 0));
-    assert!(m.signed_volume() > 0.0);
+    assert!(m.signed_volume().unwrap() > 0.0);
     // Euler characteristic V − E + F = 0 for a torus (E = 3F/2 on a closed mesh).
     let chi = m.vertices.len() as i64 - (3 * m.faces.len() / 2) as i64 + m.faces.len() as i64;
     assert_eq!(chi, 0);
@@ -109,7 +110,7 @@ fn random_closed_grids_cover_all_cases_and_stay_watertight() {
         let g = Grid::new(values, [n; 3], [0.0; 3], [1.0; 3]).unwrap();
         let m = marching_cubes(&g, 0.0, Inside::Positive).unwrap();
         assert_eq!(m.edge_report(), (0, 0, 0), "trial {trial}");
-        assert!(m.signed_volume() > 0.0, "trial {trial}");
+        assert!(m.signed_volume().unwrap() > 0.0, "trial {trial}");
     }
     assert!(seen.iter().all(|&s| s), "not every case was exercised");
 }

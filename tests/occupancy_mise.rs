@@ -215,7 +215,7 @@ fn newton_refinement_moves_vertices_onto_the_level_set() {
             let mut mesh = mise(field.as_ref(), &MiseConfig::new(16, 1, &dev, dtype))
                 .unwrap()
                 .mesh;
-            mesh.normals = Some(mesh.vertex_normals());
+            mesh.normals = Some(mesh.vertex_normals().unwrap());
             let faces = mesh.faces.clone();
             let coarse = sphere_error(&mesh.vertices, r);
             let h = 1.1 / 32.0;

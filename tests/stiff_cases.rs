@@ -1687,10 +1687,13 @@ fn sweep_occupancy(s: &mut Suite) {
                 let m = tet(scale)?;
                 m.validate()?;
                 Ok(vec![
-                    flat(m.vertex_normals())?,
-                    flat(m.face_normals())?,
-                    vt(m.face_areas())?,
-                    Tensor::new(&[m.face_areas().iter().sum::<f64>(), m.signed_volume()], &d)?,
+                    flat(m.vertex_normals()?)?,
+                    flat(m.face_normals()?)?,
+                    vt(m.face_areas()?)?,
+                    Tensor::new(
+                        &[m.face_areas()?.iter().sum::<f64>(), m.signed_volume()?],
+                        &d,
+                    )?,
                 ])
             },
         );

@@ -110,14 +110,7 @@ impl Mesh {
                 ));
             }
         }
-        for (i, f) in self.faces.iter().enumerate() {
-            if let Some(&bad) = f.iter().find(|&&k| k as usize >= nv) {
-                return Err(mesh_err(
-                    "face indices below the vertex count",
-                    format!("face {i} = {f:?} indexes vertex {bad} of {nv}"),
-                ));
-            }
-        }
+        self.check_indices()?;
         if let Some(n) = &self.normals {
             if n.len() != nv {
                 return Err(mesh_err(
@@ -129,6 +122,21 @@ impl Mesh {
                 return Err(mesh_err(
                     "finite normals",
                     format!("normal {i} = {:?}", n[i]),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// Every face index below the vertex count (a `Mesh` built as a struct literal may
+    /// break it; the geometric accessors check it before indexing).
+    fn check_indices(&self) -> Result<()> {
+        let nv = self.vertices.len();
+        for (i, f) in self.faces.iter().enumerate() {
+            if let Some(&bad) = f.iter().find(|&&k| k as usize >= nv) {
+                return Err(mesh_err(
+                    "face indices below the vertex count",
+                    format!("face {i} = {f:?} indexes vertex {bad} of {nv}"),
                 ));
             }
         }
@@ -150,18 +158,26 @@ impl Mesh {
     }
 
     /// Triangle areas `½‖(b − a) × (c − a)‖`, `[F]`.
-    #[must_use]
-    pub fn face_areas(&self) -> Vec<f64> {
-        self.faces
+    ///
+    /// # Errors
+    /// Naming `mesh` for a face index not below the vertex count.
+    pub fn face_areas(&self) -> Result<Vec<f64>> {
+        self.check_indices()?;
+        Ok(self
+            .faces
             .iter()
             .map(|&f| 0.5 * norm(self.face_cross(f)))
-            .collect()
+            .collect())
     }
 
     /// Unit face normals `(b − a) × (c − a) / ‖·‖` (zero for degenerate faces), `[F][3]`.
-    #[must_use]
-    pub fn face_normals(&self) -> Vec<[f64; 3]> {
-        self.faces
+    ///
+    /// # Errors
+    /// Naming `mesh` for a face index not below the vertex count.
+    pub fn face_normals(&self) -> Result<Vec<[f64; 3]>> {
+        self.check_indices()?;
+        Ok(self
+            .faces
             .iter()
             .map(|&f| {
                 let n = self.face_cross(f);
@@ -172,13 +188,16 @@ impl Mesh {
                     [0.0; 3]
                 }
             })
-            .collect()
+            .collect())
     }
 
     /// Area-weighted vertex normals (sum of the incident faces' `(b−a)×(c−a)`,
     /// normalised; zero for isolated vertices), `[V][3]`.
-    #[must_use]
-    pub fn vertex_normals(&self) -> Vec<[f64; 3]> {
+    ///
+    /// # Errors
+    /// Naming `mesh` for a face index not below the vertex count.
+    pub fn vertex_normals(&self) -> Result<Vec<[f64; 3]>> {
+        self.check_indices()?;
         let mut acc = vec![[0.0f64; 3]; self.vertices.len()];
         for &f in &self.faces {
             let n = self.face_cross(f);
@@ -194,21 +213,25 @@ impl Mesh {
                 *n = [n[0] / l, n[1] / l, n[2] / l];
             }
         }
-        acc
+        Ok(acc)
     }
 
     /// Signed volume `Σ a·(b × c) / 6` over the faces: positive for a closed mesh whose
     /// faces are counter-clockwise seen from outside (outward normals).
-    #[must_use]
-    pub fn signed_volume(&self) -> f64 {
-        self.faces
+    ///
+    /// # Errors
+    /// Naming `mesh` for a face index not below the vertex count.
+    pub fn signed_volume(&self) -> Result<f64> {
+        self.check_indices()?;
+        Ok(self
+            .faces
             .iter()
             .map(|&f| {
                 let [a, b, c] = self.corners(f);
                 dot(a, cross(b, c))
             })
             .sum::<f64>()
-            / 6.0
+            / 6.0)
     }
 
     /// Axis-aligned bounds `(min, max)` of the vertices (`([∞; 3], [−∞; 3])` if none).
@@ -305,7 +328,7 @@ impl Mesh {
     /// Invalid mesh, or zero total area; naming `n` when `n` points cannot be allocated.
     pub fn sample_surface(&self, n: usize, seed: u64) -> Result<SurfaceSamples> {
         self.validate()?;
-        let areas = self.face_areas();
+        let areas = self.face_areas()?;
         let mut cdf = Vec::with_capacity(areas.len());
         let mut acc = 0.0;
         for a in &areas {
@@ -315,7 +338,7 @@ impl Mesh {
         if acc.is_nan() || acc <= 0.0 {
             return Err(mesh_err("a positive surface area", format!("{acc}")));
         }
-        let normals = self.face_normals();
+        let normals = self.face_normals()?;
         let mut rng = SplitMix64::new(seed);
         let (mut pts, mut nrm) = (Vec::new(), Vec::new());
         // A count that cannot be allocated is an error, not an abort.

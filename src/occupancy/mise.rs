@@ -413,7 +413,7 @@ pub fn refine_vertices(
         before
     };
     if mesh.normals.is_some() {
-        mesh.normals = Some(mesh.vertex_normals());
+        mesh.normals = Some(mesh.vertex_normals()?);
     }
     Ok((before, after))
 }
