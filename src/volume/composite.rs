@@ -48,7 +48,9 @@
 //! ```
 
 use super::fused::{self, FusedGeometry, KernelBuild};
-use super::layout::{check_nonneg_finite, check_samples, host_f64, Intervals, Layout, Weights};
+use super::layout::{
+    check_all_finite, check_nonneg_finite, check_samples, host_f64, Intervals, Layout, Weights,
+};
 use super::reference;
 use crate::camera::Rays;
 use crate::error::{check_float, check_same, check_scalar, check_shape, Dim, Result};
@@ -179,7 +181,8 @@ fn checked_deltas(intervals: &Intervals, span: Tensor, norms: Option<&Tensor>) -
 ///
 /// # Errors
 /// Named after the offending argument: `sigmas` (shape, dtype, NaN, negative or
-/// infinite values), `colors` (shape, dtype, device), `intervals` (dtype, device,
+/// infinite values), `colors` (shape, dtype, device, NaN or infinite values),
+/// `intervals` (dtype, device,
 /// layout, a non-finite or inverted interval), `rays` (count, dtype, device), a
 /// `background` not `[C]` or `[R, C]`.
 pub fn composite(
@@ -190,6 +193,8 @@ pub fn composite(
     config: &CompositeConfig,
 ) -> Result<Composite> {
     check_samples(sigmas, Some((colors, "colors")), intervals)?;
+    // A NaN colour would composite to a NaN pixel and NaN density gradients.
+    check_all_finite(colors, "colors")?;
     let (color, opacity, depth) =
         composite_with(sigmas, colors, intervals, rays, config, KernelBuild::Avx512)?;
     finish(color, opacity, depth, config)

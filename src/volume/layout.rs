@@ -521,16 +521,16 @@ pub(crate) fn host_f64(t: &Tensor) -> Result<Vec<f64>> {
         .to_vec1::<f64>()?)
 }
 
-/// Index and value of the first element outside [`zero`, `max`] (NaN included), or
+/// Index and value of the first element outside [`lo`, `max`] (NaN included), or
 /// `None`. A branch-free (vectorisable) pass finds whether one exists; only then is it
 /// located. This check runs on every compositing call, so slices of at least
 /// 2·[`PARALLEL_CHECK_LEN`] elements are checked in chunks of that length on candle's
 /// CPU pool.
-fn first_bad<T>(xs: &[T], zero: T, max: T) -> Option<(usize, f64)>
+fn first_bad<T>(xs: &[T], lo: T, max: T) -> Option<(usize, f64)>
 where
     T: Copy + PartialOrd + Into<f64> + Sync,
 {
-    let ok = |v: T| (v >= zero) & (v <= max);
+    let ok = |v: T| (v >= lo) & (v <= max);
     let all_ok = |c: &[T]| {
         c.chunks(1024)
             .all(|c| c.iter().fold(true, |acc, &v| acc & ok(v)))
@@ -560,10 +560,26 @@ where
 /// Chunk length of the parallel input check in [`first_bad`].
 const PARALLEL_CHECK_LEN: usize = 1 << 16;
 
-/// Checks that every element is finite and ≥ 0 (rejects NaN, −x, +∞).
-///
-/// On CPU this is one pass over the data; elsewhere a few reductions and one read-back.
+/// Checks that every element of `t` is finite and `≥ 0` (densities, interval lengths);
+/// the error names `arg`.
 pub(crate) fn check_nonneg_finite(t: &Tensor, arg: &'static str) -> Result<()> {
+    check_in_range(t, arg, true)
+}
+
+/// Checks that every element of `t` is finite (colours and other values); the error names
+/// `arg`.
+pub(crate) fn check_all_finite(t: &Tensor, arg: &'static str) -> Result<()> {
+    check_in_range(t, arg, false)
+}
+
+/// Every element finite, and `≥ 0` if `nonneg`: one parallel pass over contiguous CPU
+/// storage, candle reductions elsewhere.
+fn check_in_range(t: &Tensor, arg: &'static str, nonneg: bool) -> Result<()> {
+    let expected = if nonneg {
+        "finite values >= 0"
+    } else {
+        "finite values"
+    };
     if t.elem_count() == 0 {
         return Ok(());
     }
@@ -571,8 +587,14 @@ pub(crate) fn check_nonneg_finite(t: &Tensor, arg: &'static str) -> Result<()> {
         let (st, layout) = t.storage_and_layout();
         if let (Storage::Cpu(cpu), Some((a, b))) = (&*st, layout.contiguous_offsets()) {
             let bad = match t.dtype() {
-                DType::F32 => first_bad(&cpu.as_slice::<f32>()?[a..b], 0.0, f32::MAX),
-                DType::F64 => first_bad(&cpu.as_slice::<f64>()?[a..b], 0.0, f64::MAX),
+                DType::F32 => {
+                    let lo = if nonneg { 0.0 } else { -f32::MAX };
+                    first_bad(&cpu.as_slice::<f32>()?[a..b], lo, f32::MAX)
+                }
+                DType::F64 => {
+                    let lo = if nonneg { 0.0 } else { -f64::MAX };
+                    first_bad(&cpu.as_slice::<f64>()?[a..b], lo, f64::MAX)
+                }
                 other => {
                     return Err(Error::invalid(
                         arg,
@@ -585,7 +607,7 @@ pub(crate) fn check_nonneg_finite(t: &Tensor, arg: &'static str) -> Result<()> {
                 None => Ok(()),
                 Some((i, v)) => Err(Error::invalid(
                     arg,
-                    "finite values >= 0",
+                    expected,
                     format!("{v} at flat index {i}"),
                 )),
             };
@@ -595,15 +617,13 @@ pub(crate) fn check_nonneg_finite(t: &Tensor, arg: &'static str) -> Result<()> {
     // x − x is NaN exactly for NaN and ±∞.
     let probe = x.sub(&x)?.sum_all()?.to_scalar::<f64>()?;
     if !probe.is_finite() {
-        return Err(Error::invalid(arg, "finite values >= 0", "NaN or infinity"));
+        return Err(Error::invalid(arg, expected, "NaN or infinity"));
     }
-    let min = x.min(0)?.to_scalar::<f64>()?;
-    if min < 0.0 {
-        return Err(Error::invalid(
-            arg,
-            "finite values >= 0",
-            format!("minimum {min}"),
-        ));
+    if nonneg {
+        let min = x.min(0)?.to_scalar::<f64>()?;
+        if min < 0.0 {
+            return Err(Error::invalid(arg, expected, format!("minimum {min}")));
+        }
     }
     Ok(())
 }
