@@ -23,7 +23,7 @@
 //! ```
 
 use crate::error::{check_float, check_same, check_scalar, check_shape, Dim, Error, Result};
-use crate::numerics::{cos_pi, safe_cos, safe_sin, sin_pi};
+use crate::numerics::{cos_pi, round_to_integer, safe_cos, safe_sin, sin_pi};
 use crate::rng::SplitMix64;
 use candle_core::{DType, Device, Tensor};
 
@@ -142,9 +142,9 @@ impl FrequencyEncoding {
         }
     }
 
-    /// [`Encoding::forward`] from candle ops (any device, any float dtype): what the fused
-    /// CPU op is tested against.
-    pub(crate) fn forward_reference(&self, x: &Tensor) -> Result<Tensor> {
+    /// [`Encoding::forward`] from candle ops (any device, any float dtype; `use_pi = false`
+    /// on the CPU too).
+    fn forward_reference(&self, x: &Tensor) -> Result<Tensor> {
         check_input(x, self.in_dim)?;
         let (s, c) = self.sin_cos(&self.scaled(x)?)?;
         self.assemble(x, &s, &c)
@@ -221,29 +221,11 @@ struct FusedFrequency(FrequencyEncoding);
 /// Rows per work item of the fused encoding (its f64 scratch stays in L2).
 const ENCODE_ROWS: usize = 256;
 
-/// `sin(πy)` and `cos(πy)` for every `y`, to about 1 ulp of f64.
-///
-/// Reduction (exact): `r = y − 2·round(y/2) ∈ [−1, 1]`, then `q = round(2r)` and
-/// `f = r − q/2 ∈ [−¼, ¼]`, so `πy ≡ πf + qπ/2`; the kernels are musl's minimax
-/// polynomials for `sin` and `cos` on `[−π/4, π/4]`, and the quadrant `q mod 4` swaps
-/// and negates them. Rounding to an integer uses the `1.5·2⁵²` shift (exact below 2⁵¹;
-/// larger values are already even integers after halving, or integers, and pass through),
-/// so the loop has no calls and no branches.
+/// The loop of [`sin_cos_pi`], inlined into each instruction-set build.
 // The coefficients are written with the decimals they were published with.
 #[allow(clippy::excessive_precision)]
 #[inline(always)]
 fn sin_cos_pi_body(y: &[f64], s: &mut [f64], c: &mut [f64]) {
-    const SHIFT: f64 = 6_755_399_441_055_744.0; // 1.5 · 2⁵²
-    const BIG: f64 = 2_251_799_813_685_248.0; // 2⁵¹
-    #[inline(always)]
-    fn round(v: f64) -> f64 {
-        let r = (v + SHIFT) - SHIFT;
-        if v.abs() < BIG {
-            r
-        } else {
-            v
-        }
-    }
     const S: [f64; 6] = [
         -1.666_666_666_666_663_243_48e-1,
         8.333_333_333_322_489_461_24e-3,
@@ -261,8 +243,8 @@ fn sin_cos_pi_body(y: &[f64], s: &mut [f64], c: &mut [f64]) {
         -1.135_964_755_778_819_482_65e-11,
     ];
     for ((&y, s), c) in y.iter().zip(s.iter_mut()).zip(c.iter_mut()) {
-        let r = y - 2.0 * round(0.5 * y);
-        let q = round(2.0 * r);
+        let r = y - 2.0 * round_to_integer(0.5 * y);
+        let q = round_to_integer(2.0 * r);
         let x = (r - 0.5 * q) * std::f64::consts::PI;
         let z = x * x;
         let ps = z * (S[0] + z * (S[1] + z * (S[2] + z * (S[3] + z * (S[4] + z * S[5])))));
@@ -283,9 +265,8 @@ fn sin_cos_pi_body(y: &[f64], s: &mut [f64], c: &mut [f64]) {
 /// Reduction (exact): `r = y − 2·round(y/2) ∈ [−1, 1]`, then `q = round(2r)` and
 /// `f = r − q/2 ∈ [−¼, ¼]`, so `πy ≡ πf + qπ/2`; the kernels are musl's minimax
 /// polynomials for `sin` and `cos` on `[−π/4, π/4]`, and the quadrant `q mod 4` swaps
-/// and negates them. Rounding to an integer uses the `1.5·2⁵²` shift (exact below 2⁵¹;
-/// larger values are already even integers after halving, or integers, and pass through),
-/// so the loop has no calls and no branches; it runs compiled for AVX-512 or AVX2 where
+/// and negates them. Rounding to an integer is [`crate::numerics::round_to_integer`], so
+/// the loop has no calls and no branches; it runs compiled for AVX-512 or AVX2 where
 /// the CPU has them.
 fn sin_cos_pi(y: &[f64], s: &mut [f64], c: &mut [f64]) {
     #[cfg(target_arch = "x86_64")]
@@ -669,115 +650,4 @@ pub fn integrated_pe(
     let sin = (safe_sin(&mu)? * &damp)?;
     let cos = (safe_cos(&mu)? * &damp)?;
     Ok(Tensor::cat(&[sin, cos], 2)?.reshape((n, 2 * l * d))?)
-}
-
-#[cfg(test)]
-mod fused_tests {
-    use super::{Encoding, FrequencyEncoding};
-    use crate::test_host::v64;
-    use candle_core::{DType, Device, Tensor, Var};
-
-    /// Inputs from tiny to huge (the exact reduction's regime), both signs.
-    fn inputs(dtype: DType) -> Tensor {
-        let mut v = Vec::new();
-        for (i, m) in [1e-7, 1e-3, 0.3, 1.0, 7.5, 1e3, 1e6].iter().enumerate() {
-            for j in 0..6 {
-                let s = if (i + j) % 2 == 0 { 1.0 } else { -1.0 };
-                v.push(s * m * (1.0 + 0.137 * j as f64));
-            }
-        }
-        Tensor::from_vec(v, (14, 3), &Device::Cpu)
-            .unwrap()
-            .to_dtype(dtype)
-            .unwrap()
-    }
-
-    /// Value and the gradient of `Σ γ(x) ⊙ c` w.r.t. `x`, fused or reference.
-    fn run(pe: &FrequencyEncoding, x: &Var, fused: bool) -> (Vec<f64>, Vec<f64>) {
-        let y = if fused {
-            pe.forward(x.as_tensor()).unwrap()
-        } else {
-            pe.forward_reference(x.as_tensor()).unwrap()
-        };
-        let n = y.elem_count();
-        let c: Vec<f64> = (0..n)
-            .map(|i| ((i * 7919) % 101) as f64 / 50.0 - 1.0)
-            .collect();
-        let c = Tensor::from_vec(c, y.shape(), &Device::Cpu)
-            .unwrap()
-            .to_dtype(y.dtype())
-            .unwrap();
-        let g = (&y * c).unwrap().sum_all().unwrap().backward().unwrap();
-        (v64(&y), v64(g.get(x.as_tensor()).unwrap()))
-    }
-
-    #[test]
-    fn fused_frequency_encoding_equals_the_reference_path() {
-        for (dtype, tol) in [(DType::F64, 1e-12), (DType::F32, 1e-5)] {
-            for include_input in [true, false] {
-                let mut pe = FrequencyEncoding::new(3, 10).unwrap();
-                pe.include_input = include_input;
-                let x = Var::from_tensor(&inputs(dtype)).unwrap();
-                let (ya, ga) = run(&pe, &x, true);
-                let (yb, gb) = run(&pe, &x, false);
-                assert_eq!((ya.len(), ga.len()), (yb.len(), gb.len()));
-                for (a, b) in ya.iter().zip(&yb) {
-                    assert!((a - b).abs() <= tol, "{dtype:?} value {a} vs {b}");
-                }
-                // The gradient scales with π2⁹ ≈ 1.6e3.
-                for (a, b) in ga.iter().zip(&gb) {
-                    assert!((a - b).abs() <= tol * 2e3, "{dtype:?} gradient {a} vs {b}");
-                }
-            }
-        }
-    }
-
-    #[test]
-    fn fused_frequency_gradient_matches_finite_differences() {
-        let pe = FrequencyEncoding::new(2, 4).unwrap();
-        let base = [0.31f64, -0.77, 2.5, 1e-4];
-        let x = Var::from_tensor(&Tensor::from_vec(base.to_vec(), (2, 2), &Device::Cpu).unwrap())
-            .unwrap();
-        let (_, g) = run(&pe, &x, true);
-        for i in 0..4 {
-            let f = |h: f64| {
-                let mut v = base.to_vec();
-                v[i] += h;
-                let x =
-                    Var::from_tensor(&Tensor::from_vec(v, (2, 2), &Device::Cpu).unwrap()).unwrap();
-                let y = run(&pe, &x, true).0;
-                let n = y.len();
-                (0..n)
-                    .map(|j| y[j] * (((j * 7919) % 101) as f64 / 50.0 - 1.0))
-                    .sum::<f64>()
-            };
-            let h = 1e-6;
-            let fd = (f(h) - f(-h)) / (2.0 * h);
-            assert!(
-                (fd - g[i]).abs() <= 1e-6 * fd.abs().max(1.0),
-                "{i}: fd {fd} vs {}",
-                g[i]
-            );
-        }
-    }
-
-    #[test]
-    fn fused_frequency_encoding_keeps_nan_and_empty_batches() {
-        let pe = FrequencyEncoding::new(3, 2).unwrap();
-        let x = Tensor::new(&[[f32::NAN, 0.0, 1.0]], &Device::Cpu).unwrap();
-        let y = v64(&pe.forward(&x).unwrap());
-        assert!(y[0].is_nan() && y[1] == 0.0);
-        let empty = Tensor::zeros((0, 3), DType::F32, &Device::Cpu).unwrap();
-        assert_eq!(pe.forward(&empty).unwrap().dims(), &[0, 15]);
-    }
-
-    /// The chunking of zero frequencies (a zero-sized chunk panicked inside candle's pool).
-    #[test]
-    fn fused_frequency_encoding_with_zero_frequencies_is_the_input() {
-        let pe = FrequencyEncoding::new(3, 0).unwrap();
-        let x = Var::from_tensor(&inputs(DType::F64)).unwrap();
-        let (y, g) = run(&pe, &x, true);
-        assert_eq!(y, v64(x.as_tensor()));
-        assert_eq!(g.len(), y.len());
-    }
 }

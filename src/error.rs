@@ -292,23 +292,25 @@ mod tests {
     use candle_core::Device;
 
     #[test]
-    fn messages_name_the_argument_and_the_expectation() {
-        let t = Tensor::zeros((4, 2), DType::F32, &Device::Cpu).unwrap();
+    fn messages_name_the_argument_and_the_expectation() -> Result<()> {
+        let t = Tensor::zeros((4, 2), DType::F32, &Device::Cpu)?;
         let e = check_points(&t, "points").unwrap_err().to_string();
         assert_eq!(e, "points: expected shape [N, 3], got shape [4, 2]");
-        let t = Tensor::zeros((4, 3), DType::U32, &Device::Cpu).unwrap();
+        let t = Tensor::zeros((4, 3), DType::U32, &Device::Cpu)?;
         let e = check_points(&t, "points").unwrap_err().to_string();
         assert!(e.starts_with("points: expected dtype f32 or f64"), "{e}");
+        Ok(())
     }
 
     #[test]
-    fn finite_check_catches_nan_and_inf_but_not_large_values() {
+    fn finite_check_catches_nan_and_inf_but_not_large_values() -> Result<()> {
         let d = Device::Cpu;
-        let ok = Tensor::new(&[1e38f32, -3.0, 0.0], &d).unwrap();
+        let ok = Tensor::new(&[1e38f32, -3.0, 0.0], &d)?;
         assert!(check_finite(&ok, "x").is_ok());
         for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
-            let t = Tensor::new(&[1.0f32, bad], &d).unwrap();
+            let t = Tensor::new(&[1.0f32, bad], &d)?;
             assert!(check_finite(&t, "x").is_err());
         }
+        Ok(())
     }
 }

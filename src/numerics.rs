@@ -200,6 +200,21 @@ pub(crate) fn map_cpu<F32: Fn(f32) -> f32 + Sync, F64: Fn(f64) -> f64 + Sync>(
     Ok((out, l.shape().clone()))
 }
 
+/// Rounds to the nearest integer (ties to even) without a call or a branch that stops
+/// vectorisation: adding and subtracting `1.5·2⁵²` is exact below 2⁵¹ in magnitude, and
+/// larger doubles are already integers and pass through unchanged; NaN stays NaN.
+#[inline(always)]
+pub(crate) fn round_to_integer(v: f64) -> f64 {
+    const SHIFT: f64 = 6_755_399_441_055_744.0; // 1.5 · 2⁵²
+    const BIG: f64 = 2_251_799_813_685_248.0; // 2⁵¹
+    let r = (v + SHIFT) - SHIFT;
+    if v.abs() < BIG {
+        r
+    } else {
+        v
+    }
+}
+
 /// Scalar stable sigmoid (as [`sigmoid`]).
 macro_rules! scalar_sigmoid {
     ($z:expr) => {{
@@ -221,8 +236,6 @@ macro_rules! scalar_softplus {
         relu + (-(beta * x).abs()).exp().ln_1p() / beta
     }};
 }
-
-pub(crate) use {scalar_sigmoid, scalar_softplus};
 
 /// CPU kernel of [`softplus`].
 struct SoftplusOp {

@@ -3,7 +3,7 @@
 
 mod common;
 
-use candle_core::{DType, Device, Tensor};
+use candle_core::{DType, Device, Tensor, Var};
 use common::{central_diff, uniform, v64};
 use neural_fields::encoding::{integrated_pe, Encoding, FourierFeatures, FrequencyEncoding};
 use neural_fields::numerics::{safe_cos, safe_sin};
@@ -227,4 +227,158 @@ fn bad_inputs_name_the_argument() {
     )
     .unwrap_err();
     assert!(e.to_string().starts_with("variances"), "{e}");
+}
+
+/// Inputs from tiny to huge (the exact reduction's regime), both signs: `[14, 3]`.
+fn wide_inputs(dtype: DType) -> Tensor {
+    let mut v = Vec::new();
+    for (i, m) in [1e-7, 1e-3, 0.3, 1.0, 7.5, 1e3, 1e6].iter().enumerate() {
+        for j in 0..6 {
+            let s = if (i + j) % 2 == 0 { 1.0 } else { -1.0 };
+            v.push(s * m * (1.0 + 0.137 * j as f64));
+        }
+    }
+    Tensor::from_vec(v, (14, 3), &Device::Cpu)
+        .unwrap()
+        .to_dtype(dtype)
+        .unwrap()
+}
+
+/// `sin(π·2ᵏx)`, `cos(π·2ᵏx)` in f64 with the exact reduction, for an `x` held exactly.
+fn exact_sin_cos(x: f64, k: usize) -> (f64, f64) {
+    let y = x * (k as f64).exp2();
+    let r = y - 2.0 * (0.5 * y).round();
+    ((PI * r).sin(), (PI * r).cos())
+}
+
+/// The frequency encoding's CPU op (what `forward` runs) against closed forms in f64 —
+/// value to 1e-12 (f64) or f32 rounding (f32) up to `x = 10⁶` at L = 10 — and its
+/// backward pass against the candle-ops tangents of `forward_jvp`.
+#[test]
+fn fused_frequency_encoding_matches_closed_forms_and_the_jvp_path() {
+    for (dtype, tol) in [(DType::F64, 1e-12), (DType::F32, 2e-7)] {
+        for include_input in [true, false] {
+            let mut pe = FrequencyEncoding::new(3, 10).unwrap();
+            pe.include_input = include_input;
+            let x = Var::from_tensor(&wide_inputs(dtype)).unwrap();
+            let xs = v64(x.as_tensor());
+            let y = pe.forward(x.as_tensor()).unwrap();
+            let (n, e) = y.dims2().unwrap();
+            let yv = v64(&y);
+            let head = if include_input { 3 } else { 0 };
+            for p in 0..n {
+                for k in 0..10 {
+                    for d in 0..3 {
+                        let (s, c) = exact_sin_cos(xs[3 * p + d], k);
+                        let base = p * e + head + 6 * k;
+                        assert!(
+                            (yv[base + d] - s).abs() <= tol,
+                            "{dtype:?} sin {} vs {s}",
+                            yv[base + d]
+                        );
+                        assert!(
+                            (yv[base + 3 + d] - c).abs() <= tol,
+                            "{dtype:?} cos {} vs {c}",
+                            yv[base + 3 + d]
+                        );
+                    }
+                }
+            }
+            // ∂/∂x_j Σ γ(x) ⊙ c = Σ_cols c · (J e_j), the tangents from candle ops.
+            let cw: Vec<f64> = (0..n * e)
+                .map(|i| ((i * 7919) % 101) as f64 / 50.0 - 1.0)
+                .collect();
+            let c = Tensor::from_vec(cw.clone(), (n, e), &Device::Cpu)
+                .unwrap()
+                .to_dtype(dtype)
+                .unwrap();
+            let g = v64((&y * &c)
+                .unwrap()
+                .sum_all()
+                .unwrap()
+                .backward()
+                .unwrap()
+                .get(x.as_tensor())
+                .unwrap());
+            let eye = Tensor::eye(3, dtype, &Device::Cpu)
+                .unwrap()
+                .unsqueeze(0)
+                .unwrap()
+                .broadcast_as((n, 3, 3))
+                .unwrap()
+                .contiguous()
+                .unwrap();
+            let (_, t) = pe.forward_jvp(x.as_tensor(), &eye).unwrap();
+            let t = v64(&t);
+            for p in 0..n {
+                for j in 0..3 {
+                    let want: f64 = (0..e)
+                        .map(|col| cw[p * e + col] * t[(p * 3 + j) * e + col])
+                        .sum();
+                    let got = g[3 * p + j];
+                    // The gradient scales with π2⁹ ≈ 1.6e3.
+                    assert!(
+                        (got - want).abs() <= 2e3 * tol.max(1e-9) * want.abs().max(1.0),
+                        "{dtype:?} gradient {got} vs {want}"
+                    );
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn fused_frequency_encoding_keeps_nan_empty_batches_and_zero_frequencies() {
+    let pe = FrequencyEncoding::new(3, 2).unwrap();
+    let x = Tensor::new(&[[f32::NAN, 0.0, 1.0]], &Device::Cpu).unwrap();
+    let y = v64(&pe.forward(&x).unwrap());
+    assert!(y[0].is_nan() && y[1] == 0.0);
+    let empty = Tensor::zeros((0, 3), DType::F32, &Device::Cpu).unwrap();
+    assert_eq!(pe.forward(&empty).unwrap().dims(), &[0, 15]);
+    // Zero frequencies: a zero-sized chunk once panicked inside candle's pool.
+    let pe = FrequencyEncoding::new(3, 0).unwrap();
+    let x = Var::from_tensor(&wide_inputs(DType::F64)).unwrap();
+    let y = pe.forward(x.as_tensor()).unwrap();
+    assert_eq!(v64(&y), v64(x.as_tensor()));
+    let g = y.sum_all().unwrap().backward().unwrap();
+    assert!(v64(g.get(x.as_tensor()).unwrap()).iter().all(|&v| v == 1.0));
+}
+
+/// The fused op's backward pass against central differences of its forward (f64).
+#[test]
+fn fused_frequency_gradient_matches_finite_differences() {
+    let pe = FrequencyEncoding::new(2, 4).unwrap();
+    let base = [0.31f64, -0.77, 2.5, 1e-4];
+    let weight = |j: usize| ((j * 7919) % 101) as f64 / 50.0 - 1.0;
+    let loss = |v: &[f64]| -> f64 {
+        let x = Tensor::from_vec(v.to_vec(), (2, 2), &Device::Cpu).unwrap();
+        let y = v64(&pe.forward(&x).unwrap());
+        y.iter().enumerate().map(|(j, y)| y * weight(j)).sum()
+    };
+    let x =
+        Var::from_tensor(&Tensor::from_vec(base.to_vec(), (2, 2), &Device::Cpu).unwrap()).unwrap();
+    let y = pe.forward(x.as_tensor()).unwrap();
+    let w: Vec<f64> = (0..y.elem_count()).map(weight).collect();
+    let c = Tensor::from_vec(w, y.shape(), &Device::Cpu).unwrap();
+    let g = v64((&y * c)
+        .unwrap()
+        .sum_all()
+        .unwrap()
+        .backward()
+        .unwrap()
+        .get(x.as_tensor())
+        .unwrap());
+    for i in 0..4 {
+        let mut f = |h: f64| {
+            let mut v = base.to_vec();
+            v[i] = h;
+            loss(&v)
+        };
+        let fd = central_diff(&mut f, base[i], 1e-6, 1.0).expect("smooth");
+        assert!(
+            (fd - g[i]).abs() <= 1e-6 * fd.abs().max(1.0),
+            "{i}: fd {fd} vs {}",
+            g[i]
+        );
+    }
 }

@@ -372,15 +372,16 @@ mod tests {
         b
     }
 
+    type TestResult = std::result::Result<(), Box<dyn std::error::Error>>;
+
     #[test]
-    fn npy_parses_c_and_fortran_order() {
+    fn npy_parses_c_and_fortran_order() -> TestResult {
         let payload: Vec<u8> = (0..6).flat_map(|i| f64::from(i).to_le_bytes()).collect();
         let c = parse_npy(&npy(
             "{'descr': '<f8', 'fortran_order': False, 'shape': (2, 3), }",
             &payload,
-        ))
-        .unwrap()
-        .unwrap();
+        ))?
+        .ok_or("no array")?;
         assert_eq!(
             (c.shape, c.data),
             (vec![2, 3], vec![0., 1., 2., 3., 4., 5.])
@@ -388,10 +389,10 @@ mod tests {
         let f = parse_npy(&npy(
             "{'descr': '<f8', 'fortran_order': True, 'shape': (2, 3), }",
             &payload,
-        ))
-        .unwrap()
-        .unwrap();
+        ))?
+        .ok_or("no array")?;
         assert_eq!(f.data, vec![0., 2., 4., 1., 3., 5.]);
+        Ok(())
     }
 
     #[test]
@@ -410,7 +411,7 @@ mod tests {
     }
 
     #[test]
-    fn projection_decomposes_into_its_intrinsics_and_pose() {
+    fn projection_decomposes_into_its_intrinsics_and_pose() -> TestResult {
         // K·[R|t] of a camera at c = (1, 2, 3) looking along a rotated axis.
         let (fx, fy, cx, cy) = (500.0, 480.0, 320.5, 240.25);
         let r = DMat3::from_quat(glam::DQuat::from_euler(glam::EulerRot::XYZ, 0.3, -1.1, 2.0));
@@ -430,7 +431,7 @@ mod tests {
             (kr.z_axis * 7.0).extend(0.0),
             (kt * 7.0).extend(1.0),
         );
-        let (spec, pose) = decompose(&p, Path::new("x"), "P").unwrap();
+        let (spec, pose) = decompose(&p, Path::new("x"), "P")?;
         match spec {
             IntrinsicsSpec::Pinhole {
                 fx: a,
@@ -443,7 +444,7 @@ mod tests {
                     assert!((got - want).abs() < 1e-9, "{got} vs {want}");
                 }
             }
-            other => panic!("{other:?}"),
+            other => return Err(format!("not a pinhole: {other:?}").into()),
         }
         assert!((pose.translation - c).length() < 1e-12);
         assert!((pose.matrix3 - r.transpose())
@@ -452,7 +453,8 @@ mod tests {
             .all(|x| x.abs() < 1e-12));
         // −P is the same camera.
         let neg = -p;
-        let (_, pose2) = decompose(&neg, Path::new("x"), "P").unwrap();
+        let (_, pose2) = decompose(&neg, Path::new("x"), "P")?;
         assert!((pose2.translation - c).length() < 1e-12);
+        Ok(())
     }
 }

@@ -122,63 +122,10 @@ impl FusedMlp {
     }
 }
 
-/// The scalar types the op runs on.
-pub(crate) trait Real: WithDType {
-    fn act(self, act: Act) -> Self;
-    /// φ'(h).
-    fn slope(self, act: Act) -> Self;
-    /// φ''(h): 0 for ReLU (as the reference path, whose slope 𝟙[h ≥ 0] is a constant of
-    /// the graph), `β σ(βh)(1 − σ(βh))` for softplus.
-    fn curvature(self, act: Act) -> Self;
-}
-
-macro_rules! real {
-    ($t:ty) => {
-        impl Real for $t {
-            #[inline]
-            fn act(self, act: Act) -> Self {
-                match act {
-                    // max(h, 0) as candle's relu (NaN propagates).
-                    Act::Relu => {
-                        if self < 0.0 {
-                            0.0
-                        } else {
-                            self
-                        }
-                    }
-                    Act::Softplus(beta) => crate::numerics::scalar_softplus!(self, beta as $t),
-                }
-            }
-
-            #[inline]
-            fn slope(self, act: Act) -> Self {
-                match act {
-                    Act::Relu => {
-                        if self >= 0.0 {
-                            1.0
-                        } else {
-                            0.0
-                        }
-                    }
-                    Act::Softplus(beta) => crate::numerics::scalar_sigmoid!(beta as $t * self),
-                }
-            }
-
-            #[inline]
-            fn curvature(self, act: Act) -> Self {
-                match act {
-                    Act::Relu => 0.0,
-                    Act::Softplus(beta) => {
-                        let s = crate::numerics::scalar_sigmoid!(beta as $t * self);
-                        beta as $t * s * (1.0 - s)
-                    }
-                }
-            }
-        }
-    };
-}
-real!(f32);
-real!(f64);
+/// The scalar types the op runs on (the products' kernels exist for these two).
+pub(crate) trait Real: WithDType {}
+impl Real for f32 {}
+impl Real for f64 {}
 
 /// A strided view of a matrix in a slice: element `(i, j)` at `off + i·rs + j·cs`.
 #[derive(Clone, Copy)]
@@ -586,13 +533,14 @@ impl FusedMlp {
                     &mut sc.g[r * p_w..(r + 1) * p_w],
                 );
             }
-            for r in tile.values..rows {
-                let p = tile.point(r);
-                for c in 0..p_w {
-                    let hv = h[p * p_w + c];
-                    let k = hv.curvature(self.act);
-                    if k != T::from_f64(0.0) {
-                        sc.g[p * p_w + c] += k * h[r * p_w + c] * sc.gx[r * p_w + c];
+            if let Act::Softplus(beta) = self.act {
+                // ReLU's φ'' is 0 (the reference path's slope 𝟙[h ≥ 0] is a constant of the
+                // graph), so only softplus has this term.
+                for r in tile.values..rows {
+                    let p = tile.point(r);
+                    for c in 0..p_w {
+                        let k = activation::softplus_curvature(h[p * p_w + c].to_f64(), beta);
+                        sc.g[p * p_w + c] += T::from_f64(k) * h[r * p_w + c] * sc.gx[r * p_w + c];
                     }
                 }
             }

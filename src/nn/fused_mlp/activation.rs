@@ -10,15 +10,15 @@
 //! f64 (tested against the standard library).
 
 use super::{Act, Real};
+use crate::numerics::round_to_integer;
 
 /// `e^x` for `x ≤ 0` (0 below −708, where f64 leaves the normal range).
 #[inline(always)]
 fn exp_nonpos(x: f64) -> f64 {
-    const SHIFT: f64 = 6_755_399_441_055_744.0; // 1.5 · 2⁵², rounds to an integer
     const LN2_HI: f64 = 0.693_147_180_369_123_8;
     const LN2_LO: f64 = 1.908_214_929_270_587_7e-10;
     let xc = x.max(-708.0);
-    let k = (xc * std::f64::consts::LOG2_E + SHIFT) - SHIFT;
+    let k = round_to_integer(xc * std::f64::consts::LOG2_E);
     let r = (xc - k * LN2_HI) - k * LN2_LO;
     // e^r, |r| ≤ 0.35: Taylor to degree 12 (remainder below 2e-16 relative).
     let mut p = 1.0 / 479_001_600.0;
@@ -89,12 +89,20 @@ pub(super) fn sigmoid(z: f64) -> f64 {
     }
 }
 
+/// `φ''(h) = β σ(βh)(1 − σ(βh))` of softplus.
+pub(super) fn softplus_curvature(h: f64, beta: f64) -> f64 {
+    let s = sigmoid(beta * h);
+    beta * s * (1.0 - s)
+}
+
 #[inline(always)]
 fn activate_body<T: Real>(act: Act, h: &[T], a: &mut [T]) {
+    let zero = T::from_f64(0.0);
     match act {
         Act::Relu => {
+            // max(h, 0) as candle's relu (NaN propagates).
             for (a, &h) in a.iter_mut().zip(h) {
-                *a = h.act(act);
+                *a = if h < zero { zero } else { h };
             }
         }
         Act::Softplus(beta) => {
@@ -109,8 +117,10 @@ fn activate_body<T: Real>(act: Act, h: &[T], a: &mut [T]) {
 fn slope_times_body<T: Real>(act: Act, h: &[T], x: &[T], out: &mut [T]) {
     match act {
         Act::Relu => {
+            // 𝟙[h ≥ 0], candle's own ReLU derivative, so both paths agree at the kink.
+            let (zero, one) = (T::from_f64(0.0), T::from_f64(1.0));
             for ((o, &h), &x) in out.iter_mut().zip(h).zip(x) {
-                *o = h.slope(act) * x;
+                *o = if h >= zero { one } else { zero } * x;
             }
         }
         Act::Softplus(beta) => {
