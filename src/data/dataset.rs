@@ -102,8 +102,8 @@ impl View {
     /// Colour of pixel `(u, v)` composited on `background`: `c·a + b·(1 − a)` with the
     /// straight colour `c` and alpha `a` (1 without an alpha channel), all `byte / 255`.
     pub(crate) fn color(&self, u: usize, v: usize, background: [f64; 3]) -> [f64; 3] {
-        // invariant: every caller (the samplers, `rgb`) passes (u, v) inside the image.
-        let p = self.image.pixel(u, v).expect("pixel inside the image");
+        // Every caller (the samplers, `rgb`) passes (u, v) inside the image.
+        let p = self.image.pixel(u, v).expect("pixel inside the image"); // invariant
         let a = if p.len() == 4 {
             f64::from(p[3]) / 255.0
         } else {

@@ -196,10 +196,10 @@ impl Image {
                 acc.fill(0.0);
                 for dv in 0..k {
                     for du in 0..k {
-                        // invariant: u·k + du < (width / k)·k ≤ width, and likewise for v.
+                        // u·k + du < (width / k)·k ≤ width, and likewise for v.
                         let p = self
                             .pixel(u * k + du, v * k + dv)
-                            .expect("block lies inside the image");
+                            .expect("block lies inside the image"); // invariant
                         let a = if c == 4 { f64::from(p[3]) } else { 1.0 };
                         for ch in 0..c.min(3) {
                             acc[ch] += a * f64::from(p[ch]);

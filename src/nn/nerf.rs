@@ -57,10 +57,10 @@ impl Default for NerfConfig {
         // invariant: 3-D inputs with 10 and 4 frequencies are valid encodings.
         Self {
             position_encoding: PointEncoding::Frequency(
-                FrequencyEncoding::new(3, 10).expect("3-D, 10 frequencies"),
+                FrequencyEncoding::new(3, 10).expect("3-D, 10 frequencies"), // invariant
             ),
             direction_encoding: Some(PointEncoding::Frequency(
-                FrequencyEncoding::new(3, 4).expect("3-D, 4 frequencies"),
+                FrequencyEncoding::new(3, 4).expect("3-D, 4 frequencies"), // invariant
             )),
             depth: 4,
             width: 64,
