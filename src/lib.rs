@@ -123,6 +123,7 @@
 //! | `occupancy` | yes | occupancy networks: losses, samplers, meshes, marching cubes, MISE, metrics |
 //! | `dvr` | yes | surface rendering with implicit gradients: ray marching + secant, sphere tracing, implicit surface points, DVR/IDR losses |
 //! | `volume` | yes | NeRF samplers, compositing (reference and fused CPU kernel), occupancy grid, regularisers |
+//! | `texture` | yes | texture fields: the `TextureField` trait, the Texture Fields decoder, IDR's rendering network, DVR's joint decoder, the image-gradient loss, vertex colours for meshes |
 //! | `data` | yes | datasets (Blender, nerfstudio, IDR/DTU layouts), seeded ray and patch batches, PSNR/SSIM, PNG output, a Blender-layout writer |
 //! | `cuda` | no | candle's CUDA backend (needs nvcc) |
 //!
@@ -147,6 +148,8 @@ pub mod occupancy;
 #[cfg_attr(not(feature = "volume"), allow(dead_code))]
 mod parallel;
 pub mod rng;
+#[cfg(feature = "texture")]
+pub mod texture;
 #[cfg(feature = "volume")]
 pub mod volume;
 

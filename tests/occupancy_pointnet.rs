@@ -18,6 +18,7 @@ fn config() -> PointNetConfig {
         hidden: 16,
         layers: 2,
         latent_dim: 4,
+        point_features: 1,
     }
 }
 

@@ -2143,6 +2143,7 @@ fn sweep_occupancy(s: &mut Suite) {
                 hidden: 8,
                 layers: 2,
                 latent_dim: 3,
+                point_features: 1,
             };
             let vm = candle_nn::VarMap::new();
             let enc = build_seeded(&vm, dtype, &d, 2, |vb| pointnet_encoder(&cfg, vb)).unwrap();

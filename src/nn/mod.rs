@@ -6,6 +6,9 @@
 //!   conditional normalisation that is batch-independent at inference.
 //! * [`PointNetEncoder`] / [`pointnet_encoder`] (feature `occupancy`): the variational
 //!   ONet's encoder `q_ψ(z | points, occupancies)`.
+//! * [`TextureDecoder`] / [`texture_decoder`], [`RenderingNet`] / [`rendering_net`],
+//!   [`JointDecoder`] / [`joint_decoder`] (feature `texture`): the Texture Fields decoder,
+//!   IDR's rendering network and DVR's joint shape-and-colour decoder.
 //! * [`Nerf`] / [`nerf`]: NeRF's radiance field (density trunk, view-dependent colour
 //!   head).
 //! * [`build_seeded`]: reproducible initialisation (candle's CPU generator cannot be
@@ -18,6 +21,8 @@ mod nerf;
 mod onet;
 #[cfg(feature = "occupancy")]
 mod pointnet;
+#[cfg(feature = "texture")]
+mod texture;
 
 pub use mlp::{mlp, Activation, Mlp, MlpConfig};
 pub use nerf::{nerf, DensityActivation, Nerf, NerfConfig};
@@ -28,6 +33,11 @@ pub use onet::{
 };
 #[cfg(feature = "occupancy")]
 pub use pointnet::{pointnet_encoder, PointNetConfig, PointNetEncoder};
+#[cfg(feature = "texture")]
+pub use texture::{
+    joint_decoder, rendering_net, texture_decoder, JointDecoder, RenderingNet, RenderingNetConfig,
+    TextureDecoder, TextureDecoderConfig,
+};
 
 use crate::error::{Error, Result};
 use crate::rng::SplitMix64;

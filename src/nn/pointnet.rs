@@ -7,6 +7,11 @@
 //! `log σ² = W_σ g + b_σ`. The max-pool makes the code independent of the order of the
 //! points. Train with `occupancy::losses::{reparameterize, kl_standard_normal}`:
 //! `z = μ + σ ⊙ ε`, loss `Σ BCE(f(p, z), o) + KL(q ‖ N(0, I))`.
+//!
+//! The same network encodes points with other per-point features
+//! ([`PointNetEncoder::forward_features`]): Texture Fields' shape code `c` is the mean
+//! head `μ` of a PointNet over surface points with their normals (`point_features: 3`,
+//! `h⁰ₖ = [pₖ, nₖ] ∈ ℝ⁶`).
 
 use crate::error::{check_float, check_same, check_shape, Dim, Error, Result};
 use candle_core::Tensor;
@@ -21,15 +26,20 @@ pub struct PointNetConfig {
     pub layers: usize,
     /// Latent dimension `D` of `z`.
     pub latent_dim: usize,
+    /// Features per point beside its position (1: the occupancy label of
+    /// [`PointNetEncoder::forward`]; 3: normals, for Texture Fields' shape code).
+    pub point_features: usize,
 }
 
 impl Default for PointNetConfig {
-    /// 3 layers of width 128, a 128-dimensional latent code.
+    /// 3 layers of width 128, a 128-dimensional latent code, one feature per point (the
+    /// occupancy label).
     fn default() -> Self {
         Self {
             hidden: 128,
             layers: 3,
             latent_dim: 128,
+            point_features: 1,
         }
     }
 }
@@ -47,12 +57,14 @@ pub struct PointNetEncoder {
 /// candle-nn's default initialisation).
 ///
 /// # Errors
-/// A zero `hidden`, `layers` or `latent_dim` (naming `config.*`); errors of `vb`.
+/// A zero `hidden`, `layers`, `latent_dim` or `point_features` (naming `config.*`);
+/// errors of `vb`.
 pub fn pointnet_encoder(config: &PointNetConfig, vb: VarBuilder) -> Result<PointNetEncoder> {
     for (name, v) in [
         ("config.hidden", config.hidden),
         ("config.layers", config.layers),
         ("config.latent_dim", config.latent_dim),
+        ("config.point_features", config.point_features),
     ] {
         if v == 0 {
             return Err(Error::invalid(name, "at least 1", "0"));
@@ -60,7 +72,11 @@ pub fn pointnet_encoder(config: &PointNetConfig, vb: VarBuilder) -> Result<Point
     }
     let mut layers = Vec::with_capacity(config.layers);
     for l in 0..config.layers {
-        let input = if l == 0 { 4 } else { config.hidden };
+        let input = if l == 0 {
+            3 + config.point_features
+        } else {
+            config.hidden
+        };
         layers.push(linear(input, config.hidden, vb.pp(format!("layer{l}")))?);
     }
     Ok(PointNetEncoder {
@@ -79,36 +95,64 @@ impl PointNetEncoder {
     }
 
     /// The posterior parameters `(μ, log σ²)`, each `[B, D]`, of `B` shapes given
-    /// `points: [B, K, 3]` and `occupancies: [B, K]` (labels in `[0, 1]`), f32 or f64.
+    /// `points: [B, K, 3]` and `occupancies: [B, K]` (labels in `[0, 1]`), f32 or f64:
+    /// [`forward_features`](Self::forward_features) with the labels as the one feature.
     ///
     /// Differentiable w.r.t. the encoder's weights, the points and the occupancies (the
     /// max-pool passes gradients to the maximising point of each channel).
     ///
     /// # Errors
     /// `points` not `[B, K, 3]` float with `K ≥ 1`; `occupancies` not `[B, K]` of the same
-    /// dtype and device.
+    /// dtype and device; a configuration with `point_features` other than 1.
     pub fn forward(&self, points: &Tensor, occupancies: &Tensor) -> Result<(Tensor, Tensor)> {
-        check_float(points, "points")?;
-        let dims = check_shape(
-            points,
-            "points",
-            &[Dim::Any("B"), Dim::Any("K"), Dim::Is(3)],
-        )?;
-        let (b, k) = (dims[0], dims[1]);
-        if k == 0 {
-            return Err(Error::invalid(
-                "points",
-                "at least one point per shape (K ≥ 1)",
-                "K = 0",
-            ));
-        }
+        let (b, k) = check_point_sets(points)?;
         check_same(occupancies, "occupancies", points, "points")?;
         check_shape(occupancies, "occupancies", &[Dim::Is(b), Dim::Is(k)])?;
-        let mut h = Tensor::cat(&[points, &occupancies.unsqueeze(2)?], 2)?.reshape((b * k, 4))?;
+        if self.config.point_features != 1 {
+            return Err(Error::invalid(
+                "occupancies",
+                "an encoder with point_features = 1 (use forward_features)",
+                format!("point_features = {}", self.config.point_features),
+            ));
+        }
+        self.forward_features(points, &occupancies.unsqueeze(2)?)
+    }
+
+    /// `(μ, log σ²)`, each `[B, D]`, of `B` point sets `points: [B, K, 3]` with per-point
+    /// `features: [B, K, F]` (`F = point_features`, e.g. unit normals), f32 or f64.
+    /// Differentiable w.r.t. the weights, the points and the features.
+    ///
+    /// # Errors
+    /// `points` not `[B, K, 3]` float with `K ≥ 1`; `features` not `[B, K, F]` of the
+    /// same dtype and device.
+    pub fn forward_features(&self, points: &Tensor, features: &Tensor) -> Result<(Tensor, Tensor)> {
+        let (b, k) = check_point_sets(points)?;
+        let f = self.config.point_features;
+        check_same(features, "features", points, "points")?;
+        check_shape(features, "features", &[Dim::Is(b), Dim::Is(k), Dim::Is(f)])?;
+        let mut h = Tensor::cat(&[points, features], 2)?.reshape((b * k, 3 + f))?;
         for layer in &self.layers {
             h = layer.forward(&h)?.relu()?;
         }
         let g = h.reshape((b, k, self.config.hidden))?.max(1)?;
         Ok((self.mean.forward(&g)?, self.logvar.forward(&g)?))
     }
+}
+
+/// Checks `points: [B, K, 3]` (f32/f64, `K ≥ 1`); returns `(B, K)`.
+fn check_point_sets(points: &Tensor) -> Result<(usize, usize)> {
+    check_float(points, "points")?;
+    let dims = check_shape(
+        points,
+        "points",
+        &[Dim::Any("B"), Dim::Any("K"), Dim::Is(3)],
+    )?;
+    if dims[1] == 0 {
+        return Err(Error::invalid(
+            "points",
+            "at least one point per shape (K ≥ 1)",
+            "K = 0",
+        ));
+    }
+    Ok((dims[0], dims[1]))
 }

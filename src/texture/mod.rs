@@ -1,0 +1,222 @@
+//! Texture fields: colour as a function of the surface point (Texture Fields, DVR, IDR).
+//!
+//! A [`TextureField`] maps surface points `[N, 3]` — with, depending on the field, their
+//! normals, the viewing directions, a feature vector from the geometry network, a shape
+//! code and an image code — to RGB `[N, 3]` in `[0, 1]`, differentiable w.r.t. its
+//! parameters and every input it reads. The inputs travel together in a
+//! [`TextureInput`], so a renderer hands the same value to any texture field and each
+//! field takes what it needs (and names what it misses).
+//!
+//! The networks live in [`crate::nn`]:
+//! * [`crate::nn::TextureDecoder`]: the Texture Fields decoder (Oechsle et al. 2019),
+//!   conditioned on a shape code and an image code;
+//! * [`crate::nn::RenderingNet`]: IDR's rendering network (point, encoded view direction,
+//!   normal, geometry feature);
+//! * [`crate::nn::JointDecoder`]: DVR's decoder, one trunk for the occupancy logit and
+//!   the colour (an implicit surface and a texture field at once).
+//!
+//! In a DVR/IDR training step the points are [`crate::dvr::SurfacePoints::points`], so a
+//! photometric loss ([`crate::dvr::photometric_loss`], plus [`image_gradient_loss`] on
+//! patches) reaches the geometry through `p̂` — and, for IDR's network, through the normal.
+//!
+//! ```
+//! use candle_core::{DType, Device, Tensor};
+//! use candle_nn::VarMap;
+//! use neural_fields::nn::{build_seeded, rendering_net, RenderingNetConfig};
+//! use neural_fields::texture::{TextureField, TextureInput};
+//!
+//! let dev = Device::Cpu;
+//! let config = RenderingNetConfig { feature_dim: 8, ..RenderingNetConfig::default() };
+//! let varmap = VarMap::new();
+//! let net = build_seeded(&varmap, DType::F32, &dev, 0, |vb| rendering_net(&config, vb))?;
+//! let points = Tensor::zeros((5, 3), DType::F32, &dev)?;
+//! let normals = Tensor::ones((5, 3), DType::F32, &dev)?;
+//! let dirs = Tensor::ones((5, 3), DType::F32, &dev)?;
+//! let features = Tensor::zeros((5, 8), DType::F32, &dev)?;
+//! let input = TextureInput::new(&points).normals(&normals).view_dirs(&dirs).features(&features);
+//! let rgb = net.rgb(&input)?;                                  // [5, 3] in [0, 1]
+//! assert_eq!(rgb.dims(), &[5, 3]);
+//! // A missing input is an error that names it.
+//! let err = net.rgb(&TextureInput::new(&points)).unwrap_err().to_string();
+//! assert!(err.starts_with("normals"));
+//! # Ok::<(), neural_fields::Error>(())
+//! ```
+
+pub mod losses;
+
+pub use losses::image_gradient_loss;
+
+use crate::error::{check_points, check_same, check_shape, Dim, Error, Result};
+use candle_core::Tensor;
+
+/// The inputs of a [`TextureField`] at `N` points; build with [`TextureInput::new`] and
+/// add what the field reads.
+///
+/// Every tensor shares the points' dtype (f32 or f64) and device and has `N` rows.
+#[derive(Clone, Copy, Debug)]
+pub struct TextureInput<'a> {
+    /// Surface points `[N, 3]`.
+    pub points: &'a Tensor,
+    /// Surface normals `[N, 3]` (any length: fields that read them normalise or not as
+    /// they document), e.g. the spatial gradient of an SDF at the points.
+    pub normals: Option<&'a Tensor>,
+    /// Viewing directions `[N, 3]`: the directions of the rays that reached the points
+    /// (from the camera towards the surface).
+    pub view_dirs: Option<&'a Tensor>,
+    /// Feature vectors `[N, F]` from the geometry network (IDR's global feature).
+    pub features: Option<&'a Tensor>,
+    /// Shape codes `[N, C]` (Texture Fields' `c`).
+    pub shape_code: Option<&'a Tensor>,
+    /// Image codes `[N, Z]` (Texture Fields' `z`).
+    pub image_code: Option<&'a Tensor>,
+}
+
+impl<'a> TextureInput<'a> {
+    /// Inputs with only the points `[N, 3]`.
+    #[must_use]
+    pub fn new(points: &'a Tensor) -> Self {
+        Self {
+            points,
+            normals: None,
+            view_dirs: None,
+            features: None,
+            shape_code: None,
+            image_code: None,
+        }
+    }
+
+    /// With normals `[N, 3]`.
+    #[must_use]
+    pub fn normals(mut self, normals: &'a Tensor) -> Self {
+        self.normals = Some(normals);
+        self
+    }
+
+    /// With viewing directions `[N, 3]`.
+    #[must_use]
+    pub fn view_dirs(mut self, view_dirs: &'a Tensor) -> Self {
+        self.view_dirs = Some(view_dirs);
+        self
+    }
+
+    /// With geometry features `[N, F]`.
+    #[must_use]
+    pub fn features(mut self, features: &'a Tensor) -> Self {
+        self.features = Some(features);
+        self
+    }
+
+    /// With shape codes `[N, C]`.
+    #[must_use]
+    pub fn shape_code(mut self, code: &'a Tensor) -> Self {
+        self.shape_code = Some(code);
+        self
+    }
+
+    /// With image codes `[N, Z]`.
+    #[must_use]
+    pub fn image_code(mut self, code: &'a Tensor) -> Self {
+        self.image_code = Some(code);
+        self
+    }
+
+    /// Checks the points: f32/f64 `[N, 3]`; returns `N`.
+    ///
+    /// # Errors
+    /// Naming `points`.
+    pub(crate) fn check_points(&self) -> Result<usize> {
+        check_points(self.points, "points")
+    }
+
+    /// The optional input `which` (named `arg`), required with `cols` columns (any
+    /// number for `None`) and `n` rows, in the points' dtype and device.
+    ///
+    /// # Errors
+    /// Naming `arg` when it is missing or of another shape, dtype or device.
+    pub(crate) fn required(
+        &self,
+        which: Option<&'a Tensor>,
+        arg: &'static str,
+        cols: Option<usize>,
+        reader: &str,
+    ) -> Result<&'a Tensor> {
+        let n = self.check_points()?;
+        let t = which.ok_or_else(|| {
+            Error::invalid(
+                arg,
+                format!(
+                    "[N, {}] (read by {reader})",
+                    cols.map_or("K".into(), |c| c.to_string())
+                ),
+                "none",
+            )
+        })?;
+        check_same(t, arg, self.points, "points")?;
+        let col = match cols {
+            Some(c) => Dim::Is(c),
+            None => Dim::Any("K"),
+        };
+        check_shape(t, arg, &[Dim::Is(n), col])?;
+        Ok(t)
+    }
+}
+
+/// A colour field over surface points: [`TextureInput`] → RGB `[N, 3]` in `[0, 1]`.
+///
+/// Implementations document which inputs they read, and return an error naming an input
+/// they read but did not get. The output is differentiable w.r.t. the field's parameters
+/// and every input it reads (so a photometric loss reaches the surface points, normals,
+/// features and codes).
+pub trait TextureField {
+    /// RGB `[N, 3]` in `[0, 1]` at `input.points`, in their dtype and device.
+    ///
+    /// # Errors
+    /// Missing or mis-shaped inputs (naming them); errors of the computation.
+    fn rgb(&self, input: &TextureInput) -> Result<Tensor>;
+}
+
+/// Vertex colours for a mesh: `texture` evaluated at the mesh's vertices in chunks of
+/// `chunk` points, without graph, as `[V][3]` in `[0, 1]` (for
+/// `Mesh::with_colors`, whose PLY writer stores them as `uchar`
+/// red/green/blue that MeshLab and Blender show).
+///
+/// `inputs` builds the texture's inputs for a chunk of vertices `[n, 3]` (in `dtype` on
+/// `device`) and returns the colours `[n, 3]`; for example
+/// `|p| net.rgb(&TextureInput::new(p))`, or, for a field that reads normals and view
+/// directions, the geometry's normals at `p` and the view directions `−n` (the surface
+/// seen head-on).
+///
+/// # Errors
+/// `chunk` 0; a closure result that is not `[n, 3]` or has non-finite values (naming
+/// `colors`); errors of the closure.
+#[cfg(feature = "occupancy")]
+pub fn vertex_colors(
+    mesh: &crate::occupancy::Mesh,
+    chunk: usize,
+    device: &candle_core::Device,
+    dtype: candle_core::DType,
+    mut inputs: impl FnMut(&Tensor) -> Result<Tensor>,
+) -> Result<Vec<[f64; 3]>> {
+    if chunk == 0 {
+        return Err(Error::invalid("chunk", "at least 1", "0"));
+    }
+    crate::error::check_dtype(dtype)?;
+    let mut colors = Vec::with_capacity(mesh.vertices.len());
+    for part in mesh.vertices.chunks(chunk) {
+        let p = crate::occupancy::points_tensor(part, device, dtype)?;
+        let c = inputs(&p)?.detach();
+        check_shape(&c, "colors", &[Dim::Is(part.len()), Dim::Is(3)])?;
+        let rows = c.to_dtype(candle_core::DType::F64)?.to_vec2::<f64>()?;
+        for row in rows {
+            if row.iter().any(|v| !v.is_finite()) {
+                return Err(Error::invalid("colors", "finite values", "NaN or infinity"));
+            }
+            colors.push([
+                row[0].clamp(0.0, 1.0),
+                row[1].clamp(0.0, 1.0),
+                row[2].clamp(0.0, 1.0),
+            ]);
+        }
+    }
+    Ok(colors)
+}
