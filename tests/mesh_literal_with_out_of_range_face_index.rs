@@ -26,6 +26,7 @@ fn mesh_literal_with_out_of_range_face_index_is_an_error_not_a_panic() {
         vertices: vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
         faces: vec![[0, 1, 2], [0, 2, 7]],
         normals: None,
+        colors: None,
     };
     names_mesh(mesh.face_areas());
     names_mesh(mesh.face_normals());

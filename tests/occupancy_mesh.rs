@@ -365,3 +365,274 @@ fn utf16_obj_is_refused_naming_the_encoding() {
         1
     );
 }
+
+type TestResult = Result<(), Box<dyn std::error::Error>>;
+
+/// The header of PLY bytes, up to and including `end_header`.
+fn ply_header(bytes: &[u8]) -> Result<String, Box<dyn std::error::Error>> {
+    let end = bytes
+        .windows(b"end_header\n".len())
+        .position(|w| w == b"end_header\n")
+        .ok_or("no end_header")?;
+    Ok(String::from_utf8(
+        bytes[..end + b"end_header\n".len()].to_vec(),
+    )?)
+}
+
+/// The sphere with a colour per vertex from its position, and the extremes 0 and 1 on
+/// the first vertices.
+fn coloured_sphere() -> Result<Mesh, neural_fields::Error> {
+    let m = sphere_mesh();
+    let mut colors: Vec<[f64; 3]> = m
+        .vertices
+        .iter()
+        .map(|p| [p[0] + 0.5, p[1] + 0.5, p[2] + 0.5])
+        .collect();
+    colors[0] = [0.0, 1.0, 0.5];
+    colors[1] = [1.0, 1.0, 1.0];
+    colors[2] = [0.0, 0.0, 0.0];
+    colors[3] = [0.5 / 255.0, 254.5 / 255.0, 1.0 / 3.0];
+    m.with_colors(colors)
+}
+
+/// `back` is `m` written through PLY: vertices (and normals) exact to f32 (the ASCII
+/// text is the shortest decimal that reads back as the same f32), the same faces,
+/// colours within half a step of 1/255.
+fn same_through_ply(m: &Mesh, back: &Mesh) -> TestResult {
+    let f32s = |p: &[f64; 3]| p.map(|c| c as f32);
+    assert_eq!(back.faces, m.faces);
+    assert_eq!(back.vertices.len(), m.vertices.len());
+    for (p, q) in m.vertices.iter().zip(&back.vertices) {
+        assert_eq!(f32s(p), f32s(q));
+    }
+    assert_eq!(back.normals.is_some(), m.normals.is_some());
+    if let (Some(a), Some(b)) = (&m.normals, &back.normals) {
+        for (p, q) in a.iter().zip(b) {
+            assert_eq!(f32s(p), f32s(q));
+        }
+    }
+    let (a, b) = (
+        m.colors.as_ref().ok_or("input without colours")?,
+        back.colors.as_ref().ok_or("colours lost")?,
+    );
+    assert_eq!(a.len(), b.len());
+    for (p, q) in a.iter().zip(b) {
+        for c in 0..3 {
+            assert!((p[c] - q[c]).abs() <= 0.5 / 255.0 + 1e-12, "{p:?} {q:?}");
+            assert_eq!(
+                (q[c] * 255.0).round() / 255.0,
+                q[c],
+                "not a multiple of 1/255"
+            );
+        }
+    }
+    Ok(())
+}
+
+#[test]
+fn coloured_mesh_round_trips_through_ascii_and_binary_ply_and_files() -> TestResult {
+    let mut m = coloured_sphere()?;
+    let dir = std::env::temp_dir().join(format!("nf_mesh_colors_{}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+    for with_normals in [false, true] {
+        if with_normals {
+            m.normals = Some(m.vertex_normals()?);
+        }
+        for fmt in [MeshFormat::PlyAscii, MeshFormat::PlyBinary] {
+            let bytes = m.to_bytes(fmt)?;
+            let header = ply_header(&bytes)?;
+            let after = if with_normals { "nz" } else { "z" };
+            assert!(
+                header.contains(&format!(
+                    "property float {after}\nproperty uchar red\nproperty uchar green\n\
+                     property uchar blue\nelement face"
+                )),
+                "{header}"
+            );
+            same_through_ply(&m, &Mesh::from_bytes(&bytes, fmt)?)?;
+        }
+        let p = dir.join(format!("colored_{with_normals}.ply"));
+        m.save(&p)?;
+        same_through_ply(&m, &Mesh::load(&p)?)?;
+        // OBJ has no standard for colours: they are dropped, the rest is kept.
+        let obj = Mesh::from_bytes(&m.to_bytes(MeshFormat::Obj)?, MeshFormat::Obj)?;
+        assert_eq!((obj.faces == m.faces, obj.colors), (true, None));
+    }
+    std::fs::remove_dir_all(&dir)?;
+    Ok(())
+}
+
+#[test]
+fn mesh_without_colours_writes_no_colour_properties() -> TestResult {
+    let mut m = sphere_mesh();
+    for with_normals in [false, true] {
+        if with_normals {
+            m.normals = Some(m.vertex_normals()?);
+        }
+        for fmt in [MeshFormat::PlyAscii, MeshFormat::PlyBinary] {
+            let bytes = m.to_bytes(fmt)?;
+            let header = ply_header(&bytes)?;
+            for word in ["red", "green", "blue", "uchar red"] {
+                assert!(!header.contains(word), "{word:?} in {header}");
+            }
+            assert_eq!(Mesh::from_bytes(&bytes, fmt)?.colors, None);
+        }
+    }
+    Ok(())
+}
+
+/// A one-triangle ASCII PLY with the vertex properties `x y z` then `props`, each vertex
+/// row `x y z` then the row of `values`.
+fn ascii_ply_with(props: &str, values: [&str; 3]) -> String {
+    let mut s = format!(
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n\
+         property float z\n{props}element face 1\nproperty list uchar int vertex_indices\n\
+         end_header\n"
+    );
+    for (p, v) in ["0 0 0", "1 0 0", "0 1 0"].iter().zip(values) {
+        s.push_str(&format!("{p} {v}\n"));
+    }
+    s.push_str("3 0 1 2\n");
+    s
+}
+
+#[test]
+fn ascii_ply_uchar_colours_load_divided_by_255_and_alpha_is_ignored() -> TestResult {
+    let props = "property uchar red\nproperty uchar green\nproperty uchar blue\n\
+                 property uchar alpha\n";
+    let text = ascii_ply_with(props, ["255 0 0 128", "0 128 255 7", "10 20 30 255"]);
+    let m = Mesh::from_bytes(text.as_bytes(), MeshFormat::PlyAscii)?;
+    let expected: Vec<[f64; 3]> = [[255.0, 0.0, 0.0], [0.0, 128.0, 255.0], [10.0, 20.0, 30.0]]
+        .iter()
+        .map(|c| c.map(|x| x / 255.0))
+        .collect();
+    assert_eq!(m.colors, Some(expected));
+    assert_eq!(m.faces, vec![[0, 1, 2]]);
+    // Alpha before the colours is skipped too.
+    let props = "property uchar alpha\nproperty uchar red\nproperty uchar green\n\
+                 property uchar blue\n";
+    let text = ascii_ply_with(props, ["9 255 255 255", "9 0 0 0", "9 51 51 51"]);
+    let m = Mesh::from_bytes(text.as_bytes(), MeshFormat::PlyAscii)?;
+    assert_eq!(m.colors, Some(vec![[1.0; 3], [0.0; 3], [51.0 / 255.0; 3]]));
+    // Only some of red, green and blue: no colours, the mesh still loads.
+    let text = ascii_ply_with(
+        "property uchar red\nproperty uchar green\n",
+        ["1 2", "3 4", "5 6"],
+    );
+    let m = Mesh::from_bytes(text.as_bytes(), MeshFormat::PlyAscii)?;
+    assert_eq!((m.colors, m.faces.len()), (None, 1));
+    // Other integer types are divided by their largest value.
+    let text = ascii_ply_with(
+        "property ushort red\nproperty ushort green\nproperty ushort blue\n",
+        ["65535 0 0", "0 65535 0", "0 0 65535"],
+    );
+    let m = Mesh::from_bytes(text.as_bytes(), MeshFormat::PlyAscii)?;
+    assert_eq!(
+        m.colors,
+        Some(vec![[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    );
+    Ok(())
+}
+
+#[test]
+fn ascii_ply_float_colours_load_as_they_are() -> TestResult {
+    let props = "property float red\nproperty float green\nproperty float blue\n";
+    let text = ascii_ply_with(props, ["0.25 0.5 1", "0 0.75 0.125", "1 1 0"]);
+    let m = Mesh::from_bytes(text.as_bytes(), MeshFormat::PlyAscii)?;
+    assert_eq!(
+        m.colors,
+        Some(vec![[0.25, 0.5, 1.0], [0.0, 0.75, 0.125], [1.0, 1.0, 0.0]])
+    );
+    // Out of [0, 1]: an error naming colors, the vertex and its line.
+    for bad in ["0 0.75 1.5", "0 -0.25 0.5", "0 nan 0.5"] {
+        let text = ascii_ply_with(props, ["0.25 0.5 1", bad, "1 1 0"]);
+        let e = match Mesh::from_bytes(text.as_bytes(), MeshFormat::PlyAscii) {
+            Ok(m) => return Err(format!("{bad:?} loaded as {:?}", m.colors).into()),
+            Err(e) => e.to_string(),
+        };
+        assert!(
+            e.contains("colors") && e.contains("vertex 1") && e.contains("line 14"),
+            "{e}"
+        );
+    }
+    Ok(())
+}
+
+#[test]
+fn bad_colours_are_rejected_naming_colors() -> TestResult {
+    let tri = Mesh::new(
+        vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
+        vec![[0, 1, 2]],
+    )?;
+    let good = [[0.0, 0.5, 1.0]; 3];
+    assert_eq!(
+        tri.clone().with_colors(good.to_vec())?.colors,
+        Some(good.to_vec())
+    );
+    let cases: Vec<(Vec<[f64; 3]>, &str)> = vec![
+        (vec![[0.0, f64::NAN, 0.0]; 3], "NaN"),
+        (vec![[0.0, 0.5, -0.1]; 3], "-0.1"),
+        (vec![[1.5, 0.5, 0.0]; 3], "1.5"),
+        (vec![[0.0, f64::INFINITY, 0.0]; 3], "inf"),
+        (vec![[0.5; 3]; 2], "2 colors for 3 vertices"),
+        (vec![[0.5; 3]; 4], "4 colors for 3 vertices"),
+    ];
+    for (colors, needle) in cases {
+        let literal = Mesh {
+            colors: Some(colors.clone()),
+            ..tri.clone()
+        };
+        for r in [
+            tri.clone().with_colors(colors).map(|_| ()),
+            literal.validate(),
+        ] {
+            let e = match r {
+                Ok(()) => return Err(format!("{needle:?}: accepted").into()),
+                Err(e) => e.to_string(),
+            };
+            assert!(
+                e.contains("colors") && e.contains(needle),
+                "{needle:?} in {e}"
+            );
+        }
+        // Writers validate first.
+        assert!(literal.to_bytes(MeshFormat::PlyBinary).is_err());
+    }
+    Ok(())
+}
+
+#[test]
+fn binary_ply_double_colours_load_and_out_of_range_names_the_byte() -> TestResult {
+    let header = "ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\n\
+                  property float y\nproperty float z\nproperty double red\n\
+                  property double green\nproperty double blue\nelement face 1\n\
+                  property list uchar int vertex_indices\nend_header\n";
+    let file = |colors: [[f64; 3]; 3]| {
+        let mut b = header.as_bytes().to_vec();
+        for (v, c) in [[0.0f32, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+            .iter()
+            .zip(colors)
+        {
+            v.iter().for_each(|x| b.extend_from_slice(&x.to_le_bytes()));
+            c.iter().for_each(|x| b.extend_from_slice(&x.to_le_bytes()));
+        }
+        b.push(3);
+        (0..3i32).for_each(|k| b.extend_from_slice(&k.to_le_bytes()));
+        b
+    };
+    let good = [[0.1, 0.2, 0.3], [1.0, 0.0, 0.5], [0.0, 1.0, 1.0 / 3.0]];
+    let m = Mesh::from_bytes(&file(good), MeshFormat::PlyBinary)?;
+    assert_eq!(m.colors, Some(good.to_vec()));
+    let bad = [good[0], [1.0, 1.0 + 1e-9, 0.5], good[2]];
+    let e = match Mesh::from_bytes(&file(bad), MeshFormat::PlyBinary) {
+        Ok(m) => return Err(format!("loaded as {:?}", m.colors).into()),
+        Err(e) => e.to_string(),
+    };
+    // Vertex 1 starts one 36-byte row after the header.
+    let at = format!("byte {}", header.len() + 36);
+    assert!(
+        e.contains("colors") && e.contains("vertex 1") && e.contains(&at),
+        "{e}"
+    );
+    Ok(())
+}

@@ -598,6 +598,7 @@ pub fn marching_cubes(grid: &Grid, level: f64, inside: Inside) -> Result<Mesh> {
         vertices,
         faces: faces.concat(),
         normals: None,
+        colors: None,
     })
 }
 

@@ -9,7 +9,8 @@
 //! `assimp-utils`) imports the binary PLY written by `examples/fit_occupancy.rs`
 //! (15 454 vertices, 30 896 triangles) and by `examples/quickstart.rs`; the format is the
 //! plain `float x y z` + `list uchar int vertex_indices` layout that MeshLab, Blender and
-//! trimesh read. The tests read every format back.
+//! trimesh read, with `uchar red green blue` vertex colours when the mesh has them. The
+//! tests read every format back.
 
 use crate::error::{Error, Result};
 use crate::rng::SplitMix64;
@@ -18,7 +19,7 @@ use std::collections::HashMap;
 use std::path::Path;
 
 /// A triangle mesh: vertex positions, triangles as vertex indices, optional per-vertex
-/// normals (one per vertex when present).
+/// normals and colours (one per vertex when present).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Mesh {
     /// Vertex positions `[V][3]`.
@@ -27,6 +28,9 @@ pub struct Mesh {
     pub faces: Vec<[u32; 3]>,
     /// Optional per-vertex normals `[V][3]`.
     pub normals: Option<Vec<[f64; 3]>>,
+    /// Optional per-vertex colours `[V][3]`: RGB components in `[0, 1]`, the values PLY
+    /// stores as `uchar red green blue` divided by 255.
+    pub colors: Option<Vec<[f64; 3]>>,
 }
 
 /// Surface samples: points `[n][3]` and the unit normals of their faces `[n][3]`.
@@ -71,7 +75,7 @@ fn file_err(what: &'static str, expected: impl Into<String>, got: impl Into<Stri
 }
 
 impl Mesh {
-    /// A validated mesh from vertices and triangles (no normals).
+    /// A validated mesh from vertices and triangles (no normals, no colours).
     ///
     /// # Errors
     /// See [`Mesh::validate`].
@@ -80,16 +84,41 @@ impl Mesh {
             vertices,
             faces,
             normals: None,
+            colors: None,
         };
         m.validate()?;
         Ok(m)
     }
 
-    /// Checks the mesh: at least one vertex and one face, every face index `< V`, every
-    /// coordinate (and normal component) finite, normals (if any) one per vertex.
+    /// The mesh with per-vertex colours `colors` (RGB, each component in `[0, 1]`),
+    /// validated.
+    ///
+    /// ```
+    /// use neural_fields::occupancy::Mesh;
+    ///
+    /// let tri = Mesh::new(vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], vec![[0, 1, 2]])?
+    ///     .with_colors(vec![[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])?;
+    /// assert_eq!(tri.colors.as_ref().map(Vec::len), Some(3));
+    /// assert!(tri.clone().with_colors(vec![[2.0, 0.0, 0.0]; 3]).is_err());
+    /// # Ok::<(), neural_fields::Error>(())
+    /// ```
     ///
     /// # Errors
-    /// [`Error::InvalidArgument`] naming `mesh` and the first offending face or vertex.
+    /// See [`Mesh::validate`]: a colour count other than the vertex count, or a component
+    /// that is not finite or lies outside `[0, 1]` (naming `colors`).
+    pub fn with_colors(mut self, colors: Vec<[f64; 3]>) -> Result<Self> {
+        self.colors = Some(colors);
+        self.validate()?;
+        Ok(self)
+    }
+
+    /// Checks the mesh: at least one vertex and one face, every face index `< V`, every
+    /// coordinate (and normal component) finite, normals (if any) one per vertex, colours
+    /// (if any) one per vertex with every component finite and in `[0, 1]`.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `mesh` and the first offending face, vertex,
+    /// normal or colour (`colors[i]`).
     pub fn validate(&self) -> Result<()> {
         if self.vertices.is_empty() || self.faces.is_empty() {
             return Err(mesh_err(
@@ -122,6 +151,21 @@ impl Mesh {
                 return Err(mesh_err(
                     "finite normals",
                     format!("normal {i} = {:?}", n[i]),
+                ));
+            }
+        }
+        if let Some(col) = &self.colors {
+            if col.len() != nv {
+                return Err(mesh_err(
+                    "one entry of colors per vertex",
+                    format!("{} colors for {nv} vertices", col.len()),
+                ));
+            }
+            let in_unit = |c: &f64| (0.0..=1.0).contains(c); // false for NaN
+            if let Some(i) = col.iter().position(|v| !v.iter().all(in_unit)) {
+                return Err(mesh_err(
+                    "colors with finite components in [0, 1]",
+                    format!("colors[{i}] = {:?}", col[i]),
                 ));
             }
         }
@@ -250,8 +294,8 @@ impl Mesh {
 
     /// ONet's normalisation: translate the bounding-box centre to the origin and scale
     /// uniformly so that the longest side of the box is `1`, i.e. the mesh fits in
-    /// `[−½, ½]³`. Normals are unchanged (uniform scale). Returns `(centre, scale)` with
-    /// `p_new = (p − centre)·scale`.
+    /// `[−½, ½]³`. Normals (uniform scale) and colours are unchanged. Returns
+    /// `(centre, scale)` with `p_new = (p − centre)·scale`.
     ///
     /// # Errors
     /// An invalid mesh, or all vertices at one point.
@@ -417,9 +461,12 @@ impl Mesh {
     ///
     /// - PLY: `element vertex` with `float x, y, z` (and `nx, ny, nz` when normals are
     ///   present; coordinates are written as 32-bit floats, the common convention read
-    ///   by every tool), `element face` with `list uchar int vertex_indices`.
+    ///   by every tool), then `uchar red, green, blue` when colours are present (each
+    ///   `round(c · 255)`, the vertex colours MeshLab and Blender read), `element face`
+    ///   with `list uchar int vertex_indices`.
     /// - OBJ: `v x y z`, `vn` lines when normals are present, and 1-based `f a b c` (or
-    ///   `f a//a b//b c//c` with normals).
+    ///   `f a//a b//b c//c` with normals). Colours are not written: OBJ has no standard
+    ///   for them, so [`Mesh::colors`] is dropped.
     ///
     /// ```
     /// use neural_fields::occupancy::{Mesh, MeshFormat};
@@ -445,9 +492,10 @@ impl Mesh {
     /// Parses a mesh file's bytes in `format` (PLY in any encoding, or OBJ).
     ///
     /// - PLY (ASCII, binary little- or big-endian): reads `element vertex` (`x, y, z`,
-    ///   optional `nx, ny, nz`; any other properties are skipped) and `element face` (a
-    ///   list property named `vertex_indices` or `vertex_index`, any count and index
-    ///   types). Other elements are skipped. Polygons with more than three vertices are
+    ///   optional `nx, ny, nz`, optional colours `red, green, blue` when all three are
+    ///   present; any other properties, `alpha` among them, are skipped) and
+    ///   `element face` (a list property named `vertex_indices` or `vertex_index`, any
+    ///   count and index types). Other elements are skipped. Polygons with more than three vertices are
     ///   triangulated as fans `(0, i, i+1)`.
     /// - OBJ: `v` (extra components such as `w` or colours ignored), `vn`, and `f` with
     ///   `a`, `a/b`, `a//c` or `a/b/c` references, 1-based or negative (relative).
@@ -457,10 +505,15 @@ impl Mesh {
     ///   [`Mesh::to_bytes`] writes them); otherwise they are dropped. Invalid UTF-8 is
     ///   replaced; UTF-16 text is refused with an error naming the encoding.
     ///
+    /// PLY colours: `uchar` values are divided by 255, other unsigned and signed integer
+    /// types by their largest value (`ushort` by 65 535), and `float`/`double` values are
+    /// taken as they are (already in `[0, 1]`).
+    ///
     /// # Errors
     /// A malformed header or body, naming the line (ASCII and header) or the byte offset
     /// (binary) where it went wrong; a truncated file; faces with fewer than 3 vertices;
-    /// malformed numbers or references; then [`Mesh::validate`].
+    /// malformed numbers or references; a PLY colour outside `[0, 1]` after that scaling
+    /// (naming `colors`, the vertex and the line or byte offset); then [`Mesh::validate`].
     pub fn from_bytes(bytes: &[u8], format: MeshFormat) -> Result<Self> {
         match format {
             MeshFormat::PlyAscii | MeshFormat::PlyBinary => Self::from_ply(bytes),
@@ -475,6 +528,7 @@ impl Mesh {
     fn to_ply(&self, binary: bool) -> Result<Vec<u8>> {
         self.validate()?;
         let has_n = self.normals.is_some();
+        let has_c = self.colors.is_some();
         let mut out = Vec::new();
         let fmt = if binary {
             "binary_little_endian"
@@ -488,6 +542,9 @@ impl Mesh {
         if has_n {
             header.push_str("property float nx\nproperty float ny\nproperty float nz\n");
         }
+        if has_c {
+            header.push_str("property uchar red\nproperty uchar green\nproperty uchar blue\n");
+        }
         header.push_str(&format!(
             "element face {}\nproperty list uchar int vertex_indices\nend_header\n",
             self.faces.len()
@@ -495,6 +552,7 @@ impl Mesh {
         out.extend_from_slice(header.as_bytes());
         let empty = Vec::new();
         let normals = self.normals.as_ref().unwrap_or(&empty);
+        let colors = self.colors.as_ref().unwrap_or(&empty);
         if !binary {
             {
                 let mut s = String::new();
@@ -503,6 +561,10 @@ impl Mesh {
                     if has_n {
                         let n = normals[i];
                         s.push_str(&format!(" {} {} {}", n[0] as f32, n[1] as f32, n[2] as f32));
+                    }
+                    if has_c {
+                        let [r, g, b] = colors[i].map(color_to_u8);
+                        s.push_str(&format!(" {r} {g} {b}"));
                     }
                     s.push('\n');
                 }
@@ -522,6 +584,9 @@ impl Mesh {
                             out.extend_from_slice(&(c as f32).to_le_bytes());
                         }
                     }
+                    if has_c {
+                        out.extend_from_slice(&colors[i].map(color_to_u8));
+                    }
                 }
                 for f in &self.faces {
                     out.push(3);
@@ -539,6 +604,7 @@ impl Mesh {
         let header = parse_ply_header(bytes)?;
         let mut mesh = Mesh::default();
         let mut normals = Vec::new();
+        let mut colors = Vec::new();
         let mut src = PlySource::new(bytes, &header);
         for el in &header.elements {
             let is_vertex = el.name == "vertex";
@@ -546,6 +612,12 @@ impl Mesh {
             let idx = |n: &str| el.props.iter().position(|p| p.name == n);
             let (xi, yi, zi) = (idx("x"), idx("y"), idx("z"));
             let (nxi, nyi, nzi) = (idx("nx"), idx("ny"), idx("nz"));
+            // Colours only when all three channels are scalar properties.
+            let scalar = |n: &str| idx(n).filter(|&i| el.props[i].list.is_none());
+            let rgb = match (scalar("red"), scalar("green"), scalar("blue")) {
+                (Some(r), Some(g), Some(b)) => Some([r, g, b]),
+                _ => None,
+            };
             if is_vertex && (xi.is_none() || yi.is_none() || zi.is_none()) {
                 return Err(file_err(
                     "ply",
@@ -572,6 +644,7 @@ impl Mesh {
             src.check_room(el)?;
             for row in 0..el.count {
                 src.begin_row()?;
+                let row_start = src.pos;
                 let mut scalars = vec![0.0f64; el.props.len()];
                 let mut list: Vec<i64> = Vec::new();
                 for (pi, p) in el.props.iter().enumerate() {
@@ -604,6 +677,22 @@ impl Mesh {
                     if let (Some(a), Some(b), Some(c)) = (nxi, nyi, nzi) {
                         normals.push([scalars[a], scalars[b], scalars[c]]);
                     }
+                    if let Some(ch) = rgb {
+                        let c = ch.map(|k| scalars[k] / el.props[k].ty.color_scale());
+                        if !c.iter().all(|x| (0.0..=1.0).contains(x)) {
+                            let raw = ch.map(|k| scalars[k]);
+                            return Err(file_err(
+                                "ply",
+                                "vertex colors (red, green, blue) in [0, 1] once scaled \
+                                 (integers by their type's largest value, floats as they are)",
+                                format!(
+                                    "{}: vertex {row}: red, green, blue = {raw:?} → colors {c:?}",
+                                    src.row_position(row_start)
+                                ),
+                            ));
+                        }
+                        colors.push(c);
+                    }
                 } else if is_face {
                     push_polygon(&mut mesh.faces, &list).map_err(|got| {
                         file_err(
@@ -618,6 +707,9 @@ impl Mesh {
         src.finish()?;
         if !normals.is_empty() {
             mesh.normals = Some(normals);
+        }
+        if !colors.is_empty() {
+            mesh.colors = Some(colors);
         }
         mesh.validate()?;
         Ok(mesh)
@@ -760,6 +852,12 @@ fn extension(path: &Path) -> String {
         .unwrap_or_default()
 }
 
+/// A colour component in `[0, 1]` as a PLY `uchar`: `round(c · 255)`, clamped to `0..=255`.
+fn color_to_u8(c: f64) -> u8 {
+    // The clamp keeps the value in 0..=255, so the cast neither wraps nor saturates.
+    (c * 255.0).round().clamp(0.0, 255.0) as u8
+}
+
 /// 1-based (or negative, relative) OBJ index → 0-based.
 fn resolve_obj_index(t: &str, count: usize) -> std::result::Result<i64, String> {
     let i: i64 = t.parse().map_err(|_| format!("{t:?} is not an integer"))?;
@@ -815,6 +913,19 @@ impl PlyTy {
             "double" | "float64" => Self::F64,
             _ => return None,
         })
+    }
+    /// The divisor that maps a colour stored in this type to `[0, 1]`: the type's largest
+    /// value for integers, `1` for floats (already in `[0, 1]`).
+    fn color_scale(self) -> f64 {
+        match self {
+            Self::I8 => f64::from(i8::MAX),
+            Self::U8 => f64::from(u8::MAX),
+            Self::I16 => f64::from(i16::MAX),
+            Self::U16 => f64::from(u16::MAX),
+            Self::I32 => f64::from(i32::MAX),
+            Self::U32 => f64::from(u32::MAX),
+            Self::F32 | Self::F64 => 1.0,
+        }
     }
     fn size(self) -> usize {
         match self {
@@ -992,6 +1103,15 @@ impl<'a> PlySource<'a> {
         match self.enc {
             PlyEncoding::Ascii => format!("line {}", self.line),
             _ => format!("byte {}", self.pos),
+        }
+    }
+
+    /// The position of the row that began at byte `row_start` (binary) or on the current
+    /// line (ASCII).
+    fn row_position(&self, row_start: usize) -> String {
+        match self.enc {
+            PlyEncoding::Ascii => format!("line {}", self.line),
+            _ => format!("byte {row_start}"),
         }
     }
 
