@@ -177,7 +177,7 @@ pub trait TextureField {
 
 /// Vertex colours for a mesh: `texture` evaluated at the mesh's vertices in chunks of
 /// `chunk` points, without graph, as `[V][3]` in `[0, 1]` (for
-/// `Mesh::with_colors`, whose PLY writer stores them as `uchar`
+/// [`crate::occupancy::Mesh::with_colors`], whose PLY writer stores them as `uchar`
 /// red/green/blue that MeshLab and Blender show).
 ///
 /// `inputs` builds the texture's inputs for a chunk of vertices `[n, 3]` (in `dtype` on

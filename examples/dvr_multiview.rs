@@ -1,0 +1,944 @@
+//! 3-D reconstruction from multi-view images: shape and colour of an object from its RGBA
+//! (or image + mask) views, by surface rendering with implicit gradients (DVR, IDR).
+//!
+//! ```text
+//! cargo run --release --example dvr_multiview                          # the committed dataset, DVR, 15 minutes
+//! cargo run --release --example dvr_multiview -- --model idr --minutes 15 --out out/idr
+//! cargo run --release --example dvr_multiview -- --data DIR --steps 2000 --seed 3
+//! ```
+//!
+//! **Data.** `--data DIR` is any dataset [`neural_fields::data::load`] reads whose views
+//! have masks (an alpha channel or mask files; default `examples/data/wuson`). The `train`
+//! split trains; the `test` split (the `val` split if there is none) is held out, its
+//! images composited on white. `--downscale K` divides the resolution by K.
+//!
+//! **One step** (DVR's, on `--rays` pixels drawn as 2 × 2 patches across the views):
+//! 1. march the rays through the scene box (64 samples + 8 secant steps; sphere tracing
+//!    for the IDR model), detached;
+//! 2. [`implicit_surface`] makes the hit points `p̂` differentiable w.r.t. the network;
+//! 3. the colour at `p̂`; losses:
+//!    - L1 photometric on rays that hit inside the mask, and DVR's image-gradient loss on
+//!      the patches that lie wholly there ([`image_gradient_loss`], weight 1);
+//!    - `--model dvr` ([`JointDecoder`]: one trunk, occupancy logit + colour): freespace
+//!      BCE at the (detached) hit of rays outside the mask or at a random point of those
+//!      that hit nothing, occupancy BCE at a random point of mask rays that hit nothing,
+//!      normal smoothness (weight 0.05) at the surface points;
+//!    - `--model idr` (an SDF [`Mlp`] with geometric initialisation and a feature output,
+//!      and IDR's [`RenderingNet`] reading the point, the view direction, the normal
+//!      `∇f(p̂)` and the feature, so the colour reaches the geometry through the normal):
+//!      IDR's mask loss on rays outside `hit ∧ mask` at the most-inside of 64 samples
+//!      (weight 100, α from 50 doubling at IDR's epochs 250…1250 of 2000, mapped to the
+//!      run's progress) and the eikonal loss (weight 0.1) at random points and at the
+//!      surface points.
+//!
+//! The geometry starts as a ball of radius 0.5 (DVR: 150 steps fitting its occupancy;
+//! IDR: the geometric initialisation), so that rays find a surface from the first step.
+//! Adam, learning rate decaying log-linearly from `--lr` (1e-3) to a tenth of it.
+//!
+//! **Output** in `--out DIR` (default `out/dvr_multiview`):
+//! - `metrics.json`: on the held-out views, `mask_iou` (predicted hits against the mask,
+//!   pooled over the views), `psnr_masked` (PSNR of the prediction on white, inside the
+//!   true mask, pooled), `chamfer_l1` (of the extracted mesh to the source mesh, both in the
+//!   source mesh's unit cube; `null` when the source mesh is not known), `train_seconds`,
+//!   `steps`, `model`, `eval_split`, `eval_views`, `data`;
+//! - `curve.csv`: `step,train_seconds,mask_iou,psnr_masked` every `--eval-every` steps
+//!   (on the first `--eval-views` held-out views);
+//! - `view_{i}.png` (truth | prediction | error) and `normals_{i}.png` for the first
+//!   `--pictures` held-out views;
+//! - `mesh.ply`: the surface extracted by MISE (32³ refined twice, 128³ at the surface),
+//!   with the texture's colours at its vertices (MeshLab and Blender show them);
+//! - `weights.safetensors`.
+//!
+//! The source mesh is `--mesh FILE` (in the dataset's world frame), or the mesh that the
+//! dataset's `scene.json` names (`mesh`, with its `normalisation.matrix`, as the committed
+//! dataset's render script writes it) when that file exists.
+//!
+//! A NaN or infinity in the loss, a gradient or a weight stops the run with an error naming
+//! the step and the tensor.
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{Optimizer, VarMap};
+use indicatif::{ProgressBar, ProgressStyle};
+use neural_fields::camera::{ray_aabb, Intersection, Rays};
+use neural_fields::data::{
+    colorize_normals, comparison_strip, load, psnr, write_png, Background, Dataset, LoadConfig,
+    RaySampler,
+};
+use neural_fields::dvr::{
+    eikonal_loss, idr_mask_loss, implicit_surface, march, most_inside_along_rays,
+    normal_smoothness_loss, photometric_loss, sphere_trace, AlphaSchedule, Hits, ImplicitConfig,
+    MarchConfig, Photometric, SphereTraceConfig, SurfacePoints,
+};
+use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
+use neural_fields::field::{ImplicitSurface, SignedDistance, Sphere};
+use neural_fields::nn::{
+    build_seeded, joint_decoder, mlp, rendering_net, JointDecoder, Mlp, MlpConfig, RenderingNet,
+    RenderingNetConfig,
+};
+use neural_fields::numerics::bce_with_logits;
+use neural_fields::occupancy::{mesh_metrics, mise, Mesh, MiseConfig};
+use neural_fields::rng::SplitMix64;
+use neural_fields::texture::{image_gradient_loss, vertex_colors, TextureField, TextureInput};
+use neural_fields::volume::log_linear_schedule;
+use neural_fields::{Error, Result};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+#[path = "common/mod.rs"]
+mod common;
+#[path = "common/training.rs"]
+mod training;
+
+#[global_allocator]
+static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+/// Rays per chunk when rendering whole views.
+const CHUNK: usize = 8192;
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Model {
+    Dvr,
+    Idr,
+}
+
+#[derive(Debug)]
+pub struct Args {
+    pub data: PathBuf,
+    pub minutes: Option<f64>,
+    pub steps: Option<usize>,
+    pub out: PathBuf,
+    pub seed: u64,
+    pub model: Model,
+    pub downscale: usize,
+    pub rays: usize,
+    pub aabb: f64,
+    pub eval_every: usize,
+    pub eval_views: usize,
+    pub pictures: usize,
+    pub lr: f64,
+    pub mesh: Option<PathBuf>,
+    pub mise_resolution: usize,
+}
+
+impl Default for Args {
+    /// The defaults of the command line.
+    fn default() -> Self {
+        Self {
+            data: PathBuf::from("examples/data/wuson"),
+            minutes: None,
+            steps: None,
+            out: PathBuf::from("out/dvr_multiview"),
+            seed: 0,
+            model: Model::Dvr,
+            downscale: 1,
+            rays: 1024,
+            aabb: 1.1,
+            eval_every: 500,
+            eval_views: 4,
+            pictures: 4,
+            lr: 1e-3,
+            mesh: None,
+            mise_resolution: 32,
+        }
+    }
+}
+
+const USAGE: &str = "usage: dvr_multiview [--data DIR] [--minutes M | --steps N] [--out DIR] \
+[--seed S] [--model dvr|idr] [--downscale K] [--rays N] [--aabb R] [--eval-every N] \
+[--eval-views N] [--pictures N] [--lr LR] [--mesh FILE] [--mise-resolution N]";
+
+fn parse_args() -> std::result::Result<Args, String> {
+    let mut a = Args::default();
+    let mut it = std::env::args().skip(1);
+    while let Some(flag) = it.next() {
+        if flag == "--help" || flag == "-h" {
+            return Err(USAGE.into());
+        }
+        let value = it.next().ok_or(format!("{flag} needs a value\n{USAGE}"))?;
+        let num = |v: &str| {
+            v.parse::<f64>()
+                .map_err(|_| format!("{flag}: not a number: {v}"))
+        };
+        let int = |v: &str| {
+            v.parse::<usize>()
+                .map_err(|_| format!("{flag}: not a count: {v}"))
+        };
+        match flag.as_str() {
+            "--data" => a.data = value.into(),
+            "--minutes" => a.minutes = Some(num(&value)?),
+            "--steps" => a.steps = Some(int(&value)?),
+            "--out" => a.out = value.into(),
+            "--seed" => {
+                a.seed = value
+                    .parse()
+                    .map_err(|_| format!("--seed: not a u64: {value}"))?
+            }
+            "--model" => {
+                a.model = match value.as_str() {
+                    "dvr" => Model::Dvr,
+                    "idr" => Model::Idr,
+                    other => return Err(format!("--model: dvr or idr, not {other}")),
+                }
+            }
+            "--downscale" => a.downscale = int(&value)?,
+            "--rays" => a.rays = int(&value)?,
+            "--aabb" => a.aabb = num(&value)?,
+            "--eval-every" => a.eval_every = int(&value)?,
+            "--eval-views" => a.eval_views = int(&value)?,
+            "--pictures" => a.pictures = int(&value)?,
+            "--lr" => a.lr = num(&value)?,
+            "--mesh" => a.mesh = Some(value.into()),
+            "--mise-resolution" => a.mise_resolution = int(&value)?,
+            other => return Err(format!("unknown flag {other}\n{USAGE}")),
+        }
+    }
+    if a.minutes.is_some() && a.steps.is_some() {
+        return Err("give --minutes or --steps, not both".into());
+    }
+    if a.minutes.is_none() && a.steps.is_none() {
+        a.minutes = Some(15.0);
+    }
+    if a.minutes.is_some_and(|m| !(m > 0.0 && m.is_finite())) {
+        return Err("--minutes must be positive".into());
+    }
+    if a.rays < 4 || a.eval_every == 0 || a.eval_views == 0 || a.mise_resolution < 2 {
+        return Err(
+            "--rays must be at least 4, --eval-every and --eval-views positive, \
+             --mise-resolution at least 2"
+                .into(),
+        );
+    }
+    if !(a.aabb > 0.0 && a.aabb.is_finite()) {
+        return Err("--aabb must be positive".into());
+    }
+    Ok(a)
+}
+
+/// The model: DVR's joint decoder, or IDR's SDF and rendering networks.
+enum Net {
+    Dvr(JointDecoder),
+    Idr { geometry: Mlp, render: RenderingNet },
+}
+
+/// Per-ray colours at the surface points, and (IDR) the SDF's gradient there.
+struct Shaded {
+    rgb: Tensor,
+    gradient: Option<Tensor>,
+}
+
+impl Net {
+    fn surface(&self) -> &dyn ImplicitSurface {
+        match self {
+            Net::Dvr(net) => net,
+            Net::Idr { geometry, .. } => geometry,
+        }
+    }
+
+    /// The first surface point on each ray, detached.
+    fn find_surface(&self, rays: &Rays, range: &Intersection) -> Result<Hits> {
+        let config = MarchConfig {
+            steps: 64,
+            secant_steps: 8,
+            ..MarchConfig::default()
+        };
+        match self {
+            Net::Dvr(net) => march(net, rays, range, &config),
+            Net::Idr { geometry, .. } => sphere_trace(
+                geometry,
+                rays,
+                range,
+                &SphereTraceConfig {
+                    fallback: config,
+                    ..SphereTraceConfig::default()
+                },
+            ),
+        }
+    }
+
+    /// The colour at `points: [H, 3]` seen along `dirs: [H, 3]`.
+    fn shade(&self, points: &Tensor, dirs: &Tensor) -> Result<Shaded> {
+        match self {
+            Net::Dvr(net) => Ok(Shaded {
+                rgb: net.rgb(&TextureInput::new(points))?,
+                gradient: None,
+            }),
+            Net::Idr { geometry, render } => {
+                let (y, jac) = geometry.forward_with_jacobian(points, None)?;
+                let k = y.dim(1)?;
+                let normal = jac.narrow(2, 0, 1)?.squeeze(2)?;
+                let feature = y.narrow(1, 1, k - 1)?;
+                let input = TextureInput::new(points)
+                    .normals(&normal)
+                    .view_dirs(dirs)
+                    .features(&feature);
+                Ok(Shaded {
+                    rgb: render.rgb(&input)?,
+                    gradient: Some(normal),
+                })
+            }
+        }
+    }
+}
+
+/// Builds the model of `args.model` in `varmap`.
+fn build(args: &Args, varmap: &VarMap, device: &Device, dtype: DType) -> Result<Net> {
+    let encoding = PointEncoding::Frequency(FrequencyEncoding::new(3, 4)?);
+    Ok(match args.model {
+        Model::Dvr => {
+            let config = MlpConfig {
+                hidden: 128,
+                depth: 5,
+                skips: vec![3],
+                encoding,
+                ..MlpConfig::default()
+            };
+            Net::Dvr(build_seeded(varmap, dtype, device, args.seed, |vb| {
+                joint_decoder(&config, vb.pp("decoder"))
+            })?)
+        }
+        Model::Idr => {
+            const FEATURES: usize = 32;
+            let config = MlpConfig {
+                hidden: 128,
+                depth: 5,
+                skips: vec![3],
+                out_dim: 1 + FEATURES,
+                encoding,
+                ..MlpConfig::sdf(0.5)
+            };
+            let geometry = build_seeded(varmap, dtype, device, args.seed, |vb| {
+                mlp(&config, vb.pp("geometry"))
+            })?;
+            let render_config = RenderingNetConfig {
+                feature_dim: FEATURES,
+                hidden: 64,
+                depth: 3,
+                ..RenderingNetConfig::default()
+            };
+            let render = build_seeded(varmap, dtype, device, args.seed + 1, |vb| {
+                rendering_net(&render_config, vb.pp("render"))
+            })?;
+            Net::Idr { geometry, render }
+        }
+    })
+}
+
+/// Rows `idx` of `t` (`idx` on the host).
+fn rows(t: &Tensor, idx: &[u32]) -> Result<Tensor> {
+    let i = Tensor::from_slice(idx, idx.len(), t.device())?;
+    Ok(t.index_select(&i, 0)?)
+}
+
+/// Rays `idx` of `rays` and their range.
+fn select(rays: &Rays, range: &Intersection, idx: &[u32]) -> Result<(Rays, Intersection)> {
+    Ok((
+        Rays::new(rows(rays.origins(), idx)?, rows(rays.directions(), idx)?)?,
+        Intersection {
+            near: rows(&range.near, idx)?,
+            far: rows(&range.far, idx)?,
+            hit: rows(&range.hit, idx)?,
+        },
+    ))
+}
+
+/// The error for a dataset whose view `name` has no mask.
+fn no_mask(name: &str) -> Error {
+    Error::InvalidArgument {
+        arg: "data",
+        expected: "views with masks (alpha or mask files)".into(),
+        got: format!("{name} without one"),
+    }
+}
+
+fn zero(device: &Device, dtype: DType) -> Result<Tensor> {
+    Ok(Tensor::zeros((), dtype, device)?)
+}
+
+/// The loss of one batch (see the module docs); `progress ∈ [0, 1)` drives IDR's α.
+fn step_loss(
+    net: &Net,
+    rays: &Rays,
+    colors: &Tensor,
+    mask: &[bool],
+    aabb: [f64; 6],
+    progress: f64,
+    seed: u64,
+) -> Result<(Tensor, Tensor)> {
+    let (device, dtype) = (colors.device().clone(), colors.dtype());
+    let n = rays.len();
+    let [x0, y0, z0, x1, y1, z1] = aabb;
+    let range = ray_aabb(rays, [x0, y0, z0], [x1, y1, z1])?;
+    let in_box: Vec<bool> = {
+        let (near, far) = (range.near.to_vec1::<f32>()?, range.far.to_vec1::<f32>()?);
+        let hit = range.hit.to_vec1::<u8>()?;
+        (0..n).map(|i| hit[i] != 0 && far[i] > near[i]).collect()
+    };
+    let hits = net.find_surface(rays, &range)?;
+    let surf: SurfacePoints =
+        implicit_surface(net.surface(), rays, &hits, &ImplicitConfig::default())?;
+    let hit_rays = surf.indices.to_vec1::<u32>()?;
+    let dirs = rays.directions().index_select(&surf.indices, 0)?;
+    let shaded = net.shade(&surf.points, &dirs)?;
+    // Photometric: rays that hit inside the mask.
+    let on: Vec<u32> = hit_rays
+        .iter()
+        .enumerate()
+        .filter(|(_, &r)| mask[r as usize])
+        .map(|(k, _)| k as u32)
+        .collect();
+    let mut photo = zero(&device, dtype)?;
+    if !on.is_empty() {
+        let on_rays: Vec<u32> = on.iter().map(|&k| hit_rays[k as usize]).collect();
+        photo = photometric_loss(
+            &rows(&shaded.rgb, &on)?,
+            &rows(colors, &on_rays)?,
+            None,
+            Photometric::L1,
+        )?;
+    }
+    // DVR's normalisation: every term is a sum over its rays divided by the batch size,
+    // so a term over few rays (the mask covers a tenth of the committed views) does not
+    // outweigh the others per ray.
+    let share = |count: usize| count as f64 / n as f64;
+    let photo_scale = share(on.len());
+    let mut loss = (&photo * photo_scale)?;
+    // DVR's image-gradient loss on the patches that hit inside the mask.
+    if !hit_rays.is_empty() {
+        let full =
+            Tensor::zeros((n, 3), dtype, &device)?.index_add(&surf.indices, &shaded.rgb, 0)?;
+        let mut valid = vec![0u8; n];
+        for &r in &hit_rays {
+            valid[r as usize] = u8::from(mask[r as usize]);
+        }
+        let valid = Tensor::from_vec(valid, n, &device)?;
+        let gradient = image_gradient_loss(&full, colors, Some(&valid), 2)?;
+        loss = (loss + (gradient * photo_scale)?)?;
+    }
+    let surface_hit: Vec<bool> = hits.status.iter().map(|s| s.has_surface()).collect();
+    match net {
+        Net::Dvr(decoder) => {
+            // DVR's freespace and occupancy losses, each at the most-occupied of 64 samples
+            // on the ray (where DVR takes the hit or one random point): a background ray
+            // pushes its most-occupied point out, which removes every floater on it, and
+            // a mask ray that found no surface pushes its most-occupied point in.
+            let (mut free, mut missed) = (Vec::new(), Vec::new());
+            for r in 0..n {
+                match (mask[r], surface_hit[r]) {
+                    (false, _) if in_box[r] => free.push(r as u32),
+                    (true, false) if in_box[r] => missed.push(r as u32),
+                    _ => {}
+                }
+            }
+            for (which, target) in [(&free, 0.0), (&missed, 1.0)] {
+                if which.is_empty() {
+                    continue;
+                }
+                let (sub, sub_range) = select(rays, &range, which)?;
+                let logits = most_inside_along_rays(decoder, &sub, &sub_range, 64)?;
+                let y = Tensor::full(target, which.len(), &device)?.to_dtype(dtype)?;
+                let bce = bce_with_logits(&logits, &y)?.mean_all()?;
+                loss = (loss + (bce * share(which.len()))?)?;
+            }
+            if !hit_rays.is_empty() {
+                let smooth =
+                    normal_smoothness_loss(decoder, &surf.points.detach(), 1e-3, seed ^ 2)?;
+                loss = (loss + (smooth * (0.05 * share(hit_rays.len())))?)?;
+            }
+        }
+        Net::Idr { geometry, .. } => {
+            // Mask loss on the rays outside hit ∧ mask.
+            let outside: Vec<u32> = (0..n)
+                .filter(|&r| in_box[r] && !(surface_hit[r] && mask[r]))
+                .map(|r| r as u32)
+                .collect();
+            if !outside.is_empty() {
+                let (sub, sub_range) = select(rays, &range, &outside)?;
+                let values = most_inside_along_rays(geometry, &sub, &sub_range, 64)?;
+                let target: Vec<f32> = outside
+                    .iter()
+                    .map(|&r| f32::from(u8::from(mask[r as usize])))
+                    .collect();
+                let target = Tensor::from_vec(target, outside.len(), &device)?.to_dtype(dtype)?;
+                let alpha = AlphaSchedule::default().alpha_at((progress * 2000.0) as usize);
+                let m = idr_mask_loss(&values, &target, geometry.inside(), alpha, n)?;
+                loss = (loss + (m * 100.0)?)?;
+            }
+            // Eikonal at random points of the box and at the surface points.
+            let mut rng = SplitMix64::new(seed ^ 3);
+            let p = rng.uniform_tensor(
+                &[n / 2, 3],
+                x0.min(y0).min(z0),
+                x1.max(y1).max(z1),
+                dtype,
+                &device,
+            )?;
+            let (_, g) = geometry.value_and_grad(&p)?;
+            let mut grads = vec![g];
+            if let Some(g) = shaded.gradient {
+                grads.push(g);
+            }
+            let eik = eikonal_loss(&Tensor::cat(&grads, 0)?)?;
+            loss = (loss + (eik * 0.1)?)?;
+        }
+    }
+    Ok((loss, photo))
+}
+
+/// A held-out view rendered whole without graph: colour on white `[H, W, 3]`, the hit
+/// mask `[H, W]` (1 = surface), normals `[H, W, 3]` (unit, 0 where nothing is hit).
+fn render_view(
+    net: &Net,
+    data: &Dataset,
+    v: usize,
+    aabb: [f64; 6],
+) -> Result<(Tensor, Tensor, Tensor)> {
+    let k = data.views()[v].camera().intrinsics();
+    let (w, h) = (k.width, k.height);
+    let [x0, y0, z0, x1, y1, z1] = aabb;
+    let (mut colors, mut masks, mut normals) = (Vec::new(), Vec::new(), Vec::new());
+    for start in (0..w * h).step_by(CHUNK) {
+        let len = CHUNK.min(w * h - start);
+        let batch = data.view_rays(v, start, len, &Device::Cpu, DType::F32)?;
+        let range = ray_aabb(&batch.rays, [x0, y0, z0], [x1, y1, z1])?;
+        let hits = net.find_surface(&batch.rays, &range)?;
+        let idx = Tensor::from_vec(
+            hits.surface_indices(),
+            hits.surface_indices().len(),
+            &Device::Cpu,
+        )?;
+        let mut rgb = Tensor::ones((len, 3), DType::F32, &Device::Cpu)?;
+        let mut nrm = Tensor::zeros((len, 3), DType::F32, &Device::Cpu)?;
+        if idx.dim(0)? > 0 {
+            let points = hits.points.index_select(&idx, 0)?;
+            let dirs = batch.rays.directions().index_select(&idx, 0)?;
+            let shaded = net.shade(&points, &dirs)?;
+            let (_, g) = net.surface().value_and_grad(&points)?;
+            let g = g.detach();
+            let unit = g.broadcast_div(
+                &g.sqr()?
+                    .sum_keepdim(1)?
+                    .sqrt()?
+                    .clamp(1e-12, f64::INFINITY)?,
+            )?;
+            // Outward normals: towards decreasing occupancy, increasing distance.
+            let unit = (unit * -net.surface().inside().sign())?;
+            let hit = Tensor::zeros((len, 3), DType::F32, &Device::Cpu)?;
+            let covered = hit.index_add(&idx, &Tensor::ones_like(&points)?, 0)?;
+            rgb = (covered.ne(0.0)?.where_cond(
+                &Tensor::zeros((len, 3), DType::F32, &Device::Cpu)?.index_add(
+                    &idx,
+                    &shaded.rgb.detach(),
+                    0,
+                )?,
+                &rgb,
+            ))?;
+            nrm = nrm.index_add(&idx, &unit, 0)?;
+        }
+        colors.push(rgb);
+        masks.push(hits.mask.to_dtype(DType::F32)?);
+        normals.push(nrm);
+    }
+    Ok((
+        Tensor::cat(&colors, 0)?.reshape((h, w, 3))?,
+        Tensor::cat(&masks, 0)?.reshape((h, w))?,
+        Tensor::cat(&normals, 0)?.reshape((h, w, 3))?,
+    ))
+}
+
+/// Mask IoU and masked PSNR pooled over the first `n` views of `eval`, and the renders
+/// `[truth, colour, normals]`.
+fn evaluate(
+    net: &Net,
+    eval: &Dataset,
+    n: usize,
+    aabb: [f64; 6],
+) -> Result<(f64, f64, Vec<[Tensor; 3]>)> {
+    let n = n.min(eval.len());
+    let (mut inter, mut union, mut se, mut count) = (0.0, 0.0, 0.0, 0.0);
+    let mut renders = Vec::new();
+    for v in 0..n {
+        let view = &eval.views()[v];
+        let truth = view.rgb([1.0; 3], &Device::Cpu, DType::F32)?;
+        let true_mask = view
+            .mask(&Device::Cpu, DType::F32)?
+            .ok_or_else(|| no_mask(view.name()))?
+            .ge(0.5)?
+            .to_dtype(DType::F32)?;
+        let (color, hit, normals) = render_view(net, eval, v, aabb)?;
+        let both = (&hit * &true_mask)?.sum_all()?.to_scalar::<f32>()?;
+        let either = (&hit + &true_mask)?
+            .clamp(0.0, 1.0)?
+            .sum_all()?
+            .to_scalar::<f32>()?;
+        inter += f64::from(both);
+        union += f64::from(either);
+        let pixels = true_mask.sum_all()?.to_scalar::<f32>()?;
+        if pixels > 0.0 {
+            let p = psnr(&color, &truth, Some(&true_mask))?;
+            // Pool the squared error: PSNR → MSE × pixels.
+            se += 10f64.powf(-p / 10.0) * f64::from(pixels) * 3.0;
+            count += f64::from(pixels) * 3.0;
+        }
+        renders.push([truth, color, normals]);
+    }
+    let iou = if union > 0.0 { inter / union } else { 1.0 };
+    let psnr_masked = if count > 0.0 {
+        -10.0 * (se / count).log10()
+    } else {
+        f64::NAN
+    };
+    Ok((iou, psnr_masked, renders))
+}
+
+/// The source mesh in the dataset's world frame: `--mesh`, or `scene.json`'s `mesh` with
+/// its `normalisation.matrix`; `None` when neither is there.
+fn source_mesh(args: &Args) -> Result<Option<Mesh>> {
+    if let Some(path) = &args.mesh {
+        return Ok(Some(Mesh::load(path)?));
+    }
+    let scene = args.data.join("scene.json");
+    let Ok(text) = std::fs::read_to_string(&scene) else {
+        return Ok(None);
+    };
+    let bad = |what: &str| Error::Format {
+        path: scene.display().to_string(),
+        field: what.to_string(),
+        expected: "the render script's scene description".into(),
+        got: "something else".into(),
+    };
+    let json: serde_json::Value = serde_json::from_str(&text).map_err(|_| bad("(JSON)"))?;
+    let Some(path) = json["mesh"].as_str() else {
+        return Ok(None);
+    };
+    if !Path::new(path).is_file() {
+        println!("source mesh {path} not found: no Chamfer distance");
+        return Ok(None);
+    }
+    let m: Vec<Vec<f64>> = serde_json::from_value(json["normalisation"]["matrix"].clone())
+        .map_err(|_| bad("normalisation.matrix"))?;
+    if m.len() < 3 || m.iter().take(3).any(|r| r.len() != 4) {
+        return Err(bad("normalisation.matrix"));
+    }
+    let mut mesh = Mesh::load(path)?;
+    for v in &mut mesh.vertices {
+        let p = *v;
+        *v = std::array::from_fn(|r| m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3]);
+    }
+    mesh.normals = None;
+    Ok(Some(mesh))
+}
+
+/// The surface by MISE with vertex colours.
+fn extract_mesh(net: &Net, aabb: [f64; 6], resolution0: usize) -> Result<Mesh> {
+    let (device, dtype) = (Device::Cpu, DType::F32);
+    let config = MiseConfig {
+        min: [aabb[0], aabb[1], aabb[2]],
+        max: [aabb[3], aabb[4], aabb[5]],
+        ..MiseConfig::new(resolution0, 2, &device, dtype)
+    };
+    let mesh = mise(net.surface(), &config)?.mesh;
+    if mesh.faces.is_empty() {
+        return Ok(mesh);
+    }
+    let colors = vertex_colors(&mesh, 16_384, &device, dtype, |p| {
+        // View the surface head-on: along the inward normal.
+        let (_, g) = net.surface().value_and_grad(p)?;
+        let g = g.detach();
+        let dirs = (g * net.surface().inside().sign())?;
+        Ok(net.shade(p, &dirs)?.rgb.detach())
+    })?;
+    mesh.with_colors(colors)
+}
+
+/// Chamfer-L1 of `pred` to `gt` in `gt`'s unit cube (ONet's normalisation, 100 000 samples
+/// on each).
+fn chamfer(pred: &Mesh, gt: &Mesh, seed: u64) -> Result<f64> {
+    let mut gt = gt.clone();
+    let (centre, scale) = gt.normalize_unit_cube()?;
+    let mut pred = pred.clone();
+    for v in &mut pred.vertices {
+        *v = std::array::from_fn(|c| (v[c] - centre[c]) * scale);
+    }
+    Ok(mesh_metrics(&pred, &gt, 100_000, 0.01, seed)?.chamfer_l1)
+}
+
+/// What a run measured on the held-out views.
+pub struct Summary {
+    pub mask_iou: f64,
+    pub psnr_masked: f64,
+    pub chamfer_l1: Option<f64>,
+}
+
+pub fn run(args: &Args) -> Result<Summary> {
+    let (device, dtype) = (Device::Cpu, DType::F32);
+    let config = LoadConfig {
+        background: Background::Color([1.0; 3]),
+        downscale: args.downscale,
+        ..LoadConfig::default()
+    };
+    let train = load(&args.data, &config)?;
+    if let Some(v) = train.views().iter().find(|v| !v.has_mask()) {
+        return Err(no_mask(v.name()));
+    }
+    let (eval, eval_split) = training::load_eval(&args.data, &config)?;
+    training::create_dir(&args.out)?;
+    let aabb = training::scene_box(&train, args.aabb);
+    let varmap = VarMap::new();
+    let net = build(args, &varmap, &device, dtype)?;
+    let vars = training::named_vars(&varmap);
+    let (lr0, lr1) = (args.lr, args.lr / 10.0);
+    let mut opt = common::adam(&varmap, lr0)?;
+    if let Net::Dvr(decoder) = &net {
+        // Start from a ball of radius 0.5 so that the first marches find a surface.
+        let ball = Sphere::new([0.0; 3], 0.5, &device, dtype)?.occupancy(10.0);
+        let mut rng = SplitMix64::new(args.seed ^ 0xBA11);
+        for _ in 0..150 {
+            let p = rng.uniform_tensor(&[4096, 3], aabb[0], aabb[3], dtype, &device)?;
+            let y = ball.value(&p)?.gt(0.0)?.to_dtype(dtype)?;
+            opt.backward_step(&bce_with_logits(&decoder.value(&p)?, &y)?.mean_all()?)?;
+        }
+    }
+    let mut sampler = RaySampler::new(&train, args.seed, &device, dtype)?;
+    let budget = args.minutes.map(|m| m * 60.0);
+    let bar = match (args.steps, budget) {
+        (Some(n), _) => ProgressBar::new(n as u64),
+        (None, Some(secs)) => ProgressBar::new(secs.ceil() as u64),
+        _ => unreachable!("parse_args sets one"),
+    };
+    bar.set_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} {msg}")
+            .expect("template")
+            .progress_chars("=> "),
+    );
+    println!(
+        "{:?}: training on {} views of {}, evaluating on {} {eval_split} views",
+        args.model,
+        train.len(),
+        args.data.display(),
+        eval.len()
+    );
+    let mut curve = String::from("step,train_seconds,mask_iou,psnr_masked\n");
+    let start = Instant::now();
+    let mut eval_secs = 0.0;
+    let mut step = 0usize;
+    loop {
+        let train_secs = start.elapsed().as_secs_f64() - eval_secs;
+        let progress = match (args.steps, budget) {
+            (Some(0), _) => 1.0,
+            (Some(n), _) => step as f64 / n as f64,
+            (None, Some(b)) => train_secs / b,
+            _ => 1.0,
+        };
+        if progress >= 1.0 {
+            break;
+        }
+        opt.set_learning_rate(log_linear_schedule(
+            (progress * 10_000.0) as usize,
+            lr0,
+            lr1,
+            10_000,
+        ));
+        let batch = sampler.patches(args.rays / 4, 2)?;
+        let mask: Vec<bool> = batch
+            .masks
+            .as_ref()
+            .expect("checked: every view has a mask") // invariant
+            .to_vec1::<f32>()?
+            .iter()
+            .map(|&m| m >= 0.5)
+            .collect();
+        let (loss, photo) = step_loss(
+            &net,
+            &batch.rays,
+            &batch.colors,
+            &mask,
+            aabb,
+            progress,
+            args.seed ^ (step as u64).wrapping_mul(0x9E37_79B9),
+        )?;
+        training::check_finite(&loss, step, "the loss")?;
+        let grads = loss.backward()?;
+        training::check_gradients(&grads, &vars, step)?;
+        opt.step(&grads)?;
+        step += 1;
+        match args.steps {
+            Some(_) => bar.set_position(step as u64),
+            None => bar.set_position((start.elapsed().as_secs_f64() - eval_secs) as u64),
+        }
+        if step.is_multiple_of(10) {
+            let l1 = photo.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+            bar.set_message(format!("step {step} photometric L1 {l1:.4}"));
+        }
+        if step.is_multiple_of(args.eval_every) {
+            let clock = Instant::now();
+            training::check_weights(&vars, step)?;
+            let (iou, p, _) = evaluate(&net, &eval, args.eval_views, aabb)?;
+            curve.push_str(&format!(
+                "{step},{:.3},{iou:.4},{p:.4}\n",
+                start.elapsed().as_secs_f64() - eval_secs
+            ));
+            bar.suspend(|| {
+                println!("step {step}: held-out mask IoU {iou:.4}, masked PSNR {p:.2} dB")
+            });
+            eval_secs += clock.elapsed().as_secs_f64();
+        }
+    }
+    let train_seconds = start.elapsed().as_secs_f64() - eval_secs;
+    bar.finish_and_clear();
+    training::check_weights(&vars, step)?;
+    let (iou, p, renders) = evaluate(&net, &eval, eval.len(), aabb)?;
+    let (iou_c, p_c, _) = evaluate(&net, &eval, args.eval_views, aabb)?;
+    curve.push_str(&format!("{step},{train_seconds:.3},{iou_c:.4},{p_c:.4}\n"));
+    for (i, [truth, color, normals]) in renders.iter().enumerate().take(args.pictures) {
+        write_png(
+            &args.out.join(format!("view_{i}.png")),
+            &comparison_strip(truth, color)?,
+        )?;
+        write_png(
+            &args.out.join(format!("normals_{i}.png")),
+            &colorize_normals(normals)?,
+        )?;
+    }
+    let mesh = extract_mesh(&net, aabb, args.mise_resolution)?;
+    let chamfer_l1 = match (source_mesh(args)?, mesh.faces.is_empty()) {
+        (Some(gt), false) => Some(chamfer(&mesh, &gt, args.seed)?),
+        _ => None,
+    };
+    if !mesh.faces.is_empty() {
+        mesh.save(args.out.join("mesh.ply"))?;
+    }
+    varmap.save(args.out.join("weights.safetensors"))?;
+    training::write_text(&args.out.join("curve.csv"), &curve)?;
+    let metrics = serde_json::json!({
+        "mask_iou": iou,
+        "psnr_masked": p,
+        "chamfer_l1": chamfer_l1,
+        "train_seconds": train_seconds,
+        "steps": step,
+        "model": format!("{:?}", args.model).to_lowercase(),
+        "eval_split": eval_split,
+        "eval_views": eval.len(),
+        "data": args.data.display().to_string(),
+    });
+    training::write_json(&args.out.join("metrics.json"), &metrics)?;
+    println!(
+        "{step} steps in {train_seconds:.1} s: held-out mask IoU {iou:.4}, masked PSNR {p:.2} dB, \
+         Chamfer-L1 {} over {} {eval_split} views; wrote {}",
+        chamfer_l1.map_or("unknown".into(), |c| format!("{c:.5}")),
+        eval.len(),
+        args.out.display()
+    );
+    Ok(Summary {
+        mask_iou: iou,
+        psnr_masked: p,
+        chamfer_l1,
+    })
+}
+
+fn main() -> std::process::ExitCode {
+    let args = match parse_args() {
+        Ok(a) => a,
+        Err(msg) => {
+            eprintln!("{msg}");
+            return std::process::ExitCode::from(2);
+        }
+    };
+    match run(&args) {
+        Ok(_) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("dvr_multiview: {e}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A few steps of each model on the committed dataset at a quarter of its resolution:
+    /// the whole pipeline runs and writes every output with the documented keys.
+    #[test]
+    fn a_shortened_run_of_each_model_writes_its_outputs() {
+        for model in [Model::Dvr, Model::Idr] {
+            let out = std::env::temp_dir().join(format!(
+                "dvr-multiview-{:?}-{}",
+                model,
+                std::process::id()
+            ));
+            let _ = std::fs::remove_dir_all(&out);
+            let args = Args {
+                steps: Some(4),
+                out: out.clone(),
+                seed: 1,
+                model,
+                downscale: 4,
+                rays: 256,
+                eval_every: 2,
+                eval_views: 1,
+                pictures: 1,
+                mise_resolution: 8,
+                ..Args::default()
+            };
+            let summary = run(&args).unwrap();
+            assert!((0.0..=1.0).contains(&summary.mask_iou));
+            let metrics: serde_json::Value =
+                serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap())
+                    .unwrap();
+            for key in ["mask_iou", "psnr_masked", "train_seconds", "steps"] {
+                assert!(
+                    metrics[key].as_f64().is_some_and(f64::is_finite),
+                    "{key}: {metrics}"
+                );
+            }
+            assert!(metrics.get("chamfer_l1").is_some(), "{metrics}");
+            assert_eq!(metrics["steps"], 4);
+            let curve = std::fs::read_to_string(out.join("curve.csv")).unwrap();
+            assert_eq!(curve.lines().count(), 1 + 2 + 1);
+            for file in ["view_0.png", "normals_0.png", "weights.safetensors"] {
+                assert!(out.join(file).is_file(), "{file}");
+            }
+            let _ = std::fs::remove_dir_all(&out);
+        }
+    }
+
+    #[test]
+    fn views_without_masks_are_refused_naming_the_view() {
+        // The DTU copy has masks; an RGB-only Blender folder has none.
+        let dir = std::env::temp_dir().join(format!("dvr-multiview-nomask-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(dir.join("train")).unwrap();
+        let k = neural_fields::camera::Intrinsics::from_fov_y(4, 4, 0.8).unwrap();
+        let cam = neural_fields::camera::Camera::look_at(
+            k,
+            neural_fields::glam::DVec3::new(0.0, 0.0, 3.0),
+            neural_fields::glam::DVec3::ZERO,
+            neural_fields::glam::DVec3::Y,
+            neural_fields::camera::Convention::OpenGl,
+        )
+        .unwrap();
+        let view = neural_fields::data::View::new(
+            cam,
+            neural_fields::data::Image::new(4, 4, 3, vec![100; 48]).unwrap(),
+            None,
+            "grey".into(),
+        )
+        .unwrap();
+        let data = Dataset::new(vec![view], Background::default(), None).unwrap();
+        for split in [
+            neural_fields::data::Split::Train,
+            neural_fields::data::Split::Test,
+        ] {
+            neural_fields::data::write_blender(&dir, split, &data).unwrap();
+        }
+        let args = Args {
+            data: dir.clone(),
+            steps: Some(1),
+            out: dir.join("out"),
+            ..Args::default()
+        };
+        let e = run(&args).err().expect("an error").to_string();
+        assert!(e.starts_with("data: expected views with masks"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
