@@ -49,6 +49,15 @@
 //!   with the texture's colours at its vertices (MeshLab and Blender show them);
 //! - `weights.safetensors`.
 //!
+//! **Camera refinement** (IDR's): `--perturb DEGREES,FRACTION` first moves every training
+//! camera (a rotation by DEGREES about a random axis, its centre shifted by FRACTION of its
+//! distance to the origin; seeded), and `--refine-poses on` learns one
+//! [`PoseParam`] per training view (unit quaternion and centre) through the rays, with its
+//! own Adam at `--pose-lr` (1e-3, decaying like the network's). The held-out cameras are
+//! not moved. `metrics.json` then also holds `pose_rotation_error_deg` and
+//! `pose_centre_error_fraction` (`before`/`after` training, means over the training views
+//! against the unperturbed poses).
+//!
 //! The source mesh is `--mesh FILE` (in the dataset's world frame), or the mesh that the
 //! dataset's `scene.json` names (`mesh`, with its `normalisation.matrix`, as the committed
 //! dataset's render script writes it) when that file exists.
@@ -58,11 +67,10 @@
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{Optimizer, VarMap};
-use indicatif::{ProgressBar, ProgressStyle};
-use neural_fields::camera::{ray_aabb, Intersection, Rays};
+use neural_fields::camera::{ray_aabb, Camera, Intersection, PoseParam, Rays};
 use neural_fields::data::{
     colorize_normals, comparison_strip, load, psnr, write_png, Background, Dataset, LoadConfig,
-    RaySampler,
+    RayBatch, RaySampler, View,
 };
 use neural_fields::dvr::{
     eikonal_loss, idr_mask_loss, implicit_surface, march, most_inside_along_rays,
@@ -71,9 +79,10 @@ use neural_fields::dvr::{
 };
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::{ImplicitSurface, SignedDistance, Sphere};
+use neural_fields::glam::{DAffine3, DMat3, DVec2, DVec3};
 use neural_fields::nn::{
-    build_seeded, joint_decoder, mlp, rendering_net, JointDecoder, Mlp, MlpConfig, RenderingNet,
-    RenderingNetConfig,
+    build_seeded, joint_decoder, mlp, rendering_net, texture_decoder, JointDecoder, Mlp, MlpConfig,
+    RenderingNet, RenderingNetConfig, TextureDecoder, TextureDecoderConfig,
 };
 use neural_fields::numerics::bce_with_logits;
 use neural_fields::occupancy::{mesh_metrics, mise, Mesh, MiseConfig};
@@ -82,7 +91,6 @@ use neural_fields::texture::{image_gradient_loss, vertex_colors, TextureField, T
 use neural_fields::volume::log_linear_schedule;
 use neural_fields::{Error, Result};
 use std::path::{Path, PathBuf};
-use std::time::Instant;
 
 #[path = "common/mod.rs"]
 mod common;
@@ -97,8 +105,24 @@ const CHUNK: usize = 8192;
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Model {
+    /// An occupancy network and a texture field (the Texture Fields decoder on
+    /// frequency-encoded points).
     Dvr,
+    /// DVR's joint decoder: one trunk for occupancy and colour.
+    DvrJoint,
+    /// IDR: an SDF network with a feature output and IDR's rendering network.
     Idr,
+}
+
+impl Model {
+    /// The name on the command line.
+    fn name(self) -> &'static str {
+        match self {
+            Model::Dvr => "dvr",
+            Model::DvrJoint => "dvr-joint",
+            Model::Idr => "idr",
+        }
+    }
 }
 
 #[derive(Debug)]
@@ -118,6 +142,10 @@ pub struct Args {
     pub lr: f64,
     pub mesh: Option<PathBuf>,
     pub mise_resolution: usize,
+    /// Perturb the training poses: (degrees, fraction of the camera's distance).
+    pub perturb: Option<(f64, f64)>,
+    pub refine_poses: bool,
+    pub pose_lr: f64,
 }
 
 impl Default for Args {
@@ -139,68 +167,72 @@ impl Default for Args {
             lr: 1e-3,
             mesh: None,
             mise_resolution: 32,
+            perturb: None,
+            refine_poses: false,
+            pose_lr: 1e-3,
         }
     }
 }
 
 const USAGE: &str = "usage: dvr_multiview [--data DIR] [--minutes M | --steps N] [--out DIR] \
-[--seed S] [--model dvr|idr] [--downscale K] [--rays N] [--aabb R] [--eval-every N] \
-[--eval-views N] [--pictures N] [--lr LR] [--mesh FILE] [--mise-resolution N]";
+[--seed S] [--model dvr|dvr-joint|idr] [--downscale K] [--rays N] [--aabb R] [--eval-every N] \
+[--eval-views N] [--pictures N] [--lr LR] [--mesh FILE] [--mise-resolution N] \
+[--perturb DEGREES,FRACTION] [--refine-poses on|off] [--pose-lr LR]";
 
 fn parse_args() -> std::result::Result<Args, String> {
     let mut a = Args::default();
-    let mut it = std::env::args().skip(1);
-    while let Some(flag) = it.next() {
-        if flag == "--help" || flag == "-h" {
-            return Err(USAGE.into());
+    training::parse_flags(USAGE, |flag, value| {
+        let (num, int) = (training::number, training::count);
+        if training::take_run_flag(
+            flag,
+            value,
+            &mut a.data,
+            &mut a.minutes,
+            &mut a.steps,
+            &mut a.out,
+            &mut a.seed,
+        )? {
+            return Ok(());
         }
-        let value = it.next().ok_or(format!("{flag} needs a value\n{USAGE}"))?;
-        let num = |v: &str| {
-            v.parse::<f64>()
-                .map_err(|_| format!("{flag}: not a number: {v}"))
-        };
-        let int = |v: &str| {
-            v.parse::<usize>()
-                .map_err(|_| format!("{flag}: not a count: {v}"))
-        };
-        match flag.as_str() {
-            "--data" => a.data = value.into(),
-            "--minutes" => a.minutes = Some(num(&value)?),
-            "--steps" => a.steps = Some(int(&value)?),
-            "--out" => a.out = value.into(),
-            "--seed" => {
-                a.seed = value
-                    .parse()
-                    .map_err(|_| format!("--seed: not a u64: {value}"))?
-            }
+        match flag {
             "--model" => {
-                a.model = match value.as_str() {
+                a.model = match value {
                     "dvr" => Model::Dvr,
+                    "dvr-joint" => Model::DvrJoint,
                     "idr" => Model::Idr,
-                    other => return Err(format!("--model: dvr or idr, not {other}")),
+                    other => return Err(format!("--model: dvr, dvr-joint or idr, not {other}")),
                 }
             }
-            "--downscale" => a.downscale = int(&value)?,
-            "--rays" => a.rays = int(&value)?,
-            "--aabb" => a.aabb = num(&value)?,
-            "--eval-every" => a.eval_every = int(&value)?,
-            "--eval-views" => a.eval_views = int(&value)?,
-            "--pictures" => a.pictures = int(&value)?,
-            "--lr" => a.lr = num(&value)?,
+            "--downscale" => a.downscale = int(flag, value)?,
+            "--rays" => a.rays = int(flag, value)?,
+            "--aabb" => a.aabb = num(flag, value)?,
+            "--eval-every" => a.eval_every = int(flag, value)?,
+            "--eval-views" => a.eval_views = int(flag, value)?,
+            "--pictures" => a.pictures = int(flag, value)?,
+            "--lr" => a.lr = num(flag, value)?,
             "--mesh" => a.mesh = Some(value.into()),
-            "--mise-resolution" => a.mise_resolution = int(&value)?,
+            "--mise-resolution" => a.mise_resolution = int(flag, value)?,
+            "--perturb" => {
+                let bad = || format!("--perturb: DEGREES,FRACTION like 3,0.03, not {value}");
+                let parts: Vec<f64> = value
+                    .split(',')
+                    .map(|v| v.trim().parse::<f64>())
+                    .collect::<std::result::Result<_, _>>()
+                    .map_err(|_| bad())?;
+                match parts[..] {
+                    [d, f] if d >= 0.0 && f >= 0.0 && d.is_finite() && f.is_finite() => {
+                        a.perturb = Some((d, f))
+                    }
+                    _ => return Err(bad()),
+                }
+            }
+            "--refine-poses" => a.refine_poses = training::on_off(flag, value)?,
+            "--pose-lr" => a.pose_lr = num(flag, value)?,
             other => return Err(format!("unknown flag {other}\n{USAGE}")),
         }
-    }
-    if a.minutes.is_some() && a.steps.is_some() {
-        return Err("give --minutes or --steps, not both".into());
-    }
-    if a.minutes.is_none() && a.steps.is_none() {
-        a.minutes = Some(15.0);
-    }
-    if a.minutes.is_some_and(|m| !(m > 0.0 && m.is_finite())) {
-        return Err("--minutes must be positive".into());
-    }
+        Ok(())
+    })?;
+    training::check_budget(&mut a.minutes, a.steps, 15.0)?;
     if a.rays < 4 || a.eval_every == 0 || a.eval_views == 0 || a.mise_resolution < 2 {
         return Err(
             "--rays must be at least 4, --eval-every and --eval-views positive, \
@@ -214,10 +246,17 @@ fn parse_args() -> std::result::Result<Args, String> {
     Ok(a)
 }
 
-/// The model: DVR's joint decoder, or IDR's SDF and rendering networks.
+/// The model (see [`Model`]).
 enum Net {
-    Dvr(JointDecoder),
-    Idr { geometry: Mlp, render: RenderingNet },
+    Dvr {
+        geometry: Mlp,
+        texture: TextureDecoder,
+    },
+    Joint(JointDecoder),
+    Idr {
+        geometry: Mlp,
+        render: RenderingNet,
+    },
 }
 
 /// Per-ray colours at the surface points, and (IDR) the SDF's gradient there.
@@ -229,8 +268,8 @@ struct Shaded {
 impl Net {
     fn surface(&self) -> &dyn ImplicitSurface {
         match self {
-            Net::Dvr(net) => net,
-            Net::Idr { geometry, .. } => geometry,
+            Net::Joint(net) => net,
+            Net::Dvr { geometry, .. } | Net::Idr { geometry, .. } => geometry,
         }
     }
 
@@ -242,7 +281,7 @@ impl Net {
             ..MarchConfig::default()
         };
         match self {
-            Net::Dvr(net) => march(net, rays, range, &config),
+            Net::Joint(_) | Net::Dvr { .. } => march(self.surface(), rays, range, &config),
             Net::Idr { geometry, .. } => sphere_trace(
                 geometry,
                 rays,
@@ -258,8 +297,12 @@ impl Net {
     /// The colour at `points: [H, 3]` seen along `dirs: [H, 3]`.
     fn shade(&self, points: &Tensor, dirs: &Tensor) -> Result<Shaded> {
         match self {
-            Net::Dvr(net) => Ok(Shaded {
+            Net::Joint(net) => Ok(Shaded {
                 rgb: net.rgb(&TextureInput::new(points))?,
+                gradient: None,
+            }),
+            Net::Dvr { texture, .. } => Ok(Shaded {
+                rgb: texture.rgb(&TextureInput::new(points))?,
                 gradient: None,
             }),
             Net::Idr { geometry, render } => {
@@ -283,18 +326,29 @@ impl Net {
 /// Builds the model of `args.model` in `varmap`.
 fn build(args: &Args, varmap: &VarMap, device: &Device, dtype: DType) -> Result<Net> {
     let encoding = PointEncoding::Frequency(FrequencyEncoding::new(3, 4)?);
+    let shape = MlpConfig {
+        hidden: 128,
+        depth: 5,
+        skips: vec![3],
+        encoding: encoding.clone(),
+        ..MlpConfig::default()
+    };
     Ok(match args.model {
+        Model::DvrJoint => Net::Joint(build_seeded(varmap, dtype, device, args.seed, |vb| {
+            joint_decoder(&shape, vb.pp("decoder"))
+        })?),
         Model::Dvr => {
-            let config = MlpConfig {
-                hidden: 128,
-                depth: 5,
-                skips: vec![3],
-                encoding,
-                ..MlpConfig::default()
+            let geometry = build_seeded(varmap, dtype, device, args.seed, |vb| {
+                mlp(&shape, vb.pp("geometry"))
+            })?;
+            let texture_config = TextureDecoderConfig {
+                encoding: PointEncoding::Frequency(FrequencyEncoding::new(3, 8)?),
+                ..TextureDecoderConfig::default()
             };
-            Net::Dvr(build_seeded(varmap, dtype, device, args.seed, |vb| {
-                joint_decoder(&config, vb.pp("decoder"))
-            })?)
+            let texture = build_seeded(varmap, dtype, device, args.seed + 1, |vb| {
+                texture_decoder(&texture_config, vb.pp("texture"))
+            })?;
+            Net::Dvr { geometry, texture }
         }
         Model::Idr => {
             const FEATURES: usize = 32;
@@ -303,7 +357,9 @@ fn build(args: &Args, varmap: &VarMap, device: &Device, dtype: DType) -> Result<
                 depth: 5,
                 skips: vec![3],
                 out_dim: 1 + FEATURES,
-                encoding,
+                // IDR's 6 frequencies: the SDF's geometric initialisation keeps the
+                // higher ones at zero, where an occupancy network with them grows floaters.
+                encoding: PointEncoding::Frequency(FrequencyEncoding::new(3, 6)?),
                 ..MlpConfig::sdf(0.5)
             };
             let geometry = build_seeded(varmap, dtype, device, args.seed, |vb| {
@@ -321,24 +377,6 @@ fn build(args: &Args, varmap: &VarMap, device: &Device, dtype: DType) -> Result<
             Net::Idr { geometry, render }
         }
     })
-}
-
-/// Rows `idx` of `t` (`idx` on the host).
-fn rows(t: &Tensor, idx: &[u32]) -> Result<Tensor> {
-    let i = Tensor::from_slice(idx, idx.len(), t.device())?;
-    Ok(t.index_select(&i, 0)?)
-}
-
-/// Rays `idx` of `rays` and their range.
-fn select(rays: &Rays, range: &Intersection, idx: &[u32]) -> Result<(Rays, Intersection)> {
-    Ok((
-        Rays::new(rows(rays.origins(), idx)?, rows(rays.directions(), idx)?)?,
-        Intersection {
-            near: rows(&range.near, idx)?,
-            far: rows(&range.far, idx)?,
-            hit: rows(&range.hit, idx)?,
-        },
-    ))
 }
 
 /// The error for a dataset whose view `name` has no mask.
@@ -390,8 +428,8 @@ fn step_loss(
     if !on.is_empty() {
         let on_rays: Vec<u32> = on.iter().map(|&k| hit_rays[k as usize]).collect();
         photo = photometric_loss(
-            &rows(&shaded.rgb, &on)?,
-            &rows(colors, &on_rays)?,
+            &common::rows(&shaded.rgb, &on)?,
+            &common::rows(colors, &on_rays)?,
             None,
             Photometric::L1,
         )?;
@@ -416,7 +454,8 @@ fn step_loss(
     }
     let surface_hit: Vec<bool> = hits.status.iter().map(|s| s.has_surface()).collect();
     match net {
-        Net::Dvr(decoder) => {
+        Net::Joint(_) | Net::Dvr { .. } => {
+            let decoder = net.surface();
             // DVR's freespace and occupancy losses, each at the most-occupied of 64 samples
             // on the ray (where DVR takes the hit or one random point): a background ray
             // pushes its most-occupied point out, which removes every floater on it, and
@@ -433,7 +472,7 @@ fn step_loss(
                 if which.is_empty() {
                     continue;
                 }
-                let (sub, sub_range) = select(rays, &range, which)?;
+                let (sub, sub_range) = common::select(rays, &range, which)?;
                 let logits = most_inside_along_rays(decoder, &sub, &sub_range, 64)?;
                 let y = Tensor::full(target, which.len(), &device)?.to_dtype(dtype)?;
                 let bce = bce_with_logits(&logits, &y)?.mean_all()?;
@@ -452,7 +491,7 @@ fn step_loss(
                 .map(|r| r as u32)
                 .collect();
             if !outside.is_empty() {
-                let (sub, sub_range) = select(rays, &range, &outside)?;
+                let (sub, sub_range) = common::select(rays, &range, &outside)?;
                 let values = most_inside_along_rays(geometry, &sub, &sub_range, 64)?;
                 let target: Vec<f32> = outside
                     .iter()
@@ -662,6 +701,78 @@ fn chamfer(pred: &Mesh, gt: &Mesh, seed: u64) -> Result<f64> {
     Ok(mesh_metrics(&pred, &gt, 100_000, 0.01, seed)?.chamfer_l1)
 }
 
+/// `data` with every camera moved: rotated by `degrees` about a random axis through its
+/// centre and its centre shifted by `fraction` of its distance to the origin in a random
+/// direction (seeded).
+fn perturb(data: &Dataset, degrees: f64, fraction: f64, seed: u64) -> Result<Dataset> {
+    let mut rng = SplitMix64::new(seed);
+    let mut unit = || {
+        let v = DVec3::new(rng.normal(), rng.normal(), rng.normal());
+        v / v.length().max(1e-12)
+    };
+    let views = data
+        .views()
+        .iter()
+        .map(|v| {
+            let cam = v.camera();
+            let pose = cam.cam_to_world();
+            let rotation = DMat3::from_axis_angle(unit(), degrees.to_radians()) * pose.matrix3;
+            let centre = pose.translation + unit() * fraction * pose.translation.length();
+            let moved = Camera::new(
+                *cam.intrinsics(),
+                DAffine3::from_mat3_translation(rotation, centre),
+                cam.convention(),
+            )?;
+            View::new(
+                moved,
+                v.image().clone(),
+                v.mask_image().cloned(),
+                v.name().to_string(),
+            )
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Dataset::new(views, data.background(), data.bounds())
+}
+
+/// The rays of `batch` from the learnable poses: for each ray, the camera-space direction
+/// of its pixel in its view of `data` (whose poses the batch was drawn with), turned by its
+/// pose's rotation, from its pose's centre. Differentiable w.r.t. the poses.
+fn pose_rays(poses: &[PoseParam], data: &Dataset, batch: &RayBatch) -> Result<Rays> {
+    let views = batch.views.to_vec1::<u32>()?;
+    let pixels = batch.pixels.to_vec2::<u32>()?;
+    let mut d_cam = Vec::with_capacity(3 * views.len());
+    for (&v, px) in views.iter().zip(&pixels) {
+        let cam = data.views()[v as usize].camera();
+        let (_, dir) = cam.ray(DVec2::new(f64::from(px[0]) + 0.5, f64::from(px[1]) + 0.5));
+        d_cam.extend_from_slice(&(cam.cam_to_world().matrix3.transpose() * dir).to_array());
+    }
+    let dtype = batch.colors.dtype();
+    let device = batch.colors.device();
+    let d_cam = Tensor::from_vec(d_cam, (views.len(), 3, 1), device)?.to_dtype(dtype)?;
+    let rotations = poses
+        .iter()
+        .map(PoseParam::rotation_matrix)
+        .collect::<Result<Vec<_>>>()?;
+    let centres: Vec<&Tensor> = poses.iter().map(|p| p.translation.as_tensor()).collect();
+    let r = Tensor::stack(&rotations, 0)?.index_select(&batch.views, 0)?;
+    let o = Tensor::stack(&centres, 0)?.index_select(&batch.views, 0)?;
+    Rays::new(o, r.matmul(&d_cam)?.squeeze(2)?)
+}
+
+/// Mean rotation error (degrees) and mean centre error (fraction of the true camera's
+/// distance to the origin) of `poses` against `truth`.
+fn pose_errors(poses: &[DAffine3], truth: &[DAffine3]) -> (f64, f64) {
+    let (mut rot, mut trans) = (0.0, 0.0);
+    for (p, t) in poses.iter().zip(truth) {
+        let rel = p.matrix3.transpose() * t.matrix3;
+        let cos = ((rel.x_axis.x + rel.y_axis.y + rel.z_axis.z - 1.0) / 2.0).clamp(-1.0, 1.0);
+        rot += cos.acos().to_degrees();
+        trans += (p.translation - t.translation).length() / t.translation.length().max(1e-12);
+    }
+    let n = poses.len().max(1) as f64;
+    (rot / n, trans / n)
+}
+
 /// What a run measured on the held-out views.
 pub struct Summary {
     pub mask_iou: f64,
@@ -680,15 +791,70 @@ pub fn run(args: &Args) -> Result<Summary> {
     if let Some(v) = train.views().iter().find(|v| !v.has_mask()) {
         return Err(no_mask(v.name()));
     }
+    let mut covered = 0.0;
+    for v in train.views() {
+        if let Some(m) = v.mask(&Device::Cpu, DType::F32)? {
+            covered += f64::from(
+                m.ge(0.5)?
+                    .to_dtype(DType::F32)?
+                    .sum_all()?
+                    .to_scalar::<f32>()?,
+            );
+        }
+    }
+    if covered == 0.0 {
+        return Err(Error::InvalidArgument {
+            arg: "data",
+            expected: "masks that cover the object in some training view".into(),
+            got: format!("{} training views whose masks are all empty", train.len()),
+        });
+    }
+    let true_poses: Vec<DAffine3> = train
+        .views()
+        .iter()
+        .map(|v| v.camera().cam_to_world())
+        .collect();
+    let train = match args.perturb {
+        Some((degrees, fraction)) => perturb(&train, degrees, fraction, args.seed ^ 0x5EED)?,
+        None => train,
+    };
+    let start_poses: Vec<DAffine3> = train
+        .views()
+        .iter()
+        .map(|v| v.camera().cam_to_world())
+        .collect();
+    // One learnable pose per training view, with its own optimiser (IDR's camera refinement).
+    let poses = if args.refine_poses {
+        start_poses
+            .iter()
+            .map(|p| PoseParam::from_affine(p, &device, dtype))
+            .collect::<Result<Vec<_>>>()?
+    } else {
+        Vec::new()
+    };
+    let mut pose_vars = Vec::new();
+    for (v, p) in poses.iter().enumerate() {
+        pose_vars.push((format!("pose{v}.rotation"), p.rotation.clone()));
+        pose_vars.push((format!("pose{v}.translation"), p.translation.clone()));
+    }
+    let mut pose_opt = candle_nn::AdamW::new(
+        pose_vars.iter().map(|(_, v)| v.clone()).collect(),
+        candle_nn::ParamsAdamW {
+            lr: args.pose_lr,
+            weight_decay: 0.0,
+            ..Default::default()
+        },
+    )?;
     let (eval, eval_split) = training::load_eval(&args.data, &config)?;
     training::create_dir(&args.out)?;
     let aabb = training::scene_box(&train, args.aabb);
     let varmap = VarMap::new();
     let net = build(args, &varmap, &device, dtype)?;
     let vars = training::named_vars(&varmap);
-    let (lr0, lr1) = (args.lr, args.lr / 10.0);
+    let lr0 = args.lr;
     let mut opt = common::adam(&varmap, lr0)?;
-    if let Net::Dvr(decoder) = &net {
+    if !matches!(net, Net::Idr { .. }) {
+        let decoder = net.surface();
         // Start from a ball of radius 0.5 so that the first marches find a surface.
         let ball = Sphere::new([0.0; 3], 0.5, &device, dtype)?.occupancy(10.0);
         let mut rng = SplitMix64::new(args.seed ^ 0xBA11);
@@ -699,45 +865,25 @@ pub fn run(args: &Args) -> Result<Summary> {
         }
     }
     let mut sampler = RaySampler::new(&train, args.seed, &device, dtype)?;
-    let budget = args.minutes.map(|m| m * 60.0);
-    let bar = match (args.steps, budget) {
-        (Some(n), _) => ProgressBar::new(n as u64),
-        (None, Some(secs)) => ProgressBar::new(secs.ceil() as u64),
-        _ => unreachable!("parse_args sets one"),
-    };
-    bar.set_style(
-        ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} {msg}")
-            .expect("template")
-            .progress_chars("=> "),
-    );
+    let mut clock = training::Clock::start(args.steps, args.minutes);
     println!(
-        "{:?}: training on {} views of {}, evaluating on {} {eval_split} views",
-        args.model,
+        "{}: training on {} views of {}, evaluating on {} {eval_split} views",
+        args.model.name(),
         train.len(),
         args.data.display(),
         eval.len()
     );
     let mut curve = String::from("step,train_seconds,mask_iou,psnr_masked\n");
-    let start = Instant::now();
-    let mut eval_secs = 0.0;
     let mut step = 0usize;
     loop {
-        let train_secs = start.elapsed().as_secs_f64() - eval_secs;
-        let progress = match (args.steps, budget) {
-            (Some(0), _) => 1.0,
-            (Some(n), _) => step as f64 / n as f64,
-            (None, Some(b)) => train_secs / b,
-            _ => 1.0,
-        };
+        let progress = clock.progress(step);
         if progress >= 1.0 {
             break;
         }
-        opt.set_learning_rate(log_linear_schedule(
-            (progress * 10_000.0) as usize,
-            lr0,
-            lr1,
-            10_000,
-        ));
+        let decay =
+            |lr: f64| log_linear_schedule((progress * 10_000.0) as usize, lr, lr / 10.0, 10_000);
+        opt.set_learning_rate(decay(lr0));
+        pose_opt.set_learning_rate(decay(args.pose_lr));
         let batch = sampler.patches(args.rays / 4, 2)?;
         let mask: Vec<bool> = batch
             .masks
@@ -747,9 +893,14 @@ pub fn run(args: &Args) -> Result<Summary> {
             .iter()
             .map(|&m| m >= 0.5)
             .collect();
+        let rays = if poses.is_empty() {
+            batch.rays.clone()
+        } else {
+            pose_rays(&poses, &train, &batch)?
+        };
         let (loss, photo) = step_loss(
             &net,
-            &batch.rays,
+            &rays,
             &batch.colors,
             &mask,
             aabb,
@@ -759,32 +910,32 @@ pub fn run(args: &Args) -> Result<Summary> {
         training::check_finite(&loss, step, "the loss")?;
         let grads = loss.backward()?;
         training::check_gradients(&grads, &vars, step)?;
+        training::check_gradients(&grads, &pose_vars, step)?;
         opt.step(&grads)?;
-        step += 1;
-        match args.steps {
-            Some(_) => bar.set_position(step as u64),
-            None => bar.set_position((start.elapsed().as_secs_f64() - eval_secs) as u64),
+        if !poses.is_empty() {
+            pose_opt.step(&grads)?;
         }
+        step += 1;
+        clock.tick(step);
         if step.is_multiple_of(10) {
             let l1 = photo.to_dtype(DType::F64)?.to_scalar::<f64>()?;
-            bar.set_message(format!("step {step} photometric L1 {l1:.4}"));
+            clock
+                .bar
+                .set_message(format!("step {step} photometric L1 {l1:.4}"));
         }
         if step.is_multiple_of(args.eval_every) {
-            let clock = Instant::now();
-            training::check_weights(&vars, step)?;
-            let (iou, p, _) = evaluate(&net, &eval, args.eval_views, aabb)?;
-            curve.push_str(&format!(
-                "{step},{:.3},{iou:.4},{p:.4}\n",
-                start.elapsed().as_secs_f64() - eval_secs
-            ));
-            bar.suspend(|| {
-                println!("step {step}: held-out mask IoU {iou:.4}, masked PSNR {p:.2} dB")
-            });
-            eval_secs += clock.elapsed().as_secs_f64();
+            let seconds = clock.train_seconds();
+            let (iou, p) = clock.off_clock(|| -> Result<(f64, f64)> {
+                training::check_weights(&vars, step)?;
+                let (iou, p, _) = evaluate(&net, &eval, args.eval_views, aabb)?;
+                println!("step {step}: held-out mask IoU {iou:.4}, masked PSNR {p:.2} dB");
+                Ok((iou, p))
+            })?;
+            curve.push_str(&format!("{step},{seconds:.3},{iou:.4},{p:.4}\n"));
         }
     }
-    let train_seconds = start.elapsed().as_secs_f64() - eval_secs;
-    bar.finish_and_clear();
+    let train_seconds = clock.train_seconds();
+    clock.bar.finish_and_clear();
     training::check_weights(&vars, step)?;
     let (iou, p, renders) = evaluate(&net, &eval, eval.len(), aabb)?;
     let (iou_c, p_c, _) = evaluate(&net, &eval, args.eval_views, aabb)?;
@@ -809,17 +960,36 @@ pub fn run(args: &Args) -> Result<Summary> {
     }
     varmap.save(args.out.join("weights.safetensors"))?;
     training::write_text(&args.out.join("curve.csv"), &curve)?;
-    let metrics = serde_json::json!({
+    let mut metrics = serde_json::json!({
         "mask_iou": iou,
         "psnr_masked": p,
         "chamfer_l1": chamfer_l1,
         "train_seconds": train_seconds,
         "steps": step,
-        "model": format!("{:?}", args.model).to_lowercase(),
+        "model": args.model.name(),
         "eval_split": eval_split,
         "eval_views": eval.len(),
         "data": args.data.display().to_string(),
     });
+    if args.perturb.is_some() || args.refine_poses {
+        let end_poses = if poses.is_empty() {
+            start_poses.clone()
+        } else {
+            poses
+                .iter()
+                .map(PoseParam::to_affine)
+                .collect::<Result<Vec<_>>>()?
+        };
+        let (r0, t0) = pose_errors(&start_poses, &true_poses);
+        let (r1, t1) = pose_errors(&end_poses, &true_poses);
+        println!(
+            "training poses: rotation error {r0:.3}° → {r1:.3}°, centre error {:.3} % → {:.3} % of the distance",
+            100.0 * t0,
+            100.0 * t1
+        );
+        metrics["pose_rotation_error_deg"] = serde_json::json!({"before": r0, "after": r1});
+        metrics["pose_centre_error_fraction"] = serde_json::json!({"before": t0, "after": t1});
+    }
     training::write_json(&args.out.join("metrics.json"), &metrics)?;
     println!(
         "{step} steps in {train_seconds:.1} s: held-out mask IoU {iou:.4}, masked PSNR {p:.2} dB, \
@@ -860,7 +1030,7 @@ mod tests {
     /// the whole pipeline runs and writes every output with the documented keys.
     #[test]
     fn a_shortened_run_of_each_model_writes_its_outputs() {
-        for model in [Model::Dvr, Model::Idr] {
+        for model in [Model::Dvr, Model::DvrJoint, Model::Idr] {
             let out = std::env::temp_dir().join(format!(
                 "dvr-multiview-{:?}-{}",
                 model,
@@ -902,28 +1072,94 @@ mod tests {
         }
     }
 
+    /// The perturbation moves every camera by exactly the asked rotation and centre shift,
+    /// and a shortened run with pose refinement reports the pose errors before and after.
     #[test]
-    fn views_without_masks_are_refused_naming_the_view() {
-        // The DTU copy has masks; an RGB-only Blender folder has none.
-        let dir = std::env::temp_dir().join(format!("dvr-multiview-nomask-{}", std::process::id()));
+    fn perturbed_poses_are_measured_and_refined() {
+        let data = load(
+            Path::new("examples/data/wuson"),
+            &LoadConfig {
+                downscale: 4,
+                ..LoadConfig::default()
+            },
+        )
+        .unwrap();
+        let truth: Vec<DAffine3> = data
+            .views()
+            .iter()
+            .map(|v| v.camera().cam_to_world())
+            .collect();
+        let moved = perturb(&data, 3.0, 0.03, 7).unwrap();
+        let poses: Vec<DAffine3> = moved
+            .views()
+            .iter()
+            .map(|v| v.camera().cam_to_world())
+            .collect();
+        let (r, t) = pose_errors(&poses, &truth);
+        assert!((r - 3.0).abs() < 1e-6, "{r}");
+        assert!((t - 0.03).abs() < 1e-9, "{t}");
+        assert_eq!(pose_errors(&truth, &truth), (0.0, 0.0));
+        // Rays from unmoved learnable poses are the dataset's rays.
+        let params: Vec<PoseParam> = truth
+            .iter()
+            .map(|p| PoseParam::from_affine(p, &Device::Cpu, DType::F32).unwrap())
+            .collect();
+        let mut sampler = RaySampler::new(&data, 3, &Device::Cpu, DType::F32).unwrap();
+        let batch = sampler.patches(8, 2).unwrap();
+        let rays = pose_rays(&params, &data, &batch).unwrap();
+        for (a, b) in [
+            (rays.origins(), batch.rays.origins()),
+            (rays.directions(), batch.rays.directions()),
+        ] {
+            let d = (a - b).unwrap().abs().unwrap().max_all().unwrap();
+            assert!(d.to_scalar::<f32>().unwrap() < 1e-5);
+        }
+        let out = std::env::temp_dir().join(format!("dvr-multiview-poses-{}", std::process::id()));
+        let args = Args {
+            steps: Some(3),
+            out: out.clone(),
+            downscale: 4,
+            rays: 256,
+            eval_every: 10,
+            eval_views: 1,
+            pictures: 0,
+            mise_resolution: 8,
+            perturb: Some((3.0, 0.03)),
+            refine_poses: true,
+            ..Args::default()
+        };
+        run(&args).unwrap();
+        let metrics: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap())
+                .unwrap();
+        let before = metrics["pose_rotation_error_deg"]["before"]
+            .as_f64()
+            .unwrap();
+        let after = metrics["pose_rotation_error_deg"]["after"]
+            .as_f64()
+            .unwrap();
+        assert!((before - 3.0).abs() < 1e-3, "{metrics}");
+        assert!(after.is_finite() && after != before, "{metrics}");
+        let _ = std::fs::remove_dir_all(&out);
+    }
+
+    /// Writes a one-view Blender-layout dataset (train and test) of a 4 × 4 image with
+    /// `channels` channels of `value` into a fresh folder.
+    fn tiny_dataset(name: &str, channels: usize, value: u8) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("dvr-multiview-{name}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(dir.join("train")).unwrap();
         let k = neural_fields::camera::Intrinsics::from_fov_y(4, 4, 0.8).unwrap();
-        let cam = neural_fields::camera::Camera::look_at(
+        let cam = Camera::look_at(
             k,
-            neural_fields::glam::DVec3::new(0.0, 0.0, 3.0),
-            neural_fields::glam::DVec3::ZERO,
-            neural_fields::glam::DVec3::Y,
+            DVec3::new(0.0, 0.0, 3.0),
+            DVec3::ZERO,
+            DVec3::Y,
             neural_fields::camera::Convention::OpenGl,
         )
         .unwrap();
-        let view = neural_fields::data::View::new(
-            cam,
-            neural_fields::data::Image::new(4, 4, 3, vec![100; 48]).unwrap(),
-            None,
-            "grey".into(),
-        )
-        .unwrap();
+        let image =
+            neural_fields::data::Image::new(4, 4, channels, vec![value; 16 * channels]).unwrap();
+        let view = View::new(cam, image, None, name.into()).unwrap();
         let data = Dataset::new(vec![view], Background::default(), None).unwrap();
         for split in [
             neural_fields::data::Split::Train,
@@ -931,6 +1167,30 @@ mod tests {
         ] {
             neural_fields::data::write_blender(&dir, split, &data).unwrap();
         }
+        dir
+    }
+
+    #[test]
+    fn all_empty_masks_are_refused() {
+        let dir = tiny_dataset("empty", 4, 0);
+        let args = Args {
+            data: dir.clone(),
+            steps: Some(1),
+            out: dir.join("out"),
+            ..Args::default()
+        };
+        let e = run(&args).err().expect("an error").to_string();
+        assert!(
+            e.starts_with("data: expected masks that cover the object"),
+            "{e}"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn views_without_masks_are_refused_naming_the_view() {
+        // An RGB-only Blender folder has no masks.
+        let dir = tiny_dataset("nomask", 3, 100);
         let args = Args {
             data: dir.clone(),
             steps: Some(1),

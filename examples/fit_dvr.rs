@@ -109,23 +109,6 @@ fn view_of(net: &Mlp, truth: &View, config: &MarchConfig) -> Result<View> {
     })
 }
 
-/// Rows `idx` of `t` (`idx` on the host).
-fn rows(t: &Tensor, idx: &[u32]) -> Result<Tensor> {
-    let i = Tensor::from_slice(idx, idx.len(), t.device())?;
-    Ok(t.index_select(&i, 0)?)
-}
-
-/// Rays `idx` of `rays` and their bounds.
-fn select(rays: &Rays, bounds: &Intersection, idx: &[u32]) -> Result<(Rays, Intersection)> {
-    let rays = Rays::new(rows(rays.origins(), idx)?, rows(rays.directions(), idx)?)?;
-    let bounds = Intersection {
-        near: rows(&bounds.near, idx)?,
-        far: rows(&bounds.far, idx)?,
-        hit: rows(&bounds.hit, idx)?,
-    };
-    Ok((rays, bounds))
-}
-
 fn main() -> Result<()> {
     let steps: usize = std::env::args()
         .nth(1)
@@ -217,7 +200,7 @@ fn main() -> Result<()> {
         let idx: Vec<u32> = (0..batch)
             .map(|_| rng.below(pixels as u64) as u32) // invariant: pixels < 2³²
             .collect();
-        let (rays, bounds) = select(&all_rays, &all_bounds, &idx)?;
+        let (rays, bounds) = common::select(&all_rays, &all_bounds, &idx)?;
         let hits = march(&net, &rays, &bounds, &march_config)?;
         let surf = implicit_surface(&net, &rays, &hits, &ImplicitConfig::default())?;
         // Split the rays: foreground (inside the mask) with a surface (depth) or without
@@ -241,7 +224,7 @@ fn main() -> Result<()> {
             }
         }
         let random_points = |which: &[u32], seed: u64| -> Result<Tensor> {
-            let (rays, bounds) = select(&rays, &bounds, which)?;
+            let (rays, bounds) = common::select(&rays, &bounds, which)?;
             random_points_on_rays(&rays, &bounds, seed)
         };
         let mut loss = Tensor::zeros((), dtype, &device)?;
@@ -251,14 +234,14 @@ fn main() -> Result<()> {
                 .map(|&k| depth[idx[hit_rays[k as usize] as usize] as usize])
                 .collect();
             let target = Tensor::from_vec(target, on.len(), &device)?;
-            let l1 = depth_loss(&rows(&surf.depth, &on)?, &target, None)?;
+            let l1 = depth_loss(&common::rows(&surf.depth, &on)?, &target, None)?;
             loss = (loss + (l1 * DEPTH_WEIGHT)?)?;
         }
         // Freespace points are detached (DVR's form): with the graph through t̂, f(p̂)
         // would stay at the level set and the loss would have no gradient.
         let mut free = Vec::new();
         if !off_hit.is_empty() {
-            free.push(rows(&hits.points, &off_hit)?);
+            free.push(common::rows(&hits.points, &off_hit)?);
         }
         if !off_free.is_empty() {
             free.push(random_points(&off_free, 2 * step as u64)?);

@@ -55,13 +55,12 @@
 //! A NaN or infinity in the loss, a gradient or a weight stops the run with an error naming
 //! the step and the tensor. The example uses mimalloc (see `examples/tiny_nerf.rs`).
 
-use candle_core::{DType, Device, Tensor, Var};
+use candle_core::{DType, Device, Tensor};
 use candle_nn::{Optimizer, VarMap};
-use indicatif::{ProgressBar, ProgressStyle};
 use neural_fields::camera::{cameras_around, ray_aabb, Camera, Rays};
 use neural_fields::data::{
-    colorize_depth, comparison_strip, load, psnr, ssim, write_png, Background, Bounds, Dataset,
-    LoadConfig, RaySampler, Split,
+    colorize_depth, comparison_strip, load, psnr, ssim, write_png, Background, Dataset, LoadConfig,
+    RaySampler,
 };
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::glam::DVec2;
@@ -72,12 +71,13 @@ use neural_fields::volume::{
     CompositeConfig, GridConfig, GridMarchConfig, Jitter, Layout, OccupancyGrid, ProposalConfig,
     ANNEAL_MID_RATIO, ANNEAL_P_START, DEFAULT_TERMINATION_EPS,
 };
-use neural_fields::{Error, Result};
-use std::path::{Path, PathBuf};
-use std::time::Instant;
+use neural_fields::Result;
+use std::path::PathBuf;
 
 #[path = "common/mod.rs"]
 mod common;
+#[path = "common/training.rs"]
+mod training;
 
 #[global_allocator]
 static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
@@ -146,32 +146,22 @@ impl Default for Args {
 
 fn parse_args() -> std::result::Result<Args, String> {
     let mut a = Args::default();
-    let mut it = std::env::args().skip(1);
-    while let Some(flag) = it.next() {
-        if flag == "--help" || flag == "-h" {
-            return Err(USAGE.into());
+    training::parse_flags(USAGE, |flag, value| {
+        let (num, int) = (training::number, training::count);
+        if training::take_run_flag(
+            flag,
+            value,
+            &mut a.data,
+            &mut a.minutes,
+            &mut a.steps,
+            &mut a.out,
+            &mut a.seed,
+        )? {
+            return Ok(());
         }
-        let value = it.next().ok_or(format!("{flag} needs a value\n{USAGE}"))?;
-        let num = |v: &str| {
-            v.parse::<f64>()
-                .map_err(|_| format!("{flag}: not a number: {v}"))
-        };
-        let int = |v: &str| {
-            v.parse::<usize>()
-                .map_err(|_| format!("{flag}: not a count: {v}"))
-        };
-        match flag.as_str() {
-            "--data" => a.data = value.into(),
-            "--minutes" => a.minutes = Some(num(&value)?),
-            "--steps" => a.steps = Some(int(&value)?),
-            "--out" => a.out = value.into(),
-            "--seed" => {
-                a.seed = value
-                    .parse()
-                    .map_err(|_| format!("--seed: not a u64: {value}"))?
-            }
+        match flag {
             "--sampler" => {
-                a.sampler = match value.as_str() {
+                a.sampler = match value {
                     "grid" => Sampler::Grid,
                     "stratified" => Sampler::Stratified,
                     "proposal" => Sampler::Proposal,
@@ -182,15 +172,15 @@ fn parse_args() -> std::result::Result<Args, String> {
                     }
                 }
             }
-            "--downscale" => a.downscale = int(&value)?,
-            "--rays" => a.rays = int(&value)?,
-            "--samples" => a.samples = int(&value)?,
-            "--aabb" => a.aabb = num(&value)?,
-            "--eval-every" => a.eval_every = int(&value)?,
-            "--eval-views" => a.eval_views = int(&value)?,
-            "--pictures" => a.pictures = int(&value)?,
+            "--downscale" => a.downscale = int(flag, value)?,
+            "--rays" => a.rays = int(flag, value)?,
+            "--samples" => a.samples = int(flag, value)?,
+            "--aabb" => a.aabb = num(flag, value)?,
+            "--eval-every" => a.eval_every = int(flag, value)?,
+            "--eval-views" => a.eval_views = int(flag, value)?,
+            "--pictures" => a.pictures = int(flag, value)?,
             "--resume" => a.resume = Some(value.into()),
-            "--lr" => a.lr = num(&value)?,
+            "--lr" => a.lr = num(flag, value)?,
             "--frames" => {
                 let list: std::result::Result<Vec<usize>, _> = value
                     .split(',')
@@ -199,15 +189,9 @@ fn parse_args() -> std::result::Result<Args, String> {
                 a.frames =
                     Some(list.map_err(|_| format!("--frames: indices like 0,16,33, not {value}"))?);
             }
-            "--regnerf" => {
-                a.regnerf = match value.as_str() {
-                    "on" => true,
-                    "off" => false,
-                    other => return Err(format!("--regnerf: on or off, not {other}")),
-                }
-            }
+            "--regnerf" => a.regnerf = training::on_off(flag, value)?,
             "--background" => {
-                a.background = match value.as_str() {
+                a.background = match value {
                     "random" => Background::Random,
                     "white" => Background::Color([1.0; 3]),
                     "black" => Background::Color([0.0; 3]),
@@ -218,16 +202,9 @@ fn parse_args() -> std::result::Result<Args, String> {
             }
             other => return Err(format!("unknown flag {other}\n{USAGE}")),
         }
-    }
-    if a.minutes.is_some() && a.steps.is_some() {
-        return Err("give --minutes or --steps, not both".into());
-    }
-    if a.minutes.is_none() && a.steps.is_none() {
-        a.minutes = Some(10.0);
-    }
-    if a.minutes.is_some_and(|m| !(m > 0.0 && m.is_finite())) {
-        return Err("--minutes must be positive".into());
-    }
+        Ok(())
+    })?;
+    training::check_budget(&mut a.minutes, a.steps, 10.0)?;
     if a.rays == 0 || a.samples == 0 || a.eval_every == 0 || a.eval_views == 0 {
         return Err("--rays, --samples, --eval-every and --eval-views must be positive".into());
     }
@@ -431,42 +408,6 @@ fn regnerf_depth_smoothness(r: &Renderer, cameras: &[Camera], seed: u64) -> Resu
     Ok(depth_smoothness(&depth, Some(&opacity))?.mean_all()?)
 }
 
-/// Stops on a NaN or infinity in `t`, naming the step and the tensor.
-fn check_finite(t: &Tensor, step: usize, what: &str) -> Result<()> {
-    let s = t
-        .abs()?
-        .sum_all()?
-        .to_dtype(DType::F64)?
-        .to_scalar::<f64>()?;
-    if s.is_finite() {
-        Ok(())
-    } else {
-        Err(Error::InvalidArgument {
-            arg: "training",
-            expected: "finite losses, gradients and weights".into(),
-            got: format!("a NaN or infinity in {what} at step {step}"),
-        })
-    }
-}
-
-fn named_vars(varmap: &VarMap) -> Vec<(String, Var)> {
-    let data = varmap.data().lock().expect("an unpoisoned varmap");
-    let mut vars: Vec<_> = data.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
-    vars.sort_by(|a, b| a.0.cmp(&b.0));
-    vars
-}
-
-fn scene_box(data: &Dataset, half: f64) -> [f64; 6] {
-    match data.bounds() {
-        Some(Bounds::Aabb { min, max }) => [min[0], min[1], min[2], max[0], max[1], max[2]],
-        Some(Bounds::Sphere {
-            center: c,
-            radius: r,
-        }) => [c[0] - r, c[1] - r, c[2] - r, c[0] + r, c[1] + r, c[2] + r],
-        _ => [-half, -half, -half, half, half, half],
-    }
-}
-
 /// PSNR and SSIM of the first `n` views of `eval` (means), and the renders.
 fn evaluate(r: &Renderer, eval: &Dataset, n: usize) -> Result<(f64, f64, Vec<[Tensor; 4]>)> {
     let (mut p, mut s, mut renders) = (0.0, 0.0, Vec::new());
@@ -480,15 +421,6 @@ fn evaluate(r: &Renderer, eval: &Dataset, n: usize) -> Result<(f64, f64, Vec<[Te
         renders.push([truth, color, depth, opacity]);
     }
     Ok((p / n as f64, s / n as f64, renders))
-}
-
-fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
-    std::fs::write(path, serde_json::to_string_pretty(value).expect("JSON")).map_err(|source| {
-        Error::Io {
-            path: path.display().to_string(),
-            source,
-        }
-    })
 }
 
 /// What a run measured: held-out means, and per held-out view `[truth, colour, depth,
@@ -508,32 +440,15 @@ pub fn run(args: &Args) -> Result<Summary> {
         ..LoadConfig::default()
     };
     let train = load(&args.data, &train_config)?;
-    let (eval, eval_split) = match load(
+    let (eval, eval_split) = training::load_eval(
         &args.data,
         &LoadConfig {
-            split: Split::Test,
             downscale: args.downscale,
             ..LoadConfig::default()
         },
-    ) {
-        Ok(d) => (d, "test"),
-        Err(_) => (
-            load(
-                &args.data,
-                &LoadConfig {
-                    split: Split::Val,
-                    downscale: args.downscale,
-                    ..LoadConfig::default()
-                },
-            )?,
-            "val",
-        ),
-    };
-    std::fs::create_dir_all(&args.out).map_err(|source| Error::Io {
-        path: args.out.display().to_string(),
-        source,
-    })?;
-    let aabb = scene_box(&train, args.aabb);
+    )?;
+    training::create_dir(&args.out)?;
+    let aabb = training::scene_box(&train, args.aabb);
     let diag =
         ((aabb[3] - aabb[0]).powi(2) + (aabb[4] - aabb[1]).powi(2) + (aabb[5] - aabb[2]).powi(2))
             .sqrt();
@@ -557,7 +472,7 @@ pub fn run(args: &Args) -> Result<Summary> {
     }
     let (lr0, lr1) = (args.lr, args.lr / 10.0);
     let mut opt = common::adam(&varmap, lr0)?;
-    let vars = named_vars(&varmap);
+    let vars = training::named_vars(&varmap);
     let mut grid = match args.sampler {
         Sampler::Grid => Some(OccupancyGrid::new(GridConfig {
             aabb,
@@ -571,17 +486,7 @@ pub fn run(args: &Args) -> Result<Summary> {
     };
     let mut sampler = RaySampler::new(&train, args.seed, &device, dtype)?;
     let train_cameras: Vec<Camera> = train.views().iter().map(|v| *v.camera()).collect();
-    let budget = args.minutes.map(|m| m * 60.0);
-    let bar = match (args.steps, budget) {
-        (Some(n), _) => ProgressBar::new(n as u64),
-        (None, Some(secs)) => ProgressBar::new(secs.ceil() as u64),
-        _ => unreachable!("parse_args sets one"),
-    };
-    bar.set_style(
-        ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} {msg}")
-            .expect("template")
-            .progress_chars("=> "),
-    );
+    let mut clock = training::Clock::start(args.steps, args.minutes);
     println!(
         "training on {} views of {} ({} {}), evaluating on {} {} views; sampler {:?}",
         train.len(),
@@ -593,19 +498,11 @@ pub fn run(args: &Args) -> Result<Summary> {
         args.sampler
     );
     let mut curve = String::from("step,train_seconds,psnr\n");
-    let start = Instant::now();
-    let mut eval_secs = 0.0;
     let mut samples_total = 0usize;
     let mut step = 0usize;
     loop {
-        let train_secs = start.elapsed().as_secs_f64() - eval_secs;
-        let progress = match (args.steps, budget) {
-            // --steps 0 evaluates (e.g. resumed weights) without training.
-            (Some(0), _) => 1.0,
-            (Some(n), _) => step as f64 / n as f64,
-            (None, Some(b)) => train_secs / b,
-            _ => 1.0,
-        };
+        // --steps 0 evaluates (e.g. resumed weights) without training.
+        let progress = clock.progress(step);
         if progress >= 1.0 {
             break;
         }
@@ -647,53 +544,39 @@ pub fn run(args: &Args) -> Result<Summary> {
                 regnerf_depth_smoothness(&renderer, &train_cameras, args.seed ^ step as u64)?;
             loss = (loss + (smooth * weight)?)?;
         }
-        check_finite(&loss, step, "the loss")?;
+        training::check_finite(&loss, step, "the loss")?;
         let grads = loss.backward()?;
-        for (name, var) in &vars {
-            if let Some(g) = grads.get(var) {
-                check_finite(g, step, &format!("the gradient of {name}"))?;
-            }
-        }
+        training::check_gradients(&grads, &vars, step)?;
         opt.step(&grads)?;
         step += 1;
         let mse = photometric.to_dtype(DType::F64)?.to_scalar::<f64>()?;
-        match args.steps {
-            Some(_) => bar.set_position(step as u64),
-            None => bar.set_position((start.elapsed().as_secs_f64() - eval_secs) as u64),
-        }
+        clock.tick(step);
         if step.is_multiple_of(10) {
-            bar.set_message(format!(
+            clock.bar.set_message(format!(
                 "step {step} loss {mse:.5} train PSNR {:.2} samples/ray {:.1}",
                 -10.0 * mse.log10(),
                 n as f64 / args.rays as f64
             ));
         }
         if step.is_multiple_of(args.eval_every) {
-            let clock = Instant::now();
-            for (name, var) in &vars {
-                check_finite(var.as_tensor(), step, &format!("the weight {name}"))?;
-            }
-            let (p, _, _) = evaluate(&renderer, &eval, args.eval_views)?;
-            curve.push_str(&format!(
-                "{step},{:.3},{p:.4}\n",
-                start.elapsed().as_secs_f64() - eval_secs
-            ));
+            let seconds = clock.train_seconds();
             let shown = args.eval_views.min(eval.len());
-            bar.suspend(|| {
+            let p = clock.off_clock(|| -> Result<f64> {
+                training::check_weights(&vars, step)?;
+                let (p, _, _) = evaluate(&renderer, &eval, args.eval_views)?;
                 println!(
                     "step {step}: loss {mse:.5}, held-out PSNR {p:.2} dB ({shown} views), {:.1} samples/ray{}",
                     n as f64 / args.rays as f64,
                     grid.as_ref().map_or(String::new(), |g| format!(", {:.1} % of the grid occupied", 100.0 * g.occupied_fraction()))
-                )
-            });
-            eval_secs += clock.elapsed().as_secs_f64();
+                );
+                Ok(p)
+            })?;
+            curve.push_str(&format!("{step},{seconds:.3},{p:.4}\n"));
         }
     }
-    let train_seconds = start.elapsed().as_secs_f64() - eval_secs;
-    bar.finish_and_clear();
-    for (name, var) in &vars {
-        check_finite(var.as_tensor(), step, &format!("the weight {name}"))?;
-    }
+    let train_seconds = clock.train_seconds();
+    clock.bar.finish_and_clear();
+    training::check_weights(&vars, step)?;
     let renderer = Renderer {
         net: &net,
         grid: grid.as_ref(),
@@ -728,10 +611,7 @@ pub fn run(args: &Args) -> Result<Summary> {
         write_png(&args.out.join(format!("opacity_{i}.png")), opacity)?;
     }
     varmap.save(args.out.join("weights.safetensors"))?;
-    std::fs::write(args.out.join("curve.csv"), curve).map_err(|source| Error::Io {
-        path: args.out.join("curve.csv").display().to_string(),
-        source,
-    })?;
+    training::write_text(&args.out.join("curve.csv"), &curve)?;
     let metrics = serde_json::json!({
         "psnr": p,
         "ssim": s,
@@ -743,7 +623,7 @@ pub fn run(args: &Args) -> Result<Summary> {
         "eval_views": eval.len(),
         "data": args.data.display().to_string(),
     });
-    write_json(&args.out.join("metrics.json"), &metrics)?;
+    training::write_json(&args.out.join("metrics.json"), &metrics)?;
     println!(
         "{step} steps in {train_seconds:.1} s: held-out PSNR {p:.2} dB, SSIM {s:.4} over {} {eval_split} views; wrote {}",
         eval.len(),

@@ -11,6 +11,7 @@ mod common;
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
 use common::{central_diff, close, reseed, uniform, v64};
+use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::{Field, ImplicitSurface};
 use neural_fields::nn::{
     build_seeded, joint_decoder, rendering_net, texture_decoder, MlpConfig, RenderingNetConfig,
@@ -46,13 +47,19 @@ fn weighted(rgb: &Tensor, c: &Tensor) -> Tensor {
     (rgb * c).unwrap().sum_all().unwrap()
 }
 
-fn texture_setup(seed: u64, n: usize, scale: f64) -> (VarMap, Var, Var, Var, Tensor) {
-    let config = TextureDecoderConfig {
+/// A small decoder with both codes and a frequency encoding of the points.
+fn fd_config() -> TextureDecoderConfig {
+    TextureDecoderConfig {
         hidden: 16,
         blocks: 3,
         shape_code_dim: 4,
         image_code_dim: 2,
-    };
+        encoding: PointEncoding::Frequency(FrequencyEncoding::new(3, 3).unwrap()),
+    }
+}
+
+fn texture_setup(seed: u64, n: usize, scale: f64) -> (VarMap, Var, Var, Var, Tensor) {
+    let config = fd_config();
     let varmap = VarMap::new();
     build_seeded(&varmap, DType::F64, &DEV, seed, |vb| {
         texture_decoder(&config, vb)
@@ -79,7 +86,7 @@ proptest! {
         scale in prop_oneof![Just(1.0), Just(50.0)],
     ) {
         let (varmap, p, c, z, w) = texture_setup(seed, 5, scale);
-        let config = TextureDecoderConfig { hidden: 16, blocks: 3, shape_code_dim: 4, image_code_dim: 2 };
+        let config = fd_config();
         let net = texture_decoder(&config, VarBuilder::from_varmap(&varmap, DType::F64, &DEV)).unwrap();
         let loss = || {
             let input = TextureInput::new(p.as_tensor()).shape_code(c.as_tensor()).image_code(z.as_tensor());
@@ -91,8 +98,7 @@ proptest! {
             let g = v64(grads.get(v).unwrap());
             for i in 0..v.elem_count() {
                 total += 1;
-                let h = 1e-4 * if name == "points" { scale } else { 1.0 };
-                if let Some(num) = fd(v, i, h, &mut || loss().to_scalar::<f64>().unwrap()) {
+                if let Some(num) = fd(v, i, 1e-4, &mut || loss().to_scalar::<f64>().unwrap()) {
                     checked += 1;
                     prop_assert!(close(g[i], num, 1e-6, 1e-4), "{name}[{i}]: {} vs FD {num}", g[i]);
                 }

@@ -34,3 +34,30 @@ pub fn adam(varmap: &VarMap, lr: f64) -> neural_fields::Result<AdamW> {
     };
     Ok(AdamW::new(varmap.all_vars(), params)?)
 }
+
+/// Rows `idx` of `t` (`idx` on the host).
+pub fn rows(t: &candle_core::Tensor, idx: &[u32]) -> neural_fields::Result<candle_core::Tensor> {
+    let i = candle_core::Tensor::from_slice(idx, idx.len(), t.device())?;
+    Ok(t.index_select(&i, 0)?)
+}
+
+/// Rays `idx` of `rays` and their range on each.
+pub fn select(
+    rays: &neural_fields::camera::Rays,
+    range: &neural_fields::camera::Intersection,
+    idx: &[u32],
+) -> neural_fields::Result<(
+    neural_fields::camera::Rays,
+    neural_fields::camera::Intersection,
+)> {
+    let picked = neural_fields::camera::Rays::new(
+        rows(rays.origins(), idx)?,
+        rows(rays.directions(), idx)?,
+    )?;
+    let range = neural_fields::camera::Intersection {
+        near: rows(&range.near, idx)?,
+        far: rows(&range.far, idx)?,
+        hit: rows(&range.hit, idx)?,
+    };
+    Ok((picked, range))
+}

@@ -108,3 +108,156 @@ pub fn create_dir(path: &Path) -> Result<()> {
         source,
     })
 }
+
+/// Calls `take(flag, value)` for each `--flag value` pair of the command line; `--help`
+/// (or a flag without a value) returns the usage.
+pub fn parse_flags(
+    usage: &str,
+    mut take: impl FnMut(&str, &str) -> std::result::Result<(), String>,
+) -> std::result::Result<(), String> {
+    let mut it = std::env::args().skip(1);
+    while let Some(flag) = it.next() {
+        if flag == "--help" || flag == "-h" {
+            return Err(usage.into());
+        }
+        let value = it.next().ok_or(format!("{flag} needs a value\n{usage}"))?;
+        take(&flag, &value)?;
+    }
+    Ok(())
+}
+
+/// `value` of `flag` as a number.
+pub fn number(flag: &str, value: &str) -> std::result::Result<f64, String> {
+    value
+        .parse()
+        .map_err(|_| format!("{flag}: not a number: {value}"))
+}
+
+/// `value` of `flag` as a count.
+pub fn count(flag: &str, value: &str) -> std::result::Result<usize, String> {
+    value
+        .parse()
+        .map_err(|_| format!("{flag}: not a count: {value}"))
+}
+
+/// `value` of `flag` as `on` or `off`.
+pub fn on_off(flag: &str, value: &str) -> std::result::Result<bool, String> {
+    match value {
+        "on" => Ok(true),
+        "off" => Ok(false),
+        other => Err(format!("{flag}: on or off, not {other}")),
+    }
+}
+
+/// The training budget of the command line's `--data`, `--minutes`, `--steps`, `--out`
+/// and `--seed`: takes one of those flags (returns `false` for any other).
+pub fn take_run_flag(
+    flag: &str,
+    value: &str,
+    data: &mut std::path::PathBuf,
+    minutes: &mut Option<f64>,
+    steps: &mut Option<usize>,
+    out: &mut std::path::PathBuf,
+    seed: &mut u64,
+) -> std::result::Result<bool, String> {
+    match flag {
+        "--data" => *data = value.into(),
+        "--minutes" => *minutes = Some(number(flag, value)?),
+        "--steps" => *steps = Some(count(flag, value)?),
+        "--out" => *out = value.into(),
+        "--seed" => {
+            *seed = value
+                .parse()
+                .map_err(|_| format!("--seed: not a u64: {value}"))?
+        }
+        _ => return Ok(false),
+    }
+    Ok(true)
+}
+
+/// `--minutes` or `--steps`, not both, `default_minutes` when neither; positive minutes.
+pub fn check_budget(
+    minutes: &mut Option<f64>,
+    steps: Option<usize>,
+    default_minutes: f64,
+) -> std::result::Result<(), String> {
+    if minutes.is_some() && steps.is_some() {
+        return Err("give --minutes or --steps, not both".into());
+    }
+    if minutes.is_none() && steps.is_none() {
+        *minutes = Some(default_minutes);
+    }
+    if minutes.is_some_and(|m| !(m > 0.0 && m.is_finite())) {
+        return Err("--minutes must be positive".into());
+    }
+    Ok(())
+}
+
+/// A training run's clock: the budget (`steps`, or seconds of training with evaluation
+/// excluded) and its progress bar.
+pub struct Clock {
+    steps: Option<usize>,
+    seconds: Option<f64>,
+    start: std::time::Instant,
+    paused: f64,
+    /// The progress bar (steps, or seconds of training).
+    pub bar: indicatif::ProgressBar,
+}
+
+impl Clock {
+    /// Starts the clock for `steps` or `minutes` (one of them; `--steps 0` trains nothing).
+    pub fn start(steps: Option<usize>, minutes: Option<f64>) -> Self {
+        let seconds = minutes.map(|m| m * 60.0);
+        let len = match (steps, seconds) {
+            (Some(n), _) => n as u64,
+            (None, Some(s)) => s.ceil() as u64,
+            (None, None) => 0,
+        };
+        let bar = indicatif::ProgressBar::new(len);
+        bar.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{elapsed_precise} [{bar:30}] {pos}/{len} {msg}",
+            )
+            .expect("template")
+            .progress_chars("=> "),
+        );
+        Self {
+            steps,
+            seconds,
+            start: std::time::Instant::now(),
+            paused: 0.0,
+            bar,
+        }
+    }
+
+    /// Seconds of training so far (evaluation excluded).
+    pub fn train_seconds(&self) -> f64 {
+        self.start.elapsed().as_secs_f64() - self.paused
+    }
+
+    /// The fraction of the budget spent before `step`; 1 or more ends the run.
+    pub fn progress(&self, step: usize) -> f64 {
+        match (self.steps, self.seconds) {
+            (Some(0), _) => 1.0,
+            (Some(n), _) => step as f64 / n as f64,
+            (None, Some(s)) => self.train_seconds() / s,
+            (None, None) => 1.0,
+        }
+    }
+
+    /// Moves the bar to `step` done.
+    pub fn tick(&self, step: usize) {
+        match self.steps {
+            Some(_) => self.bar.set_position(step as u64),
+            None => self.bar.set_position(self.train_seconds() as u64),
+        }
+    }
+
+    /// Runs `f` (an evaluation) off the training clock, printing above the bar.
+    pub fn off_clock<T>(&mut self, f: impl FnOnce() -> T) -> T {
+        let t = std::time::Instant::now();
+        let out = self.bar.suspend(f);
+        self.paused += t.elapsed().as_secs_f64();
+        out
+    }
+}

@@ -1,6 +1,7 @@
 //! End-to-end curves: the bundled training examples, run as child processes
 //! (`cargo run --release --example NAME`), with the metrics they print against the wall
-//! time they print. Full mode only: each run takes from half a minute to a few minutes.
+//! time they print, or the `curve.csv` they write. Full mode only: each run takes from
+//! half a minute to a few minutes.
 
 use crate::report::{Row, Table};
 
@@ -62,19 +63,27 @@ fn run_example(example: &str, args: &[String]) -> Result<String, String> {
     Ok(String::from_utf8_lossy(&out.stdout).into_owned())
 }
 
-/// Minutes of training per sampler in the NeRF curves.
-const NERF_MINUTES: &str = "2";
+/// Minutes of training per run in the curves read from `curve.csv`.
+const CSV_MINUTES: &str = "2";
 
-/// The NeRF example on the committed dataset, once per sampler: its `curve.csv` rows
-/// (`step,train_seconds,psnr`) as held-out MSE against training seconds.
-fn nerf_curves(rows: &mut Vec<Row>, notes: &mut Vec<String>) {
-    for sampler in ["grid", "stratified", "proposal"] {
-        let out = std::env::temp_dir().join(format!("nf_nerf_{sampler}"));
+/// A training example on the committed dataset, once per variant (`(flag, value)` added
+/// to `--minutes 2 --pictures 0 --out DIR`): the rows of its `curve.csv` (`step,
+/// train_seconds, metric…`) as errors against training seconds, one series per metric
+/// column (`(column, name, how it becomes an error)`).
+fn csv_curves(
+    rows: &mut Vec<Row>,
+    notes: &mut Vec<String>,
+    example: &str,
+    variants: &[(&str, &str)],
+    metrics: &[(usize, &str, Metric)],
+) {
+    for &(flag, value) in variants {
+        let out = std::env::temp_dir().join(format!("nf_{example}_{value}"));
         let args: Vec<String> = [
             "--minutes",
-            NERF_MINUTES,
-            "--sampler",
-            sampler,
+            CSV_MINUTES,
+            flag,
+            value,
             "--pictures",
             "0",
             "--out",
@@ -83,16 +92,15 @@ fn nerf_curves(rows: &mut Vec<Row>, notes: &mut Vec<String>) {
         .map(|s| s.to_string())
         .chain([out.to_string_lossy().into_owned()])
         .collect();
-        if let Err(why) = run_example("nerf", &args) {
-            notes.push(format!("`nerf --sampler {sampler}` did not run ({why})"));
+        let run = format!("`{example} {flag} {value}`");
+        if let Err(why) = run_example(example, &args) {
+            notes.push(format!("{run} did not run ({why})"));
             continue;
         }
         let csv = match std::fs::read_to_string(out.join("curve.csv")) {
             Ok(s) => s,
             Err(e) => {
-                notes.push(format!(
-                    "`nerf --sampler {sampler}` wrote no curve.csv ({e})"
-                ));
+                notes.push(format!("{run} wrote no curve.csv ({e})"));
                 continue;
             }
         };
@@ -101,14 +109,16 @@ fn nerf_curves(rows: &mut Vec<Row>, notes: &mut Vec<String>) {
                 .split(',')
                 .filter_map(|t| t.trim().parse().ok())
                 .collect();
-            if let [step, seconds, psnr] = v[..] {
-                rows.push(Row {
-                    series: format!("nerf (wuson, {sampler}): held-out MSE"),
-                    knob: step,
-                    error: Metric::MseOfPsnr.error(psnr),
-                    seconds,
-                    work: 0.0,
-                });
+            for &(col, name, metric) in metrics {
+                if let (Some(&step), Some(&seconds), Some(&x)) = (v.first(), v.get(1), v.get(col)) {
+                    rows.push(Row {
+                        series: format!("{example} (wuson, {value}): {name}"),
+                        knob: step,
+                        error: metric.error(x),
+                        seconds,
+                        work: 0.0,
+                    });
+                }
             }
         }
     }
@@ -213,7 +223,27 @@ pub fn run(quick: bool) -> Vec<Table> {
             }
         }
     }
-    nerf_curves(&mut rows, &mut notes);
+    csv_curves(
+        &mut rows,
+        &mut notes,
+        "nerf",
+        &[
+            ("--sampler", "grid"),
+            ("--sampler", "stratified"),
+            ("--sampler", "proposal"),
+        ],
+        &[(2, "held-out MSE", Metric::MseOfPsnr)],
+    );
+    csv_curves(
+        &mut rows,
+        &mut notes,
+        "dvr_multiview",
+        &[("--model", "dvr"), ("--model", "idr")],
+        &[
+            (2, "held-out 1 − mask IoU", Metric::OneMinus),
+            (3, "held-out masked MSE", Metric::MseOfPsnr),
+        ],
+    );
     vec![Table {
         title: "End-to-end training: error vs wall time".into(),
         description: format!(
@@ -230,7 +260,11 @@ pub fn run(quick: bool) -> Vec<Table> {
              (the training time excludes rendering it); NeRF on the committed dataset \
              (`cargo run --release --example nerf -- --minutes 2 --sampler S`, once per \
              sampler), the held-out MSE of its `curve.csv` (PSNR on the first 4 test views \
-             every 250 steps) against training seconds (evaluation excluded).{}",
+             every 250 steps) against training seconds (evaluation excluded); 3-D \
+             reconstruction from the committed dataset's masked views \
+             (`cargo run --release --example dvr_multiview -- --minutes 2 --model M`, DVR's \
+             joint decoder and IDR's SDF + rendering network), 1 − mask IoU and the MSE inside \
+             the true masks of its `curve.csv` (first 4 test views every 500 steps).{}",
             if notes.is_empty() {
                 String::new()
             } else {

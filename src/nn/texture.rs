@@ -12,7 +12,7 @@ use candle_core::{Tensor, D};
 use candle_nn::{Init, Linear, Module, VarBuilder};
 
 /// Settings of [`texture_decoder`].
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug)]
 pub struct TextureDecoderConfig {
     /// Width of the point features and the ResNet blocks (Texture Fields: 128).
     pub hidden: usize,
@@ -23,16 +23,22 @@ pub struct TextureDecoderConfig {
     pub shape_code_dim: usize,
     /// Dimension `Z` of the image code `z` (0: none is read).
     pub image_code_dim: usize,
+    /// Encoding of the points before the first layer (Texture Fields: none, the raw
+    /// point; a [`PointEncoding::Frequency`] lets one object's texture carry detail
+    /// that a ReLU network on raw coordinates smooths away).
+    pub encoding: PointEncoding,
 }
 
 impl Default for TextureDecoderConfig {
-    /// Hidden 128, 5 blocks, no codes (an unconditional texture of one object).
+    /// Hidden 128, 5 blocks, no codes (an unconditional texture of one object), raw
+    /// points.
     fn default() -> Self {
         Self {
             hidden: 128,
             blocks: 5,
             shape_code_dim: 0,
             image_code_dim: 0,
+            encoding: PointEncoding::Identity,
         }
     }
 }
@@ -62,12 +68,13 @@ fn zero_linear(input: usize, out: usize, vb: VarBuilder) -> Result<Linear> {
 /// [`texture_decoder`].
 ///
 /// ```text
-/// h = W_p p + b_p,
+/// h = W_p γ(p) + b_p,
 /// for each block i:  h ← h + W_cᵢ [c, z] + b_cᵢ;   h ← h + W₁ᵢ relu(W₀ᵢ relu(h) + b₀ᵢ) + b₁ᵢ,
 /// rgb = σ(W_out relu(h) + b_out),
 /// ```
 ///
-/// with the codes' map added before *every* block, and the second layer of each block
+/// with `γ` the configured encoding (the identity in Texture Fields), the codes' map
+/// added before *every* block, and the second layer of each block
 /// and the output layer starting at zero (so the initial texture is a uniform grey,
 /// σ(0) = ½, and the blocks start as identities). Reads `points`, and `shape_code` /
 /// `image_code` when their dimensions are not 0; differentiable w.r.t. the parameters,
@@ -102,7 +109,8 @@ pub struct TextureDecoder {
 /// ```
 ///
 /// # Errors
-/// `hidden` or `blocks` 0 (naming `config.*`); errors of `vb`.
+/// `hidden` or `blocks` 0 (naming `config.*`), an encoding of other than 3-D points
+/// (naming `config.encoding`); errors of `vb`.
 pub fn texture_decoder(config: &TextureDecoderConfig, vb: VarBuilder) -> Result<TextureDecoder> {
     for (name, v) in [
         ("config.hidden", config.hidden),
@@ -111,6 +119,18 @@ pub fn texture_decoder(config: &TextureDecoderConfig, vb: VarBuilder) -> Result<
         if v == 0 {
             return Err(Error::invalid(name, "at least 1", "0"));
         }
+    }
+    let enc_in = match &config.encoding {
+        PointEncoding::Identity => 3,
+        PointEncoding::Frequency(e) => e.in_dim(),
+        PointEncoding::Fourier(e) => e.in_dim(),
+    };
+    if enc_in != 3 {
+        return Err(Error::invalid(
+            "config.encoding",
+            "an encoding of 3-D points",
+            format!("one of {enc_in}-D inputs"),
+        ));
     }
     let h = config.hidden;
     let code_dim = config.shape_code_dim + config.image_code_dim;
@@ -127,7 +147,7 @@ pub fn texture_decoder(config: &TextureDecoderConfig, vb: VarBuilder) -> Result<
         }
     }
     Ok(TextureDecoder {
-        fc_p: candle_nn::linear(3, h, vb.pp("fc_p"))?,
+        fc_p: candle_nn::linear(config.encoding.out_dim_for(3), h, vb.pp("fc_p"))?,
         fc_code,
         blocks,
         fc_out: zero_linear(h, 3, vb.pp("fc_out"))?,
@@ -168,7 +188,9 @@ impl TextureField for TextureDecoder {
             [c] => Some((*c).clone()),
             _ => Some(Tensor::cat(&codes, 1)?),
         };
-        let mut h = self.fc_p.forward(input.points)?;
+        let mut h = self
+            .fc_p
+            .forward(&self.config.encoding.forward(input.points)?)?;
         for (i, block) in self.blocks.iter().enumerate() {
             if let (Some(c), Some(fc)) = (&code, self.fc_code.get(i)) {
                 h = (h + fc.forward(c)?)?;
