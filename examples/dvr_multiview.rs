@@ -35,11 +35,19 @@
 //! IDR: the geometric initialisation), so that rays find a surface from the first step.
 //! Adam, learning rate decaying log-linearly from `--lr` (1e-3) to a tenth of it.
 //!
+//! **Evaluation** renders each held-out pixel with 2 × 2 rays on a sub-pixel grid and
+//! averages them (misses count as the white background): the images were rendered by
+//! integrating over each pixel, so their object edges are antialiased, which one surface
+//! point per pixel cannot reproduce. A pixel is predicted inside the object when at least
+//! half of its rays hit.
+//!
 //! **Output** in `--out DIR` (default `out/dvr_multiview`):
-//! - `metrics.json`: on the held-out views, `mask_iou` (predicted hits against the mask,
-//!   pooled over the views), `psnr_masked` (PSNR of the prediction on white, inside the
+//! - `metrics.json`: on the held-out views, `mask_iou` (predicted coverage ≥ ½ against the
+//!   mask ≥ ½, pooled over the views), `psnr_masked` (PSNR of the prediction on white, inside the
 //!   true mask, pooled), `chamfer_l1` (of the extracted mesh to the source mesh, both in the
-//!   source mesh's unit cube; `null` when the source mesh is not known), `train_seconds`,
+//!   source mesh's unit cube; `null` when the source mesh is not known), `psnr_interior`
+//!   (the same on the fully covered pixels, mask = 1: without the antialiased edge, which
+//!   one surface point per pixel cannot reproduce), `train_seconds`,
 //!   `steps`, `model`, `eval_split`, `eval_views`, `data`;
 //! - `curve.csv`: `step,train_seconds,mask_iou,psnr_masked` every `--eval-every` steps
 //!   (on the first `--eval-views` held-out views);
@@ -47,7 +55,8 @@
 //!   `--pictures` held-out views;
 //! - `mesh.ply`: the surface extracted by MISE (32³ refined twice, 128³ at the surface),
 //!   with the texture's colours at its vertices (MeshLab and Blender show them);
-//! - `weights.safetensors`.
+//! - `weights.safetensors`, which `--resume FILE` loads (the same `--model`) to continue
+//!   training, or with `--steps 0` to evaluate.
 //!
 //! **Camera refinement** (IDR's): `--perturb DEGREES,FRACTION` first moves every training
 //! camera (a rotation by DEGREES about a random axis, its centre shifted by FRACTION of its
@@ -79,7 +88,7 @@ use neural_fields::dvr::{
 };
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::{ImplicitSurface, SignedDistance, Sphere};
-use neural_fields::glam::{DAffine3, DMat3, DVec2, DVec3};
+use neural_fields::glam::{DAffine3, DMat3, DQuat, DVec2, DVec3};
 use neural_fields::nn::{
     build_seeded, joint_decoder, mlp, rendering_net, texture_decoder, JointDecoder, Mlp, MlpConfig,
     RenderingNet, RenderingNetConfig, TextureDecoder, TextureDecoderConfig,
@@ -102,6 +111,8 @@ static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 /// Rays per chunk when rendering whole views.
 const CHUNK: usize = 8192;
+/// Rays per pixel side when rendering held-out views (2 × 2 per pixel).
+const SUPERSAMPLE: usize = 2;
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Model {
@@ -146,6 +157,7 @@ pub struct Args {
     pub perturb: Option<(f64, f64)>,
     pub refine_poses: bool,
     pub pose_lr: f64,
+    pub resume: Option<PathBuf>,
 }
 
 impl Default for Args {
@@ -170,6 +182,7 @@ impl Default for Args {
             perturb: None,
             refine_poses: false,
             pose_lr: 1e-3,
+            resume: None,
         }
     }
 }
@@ -177,7 +190,7 @@ impl Default for Args {
 const USAGE: &str = "usage: dvr_multiview [--data DIR] [--minutes M | --steps N] [--out DIR] \
 [--seed S] [--model dvr|dvr-joint|idr] [--downscale K] [--rays N] [--aabb R] [--eval-every N] \
 [--eval-views N] [--pictures N] [--lr LR] [--mesh FILE] [--mise-resolution N] \
-[--perturb DEGREES,FRACTION] [--refine-poses on|off] [--pose-lr LR]";
+[--perturb DEGREES,FRACTION] [--refine-poses on|off] [--pose-lr LR] [--resume FILE]";
 
 fn parse_args() -> std::result::Result<Args, String> {
     let mut a = Args::default();
@@ -228,6 +241,7 @@ fn parse_args() -> std::result::Result<Args, String> {
             }
             "--refine-poses" => a.refine_poses = training::on_off(flag, value)?,
             "--pose-lr" => a.pose_lr = num(flag, value)?,
+            "--resume" => a.resume = Some(value.into()),
             other => return Err(format!("unknown flag {other}\n{USAGE}")),
         }
         Ok(())
@@ -379,6 +393,31 @@ fn build(args: &Args, varmap: &VarMap, device: &Device, dtype: DType) -> Result<
     })
 }
 
+/// Checks that every view of `data` has a mask and that some mask covers a pixel.
+///
+/// # Errors
+/// Naming `data`: a view without a mask (naming it), or masks that are all empty.
+fn check_masks(data: &Dataset) -> Result<()> {
+    if let Some(v) = data.views().iter().find(|v| !v.has_mask()) {
+        return Err(no_mask(v.name()));
+    }
+    let mut covered = 0.0;
+    for v in data.views() {
+        if let Some(m) = v.mask(&Device::Cpu, DType::F32)? {
+            let inside = m.ge(0.5)?.to_dtype(DType::F32)?.sum_all()?;
+            covered += f64::from(inside.to_scalar::<f32>()?);
+        }
+    }
+    if covered == 0.0 {
+        return Err(Error::InvalidArgument {
+            arg: "data",
+            expected: "masks that cover the object in some training view".into(),
+            got: format!("{} views whose masks are all empty", data.len()),
+        });
+    }
+    Ok(())
+}
+
 /// The error for a dataset whose view `name` has no mask.
 fn no_mask(name: &str) -> Error {
     Error::InvalidArgument {
@@ -523,87 +562,148 @@ fn step_loss(
     Ok((loss, photo))
 }
 
-/// A held-out view rendered whole without graph: colour on white `[H, W, 3]`, the hit
-/// mask `[H, W]` (1 = surface), normals `[H, W, 3]` (unit, 0 where nothing is hit).
+/// A held-out view rendered whole without graph, with `k × k` rays per pixel on a
+/// regular sub-pixel grid averaged (the image's renderer integrated over the pixel too, so
+/// that its object edges are antialiased): colour on white `[H, W, 3]`, the covered
+/// fraction `[H, W]` of each pixel, normals `[H, W, 3]` (outward, averaged; 0 where
+/// nothing is hit).
 fn render_view(
     net: &Net,
     data: &Dataset,
     v: usize,
     aabb: [f64; 6],
+    k: usize,
 ) -> Result<(Tensor, Tensor, Tensor)> {
-    let k = data.views()[v].camera().intrinsics();
-    let (w, h) = (k.width, k.height);
+    let cam = data.views()[v].camera();
+    let (w, h) = (cam.intrinsics().width, cam.intrinsics().height);
     let [x0, y0, z0, x1, y1, z1] = aabb;
+    let n = w * h * k * k;
+    let (mut o, mut d) = (Vec::with_capacity(3 * n), Vec::with_capacity(3 * n));
+    for row in 0..h {
+        for col in 0..w {
+            for i in 0..k {
+                for j in 0..k {
+                    let at = DVec2::new(
+                        col as f64 + (j as f64 + 0.5) / k as f64,
+                        row as f64 + (i as f64 + 0.5) / k as f64,
+                    );
+                    let (origin, dir) = cam.ray(at);
+                    o.extend(origin.to_array().map(|x| x as f32));
+                    d.extend(dir.to_array().map(|x| x as f32));
+                }
+            }
+        }
+    }
+    let all = Rays::new(
+        Tensor::from_vec(o, (n, 3), &Device::Cpu)?,
+        Tensor::from_vec(d, (n, 3), &Device::Cpu)?,
+    )?;
     let (mut colors, mut masks, mut normals) = (Vec::new(), Vec::new(), Vec::new());
-    for start in (0..w * h).step_by(CHUNK) {
-        let len = CHUNK.min(w * h - start);
-        let batch = data.view_rays(v, start, len, &Device::Cpu, DType::F32)?;
-        let range = ray_aabb(&batch.rays, [x0, y0, z0], [x1, y1, z1])?;
-        let hits = net.find_surface(&batch.rays, &range)?;
-        let idx = Tensor::from_vec(
-            hits.surface_indices(),
-            hits.surface_indices().len(),
-            &Device::Cpu,
-        )?;
+    for start in (0..n).step_by(CHUNK) {
+        let len = CHUNK.min(n - start);
+        let rays = all.narrow(start, len)?;
+        let range = ray_aabb(&rays, [x0, y0, z0], [x1, y1, z1])?;
+        let hits = net.find_surface(&rays, &range)?;
+        let hit_rays = hits.surface_indices();
+        let idx = Tensor::from_vec(hit_rays.clone(), hit_rays.len(), &Device::Cpu)?;
         let mut rgb = Tensor::ones((len, 3), DType::F32, &Device::Cpu)?;
         let mut nrm = Tensor::zeros((len, 3), DType::F32, &Device::Cpu)?;
-        if idx.dim(0)? > 0 {
+        if !hit_rays.is_empty() {
             let points = hits.points.index_select(&idx, 0)?;
-            let dirs = batch.rays.directions().index_select(&idx, 0)?;
-            let shaded = net.shade(&points, &dirs)?;
+            let dirs = rays.directions().index_select(&idx, 0)?;
+            let shaded = net.shade(&points, &dirs)?.rgb.detach();
             let (_, g) = net.surface().value_and_grad(&points)?;
             let g = g.detach();
-            let unit = g.broadcast_div(
-                &g.sqr()?
-                    .sum_keepdim(1)?
-                    .sqrt()?
-                    .clamp(1e-12, f64::INFINITY)?,
-            )?;
+            let length = g
+                .sqr()?
+                .sum_keepdim(1)?
+                .sqrt()?
+                .clamp(1e-12, f64::INFINITY)?;
             // Outward normals: towards decreasing occupancy, increasing distance.
-            let unit = (unit * -net.surface().inside().sign())?;
-            let hit = Tensor::zeros((len, 3), DType::F32, &Device::Cpu)?;
-            let covered = hit.index_add(&idx, &Tensor::ones_like(&points)?, 0)?;
-            rgb = (covered.ne(0.0)?.where_cond(
-                &Tensor::zeros((len, 3), DType::F32, &Device::Cpu)?.index_add(
-                    &idx,
-                    &shaded.rgb.detach(),
-                    0,
-                )?,
-                &rgb,
-            ))?;
+            let unit = (g.broadcast_div(&length)? * -net.surface().inside().sign())?;
+            let covered = hits
+                .mask
+                .to_dtype(DType::F32)?
+                .unsqueeze(1)?
+                .broadcast_as((len, 3))?;
+            let on_white =
+                Tensor::zeros((len, 3), DType::F32, &Device::Cpu)?.index_add(&idx, &shaded, 0)?;
+            rgb = covered.ne(0.0)?.where_cond(&on_white, &rgb)?;
             nrm = nrm.index_add(&idx, &unit, 0)?;
         }
         colors.push(rgb);
         masks.push(hits.mask.to_dtype(DType::F32)?);
         normals.push(nrm);
     }
+    let mean = |parts: Vec<Tensor>, c: usize| -> Result<Tensor> {
+        Ok(Tensor::cat(&parts, 0)?
+            .reshape((h * w, k * k, c))?
+            .mean(1)?
+            .reshape((h, w, c))?)
+    };
     Ok((
-        Tensor::cat(&colors, 0)?.reshape((h, w, 3))?,
-        Tensor::cat(&masks, 0)?.reshape((h, w))?,
-        Tensor::cat(&normals, 0)?.reshape((h, w, 3))?,
+        mean(colors, 3)?,
+        mean(masks, 1)?.squeeze(2)?,
+        mean(normals, 3)?,
     ))
 }
 
-/// Mask IoU and masked PSNR pooled over the first `n` views of `eval`, and the renders
-/// `[truth, colour, normals]`.
-fn evaluate(
-    net: &Net,
-    eval: &Dataset,
-    n: usize,
-    aabb: [f64; 6],
-) -> Result<(f64, f64, Vec<[Tensor; 3]>)> {
+/// What [`evaluate`] measures on held-out views.
+struct Evaluation {
+    /// Mask IoU of the predicted hits against the true masks (mask ≥ ½), pooled.
+    iou: f64,
+    /// PSNR inside the true masks (mask ≥ ½), pooled.
+    psnr_masked: f64,
+    /// PSNR on the fully covered pixels (mask = 1), pooled: without the object's
+    /// antialiased edge, which one surface point per pixel cannot reproduce.
+    psnr_interior: f64,
+    /// Per view `[truth, colour, normals]`.
+    renders: Vec<[Tensor; 3]>,
+}
+
+/// Squared error and sample count of `pred` against `truth` on the pixels of `mask`.
+#[derive(Default)]
+struct Pooled {
+    se: f64,
+    count: f64,
+}
+
+impl Pooled {
+    fn add(&mut self, pred: &Tensor, truth: &Tensor, mask: &Tensor) -> Result<()> {
+        let pixels = f64::from(mask.sum_all()?.to_scalar::<f32>()?);
+        if pixels > 0.0 {
+            let p = psnr(pred, truth, Some(mask))?;
+            self.se += 10f64.powf(-p / 10.0) * pixels * 3.0;
+            self.count += pixels * 3.0;
+        }
+        Ok(())
+    }
+
+    fn psnr(&self) -> f64 {
+        if self.count > 0.0 {
+            -10.0 * (self.se / self.count).log10()
+        } else {
+            f64::NAN
+        }
+    }
+}
+
+/// The metrics of [`Evaluation`] over the first `n` views of `eval`.
+fn evaluate(net: &Net, eval: &Dataset, n: usize, aabb: [f64; 6]) -> Result<Evaluation> {
     let n = n.min(eval.len());
-    let (mut inter, mut union, mut se, mut count) = (0.0, 0.0, 0.0, 0.0);
+    let (mut inter, mut union) = (0.0, 0.0);
+    let (mut masked, mut interior) = (Pooled::default(), Pooled::default());
     let mut renders = Vec::new();
     for v in 0..n {
         let view = &eval.views()[v];
         let truth = view.rgb([1.0; 3], &Device::Cpu, DType::F32)?;
-        let true_mask = view
+        let mask = view
             .mask(&Device::Cpu, DType::F32)?
-            .ok_or_else(|| no_mask(view.name()))?
-            .ge(0.5)?
-            .to_dtype(DType::F32)?;
-        let (color, hit, normals) = render_view(net, eval, v, aabb)?;
+            .ok_or_else(|| no_mask(view.name()))?;
+        let true_mask = mask.ge(0.5)?.to_dtype(DType::F32)?;
+        let full = mask.ge(1.0)?.to_dtype(DType::F32)?;
+        let (color, coverage, normals) = render_view(net, eval, v, aabb, SUPERSAMPLE)?;
+        let hit = coverage.ge(0.5)?.to_dtype(DType::F32)?;
         let both = (&hit * &true_mask)?.sum_all()?.to_scalar::<f32>()?;
         let either = (&hit + &true_mask)?
             .clamp(0.0, 1.0)?
@@ -611,22 +711,16 @@ fn evaluate(
             .to_scalar::<f32>()?;
         inter += f64::from(both);
         union += f64::from(either);
-        let pixels = true_mask.sum_all()?.to_scalar::<f32>()?;
-        if pixels > 0.0 {
-            let p = psnr(&color, &truth, Some(&true_mask))?;
-            // Pool the squared error: PSNR → MSE × pixels.
-            se += 10f64.powf(-p / 10.0) * f64::from(pixels) * 3.0;
-            count += f64::from(pixels) * 3.0;
-        }
+        masked.add(&color, &truth, &true_mask)?;
+        interior.add(&color, &truth, &full)?;
         renders.push([truth, color, normals]);
     }
-    let iou = if union > 0.0 { inter / union } else { 1.0 };
-    let psnr_masked = if count > 0.0 {
-        -10.0 * (se / count).log10()
-    } else {
-        f64::NAN
-    };
-    Ok((iou, psnr_masked, renders))
+    Ok(Evaluation {
+        iou: if union > 0.0 { inter / union } else { 1.0 },
+        psnr_masked: masked.psnr(),
+        psnr_interior: interior.psnr(),
+        renders,
+    })
 }
 
 /// The source mesh in the dataset's world frame: `--mesh`, or `scene.json`'s `mesh` with
@@ -764,9 +858,10 @@ fn pose_rays(poses: &[PoseParam], data: &Dataset, batch: &RayBatch) -> Result<Ra
 fn pose_errors(poses: &[DAffine3], truth: &[DAffine3]) -> (f64, f64) {
     let (mut rot, mut trans) = (0.0, 0.0);
     for (p, t) in poses.iter().zip(truth) {
-        let rel = p.matrix3.transpose() * t.matrix3;
-        let cos = ((rel.x_axis.x + rel.y_axis.y + rel.z_axis.z - 1.0) / 2.0).clamp(-1.0, 1.0);
-        rot += cos.acos().to_degrees();
+        // The angle of the relative rotation from its quaternion, which stays accurate near
+        // 0 where acos((tr R − 1)/2) does not.
+        let q = DQuat::from_mat3(&(p.matrix3.transpose() * t.matrix3)).normalize();
+        rot += (2.0 * q.xyz().length().atan2(q.w.abs())).to_degrees();
         trans += (p.translation - t.translation).length() / t.translation.length().max(1e-12);
     }
     let n = poses.len().max(1) as f64;
@@ -788,27 +883,7 @@ pub fn run(args: &Args) -> Result<Summary> {
         ..LoadConfig::default()
     };
     let train = load(&args.data, &config)?;
-    if let Some(v) = train.views().iter().find(|v| !v.has_mask()) {
-        return Err(no_mask(v.name()));
-    }
-    let mut covered = 0.0;
-    for v in train.views() {
-        if let Some(m) = v.mask(&Device::Cpu, DType::F32)? {
-            covered += f64::from(
-                m.ge(0.5)?
-                    .to_dtype(DType::F32)?
-                    .sum_all()?
-                    .to_scalar::<f32>()?,
-            );
-        }
-    }
-    if covered == 0.0 {
-        return Err(Error::InvalidArgument {
-            arg: "data",
-            expected: "masks that cover the object in some training view".into(),
-            got: format!("{} training views whose masks are all empty", train.len()),
-        });
-    }
+    check_masks(&train)?;
     let true_poses: Vec<DAffine3> = train
         .views()
         .iter()
@@ -848,12 +923,14 @@ pub fn run(args: &Args) -> Result<Summary> {
     let (eval, eval_split) = training::load_eval(&args.data, &config)?;
     training::create_dir(&args.out)?;
     let aabb = training::scene_box(&train, args.aabb);
-    let varmap = VarMap::new();
+    let mut varmap = VarMap::new();
     let net = build(args, &varmap, &device, dtype)?;
     let vars = training::named_vars(&varmap);
     let lr0 = args.lr;
     let mut opt = common::adam(&varmap, lr0)?;
-    if !matches!(net, Net::Idr { .. }) {
+    if let Some(path) = &args.resume {
+        varmap.load(path)?;
+    } else if !matches!(net, Net::Idr { .. }) {
         let decoder = net.surface();
         // Start from a ball of radius 0.5 so that the first marches find a surface.
         let ball = Sphere::new([0.0; 3], 0.5, &device, dtype)?.occupancy(10.0);
@@ -927,9 +1004,12 @@ pub fn run(args: &Args) -> Result<Summary> {
             let seconds = clock.train_seconds();
             let (iou, p) = clock.off_clock(|| -> Result<(f64, f64)> {
                 training::check_weights(&vars, step)?;
-                let (iou, p, _) = evaluate(&net, &eval, args.eval_views, aabb)?;
-                println!("step {step}: held-out mask IoU {iou:.4}, masked PSNR {p:.2} dB");
-                Ok((iou, p))
+                let e = evaluate(&net, &eval, args.eval_views, aabb)?;
+                println!(
+                    "step {step}: held-out mask IoU {:.4}, masked PSNR {:.2} dB",
+                    e.iou, e.psnr_masked
+                );
+                Ok((e.iou, e.psnr_masked))
             })?;
             curve.push_str(&format!("{step},{seconds:.3},{iou:.4},{p:.4}\n"));
         }
@@ -937,10 +1017,14 @@ pub fn run(args: &Args) -> Result<Summary> {
     let train_seconds = clock.train_seconds();
     clock.bar.finish_and_clear();
     training::check_weights(&vars, step)?;
-    let (iou, p, renders) = evaluate(&net, &eval, eval.len(), aabb)?;
-    let (iou_c, p_c, _) = evaluate(&net, &eval, args.eval_views, aabb)?;
-    curve.push_str(&format!("{step},{train_seconds:.3},{iou_c:.4},{p_c:.4}\n"));
-    for (i, [truth, color, normals]) in renders.iter().enumerate().take(args.pictures) {
+    let all = evaluate(&net, &eval, eval.len(), aabb)?;
+    let first = evaluate(&net, &eval, args.eval_views, aabb)?;
+    curve.push_str(&format!(
+        "{step},{train_seconds:.3},{:.4},{:.4}\n",
+        first.iou, first.psnr_masked
+    ));
+    let (iou, p) = (all.iou, all.psnr_masked);
+    for (i, [truth, color, normals]) in all.renders.iter().enumerate().take(args.pictures) {
         write_png(
             &args.out.join(format!("view_{i}.png")),
             &comparison_strip(truth, color)?,
@@ -963,6 +1047,7 @@ pub fn run(args: &Args) -> Result<Summary> {
     let mut metrics = serde_json::json!({
         "mask_iou": iou,
         "psnr_masked": p,
+        "psnr_interior": all.psnr_interior,
         "chamfer_l1": chamfer_l1,
         "train_seconds": train_seconds,
         "steps": step,
@@ -1055,7 +1140,13 @@ mod tests {
             let metrics: serde_json::Value =
                 serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap())
                     .unwrap();
-            for key in ["mask_iou", "psnr_masked", "train_seconds", "steps"] {
+            for key in [
+                "mask_iou",
+                "psnr_masked",
+                "psnr_interior",
+                "train_seconds",
+                "steps",
+            ] {
                 assert!(
                     metrics[key].as_f64().is_some_and(f64::is_finite),
                     "{key}: {metrics}"
@@ -1096,9 +1187,11 @@ mod tests {
             .map(|v| v.camera().cam_to_world())
             .collect();
         let (r, t) = pose_errors(&poses, &truth);
-        assert!((r - 3.0).abs() < 1e-6, "{r}");
+        // The committed poses are Blender's float32 matrices: orthonormal to about 1e-7.
+        assert!((r - 3.0).abs() < 1e-4, "{r}");
         assert!((t - 0.03).abs() < 1e-9, "{t}");
-        assert_eq!(pose_errors(&truth, &truth), (0.0, 0.0));
+        let (r0, t0) = pose_errors(&truth, &truth);
+        assert!(r0 < 1e-5 && t0 == 0.0, "{r0} {t0}");
         // Rays from unmoved learnable poses are the dataset's rays.
         let params: Vec<PoseParam> = truth
             .iter()
@@ -1143,11 +1236,8 @@ mod tests {
         let _ = std::fs::remove_dir_all(&out);
     }
 
-    /// Writes a one-view Blender-layout dataset (train and test) of a 4 × 4 image with
-    /// `channels` channels of `value` into a fresh folder.
-    fn tiny_dataset(name: &str, channels: usize, value: u8) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("dvr-multiview-{name}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
+    /// A one-view dataset of a 4 × 4 image with `channels` channels of `value`.
+    fn tiny_dataset(channels: usize, value: u8) -> Dataset {
         let k = neural_fields::camera::Intrinsics::from_fov_y(4, 4, 0.8).unwrap();
         let cam = Camera::look_at(
             k,
@@ -1159,46 +1249,20 @@ mod tests {
         .unwrap();
         let image =
             neural_fields::data::Image::new(4, 4, channels, vec![value; 16 * channels]).unwrap();
-        let view = View::new(cam, image, None, name.into()).unwrap();
-        let data = Dataset::new(vec![view], Background::default(), None).unwrap();
-        for split in [
-            neural_fields::data::Split::Train,
-            neural_fields::data::Split::Test,
-        ] {
-            neural_fields::data::write_blender(&dir, split, &data).unwrap();
-        }
-        dir
+        let view = View::new(cam, image, None, "tiny.png".into()).unwrap();
+        Dataset::new(vec![view], Background::default(), None).unwrap()
     }
 
     #[test]
-    fn all_empty_masks_are_refused() {
-        let dir = tiny_dataset("empty", 4, 0);
-        let args = Args {
-            data: dir.clone(),
-            steps: Some(1),
-            out: dir.join("out"),
-            ..Args::default()
-        };
-        let e = run(&args).err().expect("an error").to_string();
+    fn views_without_masks_or_with_empty_masks_are_refused() {
+        let e = check_masks(&tiny_dataset(3, 100)).unwrap_err().to_string();
+        assert!(e.starts_with("data: expected views with masks"), "{e}");
+        assert!(e.contains("tiny.png"), "{e}");
+        let e = check_masks(&tiny_dataset(4, 0)).unwrap_err().to_string();
         assert!(
             e.starts_with("data: expected masks that cover the object"),
             "{e}"
         );
-        let _ = std::fs::remove_dir_all(&dir);
-    }
-
-    #[test]
-    fn views_without_masks_are_refused_naming_the_view() {
-        // An RGB-only Blender folder has no masks.
-        let dir = tiny_dataset("nomask", 3, 100);
-        let args = Args {
-            data: dir.clone(),
-            steps: Some(1),
-            out: dir.join("out"),
-            ..Args::default()
-        };
-        let e = run(&args).err().expect("an error").to_string();
-        assert!(e.starts_with("data: expected views with masks"), "{e}");
-        let _ = std::fs::remove_dir_all(&dir);
+        assert!(check_masks(&tiny_dataset(4, 255)).is_ok());
     }
 }

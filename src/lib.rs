@@ -109,6 +109,13 @@
 //! ONet's IoU, Chamfer-L1, normal consistency and F-score. See
 //! `examples/fit_occupancy.rs`.
 //!
+//! **8. Texture fields** (feature `texture`). A [`texture::TextureField`] colours surface
+//! points from whatever it reads of a [`texture::TextureInput`] (normals, view directions,
+//! geometry features, codes): the Texture Fields decoder, IDR's rendering network and
+//! DVR's joint decoder are in [`nn`]. With DVR's surface points the photometric loss
+//! reaches the shape; `examples/dvr_multiview.rs` reconstructs shape and colour from
+//! masked images.
+//!
 //! ## Conventions
 //! * Shapes are written `[N, 3]`; every function follows the device and dtype (f32 or
 //!   f64) of its inputs, so the same code runs on CUDA with the `cuda` feature.

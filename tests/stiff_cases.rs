@@ -1707,6 +1707,25 @@ fn sweep_occupancy(s: &mut Suite) {
                 Ok(vec![])
             },
         );
+        for c in [0.0, 1e-300, 1.0, -1e-300, 1.0 + 1e-12, 1e300, f64::NAN] {
+            s.case(
+                "occupancy::mesh::Mesh::with_colors",
+                format!("{label}, colour {c:e}"),
+                if (0.0..=1.0).contains(&c) {
+                    Expect::Finite
+                } else {
+                    Expect::FiniteOrErr
+                },
+                &[],
+                || {
+                    let coloured = mesh
+                        .clone()
+                        .with_colors(vec![[c; 3]; mesh.vertices.len()])?;
+                    let flat: Vec<f64> = coloured.colors.unwrap_or_default().concat();
+                    Ok(vec![Tensor::from_vec(flat.clone(), flat.len(), &d)?])
+                },
+            );
+        }
         s.case(
             "occupancy::mesh::Mesh::normalize_unit_cube",
             &label,
@@ -2177,6 +2196,30 @@ fn sweep_occupancy(s: &mut Suite) {
                     Ok(vec![m, l])
                 },
             );
+            // Points with extreme per-point features (Texture Fields' normals).
+            let cfg3 = PointNetConfig {
+                point_features: 3,
+                ..cfg.clone()
+            };
+            let vm3 = candle_nn::VarMap::new();
+            let enc3 = build_seeded(&vm3, dtype, &d, 3, |vb| pointnet_encoder(&cfg3, vb)).unwrap();
+            let nrm = var(
+                &[
+                    0.0, 0.0, 0.0, 1.0, 0.0, 0.0, -big, big, 1e-30, 0.5, -0.5, 0.5,
+                ],
+                &[1, 4, 3],
+                dtype,
+            );
+            s.case(
+                "nn::pointnet::PointNetEncoder::forward_features",
+                &el,
+                Expect::Finite,
+                &[&p, &nrm],
+                || {
+                    let (m, l) = enc3.forward_features(p.as_tensor(), nrm.as_tensor())?;
+                    Ok(vec![m, l])
+                },
+            );
         }
         // ONet's simple decoder on extreme points and codes.
         {
@@ -2344,6 +2387,8 @@ fn stiff_cases_give_finite_outputs_and_gradients_or_err() {
     sweep_occupancy(&mut s);
     #[cfg(feature = "dvr")]
     sweep_dvr(&mut s);
+    #[cfg(feature = "texture")]
+    sweep_texture(&mut s);
     println!(
         "stiff cases: {} cases run over {} items, {} failures",
         s.cases,
@@ -2487,6 +2532,8 @@ const VOLUME_COVERED: &[&str] = &[
 
 /// Occupancy and ONet items swept by `sweep_occupancy`.
 const OCCUPANCY_COVERED: &[&str] = &[
+    "nn::pointnet::PointNetEncoder::forward_features",
+    "occupancy::mesh::Mesh::with_colors",
     "nn::onet::OnetDecoder::forward_with_code",
     "nn::onet::OnetDecoder::logits",
     "nn::onet::OnetDecoder::set_mode",
@@ -2534,6 +2581,17 @@ const OCCUPANCY_COVERED: &[&str] = &[
 /// Public items without floating-point input (or only reached through a swept item),
 /// with the reason. Matching is by prefix, so `"error::check_"` covers the checks.
 const EXEMPT: &[(&str, &str)] = &[
+    (
+        "texture::TextureInput::",
+        "builder: stores references to its tensors, computes nothing",
+    ),
+    ("nn::texture::TextureDecoderConfig::default", "constant"),
+    ("nn::texture::RenderingNetConfig::default", "constant"),
+    ("nn::texture::TextureDecoder::config", "getter"),
+    ("nn::texture::RenderingNet::config", "getter"),
+    ("nn::texture::JointDecoder::mlp", "getter"),
+    ("nn::texture::JointDecoder::out_dim", "constant"),
+    ("nn::texture::JointDecoder::inside", "constant"),
     ("nn::nerf::Nerf::config", "getter"),
     ("volume::proposal::ProposalConfig::default", "constant"),
     (
@@ -2858,6 +2916,12 @@ fn covered() -> Vec<&'static str> {
     if cfg!(feature = "data") {
         v.extend(DATA_COVERED);
     }
+    if cfg!(feature = "texture") {
+        v.extend(TEXTURE_COVERED);
+        if cfg!(feature = "occupancy") {
+            v.push("texture::vertex_colors");
+        }
+    }
     v
 }
 
@@ -2868,6 +2932,8 @@ fn module_enabled(item: &str) -> bool {
         ("dvr::", cfg!(feature = "dvr")),
         ("occupancy::", cfg!(feature = "occupancy")),
         ("data::", cfg!(feature = "data")),
+        ("texture::", cfg!(feature = "texture")),
+        ("nn::texture::", cfg!(feature = "texture")),
         // ONet's networks: `mod onet` / `mod pointnet` are behind `occupancy` in src/nn.
         ("nn::onet::", cfg!(feature = "occupancy")),
         ("nn::pointnet::", cfg!(feature = "occupancy")),
@@ -3391,6 +3457,195 @@ fn sweep_proposal(s: &mut Suite, dtype: DType, top: f64) {
                     Ok(vec![interlevel_loss(&level, &out.intervals, &w)?])
                 },
             );
+        }
+    }
+}
+
+/// Items swept by `sweep_texture`.
+const TEXTURE_COVERED: &[&str] = &[
+    "nn::texture::texture_decoder",
+    "nn::texture::TextureDecoder::rgb",
+    "nn::texture::rendering_net",
+    "nn::texture::RenderingNet::rgb",
+    "nn::texture::joint_decoder",
+    "nn::texture::JointDecoder::rgb",
+    "nn::texture::JointDecoder::value",
+    "nn::texture::JointDecoder::value_and_grad",
+    "nn::texture::JointDecoder::forward",
+    "texture::losses::image_gradient_loss",
+];
+
+/// The texture networks at extreme points, normals, directions, features and codes (zero
+/// directions and normals included); the image-gradient loss on extreme colours; vertex
+/// colours from a closure that returns extreme or non-finite values.
+#[cfg(feature = "texture")]
+fn sweep_texture(s: &mut Suite) {
+    use neural_fields::nn::{
+        joint_decoder, rendering_net, texture_decoder, RenderingNetConfig, TextureDecoderConfig,
+    };
+    use neural_fields::texture::{image_gradient_loss, TextureField, TextureInput};
+    let d = Device::Cpu;
+    for dtype in [DType::F32, DType::F64] {
+        let big = if dtype == DType::F32 { 1e30 } else { 1e150 };
+        let tag = format!("{dtype:?}, |x| up to {big:e}");
+        let pts = extreme_points(dtype);
+        let n = pts.dim(0).unwrap();
+        let p = Var::from_tensor(&pts).unwrap();
+        let mut rng = SplitMix64::new(11);
+        let extreme = |cols: usize, rng: &mut SplitMix64| -> Var {
+            let values: Vec<f64> = (0..n * cols)
+                .map(|i| match i % 5 {
+                    0 => 0.0,
+                    1 => big,
+                    2 => -1e-30,
+                    _ => rng.normal(),
+                })
+                .collect();
+            var(&values, &[n, cols], dtype)
+        };
+        let (nrm, dirs, feat) = (
+            extreme(3, &mut rng),
+            extreme(3, &mut rng),
+            extreme(2, &mut rng),
+        );
+        let (c, z) = (extreme(2, &mut rng), extreme(1, &mut rng));
+        let tcfg = TextureDecoderConfig {
+            hidden: 8,
+            blocks: 2,
+            shape_code_dim: 2,
+            image_code_dim: 1,
+            encoding: PointEncoding::Frequency(FrequencyEncoding::new(3, 4).unwrap()),
+        };
+        let vm = candle_nn::VarMap::new();
+        let tex = build_seeded(&vm, dtype, &d, 1, |vb| texture_decoder(&tcfg, vb)).unwrap();
+        for item in [
+            "nn::texture::texture_decoder",
+            "nn::texture::TextureDecoder::rgb",
+        ] {
+            s.case(item, &tag, Expect::Finite, &[&p, &c, &z], || {
+                let input = TextureInput::new(p.as_tensor())
+                    .shape_code(c.as_tensor())
+                    .image_code(z.as_tensor());
+                Ok(vec![tex.rgb(&input)?])
+            });
+        }
+        let rcfg = RenderingNetConfig {
+            feature_dim: 2,
+            hidden: 8,
+            depth: 2,
+            ..RenderingNetConfig::default()
+        };
+        let vm = candle_nn::VarMap::new();
+        let render = build_seeded(&vm, dtype, &d, 2, |vb| rendering_net(&rcfg, vb)).unwrap();
+        for item in [
+            "nn::texture::rendering_net",
+            "nn::texture::RenderingNet::rgb",
+        ] {
+            s.case(
+                item,
+                &tag,
+                Expect::Finite,
+                &[&p, &nrm, &dirs, &feat],
+                || {
+                    let input = TextureInput::new(p.as_tensor())
+                        .normals(nrm.as_tensor())
+                        .view_dirs(dirs.as_tensor())
+                        .features(feat.as_tensor());
+                    Ok(vec![render.rgb(&input)?])
+                },
+            );
+        }
+        let jcfg = MlpConfig {
+            hidden: 8,
+            depth: 2,
+            ..MlpConfig::default()
+        };
+        let vm = candle_nn::VarMap::new();
+        let joint = build_seeded(&vm, dtype, &d, 3, |vb| joint_decoder(&jcfg, vb)).unwrap();
+        for item in [
+            "nn::texture::joint_decoder",
+            "nn::texture::JointDecoder::rgb",
+        ] {
+            s.case(item, &tag, Expect::Finite, &[&p], || {
+                Ok(vec![joint.rgb(&TextureInput::new(p.as_tensor()))?])
+            });
+        }
+        s.case(
+            "nn::texture::JointDecoder::value",
+            &tag,
+            Expect::Finite,
+            &[&p],
+            || Ok(vec![joint.value(p.as_tensor())?]),
+        );
+        s.case(
+            "nn::texture::JointDecoder::forward",
+            &tag,
+            Expect::Finite,
+            &[&p],
+            || Ok(vec![Field::forward(&joint, p.as_tensor())?]),
+        );
+        s.case(
+            "nn::texture::JointDecoder::value_and_grad",
+            &tag,
+            Expect::Finite,
+            &[&p],
+            || {
+                let (v, g) = joint.value_and_grad(p.as_tensor())?;
+                Ok(vec![v, g])
+            },
+        );
+        // The image-gradient loss on 2 × 2 patches of extreme colours.
+        let mags = magnitudes(dtype);
+        let colours = |shift: usize| -> Var {
+            let values: Vec<f64> = (0..8 * 3).map(|i| mags[(i + shift) % mags.len()]).collect();
+            var(&values, &[8, 3], dtype)
+        };
+        let (pred, target) = (colours(0), colours(5));
+        let valid = Tensor::new(&[1u8, 1, 1, 1, 1, 0, 1, 1], &d).unwrap();
+        s.case(
+            "texture::losses::image_gradient_loss",
+            format!(
+                "{dtype:?}, colours in ±{:e}",
+                mags.iter().fold(0.0f64, |m, x| m.max(x.abs()))
+            ),
+            Expect::Finite,
+            &[&pred, &target],
+            || {
+                Ok(vec![
+                    image_gradient_loss(pred.as_tensor(), target.as_tensor(), Some(&valid), 2)?,
+                    image_gradient_loss(pred.as_tensor(), target.as_tensor(), None, 2)?,
+                ])
+            },
+        );
+        #[cfg(feature = "occupancy")]
+        {
+            use neural_fields::occupancy::Mesh;
+            use neural_fields::texture::vertex_colors;
+            let mesh = Mesh::new(
+                vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
+                vec![[0, 1, 2]],
+            )
+            .unwrap();
+            for value in [0.0, 1e-300, 1.0, 1e300, -1e300, f64::INFINITY, f64::NAN] {
+                s.case(
+                    "texture::vertex_colors",
+                    format!("{dtype:?}, closure returns {value:e}"),
+                    // ±1e300 is infinite in f32, and an infinite colour is an error.
+                    if value.is_finite() && (dtype == DType::F64 || value.abs() < 1e38) {
+                        Expect::Finite
+                    } else {
+                        Expect::FiniteOrErr
+                    },
+                    &[],
+                    || {
+                        let colors = vertex_colors(&mesh, 2, &d, dtype, |p| {
+                            Ok(Tensor::full(value, p.dims(), &d)?.to_dtype(dtype)?)
+                        })?;
+                        let flat: Vec<f64> = colors.concat();
+                        Ok(vec![Tensor::from_vec(flat.clone(), flat.len(), &d)?])
+                    },
+                );
+            }
         }
     }
 }

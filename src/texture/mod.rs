@@ -38,7 +38,7 @@
 //! assert_eq!(rgb.dims(), &[5, 3]);
 //! // A missing input is an error that names it.
 //! let err = net.rgb(&TextureInput::new(&points)).unwrap_err().to_string();
-//! assert!(err.starts_with("normals"));
+//! assert!(err.starts_with("view_dirs"));
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 
