@@ -15,8 +15,7 @@ use common::{central_diff, close, v64};
 use glam::DVec3;
 use neural_fields::camera::{Camera, Convention, Intersection, Intrinsics, Rays};
 use neural_fields::dvr::{
-    implicit_surface, march, Hits, ImplicitConfig, MarchConfig, RayStatus, SecantRule,
-    SurfacePoints,
+    implicit_surface, march, Hits, ImplicitConfig, MarchConfig, RayStatus, SurfacePoints,
 };
 use neural_fields::field::{Conditioned, ImplicitSurface, Inside, SignedDistance, Sphere, Torus};
 use neural_fields::nn::{build_seeded, mlp, Activation, Mlp, MlpConfig};
@@ -24,17 +23,6 @@ use neural_fields::rng::SplitMix64;
 use proptest::prelude::*;
 
 const DEV: Device = Device::Cpu;
-
-fn accurate() -> MarchConfig {
-    MarchConfig {
-        steps: 256,
-        secant_steps: 40,
-        chunk_points: 1 << 16,
-        grazing_threshold: None,
-        tolerance: 1.0,
-        rule: SecantRule::Illinois,
-    }
-}
 
 /// Rays from distance 2 towards random points within `spread` of `center`;
 /// `[0, 4/|w|]` bounds; directions of random length in [0.5, 2].
@@ -81,7 +69,7 @@ fn loss_from_march<F: ImplicitSurface + ?Sized>(
     c: &[f64],
 ) -> f64 {
     let (rays, range) = problem(o, w, n, fa);
-    let h = march(f, &rays, &range, &accurate()).unwrap();
+    let h = march(f, &rays, &range, &common::hits::accurate_march()).unwrap();
     v64(&h.depth).iter().zip(c).map(|(t, c)| t * c).sum()
 }
 
@@ -119,7 +107,7 @@ fn hitting_rays<F: ImplicitSurface + ?Sized>(
     let n = 4 * r;
     let (o, w, near, far) = rays(seed, n, [0.0; 3], 0.15);
     let (rays, range) = problem(&o, &w, &near, &far);
-    let h = march(f, &rays, &range, &accurate()).unwrap();
+    let h = march(f, &rays, &range, &common::hits::accurate_march()).unwrap();
     let s = implicit_surface(f, &rays, &h, &ImplicitConfig::default()).unwrap();
     let keep: Vec<u32> = clean_hits(&s, &w, &h)
         .iter()
@@ -144,7 +132,7 @@ fn implicit_loss<F: ImplicitSurface + ?Sized>(
     c: &[f64],
 ) -> Option<(Tensor, Hits)> {
     let (detached, range) = problem(&o.detach(), &w.detach(), n, fa);
-    let h = march(f, &detached, &range, &accurate()).unwrap();
+    let h = march(f, &detached, &range, &common::hits::accurate_march()).unwrap();
     if h.status.iter().any(|s| *s != RayStatus::Hit) {
         return None;
     }
@@ -657,7 +645,7 @@ fn implicit_gradient_is_exact_for_very_short_directions() {
         let n = Tensor::new(&[0.0f64], &DEV).unwrap();
         let fa = Tensor::new(&[4.0 / lambda], &DEV).unwrap();
         let (rays, range) = problem(&o, &w, &n, &fa);
-        let h = march(&field, &rays, &range, &accurate()).unwrap();
+        let h = march(&field, &rays, &range, &common::hits::accurate_march()).unwrap();
         let s = implicit_surface(&field, &rays, &h, &ImplicitConfig::default()).unwrap();
         v64(s
             .depth

@@ -319,7 +319,7 @@ fn geometry(seed: u64, features: usize) -> (VarMap, neural_fields::nn::Mlp) {
 mod idr {
     use super::*;
     use neural_fields::camera::{Intersection, Rays};
-    use neural_fields::dvr::{implicit_surface, march, ImplicitConfig, MarchConfig, SecantRule};
+    use neural_fields::dvr::{implicit_surface, march, ImplicitConfig};
     use neural_fields::nn::{Mlp, RenderingNet};
 
     /// Rays from distance 2 through points near the origin, each ending on the geometry.
@@ -349,17 +349,6 @@ mod idr {
         )
     }
 
-    fn accurate() -> MarchConfig {
-        MarchConfig {
-            steps: 256,
-            secant_steps: 40,
-            chunk_points: 1 << 16,
-            grazing_threshold: None,
-            tolerance: 1.0,
-            rule: SecantRule::Illinois,
-        }
-    }
-
     /// `Σ c ⊙ rgb(p̂, v, ∇f(p̂), feature(p̂))` over the rays that hit; `detach_normal`
     /// cuts the path through the normal. `None` when a ray misses.
     fn colour_loss(
@@ -370,7 +359,7 @@ mod idr {
         c: &Tensor,
         detach_normal: bool,
     ) -> Option<Tensor> {
-        let hits = march(geo, rays, range, &accurate()).unwrap();
+        let hits = march(geo, rays, range, &common::hits::accurate_march()).unwrap();
         if !hits.status.iter().all(|s| s.has_surface()) {
             return None;
         }
