@@ -611,9 +611,14 @@ fn render_view(
         if !hit_rays.is_empty() {
             let points = hits.points.index_select(&idx, 0)?;
             let dirs = rays.directions().index_select(&idx, 0)?;
-            let shaded = net.shade(&points, &dirs)?.rgb.detach();
-            let (_, g) = net.surface().value_and_grad(&points)?;
-            let g = g.detach();
+            let shading = net.shade(&points, &dirs)?;
+            let shaded = shading.rgb.detach();
+            // IDR's shading has already formed the SDF's gradient; DVR's has not.
+            let g = match shading.gradient {
+                Some(g) => g,
+                None => net.surface().value_and_grad(&points)?.1,
+            }
+            .detach();
             let length = g
                 .sqr()?
                 .sum_keepdim(1)?
@@ -795,6 +800,14 @@ fn chamfer(pred: &Mesh, gt: &Mesh, seed: u64) -> Result<f64> {
     Ok(mesh_metrics(&pred, &gt, 100_000, 0.01, seed)?.chamfer_l1)
 }
 
+/// The camera-to-world poses of `data`'s views.
+fn poses_of(data: &Dataset) -> Vec<DAffine3> {
+    data.views()
+        .iter()
+        .map(|v| v.camera().cam_to_world())
+        .collect()
+}
+
 /// `data` with every camera moved: rotated by `degrees` about a random axis through its
 /// centre and its centre shifted by `fraction` of its distance to the origin in a random
 /// direction (seeded).
@@ -884,20 +897,12 @@ pub fn run(args: &Args) -> Result<Summary> {
     };
     let train = load(&args.data, &config)?;
     check_masks(&train)?;
-    let true_poses: Vec<DAffine3> = train
-        .views()
-        .iter()
-        .map(|v| v.camera().cam_to_world())
-        .collect();
+    let true_poses = poses_of(&train);
     let train = match args.perturb {
         Some((degrees, fraction)) => perturb(&train, degrees, fraction, args.seed ^ 0x5EED)?,
         None => train,
     };
-    let start_poses: Vec<DAffine3> = train
-        .views()
-        .iter()
-        .map(|v| v.camera().cam_to_world())
-        .collect();
+    let start_poses = poses_of(&train);
     // One learnable pose per training view, with its own optimiser (IDR's camera refinement).
     let poses = if args.refine_poses {
         start_poses
@@ -1175,17 +1180,9 @@ mod tests {
             },
         )
         .unwrap();
-        let truth: Vec<DAffine3> = data
-            .views()
-            .iter()
-            .map(|v| v.camera().cam_to_world())
-            .collect();
+        let truth = poses_of(&data);
         let moved = perturb(&data, 3.0, 0.03, 7).unwrap();
-        let poses: Vec<DAffine3> = moved
-            .views()
-            .iter()
-            .map(|v| v.camera().cam_to_world())
-            .collect();
+        let poses = poses_of(&moved);
         let (r, t) = pose_errors(&poses, &truth);
         // The committed poses are Blender's float32 matrices: orthonormal to about 1e-7.
         assert!((r - 3.0).abs() < 1e-4, "{r}");

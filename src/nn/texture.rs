@@ -167,21 +167,13 @@ impl TextureField for TextureDecoder {
     fn rgb(&self, input: &TextureInput) -> Result<Tensor> {
         input.check_points()?;
         let mut codes = Vec::new();
-        if self.config.shape_code_dim > 0 {
-            codes.push(input.required(
-                input.shape_code,
-                "shape_code",
-                Some(self.config.shape_code_dim),
-                "this texture decoder",
-            )?);
-        }
-        if self.config.image_code_dim > 0 {
-            codes.push(input.required(
-                input.image_code,
-                "image_code",
-                Some(self.config.image_code_dim),
-                "this texture decoder",
-            )?);
+        for (given, arg, dim) in [
+            (input.shape_code, "shape_code", self.config.shape_code_dim),
+            (input.image_code, "image_code", self.config.image_code_dim),
+        ] {
+            if dim > 0 {
+                codes.push(input.required(given, arg, Some(dim), "this texture decoder")?);
+            }
         }
         let code = match codes.as_slice() {
             [] => None,
