@@ -63,7 +63,7 @@ fn ply_and_obj_round_trip_with_and_without_normals() {
         close(&m, &Mesh::load(&p).unwrap(), 1e-7);
     }
     assert!(m
-        .save(dir.join("a.stl"))
+        .save(dir.join("a.xyz"))
         .unwrap_err()
         .to_string()
         .contains("extension"));
@@ -135,7 +135,7 @@ fn bad_files_and_bad_meshes_name_the_problem() {
         (good.replace("ply\n", "plx\n"), "line 1"),
         (
             good.replace("element face 1", "element face 0"),
-            "empty mesh",
+            "trailing data",
         ),
     ];
     for (text, needle) in cases {

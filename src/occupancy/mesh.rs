@@ -12,6 +12,10 @@
 //! trimesh read, with `uchar red green blue` vertex colours when the mesh has them. The
 //! tests read every format back.
 
+use super::ply::{self, Polygons};
+use super::point_cloud::check_points;
+use super::triangulate::triangulate;
+use super::{off, stl};
 use crate::error::{Error, Result};
 use crate::rng::SplitMix64;
 use candle_core::{DType, Device, Tensor};
@@ -47,6 +51,62 @@ pub enum MeshFormat {
     PlyBinary,
     /// Wavefront OBJ (ASCII).
     Obj,
+    /// STL, written as ASCII (`solid` … `endsolid`). Reading accepts both STL
+    /// encodings, whichever STL variant is passed.
+    StlAscii,
+    /// STL, written as binary (80-byte header, facet count, 50 bytes per facet).
+    /// Reading accepts both STL encodings.
+    StlBinary,
+    /// OFF (ASCII; `COFF` when the mesh has colours), as ModelNet and many ShapeNet
+    /// conversions store meshes.
+    Off,
+}
+
+impl MeshFormat {
+    /// The format of a file by its extension, case-insensitive: `.ply` → `PlyBinary`,
+    /// `.obj` → `Obj`, `.stl` → `StlBinary`, `.off` → `Off` (for reading, each variant
+    /// reads every encoding of its format).
+    ///
+    /// # Errors
+    /// Another extension, naming `path`.
+    pub fn from_path(path: &Path) -> Result<Self> {
+        match extension(path).as_str() {
+            "ply" => Ok(Self::PlyBinary),
+            "obj" => Ok(Self::Obj),
+            "stl" => Ok(Self::StlBinary),
+            "off" => Ok(Self::Off),
+            other => Err(file_err(
+                "path",
+                "a .ply, .obj, .stl or .off file",
+                format!("{} (extension {other:?})", path.display()),
+            )),
+        }
+    }
+}
+
+/// The bytes of the file at `path` (an error naming the path).
+pub(crate) fn read_file(path: &Path) -> Result<Vec<u8>> {
+    std::fs::read(path).map_err(|source| Error::Io {
+        path: path.display().to_string(),
+        source,
+    })
+}
+
+/// Writes `bytes` to `path` (an error naming the path).
+pub(crate) fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
+    std::fs::write(path, bytes).map_err(|source| Error::Io {
+        path: path.display().to_string(),
+        source,
+    })
+}
+
+/// A reader's error as an error about the file at `path`: [`Error::Format`] naming the
+/// file and the format or argument the reader named.
+pub(crate) fn in_file(e: Error, path: &Path) -> Error {
+    match e {
+        Error::InvalidArgument { arg, expected, got } => Error::format(path, arg, expected, got),
+        other => other,
+    }
 }
 
 pub(crate) fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
@@ -130,46 +190,14 @@ impl Mesh {
                 ),
             ));
         }
-        let nv = self.vertices.len();
-        for (i, v) in self.vertices.iter().enumerate() {
-            if v.iter().any(|c| !c.is_finite()) {
-                return Err(mesh_err(
-                    "finite vertex coordinates",
-                    format!("vertex {i} = {v:?} (NaN or infinite)"),
-                ));
-            }
-        }
-        self.check_indices()?;
-        if let Some(n) = &self.normals {
-            if n.len() != nv {
-                return Err(mesh_err(
-                    "one normal per vertex",
-                    format!("{} normals for {nv} vertices", n.len()),
-                ));
-            }
-            if let Some(i) = n.iter().position(|v| v.iter().any(|c| !c.is_finite())) {
-                return Err(mesh_err(
-                    "finite normals",
-                    format!("normal {i} = {:?}", n[i]),
-                ));
-            }
-        }
-        if let Some(col) = &self.colors {
-            if col.len() != nv {
-                return Err(mesh_err(
-                    "one entry of colors per vertex",
-                    format!("{} colors for {nv} vertices", col.len()),
-                ));
-            }
-            let in_unit = |c: &f64| (0.0..=1.0).contains(c); // false for NaN
-            if let Some(i) = col.iter().position(|v| !v.iter().all(in_unit)) {
-                return Err(mesh_err(
-                    "colors with finite components in [0, 1]",
-                    format!("colors[{i}] = {:?}", col[i]),
-                ));
-            }
-        }
-        Ok(())
+        check_points(
+            "mesh",
+            ["vertex", "vertices"],
+            &self.vertices,
+            self.normals.as_deref(),
+            self.colors.as_deref(),
+        )?;
+        self.check_indices()
     }
 
     /// Every face index below the vertex count (a `Mesh` built as a struct literal may
@@ -412,49 +440,28 @@ impl Mesh {
 
     // ------------------------------------------------------------------ files
 
-    /// Reads a `.ply` or `.obj` file (by extension, case-insensitive).
+    /// Reads a `.ply`, `.obj`, `.stl` or `.off` file (by extension, case-insensitive;
+    /// see [`MeshFormat::from_path`] and [`Mesh::from_bytes`]).
     ///
     /// # Errors
-    /// I/O errors ([`Error::Io`] with the path); unknown extension; parse errors of
-    /// [`Mesh::from_bytes`].
+    /// I/O errors ([`Error::Io`] with the path); an unknown extension; the parse errors
+    /// of [`Mesh::from_bytes`], as [`Error::Format`] naming the path.
     pub fn load(path: impl AsRef<Path>) -> Result<Self> {
         let path = path.as_ref();
-        let bytes = std::fs::read(path).map_err(|source| Error::Io {
-            path: path.display().to_string(),
-            source,
-        })?;
-        match extension(path).as_str() {
-            "ply" => Self::from_bytes(&bytes, MeshFormat::PlyBinary),
-            "obj" => Self::from_bytes(&bytes, MeshFormat::Obj),
-            other => Err(file_err(
-                "path",
-                "a .ply or .obj file",
-                format!("extension {other:?}"),
-            )),
-        }
+        let format = MeshFormat::from_path(path)?;
+        let bytes = read_file(path)?;
+        Self::from_bytes(&bytes, format).map_err(|e| in_file(e, path))
     }
 
-    /// Writes a `.ply` (binary little-endian) or `.obj` file, by extension.
+    /// Writes a `.ply` (binary little-endian), `.obj`, `.stl` (binary) or `.off` file,
+    /// by extension.
     ///
     /// # Errors
     /// Invalid mesh, unknown extension, I/O errors.
     pub fn save(&self, path: impl AsRef<Path>) -> Result<()> {
         let path = path.as_ref();
-        let bytes = match extension(path).as_str() {
-            "ply" => self.to_bytes(MeshFormat::PlyBinary)?,
-            "obj" => self.to_bytes(MeshFormat::Obj)?,
-            other => {
-                return Err(file_err(
-                    "path",
-                    "a .ply or .obj file",
-                    format!("extension {other:?}"),
-                ))
-            }
-        };
-        std::fs::write(path, bytes).map_err(|source| Error::Io {
-            path: path.display().to_string(),
-            source,
-        })
+        let bytes = self.to_bytes(MeshFormat::from_path(path)?)?;
+        write_file(path, &bytes)
     }
 
     /// Serialises the mesh in `format`.
@@ -482,11 +489,21 @@ impl Mesh {
     /// # Errors
     /// Invalid mesh ([`Mesh::validate`]).
     pub fn to_bytes(&self, format: MeshFormat) -> Result<Vec<u8>> {
-        match format {
-            MeshFormat::PlyAscii => self.to_ply(false),
-            MeshFormat::PlyBinary => self.to_ply(true),
-            MeshFormat::Obj => Ok(self.to_obj()?.into_bytes()),
-        }
+        self.validate()?;
+        let (v, f, c) = (&self.vertices, &self.faces, self.colors.as_deref());
+        Ok(match format {
+            MeshFormat::PlyAscii | MeshFormat::PlyBinary => ply::write(
+                v,
+                self.normals.as_deref(),
+                c,
+                Some(f),
+                format == MeshFormat::PlyBinary,
+            ),
+            MeshFormat::Obj => self.to_obj().into_bytes(),
+            MeshFormat::StlAscii => stl::write(v, f, false),
+            MeshFormat::StlBinary => stl::write(v, f, true),
+            MeshFormat::Off => off::write(v, c, f),
+        })
     }
 
     /// Parses a mesh file's bytes in `format` (PLY in any encoding, or OBJ).
@@ -515,209 +532,96 @@ impl Mesh {
     /// malformed numbers or references; a PLY colour outside `[0, 1]` after that scaling
     /// (naming `colors`, the vertex and the line or byte offset); then [`Mesh::validate`].
     pub fn from_bytes(bytes: &[u8], format: MeshFormat) -> Result<Self> {
-        match format {
-            MeshFormat::PlyAscii | MeshFormat::PlyBinary => Self::from_ply(bytes),
+        let mesh = match format {
+            MeshFormat::PlyAscii | MeshFormat::PlyBinary => {
+                let c = ply::read(bytes)?;
+                let mut m =
+                    Self::from_polygons(c.vertices, &c.polygons, "ply", |i| format!("face {i}"))?;
+                m.normals = c.normals;
+                m.colors = c.colors;
+                m
+            }
             MeshFormat::Obj => {
-                check_not_utf16(bytes)?;
-                Self::from_obj(&String::from_utf8_lossy(bytes))
+                let c = parse_obj(bytes)?;
+                let normals = c.normals_by_reference();
+                let mut m = Self::from_polygons(c.vertices, &c.polygons, "obj", |i| {
+                    format!("line {}", c.lines[i])
+                })?;
+                m.normals = normals;
+                m
             }
-        }
-    }
-
-    /// PLY bytes (see [`Mesh::to_bytes`]).
-    fn to_ply(&self, binary: bool) -> Result<Vec<u8>> {
-        self.validate()?;
-        let has_n = self.normals.is_some();
-        let has_c = self.colors.is_some();
-        let mut out = Vec::new();
-        let fmt = if binary {
-            "binary_little_endian"
-        } else {
-            "ascii"
+            MeshFormat::StlAscii | MeshFormat::StlBinary => {
+                let mut soup = stl::read(bytes)?;
+                let polygons = std::mem::take(&mut soup.polygons);
+                let vertices = std::mem::take(&mut soup.vertices);
+                Self::from_polygons(vertices, &polygons, "stl", |i| soup.locate(i))?
+            }
+            MeshFormat::Off => {
+                let c = off::read(bytes)?;
+                let mut m = Self::from_polygons(c.vertices, &c.polygons, "off", |i| {
+                    format!("line {}", c.lines[i])
+                })?;
+                m.normals = c.normals;
+                m.colors = c.colors;
+                m
+            }
         };
-        let mut header = format!(
-            "ply\nformat {fmt} 1.0\ncomment neural-fields\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\n",
-            self.vertices.len()
-        );
-        if has_n {
-            header.push_str("property float nx\nproperty float ny\nproperty float nz\n");
-        }
-        if has_c {
-            header.push_str("property uchar red\nproperty uchar green\nproperty uchar blue\n");
-        }
-        header.push_str(&format!(
-            "element face {}\nproperty list uchar int vertex_indices\nend_header\n",
-            self.faces.len()
-        ));
-        out.extend_from_slice(header.as_bytes());
-        let empty = Vec::new();
-        let normals = self.normals.as_ref().unwrap_or(&empty);
-        let colors = self.colors.as_ref().unwrap_or(&empty);
-        if !binary {
-            {
-                let mut s = String::new();
-                for (i, v) in self.vertices.iter().enumerate() {
-                    s.push_str(&format!("{} {} {}", v[0] as f32, v[1] as f32, v[2] as f32));
-                    if has_n {
-                        let n = normals[i];
-                        s.push_str(&format!(" {} {} {}", n[0] as f32, n[1] as f32, n[2] as f32));
-                    }
-                    if has_c {
-                        let [r, g, b] = colors[i].map(color_to_u8);
-                        s.push_str(&format!(" {r} {g} {b}"));
-                    }
-                    s.push('\n');
-                }
-                for f in &self.faces {
-                    s.push_str(&format!("3 {} {} {}\n", f[0], f[1], f[2]));
-                }
-                out.extend_from_slice(s.as_bytes());
-            }
-        } else {
-            {
-                for (i, v) in self.vertices.iter().enumerate() {
-                    for c in v {
-                        out.extend_from_slice(&(*c as f32).to_le_bytes());
-                    }
-                    if has_n {
-                        for c in normals[i] {
-                            out.extend_from_slice(&(c as f32).to_le_bytes());
-                        }
-                    }
-                    if has_c {
-                        out.extend_from_slice(&colors[i].map(color_to_u8));
-                    }
-                }
-                for f in &self.faces {
-                    out.push(3);
-                    for &k in f {
-                        out.extend_from_slice(&(k as i32).to_le_bytes());
-                    }
-                }
-            }
-        }
-        Ok(out)
-    }
-
-    /// Parses PLY bytes (see [`Mesh::from_bytes`]).
-    fn from_ply(bytes: &[u8]) -> Result<Self> {
-        let header = parse_ply_header(bytes)?;
-        let mut mesh = Mesh::default();
-        let mut normals = Vec::new();
-        let mut colors = Vec::new();
-        let mut src = PlySource::new(bytes, &header);
-        for el in &header.elements {
-            let is_vertex = el.name == "vertex";
-            let is_face = el.name == "face";
-            let idx = |n: &str| el.props.iter().position(|p| p.name == n);
-            let (xi, yi, zi) = (idx("x"), idx("y"), idx("z"));
-            let (nxi, nyi, nzi) = (idx("nx"), idx("ny"), idx("nz"));
-            // Colours only when all three channels are scalar properties.
-            let scalar = |n: &str| idx(n).filter(|&i| el.props[i].list.is_none());
-            let rgb = match (scalar("red"), scalar("green"), scalar("blue")) {
-                (Some(r), Some(g), Some(b)) => Some([r, g, b]),
-                _ => None,
-            };
-            if is_vertex && (xi.is_none() || yi.is_none() || zi.is_none()) {
-                return Err(file_err(
-                    "ply",
-                    "vertex properties x, y and z",
-                    format!("header line {}: missing", el.line),
-                ));
-            }
-            let fi = el.props.iter().position(|p| {
-                p.list.is_some() && (p.name == "vertex_indices" || p.name == "vertex_index")
-            });
-            if is_face && fi.is_none() {
-                return Err(file_err(
-                    "ply",
-                    "a face list property vertex_indices or vertex_index",
-                    format!("header line {}: none", el.line),
-                ));
-            }
-            if el.props.is_empty() {
-                // A property-less element holds no values in any encoding: there is
-                // nothing to read, whatever its count (iterating a count such as 2⁶⁴ − 1
-                // would never end).
-                continue;
-            }
-            src.check_room(el)?;
-            for row in 0..el.count {
-                src.begin_row()?;
-                let row_start = src.pos;
-                let mut scalars = vec![0.0f64; el.props.len()];
-                let mut list: Vec<i64> = Vec::new();
-                for (pi, p) in el.props.iter().enumerate() {
-                    match p.list {
-                        Some(count_ty) => {
-                            let n = src.read(count_ty)?;
-                            if !(0.0..=1e7).contains(&n) || n.fract() != 0.0 {
-                                return Err(file_err(
-                                    "ply",
-                                    "a list count between 0 and 10⁷",
-                                    format!("{} {}: count {n}", src.position(), el.name),
-                                ));
-                            }
-                            let keep = is_face && Some(pi) == fi;
-                            for _ in 0..n as usize {
-                                let v = src.read(p.ty)?;
-                                if keep {
-                                    list.push(v as i64);
-                                }
-                            }
-                        }
-                        None => scalars[pi] = src.read(p.ty)?,
-                    }
-                }
-                src.end_row()?;
-                if is_vertex {
-                    // invariant: checked above that x, y, z exist.
-                    let (x, y, z) = (xi.unwrap_or(0), yi.unwrap_or(0), zi.unwrap_or(0));
-                    mesh.vertices.push([scalars[x], scalars[y], scalars[z]]);
-                    if let (Some(a), Some(b), Some(c)) = (nxi, nyi, nzi) {
-                        normals.push([scalars[a], scalars[b], scalars[c]]);
-                    }
-                    if let Some(ch) = rgb {
-                        let c = ch.map(|k| scalars[k] / el.props[k].ty.color_scale());
-                        if !c.iter().all(|x| (0.0..=1.0).contains(x)) {
-                            let raw = ch.map(|k| scalars[k]);
-                            return Err(file_err(
-                                "ply",
-                                "vertex colors (red, green, blue) in [0, 1] once scaled \
-                                 (integers by their type's largest value, floats as they are)",
-                                format!(
-                                    "{}: vertex {row}: red, green, blue = {raw:?} → colors {c:?}",
-                                    src.row_position(row_start)
-                                ),
-                            ));
-                        }
-                        colors.push(c);
-                    }
-                } else if is_face {
-                    push_polygon(&mut mesh.faces, &list).map_err(|got| {
-                        file_err(
-                            "ply",
-                            "faces with at least 3 non-negative indices",
-                            format!("face {row}: {got}"),
-                        )
-                    })?;
-                }
-            }
-        }
-        src.finish()?;
-        if !normals.is_empty() {
-            mesh.normals = Some(normals);
-        }
-        if !colors.is_empty() {
-            mesh.colors = Some(colors);
-        }
         mesh.validate()?;
         Ok(mesh)
     }
 
+    /// A mesh from vertices and polygons, triangulated ([`triangulate`]); a file with
+    /// vertices and no polygons is refused as the point cloud it is.
+    pub(crate) fn from_polygons(
+        vertices: Vec<[f64; 3]>,
+        polygons: &Polygons,
+        what: &'static str,
+        locate: impl Fn(usize) -> String,
+    ) -> Result<Self> {
+        if polygons.len() == 0 && !vertices.is_empty() {
+            return Err(file_err(
+                what,
+                "a mesh with faces",
+                format!(
+                    "a point cloud ({} points, no faces): read it with PointCloud::load or \
+                     PointCloud::from_bytes",
+                    vertices.len()
+                ),
+            ));
+        }
+        let mut faces = Vec::with_capacity(polygons.len());
+        let nv = vertices.len();
+        for (i, poly) in polygons.iter().enumerate() {
+            if let Some(&bad) = poly.iter().find(|&&k| k as usize >= nv) {
+                let list = if poly.len() <= 16 {
+                    format!(" = {poly:?}")
+                } else {
+                    String::new()
+                };
+                return Err(file_err(
+                    what,
+                    "face indices below the vertex count",
+                    format!("{}{list} indexes vertex {bad} of {nv}", locate(i)),
+                ));
+            }
+            triangulate(&vertices, poly, &mut faces).map_err(|got| {
+                file_err(
+                    what,
+                    "faces of at least 3 vertices, simple polygons (not self-intersecting)",
+                    format!("{}: {got}", locate(i)),
+                )
+            })?;
+        }
+        Ok(Self {
+            vertices,
+            faces,
+            normals: None,
+            colors: None,
+        })
+    }
+
     /// OBJ text (see [`Mesh::to_bytes`]).
-    fn to_obj(&self) -> Result<String> {
-        self.validate()?;
+    fn to_obj(&self) -> String {
         let mut s = String::from("# neural-fields\n");
         for v in &self.vertices {
             s.push_str(&format!("v {} {} {}\n", v[0], v[1], v[2]));
@@ -736,88 +640,126 @@ impl Mesh {
                 s.push_str(&format!("f {a} {b} {c}\n"));
             }
         }
-        Ok(s)
+        s
+    }
+}
+
+/// What an OBJ file holds: vertices, normals (kept only when every face corner names
+/// the normal with its vertex's index and there is one per vertex), polygons and the
+/// line of each.
+pub(crate) struct ObjContent {
+    pub vertices: Vec<[f64; 3]>,
+    /// The `vn` statements.
+    pub vn: Vec<[f64; 3]>,
+    /// Every face corner named the normal with its vertex's index.
+    pub normals_match: bool,
+    pub polygons: Polygons,
+    pub lines: Vec<usize>,
+}
+
+impl ObjContent {
+    /// The normals of a mesh: one per vertex, and every face corner named the normal
+    /// with its vertex's index (as [`Mesh::to_bytes`] writes them).
+    pub fn normals_by_reference(&self) -> Option<Vec<[f64; 3]>> {
+        if self.normals_match {
+            self.normals_by_count()
+        } else {
+            None
+        }
     }
 
-    /// Parses OBJ text (see [`Mesh::from_bytes`]).
-    fn from_obj(text: &str) -> Result<Self> {
-        let mut mesh = Mesh::default();
-        let mut vn: Vec<[f64; 3]> = Vec::new();
-        let mut normals_match = true;
-        let text = text.strip_prefix('\u{feff}').unwrap_or(text);
-        for (ln, raw) in text.lines().enumerate() {
-            let line_no = ln + 1;
-            let line = raw.split('#').next().unwrap_or("").trim();
-            let mut tok = line.split_whitespace();
-            let Some(kw) = tok.next() else { continue };
-            match kw {
-                "v" | "vn" => {
-                    let mut c = [0.0; 3];
-                    for slot in &mut c {
-                        let t = tok.next().ok_or_else(|| {
+    /// The normals of a point cloud: one `vn` per `v`.
+    pub fn normals_by_count(&self) -> Option<Vec<[f64; 3]>> {
+        (!self.vn.is_empty() && self.vn.len() == self.vertices.len()).then(|| self.vn.clone())
+    }
+}
+
+/// Parses OBJ bytes (see [`Mesh::from_bytes`]).
+pub(crate) fn parse_obj(bytes: &[u8]) -> Result<ObjContent> {
+    check_not_utf16(bytes)?;
+    let text = String::from_utf8_lossy(bytes);
+    let mut vertices: Vec<[f64; 3]> = Vec::new();
+    let mut polygons = Polygons::default();
+    let mut lines = Vec::new();
+    let mut poly = Vec::new();
+    let mut vn: Vec<[f64; 3]> = Vec::new();
+    let mut normals_match = true;
+    let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
+    for (ln, raw) in text.lines().enumerate() {
+        let line_no = ln + 1;
+        let line = raw.split('#').next().unwrap_or("").trim();
+        let mut tok = line.split_whitespace();
+        let Some(kw) = tok.next() else { continue };
+        match kw {
+            "v" | "vn" => {
+                let mut c = [0.0; 3];
+                for slot in &mut c {
+                    let t = tok.next().ok_or_else(|| {
+                        file_err(
+                            "obj",
+                            "three coordinates",
+                            format!("line {line_no}: {line:?}"),
+                        )
+                    })?;
+                    *slot = t.parse::<f64>().map_err(|_| {
+                        file_err("obj", "a number", format!("line {line_no}: {t:?}"))
+                    })?;
+                }
+                if kw == "v" {
+                    vertices.push(c);
+                } else {
+                    vn.push(c);
+                }
+            }
+            "f" => {
+                poly.clear();
+                for t in tok {
+                    let mut parts = t.split('/');
+                    let vi = resolve_obj_index(parts.next().unwrap_or(""), vertices.len())
+                        .map_err(|e| {
                             file_err(
                                 "obj",
-                                "three coordinates",
-                                format!("line {line_no}: {line:?}"),
+                                "a face vertex reference",
+                                format!("line {line_no}: {t:?} ({e})"),
                             )
                         })?;
-                        *slot = t.parse::<f64>().map_err(|_| {
-                            file_err("obj", "a number", format!("line {line_no}: {t:?}"))
-                        })?;
-                    }
-                    if kw == "v" {
-                        mesh.vertices.push(c);
-                    } else {
-                        vn.push(c);
-                    }
-                }
-                "f" => {
-                    let mut poly = Vec::new();
-                    for t in tok {
-                        let mut parts = t.split('/');
-                        let vi = resolve_obj_index(parts.next().unwrap_or(""), mesh.vertices.len())
-                            .map_err(|e| {
+                    let _tex = parts.next();
+                    match parts.next() {
+                        Some(n) if !n.is_empty() => {
+                            let ni = resolve_obj_index(n, vn.len()).map_err(|e| {
                                 file_err(
                                     "obj",
-                                    "a face vertex reference",
+                                    "a face normal reference",
                                     format!("line {line_no}: {t:?} ({e})"),
                                 )
                             })?;
-                        let _tex = parts.next();
-                        match parts.next() {
-                            Some(n) if !n.is_empty() => {
-                                let ni = resolve_obj_index(n, vn.len()).map_err(|e| {
-                                    file_err(
-                                        "obj",
-                                        "a face normal reference",
-                                        format!("line {line_no}: {t:?} ({e})"),
-                                    )
-                                })?;
-                                if ni != vi {
-                                    normals_match = false;
-                                }
+                            if ni != vi {
+                                normals_match = false;
                             }
-                            _ => normals_match = false,
                         }
-                        poly.push(vi);
+                        _ => normals_match = false,
                     }
-                    push_polygon(&mut mesh.faces, &poly).map_err(|got| {
-                        file_err(
-                            "obj",
-                            "faces with at least 3 vertices",
-                            format!("line {line_no}: {got}"),
-                        )
-                    })?;
+                    poly.push(vi);
                 }
-                _ => {}
+                polygons.push(&poly).map_err(|got| {
+                    file_err(
+                        "obj",
+                        "faces with at least 3 vertices",
+                        format!("line {line_no}: {got}"),
+                    )
+                })?;
+                lines.push(line_no);
             }
+            _ => {}
         }
-        if normals_match && !vn.is_empty() && vn.len() == mesh.vertices.len() {
-            mesh.normals = Some(vn);
-        }
-        mesh.validate()?;
-        Ok(mesh)
     }
+    Ok(ObjContent {
+        vertices,
+        vn,
+        normals_match,
+        polygons,
+        lines,
+    })
 }
 
 /// A `[N, 3]` tensor from host points.
@@ -852,12 +794,6 @@ fn extension(path: &Path) -> String {
         .unwrap_or_default()
 }
 
-/// A colour component in `[0, 1]` as a PLY `uchar`: `round(c · 255)`, clamped to `0..=255`.
-fn color_to_u8(c: f64) -> u8 {
-    // The clamp keeps the value in 0..=255, so the cast neither wraps nor saturates.
-    (c * 255.0).round().clamp(0.0, 255.0) as u8
-}
-
 /// 1-based (or negative, relative) OBJ index → 0-based.
 fn resolve_obj_index(t: &str, count: usize) -> std::result::Result<i64, String> {
     let i: i64 = t.parse().map_err(|_| format!("{t:?} is not an integer"))?;
@@ -872,355 +808,4 @@ fn resolve_obj_index(t: &str, count: usize) -> std::result::Result<i64, String> 
         return Err(format!("relative index {i} before the first element"));
     }
     Ok(z)
-}
-
-/// Fan-triangulates a polygon of vertex indices and appends the triangles.
-fn push_polygon(faces: &mut Vec<[u32; 3]>, poly: &[i64]) -> std::result::Result<(), String> {
-    if poly.len() < 3 {
-        return Err(format!("{} vertices", poly.len()));
-    }
-    if let Some(&b) = poly.iter().find(|&&k| k < 0 || k > u32::MAX as i64) {
-        return Err(format!("index {b}"));
-    }
-    for i in 1..poly.len() - 1 {
-        faces.push([poly[0] as u32, poly[i] as u32, poly[i + 1] as u32]);
-    }
-    Ok(())
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum PlyTy {
-    I8,
-    U8,
-    I16,
-    U16,
-    I32,
-    U32,
-    F32,
-    F64,
-}
-
-impl PlyTy {
-    fn parse(s: &str) -> Option<Self> {
-        Some(match s {
-            "char" | "int8" => Self::I8,
-            "uchar" | "uint8" => Self::U8,
-            "short" | "int16" => Self::I16,
-            "ushort" | "uint16" => Self::U16,
-            "int" | "int32" => Self::I32,
-            "uint" | "uint32" => Self::U32,
-            "float" | "float32" => Self::F32,
-            "double" | "float64" => Self::F64,
-            _ => return None,
-        })
-    }
-    /// The divisor that maps a colour stored in this type to `[0, 1]`: the type's largest
-    /// value for integers, `1` for floats (already in `[0, 1]`).
-    fn color_scale(self) -> f64 {
-        match self {
-            Self::I8 => f64::from(i8::MAX),
-            Self::U8 => f64::from(u8::MAX),
-            Self::I16 => f64::from(i16::MAX),
-            Self::U16 => f64::from(u16::MAX),
-            Self::I32 => f64::from(i32::MAX),
-            Self::U32 => f64::from(u32::MAX),
-            Self::F32 | Self::F64 => 1.0,
-        }
-    }
-    fn size(self) -> usize {
-        match self {
-            Self::I8 | Self::U8 => 1,
-            Self::I16 | Self::U16 => 2,
-            Self::I32 | Self::U32 | Self::F32 => 4,
-            Self::F64 => 8,
-        }
-    }
-}
-
-#[derive(Debug)]
-struct PlyProp {
-    name: String,
-    ty: PlyTy,
-    /// `Some(count type)` for a list property (then `ty` is the item type).
-    list: Option<PlyTy>,
-}
-
-#[derive(Debug)]
-struct PlyElement {
-    name: String,
-    count: usize,
-    props: Vec<PlyProp>,
-    line: usize,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum PlyEncoding {
-    Ascii,
-    Le,
-    Be,
-}
-
-struct PlyHeader {
-    encoding: PlyEncoding,
-    elements: Vec<PlyElement>,
-    /// Byte offset of the body.
-    body: usize,
-    /// Line number (1-based) of the first body line.
-    body_line: usize,
-}
-
-fn parse_ply_header(bytes: &[u8]) -> Result<PlyHeader> {
-    let mut pos = 0usize;
-    let mut line_no = 0usize;
-    let mut encoding = None;
-    let mut elements: Vec<PlyElement> = Vec::new();
-    loop {
-        let Some(rel) = bytes[pos..].iter().position(|&b| b == b'\n') else {
-            return Err(file_err(
-                "ply",
-                "a header ending in end_header",
-                format!("end of file at header line {}", line_no + 1),
-            ));
-        };
-        let line = String::from_utf8_lossy(&bytes[pos..pos + rel])
-            .trim()
-            .to_string();
-        pos += rel + 1;
-        line_no += 1;
-        let toks: Vec<&str> = line.split_whitespace().collect();
-        if line_no == 1 {
-            if line != "ply" {
-                return Err(file_err(
-                    "ply",
-                    "a file starting with \"ply\"",
-                    format!("line 1: {line:?}"),
-                ));
-            }
-            continue;
-        }
-        let bad = |what: &str| {
-            file_err(
-                "ply",
-                what.to_string(),
-                format!("header line {line_no}: {line:?}"),
-            )
-        };
-        match toks.first().copied() {
-            Some("format") => {
-                encoding = Some(match toks.get(1).copied() {
-                    Some("ascii") => PlyEncoding::Ascii,
-                    Some("binary_little_endian") => PlyEncoding::Le,
-                    Some("binary_big_endian") => PlyEncoding::Be,
-                    _ => {
-                        return Err(bad(
-                            "format ascii, binary_little_endian or binary_big_endian",
-                        ))
-                    }
-                });
-            }
-            Some("element") => {
-                let (Some(name), Some(count)) =
-                    (toks.get(1), toks.get(2).and_then(|c| c.parse().ok()))
-                else {
-                    return Err(bad("element NAME COUNT"));
-                };
-                elements.push(PlyElement {
-                    name: (*name).to_string(),
-                    count,
-                    props: Vec::new(),
-                    line: line_no,
-                });
-            }
-            Some("property") => {
-                let Some(el) = elements.last_mut() else {
-                    return Err(bad("a property after an element"));
-                };
-                let prop = if toks.get(1) == Some(&"list") {
-                    match (
-                        toks.get(2).and_then(|t| PlyTy::parse(t)),
-                        toks.get(3).and_then(|t| PlyTy::parse(t)),
-                        toks.get(4),
-                    ) {
-                        (Some(c), Some(t), Some(n)) => PlyProp {
-                            name: (*n).to_string(),
-                            ty: t,
-                            list: Some(c),
-                        },
-                        _ => return Err(bad("property list COUNT_TYPE ITEM_TYPE NAME")),
-                    }
-                } else {
-                    match (toks.get(1).and_then(|t| PlyTy::parse(t)), toks.get(2)) {
-                        (Some(t), Some(n)) => PlyProp {
-                            name: (*n).to_string(),
-                            ty: t,
-                            list: None,
-                        },
-                        _ => return Err(bad("property TYPE NAME")),
-                    }
-                };
-                el.props.push(prop);
-            }
-            Some("end_header") => break,
-            // comment, obj_info, and stray text some exporters leave (Blender 2.47
-            // writes a bare line after `comment`): ignored.
-            _ => {}
-        }
-    }
-    let Some(encoding) = encoding else {
-        return Err(file_err("ply", "a format line in the header", "none"));
-    };
-    Ok(PlyHeader {
-        encoding,
-        elements,
-        body: pos,
-        body_line: line_no + 1,
-    })
-}
-
-/// A cursor over a PLY body that reports positions as lines (ASCII) or byte offsets.
-struct PlySource<'a> {
-    bytes: &'a [u8],
-    enc: PlyEncoding,
-    pos: usize,
-    line: usize,
-    tokens: Vec<&'a str>,
-    tok: usize,
-}
-
-impl<'a> PlySource<'a> {
-    fn new(bytes: &'a [u8], h: &PlyHeader) -> Self {
-        Self {
-            bytes,
-            enc: h.encoding,
-            pos: h.body,
-            line: h.body_line - 1,
-            tokens: Vec::new(),
-            tok: 0,
-        }
-    }
-
-    fn position(&self) -> String {
-        match self.enc {
-            PlyEncoding::Ascii => format!("line {}", self.line),
-            _ => format!("byte {}", self.pos),
-        }
-    }
-
-    /// The position of the row that began at byte `row_start` (binary) or on the current
-    /// line (ASCII).
-    fn row_position(&self, row_start: usize) -> String {
-        match self.enc {
-            PlyEncoding::Ascii => format!("line {}", self.line),
-            _ => format!("byte {row_start}"),
-        }
-    }
-
-    fn begin_row(&mut self) -> Result<()> {
-        if self.enc != PlyEncoding::Ascii {
-            return Ok(());
-        }
-        loop {
-            if self.pos >= self.bytes.len() {
-                return Err(file_err(
-                    "ply",
-                    "as many rows as the header declares",
-                    format!("end of file at line {} (truncated)", self.line + 1),
-                ));
-            }
-            let rel = self.bytes[self.pos..]
-                .iter()
-                .position(|&b| b == b'\n')
-                .unwrap_or(self.bytes.len() - self.pos);
-            let s = std::str::from_utf8(&self.bytes[self.pos..self.pos + rel])
-                .map_err(|_| file_err("ply", "UTF-8 text", format!("line {}", self.line + 1)))?;
-            self.pos += rel + 1;
-            self.line += 1;
-            self.tokens = s.split_whitespace().collect();
-            self.tok = 0;
-            if !self.tokens.is_empty() {
-                return Ok(());
-            }
-        }
-    }
-
-    fn end_row(&mut self) -> Result<()> {
-        Ok(())
-    }
-
-    /// Checks, before any row is read, that the bytes left can hold `el.count` rows of
-    /// the element's smallest size (binary: its scalars and list counts; ASCII: one
-    /// character and a newline), so that the work of the loop is bounded by the file's
-    /// size, not by a number in its header.
-    fn check_room(&self, el: &PlyElement) -> Result<()> {
-        let min_row = match self.enc {
-            PlyEncoding::Ascii => 2,
-            _ => el
-                .props
-                .iter()
-                .map(|p| p.list.unwrap_or(p.ty).size())
-                .sum::<usize>(),
-        };
-        let left = self.bytes.len().saturating_sub(self.pos);
-        // The last ASCII row needs no newline.
-        let room = (left + 1) / min_row.max(1);
-        if el.count > room {
-            return Err(file_err(
-                "ply",
-                "element counts that the rest of the file can hold",
-                format!(
-                    "header line {}: element {} declares {} rows of at least {min_row} bytes, \
-                     but {left} bytes remain (truncated or a lying header)",
-                    el.line, el.name, el.count
-                ),
-            ));
-        }
-        Ok(())
-    }
-
-    fn read(&mut self, ty: PlyTy) -> Result<f64> {
-        match self.enc {
-            PlyEncoding::Ascii => {
-                let Some(t) = self.tokens.get(self.tok) else {
-                    return Err(file_err(
-                        "ply",
-                        "as many values on the line as the element has properties",
-                        format!("line {}: only {} values", self.line, self.tokens.len()),
-                    ));
-                };
-                self.tok += 1;
-                t.parse::<f64>()
-                    .map_err(|_| file_err("ply", "a number", format!("line {}: {t:?}", self.line)))
-            }
-            enc => {
-                let n = ty.size();
-                if self.pos + n > self.bytes.len() {
-                    return Err(file_err(
-                        "ply",
-                        "as many bytes as the header declares",
-                        format!("end of file at byte {} (truncated)", self.bytes.len()),
-                    ));
-                }
-                let mut b = [0u8; 8];
-                b[..n].copy_from_slice(&self.bytes[self.pos..self.pos + n]);
-                if enc == PlyEncoding::Be {
-                    b[..n].reverse();
-                }
-                self.pos += n;
-                Ok(match ty {
-                    PlyTy::I8 => f64::from(b[0] as i8),
-                    PlyTy::U8 => f64::from(b[0]),
-                    PlyTy::I16 => f64::from(i16::from_le_bytes([b[0], b[1]])),
-                    PlyTy::U16 => f64::from(u16::from_le_bytes([b[0], b[1]])),
-                    PlyTy::I32 => f64::from(i32::from_le_bytes([b[0], b[1], b[2], b[3]])),
-                    PlyTy::U32 => f64::from(u32::from_le_bytes([b[0], b[1], b[2], b[3]])),
-                    PlyTy::F32 => f64::from(f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
-                    PlyTy::F64 => f64::from_le_bytes(b),
-                })
-            }
-        }
-    }
-
-    fn finish(&self) -> Result<()> {
-        Ok(())
-    }
 }

@@ -2,8 +2,12 @@
 //! Multiresolution IsoSurface Extraction (MISE), the ONet metrics, training losses and
 //! point samplers.
 //!
-//! * [`mesh`]: [`Mesh`] with validation, PLY (ASCII and binary) and OBJ
-//!   read/write, unit-cube normalisation, area-weighted surface sampling.
+//! * [`mesh`]: [`Mesh`] with validation, PLY (ASCII and binary), OBJ, STL (ASCII and
+//!   binary) and OFF read/write, concave polygons triangulated by ear clipping,
+//!   unit-cube normalisation, area-weighted surface sampling. Every reader's work and
+//!   memory are bounded by the file's size, whatever its header claims.
+//! * [`point_cloud`]: [`PointCloud`], points with optional normals and colours (PLY,
+//!   OBJ and OFF files without faces, scanners' output), validated by construction.
 //! * [`mod@marching_cubes`]: watertight, consistently oriented marching cubes over a dense
 //!   grid of values.
 //! * [`mod@mise`]: coarse-to-fine extraction of the level set of any
@@ -37,13 +41,19 @@ pub mod marching_cubes;
 pub mod mesh;
 pub mod metrics;
 pub mod mise;
+mod off;
+mod ply;
+pub mod point_cloud;
 pub mod sampling;
+mod stl;
+mod triangulate;
 
 pub use losses::{kl_standard_normal, reconstruction_loss, reparameterize};
 pub use marching_cubes::{marching_cubes, Grid};
 pub use mesh::{points_tensor, Mesh, MeshFormat, SurfaceSamples};
 pub use metrics::{iou, mesh_metrics, surface_metrics, KdTree, SurfaceMetrics};
 pub use mise::{logit_threshold, mise, refine_vertices, MiseConfig, MiseOutput, RefineConfig};
+pub use point_cloud::PointCloud;
 pub use sampling::{
     from_tensor, inside_mesh, near_surface, uniform_in_padded_cube, winding_numbers,
     winding_numbers_exact,
