@@ -164,7 +164,7 @@ impl Intrinsics {
             Convention::OpenGl => (-1.0, -1.0),
         };
         let x = ((pixels.narrow(1, 0, 1)? - self.cx)? / self.fx)?;
-        let y = ((pixels.narrow(1, 1, 1)? - self.cy)? / (sy * self.fy))?;
+        let y = ((crate::narrow::narrow(pixels, 1, 1, 1)? - self.cy)? / (sy * self.fy))?;
         let z = Tensor::full(sz, (n, 1), pixels.device())?.to_dtype(pixels.dtype())?;
         Ok(Tensor::cat(&[&x, &y, &z], 1)?)
     }

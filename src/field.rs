@@ -534,14 +534,14 @@ impl SignedDistance for Torus {
     fn distance_and_grad(&self, points: &Tensor) -> Result<(Tensor, Tensor)> {
         let d = offset(points, &self.center)?;
         let xy = d.narrow(1, 0, 2)?;
-        let z = d.narrow(1, 2, 1)?;
+        let z = crate::narrow::narrow(&d, 1, 2, 1)?;
         let (radial, rho) = unit_and_norm(&xy)?; // (x/ρ, y/ρ), ρ
         let a = rho.broadcast_sub(&self.major)?;
         let q = Tensor::cat(&[&a, &z], 1)?;
         let (qn, m) = unit_and_norm(&q)?; // ((ρ−R)/m, z/m), m
         let dist = m.squeeze(1)?.broadcast_sub(&self.minor)?;
         let g_xy = radial.broadcast_mul(&qn.narrow(1, 0, 1)?)?;
-        let grad = Tensor::cat(&[&g_xy, &qn.narrow(1, 1, 1)?], 1)?;
+        let grad = Tensor::cat(&[&g_xy, &crate::narrow::narrow(&qn, 1, 1, 1)?], 1)?;
         Ok((dist, grad))
     }
 }

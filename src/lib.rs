@@ -147,6 +147,7 @@ pub mod dvr;
 pub mod encoding;
 pub mod error;
 pub mod field;
+mod narrow;
 pub mod nn;
 pub mod numerics;
 #[cfg(feature = "occupancy")]

@@ -488,7 +488,7 @@ impl Mlp {
                 .contiguous()?
                 .apply_op3(&da0.contiguous()?, &self.flat_params()?, op)?;
             let y = yj.narrow(1, 0, out)?;
-            let dy = yj.narrow(1, out, d * out)?.reshape((n, d, out))?;
+            let dy = crate::narrow::narrow(&yj, 1, out, d * out)?.reshape((n, d, out))?;
             return Ok((y, dy));
         }
         let (y, dy) = self.run(&a0, Some(&da0))?;

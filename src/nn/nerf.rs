@@ -185,7 +185,7 @@ impl Nerf {
     fn trunk(&self, points: &Tensor) -> Result<(Tensor, Tensor)> {
         let out = Field::forward(&self.trunk, points)?;
         let sigma = self.activate(&out.narrow(1, 0, 1)?.squeeze(1)?)?;
-        Ok((sigma, out.narrow(1, 1, self.config.width)?))
+        Ok((sigma, crate::narrow::narrow(&out, 1, 1, self.config.width)?))
     }
 
     /// The density `σ: [N]` (≥ 0) at `points: [N, 3]`, without the colour head: for
@@ -223,7 +223,10 @@ impl Nerf {
             };
             let out = ep.apply_op3(&ed, &params, op)?;
             let sigma = self.activate(&out.narrow(1, 0, 1)?.squeeze(1)?)?;
-            return Ok((sigma, candle_nn::ops::sigmoid(&out.narrow(1, 1, 3)?)?));
+            return Ok((
+                sigma,
+                candle_nn::ops::sigmoid(&crate::narrow::narrow(&out, 1, 1, 3)?)?,
+            ));
         }
         let (sigma, feature) = self.trunk(points)?;
         let raw = self.head.forward_with_code(&unit, &feature)?;

@@ -416,6 +416,6 @@ impl TextureField for JointDecoder {
     fn rgb(&self, input: &TextureInput) -> Result<Tensor> {
         input.check_points()?;
         let y = Field::forward(&self.mlp, input.points)?;
-        sigmoid(&y.narrow(D::Minus1, 1, 3)?)
+        sigmoid(&crate::narrow::narrow(&y, D::Minus1, 1, 3)?)
     }
 }

@@ -96,8 +96,8 @@ pub fn image_gradient_loss(
         let t = t.reshape((p, kk, c))?;
         let corner = t.narrow(1, 0, 1)?;
         Ok((
-            (&corner - t.narrow(1, 1, 1)?)?.squeeze(1)?,
-            (&corner - t.narrow(1, k, 1)?)?.squeeze(1)?,
+            (&corner - crate::narrow::narrow(&t, 1, 1, 1)?)?.squeeze(1)?,
+            (&corner - crate::narrow::narrow(&t, 1, k, 1)?)?.squeeze(1)?,
         ))
     };
     let (dxp, dyp) = diffs(pred)?;

@@ -1211,8 +1211,8 @@ pub(crate) fn composite(
         return Err(bad_intervals());
     }
     let color = out.narrow(1, 0, c)?;
-    let depth = out.narrow(1, c, 1)?.squeeze(1)?;
-    let opacity = out.narrow(1, c + 1, 1)?.squeeze(1)?;
+    let depth = crate::narrow::narrow(&out, 1, c, 1)?.squeeze(1)?;
+    let opacity = crate::narrow::narrow(&out, 1, c + 1, 1)?.squeeze(1)?;
     Ok((color, opacity, depth))
 }
 

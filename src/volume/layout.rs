@@ -453,7 +453,10 @@ impl Intervals {
             ));
         }
         Ok(Tensor::cat(
-            &[&self.starts, &self.ends.narrow(1, s - 1, 1)?],
+            &[
+                &self.starts,
+                &crate::narrow::narrow(&self.ends, 1, s - 1, 1)?,
+            ],
             1,
         )?)
     }

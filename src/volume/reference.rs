@@ -152,7 +152,7 @@ pub(crate) fn composite(
         Layout::Packed(_) => {
             let od = accumulate(&w.ones_like()?, &Tensor::stack(&[&w, &wt], 1)?, layout)?;
             let opacity = od.narrow(1, 0, 1)?.squeeze(1)?;
-            let depth = od.narrow(1, 1, 1)?.squeeze(1)?;
+            let depth = crate::narrow::narrow(&od, 1, 1, 1)?.squeeze(1)?;
             Ok((color, opacity, depth))
         }
     }

@@ -267,7 +267,7 @@ pub fn stratified(
     };
     Ok(Intervals {
         starts: edges.narrow(1, 0, n)?,
-        ends: edges.narrow(1, 1, n)?,
+        ends: crate::narrow::narrow(&edges, 1, 1, n)?,
         layout: Layout::Batched,
     })
 }

@@ -1,0 +1,20 @@
+//! `narrow` that stays readable on empty tensors (crate-private).
+//!
+//! candle's `narrow(dim, start, len)` with `start > 0` on a tensor that holds no elements
+//! (a batch of zero rays or points) returns a view whose offset lies past its empty
+//! storage; reading it (`to_vec*`, a contiguous copy) panics inside candle ("range start
+//! index … out of range for slice of length 0"). An empty tensor has no values to skip,
+//! so narrowing it at offset 0 gives the same (empty) result with an offset of 0, still
+//! on the autograd graph. Every split of a batch-sized result along a non-batch axis goes
+//! through [`narrow`].
+
+use candle_core::{shape::Dim, Result, Tensor};
+
+/// `t.narrow(dim, start, len)`, readable when `t` is empty (see the module docs).
+pub(crate) fn narrow<D: Dim>(t: &Tensor, dim: D, start: usize, len: usize) -> Result<Tensor> {
+    if t.elem_count() == 0 {
+        t.narrow(dim, 0, len)
+    } else {
+        t.narrow(dim, start, len)
+    }
+}
