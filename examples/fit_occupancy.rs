@@ -4,7 +4,7 @@
 //! ```text
 //! apt-get install assimp-testmodels            # provides the default mesh
 //! cargo run --release --example fit_occupancy                        # Wuson.ply
-//! cargo run --release --example fit_occupancy -- path/to/mesh.obj out.ply [seconds]
+//! cargo run --release --example fit_occupancy -- path/to/mesh.stl out.ply [seconds]  # .ply .obj .stl .off
 //! ```
 //!
 //! The mesh is normalised to the unit cube (ONet's convention); training points are
@@ -42,7 +42,9 @@ fn main() -> neural_fields::Result<()> {
         .unwrap_or_else(|| "fit_occupancy.ply".to_string());
     let budget: f64 = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(150.0);
     if !std::path::Path::new(&input).exists() {
-        eprintln!("{input} not found (apt-get install assimp-testmodels, or pass a PLY/OBJ path)");
+        eprintln!(
+            "{input} not found (apt-get install assimp-testmodels, or pass a .ply, .obj, .stl or .off path)"
+        );
         std::process::exit(2);
     }
     let start = Instant::now();
