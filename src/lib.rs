@@ -105,7 +105,9 @@
 //!
 //! **7. Meshes.** [`occupancy::mise()`] extracts the surface of any implicit field
 //! (evaluating it only near the surface) with watertight [`occupancy::marching_cubes()`];
-//! [`occupancy::Mesh`] reads and writes PLY and OBJ, and [`occupancy::metrics`] computes
+//! [`occupancy::Mesh`] reads and writes PLY, OBJ, STL and OFF (every reader's work
+//! bounded by the file's size, concave polygons ear-clipped), [`occupancy::PointCloud`]
+//! holds scans (points with normals and colours), and [`occupancy::metrics`] computes
 //! ONet's IoU, Chamfer-L1, normal consistency and F-score. See
 //! `examples/fit_occupancy.rs`.
 //!
