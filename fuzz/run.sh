@@ -39,9 +39,11 @@ case "$target" in
 esac
 RUSTC_BOOTSTRAP=1 cargo fuzz build -s none --fuzz-dir . "$target" >/dev/null 2>&1 \
   || RUSTC_BOOTSTRAP=1 cargo fuzz build -s none --fuzz-dir . "$target"
+start=$(date +%s)
 {
   echo "== $(date -u +%FT%TZ) $target for ${seconds}s ($(git rev-parse --short HEAD))"
   ./target/x86_64-unknown-linux-gnu/release/"$target" "$corpus" \
     -max_total_time="$seconds" -max_len=65536 -timeout=10 -rss_limit_mb=2048 \
     -artifact_prefix=artifacts/"$target"/ -print_final_stats=1 2>&1 | grep -v -e '^#[0-9]' -e '^"' || true
+  echo "== end: $(($(date +%s) - start)) s fuzzed"
 } | tee -a logs/"$target".log
