@@ -6,7 +6,9 @@ printf '| target | hours fuzzed | executions | slowest input (s) | peak RSS (MB)
 for log in logs/*.log; do
   t=$(basename "$log" .log)
   awk -v t="$t" -v found="$(find artifacts/"$t" -type f 2>/dev/null | wc -l)" '
-    /^== end: / { s += $3 }
+    /^== [0-9]/ { done = 0 }
+    /^Done [0-9]+ runs in [0-9]+ second/ { s += $5; done = 1 }
+    /^== end: / { if (!done) s += $3 }
     /number_of_executed_units/ { e += $2 }
     /slowest_unit_time_sec/ { if ($2 > slow) slow = $2 }
     /peak_rss_mb/ { if ($2 > rss) rss = $2 }
