@@ -370,3 +370,24 @@ fn pond_ply_is_truncated_and_says_how_many_points_were_complete() {
         "{e}"
     );
 }
+
+/// A UTF-16 file of any text format is refused naming the encoding (an OBJ was read as
+/// an empty mesh; PLY, OFF and STL now say the same as OBJ).
+#[test]
+fn utf16_text_formats_are_refused_naming_the_encoding() {
+    for (text, format) in [
+        ("ply\nformat ascii 1.0\nend_header\n", MeshFormat::PlyAscii),
+        (
+            "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n",
+            MeshFormat::Off,
+        ),
+        ("solid x\nendsolid x\n", MeshFormat::StlAscii),
+    ] {
+        let mut b = vec![0xFF, 0xFE];
+        for u in text.encode_utf16() {
+            b.extend_from_slice(&u.to_le_bytes());
+        }
+        let e = Mesh::from_bytes(&b, format).unwrap_err().to_string();
+        assert!(e.contains("UTF-16"), "{format:?}: {e}");
+    }
+}

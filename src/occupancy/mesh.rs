@@ -676,7 +676,7 @@ impl ObjContent {
 
 /// Parses OBJ bytes (see [`Mesh::from_bytes`]).
 pub(crate) fn parse_obj(bytes: &[u8]) -> Result<ObjContent> {
-    check_not_utf16(bytes)?;
+    check_not_utf16("obj", bytes)?;
     let text = String::from_utf8_lossy(bytes);
     let mut vertices: Vec<[f64; 3]> = Vec::new();
     let mut polygons = Polygons::default();
@@ -776,11 +776,11 @@ pub fn points_tensor(points: &[[f64; 3]], device: &Device, dtype: DType) -> Resu
 /// Refuses UTF-16 text (a byte-order mark, or NUL bytes among the first kilobyte, which
 /// ASCII and UTF-8 text never holds), naming the encoding: read lossily as UTF-8 it
 /// would parse as an empty mesh.
-fn check_not_utf16(bytes: &[u8]) -> Result<()> {
+pub(crate) fn check_not_utf16(what: &'static str, bytes: &[u8]) -> Result<()> {
     let bom = bytes.starts_with(&[0xFF, 0xFE]) || bytes.starts_with(&[0xFE, 0xFF]);
     if bom || bytes.iter().take(1024).any(|&b| b == 0) {
         return Err(file_err(
-            "obj",
+            what,
             "ASCII or UTF-8 text",
             "UTF-16 (or other NUL-bearing) text: convert the file to UTF-8",
         ));

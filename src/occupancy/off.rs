@@ -35,6 +35,7 @@ pub(crate) struct OffContent {
 
 /// Parses OFF bytes (see the module documentation).
 pub(crate) fn read(bytes: &[u8]) -> Result<OffContent> {
+    super::mesh::check_not_utf16("off", bytes)?;
     let text = std::str::from_utf8(bytes).map_err(|e| {
         off_err(
             "ASCII text (binary OFF is not read)",

@@ -377,6 +377,7 @@ fn parse_ply_header(bytes: &[u8]) -> Result<PlyHeader> {
         let toks: Vec<&str> = line.split_whitespace().collect();
         if line_no == 1 {
             if line != "ply" {
+                super::mesh::check_not_utf16("ply", bytes)?;
                 return Err(file_err(
                     "a file starting with \"ply\"",
                     format!("line 1: {line:?}"),

@@ -77,6 +77,9 @@ pub(crate) fn read(bytes: &[u8]) -> Result<Soup> {
 }
 
 fn read_binary(bytes: &[u8], count: Option<u64>) -> Result<Soup> {
+    if bytes.starts_with(&[0xFF, 0xFE]) || bytes.starts_with(&[0xFE, 0xFF]) {
+        super::mesh::check_not_utf16("stl", bytes)?;
+    }
     let Some(count) = count else {
         return Err(stl_err(
             "an ASCII STL (starting with \"solid\") or a binary STL of at least 84 bytes",
@@ -118,6 +121,7 @@ fn read_binary(bytes: &[u8], count: Option<u64>) -> Result<Soup> {
 }
 
 fn read_ascii(bytes: &[u8]) -> Result<Soup> {
+    super::mesh::check_not_utf16("stl", bytes)?;
     let text = std::str::from_utf8(bytes).map_err(|e| {
         stl_err(
             "ASCII text (or a binary STL of 84 + 50 · count bytes)",
