@@ -1,5 +1,6 @@
-//! Input encodings: frequency positional encoding, Gaussian Fourier features and the
-//! integrated positional encoding of mip-NeRF.
+//! Input encodings: frequency positional encoding, Gaussian Fourier features, the
+//! integrated positional encoding of mip-NeRF, and instant-NGP's multiresolution hash
+//! grid ([`HashGrid`], learned tables).
 //!
 //! Every encoding maps `x: [N, D]` to `γ(x): [N, E]` and can push tangents forward
 //! ([`Encoding::forward_jvp`]), which is how [`crate::nn::Mlp`] obtains spatial
@@ -21,6 +22,10 @@
 //! assert_eq!(pe.forward(&x)?.dims(), &[1, 63]);
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
+
+mod hash_grid;
+
+pub use hash_grid::{hash_grid, HashGrid, HashGridConfig};
 
 use crate::error::{check_float, check_same, check_scalar, check_shape, Dim, Error, Result};
 use crate::numerics::{cos_pi, round_to_integer, safe_cos, safe_sin, sin_pi};
@@ -540,6 +545,9 @@ pub enum PointEncoding {
     Frequency(FrequencyEncoding),
     /// [`FourierFeatures`].
     Fourier(FourierFeatures),
+    /// [`HashGrid`] (its table is a parameter of the model, built from the same
+    /// `VarBuilder`'s map).
+    HashGrid(HashGrid),
 }
 
 impl PointEncoding {
@@ -550,6 +558,19 @@ impl PointEncoding {
             PointEncoding::Identity => in_dim,
             PointEncoding::Frequency(e) => e.out_dim(),
             PointEncoding::Fourier(e) => e.out_dim(),
+            PointEncoding::HashGrid(e) => e.out_dim(),
+        }
+    }
+
+    /// The input dimension the encoding requires (`None` for the identity, which takes
+    /// any).
+    #[must_use]
+    pub fn in_dim(&self) -> Option<usize> {
+        match self {
+            PointEncoding::Identity => None,
+            PointEncoding::Frequency(e) => Some(e.in_dim()),
+            PointEncoding::Fourier(e) => Some(e.in_dim()),
+            PointEncoding::HashGrid(e) => Some(e.in_dim()),
         }
     }
 
@@ -559,7 +580,7 @@ impl PointEncoding {
         match self {
             PointEncoding::Identity => true,
             PointEncoding::Frequency(e) => e.include_input,
-            PointEncoding::Fourier(_) => false,
+            PointEncoding::Fourier(_) | PointEncoding::HashGrid(_) => false,
         }
     }
 
@@ -578,6 +599,7 @@ impl PointEncoding {
             }
             PointEncoding::Frequency(e) => e.forward(x),
             PointEncoding::Fourier(e) => e.forward(x),
+            PointEncoding::HashGrid(e) => e.forward(x),
         }
     }
 
@@ -597,6 +619,7 @@ impl PointEncoding {
             }
             PointEncoding::Frequency(e) => e.forward_jvp(x, dx),
             PointEncoding::Fourier(e) => e.forward_jvp(x, dx),
+            PointEncoding::HashGrid(e) => e.forward_jvp(x, dx),
         }
     }
 }

@@ -215,11 +215,7 @@ pub fn mlp(config: &MlpConfig, vb: VarBuilder) -> Result<Mlp> {
         }
     }
     let enc_dim = config.encoding.out_dim_for(config.in_dim);
-    let enc_in = match &config.encoding {
-        PointEncoding::Identity => config.in_dim,
-        PointEncoding::Frequency(e) => crate::encoding::Encoding::in_dim(e),
-        PointEncoding::Fourier(e) => crate::encoding::Encoding::in_dim(e),
-    };
+    let enc_in = config.encoding.in_dim().unwrap_or(config.in_dim);
     if enc_in != config.in_dim {
         return Err(Error::invalid(
             "config.encoding",

@@ -120,11 +120,7 @@ pub fn texture_decoder(config: &TextureDecoderConfig, vb: VarBuilder) -> Result<
             return Err(Error::invalid(name, "at least 1", "0"));
         }
     }
-    let enc_in = match &config.encoding {
-        PointEncoding::Identity => 3,
-        PointEncoding::Frequency(e) => e.in_dim(),
-        PointEncoding::Fourier(e) => e.in_dim(),
-    };
+    let enc_in = config.encoding.in_dim().unwrap_or(3);
     if enc_in != 3 {
         return Err(Error::invalid(
             "config.encoding",

@@ -1,0 +1,749 @@
+//! Multiresolution hash encoding (Müller et al. 2022, instant-NGP) with a fused CPU op.
+//!
+//! A point `x ∈ ℝᴰ` (D ≤ 4) is mapped into the unit cube of the scene box,
+//! `t = clamp((x − lo) / (hi − lo), 0, 1)`, and looked up at `L` levels of resolution
+//! `N_l = ⌊N_min · b^l⌋` (cells per axis), `b = (N_max / N_min)^{1/(L−1)}`. At level `l`,
+//! `u = t·N_l`, the cell is `i = min(⌊u⌋, N_l − 1)` and the local coordinates
+//! `w = u − i ∈ [0, 1]ᴰ`; the `2ᴰ` corners `i + c` (`c ∈ {0, 1}ᴰ`) index the level's
+//! table of `T_l` rows of `F` features, and the output is the multilinear interpolation
+//!
+//! `y_l = Σ_c (Π_d w_d^{c_d} (1 − w_d)^{1 − c_d}) · θ_l[h_l(i + c)]`,
+//!
+//! concatenated over levels: `[N, L·F]`, level-major. The index `h_l` is dense
+//! (`Σ_d v_d (N_l + 1)^d`) on levels whose `(N_l + 1)ᴰ` vertices fit the table
+//! (`T_l = (N_l + 1)ᴰ` then), and otherwise the spatial hash
+//! `(⊕_d v_d · π_d) mod 2ᵀ` with instant-NGP's primes `π = (1, 2654435761, 805459861,
+//! 3674653429)`, in wrapping 32-bit arithmetic. Distinct vertices may then share a row
+//! (collisions); training resolves them as instant-NGP does, by the gradient of the
+//! finer levels' many samples.
+//!
+//! **Gradients.** The output is linear in the tables: `∂y/∂θ` is the interpolation
+//! weight of each corner. W.r.t. the position it is piecewise smooth: inside a cell
+//! `∂y_l/∂x_d = (N_l / (hi_d − lo_d)) · Σ_c θ_l[h(i + c)] ∂w_c/∂w_d`, continuous across
+//! cell faces in value but not in slope (a kink on every face at every level), and zero
+//! outside the box, where `t` is clamped. Points on a face belong to the cell above
+//! (`⌊u⌋`), except on the box's upper face, which belongs to the last cell.
+//!
+//! **The fused op** (CPU, f32/f64) runs the forward pass over points in parallel. Its
+//! backward pass accumulates the table gradient level by level, each level's points in
+//! order, so that it is the same bit for bit at any thread count; it computes the
+//! position gradient only when the positions are on the autograd graph (a `Var` or the
+//! result of tracked ops), so a NeRF step, whose sample positions are data, does not pay
+//! for it. The reference path ([`HashGrid::forward_reference`], candle ops: the indices
+//! and cells computed on the host, the weights and the gathers on the tensors' device,
+//! `index_select` whose backward is an `index_add`) runs on any device, is used off the
+//! CPU, and is what [`Encoding::forward_jvp`] uses (its tangents stay differentiable
+//! w.r.t. the table, which normals and the eikonal loss need).
+//!
+//! ```
+//! use candle_core::{DType, Tensor};
+//! use candle_nn::{VarBuilder, VarMap};
+//! use neural_fields::encoding::{hash_grid, Encoding, HashGridConfig};
+//!
+//! let varmap = VarMap::new();
+//! let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
+//! let grid = hash_grid(&HashGridConfig::default(), vb.pp("grid"))?;
+//! let x = Tensor::new(&[[0.1f32, -0.2, 0.3], [0.5, 0.5, 0.5]], &Device::Cpu)?;
+//! let y = grid.forward(&x)?;
+//! assert_eq!(y.dims(), &[2, 32]); // 16 levels × 2 features
+//! # Ok::<(), neural_fields::Error>(())
+//! ```
+
+use super::{check_tangents, Encoding};
+use crate::error::{check_float, check_shape, Dim, Error, Result};
+use candle_core::{DType, Tensor};
+use candle_nn::{Init, VarBuilder};
+use std::sync::Arc;
+
+/// instant-NGP's hashing primes, one per input dimension.
+const PRIMES: [u32; 4] = [1, 2_654_435_761, 805_459_861, 3_674_653_429];
+
+/// Points per work item of the fused forward and position-gradient passes.
+const ROWS: usize = 512;
+
+/// Settings of [`hash_grid`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct HashGridConfig {
+    /// Input dimension `D`, 1 to 4 (3 for points).
+    pub in_dim: usize,
+    /// Number of levels `L` (instant-NGP: 16).
+    pub levels: usize,
+    /// Features per level `F` (instant-NGP: 2).
+    pub features: usize,
+    /// `T`: each level's table holds at most `2ᵀ` rows. Default 17: 128 Ki rows, 1 MiB of
+    /// f32 features per level at `F = 2` and 16 MiB in all, which keeps the tables of
+    /// the coarse, dense levels in the CPU's caches (instant-NGP uses 19 on GPUs).
+    pub log2_table_size: u32,
+    /// Coarsest resolution `N_min` (cells per axis; instant-NGP: 16).
+    pub base_resolution: f64,
+    /// Finest resolution `N_max` (instant-NGP: 2048 × the scene's scale).
+    pub finest_resolution: f64,
+    /// The scene box's lower corner (`D` values); points are clamped into the box.
+    pub lo: Vec<f64>,
+    /// The scene box's upper corner (`D` values, each above `lo`).
+    pub hi: Vec<f64>,
+    /// The tables start uniform in `[−s, s]` (instant-NGP: 1e-4).
+    pub init_scale: f64,
+}
+
+impl Default for HashGridConfig {
+    /// 3-D points in `[−1, 1]³`, 16 levels of 2 features, tables of `2¹⁷` rows,
+    /// resolutions 16 to 2048, initialised in `U(−1e-4, 1e-4)`.
+    fn default() -> Self {
+        Self {
+            in_dim: 3,
+            levels: 16,
+            features: 2,
+            log2_table_size: 17,
+            base_resolution: 16.0,
+            finest_resolution: 2048.0,
+            lo: vec![-1.0; 3],
+            hi: vec![1.0; 3],
+            init_scale: 1e-4,
+        }
+    }
+}
+
+/// One level: cells per axis, first row in the concatenated table, rows, dense or hashed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Level {
+    cells: u32,
+    offset: usize,
+    rows: usize,
+    dense: bool,
+}
+
+/// The level geometry shared by the fused op and the reference path.
+#[derive(Debug)]
+struct Plan {
+    d: usize,
+    f: usize,
+    levels: Vec<Level>,
+    lo: Vec<f64>,
+    hi: Vec<f64>,
+    mask: u32,
+}
+
+/// A multiresolution hash grid: its configuration and table `[Σ_l T_l, F]`; build it
+/// with [`hash_grid`]. See the [module documentation](self).
+#[derive(Clone, Debug)]
+pub struct HashGrid {
+    config: HashGridConfig,
+    table: Tensor,
+    plan: Arc<Plan>,
+}
+
+/// Builds a [`HashGrid`] whose table (`table`, `[Σ_l T_l, F]`) comes from `vb`, uniform in
+/// `[−init_scale, init_scale]`, in `vb`'s dtype and device.
+///
+/// # Errors
+/// `config.in_dim` outside 1..=4; zero `levels` or `features`; `log2_table_size`
+/// outside 1..=24; resolutions that are not finite, below 1, decreasing, or whose vertex
+/// coordinates would not fit in 32 bits (`finest_resolution` ≥ 2³² − 1); `lo`/`hi` not
+/// `in_dim` finite values with `lo < hi`; errors of `vb`.
+pub fn hash_grid(config: &HashGridConfig, vb: VarBuilder) -> Result<HashGrid> {
+    let plan = Arc::new(plan(config)?);
+    let rows = plan.levels.iter().map(|l| l.rows).sum::<usize>();
+    let s = config.init_scale;
+    let table = vb.get_with_hints(
+        (rows, config.features),
+        "table",
+        Init::Uniform { lo: -s, up: s },
+    )?;
+    Ok(HashGrid {
+        config: config.clone(),
+        table,
+        plan,
+    })
+}
+
+fn plan(c: &HashGridConfig) -> Result<Plan> {
+    let bad =
+        |arg: &'static str, expected: &str, got: String| Err(Error::invalid(arg, expected, got));
+    if !(1..=4).contains(&c.in_dim) {
+        return bad("config.in_dim", "1 to 4", c.in_dim.to_string());
+    }
+    if c.levels == 0 || c.features == 0 {
+        return bad(
+            "config.levels, config.features",
+            "at least 1 each",
+            format!("{}, {}", c.levels, c.features),
+        );
+    }
+    if !(1..=24).contains(&c.log2_table_size) {
+        return bad(
+            "config.log2_table_size",
+            "1 to 24",
+            c.log2_table_size.to_string(),
+        );
+    }
+    let (base, finest) = (c.base_resolution, c.finest_resolution);
+    if !(base.is_finite() && finest.is_finite() && base >= 1.0 && finest >= base) {
+        return bad(
+            "config.base_resolution, config.finest_resolution",
+            "finite resolutions with 1 ≤ base ≤ finest",
+            format!("{base}, {finest}"),
+        );
+    }
+    // Vertex coordinates run to N_l, which must fit u32 (and N_l + 1 too).
+    if finest >= f64::from(u32::MAX) - 1.0 {
+        return bad(
+            "config.finest_resolution",
+            "below 2³² − 1 (vertex coordinates are 32-bit)",
+            finest.to_string(),
+        );
+    }
+    let d = c.in_dim;
+    if c.lo.len() != d || c.hi.len() != d {
+        return bad(
+            "config.lo, config.hi",
+            "in_dim values each",
+            format!("{} and {} values for in_dim {d}", c.lo.len(), c.hi.len()),
+        );
+    }
+    if let Some(k) =
+        (0..d).find(|&k| !(c.lo[k].is_finite() && c.hi[k].is_finite() && c.lo[k] < c.hi[k]))
+    {
+        return bad(
+            "config.lo, config.hi",
+            "finite bounds with lo < hi on every axis",
+            format!("axis {k}: lo {}, hi {}", c.lo[k], c.hi[k]),
+        );
+    }
+    let growth = if c.levels > 1 {
+        (finest.ln() - base.ln()) / (c.levels - 1) as f64
+    } else {
+        0.0
+    };
+    let cap = 1u64 << c.log2_table_size;
+    let mut levels = Vec::with_capacity(c.levels);
+    let mut offset = 0usize;
+    for l in 0..c.levels {
+        // The product can round a hair past finest; clamp to the stated bounds.
+        let n = (base * (growth * l as f64).exp())
+            .floor()
+            .clamp(1.0, finest.max(1.0));
+        let cells = n as u32;
+        let side = u64::from(cells) + 1;
+        let vertices = (0..d).try_fold(1u64, |acc, _| acc.checked_mul(side));
+        let dense = vertices.is_some_and(|v| v <= cap);
+        let rows = match vertices {
+            Some(v) if dense => v as usize,
+            _ => cap as usize,
+        };
+        levels.push(Level {
+            cells,
+            offset,
+            rows,
+            dense,
+        });
+        offset += rows;
+    }
+    if offset > u32::MAX as usize {
+        return bad(
+            "config.levels",
+            "tables of fewer than 2³² rows in all",
+            format!("{offset} rows over {} levels", c.levels),
+        );
+    }
+    Ok(Plan {
+        d,
+        f: c.features,
+        levels,
+        lo: c.lo.clone(),
+        hi: c.hi.clone(),
+        mask: (cap - 1) as u32,
+    })
+}
+
+/// The corners of one point at one level: table rows, weights and, per axis, the
+/// derivative of each weight w.r.t. the position (zero outside the box).
+struct Corners {
+    n: usize,
+    rows: [usize; 16],
+    weights: [f64; 16],
+    dweights: [[f64; 4]; 16],
+}
+
+impl Plan {
+    /// The normalised coordinates `t` of a point and `dt/dx` (zero where clamped).
+    fn unit(&self, x: &[f64], t: &mut [f64; 4], dt: &mut [f64; 4]) {
+        for k in 0..self.d {
+            let ext = self.hi[k] - self.lo[k];
+            let v = (x[k] - self.lo[k]) / ext;
+            let inside = (0.0..=1.0).contains(&v);
+            t[k] = v.clamp(0.0, 1.0);
+            dt[k] = if inside { 1.0 / ext } else { 0.0 };
+        }
+    }
+
+    /// The cell, local coordinates and corners of normalised point `t` at `level`.
+    fn corners(&self, level: &Level, t: &[f64; 4], dt: &[f64; 4], out: &mut Corners) {
+        let d = self.d;
+        let n = f64::from(level.cells);
+        let mut cell = [0u32; 4];
+        let mut w = [0.0f64; 4];
+        let mut dw = [0.0f64; 4];
+        for k in 0..d {
+            let u = t[k] * n;
+            // t ∈ [0, 1], so u ∈ [0, N] and the cast is exact below 2³².
+            let i = (u.floor() as u32).min(level.cells - 1);
+            cell[k] = i;
+            w[k] = u - f64::from(i);
+            dw[k] = n * dt[k];
+        }
+        out.n = 1 << d;
+        let side = u64::from(level.cells) + 1;
+        for c in 0..out.n {
+            let mut weight = 1.0;
+            let mut grads = [1.0f64; 4];
+            let mut dense_index = 0u64;
+            let mut stride = 1u64;
+            let mut hash = 0u32;
+            for k in 0..d {
+                let bit = (c >> k) & 1 == 1;
+                let v = cell[k] + u32::from(bit);
+                let (f, df) = if bit {
+                    (w[k], dw[k])
+                } else {
+                    (1.0 - w[k], -dw[k])
+                };
+                for (j, g) in grads.iter_mut().enumerate().take(d) {
+                    *g *= if j == k { df } else { f };
+                }
+                weight *= f;
+                dense_index += u64::from(v) * stride;
+                stride *= side;
+                hash ^= v.wrapping_mul(PRIMES[k]);
+            }
+            let local = if level.dense {
+                dense_index as usize
+            } else {
+                (hash & self.mask) as usize
+            };
+            out.rows[c] = level.offset + local;
+            out.weights[c] = weight;
+            out.dweights[c] = grads;
+        }
+    }
+
+    fn width(&self) -> usize {
+        self.levels.len() * self.f
+    }
+}
+
+fn empty_corners() -> Corners {
+    Corners {
+        n: 0,
+        rows: [0; 16],
+        weights: [0.0; 16],
+        dweights: [[0.0; 4]; 16],
+    }
+}
+
+/// Checks the positions: f32/f64 `[N, D]` without NaN (an infinite coordinate is
+/// clamped into the box like any other outside point).
+fn check_positions(x: &Tensor, d: usize) -> Result<usize> {
+    check_float(x, "x")?;
+    let n = check_shape(x, "x", &[Dim::Any("N"), Dim::Is(d)])?[0];
+    let has_nan = n > 0 && x.ne(x)?.max_all()?.to_scalar::<u8>()? > 0;
+    if has_nan {
+        return Err(Error::invalid(
+            "x",
+            "positions without NaN",
+            "a NaN coordinate",
+        ));
+    }
+    Ok(n)
+}
+
+impl HashGrid {
+    /// The configuration.
+    #[must_use]
+    pub fn config(&self) -> &HashGridConfig {
+        &self.config
+    }
+
+    /// The table `[Σ_l T_l, F]` (a `Var` of the `VarBuilder`'s map when built from one).
+    #[must_use]
+    pub fn table(&self) -> &Tensor {
+        &self.table
+    }
+
+    /// Each level's cells per axis, rows and whether it is dense (`false`: hashed).
+    #[must_use]
+    pub fn levels(&self) -> Vec<(u32, usize, bool)> {
+        self.plan
+            .levels
+            .iter()
+            .map(|l| (l.cells, l.rows, l.dense))
+            .collect()
+    }
+
+    fn fused(&self, x: &Tensor) -> bool {
+        x.device().is_cpu()
+            && self.table.device().is_cpu()
+            && x.dtype() == self.table.dtype()
+            && matches!(x.dtype(), DType::F32 | DType::F64)
+    }
+
+    /// The encoding by candle ops (any device): `x: [N, D]` → `[N, L·F]`, differentiable
+    /// w.r.t. `x` and the table. The cells and table rows are computed on the host from
+    /// `x` (they are piecewise constant: no gradient flows through them), the weights and
+    /// the gathers on `x`'s device.
+    ///
+    /// # Errors
+    /// `x` not f32/f64 `[N, D]`, NaN in `x`, a dtype or device other than the table's.
+    pub fn forward_reference(&self, x: &Tensor) -> Result<Tensor> {
+        let n = self.check(x)?;
+        let p = &self.plan;
+        let (d, f, corners) = (p.d, p.f, 1usize << p.d);
+        let (host, t) = self.unit_tensor(x)?;
+        let mut outs = Vec::with_capacity(p.levels.len());
+        for level in &p.levels {
+            let (rows, origin, _) = self.level_data(&host, level);
+            let origin = Tensor::from_vec(origin, (n, d), x.device())?.to_dtype(x.dtype())?;
+            let w = ((&t * f64::from(level.cells))? - origin)?; // [N, D]
+            let one_minus = w.affine(-1.0, 1.0)?;
+            let mut weights = Vec::with_capacity(corners);
+            for cc in 0..corners {
+                let mut prod = Tensor::ones((n, 1), x.dtype(), x.device())?;
+                for k in 0..d {
+                    let col = if (cc >> k) & 1 == 1 { &w } else { &one_minus };
+                    prod = (prod * col.narrow(1, k, 1)?)?;
+                }
+                weights.push(prod);
+            }
+            let weights = Tensor::cat(&weights, 1)?; // [N, 2ᴰ]
+            let idx = Tensor::from_vec(rows, n * corners, x.device())?;
+            let feats = self.table.index_select(&idx, 0)?.reshape((n, corners, f))?;
+            outs.push(feats.broadcast_mul(&weights.unsqueeze(2)?)?.sum(1)?);
+        }
+        Ok(Tensor::cat(&outs, 1)?)
+    }
+
+    /// `x` on the host (f64) and the normalised coordinates `t: [N, D]` on `x`'s device:
+    /// `(x − lo)/(hi − lo)` where it lies in `[0, 1]` (differentiable there, including on
+    /// the box's faces), the clamped constant outside (no gradient).
+    fn unit_tensor(&self, x: &Tensor) -> Result<(Vec<f64>, Tensor)> {
+        let p = &self.plan;
+        let d = p.d;
+        let host: Vec<f64> = x.to_dtype(DType::F64)?.flatten_all()?.to_vec1()?;
+        let dev = x.device();
+        let n = host.len() / d;
+        let (mut clamped, mut inside) = (
+            Vec::with_capacity(host.len()),
+            Vec::with_capacity(host.len()),
+        );
+        let (mut t, mut dt) = ([0.0; 4], [0.0; 4]);
+        for row in host.chunks(d) {
+            p.unit(row, &mut t, &mut dt);
+            clamped.extend_from_slice(&t[..d]);
+            inside.extend(dt[..d].iter().map(|&r| u8::from(r != 0.0)));
+        }
+        let lo = Tensor::new(p.lo.as_slice(), dev)?.to_dtype(x.dtype())?;
+        let ext: Vec<f64> = (0..d).map(|k| p.hi[k] - p.lo[k]).collect();
+        let ext = Tensor::new(ext.as_slice(), dev)?.to_dtype(x.dtype())?;
+        let scaled = x.broadcast_sub(&lo)?.broadcast_div(&ext)?;
+        let clamped = Tensor::from_vec(clamped, (n, d), dev)?.to_dtype(x.dtype())?;
+        let inside = Tensor::from_vec(inside, (n, d), dev)?;
+        Ok((host, inside.where_cond(&scaled, &clamped)?))
+    }
+
+    /// One level's table rows `[N·2ᴰ]`, cell origins `[N·D]` and rates `N_l · dt/dx`
+    /// `[N·D]` (zero outside the box), from the host positions.
+    fn level_data(&self, host: &[f64], level: &Level) -> (Vec<u32>, Vec<f64>, Vec<f64>) {
+        let p = &self.plan;
+        let (d, corners) = (p.d, 1usize << p.d);
+        let n = host.len() / d;
+        let nl = f64::from(level.cells);
+        let mut rows = Vec::with_capacity(n * corners);
+        let mut origin = Vec::with_capacity(n * d);
+        let mut rate = Vec::with_capacity(n * d);
+        let mut c = empty_corners();
+        let (mut t, mut dt) = ([0.0; 4], [0.0; 4]);
+        for row in host.chunks(d) {
+            p.unit(row, &mut t, &mut dt);
+            p.corners(level, &t, &dt, &mut c);
+            // Tables hold fewer than 2³² rows (checked when the grid is built).
+            rows.extend(c.rows[..corners].iter().map(|&r| r as u32));
+            for k in 0..d {
+                origin.push((t[k] * nl).floor().min(nl - 1.0));
+                rate.push(nl * dt[k]);
+            }
+        }
+        (rows, origin, rate)
+    }
+
+    fn check(&self, x: &Tensor) -> Result<usize> {
+        let n = check_positions(x, self.plan.d)?;
+        if x.dtype() != self.table.dtype() || !x.device().same_device(self.table.device()) {
+            return Err(Error::invalid(
+                "x",
+                format!("the table's dtype {:?} and device", self.table.dtype()),
+                format!("{:?} on {:?}", x.dtype(), x.device().location()),
+            ));
+        }
+        Ok(n)
+    }
+}
+
+impl Encoding for HashGrid {
+    fn in_dim(&self) -> usize {
+        self.plan.d
+    }
+
+    fn out_dim(&self) -> usize {
+        self.plan.width()
+    }
+
+    /// `x: [N, D]` → `[N, L·F]`: the fused op on the CPU (f32/f64), the reference path
+    /// elsewhere. Differentiable w.r.t. the table and `x`.
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        if !self.fused(x) {
+            return self.forward_reference(x);
+        }
+        self.check(x)?;
+        Ok(x.contiguous()?
+            .apply_op2(&self.table.contiguous()?, FusedHashGrid(self.plan.clone()))?)
+    }
+
+    /// Values and tangents `J·dx` through the reference path (candle ops), so that both
+    /// stay differentiable w.r.t. the table and `x`: the tangent of `w` is
+    /// `N_l / (hi − lo) · dx` inside the box and 0 outside.
+    fn forward_jvp(&self, x: &Tensor, dx: &Tensor) -> Result<(Tensor, Tensor)> {
+        let n = self.check(x)?;
+        let d = self.plan.d;
+        check_tangents(x, dx, n, d)?;
+        // J·dx = Σ_d ∂y/∂x_d · dx_d: [N, K, D] × [N, D, E].
+        let y = self.forward_reference(x)?;
+        let jac = self.jacobian_reference(x)?;
+        Ok((y, dx.contiguous()?.matmul(&jac)?))
+    }
+}
+
+impl HashGrid {
+    /// `∂γ/∂x: [N, D, L·F]` by candle ops: per level, `∂w_c/∂x_d` (the weights' analytic
+    /// derivatives, zero outside the box) times the gathered features. Differentiable
+    /// w.r.t. the table (the derivative of the weights w.r.t. `x` is piecewise constant
+    /// or linear in `x` and carries its own graph).
+    fn jacobian_reference(&self, x: &Tensor) -> Result<Tensor> {
+        let n = self.check(x)?;
+        let p = &self.plan;
+        let (d, f, corners) = (p.d, p.f, 1usize << p.d);
+        let (host, t) = self.unit_tensor(x)?;
+        let dev = x.device();
+        let mut per_level = Vec::with_capacity(p.levels.len());
+        for level in &p.levels {
+            let (rows, origin, rate) = self.level_data(&host, level);
+            let origin = Tensor::from_vec(origin, (n, d), dev)?.to_dtype(x.dtype())?;
+            let rate = Tensor::from_vec(rate, (n, d), dev)?.to_dtype(x.dtype())?;
+            let w = ((&t * f64::from(level.cells))? - origin)?;
+            let one_minus = w.affine(-1.0, 1.0)?;
+            // dweights[c][j] = rate_j · (±1) · Π_{k≠j} (w_k or 1 − w_k): [N, 2ᴰ, D].
+            let mut cols = Vec::with_capacity(corners);
+            for cc in 0..corners {
+                let mut per_axis = Vec::with_capacity(d);
+                for j in 0..d {
+                    let sign = if (cc >> j) & 1 == 1 { 1.0 } else { -1.0 };
+                    let mut prod = rate.narrow(1, j, 1)?.affine(sign, 0.0)?;
+                    for k in (0..d).filter(|&k| k != j) {
+                        let col = if (cc >> k) & 1 == 1 { &w } else { &one_minus };
+                        prod = (prod * col.narrow(1, k, 1)?)?;
+                    }
+                    per_axis.push(prod);
+                }
+                cols.push(Tensor::cat(&per_axis, 1)?.unsqueeze(1)?); // [N, 1, D]
+            }
+            let dweights = Tensor::cat(&cols, 1)?; // [N, 2ᴰ, D]
+            let idx = Tensor::from_vec(rows, n * corners, dev)?;
+            let feats = self.table.index_select(&idx, 0)?.reshape((n, corners, f))?;
+            // [N, D, 2ᴰ] × [N, 2ᴰ, F] → [N, D, F]
+            per_level.push(dweights.transpose(1, 2)?.contiguous()?.matmul(&feats)?);
+        }
+        Ok(Tensor::cat(&per_level, 2)?)
+    }
+}
+
+/// The fused CPU op: `(x [N, D], table [R, F]) → [N, L·F]`.
+struct FusedHashGrid(Arc<Plan>);
+
+impl FusedHashGrid {
+    fn forward<T: candle_core::WithDType>(&self, x: &[T], table: &[T]) -> Vec<T> {
+        let p = &*self.0;
+        let (d, f, w) = (p.d, p.f, p.width());
+        let mut out = vec![T::from_f64(0.0); (x.len() / d) * w];
+        let items: Vec<_> = out.chunks_mut(ROWS * w).zip(x.chunks(ROWS * d)).collect();
+        crate::parallel::for_each_init(items, empty_corners, |c, (out, x)| {
+            let (mut t, mut dt) = ([0.0; 4], [0.0; 4]);
+            let mut xr = [0.0f64; 4];
+            for (o, row) in out.chunks_mut(w).zip(x.chunks(d)) {
+                for k in 0..d {
+                    xr[k] = row[k].to_f64();
+                }
+                p.unit(&xr, &mut t, &mut dt);
+                for (l, level) in p.levels.iter().enumerate() {
+                    p.corners(level, &t, &dt, c);
+                    for j in 0..f {
+                        let mut acc = 0.0;
+                        for k in 0..c.n {
+                            acc += c.weights[k] * table[c.rows[k] * f + j].to_f64();
+                        }
+                        o[l * f + j] = T::from_f64(acc);
+                    }
+                }
+            }
+        });
+        out
+    }
+
+    /// The table gradient: level by level, each level's points in order (deterministic
+    /// at any thread count), accumulated in f64.
+    fn table_grad<T: candle_core::WithDType>(&self, x: &[T], g: &[T]) -> Vec<T> {
+        let p = &*self.0;
+        let (d, f, w) = (p.d, p.f, p.width());
+        let total: usize = p.levels.iter().map(|l| l.rows).sum();
+        let mut grads = vec![T::from_f64(0.0); total * f];
+        let mut parts: Vec<&mut [T]> = Vec::with_capacity(p.levels.len());
+        let mut rest = grads.as_mut_slice();
+        for level in &p.levels {
+            let (head, tail) = rest.split_at_mut(level.rows * f);
+            parts.push(head);
+            rest = tail;
+        }
+        let items: Vec<_> = parts.into_iter().zip(p.levels.iter().enumerate()).collect();
+        crate::parallel::for_each_init(items, empty_corners, |c, (part, (l, level))| {
+            let mut acc = vec![0.0f64; level.rows * f];
+            let (mut t, mut dt) = ([0.0; 4], [0.0; 4]);
+            let mut xr = [0.0f64; 4];
+            for (row, gr) in x.chunks(d).zip(g.chunks(w)) {
+                for k in 0..d {
+                    xr[k] = row[k].to_f64();
+                }
+                p.unit(&xr, &mut t, &mut dt);
+                p.corners(level, &t, &dt, c);
+                for j in 0..f {
+                    let gj = gr[l * f + j].to_f64();
+                    if gj == 0.0 {
+                        continue;
+                    }
+                    for k in 0..c.n {
+                        acc[(c.rows[k] - level.offset) * f + j] += c.weights[k] * gj;
+                    }
+                }
+            }
+            for (o, a) in part.iter_mut().zip(&acc) {
+                *o = T::from_f64(*a);
+            }
+        });
+        grads
+    }
+
+    /// The position gradient, point by point.
+    fn position_grad<T: candle_core::WithDType>(&self, x: &[T], table: &[T], g: &[T]) -> Vec<T> {
+        let p = &*self.0;
+        let (d, f, w) = (p.d, p.f, p.width());
+        let mut gx = vec![T::from_f64(0.0); x.len()];
+        let items: Vec<_> = gx
+            .chunks_mut(ROWS * d)
+            .zip(x.chunks(ROWS * d))
+            .zip(g.chunks(ROWS * w))
+            .collect();
+        crate::parallel::for_each_init(items, empty_corners, |c, ((gx, x), g)| {
+            let (mut t, mut dt) = ([0.0; 4], [0.0; 4]);
+            let mut xr = [0.0f64; 4];
+            for ((o, row), gr) in gx.chunks_mut(d).zip(x.chunks(d)).zip(g.chunks(w)) {
+                for k in 0..d {
+                    xr[k] = row[k].to_f64();
+                }
+                p.unit(&xr, &mut t, &mut dt);
+                let mut acc = [0.0f64; 4];
+                for (l, level) in p.levels.iter().enumerate() {
+                    p.corners(level, &t, &dt, c);
+                    for k in 0..c.n {
+                        let mut s = 0.0;
+                        for j in 0..f {
+                            s += gr[l * f + j].to_f64() * table[c.rows[k] * f + j].to_f64();
+                        }
+                        for (a, dw) in acc.iter_mut().zip(&c.dweights[k]).take(d) {
+                            *a += s * dw;
+                        }
+                    }
+                }
+                for k in 0..d {
+                    o[k] = T::from_f64(acc[k]);
+                }
+            }
+        });
+        gx
+    }
+}
+
+impl candle_core::CustomOp2 for FusedHashGrid {
+    fn name(&self) -> &'static str {
+        "nf-hash-grid"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &candle_core::CpuStorage,
+        l1: &candle_core::Layout,
+        s2: &candle_core::CpuStorage,
+        l2: &candle_core::Layout,
+    ) -> candle_core::Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        use candle_core::CpuStorage;
+        let (Some((a, b)), Some((c, e))) = (l1.contiguous_offsets(), l2.contiguous_offsets())
+        else {
+            candle_core::bail!("hash grid: inputs must be contiguous")
+        };
+        let rows = l1.dims().first().copied().unwrap_or(0);
+        let out = match (s1, s2) {
+            (CpuStorage::F32(x), CpuStorage::F32(t)) => {
+                CpuStorage::F32(self.forward(&x[a..b], &t[c..e]))
+            }
+            (CpuStorage::F64(x), CpuStorage::F64(t)) => {
+                CpuStorage::F64(self.forward(&x[a..b], &t[c..e]))
+            }
+            _ => candle_core::bail!("hash grid: f32 or f64 positions and table of one dtype"),
+        };
+        Ok((out, candle_core::Shape::from((rows, self.0.width()))))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        table: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let grad = grad.contiguous()?;
+        let (xs, xl) = x.storage_and_layout();
+        let (ts, tl) = table.storage_and_layout();
+        let (gs, gl) = grad.storage_and_layout();
+        let op = "hash grid";
+        let want_x = x.track_op();
+        macro_rules! run {
+            ($t:ty) => {{
+                let xv = crate::parallel::cpu_slice::<$t>(&xs, xl, op, "positions")?;
+                let tv = crate::parallel::cpu_slice::<$t>(&ts, tl, op, "table")?;
+                let gv = crate::parallel::cpu_slice::<$t>(&gs, gl, op, "gradient")?;
+                let gt = Tensor::from_vec(self.table_grad(xv, gv), table.shape(), table.device())?;
+                let gx = if want_x {
+                    Some(Tensor::from_vec(
+                        self.position_grad(xv, tv, gv),
+                        x.shape(),
+                        x.device(),
+                    )?)
+                } else {
+                    None
+                };
+                (gx, Some(gt))
+            }};
+        }
+        Ok(match x.dtype() {
+            DType::F32 => run!(f32),
+            DType::F64 => run!(f64),
+            other => candle_core::bail!("hash grid: unsupported dtype {other:?}"),
+        })
+    }
+}
