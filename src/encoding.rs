@@ -23,7 +23,7 @@
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 
-mod hash_grid;
+pub mod hash_grid;
 
 pub use hash_grid::{hash_grid, HashGrid, HashGridConfig};
 
