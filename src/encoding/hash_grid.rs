@@ -277,53 +277,66 @@ impl Plan {
         }
     }
 
-    /// The cell, local coordinates and corners of normalised point `t` at `level`.
-    fn corners(&self, level: &Level, t: &[f64; 4], dt: &[f64; 4], out: &mut Corners) {
+    /// The cell, local coordinates and corners of normalised point `t` at `level`, and
+    /// with `grads` the weights' derivatives w.r.t. the position. The corners are built
+    /// axis by axis (corner `c` takes `i_k + 1` on axis `k` when bit `k` of `c` is set):
+    /// `2ᴰ⁺¹` products instead of `D·2ᴰ`.
+    fn corners(&self, level: &Level, t: &[f64; 4], dt: &[f64; 4], grads: bool, out: &mut Corners) {
         let d = self.d;
         let n = f64::from(level.cells);
-        let mut cell = [0u32; 4];
-        let mut w = [0.0f64; 4];
-        let mut dw = [0.0f64; 4];
+        let side = u64::from(level.cells) + 1;
+        let mut stride = 1u64;
+        out.n = 1;
+        out.weights[0] = 1.0;
+        let mut index = [0u64; 16];
+        let mut hash = [0u32; 16];
+        if grads {
+            out.dweights[0] = [1.0; 4];
+        }
         for k in 0..d {
             let u = t[k] * n;
             // t ∈ [0, 1], so u ∈ [0, N] and the cast is exact below 2³².
             let i = (u.floor() as u32).min(level.cells - 1);
-            cell[k] = i;
-            w[k] = u - f64::from(i);
-            dw[k] = n * dt[k];
-        }
-        out.n = 1 << d;
-        let side = u64::from(level.cells) + 1;
-        for c in 0..out.n {
-            let mut weight = 1.0;
-            let mut grads = [1.0f64; 4];
-            let mut dense_index = 0u64;
-            let mut stride = 1u64;
-            let mut hash = 0u32;
-            for k in 0..d {
-                let bit = (c >> k) & 1 == 1;
-                let v = cell[k] + u32::from(bit);
-                let (f, df) = if bit {
-                    (w[k], dw[k])
-                } else {
-                    (1.0 - w[k], -dw[k])
-                };
-                for (j, g) in grads.iter_mut().enumerate().take(d) {
-                    *g *= if j == k { df } else { f };
+            let w = u - f64::from(i);
+            let dw = n * dt[k];
+            let half = out.n;
+            for c in 0..half {
+                let hi = c + half;
+                out.weights[hi] = out.weights[c] * w;
+                out.weights[c] *= 1.0 - w;
+                index[hi] = index[c] + u64::from(i + 1) * stride;
+                index[c] += u64::from(i) * stride;
+                hash[hi] = hash[c] ^ (i + 1).wrapping_mul(PRIMES[k]);
+                hash[c] ^= i.wrapping_mul(PRIMES[k]);
+                if grads {
+                    let mut g = out.dweights[c];
+                    for (j, (lo, up)) in g
+                        .iter_mut()
+                        .zip(out.dweights[hi].iter_mut())
+                        .enumerate()
+                        .take(d)
+                    {
+                        if j == k {
+                            *up = *lo * dw;
+                            *lo *= -dw;
+                        } else {
+                            *up = *lo * w;
+                            *lo *= 1.0 - w;
+                        }
+                    }
+                    out.dweights[c] = g;
                 }
-                weight *= f;
-                dense_index += u64::from(v) * stride;
-                stride *= side;
-                hash ^= v.wrapping_mul(PRIMES[k]);
             }
+            out.n *= 2;
+            stride *= side;
+        }
+        for c in 0..out.n {
             let local = if level.dense {
-                dense_index as usize
+                index[c] as usize
             } else {
-                (hash & self.mask) as usize
+                (hash[c] & self.mask) as usize
             };
             out.rows[c] = level.offset + local;
-            out.weights[c] = weight;
-            out.dweights[c] = grads;
         }
     }
 
@@ -464,7 +477,7 @@ impl HashGrid {
         let (mut t, mut dt) = ([0.0; 4], [0.0; 4]);
         for row in host.chunks(d) {
             p.unit(row, &mut t, &mut dt);
-            p.corners(level, &t, &dt, &mut c);
+            p.corners(level, &t, &dt, false, &mut c);
             // Tables hold fewer than 2³² rows (checked when the grid is built).
             rows.extend(c.rows[..corners].iter().map(|&r| r as u32));
             for k in 0..d {
@@ -583,7 +596,7 @@ impl FusedHashGrid {
                 }
                 p.unit(&xr, &mut t, &mut dt);
                 for (l, level) in p.levels.iter().enumerate() {
-                    p.corners(level, &t, &dt, c);
+                    p.corners(level, &t, &dt, false, c);
                     for j in 0..f {
                         let mut acc = 0.0;
                         for k in 0..c.n {
@@ -621,7 +634,7 @@ impl FusedHashGrid {
                     xr[k] = row[k].to_f64();
                 }
                 p.unit(&xr, &mut t, &mut dt);
-                p.corners(level, &t, &dt, c);
+                p.corners(level, &t, &dt, false, c);
                 for j in 0..f {
                     let gj = gr[l * f + j].to_f64();
                     if gj == 0.0 {
@@ -659,7 +672,7 @@ impl FusedHashGrid {
                 p.unit(&xr, &mut t, &mut dt);
                 let mut acc = [0.0f64; 4];
                 for (l, level) in p.levels.iter().enumerate() {
-                    p.corners(level, &t, &dt, c);
+                    p.corners(level, &t, &dt, true, c);
                     for k in 0..c.n {
                         let mut s = 0.0;
                         for j in 0..f {
