@@ -152,7 +152,8 @@ fn bad_files_and_bad_meshes_name_the_problem() {
         ("v 0 0 0\nv 1 0\n", "line 2"),
         ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 x\n", "line 4"),
         ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", "index 0"),
-        ("v 0 0 0\n", "empty mesh"),
+        ("v 0 0 0\n", "a point cloud (1 point, no faces)"),
+        ("", "empty mesh"),
     ];
     for (text, needle) in obj_cases {
         let e = Mesh::from_bytes(text.as_bytes(), MeshFormat::Obj)
@@ -160,7 +161,7 @@ fn bad_files_and_bad_meshes_name_the_problem() {
             .to_string();
         assert!(e.contains(needle), "{needle:?} not in {e:?}");
     }
-    // Relative indices and the a/b/c forms; quads are fan-triangulated.
+    // Relative indices and the a/b/c forms; convex quads are fan-triangulated.
     let m = Mesh::from_bytes(
         b"v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nf -4/1 -3/1 -2/1 -1/1\n",
         MeshFormat::Obj,

@@ -583,9 +583,10 @@ impl Mesh {
                 what,
                 "a mesh with faces",
                 format!(
-                    "a point cloud ({} points, no faces): read it with PointCloud::load or \
+                    "a point cloud ({} point{}, no faces): read it with PointCloud::load or \
                      PointCloud::from_bytes",
-                    vertices.len()
+                    vertices.len(),
+                    if vertices.len() == 1 { "" } else { "s" }
                 ),
             ));
         }
@@ -607,7 +608,7 @@ impl Mesh {
             triangulate(&vertices, poly, &mut faces).map_err(|got| {
                 file_err(
                     what,
-                    "faces of at least 3 vertices, simple polygons (not self-intersecting)",
+                    "faces of at least 3 vertices forming simple polygons (not self-intersecting, wound once)",
                     format!("{}: {got}", locate(i)),
                 )
             })?;
@@ -744,7 +745,7 @@ pub(crate) fn parse_obj(bytes: &[u8]) -> Result<ObjContent> {
                 polygons.push(&poly).map_err(|got| {
                     file_err(
                         "obj",
-                        "faces with at least 3 vertices",
+                        "faces of at least 3 vertices with indices in 1 to 2³²",
                         format!("line {line_no}: {got}"),
                     )
                 })?;

@@ -197,7 +197,7 @@ pub(crate) fn read(bytes: &[u8]) -> Result<OffContent> {
         }
         out.polygons.push(&poly).map_err(|got| {
             off_err(
-                "faces of at least 3 non-negative indices",
+                "faces of at least 3 vertices with indices in 0 to 2³² − 1",
                 format!("line {ln}: {got}"),
             )
         })?;

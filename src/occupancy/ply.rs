@@ -181,7 +181,7 @@ pub(crate) fn read(bytes: &[u8]) -> Result<PlyContent> {
             } else if is_face {
                 out.polygons.push(&list).map_err(|got| {
                     file_err(
-                        "faces with at least 3 non-negative indices",
+                        "faces of at least 3 vertices with indices in 0 to 2³² − 1",
                         format!("face {row}: {got}"),
                     )
                 })?;

@@ -101,6 +101,25 @@ pub(crate) fn triangulate(
     let turn = |a: [f64; 2], b: [f64; 2], c: [f64; 2]| {
         (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
     };
+    // The turning number: a polygon that goes round its interior more than once (the
+    // same convex ring listed twice) passes the convexity and area tests, since its
+    // vector area counts every lap; it is refused here. Exact U-turns (the slits that
+    // bridge a hole) have no defined turning sign and leave the check out.
+    let mut turning = 0.0;
+    let mut u_turn = false;
+    for i in 0..k {
+        let (a, b, c) = (q[(i + k - 1) % k], q[i], q[(i + 1) % k]);
+        let (e, f) = ([b[0] - a[0], b[1] - a[1]], [c[0] - b[0], c[1] - b[1]]);
+        let (x, y) = (e[0] * f[1] - e[1] * f[0], e[0] * f[0] + e[1] * f[1]);
+        u_turn |= x == 0.0 && y < 0.0;
+        turning += x.atan2(y);
+    }
+    let laps = (turning / std::f64::consts::TAU).round();
+    if !u_turn && laps != 1.0 {
+        return Err(format!(
+            "a polygon of {k} vertices that winds {laps} times around its interior"
+        ));
+    }
     let convex = (0..k).all(|i| turn(q[(i + k - 1) % k], q[i], q[(i + 1) % k]) >= 0.0);
     let start = out.len();
     if convex {
@@ -250,6 +269,24 @@ mod tests {
         let e = triangulate(&v, &[0, 1, 2, 3], &mut t).unwrap_err();
         assert!(e.contains("self-intersecting"), "{e}");
         assert!(t.is_empty());
+    }
+
+    /// Pins a double cover: a convex ring listed twice (`f 1 2 3 4 5 1 2 3 4 5`) passed
+    /// the convexity and area checks and was fanned into triangles covering it twice.
+    #[test]
+    fn a_ring_listed_twice_is_refused() {
+        let v: Vec<[f64; 3]> = (0..5)
+            .map(|i| {
+                let a = f64::from(i) / 5.0 * std::f64::consts::TAU;
+                [a.cos(), a.sin(), 0.0]
+            })
+            .collect();
+        let mut t = Vec::new();
+        let e = triangulate(&v, &[0, 1, 2, 3, 4, 0, 1, 2, 3, 4], &mut t).unwrap_err();
+        assert!(e.contains("winds 2 times"), "{e}");
+        assert!(t.is_empty());
+        triangulate(&v, &[0, 1, 2, 3, 4], &mut t).unwrap();
+        assert_eq!(t.len(), 3);
     }
 
     #[test]
