@@ -17,6 +17,11 @@
 //!   initialisation to a sphere of radius 0.35), DVR's march (64 samples, both ends, then
 //!   8 secant steps; detached), the implicit surface depth `t̂` at the hits, L1 depth loss
 //!   towards the depth of a sphere of radius 0.3, Adam (lr 1e-3).
+//! * `hash_grid`: the encoding alone: 2¹⁸ points uniform in `[−1, 1]³` through
+//!   instant-NGP's hash grid ([`HashGridConfig::default`]: 16 levels × 2 features,
+//!   tables of 2¹⁵ rows, resolutions 16 to 2048), loss `mean((γ(x)·c)²)` for a fixed
+//!   `c`, Adam (lr 1e-3) on the table. `--reference` runs the reference path (candle's
+//!   gathers) instead of the fused op.
 //!
 //! `--reference` runs the MLPs through candle's ops instead of the fused MLP op;
 //! `--phases` reports forward, backward and optimiser medians separately. The output is
@@ -28,7 +33,9 @@ use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
 use neural_fields::camera::Rays;
 use neural_fields::camera::{ray_aabb, ray_sphere};
 use neural_fields::dvr::{depth_loss, implicit_surface, march, ImplicitConfig, MarchConfig};
-use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
+use neural_fields::encoding::{
+    hash_grid, Encoding, FrequencyEncoding, HashGridConfig, PointEncoding,
+};
 use neural_fields::field::Field;
 use neural_fields::nn::{build_seeded, mlp, nerf, MlpConfig, NerfConfig};
 use neural_fields::volume::{composite, stratified, CompositeConfig, Jitter};
@@ -172,6 +179,22 @@ fn main() -> neural_fields::Result<()> {
                 let surf = implicit_surface(&net, &rays, &hits, &ImplicitConfig::default())?;
                 let target = truth.index_select(&surf.indices, 0)?;
                 depth_loss(&surf.depth, &target, None)
+            })
+        }
+        "hash_grid" => {
+            let grid = build_seeded(&varmap, DType::F32, &dev, 0, |vb| {
+                hash_grid(&HashGridConfig::default(), vb)
+            })?;
+            let points = uniform(&[1 << 18, 3], -1.0, 1.0, 7);
+            let c = uniform(&[grid.out_dim(), 1], -1.0, 1.0, 8);
+            let reference = args.reference;
+            Box::new(move |_| {
+                let y = if reference {
+                    grid.forward_reference(&points)?
+                } else {
+                    grid.forward(&points)?
+                };
+                Ok(y.matmul(&c)?.sqr()?.mean_all()?)
             })
         }
         other => panic!("unknown model {other}"),

@@ -52,7 +52,9 @@
 //!
 //! **3. Encodings.** [`encoding::FrequencyEncoding`] (NeRF), [`encoding::FourierFeatures`]
 //! (Tancik et al.) and [`encoding::integrated_pe`] (mip-NeRF), accurate in f32 at every
-//! frequency thanks to exact argument reduction ([`numerics::sin_pi`]).
+//! frequency thanks to exact argument reduction ([`numerics::sin_pi`]), and
+//! [`encoding::HashGrid`] (instant-NGP), whose learned tables train in a fused CPU op
+//! with a deterministic gradient.
 //!
 //! **4. Cameras.** [`camera::Camera`] (pinhole, OpenCV or OpenGL axes) makes
 //! [`camera::Rays`] (validated once, taken by every function that traces rays);

@@ -259,7 +259,7 @@ fn levels_are_dense_until_the_table_is_full_then_hashed() {
     assert_eq!(levels[15].0, 2048);
     assert!(levels
         .iter()
-        .all(|&(n, rows, dense)| dense == ((n as usize + 1).pow(3) <= 1 << 17) && rows <= 1 << 17));
+        .all(|&(n, rows, dense)| dense == ((n as usize + 1).pow(3) <= 1 << 15) && rows <= 1 << 15));
     assert!(!levels[15].2);
     assert_eq!(g.out_dim(), 32);
     assert_eq!(
@@ -387,4 +387,48 @@ fn mlp_on_a_hash_grid_gives_normals_and_trains_the_table() {
     let loss = (y.sum_all().unwrap() + jac.sqr().unwrap().sum_all().unwrap()).unwrap();
     let grads = loss.backward().unwrap();
     assert!(grads.get(g.table()).is_some());
+}
+
+/// A digest of the fused table gradient's bits for a fixed problem (FNV-1a over the f32
+/// bits of the gradient).
+fn table_gradient_digest() -> u64 {
+    let (varmap, g) = grid(&HashGridConfig::default(), DType::F32, 11);
+    let x = points(&mut SplitMix64::new(12), 30_000);
+    let [_, gt, _] = run(&g, &varmap, &x, false, DType::F32);
+    gt.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, v| {
+        (h ^ u64::from((*v as f32).to_bits())).wrapping_mul(0x0100_0000_01b3)
+    })
+}
+
+/// The table gradient's bits do not depend on the number of threads: this test runs
+/// itself in child processes with 1, 2 and 5 threads (`CANDLE_NUM_THREADS`, which sizes
+/// candle's CPU pool) and compares the digests they print.
+#[test]
+fn table_gradient_bits_do_not_depend_on_the_thread_count() {
+    const NAME: &str = "table_gradient_bits_do_not_depend_on_the_thread_count";
+    if std::env::var_os("NF_DIGEST_CHILD").is_some() {
+        println!("digest={:016x}", table_gradient_digest());
+        return;
+    }
+    let exe = std::env::current_exe().unwrap();
+    let digests: Vec<String> = ["1", "2", "5"]
+        .iter()
+        .map(|threads| {
+            let out = std::process::Command::new(&exe)
+                .args([NAME, "--exact", "--nocapture", "--test-threads=1"])
+                .env("NF_DIGEST_CHILD", "1")
+                .env("RAYON_NUM_THREADS", threads)
+                .env("CANDLE_NUM_THREADS", threads)
+                .output()
+                .unwrap();
+            let text = String::from_utf8_lossy(&out.stdout).into_owned();
+            text.lines()
+                .find_map(|l| l.split_once("digest=").map(|(_, d)| d.trim()))
+                .unwrap_or_else(|| {
+                    panic!("no digest from the child with {threads} threads: {text}")
+                })
+                .to_string()
+        })
+        .collect();
+    assert!(digests.iter().all(|d| d == &digests[0]), "{digests:?}");
 }

@@ -345,6 +345,216 @@ fn sweep_encodings(s: &mut Suite) {
     }
 }
 
+/// The hash grid on extreme positions (clamped into the box), both paths, f32 and f64,
+/// with gradients to the positions and the table; a NaN position must be an `Err`.
+fn sweep_hash_grid(s: &mut Suite) {
+    use neural_fields::encoding::{hash_grid, Encoding, HashGridConfig};
+    let d = Device::Cpu;
+    for dtype in DTYPES {
+        let big = if dtype == DType::F32 { 1e30 } else { 1e300 };
+        let vals = [0.0, 1e-30, -1e-30, 1.0, -1.0, 1e10, -big, big, 0.999_999];
+        let x = var(&vals, &[3, 3], dtype);
+        let t = x.as_tensor();
+        let label = format!("{dtype:?}, |x| up to {big:e}");
+        let varmap = candle_nn::VarMap::new();
+        let vb = candle_nn::VarBuilder::from_varmap(&varmap, dtype, &d);
+        let config = HashGridConfig {
+            levels: 4,
+            log2_table_size: 8,
+            finest_resolution: 1e6,
+            ..HashGridConfig::default()
+        };
+        let grid = hash_grid(&config, vb).unwrap();
+        let table = varmap.all_vars().remove(0);
+        s.case(
+            "encoding::hash_grid::hash_grid",
+            format!("{dtype:?}, resolutions 16 to 1e6"),
+            Expect::Finite,
+            &[],
+            || Ok(vec![grid.table().clone()]),
+        );
+        s.case(
+            "encoding::hash_grid::HashGrid::forward",
+            &label,
+            Expect::Finite,
+            &[&x, &table],
+            || Ok(vec![grid.forward(t)?]),
+        );
+        s.case(
+            "encoding::hash_grid::HashGrid::forward_reference",
+            &label,
+            Expect::Finite,
+            &[&x, &table],
+            || Ok(vec![grid.forward_reference(t)?]),
+        );
+        let dx = Tensor::ones((3, 2, 3), dtype, &d).unwrap();
+        s.case(
+            "encoding::hash_grid::HashGrid::forward_jvp",
+            &label,
+            Expect::Finite,
+            &[&x, &table],
+            || {
+                let (v, j) = grid.forward_jvp(t, &dx)?;
+                Ok(vec![v, j])
+            },
+        );
+        let nan = Tensor::from_slice(&[f64::NAN, 0.0, 0.0], (1, 3), &d)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap();
+        if grid.forward(&nan).is_ok() || grid.forward_reference(&nan).is_ok() {
+            s.failures.push(format!(
+                "HashGrid::forward [{dtype:?}]: a NaN position gave Ok"
+            ));
+        }
+    }
+}
+
+/// Point clouds at three scales through their constructors, sampling, tensors and files,
+/// and the mesh formats' round trips.
+#[cfg(feature = "occupancy")]
+fn sweep_point_clouds(s: &mut Suite) {
+    use neural_fields::occupancy::{Mesh, MeshFormat, PointCloud};
+    let d = Device::Cpu;
+    let flat = |v: &[[f64; 3]]| Tensor::from_vec(v.concat(), v.len() * 3, &d);
+    for scale in [1e-300, 1e-6, 1.0, 1e6, 1e300] {
+        let label = format!("scale {scale:e}");
+        let pts = vec![[0.0, 0.0, 0.0], [scale, 0.0, 0.0], [0.0, scale, -scale]];
+        let normals = vec![[0.0, 0.0, scale]; 3];
+        s.case(
+            "occupancy::point_cloud::PointCloud::new",
+            &label,
+            Expect::Finite,
+            &[],
+            || Ok(vec![flat(PointCloud::new(pts.clone())?.points())?]),
+        );
+        s.case(
+            "occupancy::point_cloud::PointCloud::with_normals",
+            &label,
+            Expect::Finite,
+            &[],
+            || {
+                let c = PointCloud::new(pts.clone())?.with_normals(normals.clone())?;
+                Ok(vec![flat(c.normals().unwrap_or(&[]))?])
+            },
+        );
+        s.case(
+            "occupancy::point_cloud::PointCloud::with_colors",
+            &label,
+            Expect::Finite,
+            &[],
+            || {
+                let c = PointCloud::new(pts.clone())?.with_colors(vec![[0.0, 0.5, 1.0]; 3])?;
+                Ok(vec![flat(c.colors().unwrap_or(&[]))?])
+            },
+        );
+        let cloud = PointCloud::new(pts.clone())
+            .unwrap()
+            .with_normals(normals.clone())
+            .unwrap();
+        s.case(
+            "occupancy::point_cloud::PointCloud::sample",
+            &label,
+            Expect::Finite,
+            &[],
+            || Ok(vec![flat(cloud.sample(7, 1)?.points())?]),
+        );
+        for dtype in DTYPES {
+            // f32 overflows beyond 3.4e38: an infinite tensor would be a silent result.
+            let expect = if dtype == DType::F32 && scale > 1e38 {
+                Expect::FiniteOrErr
+            } else {
+                Expect::Finite
+            };
+            s.case(
+                "occupancy::point_cloud::PointCloud::to_tensor",
+                format!("{label}, {dtype:?}"),
+                expect,
+                &[],
+                || Ok(vec![cloud.to_tensor(&d, dtype)?]),
+            );
+            s.case(
+                "occupancy::point_cloud::PointCloud::normals_tensor",
+                format!("{label}, {dtype:?}"),
+                expect,
+                &[],
+                || Ok(vec![cloud.normals_tensor(&d, dtype)?]),
+            );
+        }
+        for format in [MeshFormat::PlyAscii, MeshFormat::PlyBinary] {
+            s.case(
+                "occupancy::point_cloud::PointCloud::to_bytes",
+                format!("{label}, {format:?}"),
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let bytes = cloud.to_bytes(format)?;
+                    Ok(vec![flat(
+                        PointCloud::from_bytes(&bytes, format)?.points(),
+                    )?])
+                },
+            );
+            s.case(
+                "occupancy::point_cloud::PointCloud::from_bytes",
+                format!("{label}, {format:?}"),
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    Ok(vec![flat(
+                        PointCloud::from_bytes(&cloud.to_bytes(format)?, format)?.points(),
+                    )?])
+                },
+            );
+        }
+        let path = std::env::temp_dir().join(format!("nf-stiff-cloud-{}.ply", std::process::id()));
+        s.case(
+            "occupancy::point_cloud::PointCloud::save",
+            &label,
+            Expect::FiniteOrErr,
+            &[],
+            || {
+                cloud.save(&path)?;
+                Ok(vec![flat(PointCloud::load(&path)?.points())?])
+            },
+        );
+        s.case(
+            "occupancy::point_cloud::PointCloud::load",
+            &label,
+            Expect::FiniteOrErr,
+            &[],
+            || {
+                let c = PointCloud::load(&path)?;
+                let _ = std::fs::remove_file(&path);
+                Ok(vec![flat(c.points())?])
+            },
+        );
+        // The mesh formats: a tetrahedron at this scale through STL and OFF.
+        let tet = Mesh::new(
+            vec![
+                [0.0; 3],
+                [scale, 0.0, 0.0],
+                [0.0, scale, 0.0],
+                [0.0, 0.0, scale],
+            ],
+            vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
+        )
+        .unwrap();
+        for format in [MeshFormat::StlAscii, MeshFormat::StlBinary, MeshFormat::Off] {
+            s.case(
+                "occupancy::mesh::Mesh::from_bytes",
+                format!("{label}, {format:?}"),
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    Ok(vec![flat(
+                        &Mesh::from_bytes(&tet.to_bytes(format)?, format)?.vertices,
+                    )?])
+                },
+            );
+        }
+    }
+}
+
 fn sweep_mlp(s: &mut Suite) {
     let d = Device::Cpu;
     for dtype in DTYPES {
@@ -2374,6 +2584,9 @@ fn stiff_cases_give_finite_outputs_and_gradients_or_err() {
     sweep_numerics(&mut s);
     sweep_fields(&mut s);
     sweep_encodings(&mut s);
+    sweep_hash_grid(&mut s);
+    #[cfg(feature = "occupancy")]
+    sweep_point_clouds(&mut s);
     sweep_mlp(&mut s);
     sweep_camera(&mut s);
     sweep_camera_host(&mut s);
@@ -2437,6 +2650,10 @@ const COVERED: &[&str] = &[
     "encoding::FrequencyEncoding::forward_jvp",
     "encoding::PointEncoding::forward",
     "encoding::integrated_pe",
+    "encoding::hash_grid::hash_grid",
+    "encoding::hash_grid::HashGrid::forward",
+    "encoding::hash_grid::HashGrid::forward_jvp",
+    "encoding::hash_grid::HashGrid::forward_reference",
     "field::Cuboid::new",
     "field::Plane::new",
     "field::Sphere::new",
@@ -2532,6 +2749,16 @@ const VOLUME_COVERED: &[&str] = &[
 
 /// Occupancy and ONet items swept by `sweep_occupancy`.
 const OCCUPANCY_COVERED: &[&str] = &[
+    "occupancy::point_cloud::PointCloud::new",
+    "occupancy::point_cloud::PointCloud::with_normals",
+    "occupancy::point_cloud::PointCloud::with_colors",
+    "occupancy::point_cloud::PointCloud::sample",
+    "occupancy::point_cloud::PointCloud::to_tensor",
+    "occupancy::point_cloud::PointCloud::normals_tensor",
+    "occupancy::point_cloud::PointCloud::to_bytes",
+    "occupancy::point_cloud::PointCloud::from_bytes",
+    "occupancy::point_cloud::PointCloud::save",
+    "occupancy::point_cloud::PointCloud::load",
     "nn::pointnet::PointNetEncoder::forward_features",
     "occupancy::mesh::Mesh::with_colors",
     "nn::onet::OnetDecoder::forward_with_code",
@@ -2581,6 +2808,42 @@ const OCCUPANCY_COVERED: &[&str] = &[
 /// Public items without floating-point input (or only reached through a swept item),
 /// with the reason. Matching is by prefix, so `"error::check_"` covers the checks.
 const EXEMPT: &[(&str, &str)] = &[
+    ("encoding::hash_grid::HashGrid::config", "getter"),
+    ("encoding::hash_grid::HashGrid::table", "getter"),
+    ("encoding::hash_grid::HashGrid::levels", "getter"),
+    ("encoding::hash_grid::HashGrid::in_dim", "getter"),
+    ("encoding::hash_grid::HashGrid::out_dim", "getter"),
+    ("encoding::hash_grid::HashGridConfig::default", "constant"),
+    (
+        "encoding::hash_grid::FusedHashGrid::",
+        "CustomOp internals, swept via HashGrid::forward",
+    ),
+    ("encoding::PointEncoding::in_dim", "getter"),
+    ("occupancy::point_cloud::PointCloud::points", "getter"),
+    ("occupancy::point_cloud::PointCloud::normals", "getter"),
+    ("occupancy::point_cloud::PointCloud::colors", "getter"),
+    ("occupancy::point_cloud::PointCloud::len", "getter"),
+    ("occupancy::point_cloud::PointCloud::is_empty", "getter"),
+    (
+        "occupancy::mesh::MeshFormat::from_path",
+        "an extension; no float input",
+    ),
+    (
+        "occupancy::ply::",
+        "crate-private reader, swept via Mesh::from_bytes and PointCloud::from_bytes",
+    ),
+    (
+        "occupancy::stl::",
+        "crate-private reader, swept via Mesh::from_bytes",
+    ),
+    (
+        "occupancy::off::",
+        "crate-private reader, swept via Mesh::from_bytes",
+    ),
+    (
+        "occupancy::mesh::ObjContent::",
+        "crate-private reader, swept via Mesh::from_bytes",
+    ),
     (
         "texture::TextureInput::",
         "builder: stores references to its tensors, computes nothing",

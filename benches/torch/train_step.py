@@ -86,6 +86,53 @@ class SdfNet(torch.nn.Module):
         return self.out(h)[:, 0]
 
 
+class HashGrid(torch.nn.Module):
+    """instant-NGP's multiresolution hash encoding as encoding::HashGrid (default
+    configuration): levels dense while (N + 1)^3 vertices fit 2^T rows, else the XOR of
+    the vertex coordinates times the primes (wrapping 32-bit) masked to 2^T; trilinear
+    weights; the table gradient by autograd (index_select's backward is an index_add)."""
+
+    PRIMES = (1, 2654435761, 805459861)
+
+    def __init__(self, levels=16, features=2, log2=17, base=16.0, finest=2048.0, lo=-1.0, hi=1.0):
+        super().__init__()
+        growth = (math.log(finest) - math.log(base)) / (levels - 1)
+        cap = 1 << log2
+        self.levels, offset = [], 0
+        for l in range(levels):
+            n = int(min(max(math.floor(base * math.exp(growth * l)), 1.0), finest))
+            vertices = (n + 1) ** 3
+            dense = vertices <= cap
+            rows = vertices if dense else cap
+            self.levels.append((n, offset, dense))
+            offset += rows
+        self.mask, self.lo, self.hi, self.features = cap - 1, lo, hi, features
+        self.table = torch.nn.Parameter(torch.empty(offset, features).uniform_(-1e-4, 1e-4))
+        corners = torch.tensor([[(c >> k) & 1 for k in range(3)] for c in range(8)])
+        self.register_buffer("corners", corners)  # [8, 3]
+
+    def forward(self, x):
+        t = ((x - self.lo) / (self.hi - self.lo)).clamp(0.0, 1.0)
+        outs = []
+        for n, offset, dense in self.levels:
+            u = t * n
+            i = torch.floor(u).clamp(max=n - 1)
+            w = u - i  # [N, 3], differentiable
+            v = i.long()[:, None, :] + self.corners[None]  # [N, 8, 3]
+            if dense:
+                side = n + 1
+                idx = v[..., 0] + v[..., 1] * side + v[..., 2] * side * side
+            else:
+                h = [(v[..., k] * p) & 0xFFFFFFFF for k, p in enumerate(self.PRIMES)]
+                idx = torch.bitwise_xor(torch.bitwise_xor(h[0], h[1]), h[2]) & self.mask
+            c = self.corners[None].to(w.dtype)
+            weights = torch.where(c > 0, w[:, None, :], 1.0 - w[:, None, :]).prod(2)  # [N, 8]
+            feats = self.table.index_select(0, (idx + offset).reshape(-1))
+            feats = feats.reshape(x.shape[0], 8, self.features)
+            outs.append((feats * weights[..., None]).sum(1))
+        return torch.cat(outs, 1)
+
+
 def ray_box(o, d, lo=-0.55, hi=0.55):
     inv = 1.0 / d
     t0, t1 = (lo - o) * inv, (hi - o) * inv
@@ -129,7 +176,7 @@ def composite(sigma, rgb, starts, ends, norms):
 
 def main():
     p = argparse.ArgumentParser()
-    p.add_argument("--model", default="nerf", choices=["nerf", "occupancy", "dvr"])
+    p.add_argument("--model", default="nerf", choices=["nerf", "occupancy", "dvr", "hash_grid"])
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--threads", type=int, default=os.cpu_count())
@@ -183,6 +230,13 @@ def main():
             # The implicit depth: value t, gradient -(df/dtheta) / (grad f . d).
             t_hat = t - (f - f.detach()) / (g * dh).sum(1).detach()
             return (t_hat - truth[hit]).abs().mean()
+    elif a.model == "hash_grid":
+        net = HashGrid()
+        points = torch.rand(1 << 18, 3) * 2 - 1
+        c = torch.rand(net.table.shape[1] * len(net.levels), 1) * 2 - 1
+
+        def forward(step):
+            return ((net(points) @ c) ** 2).mean()
     else:
         layers, d = [], 3
         for _ in range(4):

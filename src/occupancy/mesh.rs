@@ -13,7 +13,7 @@
 //! tests read every format back.
 
 use super::ply::{self, Polygons};
-use super::point_cloud::check_points;
+use super::point_cloud::{check_f32_range, check_points};
 use super::triangulate::triangulate;
 use super::{off, stl};
 use crate::error::{Error, Result};
@@ -487,9 +487,17 @@ impl Mesh {
     /// ```
     ///
     /// # Errors
-    /// Invalid mesh ([`Mesh::validate`]).
+    /// Invalid mesh ([`Mesh::validate`]); for PLY and binary STL, which store 32-bit floats,
+    /// a coordinate or normal beyond ±3.4e38 (naming `mesh`).
     pub fn to_bytes(&self, format: MeshFormat) -> Result<Vec<u8>> {
         self.validate()?;
+        if matches!(
+            format,
+            MeshFormat::PlyAscii | MeshFormat::PlyBinary | MeshFormat::StlBinary
+        ) {
+            check_f32_range("mesh", "vertex", &self.vertices)?;
+            check_f32_range("mesh", "normal", self.normals.as_deref().unwrap_or(&[]))?;
+        }
         let (v, f, c) = (&self.vertices, &self.faces, self.colors.as_deref());
         Ok(match format {
             MeshFormat::PlyAscii | MeshFormat::PlyBinary => ply::write(
@@ -763,15 +771,25 @@ pub(crate) fn parse_obj(bytes: &[u8]) -> Result<ObjContent> {
     })
 }
 
-/// A `[N, 3]` tensor from host points.
+/// A `[N, 3]` tensor of `dtype` on `device` from host points `[N][3]`.
 ///
 /// # Errors
-/// candle's.
+/// A coordinate that is not finite in `dtype` (1e300 overflows f32 to infinity), naming
+/// `points` and the point; candle's.
 pub fn points_tensor(points: &[[f64; 3]], device: &Device, dtype: DType) -> Result<Tensor> {
     let flat: Vec<f64> = points.iter().flatten().copied().collect();
-    Ok(Tensor::from_vec(flat, (points.len(), 3), &Device::Cpu)?
-        .to_dtype(dtype)?
-        .to_device(device)?)
+    let t = Tensor::from_vec(flat, (points.len(), 3), &Device::Cpu)?.to_dtype(dtype)?;
+    if !points.is_empty() {
+        let back: Vec<f64> = t.to_dtype(DType::F64)?.flatten_all()?.to_vec1()?;
+        if let Some(i) = back.iter().position(|v| !v.is_finite()) {
+            return Err(Error::invalid(
+                "points",
+                format!("coordinates that are finite in {dtype:?}"),
+                format!("point {} = {:?}", i / 3, points[i / 3]),
+            ));
+        }
+    }
+    Ok(t.to_device(device)?)
 }
 
 /// Refuses UTF-16 text (a byte-order mark, or NUL bytes among the first kilobyte, which

@@ -89,6 +89,20 @@ pub(crate) fn check_points(
     Ok(())
 }
 
+/// Refuses coordinates that a 32-bit float cannot hold (PLY and binary STL store
+/// `float`): written as they are, they would become infinities in the file.
+pub(crate) fn check_f32_range(arg: &'static str, what: &str, v: &[[f64; 3]]) -> Result<()> {
+    let max = f64::from(f32::MAX);
+    if let Some(i) = v.iter().position(|p| p.iter().any(|c| c.abs() > max)) {
+        return Err(Error::invalid(
+            arg,
+            format!("{what} within ±3.4e38, as the file's 32-bit floats hold"),
+            format!("{what} {i} = {:?}", v[i]),
+        ));
+    }
+    Ok(())
+}
+
 impl PointCloud {
     /// A point cloud of `points` (at least one, finite), without normals or colours.
     ///
@@ -319,7 +333,8 @@ impl PointCloud {
     /// `uchar red green blue` when present, no faces).
     ///
     /// # Errors
-    /// A format other than PLY (naming `format`).
+    /// A format other than PLY (naming `format`); a coordinate or normal beyond f32's
+    /// range (naming `points` or `normals`).
     pub fn to_bytes(&self, format: MeshFormat) -> Result<Vec<u8>> {
         let binary = match format {
             MeshFormat::PlyAscii => false,
@@ -332,6 +347,8 @@ impl PointCloud {
                 ))
             }
         };
+        check_f32_range("points", "point", &self.points)?;
+        check_f32_range("normals", "normal", self.normals().unwrap_or(&[]))?;
         Ok(ply::write(
             &self.points,
             self.normals.as_deref(),
