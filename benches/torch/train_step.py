@@ -94,7 +94,7 @@ class HashGrid(torch.nn.Module):
 
     PRIMES = (1, 2654435761, 805459861)
 
-    def __init__(self, levels=16, features=2, log2=17, base=16.0, finest=2048.0, lo=-1.0, hi=1.0):
+    def __init__(self, levels=16, features=2, log2=15, base=16.0, finest=2048.0, lo=-1.0, hi=1.0):
         super().__init__()
         growth = (math.log(finest) - math.log(base)) / (levels - 1)
         cap = 1 << log2
