@@ -42,8 +42,13 @@ RUSTC_BOOTSTRAP=1 cargo fuzz build -s none --fuzz-dir . "$target" >/dev/null 2>&
 start=$(date +%s)
 {
   echo "== $(date -u +%FT%TZ) $target for ${seconds}s ($(git rev-parse --short HEAD))"
-  ./target/x86_64-unknown-linux-gnu/release/"$target" "$corpus" \
+  /usr/bin/time -f "%U %S" -o "logs/$target.cpu" \
+    ./target/x86_64-unknown-linux-gnu/release/"$target" "$corpus" \
     -max_total_time="$seconds" -max_len=65536 -timeout=10 -rss_limit_mb=2048 \
     -artifact_prefix=artifacts/"$target"/ -print_final_stats=1 2>&1 | grep -v -e '^#[0-9]' -e '^"' || true
   echo "== end: $(($(date +%s) - start)) s fuzzed"
+  # CPU seconds (user + system): less than the wall time when fuzzers share the cores.
+  if [ -f "logs/$target.cpu" ]; then
+    tail -n 1 "logs/$target.cpu" | awk '{ printf "== cpu: %d s\n", $1 + $2 }'
+  fi
 } | tee -a logs/"$target".log
