@@ -4,21 +4,12 @@
 #![cfg(feature = "occupancy")]
 
 use neural_fields::occupancy::{Mesh, MeshFormat, PointCloud};
-use std::path::Path;
 
 type TestResult = Result<(), Box<dyn std::error::Error>>;
 
-const MODELS: &str = "/usr/share/assimp/models";
+mod common;
 
-fn models() -> Option<&'static Path> {
-    let p = Path::new(MODELS);
-    if p.is_dir() {
-        Some(p)
-    } else {
-        println!("SKIPPED: {MODELS} is absent (apt-get install assimp-testmodels)");
-        None
-    }
-}
+use common::assimp_models as models;
 
 fn cube() -> Result<Mesh, neural_fields::Error> {
     let v = (0..8)

@@ -4,19 +4,10 @@
 
 use neural_fields::field::Inside;
 use neural_fields::occupancy::{marching_cubes, Grid, Mesh, MeshFormat};
-use std::path::Path;
 
-const MODELS: &str = "/usr/share/assimp/models";
+mod common;
 
-fn models() -> Option<&'static Path> {
-    let p = Path::new(MODELS);
-    if p.is_dir() {
-        Some(p)
-    } else {
-        println!("SKIPPED: {MODELS} is absent (apt-get install assimp-testmodels)");
-        None
-    }
-}
+use common::assimp_models as models;
 
 fn sphere_mesh() -> Mesh {
     let g = Grid::from_fn([17; 3], [-0.5; 3], [0.5; 3], |p| {

@@ -1,18 +1,7 @@
-//! Fuzzes the STL reader: `Mesh::from_bytes` and `PointCloud::from_bytes` must return
-//! `Ok` or `Err` for any bytes, in time and memory bounded by the input's size.
+//! Fuzzes the STL reader (see `neural_fields_fuzz::check_readers`).
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use neural_fields::occupancy::{Mesh, MeshFormat, PointCloud};
+use neural_fields::occupancy::MeshFormat;
 
-fuzz_target!(|data: &[u8]| {
-    if let Ok(mesh) = Mesh::from_bytes(data, MeshFormat::StlBinary) {
-        // What loads is valid and writes back.
-        mesh.validate().expect("a mesh that loads is valid");
-        assert!(mesh.faces.len() <= data.len(), "more faces than bytes");
-        mesh.to_bytes(MeshFormat::StlBinary).expect("a mesh that loads writes back");
-    }
-    if let Ok(cloud) = PointCloud::from_bytes(data, MeshFormat::StlBinary) {
-        assert!(!cloud.is_empty());
-    }
-});
+fuzz_target!(|data: &[u8]| neural_fields_fuzz::check_readers(data, MeshFormat::StlBinary));

@@ -280,6 +280,17 @@ impl Plan {
         }
     }
 
+    /// [`Plan::unit`] of one row of a tensor's elements: `(t, dt/dx)`.
+    fn unit_of<T: candle_core::WithDType>(&self, row: &[T]) -> ([f64; 4], [f64; 4]) {
+        let mut x = [0.0f64; 4];
+        for (xk, r) in x.iter_mut().zip(row) {
+            *xk = r.to_f64();
+        }
+        let (mut t, mut dt) = ([0.0; 4], [0.0; 4]);
+        self.unit(&x, &mut t, &mut dt);
+        (t, dt)
+    }
+
     /// The cell, local coordinates and corners of normalised point `t` at `level`, and
     /// with `grads` the weights' derivatives w.r.t. the position. The corners are built
     /// axis by axis (corner `c` takes `i_k + 1` on axis `k` when bit `k` of `c` is set):
@@ -591,13 +602,8 @@ impl FusedHashGrid {
         let mut out = vec![T::from_f64(0.0); (x.len() / d) * w];
         let items: Vec<_> = out.chunks_mut(ROWS * w).zip(x.chunks(ROWS * d)).collect();
         crate::parallel::for_each_init(items, empty_corners, |c, (out, x)| {
-            let (mut t, mut dt) = ([0.0; 4], [0.0; 4]);
-            let mut xr = [0.0f64; 4];
             for (o, row) in out.chunks_mut(w).zip(x.chunks(d)) {
-                for k in 0..d {
-                    xr[k] = row[k].to_f64();
-                }
-                p.unit(&xr, &mut t, &mut dt);
+                let (t, dt) = p.unit_of(row);
                 for (l, level) in p.levels.iter().enumerate() {
                     p.corners(level, &t, &dt, false, c);
                     for j in 0..f {
@@ -630,13 +636,8 @@ impl FusedHashGrid {
         let items: Vec<_> = parts.into_iter().zip(p.levels.iter().enumerate()).collect();
         crate::parallel::for_each_init(items, empty_corners, |c, (part, (l, level))| {
             let mut acc = vec![0.0f64; level.rows * f];
-            let (mut t, mut dt) = ([0.0; 4], [0.0; 4]);
-            let mut xr = [0.0f64; 4];
             for (row, gr) in x.chunks(d).zip(g.chunks(w)) {
-                for k in 0..d {
-                    xr[k] = row[k].to_f64();
-                }
-                p.unit(&xr, &mut t, &mut dt);
+                let (t, dt) = p.unit_of(row);
                 p.corners(level, &t, &dt, false, c);
                 for j in 0..f {
                     let gj = gr[l * f + j].to_f64();
@@ -666,13 +667,8 @@ impl FusedHashGrid {
             .zip(g.chunks(ROWS * w))
             .collect();
         crate::parallel::for_each_init(items, empty_corners, |c, ((gx, x), g)| {
-            let (mut t, mut dt) = ([0.0; 4], [0.0; 4]);
-            let mut xr = [0.0f64; 4];
             for ((o, row), gr) in gx.chunks_mut(d).zip(x.chunks(d)).zip(g.chunks(w)) {
-                for k in 0..d {
-                    xr[k] = row[k].to_f64();
-                }
-                p.unit(&xr, &mut t, &mut dt);
+                let (t, dt) = p.unit_of(row);
                 let mut acc = [0.0f64; 4];
                 for (l, level) in p.levels.iter().enumerate() {
                     p.corners(level, &t, &dt, true, c);

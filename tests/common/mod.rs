@@ -93,3 +93,18 @@ pub fn central_diff(f: &mut dyn FnMut(f64) -> f64, x: f64, h: f64, scale: f64) -
 pub fn close(a: f64, b: f64, tol: f64, floor: f64) -> bool {
     (a - b).abs() <= tol * a.abs().max(b.abs()).max(floor)
 }
+
+/// Debian's assimp-testmodels (`apt-get install assimp-testmodels`), or `None` with a
+/// line saying the tests on real meshes skip.
+pub fn assimp_models() -> Option<&'static std::path::Path> {
+    let p = std::path::Path::new("/usr/share/assimp/models");
+    if p.is_dir() {
+        Some(p)
+    } else {
+        println!(
+            "SKIPPED: {} is absent (apt-get install assimp-testmodels)",
+            p.display()
+        );
+        None
+    }
+}
