@@ -231,6 +231,7 @@ pub fn run(quick: bool) -> Vec<Table> {
             ("--sampler", "grid"),
             ("--sampler", "stratified"),
             ("--sampler", "proposal"),
+            ("--encoding", "hash"),
         ],
         &[(2, "held-out MSE", Metric::MseOfPsnr)],
     );
