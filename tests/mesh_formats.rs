@@ -382,3 +382,58 @@ fn utf16_text_formats_are_refused_naming_the_encoding() {
         assert!(e.contains("UTF-16"), "{format:?}: {e}");
     }
 }
+
+/// Found by fuzzing the PLY reader: an ASCII PLY whose `float` property holds 2.2e44
+/// loaded (the text was parsed as a 64-bit value) but could not be written back as the
+/// PLY it came from. A value its declared type cannot hold is now an error.
+#[test]
+fn ascii_ply_value_beyond_its_declared_type_is_an_error() -> TestResult {
+    let ply = |ty: &str, y: &str, red: &str| {
+        format!(
+            "ply\nformat ascii 1.0\nelement vertex 3\nproperty {ty} x\nproperty {ty} y\n\
+             property {ty} z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\n\
+             element face 1\nproperty list uchar int vertex_indices\nend_header\n\
+             0 0 0 {red} 0 0\n1 {y} 0 0 0 0\n0 1 0 0 0 0\n3 0 1 2\n"
+        )
+        .into_bytes()
+    };
+    for (ty, y, red, bad) in [
+        ("float", "2.2e44", "0", "2.2e44"),
+        ("float", "1", "256", "256"),
+        ("float", "1", "-1", "-1"),
+        ("float", "1", "1.5", "1.5"),
+    ] {
+        let err = Mesh::from_bytes(&ply(ty, y, red), MeshFormat::PlyAscii)
+            .expect_err(bad)
+            .to_string();
+        assert!(err.contains("declared type") && err.contains(bad), "{err}");
+    }
+    // `double` holds it; writing it as PLY (32-bit floats) refuses, OBJ keeps it.
+    let mesh = Mesh::from_bytes(&ply("double", "2.2e44", "255"), MeshFormat::PlyAscii)?;
+    assert_eq!(mesh.vertices[1][1], 2.2e44);
+    assert!(mesh.to_bytes(MeshFormat::PlyBinary).is_err());
+    let obj = Mesh::from_bytes(&mesh.to_bytes(MeshFormat::Obj)?, MeshFormat::Obj)?;
+    assert_eq!(obj.vertices[1][1], 2.2e44);
+    Ok(())
+}
+
+/// Found by fuzzing the STL reader: an ASCII STL may hold coordinates beyond ±3.4e38,
+/// which binary STL cannot store; writing such a mesh as binary STL must refuse (naming
+/// the vertex), while ASCII STL and OBJ keep it.
+#[test]
+fn ascii_stl_beyond_f32_refuses_binary_stl_and_keeps_text() -> TestResult {
+    let stl = b"solid s\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\n\
+                vertex 0 0 7.7e79\nendloop\nendfacet\nendsolid s\n";
+    let mesh = Mesh::from_bytes(stl, MeshFormat::StlAscii)?;
+    let err = mesh
+        .to_bytes(MeshFormat::StlBinary)
+        .expect_err("beyond f32")
+        .to_string();
+    assert!(err.contains("3.4e38") && err.contains("7.7e79"), "{err}");
+    for format in [MeshFormat::StlAscii, MeshFormat::Obj] {
+        let back = Mesh::from_bytes(&mesh.to_bytes(format)?, format)?;
+        assert_eq!(back.vertices.len(), 3);
+        assert!(back.vertices.iter().any(|v| v[2] == 7.7e79));
+    }
+    Ok(())
+}

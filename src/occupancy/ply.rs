@@ -315,6 +315,35 @@ impl PlyTy {
             Self::F32 | Self::F64 => 1.0,
         }
     }
+    /// Whether a value read from ASCII text fits this type, as the binary encodings'
+    /// values do by construction: integers whole and in range, `float` within ±3.4e38
+    /// (non-finite values pass here and are refused where coordinates are checked).
+    fn holds(self, v: f64) -> bool {
+        let int = |lo: f64, hi: f64| v.fract() == 0.0 && (lo..=hi).contains(&v);
+        match self {
+            Self::I8 => int(i8::MIN.into(), i8::MAX.into()),
+            Self::U8 => int(0.0, u8::MAX.into()),
+            Self::I16 => int(i16::MIN.into(), i16::MAX.into()),
+            Self::U16 => int(0.0, u16::MAX.into()),
+            Self::I32 => int(i32::MIN.into(), i32::MAX.into()),
+            Self::U32 => int(0.0, u32::MAX.into()),
+            Self::F32 => !v.is_finite() || v.abs() <= f64::from(f32::MAX),
+            Self::F64 => true,
+        }
+    }
+    /// The type's name as PLY headers spell it.
+    fn name(self) -> &'static str {
+        match self {
+            Self::I8 => "char",
+            Self::U8 => "uchar",
+            Self::I16 => "short",
+            Self::U16 => "ushort",
+            Self::I32 => "int",
+            Self::U32 => "uint",
+            Self::F32 => "float",
+            Self::F64 => "double",
+        }
+    }
     fn size(self) -> usize {
         match self {
             Self::I8 | Self::U8 => 1,
@@ -581,8 +610,16 @@ impl<'a> PlySource<'a> {
                     ));
                 };
                 self.tok += 1;
-                t.parse::<f64>()
-                    .map_err(|_| file_err("a number", format!("line {}: {t:?}", self.line)))
+                let v = t
+                    .parse::<f64>()
+                    .map_err(|_| file_err("a number", format!("line {}: {t:?}", self.line)))?;
+                if !ty.holds(v) {
+                    return Err(file_err(
+                        format!("a value that the declared type {} holds", ty.name()),
+                        format!("line {}: {t:?}", self.line),
+                    ));
+                }
+                Ok(v)
             }
             enc => {
                 let n = ty.size();
