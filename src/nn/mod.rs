@@ -22,6 +22,8 @@ mod onet;
 #[cfg(feature = "occupancy")]
 mod pointnet;
 #[cfg(feature = "texture")]
+mod resnet_fc;
+#[cfg(feature = "texture")]
 mod texture;
 
 pub use mlp::{mlp, Activation, Mlp, MlpConfig};

@@ -3,13 +3,14 @@
 //! [`TextureField`](crate::texture::TextureField).
 
 use super::mlp::{mlp, Activation, Mlp, MlpConfig};
+use super::resnet_fc::ResnetFc;
 use crate::encoding::{Encoding, FrequencyEncoding, PointEncoding};
 use crate::error::{Error, Result};
 use crate::field::{ConditionalField, Field, ImplicitSurface, Inside};
 use crate::numerics::sigmoid;
 use crate::texture::{TextureField, TextureInput};
 use candle_core::{Tensor, D};
-use candle_nn::{Init, Linear, Module, VarBuilder};
+use candle_nn::VarBuilder;
 
 /// Settings of [`texture_decoder`].
 #[derive(Clone, Debug)]
@@ -43,27 +44,6 @@ impl Default for TextureDecoderConfig {
     }
 }
 
-/// One pointwise ResNet block: `x + W₁ relu(W₀ relu(x) + b₀) + b₁`.
-#[derive(Clone, Debug)]
-struct ResBlock {
-    fc0: Linear,
-    fc1: Linear,
-}
-
-impl ResBlock {
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let h = self.fc0.forward(&x.relu()?)?;
-        Ok((x + self.fc1.forward(&h.relu()?)?)?)
-    }
-}
-
-/// A linear layer `[out, in]` whose weight and bias start at zero.
-fn zero_linear(input: usize, out: usize, vb: VarBuilder) -> Result<Linear> {
-    let w = vb.get_with_hints((out, input), "weight", Init::Const(0.0))?;
-    let b = vb.get_with_hints(out, "bias", Init::Const(0.0))?;
-    Ok(Linear::new(w, Some(b)))
-}
-
 /// The Texture Fields decoder (Oechsle et al., ICCV 2019); build it with
 /// [`texture_decoder`].
 ///
@@ -81,10 +61,7 @@ fn zero_linear(input: usize, out: usize, vb: VarBuilder) -> Result<Linear> {
 /// the points and the codes. Candle ops on any device, f32 or f64.
 #[derive(Clone, Debug)]
 pub struct TextureDecoder {
-    fc_p: Linear,
-    fc_code: Vec<Linear>,
-    blocks: Vec<ResBlock>,
-    fc_out: Linear,
+    trunk: ResnetFc,
     config: TextureDecoderConfig,
 }
 
@@ -112,14 +89,6 @@ pub struct TextureDecoder {
 /// `hidden` or `blocks` 0 (naming `config.*`), an encoding of other than 3-D points
 /// (naming `config.encoding`); errors of `vb`.
 pub fn texture_decoder(config: &TextureDecoderConfig, vb: VarBuilder) -> Result<TextureDecoder> {
-    for (name, v) in [
-        ("config.hidden", config.hidden),
-        ("config.blocks", config.blocks),
-    ] {
-        if v == 0 {
-            return Err(Error::invalid(name, "at least 1", "0"));
-        }
-    }
     let enc_in = config.encoding.in_dim().unwrap_or(3);
     if enc_in != 3 {
         return Err(Error::invalid(
@@ -128,25 +97,15 @@ pub fn texture_decoder(config: &TextureDecoderConfig, vb: VarBuilder) -> Result<
             format!("one of {enc_in}-D inputs"),
         ));
     }
-    let h = config.hidden;
-    let code_dim = config.shape_code_dim + config.image_code_dim;
-    let mut blocks = Vec::with_capacity(config.blocks);
-    let mut fc_code = Vec::new();
-    for i in 0..config.blocks {
-        let bvb = vb.pp(format!("block{i}"));
-        blocks.push(ResBlock {
-            fc0: candle_nn::linear(h, h, bvb.pp("fc0"))?,
-            fc1: zero_linear(h, h, bvb.pp("fc1"))?,
-        });
-        if code_dim > 0 {
-            fc_code.push(candle_nn::linear(code_dim, h, vb.pp(format!("code{i}")))?);
-        }
-    }
     Ok(TextureDecoder {
-        fc_p: candle_nn::linear(config.encoding.out_dim_for(3), h, vb.pp("fc_p"))?,
-        fc_code,
-        blocks,
-        fc_out: zero_linear(h, 3, vb.pp("fc_out"))?,
+        trunk: ResnetFc::new(
+            config.encoding.out_dim_for(3),
+            config.hidden,
+            config.blocks,
+            config.shape_code_dim + config.image_code_dim,
+            3,
+            &vb,
+        )?,
         config: config.clone(),
     })
 }
@@ -176,16 +135,8 @@ impl TextureField for TextureDecoder {
             [c] => Some((*c).clone()),
             _ => Some(Tensor::cat(&codes, 1)?),
         };
-        let mut h = self
-            .fc_p
-            .forward(&self.config.encoding.forward(input.points)?)?;
-        for (i, block) in self.blocks.iter().enumerate() {
-            if let (Some(c), Some(fc)) = (&code, self.fc_code.get(i)) {
-                h = (h + fc.forward(c)?)?;
-            }
-            h = block.forward(&h)?;
-        }
-        sigmoid(&self.fc_out.forward(&h.relu()?)?)
+        let x = self.config.encoding.forward(input.points)?;
+        sigmoid(&self.trunk.forward(&x, code.as_ref())?)
     }
 }
 
