@@ -1,6 +1,8 @@
 //! Input encodings: frequency positional encoding, Gaussian Fourier features, the
 //! integrated positional encoding of mip-NeRF, and instant-NGP's multiresolution hash
-//! grid ([`HashGrid`], learned tables).
+//! grid ([`HashGrid`], learned tables); and, in [`grid_sample`], bilinear/trilinear
+//! sampling of feature planes and grids with scatter pooling of point features into
+//! cells (Convolutional Occupancy Networks).
 //!
 //! Every encoding maps `x: [N, D]` to `γ(x): [N, E]` and can push tangents forward
 //! ([`Encoding::forward_jvp`]), which is how [`crate::nn::Mlp`] obtains spatial
@@ -23,6 +25,7 @@
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 
+pub mod grid_sample;
 pub mod hash_grid;
 
 pub use hash_grid::{hash_grid, HashGrid, HashGridConfig};

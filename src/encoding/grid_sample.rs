@@ -1,0 +1,974 @@
+//! Differentiable sampling of feature planes and grids, and scatter pooling of point
+//! features into cells: the pieces of Convolutional Occupancy Networks (Peng et al. 2020)
+//! that candle lacks.
+//!
+//! * [`grid_sample`]: bilinear sampling of `[B, C, H, W]` planes or trilinear sampling of
+//!   `[B, C, D, H, W]` grids at normalised coordinates in `[0, 1]`, differentiable w.r.t.
+//!   the features and the coordinates.
+//! * [`scatter_mean`], [`scatter_max`]: per-cell mean and maximum of point features
+//!   `[B, N, C]` given each point's cell, differentiable w.r.t. the features.
+//! * [`cell_index`]: the flat cell of each normalised point at a resolution.
+//!
+//! **Convention.** A coordinate `c ∈ [0, 1]` on an axis of `S` samples lies at pixel
+//! position `u = c·(S − 1)`: `c = 0` is the centre of the first sample, `c = 1` that of the
+//! last (PyTorch's `grid_sample(features, 2c − 1, align_corners=True,
+//! padding_mode="border")`, which is what the published decoder calls). `coords[..., 0]`
+//! runs along the last axis (`W`), `coords[..., 1]` along `H`, `coords[..., 2]` along `D`.
+//! Coordinates outside `[0, 1]` are clamped to it (border padding), and ±∞ with them.
+//!
+//! **Formula.** Per axis, `i = min(⌊u⌋, S − 2)` and `w = u − i ∈ [0, 1]` (on an axis of
+//! one sample, `i = 0` and `w = 0`); the result is the multilinear interpolation of the
+//! `2ᵏ` corners (`k = 2` or 3):
+//!
+//! `y[b, n, :] = Σ_{c ∈ {0,1}ᵏ} Π_a w_a^{c_a} (1 − w_a)^{1 − c_a} · F[b, :, i + c]`.
+//!
+//! **Gradients.** `y` is linear in `F`: `∂y/∂F` is the corner weight. W.r.t. the coordinate
+//! on axis `a`, `∂y/∂c_a = (S_a − 1) · Σ_c ±Π_{a' ≠ a}(…) F[i + c]`, continuous in value
+//! across cell borders but not in slope. The derivative returned there is one-sided and
+//! fixed by `i = ⌊u⌋`: on an interior border (`u` an integer in `1 … S − 2`) it is the
+//! **right** derivative (the cell above), at `c = 0` the right derivative, at `c = 1` the
+//! **left** derivative (the last cell; PyTorch's kernel instead reads a corner past the
+//! border there, whose weight is zero, and returns a different value). Outside `[0, 1]` the
+//! coordinate is clamped and its gradient is **zero**; exactly at 0 and at 1 it is the
+//! inward one-sided derivative above (as PyTorch's `clip_coordinates_set_grad`, which
+//! passes the gradient at the limits).
+//!
+//! **Kernels.** On the CPU with f32 or f64 features and coordinates of that dtype, a
+//! fused op ([`candle_core::CustomOp2`]) runs: the forward pass and the coordinate
+//! gradient in parallel over blocks of points; the feature gradient in parallel over
+//! (batch, block of [`CHANNEL_BLOCK`] channels), each work item adding the points of its
+//! batch in order into its own f64 accumulators, so that the result is the same bit for
+//! bit at any thread count. The coordinate gradient is computed only when the coordinates
+//! are on the autograd graph. Elsewhere (other devices and dtypes) a reference path of
+//! candle ops runs: corner indices and clamping decided on the host from the coordinates
+//! (piecewise constant, no gradient), weights from the coordinates on their device, the
+//! corners gathered with `index_select` (whose backward is an `index_add`) and summed.
+//!
+//! ```
+//! use candle_core::{Device, Tensor};
+//! use neural_fields::encoding::grid_sample::grid_sample;
+//!
+//! // One plane of one channel, 2 × 2 samples: f(x, y) = x + 10 y at the corners.
+//! let f = Tensor::new(&[[[[0.0f32, 1.0], [10.0, 11.0]]]], &Device::Cpu)?; // [1, 1, 2, 2]
+//! let p = Tensor::new(&[[[0.5f32, 0.25]]], &Device::Cpu)?;                  // [1, 1, 2]
+//! let y = grid_sample(&f, &p)?;                                             // [1, 1, 1]
+//! assert!((y.flatten_all()?.to_vec1::<f32>()?[0] - 3.0).abs() < 1e-6);
+//! # Ok::<(), neural_fields::Error>(())
+//! ```
+
+use crate::error::{check_float, check_same, check_shape, Dim, Error, Result};
+use crate::narrow::narrow;
+use crate::parallel::{cpu_slice, for_each_init};
+use candle_core::{CpuStorage, DType, Layout, Shape, Tensor, WithDType};
+
+/// Points per work item of the fused forward and coordinate-gradient passes.
+const ROWS: usize = 256;
+
+/// Channels per work item of the fused feature-gradient pass (a fixed split, so the
+/// order of every sum does not depend on the number of threads).
+pub const CHANNEL_BLOCK: usize = 4;
+
+/// The geometry of a sampling call: spatial sizes per coordinate axis and the strides of
+/// the flattened spatial index.
+#[derive(Clone, Debug, PartialEq, Eq)]
+struct Geometry {
+    /// Coordinate axes `k` (2 or 3).
+    k: usize,
+    /// Samples along coordinate axis `a` (`a = 0`: W, 1: H, 2: D).
+    size: [usize; 3],
+    /// Stride of coordinate axis `a` in the flattened spatial index.
+    stride: [usize; 3],
+    /// Spatial samples in all, `Π size`.
+    cells: usize,
+}
+
+impl Geometry {
+    /// From the spatial dims in the features' order (`[H, W]` or `[D, H, W]`).
+    fn new(spatial: &[usize]) -> Self {
+        let k = spatial.len();
+        let (mut size, mut stride) = ([1usize; 3], [0usize; 3]);
+        let mut s = 1;
+        for a in 0..k {
+            size[a] = spatial[k - 1 - a];
+            stride[a] = s;
+            s *= size[a];
+        }
+        Self {
+            k,
+            size,
+            stride,
+            cells: s,
+        }
+    }
+
+    /// One axis of one point: the lower sample `i`, the local coordinate `w`, the rate
+    /// `∂w/∂c` (zero when clamped) and the clamped coordinate.
+    fn axis(&self, a: usize, c: f64) -> (usize, f64, f64) {
+        let n = self.size[a];
+        if n < 2 {
+            return (0, 0.0, 0.0);
+        }
+        let s = (n - 1) as f64;
+        let inside = (0.0..=1.0).contains(&c);
+        let u = c.clamp(0.0, 1.0) * s;
+        // u ∈ [0, S − 1], so the cast is exact.
+        let i = (u.floor() as usize).min(n - 2);
+        (i, u - i as f64, if inside { s } else { 0.0 })
+    }
+
+    /// The corners of one point: flat spatial offsets, weights and, with `grads`, each
+    /// weight's derivative per coordinate axis. Built axis by axis (corner `q` takes
+    /// `i_a + 1` on axis `a` when bit `a` of `q` is set).
+    fn corners(&self, c: &[f64], grads: bool, out: &mut Corners) {
+        out.n = 1;
+        out.offset[0] = 0;
+        out.weight[0] = 1.0;
+        out.dweight[0] = [1.0; 3];
+        for (a, &ca) in c.iter().enumerate().take(self.k) {
+            let (i, w, dw) = self.axis(a, ca);
+            let step = if self.size[a] > 1 { self.stride[a] } else { 0 };
+            let half = out.n;
+            for q in 0..half {
+                let hi = q + half;
+                out.offset[hi] = out.offset[q] + (i * self.stride[a] + step);
+                out.offset[q] += i * self.stride[a];
+                out.weight[hi] = out.weight[q] * w;
+                out.weight[q] *= 1.0 - w;
+                if grads {
+                    let mut lo = out.dweight[q];
+                    let mut up = lo;
+                    for j in 0..self.k {
+                        if j == a {
+                            up[j] *= dw;
+                            lo[j] *= -dw;
+                        } else {
+                            up[j] *= w;
+                            lo[j] *= 1.0 - w;
+                        }
+                    }
+                    out.dweight[q] = lo;
+                    out.dweight[hi] = up;
+                }
+            }
+            out.n *= 2;
+        }
+    }
+}
+
+/// The corners of one point (at most 8).
+struct Corners {
+    n: usize,
+    offset: [usize; 8],
+    weight: [f64; 8],
+    dweight: [[f64; 3]; 8],
+}
+
+fn empty_corners() -> Corners {
+    Corners {
+        n: 0,
+        offset: [0; 8],
+        weight: [0.0; 8],
+        dweight: [[0.0; 3]; 8],
+    }
+}
+
+/// Fails naming `arg` if `t` (float) holds a NaN.
+fn check_no_nan(t: &Tensor, arg: &'static str) -> Result<()> {
+    if t.elem_count() > 0 && t.ne(t)?.max_all()?.to_scalar::<u8>()? > 0 {
+        return Err(Error::invalid(
+            arg,
+            "coordinates without NaN",
+            "a NaN coordinate",
+        ));
+    }
+    Ok(())
+}
+
+/// Checks `features` and `coords`; returns `(B, N, C, geometry)`.
+fn check_sample(features: &Tensor, coords: &Tensor) -> Result<(usize, usize, usize, Geometry)> {
+    check_float(features, "features")?;
+    let fd = features.dims().to_vec();
+    if !(fd.len() == 4 || fd.len() == 5) {
+        return Err(Error::invalid(
+            "features",
+            "shape [B, C, H, W] or [B, C, D, H, W]",
+            format!("shape {fd:?}"),
+        ));
+    }
+    if let Some(a) = fd[2..].iter().position(|&s| s == 0) {
+        return Err(Error::invalid(
+            "features",
+            "at least one sample along every spatial axis",
+            format!("shape {fd:?} (axis {} is empty)", a + 2),
+        ));
+    }
+    let k = fd.len() - 2;
+    check_same(coords, "coords", features, "features")?;
+    let cd = check_shape(
+        coords,
+        "coords",
+        &[Dim::Is(fd[0]), Dim::Any("N"), Dim::Is(k)],
+    )?;
+    check_no_nan(coords, "coords")?;
+    let g = Geometry::new(&fd[2..]);
+    if fd[0]
+        .checked_mul(g.cells)
+        .is_none_or(|v| v > u32::MAX as usize)
+    {
+        return Err(Error::invalid(
+            "features",
+            "fewer than 2³² samples over the batch",
+            format!("shape {fd:?}"),
+        ));
+    }
+    Ok((fd[0], cd[1], fd[1], g))
+}
+
+/// Samples `features` at `coords` (see the [module documentation](self) for the
+/// convention, formula and gradients).
+///
+/// * `features`: `[B, C, H, W]` (bilinear, `coords: [B, N, 2]`) or `[B, C, D, H, W]`
+///   (trilinear, `coords: [B, N, 3]`), f32 or f64, every spatial axis non-empty;
+/// * `coords`: same dtype and device, in `[0, 1]` (clamped otherwise), `N ≥ 0`;
+/// * returns `[B, N, C]`.
+///
+/// Differentiable w.r.t. `features` and `coords` (zero w.r.t. a clamped coordinate;
+/// one-sided on cell borders as documented). The fused CPU op runs for f32/f64 on the
+/// CPU, the reference path of candle ops elsewhere; [`grid_sample_reference`] forces the
+/// latter.
+///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::encoding::grid_sample::grid_sample;
+///
+/// // A 2 × 2 × 2 grid holding its own x coordinate, read at x = 0.3.
+/// let f = Tensor::new(&[0.0f64, 1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 1.0], &Device::Cpu)?
+///     .reshape((1, 1, 2, 2, 2))?;
+/// let p = Tensor::new(&[[[0.3f64, 0.9, 0.1]]], &Device::Cpu)?;
+/// let y = grid_sample(&f, &p)?.flatten_all()?.to_vec1::<f64>()?;
+/// assert!((y[0] - 0.3).abs() < 1e-12);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
+/// # Errors
+/// `features` not f32/f64 of rank 4 or 5 with non-empty spatial axes, or of 2³² samples
+/// or more over the batch; `coords` not `[B, N, k]` (`k` = spatial rank) of the features'
+/// dtype and device, or holding a NaN (naming `coords`).
+pub fn grid_sample(features: &Tensor, coords: &Tensor) -> Result<Tensor> {
+    let fused = features.device().is_cpu() && matches!(features.dtype(), DType::F32 | DType::F64);
+    if !fused {
+        return grid_sample_reference(features, coords);
+    }
+    let (_, _, _, g) = check_sample(features, coords)?;
+    Ok(features
+        .contiguous()?
+        .apply_op2(&coords.contiguous()?, FusedGridSample(g))?)
+}
+
+/// [`grid_sample`] by candle ops, on any device and float dtype (the path used off the
+/// CPU, and the reference the fused op is tested against). Same arguments, result and
+/// gradients.
+///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::encoding::grid_sample::{grid_sample, grid_sample_reference};
+///
+/// let f = Tensor::arange(0f32, 12.0, &Device::Cpu)?.reshape((1, 1, 3, 4))?;
+/// let p = Tensor::new(&[[[0.2f32, 0.7], [1.5, -1.0]]], &Device::Cpu)?;
+/// let a = grid_sample(&f, &p)?.flatten_all()?.to_vec1::<f32>()?;
+/// let b = grid_sample_reference(&f, &p)?.flatten_all()?.to_vec1::<f32>()?;
+/// assert!(a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-5));
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
+/// # Errors
+/// As [`grid_sample`].
+pub fn grid_sample_reference(features: &Tensor, coords: &Tensor) -> Result<Tensor> {
+    let (b, n, c, g) = check_sample(features, coords)?;
+    let k = g.k;
+    let corners = 1usize << k;
+    let dev = coords.device();
+    let host: Vec<f64> = coords.to_dtype(DType::F64)?.flatten_all()?.to_vec1()?;
+    let mut rows = Vec::with_capacity(b * n * corners);
+    let mut origin = Vec::with_capacity(b * n * k);
+    let mut clamped = Vec::with_capacity(b * n * k);
+    let mut inside = Vec::with_capacity(b * n * k);
+    let mut cs = empty_corners();
+    for (p, row) in host.chunks(k).enumerate() {
+        let base = (p / n.max(1)) * g.cells;
+        g.corners(row, false, &mut cs);
+        rows.extend(cs.offset[..corners].iter().map(|&o| (base + o) as u32));
+        for (a, &ca) in row.iter().enumerate() {
+            origin.push(g.axis(a, ca).0 as f64);
+            clamped.push(ca.clamp(0.0, 1.0));
+            inside.push(u8::from((0.0..=1.0).contains(&ca)));
+        }
+    }
+    let dt = coords.dtype();
+    let origin = Tensor::from_vec(origin, (b, n, k), dev)?.to_dtype(dt)?;
+    let clamped = Tensor::from_vec(clamped, (b, n, k), dev)?.to_dtype(dt)?;
+    let inside = Tensor::from_vec(inside, (b, n, k), dev)?;
+    let cf = inside.where_cond(coords, &clamped)?;
+    let scale: Vec<f64> = (0..k).map(|a| (g.size[a].max(1) - 1) as f64).collect();
+    let scale = Tensor::new(scale.as_slice(), dev)?.to_dtype(dt)?;
+    let w = (cf.broadcast_mul(&scale)? - origin)?; // [B, N, k]
+    let one_minus = w.affine(-1.0, 1.0)?;
+    let mut weights = Vec::with_capacity(corners);
+    for q in 0..corners {
+        let mut prod = Tensor::ones((b, n, 1), dt, dev)?;
+        for a in 0..k {
+            let col = if (q >> a) & 1 == 1 { &w } else { &one_minus };
+            prod = (prod * narrow(col, 2, a, 1)?)?;
+        }
+        weights.push(prod);
+    }
+    let weights = Tensor::cat(&weights, 2)?; // [B, N, 2ᵏ]
+    let table = features
+        .reshape((b, c, g.cells))?
+        .transpose(1, 2)?
+        .contiguous()?
+        .reshape((b * g.cells, c))?;
+    let idx = Tensor::from_vec(rows, b * n * corners, dev)?;
+    let feats = table.index_select(&idx, 0)?.reshape((b, n, corners, c))?;
+    Ok(feats.broadcast_mul(&weights.unsqueeze(3)?)?.sum(2)?)
+}
+
+/// The fused CPU op: `(features [B, C, …], coords [B, N, k]) → [B, N, C]`.
+struct FusedGridSample(Geometry);
+
+/// A point's coordinates as f64.
+fn point<T: WithDType>(row: &[T]) -> [f64; 3] {
+    let mut c = [0.0; 3];
+    for (x, r) in c.iter_mut().zip(row) {
+        *x = r.to_f64();
+    }
+    c
+}
+
+impl FusedGridSample {
+    fn forward<T: WithDType>(&self, f: &[T], x: &[T], dims: (usize, usize, usize)) -> Vec<T> {
+        let g = &self.0;
+        let (_, n, c) = dims;
+        let k = g.k;
+        let p = g.cells;
+        let mut out = vec![T::from_f64(0.0); x.len() / k * c];
+        if out.is_empty() {
+            return out;
+        }
+        let items: Vec<_> = out
+            .chunks_mut(ROWS * c)
+            .zip(x.chunks(ROWS * k))
+            .enumerate()
+            .collect();
+        for_each_init(items, empty_corners, |cs, (item, (out, x))| {
+            for (j, (o, row)) in out.chunks_mut(c).zip(x.chunks(k)).enumerate() {
+                let bi = (item * ROWS + j) / n;
+                g.corners(&point(row), false, cs);
+                let fb = &f[bi * c * p..(bi + 1) * c * p];
+                for (ch, oc) in o.iter_mut().enumerate() {
+                    let plane = &fb[ch * p..(ch + 1) * p];
+                    let mut acc = 0.0;
+                    for q in 0..cs.n {
+                        acc += cs.weight[q] * plane[cs.offset[q]].to_f64();
+                    }
+                    *oc = T::from_f64(acc);
+                }
+            }
+        });
+        out
+    }
+
+    /// `∂L/∂F: [B, C, P]`: one work item per (batch, block of channels), each adding its
+    /// batch's points in order into f64 accumulators (deterministic at any thread count).
+    fn features_grad<T: WithDType>(
+        &self,
+        x: &[T],
+        gr: &[T],
+        dims: (usize, usize, usize),
+    ) -> Vec<T> {
+        let g = &self.0;
+        let (b, n, c) = dims;
+        let (k, p) = (g.k, g.cells);
+        let mut out = vec![T::from_f64(0.0); b * c * p];
+        if out.is_empty() || n == 0 {
+            return out;
+        }
+        let mut items = Vec::new();
+        for (bi, fb) in out.chunks_mut(c * p).enumerate() {
+            for (blk, part) in fb.chunks_mut(CHANNEL_BLOCK * p).enumerate() {
+                items.push((bi, blk * CHANNEL_BLOCK, part));
+            }
+        }
+        for_each_init(items, empty_corners, |cs, (bi, c0, part)| {
+            let width = part.len() / p;
+            let mut acc = vec![0.0f64; part.len()];
+            let xs = &x[bi * n * k..(bi + 1) * n * k];
+            let gs = &gr[bi * n * c..(bi + 1) * n * c];
+            for (row, grow) in xs.chunks(k).zip(gs.chunks(c)) {
+                g.corners(&point(row), false, cs);
+                for j in 0..width {
+                    let gj = grow[c0 + j].to_f64();
+                    if gj == 0.0 {
+                        continue;
+                    }
+                    let a = &mut acc[j * p..(j + 1) * p];
+                    for q in 0..cs.n {
+                        a[cs.offset[q]] += cs.weight[q] * gj;
+                    }
+                }
+            }
+            for (o, a) in part.iter_mut().zip(&acc) {
+                *o = T::from_f64(*a);
+            }
+        });
+        out
+    }
+
+    /// `∂L/∂coords: [B, N, k]`, point by point.
+    fn coords_grad<T: WithDType>(
+        &self,
+        f: &[T],
+        x: &[T],
+        gr: &[T],
+        dims: (usize, usize, usize),
+    ) -> Vec<T> {
+        let g = &self.0;
+        let (_, n, c) = dims;
+        let (k, p) = (g.k, g.cells);
+        let mut out = vec![T::from_f64(0.0); x.len()];
+        if out.is_empty() {
+            return out;
+        }
+        let items: Vec<_> = out
+            .chunks_mut(ROWS * k)
+            .zip(x.chunks(ROWS * k))
+            .zip(gr.chunks(ROWS * c.max(1)))
+            .enumerate()
+            .collect();
+        for_each_init(items, empty_corners, |cs, (item, ((out, x), gr))| {
+            for (j, ((o, row), grow)) in out
+                .chunks_mut(k)
+                .zip(x.chunks(k))
+                .zip(gr.chunks(c.max(1)))
+                .enumerate()
+            {
+                let bi = (item * ROWS + j) / n;
+                g.corners(&point(row), true, cs);
+                let fb = &f[bi * c * p..(bi + 1) * c * p];
+                let mut acc = [0.0f64; 3];
+                for q in 0..cs.n {
+                    let mut s = 0.0;
+                    for ch in 0..c {
+                        s += grow[ch].to_f64() * fb[ch * p + cs.offset[q]].to_f64();
+                    }
+                    for (a, d) in acc.iter_mut().zip(&cs.dweight[q]).take(k) {
+                        *a += s * d;
+                    }
+                }
+                for (oa, a) in o.iter_mut().zip(&acc) {
+                    *oa = T::from_f64(*a);
+                }
+            }
+        });
+        out
+    }
+}
+
+impl candle_core::CustomOp2 for FusedGridSample {
+    fn name(&self) -> &'static str {
+        "nf-grid-sample"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (Some((a, b)), Some((c, e))) = (l1.contiguous_offsets(), l2.contiguous_offsets())
+        else {
+            candle_core::bail!("grid sample: inputs must be contiguous")
+        };
+        let (bs, ch) = (l1.dims()[0], l1.dims()[1]);
+        let n = l2.dims()[1];
+        let dims = (bs, n, ch);
+        let out = match (s1, s2) {
+            (CpuStorage::F32(f), CpuStorage::F32(x)) => {
+                CpuStorage::F32(self.forward(&f[a..b], &x[c..e], dims))
+            }
+            (CpuStorage::F64(f), CpuStorage::F64(x)) => {
+                CpuStorage::F64(self.forward(&f[a..b], &x[c..e], dims))
+            }
+            _ => candle_core::bail!("grid sample: f32 or f64 features and coords of one dtype"),
+        };
+        Ok((out, Shape::from((bs, n, ch))))
+    }
+
+    fn bwd(
+        &self,
+        features: &Tensor,
+        coords: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let grad = grad.contiguous()?;
+        let (bs, ch) = (features.dim(0)?, features.dim(1)?);
+        let dims = (bs, coords.dim(1)?, ch);
+        let (fs, fl) = features.storage_and_layout();
+        let (xs, xl) = coords.storage_and_layout();
+        let (gs, gl) = grad.storage_and_layout();
+        let op = "grid sample";
+        let (want_f, want_x) = (features.track_op(), coords.track_op());
+        macro_rules! run {
+            ($t:ty) => {{
+                let fv = cpu_slice::<$t>(&fs, fl, op, "features")?;
+                let xv = cpu_slice::<$t>(&xs, xl, op, "coords")?;
+                let gv = cpu_slice::<$t>(&gs, gl, op, "gradient")?;
+                let gf = if want_f {
+                    Some(Tensor::from_vec(
+                        self.features_grad(xv, gv, dims),
+                        features.shape(),
+                        features.device(),
+                    )?)
+                } else {
+                    None
+                };
+                let gx = if want_x {
+                    Some(Tensor::from_vec(
+                        self.coords_grad(fv, xv, gv, dims),
+                        coords.shape(),
+                        coords.device(),
+                    )?)
+                } else {
+                    None
+                };
+                (gf, gx)
+            }};
+        }
+        Ok(match features.dtype() {
+            DType::F32 => run!(f32),
+            DType::F64 => run!(f64),
+            other => candle_core::bail!("grid sample: unsupported dtype {other:?}"),
+        })
+    }
+}
+
+/// Checks a scatter call; returns `(B, N, C)` and the cell ids on the host.
+fn check_scatter(
+    values: &Tensor,
+    index: &Tensor,
+    cells: usize,
+) -> Result<((usize, usize, usize), Vec<u32>)> {
+    check_float(values, "values")?;
+    let vd = check_shape(
+        values,
+        "values",
+        &[Dim::Any("B"), Dim::Any("N"), Dim::Any("C")],
+    )?;
+    let (b, n, c) = (vd[0], vd[1], vd[2]);
+    if index.dtype() != DType::U32 {
+        return Err(Error::invalid(
+            "index",
+            "dtype u32",
+            format!("{:?}", index.dtype()),
+        ));
+    }
+    if !index.device().same_device(values.device()) {
+        return Err(Error::invalid(
+            "index",
+            format!("device {:?} (that of values)", values.device()),
+            format!("{:?}", index.device()),
+        ));
+    }
+    check_shape(index, "index", &[Dim::Is(b), Dim::Is(n)])?;
+    let total = b
+        .checked_mul(cells)
+        .filter(|&v| v <= u32::MAX as usize)
+        .and_then(|v| v.checked_mul(c.max(1)));
+    if total.is_none_or(|v| v > isize::MAX as usize / 8) {
+        return Err(Error::invalid(
+            "cells",
+            "B·cells below 2³² and a result that fits in memory",
+            format!("{cells} cells for a batch of {b} with {c} channels"),
+        ));
+    }
+    let host: Vec<u32> = index.flatten_all()?.to_vec1()?;
+    if let Some(p) = host.iter().position(|&i| i as usize >= cells) {
+        return Err(Error::invalid(
+            "index",
+            format!("cell ids below cells = {cells}"),
+            format!("{} at [{}, {}]", host[p], p / n.max(1), p % n.max(1)),
+        ));
+    }
+    Ok(((b, n, c), host))
+}
+
+/// Flat cell ids `b·cells + index[b, n]` on `dev`.
+fn flat_cells(host: &[u32], n: usize, cells: usize, dev: &candle_core::Device) -> Result<Tensor> {
+    let flat: Vec<u32> = host
+        .iter()
+        .enumerate()
+        .map(|(p, &i)| ((p / n.max(1)) * cells) as u32 + i)
+        .collect();
+    Ok(Tensor::from_vec(flat, host.len(), dev)?)
+}
+
+/// The per-cell mean of point features: `values: [B, N, C]` (f32/f64), `index: [B, N]`
+/// (u32 cell ids below `cells`, same device) → `[B, cells, C]`,
+///
+/// `y[b, q, :] = (1 / |S_bq|) Σ_{n ∈ S_bq} values[b, n, :]`, `S_bq = {n : index[b, n] = q}`,
+///
+/// and 0 in empty cells (as `torch_scatter.scatter_mean`). Differentiable w.r.t. `values`
+/// (`∂y[b, q]/∂values[b, n] = 1/|S_bq|` for `n ∈ S_bq`). Candle ops on any device: an
+/// `index_add` of the values and a division by the counts (counted on the host).
+///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::encoding::grid_sample::scatter_mean;
+///
+/// let v = Tensor::new(&[[[1.0f32], [3.0], [5.0]]], &Device::Cpu)?; // [1, 3, 1]
+/// let i = Tensor::new(&[[2u32, 2, 0]], &Device::Cpu)?;             // [1, 3]
+/// let y = scatter_mean(&v, &i, 3)?.flatten_all()?.to_vec1::<f32>()?;
+/// assert_eq!(y, [5.0, 0.0, 2.0]);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
+/// # Errors
+/// `values` not f32/f64 `[B, N, C]`; `index` not u32 `[B, N]` on the same device, or an
+/// id ≥ `cells` (naming `index`); `B·cells ≥ 2³²` (naming `cells`).
+pub fn scatter_mean(values: &Tensor, index: &Tensor, cells: usize) -> Result<Tensor> {
+    let ((b, n, c), host) = check_scatter(values, index, cells)?;
+    let dev = values.device();
+    let mut counts = vec![0.0f64; b * cells];
+    for (p, &i) in host.iter().enumerate() {
+        counts[(p / n.max(1)) * cells + i as usize] += 1.0;
+    }
+    let inv: Vec<f64> = counts.iter().map(|&k| 1.0 / k.max(1.0)).collect();
+    let inv = Tensor::from_vec(inv, (b * cells, 1), dev)?.to_dtype(values.dtype())?;
+    let sums = Tensor::zeros((b * cells, c), values.dtype(), dev)?;
+    let sums = if n > 0 && c > 0 {
+        let idx = flat_cells(&host, n, cells, dev)?;
+        sums.index_add(&idx, &values.reshape((b * n, c))?, 0)?
+    } else {
+        sums
+    };
+    Ok(sums.broadcast_mul(&inv)?.reshape((b, cells, c))?)
+}
+
+/// The per-cell maximum of point features: `values: [B, N, C]` (f32/f64), `index:
+/// [B, N]` (u32 cell ids below `cells`, same device) → `[B, cells, C]`,
+///
+/// `y[b, q, j] = max_{n ∈ S_bq} values[b, n, j]`, and 0 in empty cells (as
+/// `torch_scatter.scatter_max`). A NaN among a cell's values gives NaN.
+///
+/// Differentiable w.r.t. `values`: each `y[b, q, j]` passes its gradient to one element,
+/// the maximising point `n` of that cell and channel; among equal maxima, to the one with
+/// the **lowest point index** (and to the first NaN if there is one).
+///
+/// On the CPU (f32/f64) a fused op runs (one pass over the points per batch, the
+/// backward recomputes the argmax). Elsewhere the reference path of candle ops
+/// ([`scatter_max_reference`]) runs in rounds over ranks, without a `cells × N × C`
+/// tensor: the points of each cell are ordered by index on the host (a counting sort of
+/// `index`) and the non-empty cells by decreasing count, so that round `r` updates the
+/// running maxima of exactly the first `K_r` cells (those with more than `r` points) with
+/// their `r`-th point (`where_cond(candidate > running, candidate, running)`; strict, so
+/// ties keep the earlier point). Memory `O(B·cells·C + N·C)`; the number of rounds is the
+/// largest cell's point count.
+///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::encoding::grid_sample::scatter_max;
+///
+/// let v = Tensor::new(&[[[1.0f32], [-3.0], [5.0]]], &Device::Cpu)?; // [1, 3, 1]
+/// let i = Tensor::new(&[[1u32, 1, 0]], &Device::Cpu)?;
+/// let y = scatter_max(&v, &i, 3)?.flatten_all()?.to_vec1::<f32>()?;
+/// assert_eq!(y, [5.0, 1.0, 0.0]);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
+/// # Errors
+/// As [`scatter_mean`].
+pub fn scatter_max(values: &Tensor, index: &Tensor, cells: usize) -> Result<Tensor> {
+    let fused = values.device().is_cpu() && matches!(values.dtype(), DType::F32 | DType::F64);
+    if !fused {
+        return scatter_max_reference(values, index, cells);
+    }
+    check_scatter(values, index, cells)?;
+    Ok(values
+        .contiguous()?
+        .apply_op2(&index.contiguous()?, FusedScatterMax(cells))?)
+}
+
+/// [`scatter_max`] by candle ops on any device (the rounds described there); the path
+/// used off the CPU and the reference of the fused op's tests.
+///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::encoding::grid_sample::{scatter_max, scatter_max_reference};
+///
+/// let v = Tensor::new(&[[[1.0f64, 2.0], [4.0, -1.0], [0.5, 7.0]]], &Device::Cpu)?;
+/// let i = Tensor::new(&[[3u32, 3, 0]], &Device::Cpu)?;
+/// let a = scatter_max(&v, &i, 4)?.flatten_all()?.to_vec1::<f64>()?;
+/// let b = scatter_max_reference(&v, &i, 4)?.flatten_all()?.to_vec1::<f64>()?;
+/// assert_eq!(a, b);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
+/// # Errors
+/// As [`scatter_mean`].
+pub fn scatter_max_reference(values: &Tensor, index: &Tensor, cells: usize) -> Result<Tensor> {
+    let ((b, n, c), host) = check_scatter(values, index, cells)?;
+    let dev = values.device();
+    let zeros = Tensor::zeros((b * cells, c), values.dtype(), dev)?;
+    if n == 0 || c == 0 || b == 0 {
+        return Ok(zeros.reshape((b, cells, c))?);
+    }
+    // Counting sort of the points by flat cell (stable: lower point index first).
+    let total = b * cells;
+    let mut count = vec![0u32; total];
+    for (p, &i) in host.iter().enumerate() {
+        count[(p / n) * cells + i as usize] += 1;
+    }
+    let mut start = vec![0usize; total + 1];
+    for q in 0..total {
+        start[q + 1] = start[q] + count[q] as usize;
+    }
+    let mut members = vec![0u32; host.len()];
+    let mut fill = start.clone();
+    for (p, &i) in host.iter().enumerate() {
+        let q = (p / n) * cells + i as usize;
+        members[fill[q]] = p as u32;
+        fill[q] += 1;
+    }
+    // Non-empty cells by decreasing count (ties by cell id).
+    let mut order: Vec<usize> = (0..total).filter(|&q| count[q] > 0).collect();
+    order.sort_by(|&x, &y| count[y].cmp(&count[x]).then(x.cmp(&y)));
+    let rounds = count[order[0]] as usize;
+    let vals = values.reshape((b * n, c))?;
+    let pick = |r: usize, k: usize| -> Result<Tensor> {
+        let ids: Vec<u32> = order[..k].iter().map(|&q| members[start[q] + r]).collect();
+        Ok(vals.index_select(&Tensor::from_vec(ids, k, dev)?, 0)?)
+    };
+    let k0 = order.len();
+    let mut running = pick(0, k0)?;
+    let mut k = k0;
+    for r in 1..rounds {
+        while k > 0 && count[order[k - 1]] as usize <= r {
+            k -= 1;
+        }
+        let head = running.narrow(0, 0, k)?;
+        let cand = pick(r, k)?;
+        let take = cand
+            .gt(&head)?
+            .maximum(&(cand.ne(&cand)? * head.eq(&head)?)?)?;
+        let head = take.where_cond(&cand, &head)?;
+        running = if k < k0 {
+            Tensor::cat(&[&head, &running.narrow(0, k, k0 - k)?], 0)?
+        } else {
+            head
+        };
+    }
+    let ids: Vec<u32> = order.iter().map(|&q| q as u32).collect();
+    let ids = Tensor::from_vec(ids, k0, dev)?;
+    Ok(zeros.index_add(&ids, &running, 0)?.reshape((b, cells, c))?)
+}
+
+/// The fused CPU scatter-max: `(values [B, N, C], index [B, N] u32) → [B, cells, C]`.
+struct FusedScatterMax(usize);
+
+impl FusedScatterMax {
+    /// The argmax point of every (cell, channel) of one batch (`u32::MAX`: empty cell),
+    /// by one pass over the points in order: a later point replaces the running maximum
+    /// only if strictly greater, or NaN over a non-NaN.
+    fn argmax<T: WithDType>(&self, v: &[T], idx: &[u32], c: usize, arg: &mut [u32]) {
+        arg.fill(u32::MAX);
+        for (p, (&q, row)) in idx.iter().zip(v.chunks(c)).enumerate() {
+            let slot = &mut arg[q as usize * c..(q as usize + 1) * c];
+            for (j, (s, x)) in slot.iter_mut().zip(row).enumerate() {
+                if *s == u32::MAX {
+                    *s = p as u32;
+                    continue;
+                }
+                let cur = v[*s as usize * c + j].to_f64();
+                let x = x.to_f64();
+                if x > cur || (x.is_nan() && !cur.is_nan()) {
+                    *s = p as u32;
+                }
+            }
+        }
+    }
+
+    fn run<T: WithDType>(&self, v: &[T], idx: &[u32], dims: (usize, usize, usize)) -> Vec<T> {
+        let (b, n, c) = dims;
+        let cells = self.0;
+        let mut out = vec![T::from_f64(0.0); b * cells * c];
+        if out.is_empty() {
+            return out;
+        }
+        let items: Vec<_> = out.chunks_mut(cells * c).enumerate().collect();
+        for_each_init(items, Vec::new, |arg: &mut Vec<u32>, (bi, o)| {
+            arg.resize(cells * c, 0);
+            let vb = &v[bi * n * c..(bi + 1) * n * c];
+            self.argmax(vb, &idx[bi * n..(bi + 1) * n], c, arg);
+            for (j, (oj, &a)) in o.iter_mut().zip(arg.iter()).enumerate() {
+                if a != u32::MAX {
+                    *oj = vb[a as usize * c + j % c];
+                }
+            }
+        });
+        out
+    }
+
+    fn grad<T: WithDType>(
+        &self,
+        v: &[T],
+        idx: &[u32],
+        g: &[T],
+        dims: (usize, usize, usize),
+    ) -> Vec<T> {
+        let (b, n, c) = dims;
+        let cells = self.0;
+        let mut out = vec![T::from_f64(0.0); b * n * c];
+        if out.is_empty() {
+            return out;
+        }
+        let items: Vec<_> = out.chunks_mut(n * c).enumerate().collect();
+        for_each_init(items, Vec::new, |arg: &mut Vec<u32>, (bi, o)| {
+            arg.resize(cells * c, 0);
+            self.argmax(
+                &v[bi * n * c..(bi + 1) * n * c],
+                &idx[bi * n..(bi + 1) * n],
+                c,
+                arg,
+            );
+            let gb = &g[bi * cells * c..(bi + 1) * cells * c];
+            for (j, &a) in arg.iter().enumerate() {
+                if a != u32::MAX {
+                    o[a as usize * c + j % c] = gb[j];
+                }
+            }
+        });
+        out
+    }
+}
+
+impl candle_core::CustomOp2 for FusedScatterMax {
+    fn name(&self) -> &'static str {
+        "nf-scatter-max"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (Some((a, e)), Some((c0, c1))) = (l1.contiguous_offsets(), l2.contiguous_offsets())
+        else {
+            candle_core::bail!("scatter max: inputs must be contiguous")
+        };
+        let d = l1.dims();
+        let dims = (d[0], d[1], d[2]);
+        let CpuStorage::U32(idx) = s2 else {
+            candle_core::bail!("scatter max: index must be u32")
+        };
+        let idx = &idx[c0..c1];
+        let out = match s1 {
+            CpuStorage::F32(v) => CpuStorage::F32(self.run(&v[a..e], idx, dims)),
+            CpuStorage::F64(v) => CpuStorage::F64(self.run(&v[a..e], idx, dims)),
+            _ => candle_core::bail!("scatter max: f32 or f64 values"),
+        };
+        Ok((out, Shape::from((dims.0, self.0, dims.2))))
+    }
+
+    fn bwd(
+        &self,
+        values: &Tensor,
+        index: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let grad = grad.contiguous()?;
+        let dims = values.dims3()?;
+        let (vs, vl) = values.storage_and_layout();
+        let (is, il) = index.storage_and_layout();
+        let (gs, gl) = grad.storage_and_layout();
+        let op = "scatter max";
+        let iv = cpu_slice::<u32>(&is, il, op, "index")?;
+        macro_rules! run {
+            ($t:ty) => {{
+                let v = cpu_slice::<$t>(&vs, vl, op, "values")?;
+                let g = cpu_slice::<$t>(&gs, gl, op, "gradient")?;
+                Tensor::from_vec(self.grad(v, iv, g, dims), values.shape(), values.device())?
+            }};
+        }
+        let gv = match values.dtype() {
+            DType::F32 => run!(f32),
+            DType::F64 => run!(f64),
+            other => candle_core::bail!("scatter max: unsupported dtype {other:?}"),
+        };
+        Ok((Some(gv), None))
+    }
+}
+
+/// Flat cell ids of normalised points: `coords: [B, N, k]` (f32/f64, `k` = 2 or 3, in
+/// `[0, 1]`) → `[B, N]` u32,
+///
+/// `x_a = ⌊clamp(c_a, 0, 1 − 10⁻⁶) · R⌋`, `id = x₀ + R·(x₁ + R·x₂)` (`x₀` fastest),
+///
+/// as the published code clamps and indexes (coordinates past the border fall in the
+/// border cells). Not differentiable (the ids are integers). Computed in f64 on the
+/// coordinates' device.
+///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::encoding::grid_sample::cell_index;
+///
+/// let p = Tensor::new(&[[[0.0f32, 0.0], [0.99, 0.3], [1.0, 1.0], [-2.0, 0.5]]], &Device::Cpu)?;
+/// let ids = cell_index(&p, 4)?.flatten_all()?.to_vec1::<u32>()?;
+/// assert_eq!(ids, [0, 3 + 4, 15, 8]);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
+/// # Errors
+/// `coords` not f32/f64 `[B, N, 2]` or `[B, N, 3]`, or holding a NaN (naming `coords`);
+/// `resolution` zero or with `resolutionᵏ ≥ 2³²` (naming `resolution`).
+pub fn cell_index(coords: &Tensor, resolution: usize) -> Result<Tensor> {
+    check_float(coords, "coords")?;
+    let d = check_shape(
+        coords,
+        "coords",
+        &[Dim::Any("B"), Dim::Any("N"), Dim::Any("k")],
+    )?;
+    let k = d[2];
+    if !(k == 2 || k == 3) {
+        return Err(Error::invalid(
+            "coords",
+            "shape [B, N, 2] or [B, N, 3]",
+            format!("shape {d:?}"),
+        ));
+    }
+    let cap = (resolution as u128).pow(k as u32);
+    if resolution == 0 || cap > u128::from(u32::MAX) {
+        return Err(Error::invalid(
+            "resolution",
+            format!("1 to ⌊(2³² − 1)^(1/{k})⌋"),
+            resolution.to_string(),
+        ));
+    }
+    check_no_nan(coords, "coords")?;
+    let r = resolution as f64;
+    let x = coords
+        .to_dtype(DType::F64)?
+        .clamp(0.0, 1.0 - 1e-6)?
+        .affine(r, 0.0)?
+        .floor()?
+        .clamp(0.0, r - 1.0)?;
+    let mut id = narrow(&x, 2, k - 1, 1)?;
+    for a in (0..k - 1).rev() {
+        id = (id.affine(r, 0.0)? + narrow(&x, 2, a, 1)?)?;
+    }
+    Ok(id.squeeze(2)?.to_dtype(DType::U32)?)
+}
