@@ -151,6 +151,8 @@ pub mod dvr;
 pub mod encoding;
 pub mod error;
 pub mod field;
+#[cfg(feature = "flow")]
+pub mod flow;
 mod narrow;
 pub mod nn;
 pub mod numerics;

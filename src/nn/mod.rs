@@ -21,8 +21,8 @@ mod nerf;
 mod onet;
 #[cfg(feature = "occupancy")]
 mod pointnet;
-#[cfg(feature = "texture")]
-mod resnet_fc;
+#[cfg(any(feature = "texture", feature = "flow"))]
+pub(crate) mod resnet_fc;
 #[cfg(feature = "texture")]
 mod texture;
 
