@@ -6,6 +6,10 @@
 //!   conditional normalisation that is batch-independent at inference.
 //! * [`PointNetEncoder`] / [`pointnet_encoder`] (feature `occupancy`): the variational
 //!   ONet's encoder `q_ψ(z | points, occupancies)`.
+//! * [`ConvOnetEncoder`] / [`conv_onet_encoder`], [`LocalDecoder`] / [`local_decoder`]
+//!   (feature `occupancy`): Convolutional Occupancy Networks (local PointNet pooled into
+//!   three feature planes or a grid, a 2-D or 3-D U-Net, a decoder of interpolated local
+//!   features), and [`conv3d`], a 3-D convolution built from candle's 2-D one.
 //! * [`TextureDecoder`] / [`texture_decoder`], [`RenderingNet`] / [`rendering_net`],
 //!   [`JointDecoder`] / [`joint_decoder`] (feature `texture`): the Texture Fields decoder,
 //!   IDR's rendering network and DVR's joint shape-and-colour decoder.
@@ -14,6 +18,8 @@
 //! * [`build_seeded`]: reproducible initialisation (candle's CPU generator cannot be
 //!   seeded; this draws every variable's initial value from a `u64` seed instead).
 
+#[cfg(feature = "occupancy")]
+mod conv_onet;
 mod fused_mlp;
 mod mlp;
 mod nerf;
@@ -21,11 +27,16 @@ mod nerf;
 mod onet;
 #[cfg(feature = "occupancy")]
 mod pointnet;
-#[cfg(any(feature = "texture", feature = "flow"))]
+#[cfg(any(feature = "texture", feature = "occupancy"))]
 pub(crate) mod resnet_fc;
 #[cfg(feature = "texture")]
 mod texture;
 
+#[cfg(feature = "occupancy")]
+pub use conv_onet::{
+    conv3d, conv_onet_encoder, local_decoder, ConvOnetConfig, ConvOnetEncoder, FeatureLayout,
+    LocalDecoder, LocalDecoderConfig, LocalFeatures, SceneField, UnetConfig,
+};
 pub use mlp::{mlp, Activation, Mlp, MlpConfig};
 pub use nerf::{nerf, DensityActivation, Nerf, NerfConfig};
 #[cfg(feature = "occupancy")]
