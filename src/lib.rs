@@ -120,6 +120,11 @@
 //! reaches the shape; `examples/dvr_multiview.rs` reconstructs shape and colour from
 //! masked images.
 //!
+//! **9. Motion** (feature `flow`). [`flow::odeint`] integrates `dy/dt = f(t, y)` with RK4
+//! or Dormand–Prince and backpropagates through the steps; [`flow::VelocityField`] and
+//! [`flow::OccupancyFlow`] give occupancy at any time from a time-0 decoder and dense
+//! correspondences. `examples/occupancy_flow.rs` learns a twisting, moving torus.
+//!
 //! ## Conventions
 //! * Shapes are written `[N, 3]`; every function follows the device and dtype (f32 or
 //!   f64) of its inputs, so the same code runs on CUDA with the `cuda` feature.
@@ -136,6 +141,7 @@
 //! | `volume` | yes | NeRF samplers, compositing (reference and fused CPU kernel), occupancy grid, regularisers |
 //! | `texture` | yes | texture fields: the `TextureField` trait, the Texture Fields decoder, IDR's rendering network, DVR's joint decoder, the image-gradient loss, vertex colours for meshes |
 //! | `data` | yes | datasets (Blender, nerfstudio, IDR/DTU layouts), seeded ray and patch batches, PSNR/SSIM, PNG output, a Blender-layout writer |
+//! | `flow` | yes | motion: ODE integration with gradients (RK4, Dormand–Prince), velocity fields, Occupancy Flow |
 //! | `cuda` | no | candle's CUDA backend (needs nvcc) |
 //!
 //! The derivations behind every gradient are in `docs/math.md`.

@@ -28,6 +28,13 @@ mod common;
 #[path = "../examples/error_vs_time/mise.rs"]
 mod mise;
 
+#[cfg(all(feature = "flow", feature = "occupancy"))]
+#[path = "../examples/error_vs_time/flow.rs"]
+mod flow;
+#[cfg(all(feature = "flow", feature = "occupancy"))]
+#[path = "../examples/common/deforming_torus.rs"]
+mod motion;
+
 use report::Table;
 
 fn check(tables: Vec<Table>) {
@@ -120,5 +127,29 @@ fn dvr_study_runs_quick() {
 #[test]
 fn mise_study_runs_quick() {
     let tables = mise::run(true);
+    check(tables);
+}
+
+#[cfg(all(feature = "flow", feature = "occupancy"))]
+#[test]
+fn flow_study_runs_quick() {
+    let tables = flow::run(true);
+    // RK4 converges: 64 steps are at least 10⁴ times more accurate than 1 (order 4 over
+    // 6 doublings would give 1.7·10⁷) in f64, and Dormand–Prince at rtol 1e-8 is within
+    // 1e-6 of the closed form.
+    let rows = &tables[0].rows;
+    let err = |series: &str, knob: f64| {
+        rows.iter()
+            .find(|r| r.series.starts_with(series) && r.series.ends_with("F64") && r.knob == knob)
+            .map(|r| r.error)
+            .unwrap()
+    };
+    assert!(
+        err("RK4", 64.0) * 1e4 < err("RK4", 1.0),
+        "{} vs {}",
+        err("RK4", 64.0),
+        err("RK4", 1.0)
+    );
+    assert!(err("Dormand", 1e-8) < 1e-6, "{}", err("Dormand", 1e-8));
     check(tables);
 }

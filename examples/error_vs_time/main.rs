@@ -22,8 +22,13 @@ mod common;
 #[cfg(feature = "dvr")]
 mod dvr;
 mod encoding;
+#[cfg(all(feature = "flow", feature = "occupancy"))]
+mod flow;
 #[cfg(feature = "occupancy")]
 mod mise;
+#[cfg(all(feature = "flow", feature = "occupancy"))]
+#[path = "../common/deforming_torus.rs"]
+mod motion;
 mod report;
 #[cfg(all(feature = "occupancy", feature = "dvr"))]
 mod training;
@@ -45,6 +50,8 @@ fn studies(quick: bool) -> Vec<Table> {
     tables.extend(mise::run(quick));
     #[cfg(feature = "volume")]
     tables.extend(volume::run(quick));
+    #[cfg(all(feature = "flow", feature = "occupancy"))]
+    tables.extend(flow::run(quick));
     #[cfg(all(feature = "occupancy", feature = "dvr"))]
     tables.extend(training::run(quick));
     tables

@@ -27,7 +27,7 @@ mod nerf;
 mod onet;
 #[cfg(feature = "occupancy")]
 mod pointnet;
-#[cfg(any(feature = "texture", feature = "occupancy"))]
+#[cfg(any(feature = "texture", feature = "occupancy", feature = "flow"))]
 pub(crate) mod resnet_fc;
 #[cfg(feature = "texture")]
 mod texture;

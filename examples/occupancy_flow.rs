@@ -1,0 +1,472 @@
+//! Occupancy Flow (Niemeyer et al., ICCV 2019) on a torus that twists, stretches and
+//! moves: learn an occupancy decoder at time 0 and a velocity field whose flow carries
+//! it through time, then report IoU over time, the error of the correspondences, and
+//! meshes of every time with the same vertices (the time-0 mesh carried forward).
+//!
+//! ```text
+//! cargo run --release --example occupancy_flow                      # 8 minutes
+//! cargo run --release --example occupancy_flow -- --minutes 3 --out /tmp/oflow
+//! cargo run --release --example occupancy_flow -- --steps 500 --solver dopri5:1e-3
+//! ```
+//!
+//! Flags: `--minutes M` or `--steps N` (default 8 minutes of training, evaluation not
+//! counted), `--out DIR` (default `occupancy_flow_out`), `--seed S`, `--solver` for
+//! training (`rk4:N`, N steps per unit of time, default `rk4:4`; or `dopri5:RTOL`, with
+//! `atol = RTOL/100`). Evaluation always integrates with Dormand–Prince at `rtol 1e-5`.
+//!
+//! The motion is analytic (see `common/deforming_torus.rs`), so occupancy and
+//! correspondences are exact at every time. Each step draws, as Occupancy Flow trains:
+//! points at time 0 (BCE on the decoder), points at a random time carried back to 0
+//! (BCE through the flow), and surface points of time 0 carried forward to
+//! t ∈ {¼, ½, ¾, 1} (the correspondence loss, mean Euclidean distance, not squared).
+//!
+//! Writes to `OUT/`: `metrics.json` (`iou` per time, `iou_min`, `correspondence_l2` per
+//! time, `correspondence_mean`, `correspondence_max`, `train_seconds`, `steps`, `solver`),
+//! `curve.csv` (training seconds, step, loss, `iou_min`, `correspondence_mean`) and
+//! `mesh_t0.00.ply` … `mesh_t1.00.ply` (the same faces at every time). Stops with an
+//! error naming the step if a loss, a gradient or a weight becomes NaN or infinite.
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{AdamW, Optimizer, VarMap};
+use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
+use neural_fields::field::ImplicitSurface;
+use neural_fields::flow::{
+    correspondence_loss, velocity_field, Graph, OccupancyFlow, Solver, VelocityField,
+    VelocityFieldConfig,
+};
+use neural_fields::nn::{build_seeded, mlp, Activation, Mlp, MlpConfig};
+use neural_fields::numerics::bce_with_logits;
+use neural_fields::occupancy::{from_tensor, iou, mise, points_tensor, MiseConfig};
+use neural_fields::rng::SplitMix64;
+use neural_fields::Result;
+use serde_json::json;
+use std::path::PathBuf;
+
+mod common;
+#[path = "common/deforming_torus.rs"]
+mod motion;
+#[path = "common/training.rs"]
+mod training;
+
+/// Times at which the correspondence loss and the evaluation look.
+const TIMES: [f64; 5] = [0.0, 0.25, 0.5, 0.75, 1.0];
+const USAGE: &str = "usage: occupancy_flow [--minutes M | --steps N] [--out DIR] [--seed S] \
+                     [--solver rk4:N | dopri5:RTOL]";
+
+struct Args {
+    minutes: Option<f64>,
+    steps: Option<usize>,
+    out: PathBuf,
+    seed: u64,
+    solver: Solver,
+    solver_name: String,
+}
+
+fn parse_solver(value: &str) -> std::result::Result<Solver, String> {
+    match value.split_once(':') {
+        Some(("rk4", n)) => Ok(Solver::Rk4 {
+            steps: training::count("--solver rk4", n)?,
+        }),
+        Some(("dopri5", r)) => {
+            let rtol = training::number("--solver dopri5", r)?;
+            Ok(Solver::Dopri5 {
+                rtol,
+                atol: rtol / 100.0,
+                max_steps: 10_000,
+            })
+        }
+        _ => Err(format!("--solver: rk4:N or dopri5:RTOL, not {value}")),
+    }
+}
+
+fn args() -> std::result::Result<Args, String> {
+    let mut a = Args {
+        minutes: None,
+        steps: None,
+        out: "occupancy_flow_out".into(),
+        seed: 0,
+        solver: Solver::Rk4 { steps: 4 },
+        solver_name: "rk4:4".into(),
+    };
+    let mut data = PathBuf::new();
+    training::parse_flags(USAGE, |flag, value| {
+        if flag == "--solver" {
+            a.solver = parse_solver(value)?;
+            a.solver_name = value.into();
+            return Ok(());
+        }
+        if flag == "--data" {
+            return Err(format!("--data: this example's scene is analytic\n{USAGE}"));
+        }
+        if training::take_run_flag(
+            flag,
+            value,
+            &mut data,
+            &mut a.minutes,
+            &mut a.steps,
+            &mut a.out,
+            &mut a.seed,
+        )? {
+            Ok(())
+        } else {
+            Err(format!("unknown flag {flag}\n{USAGE}"))
+        }
+    })?;
+    training::check_budget(&mut a.minutes, a.steps, 8.0)?;
+    Ok(a)
+}
+
+/// The two networks and their optimiser.
+struct Model {
+    varmap: VarMap,
+    decoder: Mlp,
+    velocity: VelocityField,
+}
+
+impl Model {
+    fn new(seed: u64, device: &Device, dtype: DType) -> Result<Self> {
+        let varmap = VarMap::new();
+        let decoder_config = MlpConfig {
+            hidden: 128,
+            depth: 4,
+            activation: Activation::Relu,
+            encoding: PointEncoding::Frequency(FrequencyEncoding::new(3, 6)?),
+            ..MlpConfig::default()
+        };
+        let decoder = build_seeded(&varmap, dtype, device, seed, |vb| {
+            mlp(&decoder_config, vb.pp("decoder"))
+        })?;
+        let velocity_config = VelocityFieldConfig {
+            hidden: 64,
+            blocks: 3,
+            code_dim: 0,
+        };
+        let velocity = build_seeded(&varmap, dtype, device, seed + 1, |vb| {
+            velocity_field(&velocity_config, vb.pp("velocity"))
+        })?;
+        Ok(Self {
+            varmap,
+            decoder,
+            velocity,
+        })
+    }
+
+    fn flow(&self, solver: Solver, graph: Graph) -> OccupancyFlow<'_, Mlp> {
+        OccupancyFlow {
+            decoder: &self.decoder,
+            velocity: &self.velocity,
+            code: None,
+            solver,
+            graph,
+        }
+    }
+}
+
+/// Labelled points at time `t`: half uniform in the padded cube, half near the moved
+/// surface (time-0 surface points plus Gaussian noise of σ = 0.03, carried by `Φ`).
+fn labelled(n: usize, t: f64, rng: &mut SplitMix64) -> (Vec<[f64; 3]>, Vec<f32>) {
+    let mut pts = Vec::with_capacity(n);
+    for _ in 0..n / 2 {
+        pts.push([0.0; 3].map(|_| 1.1 * rng.uniform() - 0.55));
+    }
+    for s in motion::surface(n - n / 2, rng) {
+        let jittered = [0, 1, 2].map(|i| s[i] + 0.03 * rng.normal());
+        pts.push(motion::forward(jittered, t));
+    }
+    let labels = pts
+        .iter()
+        .map(|&p| f32::from(u8::from(motion::inside(p, t))))
+        .collect();
+    (pts, labels)
+}
+
+/// What the evaluation measures.
+struct Evaluation {
+    iou: Vec<f64>,
+    correspondence: Vec<f64>,
+}
+
+impl Evaluation {
+    fn iou_min(&self) -> f64 {
+        self.iou.iter().copied().fold(f64::INFINITY, f64::min)
+    }
+    /// Mean over the times after 0.
+    fn correspondence_mean(&self) -> f64 {
+        self.correspondence[1..].iter().sum::<f64>() / (self.correspondence.len() - 1) as f64
+    }
+}
+
+/// The held-out points: uniform points in the padded cube with their occupancy at each
+/// time, and surface points of time 0 with where they are at each time.
+struct Held {
+    uniform: Tensor,
+    truth: Vec<Vec<bool>>,
+    surface: Tensor,
+    surface_truth: Vec<Tensor>,
+}
+
+impl Held {
+    fn new(device: &Device, dtype: DType) -> Result<Self> {
+        let mut rng = SplitMix64::new(1234);
+        let uniform: Vec<[f64; 3]> = (0..50_000)
+            .map(|_| [0.0; 3].map(|_| 1.1 * rng.uniform() - 0.55))
+            .collect();
+        let truth = TIMES
+            .iter()
+            .map(|&t| uniform.iter().map(|&p| motion::inside(p, t)).collect())
+            .collect();
+        let surface = motion::surface(4000, &mut rng);
+        let surface_truth = TIMES
+            .iter()
+            .map(|&t| {
+                let moved: Vec<[f64; 3]> = surface.iter().map(|&p| motion::forward(p, t)).collect();
+                points_tensor(&moved, device, dtype)
+            })
+            .collect::<Result<_>>()?;
+        Ok(Self {
+            uniform: points_tensor(&uniform, device, dtype)?,
+            truth,
+            surface: points_tensor(&surface, device, dtype)?,
+            surface_truth,
+        })
+    }
+}
+
+fn eval_solver() -> Solver {
+    Solver::Dopri5 {
+        rtol: 1e-5,
+        atol: 1e-7,
+        max_steps: 10_000,
+    }
+}
+
+fn evaluate(model: &Model, held: &Held) -> Result<Evaluation> {
+    let flow = model.flow(eval_solver(), Graph::Detach);
+    let mut ious = Vec::new();
+    for (i, &t) in TIMES.iter().enumerate() {
+        let mut inside = Vec::with_capacity(held.truth[i].len());
+        for chunk in 0..held.uniform.dim(0)?.div_ceil(25_000) {
+            let n = (held.uniform.dim(0)? - chunk * 25_000).min(25_000);
+            let p = held.uniform.narrow(0, chunk * 25_000, n)?;
+            let logits = flow.logits(&p, t)?.to_dtype(DType::F64)?.to_vec1::<f64>()?;
+            inside.extend(logits.into_iter().map(|l| l > 0.0));
+        }
+        ious.push(iou(&inside, &held.truth[i])?);
+    }
+    let moved = flow.correspondences(&held.surface, &TIMES)?;
+    let correspondence = moved
+        .iter()
+        .zip(&held.surface_truth)
+        .map(|(m, truth)| {
+            let l = correspondence_loss(m, truth)?;
+            Ok(l.to_dtype(DType::F64)?.to_scalar::<f64>()?)
+        })
+        .collect::<Result<_>>()?;
+    Ok(Evaluation {
+        iou: ious,
+        correspondence,
+    })
+}
+
+fn train_step(
+    model: &Model,
+    opt: &mut AdamW,
+    solver: Solver,
+    rng: &mut SplitMix64,
+    device: &Device,
+    dtype: DType,
+) -> Result<(Tensor, candle_core::backprop::GradStore)> {
+    let flow = model.flow(solver, Graph::Keep);
+    let labels = |l: Vec<f32>| -> Result<Tensor> {
+        Ok(Tensor::from_vec(l.clone(), l.len(), device)?.to_dtype(dtype)?)
+    };
+    // BCE at time 0 (the decoder alone).
+    let (p0, y0) = labelled(2048, 0.0, rng);
+    let logits0 = flow.logits(&points_tensor(&p0, device, dtype)?, 0.0)?;
+    let bce0 = bce_with_logits(&logits0, &labels(y0)?)?.mean_all()?;
+    // BCE at a random time, through the flow.
+    let t = 0.05 + 0.95 * rng.uniform();
+    let (pt, yt) = labelled(1024, t, rng);
+    let logits_t = flow.logits(&points_tensor(&pt, device, dtype)?, t)?;
+    let bce_t = bce_with_logits(&logits_t, &labels(yt)?)?.mean_all()?;
+    // Correspondences: time-0 surface points carried to every time.
+    let surface = motion::surface(256, rng);
+    let moved = flow.correspondences(&points_tensor(&surface, device, dtype)?, &TIMES[1..])?;
+    let mut corr = Tensor::zeros((), dtype, device)?;
+    for (m, &t) in moved.iter().zip(&TIMES[1..]) {
+        let truth: Vec<[f64; 3]> = surface.iter().map(|&p| motion::forward(p, t)).collect();
+        let l = correspondence_loss(m, &points_tensor(&truth, device, dtype)?)?;
+        corr = (corr + l)?;
+    }
+    let corr = corr.affine(1.0 / (TIMES.len() - 1) as f64, 0.0)?;
+    let loss = ((bce0 + bce_t)? + corr.affine(10.0, 0.0)?)?;
+    let grads = loss.backward()?;
+    opt.step(&grads)?;
+    Ok((loss, grads))
+}
+
+fn run(a: &Args) -> Result<()> {
+    let device = Device::Cpu;
+    let dtype = DType::F32;
+    training::create_dir(&a.out)?;
+    let model = Model::new(a.seed, &device, dtype)?;
+    let vars = training::named_vars(&model.varmap);
+    let mut opt = common::adam(&model.varmap, 1e-3)?;
+    let held = Held::new(&device, dtype)?;
+    let mut rng = SplitMix64::new(a.seed.wrapping_add(99));
+    let mut clock = training::Clock::start(a.steps, a.minutes);
+    let mut curve = String::from("seconds,step,loss,iou_min,correspondence_mean\n");
+    let mut next_eval = 120.0;
+    let mut lr_dropped = false;
+    let mut step = 0;
+    let mut last_loss = f64::NAN;
+    while clock.progress(step) < 1.0 {
+        let (loss, grads) = train_step(&model, &mut opt, a.solver, &mut rng, &device, dtype)?;
+        training::check_finite(&loss, step, "the loss")?;
+        if step % 50 == 0 {
+            training::check_gradients(&grads, &vars, step)?;
+            training::check_weights(&vars, step)?;
+        }
+        last_loss = loss.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+        step += 1;
+        clock.tick(step);
+        clock.bar.set_message(format!("loss {last_loss:.4}"));
+        if !lr_dropped && clock.progress(step) > 0.75 {
+            opt.set_learning_rate(3e-4);
+            lr_dropped = true;
+        }
+        if clock.train_seconds() > next_eval && clock.progress(step) < 1.0 {
+            next_eval += 120.0;
+            let seconds = clock.train_seconds();
+            let e = clock.off_clock(|| -> Result<Evaluation> {
+                let e = evaluate(&model, &held)?;
+                println!(
+                    "{seconds:>6.0} s  step {step:>5}  loss {last_loss:.4}  IoU min {:.4}  correspondence {:.4}",
+                    e.iou_min(),
+                    e.correspondence_mean()
+                );
+                Ok(e)
+            })?;
+            curve += &format!(
+                "{seconds:.1},{step},{last_loss:.6},{:.5},{:.5}\n",
+                e.iou_min(),
+                e.correspondence_mean()
+            );
+        }
+    }
+    clock.bar.finish_and_clear();
+    let train_seconds = clock.train_seconds();
+    let e = evaluate(&model, &held)?;
+    curve += &format!(
+        "{train_seconds:.1},{step},{last_loss:.6},{:.5},{:.5}\n",
+        e.iou_min(),
+        e.correspondence_mean()
+    );
+    training::write_text(&a.out.join("curve.csv"), &curve)?;
+    // Meshes: MISE on the time-0 decoder, its vertices carried to every time.
+    let out = mise(
+        &model.decoder as &dyn ImplicitSurface,
+        &MiseConfig::new(32, 2, &device, dtype),
+    )?;
+    let mut mesh = out.mesh;
+    if mesh.faces.is_empty() {
+        println!("the time-0 decoder has no surface: no meshes written");
+    } else {
+        let verts = points_tensor(&mesh.vertices, &device, dtype)?;
+        let moved = model
+            .flow(eval_solver(), Graph::Detach)
+            .correspondences(&verts, &TIMES)?;
+        for (m, t) in moved.iter().zip(TIMES) {
+            mesh.vertices = from_tensor(&m.to_dtype(DType::F64)?)?;
+            mesh.save(a.out.join(format!("mesh_t{t:.2}.ply")))?;
+        }
+    }
+    let by_time = |v: &[f64], skip: usize| -> serde_json::Value {
+        TIMES
+            .iter()
+            .zip(v)
+            .skip(skip)
+            .map(|(t, x)| (format!("{t:.2}"), json!(x)))
+            .collect::<serde_json::Map<_, _>>()
+            .into()
+    };
+    let metrics = json!({
+        "iou": by_time(&e.iou, 0),
+        "iou_min": e.iou_min(),
+        "correspondence_l2": by_time(&e.correspondence, 1),
+        "correspondence_mean": e.correspondence_mean(),
+        "correspondence_max": e.correspondence[1..].iter().copied().fold(0.0, f64::max),
+        "train_seconds": train_seconds,
+        "steps": step,
+        "solver": a.solver_name,
+        "eval_solver": "dopri5:1e-5",
+    });
+    training::write_json(&a.out.join("metrics.json"), &metrics)?;
+    println!("{}", serde_json::to_string_pretty(&metrics).expect("JSON"));
+    println!("wrote {}", a.out.display());
+    Ok(())
+}
+
+fn main() {
+    let a = match args() {
+        Ok(a) => a,
+        Err(msg) => {
+            eprintln!("{msg}");
+            std::process::exit(2);
+        }
+    };
+    if let Err(e) = run(&a) {
+        eprintln!("occupancy_flow: {e}");
+        std::process::exit(1);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The analytic motion: `Φ⁻¹(Φ(p, t), t) = p`, and its Eulerian velocity is the time
+    /// derivative of `Φ` (central differences).
+    #[test]
+    fn the_analytic_motion_inverts_and_its_velocity_is_its_derivative() -> Result<()> {
+        let mut rng = SplitMix64::new(3);
+        for _ in 0..100 {
+            let p = [0.0; 3].map(|_| rng.uniform() - 0.5);
+            let t = rng.uniform();
+            let back = motion::inverse(motion::forward(p, t), t);
+            assert!(
+                (0..3).all(|i| (back[i] - p[i]).abs() < 1e-12),
+                "{p:?} {back:?}"
+            );
+            let h = 1e-6;
+            let (a, b) = (motion::forward(p, t + h), motion::forward(p, t - h));
+            let at = motion::forward(p, t);
+            let v = motion::velocity(&Tensor::new(&[at], &Device::Cpu)?, t)?.to_vec2::<f64>()?;
+            for i in 0..3 {
+                let fd = (a[i] - b[i]) / (2.0 * h);
+                assert!((v[0][i] - fd).abs() < 1e-6, "axis {i}: {} vs {fd}", v[0][i]);
+            }
+        }
+        Ok(())
+    }
+
+    /// A few steps train without error and every output is finite.
+    #[test]
+    fn a_short_run_writes_finite_metrics_and_meshes() {
+        let out = std::env::temp_dir().join("occupancy_flow_test");
+        let a = Args {
+            minutes: None,
+            steps: Some(3),
+            out: out.clone(),
+            seed: 1,
+            solver: Solver::Rk4 { steps: 2 },
+            solver_name: "rk4:2".into(),
+        };
+        run(&a).expect("a short run");
+        let text = std::fs::read_to_string(out.join("metrics.json")).expect("metrics.json");
+        let m: serde_json::Value = serde_json::from_str(&text).expect("JSON");
+        for key in ["iou_min", "correspondence_mean", "train_seconds"] {
+            assert!(m[key].as_f64().is_some_and(f64::is_finite), "{key}: {m}");
+        }
+    }
+}
