@@ -427,18 +427,15 @@ where
             // Land exactly on t1 (and do not leave a sliver behind).
             let last = (t + h - t1) * dir >= -1e-12 * (t1 - t0).abs();
             let step = if last { t1 - t } else { h };
+            // Stages 2–6, then the fifth-order solution, whose derivative is stage 7.
             let mut ks = vec![k1.clone()];
-            for (c, a) in C.iter().zip(A.iter()) {
+            for (c, a) in C.iter().zip(A.iter()).take(5) {
                 let yi = combine(&y, step, a, &ks)?;
-                if ks.len() == 6 {
-                    // The fifth-order solution; its derivative is the seventh stage.
-                    ks.push(self.eval(t + step, &yi)?);
-                    ks.push(yi);
-                    break;
-                }
                 ks.push(self.eval(t + c * step, &yi)?);
             }
-            let y_new = ks.pop().expect("the stages end with the new state");
+            let y_new = combine(&y, step, A[5], &ks)?;
+            let k7 = self.eval(t + step, &y_new)?;
+            ks.push(k7.clone());
             let detached: Vec<Tensor> = ks.iter().map(Tensor::detach).collect();
             let err_vec = combine(&y.zeros_like()?, step, &E, &detached)?;
             let err = rms(&err_vec.div(&tol.scale(&y, &y_new)?)?)?;
@@ -454,7 +451,7 @@ where
                 self.accepted += 1;
                 t = if last { t1 } else { t + step };
                 y = self.keep(y_new);
-                k1 = self.keep(ks.pop().expect("seven stages"));
+                k1 = self.keep(k7);
                 // Do not let a short landing step shrink the next regular step.
                 h = if last {
                     dir * h.abs().max((step * factor).abs())

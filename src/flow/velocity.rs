@@ -249,17 +249,15 @@ impl<F: Field + ?Sized> OccupancyFlow<'_, F> {
         let out = self
             .velocity
             .carry(points, &all, self.code, &self.solver, self.graph)?;
-        let mut states = out.states.into_iter();
-        let start = states.next().expect("the start state");
-        let mut moved = states;
+        // states[0] is time 0; the non-zero times follow in order.
+        let mut next = 0;
         Ok(times
             .iter()
             .map(|&t| {
-                if t == 0.0 {
-                    start.clone()
-                } else {
-                    moved.next().expect("one state per time")
+                if t != 0.0 {
+                    next += 1;
                 }
+                out.states[if t == 0.0 { 0 } else { next }].clone()
             })
             .collect())
     }
