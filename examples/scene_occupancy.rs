@@ -482,20 +482,28 @@ impl Model for Global {
     }
     fn evaluate(&self, cloud: &Tensor, points: &Tensor, mesh: bool) -> Result<(Vec<f32>, Mesh)> {
         let code = self.code(cloud)?.squeeze(0)?.detach();
-        let field = Conditioned::new(&self.decoder, code)?;
-        let v = chunked(points, |p| field.value(p))?;
-        let m = if mesh {
-            mise(&field, &mise_config(points.device()))?.mesh
-        } else {
-            Mesh::default()
-        };
-        Ok((v, m))
+        surface_outputs(&Conditioned::new(&self.decoder, code)?, points, mesh)
     }
 }
 
 struct Conv {
     encoder: ConvOnetEncoder,
     decoder: LocalDecoder,
+}
+
+/// The logits of `field` at `points` (in chunks) and, when `mesh`, its MISE mesh.
+fn surface_outputs(
+    field: &dyn ImplicitSurface,
+    points: &Tensor,
+    mesh: bool,
+) -> Result<(Vec<f32>, Mesh)> {
+    let v = chunked(points, |p| field.value(p))?;
+    let m = if mesh {
+        mise(field, &mise_config(points.device()))?.mesh
+    } else {
+        Mesh::default()
+    };
+    Ok((v, m))
 }
 
 /// A [`Field`] of logits as an [`ImplicitSurface`] for MISE, which reads values only
@@ -526,14 +534,7 @@ impl Model for Conv {
     fn train_mode(&self, _on: bool) {}
     fn evaluate(&self, cloud: &Tensor, points: &Tensor, mesh: bool) -> Result<(Vec<f32>, Mesh)> {
         let features = self.encoder.forward(cloud)?;
-        let field = LogitSurface(self.decoder.bind(features)?);
-        let v = chunked(points, |p| field.value(p))?;
-        let m = if mesh {
-            mise(&field, &mise_config(points.device()))?.mesh
-        } else {
-            Mesh::default()
-        };
-        Ok((v, m))
+        surface_outputs(&LogitSurface(self.decoder.bind(features)?), points, mesh)
     }
 }
 
