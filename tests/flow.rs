@@ -523,3 +523,32 @@ fn velocity_field_refuses_times_outside_zero_one_and_wrong_codes() -> Result<()>
     assert!(err_text(correspondence_loss(&q, &q)).starts_with("predicted:"));
     Ok(())
 }
+
+/// Regression: the solvers' state check took the maximum of `|y|`, and candle's max
+/// reduction skips a NaN, so a state with a NaN beside finite values passed as finite
+/// (RK4 on y' = −10⁸ y from values up to 1e300 returned NaN states with `Ok`).
+#[test]
+fn a_nan_beside_finite_state_values_is_an_error_not_a_result() -> Result<()> {
+    for position in 0..3 {
+        let mut mask = [1.0f64; 3];
+        mask[position] = f64::NAN;
+        let mask = Tensor::new(&mask, &DEV)?;
+        let y0 = Tensor::new(&[1.0f64, 2.0, 3.0], &DEV)?;
+        let f = |_: f64, y: &Tensor| Ok(y.mul(&mask)?);
+        for s in [Solver::Rk4 { steps: 4 }, Solver::occupancy_flow()] {
+            let e = err_text(odeint(f, &y0, &[0.0, 1.0], &s, Graph::Keep));
+            assert!(e.starts_with("f:"), "NaN at {position}, {s:?}: {e}");
+        }
+    }
+    let y0 = Tensor::new(&[1e300f64, 1.0, -1e300], &DEV)?;
+    let stiff = |_: f64, y: &Tensor| Ok(y.affine(-1e8, 0.0)?);
+    let e = err_text(odeint(
+        stiff,
+        &y0,
+        &[0.0, 0.5, 1.0],
+        &Solver::Rk4 { steps: 8 },
+        Graph::Keep,
+    ));
+    assert!(e.starts_with("f:"), "{e}");
+    Ok(())
+}

@@ -2602,6 +2602,11 @@ fn stiff_cases_give_finite_outputs_and_gradients_or_err() {
     sweep_dvr(&mut s);
     #[cfg(feature = "texture")]
     sweep_texture(&mut s);
+    sweep_grid_sample(&mut s);
+    #[cfg(feature = "flow")]
+    sweep_flow(&mut s);
+    #[cfg(feature = "occupancy")]
+    sweep_conv_onet(&mut s);
     println!(
         "stiff cases: {} cases run over {} items, {} failures",
         s.cases,
@@ -2808,6 +2813,25 @@ const OCCUPANCY_COVERED: &[&str] = &[
 /// Public items without floating-point input (or only reached through a swept item),
 /// with the reason. Matching is by prefix, so `"error::check_"` covers the checks.
 const EXEMPT: &[(&str, &str)] = &[
+    (
+        "encoding::grid_sample::FusedGridSample::",
+        "CustomOp internals, swept via grid_sample",
+    ),
+    (
+        "encoding::grid_sample::FusedScatterMax::",
+        "CustomOp internals, swept via scatter_max",
+    ),
+    ("flow::ode::Solver::occupancy_flow", "constant"),
+    ("flow::velocity::VelocityField::config", "getter"),
+    ("flow::velocity::VelocityFieldConfig::default", "constant"),
+    ("nn::conv_onet::ConvOnetConfig::default", "constant"),
+    ("nn::conv_onet::UnetConfig::default", "constant"),
+    ("nn::conv_onet::LocalDecoderConfig::default", "constant"),
+    ("nn::conv_onet::ConvOnetEncoder::config", "getter"),
+    ("nn::conv_onet::LocalDecoder::config", "getter"),
+    ("nn::conv_onet::LocalFeatures::batch_and_channels", "getter"),
+    ("nn::conv_onet::SceneField::features", "getter"),
+    ("nn::conv_onet::SceneField::out_dim", "constant"),
     ("encoding::hash_grid::HashGrid::config", "getter"),
     ("encoding::hash_grid::HashGrid::table", "getter"),
     ("encoding::hash_grid::HashGrid::levels", "getter"),
@@ -3179,6 +3203,13 @@ fn covered() -> Vec<&'static str> {
     if cfg!(feature = "data") {
         v.extend(DATA_COVERED);
     }
+    v.extend(GRID_SAMPLE_COVERED);
+    if cfg!(feature = "flow") {
+        v.extend(FLOW_COVERED);
+    }
+    if cfg!(feature = "occupancy") {
+        v.extend(CONV_ONET_COVERED);
+    }
     if cfg!(feature = "texture") {
         v.extend(TEXTURE_COVERED);
         if cfg!(feature = "occupancy") {
@@ -3200,6 +3231,8 @@ fn module_enabled(item: &str) -> bool {
         // ONet's networks: `mod onet` / `mod pointnet` are behind `occupancy` in src/nn.
         ("nn::onet::", cfg!(feature = "occupancy")),
         ("nn::pointnet::", cfg!(feature = "occupancy")),
+        ("nn::conv_onet::", cfg!(feature = "occupancy")),
+        ("flow::", cfg!(feature = "flow")),
     ];
     feature_of
         .iter()
@@ -3909,6 +3942,481 @@ fn sweep_texture(s: &mut Suite) {
                     },
                 );
             }
+        }
+    }
+}
+
+/// Items swept by `sweep_grid_sample`.
+const GRID_SAMPLE_COVERED: &[&str] = &[
+    "encoding::grid_sample::grid_sample",
+    "encoding::grid_sample::grid_sample_reference",
+    "encoding::grid_sample::cell_index",
+    "encoding::grid_sample::scatter_mean",
+    "encoding::grid_sample::scatter_max",
+    "encoding::grid_sample::scatter_max_reference",
+];
+
+/// Bilinear/trilinear sampling at coordinates far outside, on and just inside the border,
+/// of features of every magnitude; scatter pooling of extreme values with ties.
+fn sweep_grid_sample(s: &mut Suite) {
+    use neural_fields::encoding::grid_sample::{
+        cell_index, grid_sample, grid_sample_reference, scatter_max, scatter_max_reference,
+        scatter_mean,
+    };
+    let d = Device::Cpu;
+    for dtype in DTYPES {
+        let mags = magnitudes(dtype);
+        let big = if dtype == DType::F32 { 1e30 } else { 1e300 };
+        let coords_1d = [
+            0.0, 1e-30, -1e-30, 0.5, 1.0, -1.0, 0.999_999, 1.000_001, big, -big, 1e10, -0.25,
+        ];
+        for k in [2usize, 3] {
+            let n = coords_1d.len();
+            let coord_values: Vec<f64> =
+                (0..n * k).map(|i| coords_1d[(i * 5 + i / k) % n]).collect();
+            let coords = var(&coord_values, &[1, n, k], dtype);
+            let spatial = vec![3usize; k];
+            let cells: usize = spatial.iter().product();
+            let feat_values: Vec<f64> =
+                (0..2 * cells).map(|i| mags[(i * 7) % mags.len()]).collect();
+            let mut shape = vec![1usize, 2];
+            shape.extend(&spatial);
+            let features = var(&feat_values, &shape, dtype);
+            let label = format!("{dtype:?}, k = {k}, features and coordinates up to {big:e}");
+            s.case(
+                "encoding::grid_sample::grid_sample",
+                &label,
+                Expect::Finite,
+                &[&features, &coords],
+                || Ok(vec![grid_sample(features.as_tensor(), coords.as_tensor())?]),
+            );
+            s.case(
+                "encoding::grid_sample::grid_sample_reference",
+                &label,
+                Expect::Finite,
+                &[&features, &coords],
+                || {
+                    Ok(vec![grid_sample_reference(
+                        features.as_tensor(),
+                        coords.as_tensor(),
+                    )?])
+                },
+            );
+            s.case(
+                "encoding::grid_sample::cell_index",
+                &label,
+                Expect::Finite,
+                &[],
+                || Ok(vec![cell_index(coords.as_tensor(), 4)?]),
+            );
+            let nan = coords
+                .as_tensor()
+                .slice_assign(
+                    &[0..1, 0..1, 0..1],
+                    &Tensor::full(f64::NAN, (1, 1, 1), &d)
+                        .unwrap()
+                        .to_dtype(dtype)
+                        .unwrap(),
+                )
+                .unwrap();
+            if grid_sample(features.as_tensor(), &nan).is_ok()
+                || grid_sample_reference(features.as_tensor(), &nan).is_ok()
+                || cell_index(&nan, 4).is_ok()
+            {
+                s.failures.push(format!(
+                    "grid_sample / cell_index [{dtype:?}, k = {k}]: a NaN coordinate gave Ok"
+                ));
+            }
+            // Scatter pooling of extreme values into the cells of those coordinates; the
+            // repeated magnitudes make ties for the maximum.
+            let Ok(index) = cell_index(coords.as_tensor(), 2) else {
+                continue;
+            };
+            let values: Vec<f64> = (0..n * 3).map(|i| mags[(i * 3) % mags.len()]).collect();
+            let values = var(&values, &[1, n, 3], dtype);
+            let cells = 1usize << k;
+            for (item, f) in [
+                (
+                    "encoding::grid_sample::scatter_mean",
+                    scatter_mean as fn(&Tensor, &Tensor, usize) -> neural_fields::Result<Tensor>,
+                ),
+                ("encoding::grid_sample::scatter_max", scatter_max),
+                (
+                    "encoding::grid_sample::scatter_max_reference",
+                    scatter_max_reference,
+                ),
+            ] {
+                s.case(item, &label, Expect::Finite, &[&values], || {
+                    Ok(vec![f(values.as_tensor(), &index, cells)?])
+                });
+            }
+        }
+    }
+}
+
+/// Items swept by `sweep_flow`.
+const FLOW_COVERED: &[&str] = &[
+    "flow::ode::odeint",
+    "flow::velocity::velocity_field",
+    "flow::velocity::VelocityField::velocity",
+    "flow::velocity::VelocityField::carry",
+    "flow::velocity::OccupancyFlow::logits",
+    "flow::velocity::OccupancyFlow::correspondences",
+    "flow::velocity::correspondence_loss",
+];
+
+/// The ODE solvers on stiff linear systems (decay rates up to 1e8, where RK4 blows up and
+/// Dormand–Prince runs out of steps: both must end in `Err`, not in a non-finite state),
+/// and with a right-hand side that returns NaN; the velocity field, carried points and
+/// Occupancy Flow at extreme points, times and codes; the correspondence loss at zero
+/// and extreme distances.
+#[cfg(feature = "flow")]
+fn sweep_flow(s: &mut Suite) {
+    use neural_fields::flow::{
+        correspondence_loss, odeint, velocity_field, Graph, OccupancyFlow, Solver,
+        VelocityFieldConfig,
+    };
+    let d = Device::Cpu;
+    let solvers = [
+        Solver::Rk4 { steps: 8 },
+        Solver::Dopri5 {
+            rtol: 1e-3,
+            atol: 1e-5,
+            max_steps: 200,
+        },
+    ];
+    for dtype in DTYPES {
+        let mags = magnitudes(dtype);
+        let y0 = var(&mags, &[mags.len()], dtype);
+        for solver in &solvers {
+            for rate in [0.0, 1e-30, 1.0, 1e3, 1e8] {
+                // Stiff rates may end in Err (step limit, non-finite state); mild ones may not.
+                let expect = if rate <= 1.0 {
+                    Expect::Finite
+                } else {
+                    Expect::FiniteOrErr
+                };
+                s.case(
+                    "flow::ode::odeint",
+                    format!("{dtype:?}, {solver:?}, y' = -{rate:e} y, |y0| up to 1e30+"),
+                    expect,
+                    &[&y0],
+                    || {
+                        let out = odeint(
+                            |_, y| Ok(y.affine(-rate, 0.0)?),
+                            y0.as_tensor(),
+                            &[0.0, 0.5, 1.0],
+                            solver,
+                            Graph::Keep,
+                        )?;
+                        Ok(out.states)
+                    },
+                );
+            }
+            let nan = odeint(
+                |_, y| Ok((y * f64::NAN)?),
+                y0.as_tensor(),
+                &[0.0, 1.0],
+                solver,
+                Graph::Keep,
+            );
+            if nan.is_ok() {
+                s.failures.push(format!(
+                    "odeint [{dtype:?}, {solver:?}]: a right-hand side returning NaN gave Ok"
+                ));
+            }
+        }
+
+        let big = if dtype == DType::F32 { 1e8 } else { 1e100 };
+        let p = var(
+            &[
+                0.0, 0.0, 0.0, 1e-30, 0.0, 0.0, big, -big, big, 1e4, 1.0, -1e4, 0.5, 0.5, 0.5,
+            ],
+            &[5, 3],
+            dtype,
+        );
+        let code = var(
+            &[0.0, big, -1e-30, 1.0, 0.5, -big, 1e4, 0.0, 2.0, -3.0],
+            &[5, 2],
+            dtype,
+        );
+        let config = VelocityFieldConfig {
+            hidden: 8,
+            blocks: 2,
+            code_dim: 2,
+        };
+        let vm = candle_nn::VarMap::new();
+        let v = build_seeded(&vm, dtype, &d, 4, |vb| velocity_field(&config, vb)).unwrap();
+        let mut wrt: Vec<Var> = vm.all_vars();
+        wrt.push(p.clone());
+        wrt.push(code.clone());
+        let wrt: Vec<&Var> = wrt.iter().collect();
+        let label = format!("{dtype:?}, |p| and |code| up to {big:e}");
+        s.case(
+            "flow::velocity::velocity_field",
+            &label,
+            Expect::Finite,
+            &[],
+            || Ok(vec![]),
+        );
+        for t in [0.0, 1e-30, 0.5, 1.0] {
+            s.case(
+                "flow::velocity::VelocityField::velocity",
+                format!("{label}, t = {t:e}"),
+                Expect::Finite,
+                &wrt,
+                || {
+                    Ok(vec![v.velocity(
+                        p.as_tensor(),
+                        t,
+                        Some(code.as_tensor()),
+                    )?])
+                },
+            );
+        }
+        for solver in &solvers {
+            // |v| grows with |p|: Dormand–Prince may run out of steps on the huge points.
+            s.case(
+                "flow::velocity::VelocityField::carry",
+                format!("{label}, {solver:?}"),
+                Expect::FiniteOrErr,
+                &wrt,
+                || {
+                    Ok(v.carry(
+                        p.as_tensor(),
+                        &[1.0, 0.25, 0.0],
+                        Some(code.as_tensor()),
+                        solver,
+                        Graph::Keep,
+                    )?
+                    .states)
+                },
+            );
+        }
+        let dm = candle_nn::VarMap::new();
+        let decoder_config = MlpConfig {
+            hidden: 8,
+            depth: 2,
+            ..MlpConfig::default()
+        };
+        let decoder = build_seeded(&dm, dtype, &d, 5, |vb| mlp(&decoder_config, vb)).unwrap();
+        let small = var(
+            &[
+                0.0, 0.0, 0.0, 1e-30, 0.0, 0.0, 0.5, -0.5, 0.5, 1.0, 1.0, -1.0, 0.2, 0.1, 0.0,
+            ],
+            &[5, 3],
+            dtype,
+        );
+        let shared = code.as_tensor().get(1).unwrap();
+        let flow = OccupancyFlow {
+            decoder: &decoder,
+            velocity: &v,
+            code: Some(&shared),
+            solver: Solver::occupancy_flow(),
+            graph: Graph::Keep,
+        };
+        let mut fwrt: Vec<Var> = vm.all_vars();
+        fwrt.extend(dm.all_vars());
+        fwrt.push(small.clone());
+        let fwrt: Vec<&Var> = fwrt.iter().collect();
+        let flabel = format!("{dtype:?}, code up to {big:e}");
+        for t in [0.0, 1e-30, 0.5, 1.0] {
+            s.case(
+                "flow::velocity::OccupancyFlow::logits",
+                format!("{flabel}, t = {t:e}"),
+                Expect::FiniteOrErr,
+                &fwrt,
+                || Ok(vec![flow.logits(small.as_tensor(), t)?]),
+            );
+        }
+        s.case(
+            "flow::velocity::OccupancyFlow::correspondences",
+            &flabel,
+            Expect::FiniteOrErr,
+            &fwrt,
+            || flow.correspondences(small.as_tensor(), &[0.0, 1e-30, 0.5, 1.0]),
+        );
+        // A moderate code: Occupancy Flow must succeed.
+        let unit = Tensor::new(&[0.3, -0.2], &d)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap();
+        let moderate = OccupancyFlow {
+            code: Some(&unit),
+            ..flow
+        };
+        s.case(
+            "flow::velocity::OccupancyFlow::logits",
+            format!("{dtype:?}, moderate code, t = 0.75"),
+            Expect::Finite,
+            &fwrt,
+            || Ok(vec![moderate.logits(small.as_tensor(), 0.75)?]),
+        );
+        s.case(
+            "flow::velocity::OccupancyFlow::correspondences",
+            format!("{dtype:?}, moderate code"),
+            Expect::Finite,
+            &fwrt,
+            || moderate.correspondences(small.as_tensor(), &[0.25, 1.0]),
+        );
+        // Zero distances (the norm's kink) and extreme ones.
+        let top = if dtype == DType::F32 { 1e18 } else { 1e150 };
+        let pred = var(
+            &[
+                0.0, 0.0, 0.0, 1.0, 2.0, 3.0, top, -top, top, 1e-30, 0.0, 0.0,
+            ],
+            &[4, 3],
+            dtype,
+        );
+        let target = var(
+            &[0.0, 0.0, 0.0, 1.0, 2.0, 3.0, -top, top, 0.0, 0.0, 0.0, 0.0],
+            &[4, 3],
+            dtype,
+        );
+        s.case(
+            "flow::velocity::correspondence_loss",
+            format!("{dtype:?}, distances 0 to {top:e}"),
+            Expect::Finite,
+            &[&pred, &target],
+            || {
+                Ok(vec![correspondence_loss(
+                    pred.as_tensor(),
+                    target.as_tensor(),
+                )?])
+            },
+        );
+    }
+}
+
+/// Items swept by `sweep_conv_onet`.
+const CONV_ONET_COVERED: &[&str] = &[
+    "nn::conv_onet::conv_onet_encoder",
+    "nn::conv_onet::ConvOnetEncoder::forward",
+    "nn::conv_onet::ConvOnetEncoder::encode_cloud",
+    "nn::conv_onet::local_decoder",
+    "nn::conv_onet::LocalDecoder::logits",
+    "nn::conv_onet::LocalDecoder::bind",
+    "nn::conv_onet::SceneField::forward",
+    "nn::conv_onet::conv3d",
+];
+
+/// Conv. ONet on point clouds with coordinates from 0 to far outside the padded box (in
+/// both layouts), the decoder at such points, and `conv3d` on extreme inputs.
+#[cfg(feature = "occupancy")]
+fn sweep_conv_onet(s: &mut Suite) {
+    use neural_fields::nn::{
+        conv3d, conv_onet_encoder, local_decoder, ConvOnetConfig, FeatureLayout,
+        LocalDecoderConfig, UnetConfig,
+    };
+    use neural_fields::occupancy::PointCloud;
+    let d = Device::Cpu;
+    for dtype in DTYPES {
+        let big = if dtype == DType::F32 { 1e8 } else { 1e100 };
+        let rows: Vec<[f64; 3]> = vec![
+            [0.0, 0.0, 0.0],
+            [1e-30, 0.0, 0.0],
+            [0.5, 0.5, 0.5],
+            [-0.55, 0.55, 0.0],
+            [big, -big, big],
+            [1e4, 1.0, -1e4],
+        ];
+        let n = rows.len();
+        let p = var(&rows.concat(), &[1, n, 3], dtype);
+        for layout in [
+            FeatureLayout::Planes { resolution: 4 },
+            FeatureLayout::Grid { resolution: 4 },
+        ] {
+            let config = ConvOnetConfig {
+                layout,
+                hidden: 8,
+                blocks: 2,
+                feature_dim: 4,
+                unet: UnetConfig {
+                    depth: 2,
+                    start_filters: 4,
+                },
+                ..ConvOnetConfig::default()
+            };
+            let dconfig = LocalDecoderConfig {
+                hidden: 8,
+                blocks: 2,
+                feature_dim: 4,
+                padding: config.padding,
+            };
+            let vm = candle_nn::VarMap::new();
+            let (enc, dec) = build_seeded(&vm, dtype, &d, 6, |vb| {
+                Ok((
+                    conv_onet_encoder(&config, vb.pp("enc"))?,
+                    local_decoder(&dconfig, vb.pp("dec"))?,
+                ))
+            })
+            .unwrap();
+            let mut wrt: Vec<Var> = vm.all_vars();
+            wrt.push(p.clone());
+            let wrt: Vec<&Var> = wrt.iter().collect();
+            let label = format!("{dtype:?}, {layout:?}, |p| up to {big:e}");
+            for item in [
+                "nn::conv_onet::conv_onet_encoder",
+                "nn::conv_onet::local_decoder",
+            ] {
+                s.case(item, &label, Expect::Finite, &[], || Ok(vec![]));
+            }
+            s.case(
+                "nn::conv_onet::ConvOnetEncoder::forward",
+                &label,
+                Expect::Finite,
+                &wrt,
+                || {
+                    let f = enc.forward(p.as_tensor())?;
+                    Ok(match f {
+                        neural_fields::nn::LocalFeatures::Planes { xz, xy, yz } => {
+                            vec![xz, xy, yz]
+                        }
+                        neural_fields::nn::LocalFeatures::Grid(g) => vec![g],
+                    })
+                },
+            );
+            s.case(
+                "nn::conv_onet::LocalDecoder::logits",
+                &label,
+                Expect::Finite,
+                &wrt,
+                || {
+                    let f = enc.forward(p.as_tensor())?;
+                    Ok(vec![dec.logits(p.as_tensor(), &f)?])
+                },
+            );
+            let cloud = PointCloud::new(rows.clone()).unwrap();
+            for item in [
+                "nn::conv_onet::ConvOnetEncoder::encode_cloud",
+                "nn::conv_onet::LocalDecoder::bind",
+                "nn::conv_onet::SceneField::forward",
+            ] {
+                s.case(item, &label, Expect::Finite, &wrt, || {
+                    let field = dec.bind(enc.encode_cloud(&cloud)?)?;
+                    Ok(vec![field.forward(&p.as_tensor().squeeze(0)?)?])
+                });
+            }
+        }
+        // conv3d: extreme inputs under unit weights, extreme weights under unit inputs.
+        let mags = magnitudes(dtype);
+        let extreme: Vec<f64> = (0..2 * 27).map(|i| mags[(i * 5) % mags.len()]).collect();
+        let unit: Vec<f64> = (0..2 * 27).map(|i| ((i % 7) as f64 - 3.0) / 3.0).collect();
+        for (x, w, tag) in [(&extreme, &unit, "inputs"), (&unit, &extreme, "weights")] {
+            let x = var(x, &[1, 2, 3, 3, 3], dtype);
+            let w = var(w, &[1, 2, 3, 3, 3], dtype);
+            s.case(
+                "nn::conv_onet::conv3d",
+                format!("{dtype:?}, extreme {tag}"),
+                Expect::Finite,
+                &[&x, &w],
+                || {
+                    Ok(vec![
+                        conv3d(x.as_tensor(), w.as_tensor(), 1)?,
+                        conv3d(x.as_tensor(), w.as_tensor(), 0)?,
+                    ])
+                },
+            );
         }
     }
 }
