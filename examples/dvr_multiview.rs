@@ -31,6 +31,12 @@
 //!      run's progress) and the eikonal loss (weight 0.1) at random points and at the
 //!      surface points.
 //!
+//! `--encoding hash` gives the DVR models' networks instant-NGP's multiresolution hash grid
+//! over the scene box (16 levels of 2 features, 2¹⁵ rows per level, resolutions 16 to five
+//! cells per pixel of the images' larger side; one grid for the occupancy network, one for
+//! the texture field) on 2 × 64 trunks, with `--lr` 1e-2 by default. IDR keeps its
+//! frequency encoding (its geometric initialisation needs the point itself in the input).
+//!
 //! The geometry starts as a ball of radius 0.5 (DVR: 150 steps fitting its occupancy;
 //! IDR: the geometric initialisation), so that rays find a surface from the first step.
 //! Adam, learning rate decaying log-linearly from `--lr` (1e-3) to a tenth of it.
@@ -76,6 +82,7 @@
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{Optimizer, VarMap};
+use common::PositionEncoding;
 use neural_fields::camera::{ray_aabb, Camera, Intersection, PoseParam, Rays};
 use neural_fields::data::{
     colorize_normals, comparison_strip, load, psnr, write_png, Background, Dataset, LoadConfig,
@@ -109,6 +116,8 @@ mod training;
 #[global_allocator]
 static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
+/// log₂ of the rows of each hash-grid level (`--encoding hash`).
+const HASH_LOG2: u32 = 15;
 /// Rays per chunk when rendering whole views.
 const CHUNK: usize = 8192;
 /// Rays per pixel side when rendering held-out views (2 × 2 per pixel).
@@ -150,7 +159,9 @@ pub struct Args {
     pub eval_every: usize,
     pub eval_views: usize,
     pub pictures: usize,
-    pub lr: f64,
+    /// The learning rate (`None`: 1e-3, or 1e-2 with the hash grid).
+    pub lr: Option<f64>,
+    pub encoding: PositionEncoding,
     pub mesh: Option<PathBuf>,
     pub mise_resolution: usize,
     /// Perturb the training poses: (degrees, fraction of the camera's distance).
@@ -176,7 +187,8 @@ impl Default for Args {
             eval_every: 500,
             eval_views: 4,
             pictures: 4,
-            lr: 1e-3,
+            lr: None,
+            encoding: PositionEncoding::Pe,
             mesh: None,
             mise_resolution: 32,
             perturb: None,
@@ -190,7 +202,8 @@ impl Default for Args {
 const USAGE: &str = "usage: dvr_multiview [--data DIR] [--minutes M | --steps N] [--out DIR] \
 [--seed S] [--model dvr|dvr-joint|idr] [--downscale K] [--rays N] [--aabb R] [--eval-every N] \
 [--eval-views N] [--pictures N] [--lr LR] [--mesh FILE] [--mise-resolution N] \
-[--perturb DEGREES,FRACTION] [--refine-poses on|off] [--pose-lr LR] [--resume FILE]";
+[--perturb DEGREES,FRACTION] [--refine-poses on|off] [--pose-lr LR] [--resume FILE] \
+[--encoding pe|hash]";
 
 fn parse_args() -> std::result::Result<Args, String> {
     let mut a = Args::default();
@@ -222,7 +235,8 @@ fn parse_args() -> std::result::Result<Args, String> {
             "--eval-every" => a.eval_every = int(flag, value)?,
             "--eval-views" => a.eval_views = int(flag, value)?,
             "--pictures" => a.pictures = int(flag, value)?,
-            "--lr" => a.lr = num(flag, value)?,
+            "--lr" => a.lr = Some(num(flag, value)?),
+            "--encoding" => a.encoding = PositionEncoding::parse(value)?,
             "--mesh" => a.mesh = Some(value.into()),
             "--mise-resolution" => a.mise_resolution = int(flag, value)?,
             "--perturb" => {
@@ -256,6 +270,13 @@ fn parse_args() -> std::result::Result<Args, String> {
     }
     if !(a.aabb > 0.0 && a.aabb.is_finite()) {
         return Err("--aabb must be positive".into());
+    }
+    if a.model == Model::Idr && a.encoding == PositionEncoding::Hash {
+        return Err(
+            "--encoding hash: with --model dvr or dvr-joint (IDR's geometric \
+                    initialisation needs the point itself in the SDF network's input)"
+                .into(),
+        );
     }
     Ok(a)
 }
@@ -337,30 +358,58 @@ impl Net {
     }
 }
 
-/// Builds the model of `args.model` in `varmap`.
-fn build(args: &Args, varmap: &VarMap, device: &Device, dtype: DType) -> Result<Net> {
-    let encoding = PointEncoding::Frequency(FrequencyEncoding::new(3, 4)?);
-    let shape = MlpConfig {
-        hidden: 128,
-        depth: 5,
-        skips: vec![3],
-        encoding: encoding.clone(),
-        ..MlpConfig::default()
+/// Builds the model of `args.model` in `varmap`; with `--encoding hash`, the DVR models'
+/// networks read points through hash grids over the scene box `aabb` (finest resolution
+/// `finest`) on 2 × 64 trunks.
+fn build(
+    args: &Args,
+    aabb: [f64; 6],
+    finest: f64,
+    varmap: &VarMap,
+    device: &Device,
+    dtype: DType,
+) -> Result<Net> {
+    let (lo, hi) = ([aabb[0], aabb[1], aabb[2]], [aabb[3], aabb[4], aabb[5]]);
+    let encode = |frequencies: usize, vb: &candle_nn::VarBuilder| {
+        args.encoding
+            .build(frequencies, lo, hi, HASH_LOG2, finest, vb)
+    };
+    // The occupancy network: PE(L = 4) on 5 × 128 with a skip, or a hash grid on 2 × 64.
+    let shape = |vb: &candle_nn::VarBuilder| -> Result<MlpConfig> {
+        let encoding = encode(4, vb)?;
+        Ok(match args.encoding {
+            PositionEncoding::Pe => MlpConfig {
+                hidden: 128,
+                depth: 5,
+                skips: vec![3],
+                encoding,
+                ..MlpConfig::default()
+            },
+            PositionEncoding::Hash => MlpConfig {
+                hidden: 64,
+                depth: 2,
+                encoding,
+                ..MlpConfig::default()
+            },
+        })
     };
     Ok(match args.model {
         Model::DvrJoint => Net::Joint(build_seeded(varmap, dtype, device, args.seed, |vb| {
-            joint_decoder(&shape, vb.pp("decoder"))
+            let vb = vb.pp("decoder");
+            joint_decoder(&shape(&vb)?, vb)
         })?),
         Model::Dvr => {
             let geometry = build_seeded(varmap, dtype, device, args.seed, |vb| {
-                mlp(&shape, vb.pp("geometry"))
+                let vb = vb.pp("geometry");
+                mlp(&shape(&vb)?, vb)
             })?;
-            let texture_config = TextureDecoderConfig {
-                encoding: PointEncoding::Frequency(FrequencyEncoding::new(3, 8)?),
-                ..TextureDecoderConfig::default()
-            };
             let texture = build_seeded(varmap, dtype, device, args.seed + 1, |vb| {
-                texture_decoder(&texture_config, vb.pp("texture"))
+                let vb = vb.pp("texture");
+                let texture_config = TextureDecoderConfig {
+                    encoding: encode(8, &vb)?,
+                    ..TextureDecoderConfig::default()
+                };
+                texture_decoder(&texture_config, vb)
             })?;
             Net::Dvr { geometry, texture }
         }
@@ -929,9 +978,13 @@ pub fn run(args: &Args) -> Result<Summary> {
     training::create_dir(&args.out)?;
     let aabb = training::scene_box(&train, args.aabb);
     let mut varmap = VarMap::new();
-    let net = build(args, &varmap, &device, dtype)?;
+    let finest = training::hash_finest(&train);
+    let net = build(args, aabb, finest, &varmap, &device, dtype)?;
     let vars = training::named_vars(&varmap);
-    let lr0 = args.lr;
+    let lr0 = args.lr.unwrap_or(match args.encoding {
+        PositionEncoding::Pe => 1e-3,
+        PositionEncoding::Hash => 1e-2,
+    });
     let mut opt = common::adam(&varmap, lr0)?;
     if let Some(path) = &args.resume {
         varmap.load(path)?;
@@ -1057,6 +1110,7 @@ pub fn run(args: &Args) -> Result<Summary> {
         "train_seconds": train_seconds,
         "steps": step,
         "model": args.model.name(),
+        "encoding": args.encoding.name(),
         "eval_split": eval_split,
         "eval_views": eval.len(),
         "data": args.data.display().to_string(),
@@ -1120,10 +1174,16 @@ mod tests {
     /// the whole pipeline runs and writes every output with the documented keys.
     #[test]
     fn a_shortened_run_of_each_model_writes_its_outputs() {
-        for model in [Model::Dvr, Model::DvrJoint, Model::Idr] {
+        for (model, encoding) in [
+            (Model::Dvr, PositionEncoding::Pe),
+            (Model::DvrJoint, PositionEncoding::Pe),
+            (Model::Idr, PositionEncoding::Pe),
+            (Model::Dvr, PositionEncoding::Hash),
+        ] {
             let out = std::env::temp_dir().join(format!(
-                "dvr-multiview-{:?}-{}",
+                "dvr-multiview-{:?}-{:?}-{}",
                 model,
+                encoding,
                 std::process::id()
             ));
             let _ = std::fs::remove_dir_all(&out);
@@ -1132,6 +1192,7 @@ mod tests {
                 out: out.clone(),
                 seed: 1,
                 model,
+                encoding,
                 downscale: 4,
                 rays: 256,
                 eval_every: 2,
@@ -1141,6 +1202,7 @@ mod tests {
                 ..Args::default()
             };
             let summary = run(&args).unwrap();
+            assert_eq!(metrics_encoding(&out), encoding.name());
             assert!((0.0..=1.0).contains(&summary.mask_iou));
             let metrics: serde_json::Value =
                 serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap())
@@ -1166,6 +1228,13 @@ mod tests {
             }
             let _ = std::fs::remove_dir_all(&out);
         }
+    }
+
+    fn metrics_encoding(out: &Path) -> String {
+        let metrics: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap())
+                .unwrap();
+        metrics["encoding"].as_str().unwrap_or("none").to_string()
     }
 
     /// The perturbation moves every camera by exactly the asked rotation and centre shift,

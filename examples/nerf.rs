@@ -66,12 +66,13 @@
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use candle_nn::{Optimizer, VarMap};
+use common::PositionEncoding;
 use neural_fields::camera::{cameras_around, ray_aabb, Camera, Rays};
 use neural_fields::data::{
     colorize_depth, comparison_strip, load, psnr, ssim, write_png, Background, Dataset, LoadConfig,
     RaySampler,
 };
-use neural_fields::encoding::{hash_grid, FrequencyEncoding, HashGridConfig, PointEncoding};
+use neural_fields::encoding::{FrequencyEncoding, HashGridConfig, PointEncoding};
 use neural_fields::glam::DVec2;
 use neural_fields::nn::{build_seeded, mlp, nerf, Mlp, MlpConfig, Nerf, NerfConfig};
 use neural_fields::volume::{
@@ -99,15 +100,6 @@ pub enum Sampler {
     Grid,
     Stratified,
     Proposal,
-}
-
-/// The radiance field's position encoding.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum PositionEncoding {
-    /// NeRF's frequency encoding (L = 10) on a 4 × 64 trunk.
-    Pe,
-    /// instant-NGP's hash grid on a 1 × 64 trunk.
-    Hash,
 }
 
 #[derive(Debug)]
@@ -213,13 +205,7 @@ fn parse_args() -> std::result::Result<Args, String> {
                     .map_err(|_| format!("--hash-log2: a small integer, not {value}"))?
             }
             "--hash-finest" => a.hash_finest = Some(num(flag, value)?),
-            "--encoding" => {
-                a.encoding = match value {
-                    "pe" => PositionEncoding::Pe,
-                    "hash" => PositionEncoding::Hash,
-                    other => return Err(format!("--encoding: pe or hash, not {other}")),
-                }
-            }
+            "--encoding" => a.encoding = PositionEncoding::parse(value)?,
             "--frames" => {
                 let list: std::result::Result<Vec<usize>, _> = value
                     .split(',')
@@ -492,20 +478,9 @@ pub fn run(args: &Args) -> Result<Summary> {
         ((aabb[3] - aabb[0]).powi(2) + (aabb[4] - aabb[1]).powi(2) + (aabb[5] - aabb[2]).powi(2))
             .sqrt();
 
-    // The hash grid's finest resolution: five cells per pixel of the images' larger side
-    // unless --hash-finest says otherwise (100 px → 500; instant-NGP's 2048 is for 800 px).
-    let side = train
-        .views()
-        .iter()
-        .map(|v| {
-            v.camera()
-                .intrinsics()
-                .width
-                .max(v.camera().intrinsics().height)
-        })
-        .max()
-        .unwrap_or(1);
-    let finest = args.hash_finest.unwrap_or((5 * side) as f64).max(16.0);
+    let finest = args
+        .hash_finest
+        .unwrap_or_else(|| training::hash_finest(&train));
     let mut varmap = VarMap::new();
     let net = build_seeded(&varmap, dtype, &device, args.seed, |vb| {
         nerf(&nerf_config(args, aabb, finest, &vb)?, vb)
@@ -676,7 +651,7 @@ pub fn run(args: &Args) -> Result<Summary> {
         "steps": step,
         "samples_per_ray": samples_total as f64 / (step.max(1) * args.rays) as f64,
         "sampler": format!("{:?}", args.sampler).to_lowercase(),
-        "encoding": format!("{:?}", args.encoding).to_lowercase(),
+        "encoding": args.encoding.name(),
         "eval_split": eval_split,
         "eval_views": eval.len(),
         "data": args.data.display().to_string(),
@@ -697,16 +672,14 @@ fn nerf_config(args: &Args, aabb: [f64; 6], finest: f64, vb: &VarBuilder) -> Res
     Ok(match args.encoding {
         PositionEncoding::Pe => NerfConfig::default(),
         PositionEncoding::Hash => NerfConfig {
-            position_encoding: PointEncoding::HashGrid(hash_grid(
-                &HashGridConfig {
-                    lo: aabb[..3].to_vec(),
-                    hi: aabb[3..].to_vec(),
-                    log2_table_size: args.hash_log2,
-                    finest_resolution: finest,
-                    ..HashGridConfig::default()
-                },
-                vb.pp("grid"),
-            )?),
+            position_encoding: args.encoding.build(
+                10,
+                [aabb[0], aabb[1], aabb[2]],
+                [aabb[3], aabb[4], aabb[5]],
+                args.hash_log2,
+                finest,
+                vb,
+            )?,
             depth: 1,
             skips: vec![],
             ..NerfConfig::default()

@@ -35,6 +35,21 @@ pub fn scene_box(data: &Dataset, half: f64) -> [f64; 6] {
     }
 }
 
+/// The finest resolution of a hash grid for `data`: five cells per pixel of its images'
+/// larger side (100 px → 500; instant-NGP's 2048 is for 800 px), at least 16.
+pub fn hash_finest(data: &Dataset) -> f64 {
+    let side = data
+        .views()
+        .iter()
+        .map(|v| {
+            let k = v.camera().intrinsics();
+            k.width.max(k.height)
+        })
+        .max()
+        .unwrap_or(1);
+    ((5 * side) as f64).max(16.0)
+}
+
 /// Stops on a NaN or infinity in `t`, naming the step and the tensor.
 pub fn check_finite(t: &Tensor, step: usize, what: &str) -> Result<()> {
     let s = t

@@ -160,6 +160,20 @@ pub fn run(quick: bool) -> Vec<Table> {
             metrics: &[(2, "1 − IoU", Metric::OneMinus)],
         },
         Curve {
+            example: "quickstart",
+            args: vec![
+                "--encoding".into(),
+                "hash".into(),
+                out("nf_quickstart_hash_torus.ply"),
+            ],
+            what: "quickstart --encoding hash (torus, hash grid + 2×64 MLP)",
+            runs: &[],
+            columns: 4,
+            step: 0,
+            time: 3,
+            metrics: &[(2, "1 − IoU", Metric::OneMinus)],
+        },
+        Curve {
             example: "fit_occupancy",
             args: vec![
                 "/usr/share/assimp/models/PLY/Wuson.ply".into(),
@@ -239,7 +253,11 @@ pub fn run(quick: bool) -> Vec<Table> {
         &mut rows,
         &mut notes,
         "dvr_multiview",
-        &[("--model", "dvr"), ("--model", "idr")],
+        &[
+            ("--model", "dvr"),
+            ("--model", "idr"),
+            ("--encoding", "hash"),
+        ],
         &[
             (2, "held-out 1 − mask IoU", Metric::OneMinus),
             (3, "held-out masked MSE", Metric::MseOfPsnr),
