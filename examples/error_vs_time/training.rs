@@ -267,22 +267,24 @@ pub fn run(quick: bool) -> Vec<Table> {
         title: "End-to-end training: error vs wall time".into(),
         description: format!(
             "The bundled examples, each run once by this command with its default settings \
-             (`cargo run --release --example quickstart`; `cargo run --release --example \
-             fit_occupancy`, which trains for 150 s on Wuson.ply normalised to the unit cube; \
-             `cargo run --release --example tiny_nerf`, which trains a NeRF twice, with \
-             stratified samples and with occupancy-grid skipping), reading the progress rows \
-             they print: the training step, the metric and the wall time since training \
-             started (quickstart, tiny_nerf) or since the example started, labelling included \
-             (fit_occupancy). IoU on held-out uniform points of the padded cube; Chamfer-L1 of \
-             the MISE mesh against the input mesh (100 000 samples each, unscaled: the ONet \
-             papers print ×10); held-out MSE = 10^(−PSNR/10) of tiny_nerf's held-out view \
-             (the training time excludes rendering it); NeRF on the committed dataset \
-             (`cargo run --release --example nerf -- --minutes 2 --sampler S`, once per \
+             (`cargo run --release --example quickstart`, and again with `-- --encoding hash`; \
+             `cargo run --release --example fit_occupancy`, which trains for 150 s on \
+             Wuson.ply normalised to the unit cube; `cargo run --release --example tiny_nerf`, \
+             which trains a NeRF twice, with stratified samples and with occupancy-grid \
+             skipping), reading the progress rows they print: the training step, the metric \
+             and the wall time since training started (quickstart, tiny_nerf) or since the \
+             example started, labelling included (fit_occupancy). IoU on held-out uniform \
+             points of the padded cube; Chamfer-L1 of the MISE mesh against the input mesh \
+             (100 000 samples each, unscaled: the ONet papers print ×10); held-out MSE = \
+             10^(−PSNR/10) of tiny_nerf's held-out view (the training time excludes rendering \
+             it); NeRF on the committed dataset (`cargo run --release --example nerf -- \
+             --minutes 2 --sampler S`, once per sampler, and `--encoding hash` with the grid \
              sampler), the held-out MSE of its `curve.csv` (PSNR on the first 4 test views \
              every 250 steps) against training seconds (evaluation excluded); 3-D \
-             reconstruction from the committed dataset's masked views \
-             (`cargo run --release --example dvr_multiview -- --minutes 2 --model M`, DVR's \
-             joint decoder and IDR's SDF + rendering network), 1 − mask IoU and the MSE inside \
+             reconstruction from the committed dataset's masked views (`cargo run --release \
+             --example dvr_multiview -- --minutes 2` with `--model dvr` (an occupancy network \
+             and a texture field), `--model idr` (IDR's SDF and rendering network) and \
+             `--encoding hash` (the dvr model on hash grids)), 1 − mask IoU and the MSE inside \
              the true masks of its `curve.csv` (first 4 test views every 500 steps).{}",
             if notes.is_empty() {
                 String::new()
