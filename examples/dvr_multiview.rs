@@ -626,27 +626,8 @@ fn render_view(
     let cam = data.views()[v].camera();
     let (w, h) = (cam.intrinsics().width, cam.intrinsics().height);
     let [x0, y0, z0, x1, y1, z1] = aabb;
-    let n = w * h * k * k;
-    let (mut o, mut d) = (Vec::with_capacity(3 * n), Vec::with_capacity(3 * n));
-    for row in 0..h {
-        for col in 0..w {
-            for i in 0..k {
-                for j in 0..k {
-                    let at = DVec2::new(
-                        col as f64 + (j as f64 + 0.5) / k as f64,
-                        row as f64 + (i as f64 + 0.5) / k as f64,
-                    );
-                    let (origin, dir) = cam.ray(at);
-                    o.extend(origin.to_array().map(|x| x as f32));
-                    d.extend(dir.to_array().map(|x| x as f32));
-                }
-            }
-        }
-    }
-    let all = Rays::new(
-        Tensor::from_vec(o, (n, 3), &Device::Cpu)?,
-        Tensor::from_vec(d, (n, 3), &Device::Cpu)?,
-    )?;
+    let all = cam.rays_for_pixels(&cam.subpixel_grid(k, &Device::Cpu, DType::F32)?)?;
+    let n = all.len();
     let (mut colors, mut masks, mut normals) = (Vec::new(), Vec::new(), Vec::new());
     for start in (0..n).step_by(CHUNK) {
         let len = CHUNK.min(n - start);

@@ -49,11 +49,17 @@
 //! for layouts that state none (Blender), the cube of half-side `--aabb` (default 1.5,
 //! nerfacc's for the Blender scenes).
 //!
+//! **Evaluation** renders one ray through each held-out pixel's centre, or with
+//! `--eval-supersample K` (1 to 8) the mean of `K × K` rays on a sub-pixel grid (a box
+//! filter, as the images were rendered by integrating over each pixel). `--jitter on`
+//! trains on rays through random points of their pixels instead of the centres
+//! ([`RaySampler::with_jitter`], instant-NGP's training rays).
+//!
 //! **Output** in `--out DIR` (default `out/nerf`):
 //! - `metrics.json`: `psnr`, `ssim` (means over the held-out views), `train_seconds`
 //!   (evaluation excluded), `steps`, `samples_per_ray` (mean over training), `sampler`,
 //!   `encoding`,
-//!   `eval_split`, `eval_views`, `data`;
+//!   `eval_split`, `eval_views`, `eval_supersample`, `data`;
 //! - `curve.csv`: `step,train_seconds,psnr` every `--eval-every` steps (PSNR on the first
 //!   `--eval-views` held-out views);
 //! - `view_{i}.png` (truth | prediction | error), `depth_{i}.png`, `opacity_{i}.png` for
@@ -116,6 +122,10 @@ pub struct Args {
     pub aabb: f64,
     pub eval_every: usize,
     pub eval_views: usize,
+    /// Rays per pixel side in evaluation (`k × k` averaged; 1: the pixel centre).
+    pub eval_supersample: usize,
+    /// Training rays through random points of their pixels instead of the centres.
+    pub jitter: bool,
     pub pictures: usize,
     pub resume: Option<PathBuf>,
     pub lr: Option<f64>,
@@ -132,7 +142,7 @@ pub struct Args {
 const USAGE: &str = "usage: nerf [--data DIR] [--minutes M | --steps N] [--out DIR] [--seed S] \
 [--sampler grid|stratified|proposal] [--downscale K] [--rays N] [--samples N] [--aabb R] \
 [--eval-every N] [--eval-views N] [--pictures N] [--resume FILE] [--lr LR] [--background random|white|black] [--frames I,J,K] [--regnerf on|off] \
-[--encoding pe|hash] [--hash-log2 T] [--hash-finest N]";
+[--encoding pe|hash] [--hash-log2 T] [--hash-finest N] [--eval-supersample K] [--jitter on|off]";
 
 impl Default for Args {
     /// The defaults of the command line.
@@ -150,6 +160,8 @@ impl Default for Args {
             aabb: 1.5,
             eval_every: 250,
             eval_views: 4,
+            eval_supersample: 1,
+            jitter: false,
             pictures: 8,
             resume: None,
             lr: None,
@@ -197,6 +209,8 @@ fn parse_args() -> std::result::Result<Args, String> {
             "--aabb" => a.aabb = num(flag, value)?,
             "--eval-every" => a.eval_every = int(flag, value)?,
             "--eval-views" => a.eval_views = int(flag, value)?,
+            "--eval-supersample" => a.eval_supersample = int(flag, value)?,
+            "--jitter" => a.jitter = training::on_off(flag, value)?,
             "--pictures" => a.pictures = int(flag, value)?,
             "--resume" => a.resume = Some(value.into()),
             "--lr" => a.lr = Some(num(flag, value)?),
@@ -230,8 +244,17 @@ fn parse_args() -> std::result::Result<Args, String> {
         Ok(())
     })?;
     training::check_budget(&mut a.minutes, a.steps, 10.0)?;
-    if a.rays == 0 || a.samples == 0 || a.eval_every == 0 || a.eval_views == 0 {
-        return Err("--rays, --samples, --eval-every and --eval-views must be positive".into());
+    if a.rays == 0
+        || a.samples == 0
+        || a.eval_every == 0
+        || a.eval_views == 0
+        || !(1..=8).contains(&a.eval_supersample)
+    {
+        return Err(
+            "--rays, --samples, --eval-every and --eval-views must be positive, \
+                    --eval-supersample between 1 and 8"
+                .into(),
+        );
     }
     if !(a.aabb > 0.0 && a.aabb.is_finite()) {
         return Err("--aabb must be positive".into());
@@ -353,19 +376,32 @@ impl Renderer<'_> {
         Ok((out, n, interlevel))
     }
 
-    /// Renders view `v` of `data` whole, in chunks, without keeping a graph: colour
-    /// `[H, W, 3]`, depth `[H, W]` (NaN where the opacity is below 0.5), opacity `[H, W]`.
-    fn render_view(&self, data: &Dataset, v: usize) -> Result<(Tensor, Tensor, Tensor)> {
-        let k = data.views()[v].camera().intrinsics();
-        let (w, h) = (k.width, k.height);
+    /// Renders view `v` of `data` whole, in chunks, without keeping a graph, with
+    /// `k × k` rays per pixel averaged (a box filter; `k = 1`: one ray through the pixel
+    /// centre): colour `[H, W, 3]`, depth `[H, W]` (NaN where the opacity is below 0.5),
+    /// opacity `[H, W]`.
+    fn render_view(&self, data: &Dataset, v: usize, k: usize) -> Result<(Tensor, Tensor, Tensor)> {
+        let cam = data.views()[v].camera();
+        let (w, h) = (cam.intrinsics().width, cam.intrinsics().height);
+        let all = cam.rays_for_pixels(&cam.subpixel_grid(k, &Device::Cpu, DType::F32)?)?;
+        let n = all.len();
+        let [r, g, b] = data.background().eval_color();
         let (mut colors, mut depths, mut opacities) = (Vec::new(), Vec::new(), Vec::new());
-        for start in (0..w * h).step_by(CHUNK) {
-            let len = CHUNK.min(w * h - start);
-            let batch = data.view_rays(v, start, len, &Device::Cpu, DType::F32)?;
-            let (out, _, _) = self.render(&batch.rays, &batch.backgrounds, None)?;
-            colors.push(out.color.detach());
-            depths.push(out.normalized_depth(1e-6)?.detach());
-            opacities.push(out.opacity.detach());
+        // Whole pixels per chunk, so that each pixel's k² rays fall in one chunk.
+        let chunk = (CHUNK / (k * k)).max(1) * k * k;
+        for start in (0..n).step_by(chunk) {
+            let len = chunk.min(n - start);
+            let background = Tensor::new(&[[r as f32, g as f32, b as f32]], &Device::Cpu)?
+                .broadcast_as((len, 3))?
+                .contiguous()?;
+            let (out, _, _) = self.render(&all.narrow(start, len)?, &background, None)?;
+            let px = len / (k * k);
+            let mean = |t: Tensor, c: usize| -> Result<Tensor> {
+                Ok(t.detach().reshape((px, k * k, c))?.mean(1)?)
+            };
+            colors.push(mean(out.color.clone(), 3)?);
+            depths.push(mean(out.normalized_depth(1e-6)?.unsqueeze(1)?, 1)?.squeeze(1)?);
+            opacities.push(mean(out.opacity.unsqueeze(1)?, 1)?.squeeze(1)?);
         }
         let opacity = Tensor::cat(&opacities, 0)?;
         let depth = Tensor::cat(&depths, 0)?;
@@ -434,13 +470,18 @@ fn regnerf_depth_smoothness(r: &Renderer, cameras: &[Camera], seed: u64) -> Resu
 }
 
 /// PSNR and SSIM of the first `n` views of `eval` (means), and the renders.
-fn evaluate(r: &Renderer, eval: &Dataset, n: usize) -> Result<(f64, f64, Vec<[Tensor; 4]>)> {
+fn evaluate(
+    r: &Renderer,
+    eval: &Dataset,
+    n: usize,
+    k: usize,
+) -> Result<(f64, f64, Vec<[Tensor; 4]>)> {
     let (mut p, mut s, mut renders) = (0.0, 0.0, Vec::new());
     let n = n.min(eval.len());
     for v in 0..n {
         let truth =
             eval.views()[v].rgb(eval.background().eval_color(), &Device::Cpu, DType::F32)?;
-        let (color, depth, opacity) = r.render_view(eval, v)?;
+        let (color, depth, opacity) = r.render_view(eval, v, k)?;
         p += psnr(&color, &truth, None)?;
         s += ssim(&color, &truth, None)?;
         renders.push([truth, color, depth, opacity]);
@@ -516,7 +557,7 @@ pub fn run(args: &Args) -> Result<Summary> {
         })?),
         Sampler::Stratified | Sampler::Proposal => None,
     };
-    let mut sampler = RaySampler::new(&train, args.seed, &device, dtype)?;
+    let mut sampler = RaySampler::new(&train, args.seed, &device, dtype)?.with_jitter(args.jitter);
     let train_cameras: Vec<Camera> = train.views().iter().map(|v| *v.camera()).collect();
     let mut clock = training::Clock::start(args.steps, args.minutes);
     println!(
@@ -595,7 +636,7 @@ pub fn run(args: &Args) -> Result<Summary> {
             let shown = args.eval_views.min(eval.len());
             let p = clock.off_clock(|| -> Result<f64> {
                 training::check_weights(&vars, step)?;
-                let (p, _, _) = evaluate(&renderer, &eval, args.eval_views)?;
+                let (p, _, _) = evaluate(&renderer, &eval, args.eval_views, args.eval_supersample)?;
                 println!(
                     "step {step}: loss {mse:.5}, held-out PSNR {p:.2} dB ({shown} views), {:.1} samples/ray{}",
                     n as f64 / args.rays as f64,
@@ -624,7 +665,7 @@ pub fn run(args: &Args) -> Result<Summary> {
             100.0 * g.occupied_fraction()
         );
     }
-    let (p, s, renders) = evaluate(&renderer, &eval, eval.len())?;
+    let (p, s, renders) = evaluate(&renderer, &eval, eval.len(), args.eval_supersample)?;
     curve.push_str(&format!("{step},{train_seconds:.3},{:.4}\n", {
         let n = args.eval_views.min(renders.len());
         let truth_pred: f64 = renders[..n]
@@ -654,6 +695,8 @@ pub fn run(args: &Args) -> Result<Summary> {
         "encoding": args.encoding.name(),
         "eval_split": eval_split,
         "eval_views": eval.len(),
+        "eval_supersample": args.eval_supersample,
+        "jitter": args.jitter,
         "data": args.data.display().to_string(),
     });
     training::write_json(&args.out.join("metrics.json"), &metrics)?;

@@ -327,21 +327,66 @@ impl Camera {
     }
 
     /// Centres of all pixels, row-major: row `i = v · width + u` is `(u + 0.5, v + 0.5)`.
-    /// Shape `[height · width, 2]`, in `dtype` on `device`.
+    /// Shape `[height · width, 2]`, in `dtype` on `device`. The same as
+    /// [`Camera::subpixel_grid`] with `k = 1`.
     ///
     /// # Errors
     /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64.
     pub fn pixel_grid(&self, device: &Device, dtype: DType) -> Result<Tensor> {
+        self.subpixel_grid(1, device, dtype)
+    }
+
+    /// The centres of a `k × k` grid of sub-pixels in every pixel, pixel-major: rows
+    /// `(v · width + u) · k² + i · k + j` are `(u + (j + ½)/k, v + (i + ½)/k)` for
+    /// `i, j < k`, so that averaging each run of `k²` consecutive rows (rendered colours,
+    /// say) gives a box-filtered, supersampled value per pixel. Shape
+    /// `[height · width · k², 2]`, in `dtype` on `device`; feed it to
+    /// [`Camera::rays_for_pixels`].
+    ///
+    /// ```
+    /// use neural_fields::camera::{Camera, Convention, Intrinsics};
+    /// use neural_fields::glam::DVec3;
+    /// use candle_core::{DType, Device};
+    ///
+    /// let k = Intrinsics::from_fov_y(3, 2, 0.8)?;
+    /// let cam = Camera::look_at(k, DVec3::new(0.0, -3.0, 0.0), DVec3::ZERO, DVec3::Z, Convention::OpenGl)?;
+    /// let grid = cam.subpixel_grid(2, &Device::Cpu, DType::F64)?.to_vec2::<f64>()?;
+    /// assert_eq!(grid.len(), 3 * 2 * 4);
+    /// assert_eq!(grid[..4], [vec![0.25, 0.25], vec![0.75, 0.25], vec![0.25, 0.75], vec![0.75, 0.75]]);
+    /// assert_eq!(grid[4], [1.25, 0.25]); // pixel (1, 0)
+    /// # Ok::<(), neural_fields::Error>(())
+    /// ```
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64, or `k` unless between
+    /// 1 and 64 (and at most 2²⁸ rows in all, naming `k`).
+    pub fn subpixel_grid(&self, k: usize, device: &Device, dtype: DType) -> Result<Tensor> {
         check_dtype(dtype)?;
         let (w, h) = (self.intrinsics.width, self.intrinsics.height);
-        let mut data = Vec::with_capacity(2 * w * h);
+        let n = (w * h).checked_mul(k * k).filter(|&n| n <= 1 << 28);
+        let n = match n {
+            Some(n) if (1..=64).contains(&k) => n,
+            _ => {
+                return Err(Error::invalid(
+                    "k",
+                    "1 to 64 sub-pixels per side, at most 2^28 in all",
+                    format!("{k} for a {w} × {h} image"),
+                ))
+            }
+        };
+        let mut data = Vec::with_capacity(2 * n);
+        let side = k as f64;
         for v in 0..h {
             for u in 0..w {
-                data.push(u as f64 + 0.5);
-                data.push(v as f64 + 0.5);
+                for i in 0..k {
+                    for j in 0..k {
+                        data.push(u as f64 + (j as f64 + 0.5) / side);
+                        data.push(v as f64 + (i as f64 + 0.5) / side);
+                    }
+                }
             }
         }
-        Ok(Tensor::from_vec(data, (w * h, 2), device)?.to_dtype(dtype)?)
+        Ok(Tensor::from_vec(data, (n, 2), device)?.to_dtype(dtype)?)
     }
 
     /// Rays through all pixel centres, row-major (ray `v · width + u` passes through

@@ -398,3 +398,87 @@ fn view_chunks_cover_the_image_in_row_major_order() {
         "dtype"
     );
 }
+
+/// A jittering sampler sends each ray through a random point of its own pixel (spread over
+/// the pixel, not at its centre), draws the same pixels as a sampler without jitter, and
+/// keeps patches on pixel centres; the sub-pixel grid of a camera averages to the centres.
+#[test]
+fn jittered_rays_stay_inside_their_pixels_and_subpixel_grids_average_to_centres() {
+    let data = load(Path::new(WUSON), &of_split(Split::Train)).unwrap();
+    let d = Device::Cpu;
+    let plain = RaySampler::new(&data, 5, &d, DType::F64)
+        .unwrap()
+        .pixels(512)
+        .unwrap();
+    let mut sampler = RaySampler::new(&data, 5, &d, DType::F64)
+        .unwrap()
+        .with_jitter(true);
+    let batch = sampler.pixels(512).unwrap();
+    assert_eq!(
+        batch.pixels.to_vec2::<u32>().unwrap(),
+        plain.pixels.to_vec2::<u32>().unwrap()
+    );
+    let (o, dir) = (
+        batch.rays.origins().to_vec2::<f64>().unwrap(),
+        batch.rays.directions().to_vec2::<f64>().unwrap(),
+    );
+    let views = batch.views.to_vec1::<u32>().unwrap();
+    let (mut fractions, mut spread) = (Vec::new(), 0.0f64);
+    for (i, px) in batch.pixels.to_vec2::<u32>().unwrap().iter().enumerate() {
+        let camera = data.views()[views[i] as usize].camera();
+        let point = DVec3::from_slice(&o[i]) + 2.0 * DVec3::from_slice(&dir[i]);
+        let p = camera.project(point).unwrap();
+        let (fu, fv) = (p.x - f64::from(px[0]), p.y - f64::from(px[1]));
+        assert!(
+            (-1e-9..1.0 + 1e-9).contains(&fu) && (-1e-9..1.0 + 1e-9).contains(&fv),
+            "ray {i} leaves pixel {px:?}: ({fu}, {fv})"
+        );
+        spread = spread.max((fu - 0.5).abs()).max((fv - 0.5).abs());
+        fractions.push(fu);
+    }
+    let mean = fractions.iter().sum::<f64>() / fractions.len() as f64;
+    assert!(spread > 0.4, "offsets hug the centre: {spread}");
+    assert!(
+        (mean - 0.5).abs() < 0.05,
+        "offsets are not uniform: mean {mean}"
+    );
+    // Patches stay on the centres.
+    let patch = sampler.patches(1, 2).unwrap();
+    let centres = {
+        let camera = data.views()[patch.views.to_vec1::<u32>().unwrap()[0] as usize].camera();
+        let px = patch.pixels.to_vec2::<u32>().unwrap();
+        let at: Vec<f64> = px
+            .iter()
+            .flat_map(|p| [f64::from(p[0]) + 0.5, f64::from(p[1]) + 0.5])
+            .collect();
+        camera
+            .rays_for_pixels(&Tensor::from_vec(at, (4, 2), &d).unwrap())
+            .unwrap()
+    };
+    let diff = (patch.rays.directions() - centres.directions())
+        .unwrap()
+        .abs()
+        .unwrap()
+        .max_keepdim(0)
+        .unwrap()
+        .max_keepdim(1)
+        .unwrap()
+        .squeeze(0)
+        .unwrap()
+        .squeeze(0)
+        .unwrap()
+        .to_scalar::<f64>()
+        .unwrap();
+    assert!(diff < 1e-12, "{diff}");
+    // The mean of each pixel's k × k sub-pixel centres is the pixel centre.
+    let camera = data.views()[0].camera();
+    let k = 3;
+    let sub = camera.subpixel_grid(k, &d, DType::F64).unwrap();
+    let n = sub.dim(0).unwrap() / (k * k);
+    let means = sub.reshape((n, k * k, 2)).unwrap().mean(1).unwrap();
+    let centres = camera.pixel_grid(&d, DType::F64).unwrap();
+    let err = v64(&(means - centres).unwrap())
+        .into_iter()
+        .fold(0.0f64, |m, x| m.max(x.abs()));
+    assert!(err < 1e-12, "{err}");
+}

@@ -712,6 +712,23 @@ fn sweep_camera(s: &mut Suite) {
                 &[],
                 || Ok(vec![cam.pixel_grid(&d, dtype)?]),
             );
+            for k in [1, 3, 64, 65] {
+                s.case(
+                    "camera::Camera::subpixel_grid",
+                    format!("{label}, k = {k}"),
+                    if k <= 64 {
+                        Expect::Finite
+                    } else {
+                        Expect::FiniteOrErr
+                    },
+                    &[],
+                    || {
+                        let g = cam.subpixel_grid(k, &d, dtype)?;
+                        let r = cam.rays_for_pixels(&g)?;
+                        Ok(vec![g, r.directions().clone()])
+                    },
+                );
+            }
             s.case(
                 "camera::Camera::random_rays",
                 &label,
@@ -2632,6 +2649,7 @@ const COVERED: &[&str] = &[
     "camera::Camera::look_at",
     "camera::Camera::new",
     "camera::Camera::pixel_grid",
+    "camera::Camera::subpixel_grid",
     "camera::Camera::pose_param",
     "camera::Camera::random_rays",
     "camera::Camera::rays",
@@ -2890,6 +2908,10 @@ const EXEMPT: &[(&str, &str)] = &[
     ("nn::nerf::NerfConfig::default", "constant"),
     ("data::batch::RayBatch::is_empty", "getter"),
     ("data::batch::RayBatch::len", "getter"),
+    (
+        "data::batch::RaySampler::with_jitter",
+        "a flag; its jittered rays are checked in tests/data_batches.rs",
+    ),
     ("data::dataset::Background::", "constants"),
     ("data::dataset::Dataset::background", "getter"),
     ("data::dataset::Dataset::bounds", "getter"),

@@ -30,7 +30,8 @@ pub struct RayBatch {
     /// `[N]` u32: the index of each ray's view in the dataset.
     pub views: Tensor,
     /// `[N, 2]` u32: each ray's pixel `(u, v)` (column, row); the ray passes through the
-    /// pixel's centre `(u + 0.5, v + 0.5)`.
+    /// pixel's centre `(u + 0.5, v + 0.5)`, or through a uniformly random point of the
+    /// pixel for a [`RaySampler::with_jitter`] sampler's [`RaySampler::pixels`].
     pub pixels: Tensor,
 }
 
@@ -48,10 +49,12 @@ impl RayBatch {
     }
 }
 
-/// Builds the batch of the pixels `picks = [(view, u, v)]` with per-ray backgrounds.
+/// Builds the batch of the pixels `picks = [(view, u, v)]` with per-ray backgrounds; the
+/// rays pass through `(u, v) + offsets[i]` (the pixel centres, `(½, ½)`, without offsets).
 fn gather(
     dataset: &Dataset,
     picks: &[(usize, usize, usize)],
+    offsets: Option<&[[f64; 2]]>,
     backgrounds: &[[f64; 3]],
     device: &Device,
     dtype: DType,
@@ -65,9 +68,10 @@ fn gather(
     );
     let mut m = Vec::with_capacity(if masked { n } else { 0 });
     let (mut vi, mut px) = (Vec::with_capacity(n), Vec::with_capacity(2 * n));
-    for (&(view, u, v), bg) in picks.iter().zip(backgrounds) {
+    for (i, (&(view, u, v), bg)) in picks.iter().zip(backgrounds).enumerate() {
         let vw = &dataset.views()[view];
-        let (origin, dir) = vw.camera().ray(DVec2::new(u as f64 + 0.5, v as f64 + 0.5));
+        let [du, dv] = offsets.and_then(|o| o.get(i)).copied().unwrap_or([0.5; 2]);
+        let (origin, dir) = vw.camera().ray(DVec2::new(u as f64 + du, v as f64 + dv));
         o.extend_from_slice(&origin.to_array());
         d.extend_from_slice(&dir.to_array());
         c.extend_from_slice(&vw.color(u, v, *bg));
@@ -133,6 +137,8 @@ pub struct RaySampler<'a> {
     dtype: DType,
     /// `ends[i]`: the number of pixels in views `0..=i`.
     ends: Vec<u64>,
+    /// Whether [`RaySampler::pixels`] jitters each ray inside its pixel.
+    jitter: bool,
 }
 
 impl<'a> RaySampler<'a> {
@@ -157,7 +163,22 @@ impl<'a> RaySampler<'a> {
             device: device.clone(),
             dtype,
             ends,
+            jitter: false,
         })
+    }
+
+    /// The sampler with sub-pixel jitter on or off (off by default): with it,
+    /// [`RaySampler::pixels`] sends each ray through a uniformly random point of its pixel
+    /// instead of the centre (instant-NGP's training rays), so that a field trained on
+    /// images that integrate over each pixel (antialiased renders, real sensors) sees the
+    /// whole pixel footprint; evaluate such a field with several rays per pixel
+    /// ([`crate::camera::Camera::subpixel_grid`]). Patches keep their pixel centres. The
+    /// offsets are drawn after the pixels and backgrounds, so a sampler without jitter
+    /// draws the same batches as before.
+    #[must_use]
+    pub fn with_jitter(mut self, on: bool) -> Self {
+        self.jitter = on;
+        self
     }
 
     fn backgrounds(&mut self, n: usize) -> Vec<[f64; 3]> {
@@ -169,7 +190,8 @@ impl<'a> RaySampler<'a> {
         }
     }
 
-    /// `n` rays through pixel centres drawn uniformly over all pixels of all views.
+    /// `n` rays through pixel centres (or, [`RaySampler::with_jitter`], uniformly random
+    /// points of the pixels) drawn uniformly over all pixels of all views.
     ///
     /// # Errors
     /// [`Error::InvalidArgument`] naming `n` if 0 or above 2²⁸.
@@ -188,7 +210,19 @@ impl<'a> RaySampler<'a> {
             })
             .collect();
         let bgs = self.backgrounds(n);
-        gather(self.dataset, &picks, &bgs, &self.device, self.dtype)
+        let offsets: Option<Vec<[f64; 2]>> = self.jitter.then(|| {
+            (0..n)
+                .map(|_| [self.rng.uniform(), self.rng.uniform()])
+                .collect()
+        });
+        gather(
+            self.dataset,
+            &picks,
+            offsets.as_deref(),
+            &bgs,
+            &self.device,
+            self.dtype,
+        )
     }
 
     /// `count` square patches of `k × k` adjacent pixels (RegNeRF's depth smoothness and
@@ -250,7 +284,7 @@ impl<'a> RaySampler<'a> {
                 }
             }
         }
-        gather(self.dataset, &picks, &bgs, &self.device, self.dtype)
+        gather(self.dataset, &picks, None, &bgs, &self.device, self.dtype)
     }
 }
 
@@ -289,6 +323,6 @@ impl Dataset {
         }
         let picks: Vec<_> = (start..start + len).map(|i| (view, i % w, i / w)).collect();
         let bgs = vec![self.background().eval_color(); len];
-        gather(self, &picks, &bgs, device, dtype)
+        gather(self, &picks, None, &bgs, device, dtype)
     }
 }
