@@ -34,8 +34,10 @@
 //! `--encoding hash` gives the DVR models' networks instant-NGP's multiresolution hash grid
 //! over the scene box (16 levels of 2 features, 2¹⁵ rows per level, resolutions 16 to five
 //! cells per pixel of the images' larger side; one grid for the occupancy network, one for
-//! the texture field) on 2 × 64 trunks, with `--lr` 1e-2 by default. IDR keeps its
-//! frequency encoding (its geometric initialisation needs the point itself in the input).
+//! the texture field) on 2 × 64 trunks, with `--lr` 1e-2 by default. For IDR it gives the
+//! rendering network a hash grid on the surface point and keeps the SDF's frequency
+//! encoding (its geometric initialisation needs the point itself in the input) and the
+//! learning rate of 1e-3.
 //!
 //! The geometry starts as a ball of radius 0.5 (DVR: 150 steps fitting its occupancy;
 //! IDR: the geometric initialisation), so that rays find a surface from the first step.
@@ -159,7 +161,7 @@ pub struct Args {
     pub eval_every: usize,
     pub eval_views: usize,
     pub pictures: usize,
-    /// The learning rate (`None`: 1e-3, or 1e-2 with the hash grid).
+    /// The learning rate (`None`: 1e-3, or 1e-2 for the DVR models on hash grids).
     pub lr: Option<f64>,
     pub encoding: PositionEncoding,
     pub mesh: Option<PathBuf>,
@@ -271,17 +273,11 @@ fn parse_args() -> std::result::Result<Args, String> {
     if !(a.aabb > 0.0 && a.aabb.is_finite()) {
         return Err("--aabb must be positive".into());
     }
-    if a.model == Model::Idr && a.encoding == PositionEncoding::Hash {
-        return Err(
-            "--encoding hash: with --model dvr or dvr-joint (IDR's geometric \
-                    initialisation needs the point itself in the SDF network's input)"
-                .into(),
-        );
-    }
     Ok(a)
 }
 
-/// The model (see [`Model`]).
+/// The model (see [`Model`]). One per run, so the variants' sizes do not matter.
+#[allow(clippy::large_enum_variant)]
 enum Net {
     Dvr {
         geometry: Mlp,
@@ -428,14 +424,22 @@ fn build(
             let geometry = build_seeded(varmap, dtype, device, args.seed, |vb| {
                 mlp(&config, vb.pp("geometry"))
             })?;
-            let render_config = RenderingNetConfig {
-                feature_dim: FEATURES,
-                hidden: 64,
-                depth: 3,
-                ..RenderingNetConfig::default()
-            };
+            // The rendering net reads the raw point (IDR), or with --encoding hash the
+            // point through a hash grid (the SDF keeps its frequencies: its geometric
+            // initialisation needs the point itself).
             let render = build_seeded(varmap, dtype, device, args.seed + 1, |vb| {
-                rendering_net(&render_config, vb.pp("render"))
+                let vb = vb.pp("render");
+                let render_config = RenderingNetConfig {
+                    feature_dim: FEATURES,
+                    hidden: 64,
+                    depth: 3,
+                    point_encoding: match args.encoding {
+                        PositionEncoding::Pe => PointEncoding::Identity,
+                        PositionEncoding::Hash => encode(0, &vb)?,
+                    },
+                    ..RenderingNetConfig::default()
+                };
+                rendering_net(&render_config, vb)
             })?;
             Net::Idr { geometry, render }
         }
@@ -962,9 +966,9 @@ pub fn run(args: &Args) -> Result<Summary> {
     let finest = training::hash_finest(&train);
     let net = build(args, aabb, finest, &varmap, &device, dtype)?;
     let vars = training::named_vars(&varmap);
-    let lr0 = args.lr.unwrap_or(match args.encoding {
-        PositionEncoding::Pe => 1e-3,
-        PositionEncoding::Hash => 1e-2,
+    let lr0 = args.lr.unwrap_or(match (args.encoding, args.model) {
+        (PositionEncoding::Hash, Model::Dvr | Model::DvrJoint) => 1e-2,
+        _ => 1e-3,
     });
     let mut opt = common::adam(&varmap, lr0)?;
     if let Some(path) = &args.resume {
@@ -1160,6 +1164,7 @@ mod tests {
             (Model::DvrJoint, PositionEncoding::Pe),
             (Model::Idr, PositionEncoding::Pe),
             (Model::Dvr, PositionEncoding::Hash),
+            (Model::Idr, PositionEncoding::Hash),
         ] {
             let out = std::env::temp_dir().join(format!(
                 "dvr-multiview-{:?}-{:?}-{}",

@@ -170,11 +170,13 @@ fn rendering_net_modes_read_what_they_are_configured_to() -> neural_fields::Resu
         .view_dirs(&v)
         .normals(&nrm)
         .features(&f);
-    for (view, normals, features) in [
-        (Some(4), true, 5),
-        (None, true, 5),
-        (Some(2), false, 5),
-        (None, false, 0),
+    let pe = PointEncoding::Frequency(FrequencyEncoding::new(3, 3)?);
+    for (view, normals, features, point_encoding) in [
+        (Some(4), true, 5, PointEncoding::Identity),
+        (None, true, 5, PointEncoding::Identity),
+        (Some(2), false, 5, PointEncoding::Identity),
+        (None, false, 0, PointEncoding::Identity),
+        (Some(4), true, 5, pe.clone()),
     ] {
         let config = RenderingNetConfig {
             feature_dim: features,
@@ -183,6 +185,7 @@ fn rendering_net_modes_read_what_they_are_configured_to() -> neural_fields::Resu
             hidden: 16,
             depth: 2,
             force_reference: false,
+            point_encoding,
         };
         let varmap = VarMap::new();
         let net = build_seeded(&varmap, DType::F64, &DEV, 2, |vb| {
@@ -390,10 +393,17 @@ mod idr {
         #[test]
         fn idr_colour_gradient_wrt_geometry_matches_finite_differences(seed in any::<u64>()) {
             let (geo_vars, geo) = geometry(seed, 4);
+            // Every other seed reads p̂ through a frequency encoding: the gradient then also
+            // runs through the encoding's Jacobian.
             let config = RenderingNetConfig {
                 feature_dim: 4,
                 hidden: 16,
                 depth: 2,
+                point_encoding: if seed % 2 == 0 {
+                    PointEncoding::Identity
+                } else {
+                    PointEncoding::Frequency(FrequencyEncoding::new(3, 2).unwrap())
+                },
                 ..RenderingNetConfig::default()
             };
             let tex_vars = VarMap::new();

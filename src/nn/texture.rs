@@ -141,7 +141,7 @@ impl TextureField for TextureDecoder {
 }
 
 /// Settings of [`rendering_net`] (IDR's rendering network).
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug)]
 pub struct RenderingNetConfig {
     /// Dimension `F` of the geometry network's feature vector (IDR: 256; 0: none read).
     pub feature_dim: usize,
@@ -158,10 +158,16 @@ pub struct RenderingNetConfig {
     /// Run the layers through candle's ops even on the CPU (see
     /// [`MlpConfig::force_reference`]).
     pub force_reference: bool,
+    /// Encoding `γₚ` of the surface point (IDR: none, the raw point). A hash grid or a
+    /// frequency encoding lets the colour carry texture detail that the geometry's
+    /// feature vector and a ReLU network on raw coordinates smooth away; the colour's
+    /// gradient w.r.t. `p̂` then also runs through the encoding.
+    pub point_encoding: PointEncoding,
 }
 
 impl Default for RenderingNetConfig {
-    /// IDR's: a 256-d feature, view direction with 4 frequencies, normals, 4 × 512 ReLU.
+    /// IDR's: a 256-d feature, view direction with 4 frequencies, normals, 4 × 512 ReLU,
+    /// the raw point.
     fn default() -> Self {
         Self {
             feature_dim: 256,
@@ -170,6 +176,7 @@ impl Default for RenderingNetConfig {
             hidden: 512,
             depth: 4,
             force_reference: false,
+            point_encoding: PointEncoding::Identity,
         }
     }
 }
@@ -177,10 +184,10 @@ impl Default for RenderingNetConfig {
 /// IDR's rendering network (Yariv et al. 2020); build it with [`rendering_net`].
 ///
 /// ```text
-/// rgb = σ(MLP([p, γ(v/‖v‖), n, f]))
+/// rgb = σ(MLP([γₚ(p), γ(v/‖v‖), n, f]))
 /// ```
 ///
-/// with `p` the surface point, `v` the viewing direction (encoded by `L` frequencies,
+/// with `p` the surface point (`γₚ` the configured point encoding, IDR's identity), `v` the viewing direction (encoded by `L` frequencies,
 /// input included), `n` the normal as given (IDR feeds the SDF's unnormalised gradient)
 /// and `f` the geometry network's feature vector; a ReLU MLP whose output goes through a
 /// sigmoid (IDR's tanh mapped to `[0, 1]`). With `n = ∇f(p̂)` from
@@ -202,8 +209,17 @@ pub struct RenderingNet {
 ///
 /// # Errors
 /// `hidden` or `depth` 0, `view_frequencies` too large for
-/// [`FrequencyEncoding::new`]; errors of `vb`.
+/// [`FrequencyEncoding::new`], a point encoding of other than 3-D points (naming
+/// `config.point_encoding`); errors of `vb`.
 pub fn rendering_net(config: &RenderingNetConfig, vb: VarBuilder) -> Result<RenderingNet> {
+    let enc_in = config.point_encoding.in_dim().unwrap_or(3);
+    if enc_in != 3 {
+        return Err(Error::invalid(
+            "config.point_encoding",
+            "an encoding of 3-D points",
+            format!("one of {enc_in}-D inputs"),
+        ));
+    }
     let view = config
         .view_frequencies
         .map(|l| FrequencyEncoding::new(3, l))
@@ -219,7 +235,7 @@ pub fn rendering_net(config: &RenderingNetConfig, vb: VarBuilder) -> Result<Rend
         depth: config.depth,
         activation: Activation::Relu,
         skips: Vec::new(),
-        encoding: PointEncoding::Identity,
+        encoding: config.point_encoding.clone(),
         geometric_init: None,
         inside: Inside::Positive,
         force_reference: config.force_reference,
