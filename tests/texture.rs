@@ -156,6 +156,26 @@ fn texture_decoder_starts_grey_and_reads_only_its_codes() -> neural_fields::Resu
     };
     let e = texture_decoder(&zero, VarBuilder::zeros(DType::F32, &DEV)).unwrap_err();
     assert!(e.to_string().starts_with("config.blocks"), "{e}");
+    // Encodings of other than 3-D points are refused, naming the field.
+    let two_d = PointEncoding::Frequency(FrequencyEncoding::new(2, 3)?);
+    let e = texture_decoder(
+        &TextureDecoderConfig {
+            encoding: two_d.clone(),
+            ..TextureDecoderConfig::default()
+        },
+        VarBuilder::zeros(DType::F32, &DEV),
+    )
+    .unwrap_err();
+    assert!(e.to_string().starts_with("config.encoding"), "{e}");
+    let e = rendering_net(
+        &RenderingNetConfig {
+            point_encoding: two_d,
+            ..RenderingNetConfig::default()
+        },
+        VarBuilder::zeros(DType::F32, &DEV),
+    )
+    .unwrap_err();
+    assert!(e.to_string().starts_with("config.point_encoding"), "{e}");
     Ok(())
 }
 

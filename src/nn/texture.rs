@@ -89,14 +89,7 @@ pub struct TextureDecoder {
 /// `hidden` or `blocks` 0 (naming `config.*`), an encoding of other than 3-D points
 /// (naming `config.encoding`); errors of `vb`.
 pub fn texture_decoder(config: &TextureDecoderConfig, vb: VarBuilder) -> Result<TextureDecoder> {
-    let enc_in = config.encoding.in_dim().unwrap_or(3);
-    if enc_in != 3 {
-        return Err(Error::invalid(
-            "config.encoding",
-            "an encoding of 3-D points",
-            format!("one of {enc_in}-D inputs"),
-        ));
-    }
+    check_point_encoding(&config.encoding, "config.encoding")?;
     Ok(TextureDecoder {
         trunk: ResnetFc::new(
             config.encoding.out_dim_for(3),
@@ -181,6 +174,19 @@ impl Default for RenderingNetConfig {
     }
 }
 
+/// Checks that `encoding` reads 3-D points (an identity reads any).
+fn check_point_encoding(encoding: &PointEncoding, arg: &'static str) -> Result<()> {
+    let enc_in = encoding.in_dim().unwrap_or(3);
+    if enc_in != 3 {
+        return Err(Error::invalid(
+            arg,
+            "an encoding of 3-D points",
+            format!("one of {enc_in}-D inputs"),
+        ));
+    }
+    Ok(())
+}
+
 /// IDR's rendering network (Yariv et al. 2020); build it with [`rendering_net`].
 ///
 /// ```text
@@ -212,14 +218,7 @@ pub struct RenderingNet {
 /// [`FrequencyEncoding::new`], a point encoding of other than 3-D points (naming
 /// `config.point_encoding`); errors of `vb`.
 pub fn rendering_net(config: &RenderingNetConfig, vb: VarBuilder) -> Result<RenderingNet> {
-    let enc_in = config.point_encoding.in_dim().unwrap_or(3);
-    if enc_in != 3 {
-        return Err(Error::invalid(
-            "config.point_encoding",
-            "an encoding of 3-D points",
-            format!("one of {enc_in}-D inputs"),
-        ));
-    }
+    check_point_encoding(&config.point_encoding, "config.point_encoding")?;
     let view = config
         .view_frequencies
         .map(|l| FrequencyEncoding::new(3, l))
