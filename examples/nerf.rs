@@ -389,11 +389,12 @@ impl Renderer<'_> {
         let (mut colors, mut depths, mut opacities) = (Vec::new(), Vec::new(), Vec::new());
         // Whole pixels per chunk, so that each pixel's k² rays fall in one chunk.
         let chunk = (CHUNK / (k * k)).max(1) * k * k;
+        let background = Tensor::new(&[[r as f32, g as f32, b as f32]], &Device::Cpu)?
+            .broadcast_as((chunk.min(n), 3))?
+            .contiguous()?;
         for start in (0..n).step_by(chunk) {
             let len = chunk.min(n - start);
-            let background = Tensor::new(&[[r as f32, g as f32, b as f32]], &Device::Cpu)?
-                .broadcast_as((len, 3))?
-                .contiguous()?;
+            let background = background.narrow(0, 0, len)?;
             let (out, _, _) = self.render(&all.narrow(start, len)?, &background, None)?;
             let px = len / (k * k);
             let mean = |t: Tensor, c: usize| -> Result<Tensor> {
