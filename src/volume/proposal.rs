@@ -157,10 +157,13 @@ pub fn proposal_sample(
     Ok(ProposalSamples { intervals, levels })
 }
 
-/// The per-ray overlap matrix `M[r, i, j] = 1` where interval `i` of `fine` and interval
-/// `j` of `coarse` intersect in an open set (`ŝⱼ < eᵢ` and `êⱼ > sᵢ`), by a two-pointer
-/// sweep over the sorted intervals (O(S + Ŝ) per ray, plus the output).
-fn overlaps(fine: &Intervals, coarse: &Intervals) -> Result<Tensor> {
+/// The pairs `(i, j)` of fine interval `i` and coarse interval `j` of the same ray that
+/// intersect in an open set (`ŝⱼ < eᵢ` and `êⱼ > sᵢ`), as two u32 index tensors `[P]` into
+/// the flattened `[R·S]` fine and `[R·Ŝ]` coarse intervals, fine index ascending. Both sets
+/// are sorted along each ray and disjoint within a set (what [`stratified`] and
+/// [`sample_pdf`] produce), so the pairs form a staircase: at most `S + Ŝ − 1` per ray,
+/// found by a two-pointer sweep (no `[R, S, Ŝ]` overlap matrix).
+fn overlap_pairs(fine: &Intervals, coarse: &Intervals) -> Result<(Tensor, Tensor)> {
     let (r, s) = fine.starts.dims2()?;
     let (r2, sc) = coarse.starts.dims2()?;
     if r != r2 {
@@ -175,9 +178,18 @@ fn overlaps(fine: &Intervals, coarse: &Intervals) -> Result<Tensor> {
     };
     let (fs, fe) = (host(&fine.starts)?, host(&fine.ends)?);
     let (cs, ce) = (host(&coarse.starts)?, host(&coarse.ends)?);
-    let mut m = vec![0f64; r * s * sc];
+    let index = |k: usize| -> Result<u32> {
+        u32::try_from(k).map_err(|_| {
+            Error::invalid(
+                "proposal",
+                "fewer than 2³² intervals",
+                format!("{r} rays × {}", s.max(sc)),
+            )
+        })
+    };
+    let (mut fine_idx, mut coarse_idx) = (Vec::new(), Vec::new());
     for ray in 0..r {
-        let mut first = 0; // first coarse interval that may still overlap
+        let mut first = 0; // the first coarse interval that may still overlap
         for i in 0..s {
             let (a, b) = (fs[ray * s + i], fe[ray * s + i]);
             while first < sc && ce[ray * sc + first] <= a {
@@ -185,14 +197,18 @@ fn overlaps(fine: &Intervals, coarse: &Intervals) -> Result<Tensor> {
             }
             let mut j = first;
             while j < sc && cs[ray * sc + j] < b {
-                if ce[ray * sc + j] > a {
-                    m[(ray * s + i) * sc + j] = 1.0;
-                }
+                fine_idx.push(index(ray * s + i)?);
+                coarse_idx.push(index(ray * sc + j)?);
                 j += 1;
             }
         }
     }
-    Ok(Tensor::from_vec(m, (r, s, sc), fine.starts.device())?.to_dtype(fine.starts.dtype())?)
+    let dev = fine.starts.device();
+    let p = fine_idx.len();
+    Ok((
+        Tensor::from_vec(fine_idx, p, dev)?,
+        Tensor::from_vec(coarse_idx, p, dev)?,
+    ))
 }
 
 /// mip-NeRF 360's interlevel (proposal) loss between a proposal level and the final
@@ -242,9 +258,18 @@ pub fn interlevel_loss(
             format!("{:?}", weights.dtype()),
         ));
     }
-    let m = overlaps(intervals, coarse)?;
+    let (fine_idx, coarse_idx) = overlap_pairs(intervals, coarse)?;
     let (r, s) = weights.dims2()?;
-    let bound = m.matmul(&w_hat.unsqueeze(2)?)?.reshape((r, s))?;
+    // boundᵢ = Σ ŵⱼ over the overlapping pairs: a gather and an index-add, exact sums in
+    // O(R·(S + Ŝ)) memory, differentiable w.r.t. ŵ.
+    let zero = Tensor::zeros(r * s, w_hat.dtype(), w_hat.device())?;
+    let bound = if fine_idx.dim(0)? == 0 {
+        zero
+    } else {
+        let gathered = w_hat.flatten_all()?.index_select(&coarse_idx, 0)?;
+        zero.index_add(&fine_idx, &gathered, 0)?
+    }
+    .reshape((r, s))?;
     let w = weights.detach();
     let excess = (&w - &bound)?.relu()?;
     let per = (excess.sqr()? / (w + 1e-7)?)?;
