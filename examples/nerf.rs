@@ -53,13 +53,20 @@
 //! `--eval-supersample K` (1 to 8) the mean of `K × K` rays on a sub-pixel grid (a box
 //! filter, as the images were rendered by integrating over each pixel). `--jitter on`
 //! trains on rays through random points of their pixels instead of the centres
-//! ([`RaySampler::with_jitter`], instant-NGP's training rays).
+//! ([`RaySampler::with_jitter`], instant-NGP's training rays); `--train-supersample K`
+//! renders `K × K` rays per training pixel and compares their mean with the pixel
+//! ([`RaySampler::pixel_footprints`]: box-filtered training, the model of such images,
+//! with `--rays / K²` pixels per step). `--march-jitter on` shifts each training ray's
+//! grid-march steps by a random fraction of a step
+//! ([`GridMarchConfig::with_jitter`](neural_fields::volume::GridMarchConfig::with_jitter)),
+//! so the field is not fitted at the same points along a ray every step.
 //!
 //! **Output** in `--out DIR` (default `out/nerf`):
 //! - `metrics.json`: `psnr`, `ssim` (means over the held-out views), `train_seconds`
 //!   (evaluation excluded), `steps`, `samples_per_ray` (mean over training), `sampler`,
 //!   `encoding`,
-//!   `eval_split`, `eval_views`, `eval_supersample`, `data`;
+//!   `eval_split`, `eval_views`, `eval_supersample`, `jitter`, `train_supersample`,
+//!   `march_jitter`, `data`;
 //! - `curve.csv`: `step,train_seconds,psnr` every `--eval-every` steps (PSNR on the first
 //!   `--eval-views` held-out views);
 //! - `view_{i}.png` (truth | prediction | error), `depth_{i}.png`, `opacity_{i}.png` for
@@ -126,6 +133,11 @@ pub struct Args {
     pub eval_supersample: usize,
     /// Training rays through random points of their pixels instead of the centres.
     pub jitter: bool,
+    /// Rays per pixel side in training: `k × k` rays per pixel, their mean compared with
+    /// the pixel (`--rays` counts rays, so `--rays / k²` pixels per step).
+    pub train_supersample: usize,
+    /// Shift the grid march's step lattice at random per ray in training.
+    pub march_jitter: bool,
     pub pictures: usize,
     pub resume: Option<PathBuf>,
     pub lr: Option<f64>,
@@ -142,7 +154,8 @@ pub struct Args {
 const USAGE: &str = "usage: nerf [--data DIR] [--minutes M | --steps N] [--out DIR] [--seed S] \
 [--sampler grid|stratified|proposal] [--downscale K] [--rays N] [--samples N] [--aabb R] \
 [--eval-every N] [--eval-views N] [--pictures N] [--resume FILE] [--lr LR] [--background random|white|black] [--frames I,J,K] [--regnerf on|off] \
-[--encoding pe|hash] [--hash-log2 T] [--hash-finest N] [--eval-supersample K] [--jitter on|off]";
+[--encoding pe|hash] [--hash-log2 T] [--hash-finest N] [--eval-supersample K] [--jitter on|off] \
+[--train-supersample K] [--march-jitter on|off]";
 
 impl Default for Args {
     /// The defaults of the command line.
@@ -162,6 +175,8 @@ impl Default for Args {
             eval_views: 4,
             eval_supersample: 1,
             jitter: false,
+            train_supersample: 1,
+            march_jitter: false,
             pictures: 8,
             resume: None,
             lr: None,
@@ -211,6 +226,8 @@ fn parse_args() -> std::result::Result<Args, String> {
             "--eval-views" => a.eval_views = int(flag, value)?,
             "--eval-supersample" => a.eval_supersample = int(flag, value)?,
             "--jitter" => a.jitter = training::on_off(flag, value)?,
+            "--train-supersample" => a.train_supersample = int(flag, value)?,
+            "--march-jitter" => a.march_jitter = training::on_off(flag, value)?,
             "--pictures" => a.pictures = int(flag, value)?,
             "--resume" => a.resume = Some(value.into()),
             "--lr" => a.lr = Some(num(flag, value)?),
@@ -249,10 +266,13 @@ fn parse_args() -> std::result::Result<Args, String> {
         || a.eval_every == 0
         || a.eval_views == 0
         || !(1..=8).contains(&a.eval_supersample)
+        || !(1..=8).contains(&a.train_supersample)
+        || a.rays < a.train_supersample * a.train_supersample
     {
         return Err(
             "--rays, --samples, --eval-every and --eval-views must be positive, \
-                    --eval-supersample between 1 and 8"
+                    --eval-supersample and --train-supersample between 1 and 8, \
+                    --rays at least the square of --train-supersample"
                 .into(),
         );
     }
@@ -272,6 +292,8 @@ struct Renderer<'a> {
     aabb: [f64; 6],
     step_size: f64,
     samples: usize,
+    /// Shift the grid march's steps at random in training (`--march-jitter`).
+    march_jitter: bool,
 }
 
 impl Renderer<'_> {
@@ -291,6 +313,12 @@ impl Renderer<'_> {
         let intervals = match self.grid {
             Some(grid) => {
                 let march = GridMarchConfig::new(0.0, f64::INFINITY, self.step_size);
+                // Training shifts each ray's step lattice at random (nerfacc's stratified
+                // march), so the field is not fitted at the same points every step.
+                let march = match seed {
+                    Some(seed) if self.march_jitter => march.with_jitter(seed),
+                    _ => march,
+                };
                 let iv = grid.sample(rays, &march)?.intervals;
                 // Early termination: the density without a graph, then only the visible
                 // samples through the whole network.
@@ -602,15 +630,28 @@ pub fn run(args: &Args) -> Result<Summary> {
                 _ => diag / 256.0,
             },
             samples: args.samples,
+            march_jitter: args.march_jitter,
         };
-        let batch = sampler.pixels(args.rays)?;
+        let k = args.train_supersample;
+        let batch = if k > 1 {
+            sampler.pixel_footprints(args.rays / (k * k), k)?
+        } else {
+            sampler.pixels(args.rays)?
+        };
         let (out, n, interlevel) = renderer.render(
             &batch.rays,
             &batch.backgrounds,
             Some(args.seed ^ step as u64),
         )?;
         samples_total += n;
-        let photometric = (out.color - &batch.colors)?.sqr()?.mean_all()?;
+        // Each pixel's k² rays averaged (a box filter), against the pixel's colour.
+        let per_pixel = |c: &Tensor| -> Result<Tensor> {
+            let px = c.dim(0)? / (k * k);
+            Ok(c.reshape((px, k * k, 3))?.mean(1)?)
+        };
+        let photometric = (per_pixel(&out.color)? - per_pixel(&batch.colors)?)?
+            .sqr()?
+            .mean_all()?;
         let mut loss = (&photometric + interlevel)?;
         if args.regnerf {
             let weight = log_linear_schedule(step, 400.0, 0.1, 512);
@@ -659,6 +700,7 @@ pub fn run(args: &Args) -> Result<Summary> {
         aabb,
         step_size: diag / 256.0,
         samples: args.samples,
+        march_jitter: false,
     };
     if let Some(g) = &grid {
         println!(
@@ -698,6 +740,8 @@ pub fn run(args: &Args) -> Result<Summary> {
         "eval_views": eval.len(),
         "eval_supersample": args.eval_supersample,
         "jitter": args.jitter,
+        "train_supersample": args.train_supersample,
+        "march_jitter": args.march_jitter,
         "data": args.data.display().to_string(),
     });
     training::write_json(&args.out.join("metrics.json"), &metrics)?;
@@ -801,14 +845,18 @@ mod tests {
         args.resume = None;
         args.sampler = Sampler::Proposal;
         run(&args).unwrap();
-        // The hash-grid encoding.
+        // The hash-grid encoding, with box-filtered training rays and a jittered march.
         args.sampler = Sampler::Grid;
         args.encoding = PositionEncoding::Hash;
+        args.train_supersample = 2;
+        args.march_jitter = true;
         run(&args).unwrap();
         let metrics: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap())
                 .unwrap();
         assert_eq!(metrics["encoding"], "hash");
+        assert_eq!(metrics["train_supersample"], 2);
+        assert_eq!(metrics["march_jitter"], true);
         let _ = std::fs::remove_dir_all(&out);
     }
 }

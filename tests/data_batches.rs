@@ -373,10 +373,6 @@ fn view_chunks_cover_the_image_in_row_major_order() {
         .rgb([0.2, 0.4, 0.6], &Device::Cpu, DType::F32)
         .unwrap());
     assert_eq!(colors, want);
-    let arg = |r: neural_fields::Result<neural_fields::data::RayBatch>| match r {
-        Err(Error::InvalidArgument { arg, .. }) => arg,
-        other => panic!("{:?}", other.map(|b| b.len())),
-    };
     assert_eq!(
         arg(data.view_rays(2, 0, 1, &Device::Cpu, DType::F32)),
         "view"
@@ -481,4 +477,76 @@ fn jittered_rays_stay_inside_their_pixels_and_subpixel_grids_average_to_centres(
         .into_iter()
         .fold(0.0f64, |m, x| m.max(x.abs()));
     assert!(err < 1e-12, "{err}");
+}
+
+/// `pixel_footprints(n, k)`: `n` pixels drawn as `pixels(n)` draws them, each pixel's `k²`
+/// rays through its sub-pixel centres (as `Camera::subpixel_grid` places them) or, jittered,
+/// through one random point of each sub-pixel; per-ray colours and backgrounds repeat the
+/// pixel's; bad `k` and `n` are errors naming them.
+#[test]
+fn pixel_footprints_cover_each_pixel_with_its_subpixel_grid() {
+    let data = load(Path::new(WUSON), &of_split(Split::Train)).unwrap();
+    let d = Device::Cpu;
+    let (n, k) = (64, 3);
+    let plain = RaySampler::new(&data, 11, &d, DType::F64)
+        .unwrap()
+        .pixels(n)
+        .unwrap();
+    for jitter in [false, true] {
+        let batch = RaySampler::new(&data, 11, &d, DType::F64)
+            .unwrap()
+            .with_jitter(jitter)
+            .pixel_footprints(n, k)
+            .unwrap();
+        assert_eq!(batch.len(), n * k * k);
+        let px = batch.pixels.to_vec2::<u32>().unwrap();
+        let views = batch.views.to_vec1::<u32>().unwrap();
+        let colors = batch.colors.to_vec2::<f64>().unwrap();
+        let bgs = batch.backgrounds.to_vec2::<f64>().unwrap();
+        // The same pixels and backgrounds as `pixels(n)` with the same seed, each repeated.
+        let want_px = plain.pixels.to_vec2::<u32>().unwrap();
+        let want_bg = plain.backgrounds.to_vec2::<f64>().unwrap();
+        let want_c = plain.colors.to_vec2::<f64>().unwrap();
+        let (o, dir) = (
+            batch.rays.origins().to_vec2::<f64>().unwrap(),
+            batch.rays.directions().to_vec2::<f64>().unwrap(),
+        );
+        for r in 0..n * k * k {
+            let (p, sub) = (r / (k * k), r % (k * k));
+            assert_eq!(px[r], want_px[p], "ray {r}");
+            assert_eq!(bgs[r], want_bg[p], "ray {r}");
+            assert_eq!(colors[r], want_c[p], "ray {r}");
+            let camera = data.views()[views[r] as usize].camera();
+            let point = DVec3::from_slice(&o[r]) + 2.0 * DVec3::from_slice(&dir[r]);
+            let at = camera.project(point).unwrap();
+            // Sub-pixel (i, j) of the pixel: [(j, i), (j + 1, i + 1)] / k.
+            let (i, j) = ((sub / k) as f64, (sub % k) as f64);
+            let fu = (at.x - f64::from(px[r][0])) * k as f64 - j;
+            let fv = (at.y - f64::from(px[r][1])) * k as f64 - i;
+            if jitter {
+                assert!(
+                    (-1e-9..1.0 + 1e-9).contains(&fu) && (-1e-9..1.0 + 1e-9).contains(&fv),
+                    "ray {r} leaves its sub-pixel: ({fu}, {fv})"
+                );
+            } else {
+                assert!(
+                    (fu - 0.5).abs() < 1e-9 && (fv - 0.5).abs() < 1e-9,
+                    "ray {r} misses its sub-pixel centre: ({fu}, {fv})"
+                );
+            }
+        }
+    }
+    let mut sampler = RaySampler::new(&data, 0, &d, DType::F32).unwrap();
+    assert_eq!(arg(sampler.pixel_footprints(4, 0)), "k");
+    assert_eq!(arg(sampler.pixel_footprints(4, 65)), "k");
+    assert_eq!(arg(sampler.pixel_footprints(0, 2)), "n");
+    assert_eq!(arg(sampler.pixel_footprints(1 << 27, 2)), "n");
+}
+
+/// The argument an `InvalidArgument` error names.
+fn arg(r: neural_fields::Result<neural_fields::data::RayBatch>) -> &'static str {
+    match r {
+        Err(Error::InvalidArgument { arg, .. }) => arg,
+        other => panic!("{:?}", other.map(|b| b.len())),
+    }
 }

@@ -1550,6 +1550,20 @@ fn sweep_volume(s: &mut Suite) {
                         ])
                     },
                 );
+                s.case(
+                    "volume::grid::GridMarchConfig::with_jitter",
+                    &cl,
+                    Expect::Finite,
+                    &[],
+                    || {
+                        let gs = grid.sample(&grid_rays, &march.with_jitter(u64::MAX))?;
+                        let iv = &gs.intervals;
+                        Ok(vec![
+                            iv.deltas(Some(&grid_rays))?,
+                            iv.positions(&grid_rays)?,
+                        ])
+                    },
+                );
                 let gs = grid.sample(&grid_rays, &march).unwrap();
                 s.case(
                     "volume::layout::Intervals::midpoints",
@@ -2702,6 +2716,7 @@ const DATA_COVERED: &[&str] = &[
     "data::batch::Dataset::view_rays",
     "data::batch::RaySampler::new",
     "data::batch::RaySampler::patches",
+    "data::batch::RaySampler::pixel_footprints",
     "data::batch::RaySampler::pixels",
     "data::dataset::Dataset::new",
     "data::dataset::View::mask",
@@ -2749,6 +2764,7 @@ const VOLUME_COVERED: &[&str] = &[
     "volume::composite::render_weights",
     "volume::composite::visible_mask",
     "volume::grid::GridMarchConfig::new",
+    "volume::grid::GridMarchConfig::with_jitter",
     "volume::grid::OccupancyGrid::new",
     "volume::grid::OccupancyGrid::sample",
     "volume::grid::OccupancyGrid::update",
@@ -3559,6 +3575,18 @@ fn sweep_data(s: &mut Suite) {
                         b.colors,
                         b.backgrounds,
                     ])
+                },
+            );
+            s.case(
+                "data::batch::RaySampler::pixel_footprints",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let b = RaySampler::new(&data, 0, &d, dtype)?
+                        .with_jitter(true)
+                        .pixel_footprints(16, 2)?;
+                    Ok(vec![b.rays.directions().clone(), b.colors, b.backgrounds])
                 },
             );
             s.case(

@@ -553,8 +553,14 @@ fn jumping_over_empty_cells_gives_exactly_the_step_by_step_march() {
     let o = Tensor::from_vec(o, (n, 3), &dev).unwrap();
     let d = Tensor::from_vec(d, (n, 3), &dev).unwrap();
     let rays = Rays::new(o.clone(), d.clone()).unwrap();
-    for h in [0.01, 0.0137, 0.05] {
-        let opts = GridMarchConfig::new(0.0, f64::INFINITY, h);
+    for (h, jitter) in [0.01f64, 0.0137, 0.05]
+        .into_iter()
+        .flat_map(|h| [(h, None), (h, Some(h.to_bits()))])
+    {
+        let opts = GridMarchConfig {
+            jitter,
+            ..GridMarchConfig::new(0.0, f64::INFINITY, h)
+        };
         let full = full_grid.sample(&rays, &opts).unwrap();
         let skip = grid.sample(&rays, &opts).unwrap();
         assert_eq!(full.n_marched, skip.n_marched);
@@ -583,7 +589,7 @@ fn jumping_over_empty_cells_gives_exactly_the_step_by_step_march() {
         let sr = packed(&skip).ray_indices.to_vec1::<u32>().unwrap();
         let got: Vec<(u32, f64, f64)> = (0..ss.len()).map(|i| (sr[i], ss[i], se[i])).collect();
         println!(
-            "step {h}: {} intervals marched, {} kept (occupied {:.1}% of cells)",
+            "step {h}, jitter {jitter:?}: {} intervals marched, {} kept (occupied {:.1}% of cells)",
             full.n_marched,
             got.len(),
             100.0 * occ
@@ -594,4 +600,71 @@ fn jumping_over_empty_cells_gives_exactly_the_step_by_step_march() {
             "step {h}: jumped march differs from the step-by-step one"
         );
     }
+}
+
+/// Per-ray (start, end) lists of packed grid samples.
+fn per_ray(s: &GridSamples, rays: usize) -> Vec<Vec<(f64, f64)>> {
+    let st = s.intervals.starts.to_vec1::<f64>().unwrap();
+    let en = s.intervals.ends.to_vec1::<f64>().unwrap();
+    let ri = packed(s).ray_indices.to_vec1::<u32>().unwrap();
+    let mut out = vec![Vec::new(); rays];
+    for i in 0..st.len() {
+        out[ri[i] as usize].push((st[i], en[i]));
+    }
+    out
+}
+
+#[test]
+fn a_jittered_march_tiles_the_same_range_with_a_shifted_lattice() {
+    let full = grid_new([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0], 8, 1).unwrap();
+    let rays = rays(6, DType::F64);
+    let h = 0.05;
+    let plain = per_ray(
+        &full
+            .sample(&rays, &GridMarchConfig::new(0.0, 100.0, h))
+            .unwrap(),
+        36,
+    );
+    let jittered: Vec<_> = [1u64, 2]
+        .iter()
+        .map(|&seed| {
+            let opts = GridMarchConfig::new(0.0, 100.0, h).with_jitter(seed);
+            per_ray(&full.sample(&rays, &opts).unwrap(), 36)
+        })
+        .collect();
+    let mut first_lengths = Vec::new();
+    for (r, p) in plain.iter().enumerate() {
+        let (entry, exit) = (p[0].0, p[p.len() - 1].1);
+        for j in &jittered {
+            let j = &j[r];
+            // The same range, tiled without gaps or overlaps.
+            assert_eq!(j[0].0, entry, "ray {r}");
+            assert_eq!(j[j.len() - 1].1, exit, "ray {r}");
+            assert!(j.windows(2).all(|w| w[0].1 == w[1].0 && w[0].0 < w[0].1));
+            // A partial first step, then whole steps (but the last).
+            let first = j[0].1 - j[0].0;
+            assert!(
+                first > 0.0 && first <= h * (1.0 + 1e-12),
+                "ray {r}: {first}"
+            );
+            for w in &j[1..j.len() - 1] {
+                assert!((w.1 - w.0 - h).abs() < 1e-12, "ray {r}: {w:?}");
+            }
+            first_lengths.push(first / h);
+        }
+    }
+    // Two seeds shift differently, and the shifts spread over (0, 1].
+    assert_ne!(jittered[0], jittered[1]);
+    let (lo, hi) = first_lengths
+        .iter()
+        .fold((1.0f64, 0.0f64), |(a, b), &x| (a.min(x), b.max(x)));
+    assert!(lo < 0.2 && hi > 0.8, "shifts in [{lo}, {hi}]");
+    // The same seed gives the same march.
+    let again = per_ray(
+        &full
+            .sample(&rays, &GridMarchConfig::new(0.0, 100.0, h).with_jitter(1))
+            .unwrap(),
+        36,
+    );
+    assert_eq!(again, jittered[0]);
 }

@@ -197,18 +197,7 @@ impl<'a> RaySampler<'a> {
     /// [`Error::InvalidArgument`] naming `n` if 0 or above 2²⁸.
     pub fn pixels(&mut self, n: usize) -> Result<RayBatch> {
         check_count(n, "n")?;
-        // invariant: a Dataset holds at least one view (Dataset::new), so `ends` is non-empty.
-        let total = self.ends.last().copied().unwrap_or(0);
-        let picks: Vec<_> = (0..n)
-            .map(|_| {
-                let i = self.rng.below(total);
-                let view = self.ends.partition_point(|&e| e <= i);
-                let start = if view == 0 { 0 } else { self.ends[view - 1] };
-                let w = self.dataset.views()[view].image().width() as u64;
-                let local = i - start;
-                (view, (local % w) as usize, (local / w) as usize)
-            })
-            .collect();
+        let picks = self.draw_pixels(n);
         let bgs = self.backgrounds(n);
         let offsets: Option<Vec<[f64; 2]>> = self.jitter.then(|| {
             (0..n)
@@ -223,6 +212,92 @@ impl<'a> RaySampler<'a> {
             &self.device,
             self.dtype,
         )
+    }
+
+    /// `n` pixels drawn as [`RaySampler::pixels`] draws them, each imaged by `k × k` rays
+    /// on the sub-pixel grid of [`crate::camera::Camera::subpixel_grid`] (with
+    /// [`RaySampler::with_jitter`], through a uniformly random point of each sub-pixel:
+    /// stratified over the pixel). Rays are pixel-major: rays `p·k² … (p + 1)·k² − 1` belong
+    /// to pixel `p`, and every per-ray field (`colors`, `backgrounds`, `masks`, `views`,
+    /// `pixels`) repeats the pixel's value over its `k²` rays. Average a prediction over each
+    /// run of `k²` rays (`pred.reshape((n, k², 3))?.mean(1)`) to compare it with a pixel
+    /// that integrates over its footprint (antialiased renders, real sensors): the
+    /// box-filtered training that matches supersampled evaluation.
+    ///
+    /// ```
+    /// # use neural_fields::camera::{Camera, Convention, Intrinsics};
+    /// # use neural_fields::data::{Background, Dataset, Image, RaySampler, View};
+    /// # use neural_fields::glam::DVec3;
+    /// # use candle_core::{DType, Device};
+    /// # let k = Intrinsics::from_fov_y(8, 6, 0.8)?;
+    /// # let cam = Camera::look_at(k, DVec3::new(0.0, -3.0, 0.0), DVec3::ZERO, DVec3::Z, Convention::OpenGl)?;
+    /// # let image = Image::new(8, 6, 3, vec![128; 8 * 6 * 3])?;
+    /// # let data = Dataset::new(vec![View::new(cam, image, None, "grey".into())?], Background::default(), None)?;
+    /// let mut sampler = RaySampler::new(&data, 0, &Device::Cpu, DType::F32)?;
+    /// let batch = sampler.pixel_footprints(256, 2)?;     // 256 pixels × 4 rays
+    /// assert_eq!(batch.len(), 1024);
+    /// let target = batch.colors.reshape((256, 4, 3))?.mean(1)?; // each pixel's colour
+    /// assert_eq!(target.dims(), &[256, 3]);
+    /// # Ok::<(), neural_fields::Error>(())
+    /// ```
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `k` unless between 1 and 64, and `n` if 0 or if
+    /// `n · k²` is above 2²⁸.
+    pub fn pixel_footprints(&mut self, n: usize, k: usize) -> Result<RayBatch> {
+        if !(1..=64).contains(&k) {
+            return Err(Error::invalid(
+                "k",
+                "1 to 64 rays per pixel side",
+                k.to_string(),
+            ));
+        }
+        check_count(n.saturating_mul(k * k), "n")?;
+        let picks = self.draw_pixels(n);
+        let bgs = self.backgrounds(n);
+        let kk = k * k;
+        let cell = 1.0 / k as f64;
+        let mut offsets = Vec::with_capacity(n * kk);
+        for _ in 0..n {
+            for i in 0..k {
+                for j in 0..k {
+                    let (du, dv) = if self.jitter {
+                        (self.rng.uniform(), self.rng.uniform())
+                    } else {
+                        (0.5, 0.5)
+                    };
+                    offsets.push([(j as f64 + du) * cell, (i as f64 + dv) * cell]);
+                }
+            }
+        }
+        fn repeat<T: Copy>(v: &[T], k: usize) -> Vec<T> {
+            v.iter().flat_map(|&x| std::iter::repeat_n(x, k)).collect()
+        }
+        let (picks, bgs) = (repeat(&picks, kk), repeat(&bgs, kk));
+        gather(
+            self.dataset,
+            &picks,
+            Some(&offsets),
+            &bgs,
+            &self.device,
+            self.dtype,
+        )
+    }
+
+    /// `n` pixels `(view, u, v)` drawn uniformly over all pixels of all views.
+    fn draw_pixels(&mut self, n: usize) -> Vec<(usize, usize, usize)> {
+        // invariant: a Dataset holds at least one view (Dataset::new), so `ends` is non-empty.
+        let total = self.ends.last().copied().unwrap_or(0);
+        (0..n)
+            .map(|_| {
+                let i = self.rng.below(total);
+                let view = self.ends.partition_point(|&e| e <= i);
+                let start = if view == 0 { 0 } else { self.ends[view - 1] };
+                let w = self.dataset.views()[view].image().width() as u64;
+                let local = i - start;
+                (view, (local % w) as usize, (local / w) as usize)
+            })
+            .collect()
     }
 
     /// `count` square patches of `k × k` adjacent pixels (RegNeRF's depth smoothness and

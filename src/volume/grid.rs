@@ -40,6 +40,7 @@
 
 use crate::camera::Rays;
 use crate::error::{check_float, check_scalar, Error, Result};
+use crate::rng::SplitMix64;
 use crate::volume::layout::{host_f64, Intervals, Layout, Packed};
 use crate::volume::sampling::{from_host, stream};
 use candle_core::{DType, Device, Tensor};
@@ -124,6 +125,13 @@ pub struct GridMarchConfig {
     pub cone_angle: f64,
     /// Largest step under cone stepping (default 1e10).
     pub max_step: f64,
+    /// `Some(seed)`: shift each ray's fixed-step lattice by a random fraction of a step
+    /// (nerfacc's stratified march, for training), so that over the steps a field sees
+    /// every point along a ray rather than the same `t` each time; the first interval is
+    /// then the partial one `[t_entry, t_entry + u·Δt]`, `u ~ U(0, 1)` drawn per ray from
+    /// `seed` and the ray index. The intervals still tile `[t_entry, t_exit]`. `None`
+    /// (the default): the lattice starts at `t_entry` (evaluation). Cone stepping ignores it.
+    pub jitter: Option<u64>,
 }
 
 impl GridMarchConfig {
@@ -136,6 +144,17 @@ impl GridMarchConfig {
             step_size,
             cone_angle: 0.0,
             max_step: 1e10,
+            jitter: None,
+        }
+    }
+
+    /// The same march with each ray's step lattice shifted at random (see
+    /// [`GridMarchConfig::jitter`]): `seed` should change every training step.
+    #[must_use]
+    pub fn with_jitter(self, seed: u64) -> Self {
+        GridMarchConfig {
+            jitter: Some(seed),
+            ..self
         }
     }
 }
@@ -149,16 +168,19 @@ fn point(o: &[f64; 3], d: &[f64; 3], m: f64) -> [f64; 3] {
 struct FixedMarch {
     o: [f64; 3],
     d: [f64; 3],
+    /// Origin of the step lattice, `≤ entry` (below it when jittered).
     t0: f64,
+    /// Where the march enters the box (or `near`).
+    entry: f64,
     t1: f64,
     h: f64,
     n_steps: usize,
 }
 
 impl FixedMarch {
-    /// Interval `k`: `[t0 + k·h, min(t0 + (k + 1)·h, t1)]`.
+    /// Interval `k`: `[max(t0 + k·h, entry), min(t0 + (k + 1)·h, t1)]`.
     fn interval(&self, k: usize) -> (f64, f64) {
-        let t = self.t0 + k as f64 * self.h;
+        let t = (self.t0 + k as f64 * self.h).max(self.entry);
         let te = (self.t0 + (k + 1) as f64 * self.h).min(self.t1);
         (t, te)
     }
@@ -587,6 +609,7 @@ impl OccupancyGrid {
             step_size,
             cone_angle,
             max_step,
+            jitter,
         } = *config;
         let r = rays.len();
         let (origins, directions) = (rays.origins(), rays.directions());
@@ -663,12 +686,21 @@ impl OccupancyGrid {
                     }
                     return Ok((kept, marched));
                 }
-                // Fixed step: interval k is [t0 + k·h, min(t0 + (k + 1)·h, t1)] for
-                // k < n_steps, and runs of empty cells are jumped over.
+                // Fixed step: interval k is [max(t0 + k·h, entry), min(t0 + (k + 1)·h,
+                // t1)] for k < n_steps, and runs of empty cells are jumped over.
                 if t0.is_nan() || t1.is_nan() || t0 >= t1 {
                     return Ok((kept, 0));
                 }
                 let h = step_size;
+                let entry = t0;
+                if let Some(seed) = jitter {
+                    // The lattice starts (1 − u)·h before the entry: the first interval
+                    // is [entry, entry + u·h].
+                    let mut rng =
+                        SplitMix64::new(seed ^ (ray as u64).wrapping_mul(0xD1B5_4A32_D192_ED03));
+                    let u = 1.0 - rng.uniform(); // (0, 1]
+                    t0 = entry - (1.0 - u) * h;
+                }
                 let approx = ((t1 - t0) / h).ceil();
                 if approx.is_nan() || approx > max_steps as f64 {
                     return Err(ray);
@@ -684,6 +716,7 @@ impl OccupancyGrid {
                     o: oo,
                     d: dd,
                     t0,
+                    entry,
                     t1,
                     h,
                     n_steps,
@@ -691,6 +724,10 @@ impl OccupancyGrid {
                 let mut k = 0usize;
                 while k < n_steps {
                     let (t, te) = march.interval(k);
+                    if te <= t {
+                        k += 1; // a jittered first interval shorter than t's rounding
+                        continue;
+                    }
                     let p = point(&oo, &dd, 0.5 * (t + te));
                     match self.cell_of(p) {
                         Some(c) if self.occupied[c] => {
