@@ -1,7 +1,7 @@
 //! The MLP field on 2¹⁶ points, fused CPU op against the reference path of candle ops:
-//! forward, forward + backward, and `value_and_grad` (forward-mode normals, which run the
-//! reference path on both: the fused op has no tangents yet), for widths 32, 64 and 128
-//! (4 hidden ReLU layers, frequency encoding L = 6, f32).
+//! forward, forward + backward, and `value_and_grad` followed by a backward pass through
+//! the value and the normals (forward-mode tangents, fused on the CPU), for widths 32, 64
+//! and 128 (4 hidden ReLU layers, frequency encoding L = 6, f32).
 //!
 //! ```text
 //! cargo bench --bench mlp

@@ -123,7 +123,7 @@ impl FusedMlp {
 }
 
 /// The scalar types the op runs on (the products' kernels exist for these two).
-pub(crate) trait Real: WithDType {}
+pub(crate) trait Real: WithDType + activation::Precision {}
 impl Real for f32 {}
 impl Real for f64 {}
 
