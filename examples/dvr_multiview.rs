@@ -29,7 +29,8 @@
 //!      IDR's mask loss on rays outside `hit ∧ mask` at the most-inside of 64 samples
 //!      (weight 100, α from 50 doubling at IDR's epochs 250…1250 of 2000, mapped to the
 //!      run's progress) and the eikonal loss (weight 0.1) at random points and at the
-//!      surface points.
+//!      surface points. `--render-inputs no-view` or `no-normal` drops the view direction
+//!      or the normal from the rendering network's input (IDR's two ablation modes).
 //!
 //! `--encoding hash` gives the DVR models' networks instant-NGP's multiresolution hash grid
 //! over the scene box (16 levels of 2 features, 2¹⁵ rows per level, resolutions 16 to five
@@ -164,6 +165,9 @@ pub struct Args {
     /// The learning rate (`None`: 1e-3, or 1e-2 for the DVR models on hash grids).
     pub lr: Option<f64>,
     pub encoding: PositionEncoding,
+    /// IDR's rendering-network inputs beside the point and the feature: `full` (view
+    /// direction and normal), `no-view` or `no-normal` (IDR's two ablation modes).
+    pub render_inputs: RenderInputs,
     pub mesh: Option<PathBuf>,
     pub mise_resolution: usize,
     /// Perturb the training poses: (degrees, fraction of the camera's distance).
@@ -191,6 +195,7 @@ impl Default for Args {
             pictures: 4,
             lr: None,
             encoding: PositionEncoding::Pe,
+            render_inputs: RenderInputs::Full,
             mesh: None,
             mise_resolution: 32,
             perturb: None,
@@ -201,11 +206,59 @@ impl Default for Args {
     }
 }
 
+/// Which of IDR's rendering-network inputs to read besides the point and the feature.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RenderInputs {
+    /// The view direction and the normal (IDR).
+    Full,
+    /// The normal, no view direction (IDR's `no_view_dir` mode: no view-dependent colour).
+    NoView,
+    /// The view direction, no normal (IDR's `no_normal` mode).
+    NoNormal,
+}
+
+impl RenderInputs {
+    fn parse(value: &str) -> std::result::Result<Self, String> {
+        match value {
+            "full" => Ok(Self::Full),
+            "no-view" => Ok(Self::NoView),
+            "no-normal" => Ok(Self::NoNormal),
+            other => Err(format!(
+                "--render-inputs: full, no-view or no-normal, not {other}"
+            )),
+        }
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            Self::Full => "full",
+            Self::NoView => "no-view",
+            Self::NoNormal => "no-normal",
+        }
+    }
+
+    /// IDR's rendering-network defaults with these inputs.
+    fn config(self) -> RenderingNetConfig {
+        let idr = RenderingNetConfig::default();
+        match self {
+            Self::Full => idr,
+            Self::NoView => RenderingNetConfig {
+                view_frequencies: None,
+                ..idr
+            },
+            Self::NoNormal => RenderingNetConfig {
+                use_normals: false,
+                ..idr
+            },
+        }
+    }
+}
+
 const USAGE: &str = "usage: dvr_multiview [--data DIR] [--minutes M | --steps N] [--out DIR] \
 [--seed S] [--model dvr|dvr-joint|idr] [--downscale K] [--rays N] [--aabb R] [--eval-every N] \
 [--eval-views N] [--pictures N] [--lr LR] [--mesh FILE] [--mise-resolution N] \
 [--perturb DEGREES,FRACTION] [--refine-poses on|off] [--pose-lr LR] [--resume FILE] \
-[--encoding pe|hash]";
+[--encoding pe|hash] [--render-inputs full|no-view|no-normal]";
 
 fn parse_args() -> std::result::Result<Args, String> {
     let mut a = Args::default();
@@ -239,6 +292,7 @@ fn parse_args() -> std::result::Result<Args, String> {
             "--pictures" => a.pictures = int(flag, value)?,
             "--lr" => a.lr = Some(num(flag, value)?),
             "--encoding" => a.encoding = PositionEncoding::parse(value)?,
+            "--render-inputs" => a.render_inputs = RenderInputs::parse(value)?,
             "--mesh" => a.mesh = Some(value.into()),
             "--mise-resolution" => a.mise_resolution = int(flag, value)?,
             "--perturb" => {
@@ -437,7 +491,7 @@ fn build(
                         PositionEncoding::Pe => PointEncoding::Identity,
                         PositionEncoding::Hash => encode(0, &vb)?,
                     },
-                    ..RenderingNetConfig::default()
+                    ..args.render_inputs.config()
                 };
                 rendering_net(&render_config, vb)
             })?;
@@ -1096,6 +1150,7 @@ pub fn run(args: &Args) -> Result<Summary> {
         "steps": step,
         "model": args.model.name(),
         "encoding": args.encoding.name(),
+        "render_inputs": args.render_inputs.name(),
         "eval_split": eval_split,
         "eval_views": eval.len(),
         "data": args.data.display().to_string(),
@@ -1159,17 +1214,20 @@ mod tests {
     /// the whole pipeline runs and writes every output with the documented keys.
     #[test]
     fn a_shortened_run_of_each_model_writes_its_outputs() {
-        for (model, encoding) in [
-            (Model::Dvr, PositionEncoding::Pe),
-            (Model::DvrJoint, PositionEncoding::Pe),
-            (Model::Idr, PositionEncoding::Pe),
-            (Model::Dvr, PositionEncoding::Hash),
-            (Model::Idr, PositionEncoding::Hash),
+        for (model, encoding, render_inputs) in [
+            (Model::Dvr, PositionEncoding::Pe, RenderInputs::Full),
+            (Model::DvrJoint, PositionEncoding::Pe, RenderInputs::Full),
+            (Model::Idr, PositionEncoding::Pe, RenderInputs::Full),
+            (Model::Idr, PositionEncoding::Pe, RenderInputs::NoView),
+            (Model::Idr, PositionEncoding::Pe, RenderInputs::NoNormal),
+            (Model::Dvr, PositionEncoding::Hash, RenderInputs::Full),
+            (Model::Idr, PositionEncoding::Hash, RenderInputs::Full),
         ] {
             let out = std::env::temp_dir().join(format!(
-                "dvr-multiview-{:?}-{:?}-{}",
+                "dvr-multiview-{:?}-{:?}-{:?}-{}",
                 model,
                 encoding,
+                render_inputs,
                 std::process::id()
             ));
             let _ = std::fs::remove_dir_all(&out);
@@ -1179,6 +1237,7 @@ mod tests {
                 seed: 1,
                 model,
                 encoding,
+                render_inputs,
                 downscale: 4,
                 rays: 256,
                 eval_every: 2,
@@ -1207,6 +1266,7 @@ mod tests {
             }
             assert!(metrics.get("chamfer_l1").is_some(), "{metrics}");
             assert_eq!(metrics["steps"], 4);
+            assert_eq!(metrics["render_inputs"], render_inputs.name());
             let curve = std::fs::read_to_string(out.join("curve.csv")).unwrap();
             assert_eq!(curve.lines().count(), 1 + 2 + 1);
             for file in ["view_0.png", "normals_0.png", "weights.safetensors"] {

@@ -149,13 +149,16 @@ pub struct Args {
     pub background: Background,
     pub frames: Option<Vec<usize>>,
     pub regnerf: bool,
+    /// RegNeRF's depth-smoothness weight, log-linear from the first to the second value
+    /// over the first 512 steps (RegNeRF's 400 → 0.1 by default).
+    pub regnerf_weight: [f64; 2],
 }
 
 const USAGE: &str = "usage: nerf [--data DIR] [--minutes M | --steps N] [--out DIR] [--seed S] \
 [--sampler grid|stratified|proposal] [--downscale K] [--rays N] [--samples N] [--aabb R] \
 [--eval-every N] [--eval-views N] [--pictures N] [--resume FILE] [--lr LR] [--background random|white|black] [--frames I,J,K] [--regnerf on|off] \
 [--encoding pe|hash] [--hash-log2 T] [--hash-finest N] [--eval-supersample K] [--jitter on|off] \
-[--train-supersample K] [--march-jitter on|off]";
+[--train-supersample K] [--march-jitter on|off] [--regnerf-weight START,END]";
 
 impl Default for Args {
     /// The defaults of the command line.
@@ -186,6 +189,7 @@ impl Default for Args {
             background: Background::Random,
             frames: None,
             regnerf: false,
+            regnerf_weight: [400.0, 0.1],
         }
     }
 }
@@ -246,6 +250,7 @@ fn parse_args() -> std::result::Result<Args, String> {
                     Some(list.map_err(|_| format!("--frames: indices like 0,16,33, not {value}"))?);
             }
             "--regnerf" => a.regnerf = training::on_off(flag, value)?,
+            "--regnerf-weight" => a.regnerf_weight = regnerf_weight(value)?,
             "--background" => {
                 a.background = match value {
                     "random" => Background::Random,
@@ -280,6 +285,21 @@ fn parse_args() -> std::result::Result<Args, String> {
         return Err("--aabb must be positive".into());
     }
     Ok(a)
+}
+
+/// `--regnerf-weight START,END`: two finite weights > 0 (the schedule is log-linear).
+pub fn regnerf_weight(value: &str) -> std::result::Result<[f64; 2], String> {
+    let w: Vec<f64> = value
+        .split(',')
+        .map(|v| v.trim().parse::<f64>())
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|_| format!("--regnerf-weight: START,END like 400,0.1, not {value}"))?;
+    match w[..] {
+        [a, b] if [a, b].iter().all(|x| x.is_finite() && *x > 0.0) => Ok([a, b]),
+        _ => Err(format!(
+            "--regnerf-weight: two finite weights > 0 like 400,0.1, not {value}"
+        )),
+    }
 }
 
 /// The renderer: the network, its sampler and the scene box.
@@ -654,7 +674,8 @@ pub fn run(args: &Args) -> Result<Summary> {
             .mean_all()?;
         let mut loss = (&photometric + interlevel)?;
         if args.regnerf {
-            let weight = log_linear_schedule(step, 400.0, 0.1, 512);
+            let [w0, w1] = args.regnerf_weight;
+            let weight = log_linear_schedule(step, w0, w1, 512);
             let smooth =
                 regnerf_depth_smoothness(&renderer, &train_cameras, args.seed ^ step as u64)?;
             loss = (loss + (smooth * weight)?)?;

@@ -16,7 +16,8 @@
 //!
 //! Flags: `--data DIR` (default `examples/data/wuson`), `--frames I,J,K` (training views,
 //! default `0,17,34`), `--minutes M` per run (default 3) or `--steps N`, `--out DIR`
-//! (default `out/sparse_views`), `--seed S`, `--downscale K`. Writes `OUT/plain/` and
+//! (default `out/sparse_views`), `--seed S`, `--downscale K`, `--regnerf-weight START,END`
+//! (the depth smoothness's weight schedule, default RegNeRF's `400,0.1`). Writes `OUT/plain/` and
 //! `OUT/regnerf/` (each run's own outputs, see `examples/nerf.rs`), `OUT/compare_{i}.png`
 //! (truth | plain | RegNeRF), `OUT/depth_{i}.png` (plain depth | RegNeRF depth, on one
 //! colour scale) and `OUT/metrics.json` with both runs' `psnr` and `depth_tv` (the mean
@@ -102,6 +103,9 @@ fn run() -> Result<()> {
                 let list: std::result::Result<Vec<usize>, _> =
                     value.split(',').map(|v| v.trim().parse()).collect();
                 base.frames = Some(list.map_err(|_| bad(format!("--frames {value}")))?);
+            }
+            "--regnerf-weight" => {
+                base.regnerf_weight = nerf::regnerf_weight(&value).map_err(bad)?
             }
             other => return Err(bad(format!("unknown flag {other}"))),
         }
