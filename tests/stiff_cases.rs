@@ -3120,6 +3120,11 @@ const EXEMPT: &[(&str, &str)] = &[
         "CustomOp internals, swept via Mlp::forward_with_jacobian",
     ),
     (
+        "nn::fused_mlp::activation::",
+        "crate-internal activation slices of the fused ops, swept via the softplus Mlp \
+         (Mlp::value_and_grad) and tested against the standard library in their module",
+    ),
+    (
         "encoding::FusedFrequency::",
         "CustomOp internals, swept via FrequencyEncoding::forward",
     ),
