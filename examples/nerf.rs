@@ -664,14 +664,22 @@ pub fn run(args: &Args) -> Result<Summary> {
             Some(args.seed ^ step as u64),
         )?;
         samples_total += n;
-        // Each pixel's k² rays averaged (a box filter), against the pixel's colour.
-        let per_pixel = |c: &Tensor| -> Result<Tensor> {
-            let px = c.dim(0)? / (k * k);
-            Ok(c.reshape((px, k * k, 3))?.mean(1)?)
+        // With k > 1, each pixel's k² rays averaged (a box filter) against the pixel's
+        // colour, which every one of its rays carries.
+        let (color, target) = if k > 1 {
+            let px = batch.len() / (k * k);
+            (
+                out.color.reshape((px, k * k, 3))?.mean(1)?,
+                batch
+                    .colors
+                    .reshape((px, k * k, 3))?
+                    .narrow(1, 0, 1)?
+                    .squeeze(1)?,
+            )
+        } else {
+            (out.color, batch.colors.clone())
         };
-        let photometric = (per_pixel(&out.color)? - per_pixel(&batch.colors)?)?
-            .sqr()?
-            .mean_all()?;
+        let photometric = (color - target)?.sqr()?.mean_all()?;
         let mut loss = (&photometric + interlevel)?;
         if args.regnerf {
             let [w0, w1] = args.regnerf_weight;

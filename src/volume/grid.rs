@@ -128,8 +128,8 @@ pub struct GridMarchConfig {
     /// `Some(seed)`: shift each ray's fixed-step lattice by a random fraction of a step
     /// (nerfacc's stratified march, for training), so that over the steps a field sees
     /// every point along a ray rather than the same `t` each time; the first interval is
-    /// then the partial one `[t_entry, t_entry + u·Δt]`, `u ~ U(0, 1)` drawn per ray from
-    /// `seed` and the ray index. The intervals still tile `[t_entry, t_exit]`. `None`
+    /// then the partial one `[t_entry, t_entry + u·Δt]`, `u ∈ (0, 1]` uniform, drawn per
+    /// ray from `seed` and the ray index. The intervals still tile `[t_entry, t_exit]`. `None`
     /// (the default): the lattice starts at `t_entry` (evaluation). Cone stepping ignores it.
     pub jitter: Option<u64>,
 }
@@ -694,12 +694,14 @@ impl OccupancyGrid {
                 let h = step_size;
                 let entry = t0;
                 if let Some(seed) = jitter {
-                    // The lattice starts (1 − u)·h before the entry: the first interval
-                    // is [entry, entry + u·h].
+                    // The lattice starts v·h before the entry, v ~ U[0, 1): the first
+                    // interval is [entry, entry + (1 − v)·h], unless that rounds to empty.
                     let mut rng =
                         SplitMix64::new(seed ^ (ray as u64).wrapping_mul(0xD1B5_4A32_D192_ED03));
-                    let u = 1.0 - rng.uniform(); // (0, 1]
-                    t0 = entry - (1.0 - u) * h;
+                    let shifted = entry - rng.uniform() * h;
+                    if shifted + h > entry {
+                        t0 = shifted;
+                    }
                 }
                 let approx = ((t1 - t0) / h).ceil();
                 if approx.is_nan() || approx > max_steps as f64 {
@@ -724,10 +726,6 @@ impl OccupancyGrid {
                 let mut k = 0usize;
                 while k < n_steps {
                     let (t, te) = march.interval(k);
-                    if te <= t {
-                        k += 1; // a jittered first interval shorter than t's rounding
-                        continue;
-                    }
                     let p = point(&oo, &dd, 0.5 * (t + te));
                     match self.cell_of(p) {
                         Some(c) if self.occupied[c] => {

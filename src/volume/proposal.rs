@@ -178,15 +178,13 @@ fn overlap_pairs(fine: &Intervals, coarse: &Intervals) -> Result<(Tensor, Tensor
     };
     let (fs, fe) = (host(&fine.starts)?, host(&fine.ends)?);
     let (cs, ce) = (host(&coarse.starts)?, host(&coarse.ends)?);
-    let index = |k: usize| -> Result<u32> {
-        u32::try_from(k).map_err(|_| {
-            Error::invalid(
-                "proposal",
-                "fewer than 2³² intervals",
-                format!("{r} rays × {}", s.max(sc)),
-            )
-        })
-    };
+    if r.saturating_mul(s.max(sc)) > u32::MAX as usize {
+        return Err(Error::invalid(
+            "proposal",
+            "fewer than 2³² intervals",
+            format!("{r} rays × {}", s.max(sc)),
+        ));
+    }
     let (mut fine_idx, mut coarse_idx) = (Vec::new(), Vec::new());
     for ray in 0..r {
         let mut first = 0; // the first coarse interval that may still overlap
@@ -197,8 +195,13 @@ fn overlap_pairs(fine: &Intervals, coarse: &Intervals) -> Result<(Tensor, Tensor
             }
             let mut j = first;
             while j < sc && cs[ray * sc + j] < b {
-                fine_idx.push(index(ray * s + i)?);
-                coarse_idx.push(index(ray * sc + j)?);
+                // Always true for disjoint coarse intervals; kept for any sorted-by-start
+                // input, whose pairs are then no longer a staircase.
+                if ce[ray * sc + j] > a {
+                    // invariant: both indices are below 2³², checked above.
+                    fine_idx.push((ray * s + i) as u32);
+                    coarse_idx.push((ray * sc + j) as u32);
+                }
                 j += 1;
             }
         }
@@ -262,14 +265,10 @@ pub fn interlevel_loss(
     let (r, s) = weights.dims2()?;
     // boundᵢ = Σ ŵⱼ over the overlapping pairs: a gather and an index-add, exact sums in
     // O(R·(S + Ŝ)) memory, differentiable w.r.t. ŵ.
-    let zero = Tensor::zeros(r * s, w_hat.dtype(), w_hat.device())?;
-    let bound = if fine_idx.dim(0)? == 0 {
-        zero
-    } else {
-        let gathered = w_hat.flatten_all()?.index_select(&coarse_idx, 0)?;
-        zero.index_add(&fine_idx, &gathered, 0)?
-    }
-    .reshape((r, s))?;
+    let gathered = w_hat.flatten_all()?.index_select(&coarse_idx, 0)?;
+    let bound = Tensor::zeros(r * s, w_hat.dtype(), w_hat.device())?
+        .index_add(&fine_idx, &gathered, 0)?
+        .reshape((r, s))?;
     let w = weights.detach();
     let excess = (&w - &bound)?.relu()?;
     let per = (excess.sqr()? / (w + 1e-7)?)?;
