@@ -289,13 +289,8 @@ fn parse_args() -> std::result::Result<Args, String> {
 
 /// `--regnerf-weight START,END`: two finite weights > 0 (the schedule is log-linear).
 pub fn regnerf_weight(value: &str) -> std::result::Result<[f64; 2], String> {
-    let w: Vec<f64> = value
-        .split(',')
-        .map(|v| v.trim().parse::<f64>())
-        .collect::<std::result::Result<_, _>>()
-        .map_err(|_| format!("--regnerf-weight: START,END like 400,0.1, not {value}"))?;
-    match w[..] {
-        [a, b] if [a, b].iter().all(|x| x.is_finite() && *x > 0.0) => Ok([a, b]),
+    match training::pair("--regnerf-weight", value, "400,0.1")? {
+        [a, b] if a > 0.0 && b > 0.0 => Ok([a, b]),
         _ => Err(format!(
             "--regnerf-weight: two finite weights > 0 like 400,0.1, not {value}"
         )),

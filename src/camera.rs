@@ -1138,3 +1138,236 @@ impl PoseParam {
         Rays::new(origins, directions)
     }
 }
+
+/// A similarity transform `y = s·R·x + t` (scale `s > 0`, rotation `R`, translation `t`),
+/// the map between two reconstructions of the same scene that agree up to gauge: a
+/// jointly refined set of cameras is determined only up to one (BARF, §4.1, aligns its
+/// poses to the truth this way before measuring them).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Similarity {
+    /// Scale `s > 0`.
+    pub scale: f64,
+    /// Rotation `R` (a unit quaternion).
+    pub rotation: DQuat,
+    /// Translation `t`.
+    pub translation: DVec3,
+}
+
+impl Similarity {
+    /// The identity: `s = 1`, `R = I`, `t = 0`.
+    pub const IDENTITY: Self = Self {
+        scale: 1.0,
+        rotation: DQuat::IDENTITY,
+        translation: DVec3::ZERO,
+    };
+
+    /// `s·R·x + t`.
+    #[must_use]
+    pub fn transform_point(&self, x: DVec3) -> DVec3 {
+        self.scale * (self.rotation * x) + self.translation
+    }
+
+    /// The camera-to-world pose of a camera moved with the scene: rotation `R·R_p`,
+    /// centre `s·R·c + t` (the camera's intrinsics are unchanged; its world-space depth
+    /// scales by `s`).
+    #[must_use]
+    pub fn transform_pose(&self, pose: &DAffine3) -> DAffine3 {
+        DAffine3::from_mat3_translation(
+            DMat3::from_quat(self.rotation) * pose.matrix3,
+            self.transform_point(pose.translation),
+        )
+    }
+
+    /// The inverse map `x = R⁻¹(y − t)/s`.
+    #[must_use]
+    pub fn inverse(&self) -> Self {
+        let r = self.rotation.inverse();
+        Self {
+            scale: 1.0 / self.scale,
+            rotation: r,
+            translation: -(r * self.translation) / self.scale,
+        }
+    }
+}
+
+/// The similarity `y ≈ s·R·x + t` that best maps the points `from` onto `to` in least
+/// squares, `min Σᵢ |s·R·fromᵢ + t − toᵢ|²` over proper rotations `R` (Horn 1987: `R` is
+/// the quaternion of the largest eigenvalue of a symmetric 4 × 4 matrix of the centred
+/// cross-covariance; `s = Σ yᵢ·R xᵢ / Σ |xᵢ|²` on centred points; `t` from the centroids).
+/// Used to align cameras refined jointly with a scene to the true cameras (their
+/// centres as the points) before comparing poses or the scene.
+///
+/// The eigenvector is found by cyclic Jacobi rotations (at most 64 sweeps), so the cost
+/// is `O(n)` for `n` points and there is no SVD.
+///
+/// ```
+/// use glam::{DQuat, DVec3};
+/// use neural_fields::camera::{align_similarity, Similarity};
+///
+/// let truth = Similarity {
+///     scale: 2.0,
+///     rotation: DQuat::from_rotation_z(0.3),
+///     translation: DVec3::new(1.0, -2.0, 0.5),
+/// };
+/// let from = [DVec3::X, DVec3::Y, DVec3::Z, DVec3::ONE];
+/// let to: Vec<DVec3> = from.iter().map(|&p| truth.transform_point(p)).collect();
+/// let s = align_similarity(&from, &to)?;
+/// assert!((s.scale - 2.0).abs() < 1e-12);
+/// assert!(s.rotation.angle_between(truth.rotation) < 1e-9);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `to` if its length differs from `from`'s; `from` if
+/// it has fewer than 3 points, a non-finite coordinate, or points that do not span a
+/// plane (the rotation about their line is then undetermined); `to` for a non-finite
+/// coordinate or if all its points coincide (no scale).
+pub fn align_similarity(from: &[DVec3], to: &[DVec3]) -> Result<Similarity> {
+    if to.len() != from.len() {
+        return Err(Error::invalid(
+            "to",
+            format!("{} points (as many as from)", from.len()),
+            to.len().to_string(),
+        ));
+    }
+    if from.len() < 3 {
+        return Err(Error::invalid(
+            "from",
+            "at least 3 points",
+            from.len().to_string(),
+        ));
+    }
+    for (pts, name) in [(from, "from"), (to, "to")] {
+        if let Some(p) = pts.iter().find(|p| !p.is_finite()) {
+            return Err(Error::invalid(name, "finite points", format!("{p:?}")));
+        }
+    }
+    let n = from.len() as f64;
+    let mean = |p: &[DVec3]| p.iter().fold(DVec3::ZERO, |s, &q| s + q) / n;
+    let (mx, my) = (mean(from), mean(to));
+    // Centre and scale each set to unit RMS radius so the tests below are relative.
+    let rms = |p: &[DVec3], m: DVec3| {
+        (p.iter().map(|&q| (q - m).length_squared()).sum::<f64>() / n).sqrt()
+    };
+    let (rx, ry) = (rms(from, mx), rms(to, my));
+    if !(rx > 0.0 && rx.is_finite()) {
+        return Err(Error::invalid(
+            "from",
+            "points that do not all coincide",
+            format!("RMS spread {rx}"),
+        ));
+    }
+    if !(ry > 0.0 && ry.is_finite()) {
+        return Err(Error::invalid(
+            "to",
+            "points that do not all coincide",
+            format!("RMS spread {ry}"),
+        ));
+    }
+    // Cross-covariance S_ab = Σ x_a y_b of the normalised, centred points.
+    let mut s = [[0.0f64; 3]; 3];
+    for (&x, &y) in from.iter().zip(to) {
+        let (x, y) = (((x - mx) / rx).to_array(), ((y - my) / ry).to_array());
+        for a in 0..3 {
+            for b in 0..3 {
+                s[a][b] += x[a] * y[b] / n;
+            }
+        }
+    }
+    let [[sxx, sxy, sxz], [syx, syy, syz], [szx, szy, szz]] = s;
+    let mut m = [
+        [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
+        [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
+        [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
+        [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
+    ];
+    let (values, vectors) = symmetric_eigen4(&mut m);
+    let mut order = [0usize, 1, 2, 3];
+    order.sort_by(|&i, &j| values[j].total_cmp(&values[i]));
+    // The two largest eigenvalues coincide exactly when the points lie on a line (or
+    // the cross-covariance is otherwise rank-deficient in a way that leaves R free).
+    if values[order[0]] - values[order[1]] <= 1e-9 {
+        return Err(Error::invalid(
+            "from",
+            "points spanning a plane (a unique rotation)",
+            format!("eigenvalue gap {:e}", values[order[0]] - values[order[1]]),
+        ));
+    }
+    let q = vectors[order[0]];
+    let rotation = DQuat::from_xyzw(q[1], q[2], q[3], q[0]).normalize();
+    let (mut num, mut den) = (0.0, 0.0);
+    for (&x, &y) in from.iter().zip(to) {
+        num += (y - my).dot(rotation * (x - mx));
+        den += (x - mx).length_squared();
+    }
+    let scale = num / den;
+    if !(scale > 0.0 && scale.is_finite()) {
+        return Err(Error::invalid(
+            "to",
+            "points related to from by a positive scale",
+            format!("least-squares scale {scale}"),
+        ));
+    }
+    Ok(Similarity {
+        scale,
+        rotation,
+        translation: my - scale * (rotation * mx),
+    })
+}
+
+/// Eigenvalues and unit eigenvectors of the symmetric 4 × 4 matrix `m` (destroyed) by
+/// cyclic Jacobi rotations; `vectors[k]` belongs to `values[k]`.
+fn symmetric_eigen4(m: &mut [[f64; 4]; 4]) -> ([f64; 4], [[f64; 4]; 4]) {
+    let mut v = [[0.0f64; 4]; 4];
+    for (i, row) in v.iter_mut().enumerate() {
+        row[i] = 1.0;
+    }
+    let scale: f64 = m.iter().flatten().map(|x| x * x).sum::<f64>().sqrt();
+    for _sweep in 0..64 {
+        let off: f64 = (0..4)
+            .flat_map(|i| (0..4).filter(move |&j| j != i).map(move |j| (i, j)))
+            .map(|(i, j)| m[i][j] * m[i][j])
+            .sum::<f64>()
+            .sqrt();
+        if off <= 1e-15 * scale || off == 0.0 {
+            break;
+        }
+        for p in 0..3 {
+            for q in p + 1..4 {
+                if m[p][q] == 0.0 {
+                    continue;
+                }
+                // The rotation in the (p, q) plane that zeroes m[p][q].
+                let theta = (m[q][q] - m[p][p]) / (2.0 * m[p][q]);
+                // (signum(0) = 1: a rotation by π/4 when the diagonal entries are equal.)
+                let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
+                let c = 1.0 / (t * t + 1.0).sqrt();
+                let s = t * c;
+                for row in m.iter_mut() {
+                    let (mkp, mkq) = (row[p], row[q]);
+                    row[p] = c * mkp - s * mkq;
+                    row[q] = s * mkp + c * mkq;
+                }
+                let (row_p, row_q) = (m[p], m[q]);
+                for k in 0..4 {
+                    m[p][k] = c * row_p[k] - s * row_q[k];
+                    m[q][k] = s * row_p[k] + c * row_q[k];
+                }
+                for row in v.iter_mut() {
+                    let (vp, vq) = (row[p], row[q]);
+                    row[p] = c * vp - s * vq;
+                    row[q] = s * vp + c * vq;
+                }
+            }
+        }
+    }
+    let values = [m[0][0], m[1][1], m[2][2], m[3][3]];
+    // Column k of v is the eigenvector of values[k].
+    let mut vectors = [[0.0f64; 4]; 4];
+    for (k, vec) in vectors.iter_mut().enumerate() {
+        for (i, x) in vec.iter_mut().enumerate() {
+            *x = v[i][k];
+        }
+    }
+    (values, vectors)
+}

@@ -25,9 +25,11 @@
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 
+pub mod coarse_to_fine;
 pub mod grid_sample;
 pub mod hash_grid;
 
+pub use coarse_to_fine::{coarse_to_fine_weights, CoarseToFine};
 pub use hash_grid::{hash_grid, HashGrid, HashGridConfig};
 
 use crate::error::{check_float, check_same, check_scalar, check_shape, Dim, Error, Result};
@@ -551,6 +553,9 @@ pub enum PointEncoding {
     /// [`HashGrid`] (its table is a parameter of the model, built from the same
     /// `VarBuilder`'s map).
     HashGrid(HashGrid),
+    /// A frequency encoding or hash grid under BARF's coarse-to-fine window
+    /// ([`CoarseToFine`]).
+    CoarseToFine(CoarseToFine),
 }
 
 impl PointEncoding {
@@ -562,6 +567,7 @@ impl PointEncoding {
             PointEncoding::Frequency(e) => e.out_dim(),
             PointEncoding::Fourier(e) => e.out_dim(),
             PointEncoding::HashGrid(e) => e.out_dim(),
+            PointEncoding::CoarseToFine(e) => e.out_dim(),
         }
     }
 
@@ -574,6 +580,7 @@ impl PointEncoding {
             PointEncoding::Frequency(e) => Some(e.in_dim()),
             PointEncoding::Fourier(e) => Some(e.in_dim()),
             PointEncoding::HashGrid(e) => Some(e.in_dim()),
+            PointEncoding::CoarseToFine(e) => Some(e.in_dim()),
         }
     }
 
@@ -584,6 +591,7 @@ impl PointEncoding {
             PointEncoding::Identity => true,
             PointEncoding::Frequency(e) => e.include_input,
             PointEncoding::Fourier(_) | PointEncoding::HashGrid(_) => false,
+            PointEncoding::CoarseToFine(e) => e.inner().leads_with_input(),
         }
     }
 
@@ -603,6 +611,7 @@ impl PointEncoding {
             PointEncoding::Frequency(e) => e.forward(x),
             PointEncoding::Fourier(e) => e.forward(x),
             PointEncoding::HashGrid(e) => e.forward(x),
+            PointEncoding::CoarseToFine(e) => e.forward(x),
         }
     }
 
@@ -623,6 +632,7 @@ impl PointEncoding {
             PointEncoding::Frequency(e) => e.forward_jvp(x, dx),
             PointEncoding::Fourier(e) => e.forward_jvp(x, dx),
             PointEncoding::HashGrid(e) => e.forward_jvp(x, dx),
+            PointEncoding::CoarseToFine(e) => e.forward_jvp(x, dx),
         }
     }
 }

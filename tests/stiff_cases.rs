@@ -9,9 +9,13 @@ mod common;
 use candle_core::{DType, Device, Tensor, Var};
 use common::v64;
 use neural_fields::camera::{
-    ray_aabb, ray_sphere, Camera, Convention, Intrinsics, PoseParam, Rays,
+    align_similarity, ray_aabb, ray_sphere, Camera, Convention, Intrinsics, PoseParam, Rays,
+    Similarity,
 };
-use neural_fields::encoding::{integrated_pe, FourierFeatures, FrequencyEncoding, PointEncoding};
+use neural_fields::encoding::{
+    coarse_to_fine_weights, integrated_pe, CoarseToFine, FourierFeatures, FrequencyEncoding,
+    PointEncoding,
+};
 use neural_fields::field::{Cuboid, Field, ImplicitSurface, Plane, SignedDistance, Sphere, Torus};
 use neural_fields::glam::{DAffine3, DQuat, DVec3};
 use neural_fields::nn::{build_seeded, mlp, Activation, MlpConfig};
@@ -326,6 +330,46 @@ fn sweep_encodings(s: &mut Suite) {
             &[&x, &v],
             || Ok(vec![integrated_pe(t, v.as_tensor(), 0, 16)?]),
         );
+        // BARF's window at α below, inside and beyond the bands, over the same inputs.
+        for alpha in [f64::NEG_INFINITY, -1e300, 0.0, 2.5, 1e300, f64::INFINITY] {
+            for item in [
+                "encoding::coarse_to_fine::CoarseToFine::forward",
+                "encoding::coarse_to_fine::CoarseToFine::new",
+                "encoding::coarse_to_fine::CoarseToFine::set_alpha",
+                "encoding::coarse_to_fine::CoarseToFine::column_weights",
+                "encoding::coarse_to_fine::coarse_to_fine_weights",
+            ] {
+                s.case(
+                    item,
+                    format!("{label}, α = {alpha:e}"),
+                    Expect::Finite,
+                    &[&x],
+                    || {
+                        let mut pe = FrequencyEncoding::new(3, 4)?;
+                        pe.use_pi = false;
+                        let c = CoarseToFine::new(PointEncoding::Frequency(pe))?;
+                        c.set_alpha(alpha)?;
+                        let w = Tensor::new(c.column_weights(), &d)?;
+                        let weights = Tensor::new(coarse_to_fine_weights(alpha, 4)?, &d)?;
+                        Ok(vec![c.forward(t)?, w, weights])
+                    },
+                );
+            }
+            s.case(
+                "encoding::coarse_to_fine::CoarseToFine::forward_jvp",
+                format!("{label}, α = {alpha:e}"),
+                Expect::Finite,
+                &[&x],
+                || {
+                    let mut pe = FrequencyEncoding::new(3, 4)?;
+                    pe.use_pi = false;
+                    let c = CoarseToFine::new(PointEncoding::Frequency(pe))?;
+                    c.set_alpha(alpha)?;
+                    let (v, j) = c.forward_jvp(t, &dx)?;
+                    Ok(vec![v, j])
+                },
+            );
+        }
         let neg = var(&[-1.0; 9], &[3, 3], dtype);
         // Negative variances are not a Gaussian: growing terms, documented as data; must not be NaN.
         s.case(
@@ -2682,6 +2726,16 @@ const COVERED: &[&str] = &[
     "camera::Rays::normalized",
     "camera::ray_aabb",
     "camera::ray_sphere",
+    "camera::align_similarity",
+    "camera::Similarity::inverse",
+    "camera::Similarity::transform_pose",
+    "camera::Similarity::transform_point",
+    "encoding::coarse_to_fine::coarse_to_fine_weights",
+    "encoding::coarse_to_fine::CoarseToFine::column_weights",
+    "encoding::coarse_to_fine::CoarseToFine::forward",
+    "encoding::coarse_to_fine::CoarseToFine::forward_jvp",
+    "encoding::coarse_to_fine::CoarseToFine::new",
+    "encoding::coarse_to_fine::CoarseToFine::set_alpha",
     "encoding::FourierFeatures::from_matrix",
     "encoding::FourierFeatures::new",
     "encoding::FrequencyEncoding::forward_jvp",
@@ -2867,6 +2921,11 @@ const EXEMPT: &[(&str, &str)] = &[
     ("nn::conv_onet::SceneField::features", "getter"),
     ("nn::conv_onet::SceneField::out_dim", "constant"),
     ("encoding::hash_grid::HashGrid::config", "getter"),
+    ("encoding::coarse_to_fine::CoarseToFine::inner", "getter"),
+    ("encoding::coarse_to_fine::CoarseToFine::bands", "getter"),
+    ("encoding::coarse_to_fine::CoarseToFine::alpha", "getter"),
+    ("encoding::coarse_to_fine::CoarseToFine::in_dim", "getter"),
+    ("encoding::coarse_to_fine::CoarseToFine::out_dim", "getter"),
     ("encoding::hash_grid::HashGrid::table", "getter"),
     ("encoding::hash_grid::HashGrid::levels", "getter"),
     ("encoding::hash_grid::HashGrid::in_dim", "getter"),
@@ -3353,6 +3412,61 @@ fn sweep_camera_host(s: &mut Suite) {
                 around.iter().map(|c| host3(c.center())).collect()
             },
         );
+    }
+    // Similarity alignment of clouds at every magnitude (and onto a cloud scaled by up to
+    // 1e±150): finite maps, or `Err` for clouds whose spread over- or underflows.
+    for &x in &magnitudes(DType::F64) {
+        for ratio in [1e-150, 1.0, 1e150] {
+            s.case(
+                "camera::align_similarity",
+                format!("cloud at {x:e}, scaled by {ratio:e}"),
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let from: Vec<DVec3> = [DVec3::X, DVec3::Y, DVec3::Z, DVec3::ONE]
+                        .iter()
+                        .map(|&p| p * x + DVec3::splat(x))
+                        .collect();
+                    let to: Vec<DVec3> = from
+                        .iter()
+                        .map(|&p| DVec3::new(p.y, -p.x, p.z) * ratio)
+                        .collect();
+                    let sim = align_similarity(&from, &to)?;
+                    let pose = DAffine3::from_translation(DVec3::splat(x));
+                    let moved = sim.inverse().transform_pose(&sim.transform_pose(&pose));
+                    Ok(vec![
+                        host3(sim.transform_point(from[0]))?,
+                        host3(moved.translation)?,
+                        Tensor::new(&[sim.scale, sim.rotation.w], &Device::Cpu)?,
+                    ])
+                },
+            );
+            for name in [
+                "camera::Similarity::inverse",
+                "camera::Similarity::transform_pose",
+                "camera::Similarity::transform_point",
+            ] {
+                s.case(
+                    name,
+                    format!("scale {ratio:e}, point {x:e}"),
+                    Expect::Finite,
+                    &[],
+                    || {
+                        let sim = Similarity {
+                            scale: ratio,
+                            rotation: DQuat::from_rotation_z(0.5),
+                            translation: DVec3::splat(1.0),
+                        };
+                        let p = DVec3::splat(x.clamp(-1e100, 1e100));
+                        let pose = sim.transform_pose(&DAffine3::from_translation(p));
+                        Ok(vec![
+                            host3(sim.inverse().transform_point(p))?,
+                            host3(pose.translation)?,
+                        ])
+                    },
+                );
+            }
+        }
     }
     for convention in [Convention::OpenCv, Convention::OpenGl] {
         let cam = Camera::look_at(

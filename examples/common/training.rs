@@ -155,6 +155,20 @@ pub fn count(flag: &str, value: &str) -> std::result::Result<usize, String> {
         .map_err(|_| format!("{flag}: not a count: {value}"))
 }
 
+/// `value` of `flag` as two finite numbers `A,B`.
+pub fn pair(flag: &str, value: &str, example: &str) -> std::result::Result<[f64; 2], String> {
+    let bad = || format!("{flag}: two numbers like {example}, not {value}");
+    let parts: Vec<f64> = value
+        .split(',')
+        .map(|v| v.trim().parse::<f64>())
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|_| bad())?;
+    match parts[..] {
+        [a, b] if a.is_finite() && b.is_finite() => Ok([a, b]),
+        _ => Err(bad()),
+    }
+}
+
 /// `value` of `flag` as `on` or `off`.
 pub fn on_off(flag: &str, value: &str) -> std::result::Result<bool, String> {
     match value {
