@@ -65,6 +65,12 @@ DTU_SPHERE = 1.1  # unit sphere of the normalised frame = radius 1.1 in Blender 
 N_POINTS = 8
 
 
+def set_resolution(n):
+    """Render n x n images (the cameras' field of view is unchanged)."""
+    global WIDTH, HEIGHT
+    WIDTH = HEIGHT = n
+
+
 def parse_args():
     argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -80,7 +86,12 @@ def parse_args():
                    help="interpreter with numpy for the DTU stage if Blender's Python lacks numpy")
     p.add_argument("--dtu-only", action="store_true",
                    help="internal: only build the DTU copy from an existing <out>")
+    p.add_argument("--resolution", type=int, default=WIDTH,
+                   help="image width and height in pixels (the committed dataset: 100)")
     a = p.parse_args(argv)
+    if a.resolution < 1:
+        raise SystemExit("--resolution must be at least 1")
+    set_resolution(a.resolution)
     a.out = os.path.abspath(a.out)
     if a.dtu_out is None:
         a.dtu_out = a.out.rstrip("/") + "_dtu"
