@@ -334,6 +334,7 @@ fn sweep_encodings(s: &mut Suite) {
         for alpha in [f64::NEG_INFINITY, -1e300, 0.0, 2.5, 1e300, f64::INFINITY] {
             for item in [
                 "encoding::coarse_to_fine::CoarseToFine::forward",
+                "encoding::coarse_to_fine::CoarseToFine::forward_jvp",
                 "encoding::coarse_to_fine::CoarseToFine::new",
                 "encoding::coarse_to_fine::CoarseToFine::set_alpha",
                 "encoding::coarse_to_fine::CoarseToFine::column_weights",
@@ -351,24 +352,11 @@ fn sweep_encodings(s: &mut Suite) {
                         c.set_alpha(alpha)?;
                         let w = Tensor::new(c.column_weights(), &d)?;
                         let weights = Tensor::new(coarse_to_fine_weights(alpha, 4)?, &d)?;
-                        Ok(vec![c.forward(t)?, w, weights])
+                        let (v, j) = c.forward_jvp(t, &dx)?;
+                        Ok(vec![c.forward(t)?, w, weights, v, j])
                     },
                 );
             }
-            s.case(
-                "encoding::coarse_to_fine::CoarseToFine::forward_jvp",
-                format!("{label}, α = {alpha:e}"),
-                Expect::Finite,
-                &[&x],
-                || {
-                    let mut pe = FrequencyEncoding::new(3, 4)?;
-                    pe.use_pi = false;
-                    let c = CoarseToFine::new(PointEncoding::Frequency(pe))?;
-                    c.set_alpha(alpha)?;
-                    let (v, j) = c.forward_jvp(t, &dx)?;
-                    Ok(vec![v, j])
-                },
-            );
         }
         let neg = var(&[-1.0; 9], &[3, 3], dtype);
         // Negative variances are not a Gaussian: growing terms, documented as data; must not be NaN.
