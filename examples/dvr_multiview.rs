@@ -1402,8 +1402,16 @@ pub fn run(args: &Args) -> Result<Summary> {
             &colorize_normals(normals)?,
         )?;
     }
-    let learnt_mesh = extract_mesh(&net, aabb, args.mise_resolution)?;
-    let mesh = mesh_to_dataset_frame(learnt_mesh.clone(), &frame);
+    // The mesh in the dataset's frame; as extracted too when the frames differ.
+    let extracted = extract_mesh(&net, aabb, args.mise_resolution)?;
+    let (mesh, learnt_mesh) = if poses.is_empty() {
+        (extracted, None)
+    } else {
+        (
+            mesh_to_dataset_frame(extracted.clone(), &frame),
+            Some(extracted),
+        )
+    };
     let gt = source_mesh(args)?;
     let chamfer_of = |m: &Mesh| -> Result<Option<f64>> {
         match (&gt, m.faces.is_empty()) {
@@ -1468,7 +1476,7 @@ pub fn run(args: &Args) -> Result<Summary> {
             "mask_iou": raw.iou,
             "psnr_masked": raw.psnr_masked,
             "psnr_interior": raw.psnr_interior,
-            "chamfer_l1": chamfer_of(&learnt_mesh)?,
+            "chamfer_l1": learnt_mesh.as_ref().map(chamfer_of).transpose()?.flatten(),
         });
         let q = frame.rotation;
         metrics["alignment"] = serde_json::json!({

@@ -343,12 +343,18 @@ mod tests {
 
     use crate::test_host::v64 as vec64;
 
+    /// The gradient of `v` in `g`, or an error naming it.
+    fn grad<'a>(g: &'a candle_core::backprop::GradStore, v: &Var) -> Result<&'a Tensor> {
+        g.get(v)
+            .ok_or_else(|| crate::Error::invalid("v", "a variable of the graph", "no gradient"))
+    }
+
     #[test]
-    fn safe_sin_is_accurate_for_huge_f32_arguments() {
+    fn safe_sin_is_accurate_for_huge_f32_arguments() -> Result<()> {
         let xs: Vec<f32> = vec![0.0, 1.0, -3.5, 1e4, 3.3e7, -7.77e8, 1e10, -1e10, 123456.78];
-        let t = Tensor::new(xs.as_slice(), &Device::Cpu).unwrap();
-        let s = vec64(&safe_sin(&t).unwrap());
-        let c = vec64(&safe_cos(&t).unwrap());
+        let t = Tensor::new(xs.as_slice(), &Device::Cpu)?;
+        let s = vec64(&safe_sin(&t)?);
+        let c = vec64(&safe_cos(&t)?);
         for (i, &x) in xs.iter().enumerate() {
             let x = f64::from(x);
             assert!(
@@ -364,48 +370,53 @@ mod tests {
                 x.cos()
             );
         }
+        Ok(())
     }
 
     #[test]
-    fn sin_pi_of_large_integers_is_zero() {
-        let t = Tensor::new(&[1e6f32, 2f32.powi(20) + 1.0, 3.0], &Device::Cpu).unwrap();
-        for v in vec64(&sin_pi(&t).unwrap()) {
+    fn sin_pi_of_large_integers_is_zero() -> Result<()> {
+        let t = Tensor::new(&[1e6f32, 2f32.powi(20) + 1.0, 3.0], &Device::Cpu)?;
+        for v in vec64(&sin_pi(&t)?) {
             assert!(v.abs() < 1e-6, "{v}");
         }
+        Ok(())
     }
 
     #[test]
-    fn bce_with_logits_is_finite_with_finite_gradients_for_extreme_logits() {
-        let x = Var::new(&[-1e4f32, -100.0, 0.0, 100.0, 1e4], &Device::Cpu).unwrap();
-        let y = Tensor::new(&[1f32, 1.0, 0.5, 0.0, 0.0], &Device::Cpu).unwrap();
-        let l = bce_with_logits(x.as_tensor(), &y).unwrap();
+    fn bce_with_logits_is_finite_with_finite_gradients_for_extreme_logits() -> Result<()> {
+        let x = Var::new(&[-1e4f32, -100.0, 0.0, 100.0, 1e4], &Device::Cpu)?;
+        let y = Tensor::new(&[1f32, 1.0, 0.5, 0.0, 0.0], &Device::Cpu)?;
+        let l = bce_with_logits(x.as_tensor(), &y)?;
         let lv = vec64(&l);
         assert!(
             (lv[0] - 1e4).abs() < 1e-2 && (lv[4] - 1e4).abs() < 1e-2,
             "{lv:?}"
         );
         assert!((lv[2] - std::f64::consts::LN_2).abs() < 1e-6);
-        let g = vec64(l.sum_all().unwrap().backward().unwrap().get(&x).unwrap());
+        let g = vec64(grad(&l.sum_all()?.backward()?, &x)?);
         let expected = [-1.0, -1.0, 0.0, 1.0, 1.0];
         for (a, b) in g.iter().zip(expected) {
             assert!((a - b).abs() < 1e-6, "{g:?}");
         }
+        Ok(())
     }
 
     #[test]
-    fn sigmoid_gradient_is_finite_far_out() {
-        let x = Var::new(&[-1e3f32, -90.0, 0.0, 90.0, 1e3], &Device::Cpu).unwrap();
-        let s = sigmoid(x.as_tensor()).unwrap();
-        let g = vec64(s.sum_all().unwrap().backward().unwrap().get(&x).unwrap());
+    fn sigmoid_gradient_is_finite_far_out() -> Result<()> {
+        let x = Var::new(&[-1e3f32, -90.0, 0.0, 90.0, 1e3], &Device::Cpu)?;
+        let s = sigmoid(x.as_tensor())?;
+        let g = vec64(grad(&s.sum_all()?.backward()?, &x)?);
         assert!(g.iter().all(|v| v.is_finite()), "{g:?}");
         assert!((g[2] - 0.25).abs() < 1e-7);
+        Ok(())
     }
 
     #[test]
-    fn guard_keeps_the_sign() {
-        let x = Tensor::new(&[-1e-9f64, 0.0, 1e-9, -2.0, 3.0], &Device::Cpu).unwrap();
-        let g = vec64(&guard_denominator(&x, 1e-3).unwrap());
+    fn guard_keeps_the_sign() -> Result<()> {
+        let x = Tensor::new(&[-1e-9f64, 0.0, 1e-9, -2.0, 3.0], &Device::Cpu)?;
+        let g = vec64(&guard_denominator(&x, 1e-3)?);
         assert_eq!(g, vec![-1e-3, 1e-3, 1e-3, -2.0, 3.0]);
+        Ok(())
     }
 
     /// The CPU softplus kernel and the candle-op reference both match the exact value
@@ -414,7 +425,7 @@ mod tests {
     /// accurate to a few ulps of the value; the reference's `log(1 + e^{−β|x|})` rounds
     /// `1 + tiny`, an absolute error of ε/β that the kernel's `log1p` does not have.
     #[test]
-    fn softplus_kernel_matches_the_candle_op_reference() {
+    fn softplus_kernel_matches_the_candle_op_reference() -> Result<()> {
         let xs = [
             -1e30, -1e4, -700.0, -88.0, -30.0, -1.0, -1e-3, -1e-30, 0.0, 1e-30, 1e-3, 0.5, 1.0,
             30.0, 88.0, 700.0, 1e4, 1e30,
@@ -426,18 +437,15 @@ mod tests {
                 (f64::EPSILON, 1e-300)
             };
             for beta in [1e-3, 0.5, 1.0, 100.0, 1e6] {
-                let run = |f: fn(&Tensor, f64) -> Result<Tensor>| {
-                    let x = Tensor::new(&xs, &Device::Cpu)
-                        .unwrap()
-                        .to_dtype(dt)
-                        .unwrap();
-                    let v = Var::from_tensor(&x).unwrap();
-                    let y = f(v.as_tensor(), beta).unwrap();
-                    let g = y.sum_all().unwrap().backward().unwrap();
-                    (vec64(&y), vec64(g.get(&v).unwrap()))
+                let run = |f: fn(&Tensor, f64) -> Result<Tensor>| -> Result<(Vec<f64>, Vec<f64>)> {
+                    let x = Tensor::new(&xs, &Device::Cpu)?.to_dtype(dt)?;
+                    let v = Var::from_tensor(&x)?;
+                    let y = f(v.as_tensor(), beta)?;
+                    let g = y.sum_all()?.backward()?;
+                    Ok((vec64(&y), vec64(grad(&g, &v)?)))
                 };
-                let (yk, gk) = run(softplus);
-                let (yr, gr) = run(softplus_reference);
+                let (yk, gk) = run(softplus)?;
+                let (yr, gr) = run(softplus_reference)?;
                 for (i, &x) in xs.iter().enumerate() {
                     let z = beta * x;
                     let exact = x.max(0.0) + (-z.abs()).exp().ln_1p() / beta;
@@ -467,6 +475,23 @@ mod tests {
                 }
             }
         }
+        Ok(())
+    }
+
+    /// The reference softplus's (β = 100) autograd gradient at `x` and its central
+    /// difference.
+    fn reference_gradient_and_difference(x: f64) -> Result<(f64, f64)> {
+        let v = Var::new(&[x], &Device::Cpu)?;
+        let y = softplus_reference(v.as_tensor(), 100.0)?;
+        let g = vec64(grad(&y.sum_all()?.backward()?, &v)?)[0];
+        let f = |s: f64| -> Result<f64> {
+            Ok(vec64(&softplus_reference(
+                &Tensor::new(&[s], &Device::Cpu)?,
+                100.0,
+            )?)[0])
+        };
+        let h = 1e-6 * x.abs().max(1e-2);
+        Ok((g, (f(x + h)? - f(x - h)?) / (2.0 * h)))
     }
 
     proptest::proptest! {
@@ -476,12 +501,8 @@ mod tests {
         /// equals a central difference, over |x| up to 1e3 at β = 100.
         #[test]
         fn softplus_reference_gradient_matches_finite_differences(x in -1e3f64..1e3) {
-            let v = Var::new(&[x], &Device::Cpu).unwrap();
-            let y = softplus_reference(v.as_tensor(), 100.0).unwrap();
-            let g = vec64(y.sum_all().unwrap().backward().unwrap().get(&v).unwrap())[0];
-            let f = |s: f64| vec64(&softplus_reference(&Tensor::new(&[s], &Device::Cpu).unwrap(), 100.0).unwrap())[0];
-            let h = 1e-6 * x.abs().max(1e-2);
-            let fd = (f(x + h) - f(x - h)) / (2.0 * h);
+            let (g, fd) = reference_gradient_and_difference(x)
+                .map_err(|e| proptest::test_runner::TestCaseError::fail(e.to_string()))?;
             proptest::prop_assert!(g.is_finite());
             proptest::prop_assert!((g - fd).abs() <= 1e-5 * g.abs().max(fd.abs()).max(1e-3), "at {}: {} vs {}", x, g, fd);
         }

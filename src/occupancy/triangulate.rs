@@ -231,7 +231,7 @@ mod tests {
     }
 
     #[test]
-    fn an_l_shape_keeps_its_area_and_winding() {
+    fn an_l_shape_keeps_its_area_and_winding() -> Result<(), String> {
         // Counter-clockwise L of area 3, concave at corner 3.
         let v = [
             [0.0, 0.0, 0.0],
@@ -244,7 +244,7 @@ mod tests {
         for rot in 0..6u32 {
             let poly: Vec<u32> = (0..6).map(|i| (i + rot) % 6).collect();
             let mut t = Vec::new();
-            triangulate(&v, &poly, &mut t).unwrap();
+            triangulate(&v, &poly, &mut t)?;
             assert_eq!(t.len(), 4);
             // Every triangle counter-clockwise, and together they cover the L once.
             assert!(t.iter().all(|tri| area(&v, &[*tri]) > 0.0), "{t:?}");
@@ -252,13 +252,14 @@ mod tests {
             // Reversed: every triangle clockwise, same area.
             let rev: Vec<u32> = poly.iter().rev().copied().collect();
             let mut t = Vec::new();
-            triangulate(&v, &rev, &mut t).unwrap();
+            triangulate(&v, &rev, &mut t)?;
             assert!((area(&v, &t) + 3.0).abs() < 1e-12);
         }
+        Ok(())
     }
 
     #[test]
-    fn a_bow_tie_is_refused() {
+    fn a_bow_tie_is_refused() -> Result<(), String> {
         let v = [
             [0.0, 0.0, 0.0],
             [1.0, 1.0, 0.0],
@@ -269,12 +270,13 @@ mod tests {
         let e = triangulate(&v, &[0, 1, 2, 3], &mut t).unwrap_err();
         assert!(e.contains("self-intersecting"), "{e}");
         assert!(t.is_empty());
+        Ok(())
     }
 
     /// Pins a double cover: a convex ring listed twice (`f 1 2 3 4 5 1 2 3 4 5`) passed
     /// the convexity and area checks and was fanned into triangles covering it twice.
     #[test]
-    fn a_ring_listed_twice_is_refused() {
+    fn a_ring_listed_twice_is_refused() -> Result<(), String> {
         let v: Vec<[f64; 3]> = (0..5)
             .map(|i| {
                 let a = f64::from(i) / 5.0 * std::f64::consts::TAU;
@@ -285,12 +287,13 @@ mod tests {
         let e = triangulate(&v, &[0, 1, 2, 3, 4, 0, 1, 2, 3, 4], &mut t).unwrap_err();
         assert!(e.contains("winds 2 times"), "{e}");
         assert!(t.is_empty());
-        triangulate(&v, &[0, 1, 2, 3, 4], &mut t).unwrap();
+        triangulate(&v, &[0, 1, 2, 3, 4], &mut t)?;
         assert_eq!(t.len(), 3);
+        Ok(())
     }
 
     #[test]
-    fn collinear_and_huge_concave_polygons() {
+    fn collinear_and_huge_concave_polygons() -> Result<(), String> {
         let line = [
             [0.0, 0.0, 0.0],
             [1.0, 0.0, 0.0],
@@ -298,7 +301,7 @@ mod tests {
             [3.0, 0.0, 0.0],
         ];
         let mut t = Vec::new();
-        triangulate(&line, &[0, 1, 2, 3], &mut t).unwrap();
+        triangulate(&line, &[0, 1, 2, 3], &mut t)?;
         assert_eq!(t.len(), 2);
         // A star with more corners than MAX_CONCAVE is refused, not clipped.
         let k = MAX_CONCAVE + 2;
@@ -312,5 +315,6 @@ mod tests {
         let poly: Vec<u32> = (0..k as u32).collect();
         let e = triangulate(&star, &poly, &mut t).unwrap_err();
         assert!(e.contains("concave"), "{e}");
+        Ok(())
     }
 }

@@ -8,6 +8,8 @@ use crate::test_host::{extreme_inputs, v64};
 use crate::volume::composite::{composite_with, CompositeConfig};
 use crate::volume::layout::{Intervals, Layout};
 use crate::volume::reference;
+use crate::Result;
+use candle_core::backprop::GradStore;
 use candle_core::{Device, Tensor, Var};
 
 const BUILDS: [KernelBuild; 3] = [
@@ -34,14 +36,23 @@ fn loss_weights(seed: u64, c: usize) -> Vec<f64> {
     (0..c + 2).map(|_| rng.normal()).collect()
 }
 
-fn batched(r: usize, s: usize, c: usize, seed: u64) -> (Tensor, Tensor, Tensor, Tensor) {
+fn batched(r: usize, s: usize, c: usize, seed: u64) -> Result<(Tensor, Tensor, Tensor, Tensor)> {
     let (sig, del, col, tm) = inputs(seed, r * s, c);
-    (
-        Tensor::from_vec(sig, (r, s), &dev()).unwrap(),
-        Tensor::from_vec(col, (r, s, c), &dev()).unwrap(),
-        Tensor::from_vec(del, (r, s), &dev()).unwrap(),
-        Tensor::from_vec(tm, (r, s), &dev()).unwrap(),
-    )
+    Ok((
+        Tensor::from_vec(sig, (r, s), &dev())?,
+        Tensor::from_vec(col, (r, s, c), &dev())?,
+        Tensor::from_vec(del, (r, s), &dev())?,
+        Tensor::from_vec(tm, (r, s), &dev())?,
+    ))
+}
+
+/// Outputs, then the gradients w.r.t. σ, δ and the values, on the host.
+type Run = (Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>);
+
+/// The gradient of `t` in `g`, or an error naming it.
+fn grad<'a>(g: &'a GradStore, t: &Tensor) -> Result<&'a Tensor> {
+    g.get(t)
+        .ok_or_else(|| crate::Error::invalid("t", "a tensor of the graph", "no gradient"))
 }
 
 /// Σwv and Σw for 0–7 channels (the kernels specialised for 1–4 channels and the
@@ -49,15 +60,15 @@ fn batched(r: usize, s: usize, c: usize, seed: u64) -> (Tensor, Tensor, Tensor, 
 /// from the reference path, values and gradients (σ, δ and the values), on every kernel
 /// build the CPU has (baseline, AVX2 + FMA, AVX-512).
 #[test]
-fn every_channel_count_and_every_kernel_build_match_the_reference() {
+fn every_channel_count_and_every_kernel_build_match_the_reference() -> Result<()> {
     for build in BUILDS {
         for k in 0..8 {
-            let (sig, col, del, tm) = batched(3, 37, k, 7 + k as u64);
-            let run = |fused: bool| {
+            let (sig, col, del, tm) = batched(3, 37, k, 7 + k as u64)?;
+            let run = |fused: bool| -> Result<Run> {
                 let (s, c, d) = (
-                    Var::from_tensor(&sig).unwrap(),
-                    Var::from_tensor(&col).unwrap(),
-                    Var::from_tensor(&del).unwrap(),
+                    Var::from_tensor(&sig)?,
+                    Var::from_tensor(&col)?,
+                    Var::from_tensor(&del)?,
                 );
                 let out = if fused {
                     let geometry = FusedGeometry::Tensors {
@@ -71,38 +82,35 @@ fn every_channel_count_and_every_kernel_build_match_the_reference() {
                         &Layout::Batched,
                         false,
                         build,
-                    )
-                    .unwrap();
-                    let opacity = opacity.unsqueeze(1).unwrap();
+                    )?;
+                    let opacity = opacity.unsqueeze(1)?;
                     if k == 0 {
                         opacity
                     } else {
-                        Tensor::cat(&[&color, &opacity], 1).unwrap()
+                        Tensor::cat(&[&color, &opacity], 1)?
                     }
                 } else {
                     let w =
-                        reference::weights(s.as_tensor(), d.as_tensor(), &Layout::Batched, false)
-                            .unwrap();
-                    let opacity = w.weights.sum_keepdim(1).unwrap();
+                        reference::weights(s.as_tensor(), d.as_tensor(), &Layout::Batched, false)?;
+                    let opacity = w.weights.sum_keepdim(1)?;
                     if k == 0 {
                         opacity
                     } else {
                         let acc =
-                            reference::accumulate(&w.weights, c.as_tensor(), &Layout::Batched)
-                                .unwrap();
-                        Tensor::cat(&[&acc, &opacity], 1).unwrap()
+                            reference::accumulate(&w.weights, c.as_tensor(), &Layout::Batched)?;
+                        Tensor::cat(&[&acc, &opacity], 1)?
                     }
                 };
-                let lw = Tensor::new(&loss_weights(k as u64, k)[..k + 1], &dev()).unwrap();
-                let l = out.broadcast_mul(&lw).unwrap().sum_all().unwrap();
-                let g = l.backward().unwrap();
-                let get = |v: &Var| v64(g.get(v.as_tensor()).unwrap());
+                let lw = Tensor::new(&loss_weights(k as u64, k)[..k + 1], &dev())?;
+                let l = out.broadcast_mul(&lw)?.sum_all()?;
+                let g = l.backward()?;
+                let get = |v: &Var| -> Result<Vec<f64>> { Ok(v64(grad(&g, v.as_tensor())?)) };
                 // With no channels candle drops the empty values from the reference graph.
                 let gc = g.get(c.as_tensor()).map(v64).unwrap_or_default();
-                (v64(&out), get(&s), get(&d), gc)
+                Ok((v64(&out), get(&s)?, get(&d)?, gc))
             };
-            let (fo, fs, fd, fc) = run(true);
-            let (ro, rs, rd, rc) = run(false);
+            let (fo, fs, fd, fc) = run(true)?;
+            let (ro, rs, rd, rc) = run(false)?;
             // ∂L/∂xⱼ = Tⱼ₊₁uⱼ − Σ_{i>j} wᵢuᵢ cancels down from |u| ≤ Σ|loss weights|
             // (values in [0, 1]); ∂L/∂σ = δ·∂L/∂x and ∂L/∂δ = σ·∂L/∂x.
             let umax: f64 = loss_weights(k as u64, k)[..k + 1]
@@ -129,6 +137,7 @@ fn every_channel_count_and_every_kernel_build_match_the_reference() {
             }
         }
     }
+    Ok(())
 }
 
 /// The scans run in blocks of 4 samples and fall back to one sample at a time in the
@@ -138,13 +147,10 @@ fn every_channel_count_and_every_kernel_build_match_the_reference() {
 /// the dropped weights (each below 1e-300), with exactly zero gradient past the drop.
 /// The intervals are constant (`[k, k + 1]`), so the kernel forms δ and t in place.
 #[test]
-fn blocked_scan_stops_in_the_block_where_transmittance_falls_below_1e_300() {
+fn blocked_scan_stops_in_the_block_where_transmittance_falls_below_1e_300() -> Result<()> {
     let s = 13;
-    let ks = Tensor::arange(0.0f64, s as f64, &dev())
-        .unwrap()
-        .reshape((1, s))
-        .unwrap();
-    let intervals = Intervals::new(ks.clone(), (&ks + 1.0).unwrap()).unwrap();
+    let ks = Tensor::arange(0.0f64, s as f64, &dev())?.reshape((1, s))?;
+    let intervals = Intervals::new(ks.clone(), (&ks + 1.0)?)?;
     for build in BUILDS {
         for drop_at in 0..s {
             // x = σδ = 0.3 before the drop, 700 at it (T falls by e^{-700} ≈ 1e-304),
@@ -156,20 +162,16 @@ fn blocked_scan_stops_in_the_block_where_transmittance_falls_below_1e_300() {
                     std::cmp::Ordering::Greater => 0.2,
                 })
                 .collect();
-            let sig = Tensor::from_vec(sig, (1, s), &dev()).unwrap();
+            let sig = Tensor::from_vec(sig, (1, s), &dev())?;
             let col = Tensor::from_vec(
                 (0..s * 2)
                     .map(|i| 0.1 + 0.05 * i as f64)
                     .collect::<Vec<_>>(),
                 (1, s, 2),
                 &dev(),
-            )
-            .unwrap();
-            let run = |fused: bool| {
-                let (sv, cv) = (
-                    Var::from_tensor(&sig).unwrap(),
-                    Var::from_tensor(&col).unwrap(),
-                );
+            )?;
+            let run = |fused: bool| -> Result<(Vec<f64>, Vec<f64>, Vec<f64>)> {
+                let (sv, cv) = (Var::from_tensor(&sig)?, Var::from_tensor(&col)?);
                 let config = CompositeConfig {
                     force_reference: !fused,
                     ..CompositeConfig::default()
@@ -181,26 +183,21 @@ fn blocked_scan_stops_in_the_block_where_transmittance_falls_below_1e_300() {
                     None,
                     &config,
                     build,
-                )
-                .unwrap();
+                )?;
                 let lw = [0.7, -1.3, 0.4, 0.9];
                 let lc = color
-                    .broadcast_mul(&Tensor::new(&[[lw[0], lw[1]]], &dev()).unwrap())
-                    .unwrap()
-                    .sum_all()
-                    .unwrap();
-                let l = ((lc + (opacity.sum_all().unwrap() * lw[2]).unwrap()).unwrap()
-                    + (depth.sum_all().unwrap() * lw[3]).unwrap())
-                .unwrap();
-                let g = l.backward().unwrap();
+                    .broadcast_mul(&Tensor::new(&[[lw[0], lw[1]]], &dev())?)?
+                    .sum_all()?;
+                let l = ((lc + (opacity.sum_all()? * lw[2])?)? + (depth.sum_all()? * lw[3])?)?;
+                let g = l.backward()?;
                 let vals = [v64(&color), v64(&opacity), v64(&depth)].concat();
-                (
+                Ok((
                     vals,
-                    v64(g.get(sv.as_tensor()).unwrap()),
-                    v64(g.get(cv.as_tensor()).unwrap()),
-                )
+                    v64(grad(&g, sv.as_tensor())?),
+                    v64(grad(&g, cv.as_tensor())?),
+                ))
             };
-            let ((fv, fs, fc), (rv, rs, rc)) = (run(true), run(false));
+            let ((fv, fs, fc), (rv, rs, rc)) = (run(true)?, run(false)?);
             for (name, a, b) in [
                 ("outputs", &fv, &rv),
                 ("d/dsigma", &fs, &rs),
@@ -220,4 +217,5 @@ fn blocked_scan_stops_in_the_block_where_transmittance_falls_below_1e_300() {
             );
         }
     }
+    Ok(())
 }
