@@ -334,14 +334,7 @@ fn parse_args() -> std::result::Result<Args, String> {
                 [d, f] if d >= 0.0 && f >= 0.0 => a.perturb = Some((d, f)),
                 _ => return Err(format!("--perturb: DEGREES,FRACTION ≥ 0, not {value}")),
             },
-            "--coarse-to-fine" => match training::pair(flag, value, "0.1,0.5")? {
-                [s, e] if 0.0 <= s && s < e && e <= 1.0 => a.coarse_to_fine = Some((s, e)),
-                _ => {
-                    return Err(format!(
-                        "--coarse-to-fine: START,END with 0 ≤ START < END ≤ 1, not {value}"
-                    ))
-                }
-            },
+            "--coarse-to-fine" => a.coarse_to_fine = Some(training::window_span(flag, value)?),
             "--refine-poses" => a.refine_poses = training::on_off(flag, value)?,
             "--pose-lr" => a.pose_lr = num(flag, value)?,
             "--resume" => a.resume = Some(value.into()),
@@ -1279,12 +1272,7 @@ pub fn run(args: &Args) -> Result<Summary> {
             |lr: f64| log_linear_schedule((progress * 10_000.0) as usize, lr, lr / 10.0, 10_000);
         opt.set_learning_rate(decay(lr0));
         pose_opt.set_learning_rate(decay(args.pose_lr));
-        if let Some((start, end)) = args.coarse_to_fine {
-            let open = ((progress - start) / (end - start)).clamp(0.0, 1.0);
-            for w in &windows {
-                w.set_alpha(open * w.bands() as f64)?;
-            }
-        }
+        training::open_windows(&windows, progress, args.coarse_to_fine)?;
         let batch = sampler.patches(args.rays / 4, 2)?;
         let mask: Vec<bool> = batch
             .masks
@@ -1355,10 +1343,9 @@ pub fn run(args: &Args) -> Result<Summary> {
     }
     let train_seconds = clock.train_seconds();
     clock.bar.finish_and_clear();
-    // Every band open for the evaluation (a run that stopped early, or a resumed one).
-    for w in &windows {
-        w.set_alpha(w.bands() as f64)?;
-    }
+    // The windows as the schedule leaves them at the end of training (every band open
+    // unless END > 1), also for a run that stopped early or a resumed one.
+    training::open_windows(&windows, 1.0, args.coarse_to_fine)?;
     training::check_weights(&vars, step)?;
     // With refined poses the scene was learnt in a frame of its own: the held-out cameras
     // are moved into it (and the mesh out of it) by the alignment of the training cameras.

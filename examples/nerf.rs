@@ -61,12 +61,21 @@
 //! ([`GridMarchConfig::with_jitter`](neural_fields::volume::GridMarchConfig::with_jitter)),
 //! so the field is not fitted at the same points along a ray every step.
 //!
+//! **Coarse-to-fine.** `--coarse-to-fine START,END` puts the position encoding under a
+//! window ([`CoarseToFine`]) that opens its octaves (or hash levels) from the fraction
+//! START of training to END: BARF's schedule, which FreeNeRF uses as a frequency
+//! regulariser for sparse views (`--frames`). Evaluations during training use the window
+//! as it stands, the final one the window at the end of the schedule: fully open, unless
+//! END > 1, which leaves a fraction `(1 − START)/(END − START)` of the bands open and so
+//! caps the encoding's frequencies. `--view-dependence off` drops the view direction
+//! from the colour head (a diffuse scene, or too few views to tell shading from shape).
+//!
 //! **Output** in `--out DIR` (default `out/nerf`):
 //! - `metrics.json`: `psnr`, `ssim` (means over the held-out views), `train_seconds`
 //!   (evaluation excluded), `steps`, `samples_per_ray` (mean over training), `sampler`,
 //!   `encoding`,
 //!   `eval_split`, `eval_views`, `eval_supersample`, `jitter`, `train_supersample`,
-//!   `march_jitter`, `data`;
+//!   `march_jitter`, `coarse_to_fine` (`[START, END]` or null), `view_dependence`, `data`;
 //! - `curve.csv`: `step,train_seconds,psnr` every `--eval-every` steps (PSNR on the first
 //!   `--eval-views` held-out views);
 //! - `view_{i}.png` (truth | prediction | error), `depth_{i}.png`, `opacity_{i}.png` for
@@ -85,7 +94,7 @@ use neural_fields::data::{
     colorize_depth, comparison_strip, load, psnr, ssim, write_png, Background, Dataset, LoadConfig,
     RaySampler,
 };
-use neural_fields::encoding::{FrequencyEncoding, HashGridConfig, PointEncoding};
+use neural_fields::encoding::{CoarseToFine, FrequencyEncoding, HashGridConfig, PointEncoding};
 use neural_fields::glam::DVec2;
 use neural_fields::nn::{build_seeded, mlp, nerf, Mlp, MlpConfig, Nerf, NerfConfig};
 use neural_fields::volume::{
@@ -100,7 +109,7 @@ use std::path::PathBuf;
 #[path = "common/mod.rs"]
 mod common;
 #[path = "common/training.rs"]
-mod training;
+pub mod training;
 
 #[global_allocator]
 static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
@@ -152,13 +161,18 @@ pub struct Args {
     /// RegNeRF's depth-smoothness weight, log-linear from the first to the second value
     /// over the first 512 steps (RegNeRF's 400 → 0.1 by default).
     pub regnerf_weight: [f64; 2],
+    /// The fractions of training over which the position encoding's window opens.
+    pub coarse_to_fine: Option<(f64, f64)>,
+    /// Whether the colour depends on the view direction.
+    pub view_dependence: bool,
 }
 
 const USAGE: &str = "usage: nerf [--data DIR] [--minutes M | --steps N] [--out DIR] [--seed S] \
 [--sampler grid|stratified|proposal] [--downscale K] [--rays N] [--samples N] [--aabb R] \
 [--eval-every N] [--eval-views N] [--pictures N] [--resume FILE] [--lr LR] [--background random|white|black] [--frames I,J,K] [--regnerf on|off] \
 [--encoding pe|hash] [--hash-log2 T] [--hash-finest N] [--eval-supersample K] [--jitter on|off] \
-[--train-supersample K] [--march-jitter on|off] [--regnerf-weight START,END]";
+[--train-supersample K] [--march-jitter on|off] [--regnerf-weight START,END] \
+[--coarse-to-fine START,END] [--view-dependence on|off]";
 
 impl Default for Args {
     /// The defaults of the command line.
@@ -190,6 +204,8 @@ impl Default for Args {
             frames: None,
             regnerf: false,
             regnerf_weight: [400.0, 0.1],
+            coarse_to_fine: None,
+            view_dependence: true,
         }
     }
 }
@@ -251,6 +267,8 @@ fn parse_args() -> std::result::Result<Args, String> {
             }
             "--regnerf" => a.regnerf = training::on_off(flag, value)?,
             "--regnerf-weight" => a.regnerf_weight = regnerf_weight(value)?,
+            "--coarse-to-fine" => a.coarse_to_fine = Some(training::window_span(flag, value)?),
+            "--view-dependence" => a.view_dependence = training::on_off(flag, value)?,
             "--background" => {
                 a.background = match value {
                     "random" => Background::Random,
@@ -567,9 +585,21 @@ pub fn run(args: &Args) -> Result<Summary> {
         .hash_finest
         .unwrap_or_else(|| training::hash_finest(&train));
     let mut varmap = VarMap::new();
+    let windows = std::cell::RefCell::new(Vec::new());
     let net = build_seeded(&varmap, dtype, &device, args.seed, |vb| {
-        nerf(&nerf_config(args, aabb, finest, &vb)?, vb)
+        let mut config = nerf_config(args, aabb, finest, &vb)?;
+        if !args.view_dependence {
+            config.direction_encoding = None;
+        }
+        windows.borrow_mut().clear();
+        if args.coarse_to_fine.is_some() {
+            let window = CoarseToFine::new(config.position_encoding)?;
+            windows.borrow_mut().push(window.clone());
+            config.position_encoding = PointEncoding::CoarseToFine(window);
+        }
+        nerf(&config, vb)
     })?;
+    let windows = windows.into_inner();
     let proposals = match args.sampler {
         Sampler::Proposal => (0..2)
             .map(|l| {
@@ -629,6 +659,7 @@ pub fn run(args: &Args) -> Result<Summary> {
             lr1,
             10_000,
         ));
+        training::open_windows(&windows, progress, args.coarse_to_fine)?;
         if let Some(grid) = grid.as_mut() {
             grid.update(step, 16, &device, dtype, |p: &Tensor| {
                 Ok(net.density(p)?.detach())
@@ -715,6 +746,7 @@ pub fn run(args: &Args) -> Result<Summary> {
     }
     let train_seconds = clock.train_seconds();
     clock.bar.finish_and_clear();
+    training::open_windows(&windows, 1.0, args.coarse_to_fine)?;
     training::check_weights(&vars, step)?;
     let renderer = Renderer {
         net: &net,
@@ -766,6 +798,8 @@ pub fn run(args: &Args) -> Result<Summary> {
         "jitter": args.jitter,
         "train_supersample": args.train_supersample,
         "march_jitter": args.march_jitter,
+        "coarse_to_fine": args.coarse_to_fine.map(|(s, e)| [s, e]),
+        "view_dependence": args.view_dependence,
         "data": args.data.display().to_string(),
     });
     training::write_json(&args.out.join("metrics.json"), &metrics)?;

@@ -169,6 +169,36 @@ pub fn pair(flag: &str, value: &str, example: &str) -> std::result::Result<[f64;
     }
 }
 
+/// `--coarse-to-fine START,END`: the fractions of training over which the coarse-to-fine
+/// windows open (0 ≤ START < END). With END > 1 the windows are still opening when
+/// training ends (at `(1 − START)/(END − START)` of their bands), which caps the
+/// encoding's frequencies.
+pub fn window_span(flag: &str, value: &str) -> std::result::Result<(f64, f64), String> {
+    match pair(flag, value, "0.1,0.5")? {
+        [s, e] if 0.0 <= s && s < e && s < 1.0 => Ok((s, e)),
+        _ => Err(format!(
+            "{flag}: START,END with 0 ≤ START < 1 and START < END, not {value}"
+        )),
+    }
+}
+
+/// Opens each window to `α = bands · clamp((progress − START)/(END − START), 0, 1)`;
+/// `span: None` opens them fully. Evaluations after training pass `progress = 1`: the
+/// windows as training left them.
+pub fn open_windows(
+    windows: &[neural_fields::encoding::CoarseToFine],
+    progress: f64,
+    span: Option<(f64, f64)>,
+) -> Result<()> {
+    let open = span.map_or(1.0, |(start, end)| {
+        ((progress - start) / (end - start)).clamp(0.0, 1.0)
+    });
+    for w in windows {
+        w.set_alpha(open * w.bands() as f64)?;
+    }
+    Ok(())
+}
+
 /// `value` of `flag` as `on` or `off`.
 pub fn on_off(flag: &str, value: &str) -> std::result::Result<bool, String> {
     match value {

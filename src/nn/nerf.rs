@@ -209,9 +209,16 @@ impl Nerf {
         let n = check_points(points, "points")?;
         check_shape(directions, "directions", &[Dim::Is(n), Dim::Is(3)])?;
         check_same(directions, "directions", points, "points")?;
-        // ‖d‖ floored at 1e-12 before the root, so a zero direction has a finite gradient.
-        let norm = directions.sqr()?.sum_keepdim(1)?.maximum(1e-24)?.sqrt()?;
-        let unit = directions.broadcast_div(&norm)?;
+        let unit = if self.config.direction_encoding.is_some() {
+            // ‖d‖ floored at 1e-12 before the root, so a zero direction has a finite
+            // gradient.
+            let norm = directions.sqr()?.sum_keepdim(1)?.maximum(1e-24)?.sqrt()?;
+            directions.broadcast_div(&norm)?
+        } else {
+            // No direction encoding: the head sees the zero vector, so the colour does not
+            // depend on the view (nor is it differentiable w.r.t. the directions).
+            directions.zeros_like()?
+        };
         if self.trunk.fused(points) && self.head.fused(points) {
             // Both networks in one CPU op: [N, 4] = raw density, raw colour.
             let ep = self.trunk.config().encoding.forward(points)?.contiguous()?;
