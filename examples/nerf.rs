@@ -39,11 +39,16 @@
 //! - `stratified`: `--samples` (64) jittered samples per ray between the ray's entry and
 //!   exit of the scene box.
 //! - `proposal`: two proposal networks (2 × 32 ReLU on a frequency encoding, L = 6) place
-//!   64 and then 32 samples, from which `--samples` intervals are drawn for the radiance
-//!   field ([`proposal_sample`](neural_fields::volume::proposal_sample)); the proposals
-//!   learn from the interlevel loss
-//!   ([`interlevel_loss`](neural_fields::volume::interlevel_loss)), added to the
-//!   photometric loss.
+//!   16 and then 8 samples (`--proposal-samples 16,8`), from which `--samples` intervals
+//!   are drawn for the radiance field
+//!   ([`proposal_sample`](neural_fields::volume::proposal_sample)); the proposals learn
+//!   from the interlevel loss ([`interlevel_loss`](neural_fields::volume::interlevel_loss)),
+//!   added to the photometric loss. The field's density at those intervals, without a
+//!   graph, gives the interlevel loss its target weights; then only the samples that are
+//!   visible (transmittance ≥ 1e-4) and not empty (opacity `1 − e^{−σδ}` ≥
+//!   `--alpha-threshold`, default 1e-2; nerfacc's `alpha_thre`) go through the whole
+//!   network, in training and evaluation alike. `--alpha-threshold 0` keeps every
+//!   sample.
 //!
 //! The scene box is the layout's bounds (nerfstudio's `aabb_scale`, DTU's unit sphere) or,
 //! for layouts that state none (Blender), the cube of half-side `--aabb` (default 1.5,
@@ -75,7 +80,8 @@
 //!   (evaluation excluded), `steps`, `samples_per_ray` (mean over training), `sampler`,
 //!   `encoding`,
 //!   `eval_split`, `eval_views`, `eval_supersample`, `jitter`, `train_supersample`,
-//!   `march_jitter`, `coarse_to_fine` (`[START, END]` or null), `view_dependence`, `data`;
+//!   `march_jitter`, `coarse_to_fine` (`[START, END]` or null), `view_dependence`,
+//!   `alpha_threshold`, `proposal_samples`, `data`;
 //! - `curve.csv`: `step,train_seconds,psnr` every `--eval-every` steps (PSNR on the first
 //!   `--eval-views` held-out views);
 //! - `view_{i}.png` (truth | prediction | error), `depth_{i}.png`, `opacity_{i}.png` for
@@ -165,6 +171,11 @@ pub struct Args {
     pub coarse_to_fine: Option<(f64, f64)>,
     /// Whether the colour depends on the view direction.
     pub view_dependence: bool,
+    /// Proposal sampler: drop final samples whose opacity `1 − e^{−σδ}` is below this
+    /// (0: keep all; default 1e-2).
+    pub alpha_threshold: f64,
+    /// Proposal sampler: samples per ray of each proposal level.
+    pub proposal_samples: Vec<usize>,
 }
 
 const USAGE: &str = "usage: nerf [--data DIR] [--minutes M | --steps N] [--out DIR] [--seed S] \
@@ -172,7 +183,7 @@ const USAGE: &str = "usage: nerf [--data DIR] [--minutes M | --steps N] [--out D
 [--eval-every N] [--eval-views N] [--pictures N] [--resume FILE] [--lr LR] [--background random|white|black] [--frames I,J,K] [--regnerf on|off] \
 [--encoding pe|hash] [--hash-log2 T] [--hash-finest N] [--eval-supersample K] [--jitter on|off] \
 [--train-supersample K] [--march-jitter on|off] [--regnerf-weight START,END] \
-[--coarse-to-fine START,END] [--view-dependence on|off]";
+[--coarse-to-fine START,END] [--view-dependence on|off] [--alpha-threshold A] [--proposal-samples N,M]";
 
 impl Default for Args {
     /// The defaults of the command line.
@@ -206,6 +217,8 @@ impl Default for Args {
             regnerf_weight: [400.0, 0.1],
             coarse_to_fine: None,
             view_dependence: true,
+            alpha_threshold: 1e-2,
+            proposal_samples: vec![16, 8],
         }
     }
 }
@@ -269,6 +282,21 @@ fn parse_args() -> std::result::Result<Args, String> {
             "--regnerf-weight" => a.regnerf_weight = regnerf_weight(value)?,
             "--coarse-to-fine" => a.coarse_to_fine = Some(training::window_span(flag, value)?),
             "--view-dependence" => a.view_dependence = training::on_off(flag, value)?,
+            "--alpha-threshold" => a.alpha_threshold = num(flag, value)?,
+            "--proposal-samples" => {
+                let list: std::result::Result<Vec<usize>, _> = value
+                    .split(',')
+                    .map(|v| v.trim().parse::<usize>())
+                    .collect();
+                match list {
+                    Ok(l) if l.len() == 2 && !l.contains(&0) => a.proposal_samples = l,
+                    _ => {
+                        return Err(format!(
+                            "--proposal-samples: two positive counts like 64,32, not {value}"
+                        ))
+                    }
+                }
+            }
             "--background" => {
                 a.background = match value {
                     "random" => Background::Random,
@@ -302,6 +330,9 @@ fn parse_args() -> std::result::Result<Args, String> {
     if !(a.aabb > 0.0 && a.aabb.is_finite()) {
         return Err("--aabb must be positive".into());
     }
+    if !(0.0..1.0).contains(&a.alpha_threshold) {
+        return Err("--alpha-threshold must lie in [0, 1)".into());
+    }
     Ok(a)
 }
 
@@ -327,6 +358,10 @@ struct Renderer<'a> {
     samples: usize,
     /// Shift the grid march's steps at random in training (`--march-jitter`).
     march_jitter: bool,
+    /// Proposal sampler: the opacity below which a final sample is skipped.
+    alpha_threshold: f64,
+    /// Proposal sampler: samples per ray of each level.
+    proposal_samples: &'a [usize],
 }
 
 impl Renderer<'_> {
@@ -342,7 +377,9 @@ impl Renderer<'_> {
             background: Some(background.clone()),
             ..CompositeConfig::default()
         };
+        let composite_config = &config;
         let mut levels = Vec::new();
+        let mut interlevel = Tensor::zeros((), rays.origins().dtype(), rays.origins().device())?;
         let intervals = match self.grid {
             Some(grid) => {
                 let march = GridMarchConfig::new(0.0, f64::INFINITY, self.step_size);
@@ -365,7 +402,7 @@ impl Renderer<'_> {
                 let mut coarse = |p: &Tensor| proposal_density(&self.proposals[0], p);
                 let mut fine = |p: &Tensor| proposal_density(&self.proposals[1], p);
                 let config = ProposalConfig {
-                    samples: vec![64, 32],
+                    samples: self.proposal_samples.to_vec(),
                     final_samples: self.samples,
                     padding: 0.01,
                 };
@@ -377,8 +414,28 @@ impl Renderer<'_> {
                     &config,
                     seed,
                 )?;
-                levels = out.levels;
-                out.intervals
+                if self.alpha_threshold > 0.0 {
+                    // Skip what the scene does not need: the field's density without a
+                    // graph at every final sample gives the interlevel loss its (detached)
+                    // target weights; then only samples that are visible (T ≥ 1e-4) and
+                    // not empty (α ≥ the threshold) go through the whole network.
+                    let iv = out.intervals;
+                    let sigma = self.net.density(&iv.positions(rays)?.flatten_to(1)?)?;
+                    let sigma = sigma.reshape(iv.starts.shape())?.detach();
+                    let weights =
+                        render_weights(&sigma, &iv, Some(rays), composite_config)?.weights;
+                    for level in &out.levels {
+                        interlevel = (interlevel + interlevel_loss(level, &iv, &weights)?)?;
+                    }
+                    let visible = visible_mask(&sigma, &iv, Some(rays), DEFAULT_TERMINATION_EPS)?;
+                    let dt = (&iv.ends - &iv.starts)?;
+                    let alpha = (1.0 - (sigma * dt)?.neg()?.exp()?)?;
+                    let dense = alpha.ge(self.alpha_threshold)?;
+                    iv.retain(&(visible * dense)?)?.0
+                } else {
+                    levels = out.levels;
+                    out.intervals
+                }
             }
             None => {
                 let [x0, y0, z0, x1, y1, z1] = self.aabb;
@@ -426,7 +483,6 @@ impl Renderer<'_> {
             Layout::Packed(_) => (sigma, rgb),
         };
         // The proposals learn from the interlevel loss against the field's weights.
-        let mut interlevel = Tensor::zeros((), sigma.dtype(), sigma.device())?;
         if !levels.is_empty() {
             let weights = render_weights(&sigma, &intervals, Some(rays), &config)?.weights;
             for level in &levels {
@@ -677,6 +733,8 @@ pub fn run(args: &Args) -> Result<Summary> {
             },
             samples: args.samples,
             march_jitter: args.march_jitter,
+            alpha_threshold: args.alpha_threshold,
+            proposal_samples: &args.proposal_samples,
         };
         let k = args.train_supersample;
         let batch = if k > 1 {
@@ -757,6 +815,8 @@ pub fn run(args: &Args) -> Result<Summary> {
         step_size: diag / 256.0,
         samples: args.samples,
         march_jitter: false,
+        alpha_threshold: args.alpha_threshold,
+        proposal_samples: &args.proposal_samples,
     };
     if let Some(g) = &grid {
         println!(
@@ -800,6 +860,8 @@ pub fn run(args: &Args) -> Result<Summary> {
         "march_jitter": args.march_jitter,
         "coarse_to_fine": args.coarse_to_fine.map(|(s, e)| [s, e]),
         "view_dependence": args.view_dependence,
+        "alpha_threshold": args.alpha_threshold,
+        "proposal_samples": args.proposal_samples,
         "data": args.data.display().to_string(),
     });
     training::write_json(&args.out.join("metrics.json"), &metrics)?;
@@ -899,10 +961,23 @@ mod tests {
         args.sampler = Sampler::Stratified;
         args.steps = Some(2);
         run(&args).unwrap();
-        // The proposal sampler from scratch (its networks are not in the saved weights).
+        // The proposal sampler from scratch (its networks are not in the saved weights),
+        // skipping empty samples (the default) and keeping them all, under a window.
         args.resume = None;
         args.sampler = Sampler::Proposal;
         run(&args).unwrap();
+        args.alpha_threshold = 0.0;
+        args.coarse_to_fine = Some((0.0, 2.0));
+        args.view_dependence = false;
+        run(&args).unwrap();
+        let metrics: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap())
+                .unwrap();
+        assert_eq!(metrics["alpha_threshold"], 0.0);
+        assert_eq!(metrics["coarse_to_fine"], serde_json::json!([0.0, 2.0]));
+        assert_eq!(metrics["view_dependence"], false);
+        args.coarse_to_fine = None;
+        args.view_dependence = true;
         // The hash-grid encoding, with box-filtered training rays and a jittered march.
         args.sampler = Sampler::Grid;
         args.encoding = PositionEncoding::Hash;

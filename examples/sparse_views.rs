@@ -165,6 +165,7 @@ fn compare(base: &nerf::Args, reg: &Regularisers) -> Result<()> {
             frames: base.frames.clone(),
             data: base.data.clone(),
             resume: None,
+            proposal_samples: base.proposal_samples.clone(),
             ..*base
         };
         let args = if name == "plain" {
