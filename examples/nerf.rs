@@ -106,8 +106,8 @@ use neural_fields::nn::{build_seeded, mlp, nerf, Mlp, MlpConfig, Nerf, NerfConfi
 use neural_fields::volume::{
     anneal_near_far, composite, depth_smoothness, interlevel_loss, log_linear_schedule,
     proposal_sample, render_weights, stratified, trunc_exp, visible_mask, Composite,
-    CompositeConfig, GridConfig, GridMarchConfig, Jitter, Layout, OccupancyGrid, ProposalConfig,
-    ANNEAL_MID_RATIO, ANNEAL_P_START, DEFAULT_TERMINATION_EPS,
+    CompositeConfig, GridConfig, GridMarchConfig, Intervals, Jitter, Layout, OccupancyGrid,
+    ProposalConfig, ANNEAL_MID_RATIO, ANNEAL_P_START, DEFAULT_TERMINATION_EPS,
 };
 use neural_fields::Result;
 use std::path::PathBuf;
@@ -392,9 +392,8 @@ impl Renderer<'_> {
                 let iv = grid.sample(rays, &march)?.intervals;
                 // Early termination: the density without a graph, then only the visible
                 // samples through the whole network.
-                let sigma = self.net.density(&iv.positions(rays)?)?.detach();
-                let mask = visible_mask(&sigma, &iv, Some(rays), DEFAULT_TERMINATION_EPS)?;
-                iv.retain(&mask)?.0
+                let sigma = self.density(&iv, rays)?;
+                self.skip(iv, &sigma, rays, 0.0)?
             }
             None if !self.proposals.is_empty() => {
                 let [x0, y0, z0, x1, y1, z1] = self.aabb;
@@ -420,18 +419,13 @@ impl Renderer<'_> {
                     // target weights; then only samples that are visible (T ≥ 1e-4) and
                     // not empty (α ≥ the threshold) go through the whole network.
                     let iv = out.intervals;
-                    let sigma = self.net.density(&iv.positions(rays)?.flatten_to(1)?)?;
-                    let sigma = sigma.reshape(iv.starts.shape())?.detach();
+                    let sigma = self.density(&iv, rays)?;
                     let weights =
                         render_weights(&sigma, &iv, Some(rays), composite_config)?.weights;
                     for level in &out.levels {
                         interlevel = (interlevel + interlevel_loss(level, &iv, &weights)?)?;
                     }
-                    let visible = visible_mask(&sigma, &iv, Some(rays), DEFAULT_TERMINATION_EPS)?;
-                    let dt = (&iv.ends - &iv.starts)?;
-                    let alpha = (1.0 - (sigma * dt)?.neg()?.exp()?)?;
-                    let dense = alpha.ge(self.alpha_threshold)?;
-                    iv.retain(&(visible * dense)?)?.0
+                    self.skip(iv, &sigma, rays, self.alpha_threshold)?
                 } else {
                     levels = out.levels;
                     out.intervals
@@ -491,6 +485,32 @@ impl Renderer<'_> {
         }
         let out = composite(&sigma, &rgb, &intervals, Some(rays), &config)?;
         Ok((out, n, interlevel))
+    }
+
+    /// The field's density at the samples of `iv` (either layout), without a graph.
+    fn density(&self, iv: &Intervals, rays: &Rays) -> Result<Tensor> {
+        let sigma = self
+            .net
+            .density(&iv.positions(rays)?.flatten_to(iv.starts.rank() - 1)?)?;
+        Ok(sigma.reshape(iv.starts.shape())?.detach())
+    }
+
+    /// The samples of `iv` worth the whole network: visible (T ≥ 1e-4) and, for
+    /// `alpha_threshold > 0`, not empty (opacity `1 − e^{−σδ}` ≥ the threshold).
+    fn skip(
+        &self,
+        iv: Intervals,
+        sigma: &Tensor,
+        rays: &Rays,
+        alpha_threshold: f64,
+    ) -> Result<Intervals> {
+        let mut mask = visible_mask(sigma, &iv, Some(rays), DEFAULT_TERMINATION_EPS)?;
+        if alpha_threshold > 0.0 {
+            let dt = (&iv.ends - &iv.starts)?;
+            let alpha = (1.0 - (sigma * dt)?.neg()?.exp()?)?;
+            mask = (mask * alpha.ge(alpha_threshold)?)?;
+        }
+        Ok(iv.retain(&mask)?.0)
     }
 
     /// Renders view `v` of `data` whole, in chunks, without keeping a graph, with

@@ -3,8 +3,11 @@
 //! identity encoding) and so still depended on the view. Only directions of the same unit
 //! vector were compared, which hid it. Now the head sees the zero vector.
 
+mod common;
+
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;
+use common::v64;
 use neural_fields::nn::{build_seeded, nerf, NerfConfig};
 use neural_fields::rng::SplitMix64;
 
@@ -28,19 +31,11 @@ fn colours(force_reference: bool, dtype: DType) -> (Vec<f64>, Vec<f64>, Option<T
     let d2 = rng
         .uniform_tensor(&[64, 3], -1.0, 1.0, dtype, &Device::Cpu)
         .unwrap();
-    let host = |t: &Tensor| -> Vec<f64> {
-        t.to_dtype(DType::F64)
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1()
-            .unwrap()
-    };
     let d1 = candle_core::Var::from_tensor(&d1).unwrap();
     let (_, a) = net.radiance(&p, d1.as_tensor()).unwrap();
     let (_, b) = net.radiance(&p, &d2).unwrap();
     let grads = a.sum_all().unwrap().backward().unwrap();
-    (host(&a), host(&b), grads.get(d1.as_tensor()).cloned())
+    (v64(&a), v64(&b), grads.get(d1.as_tensor()).cloned())
 }
 
 #[test]
@@ -51,13 +46,7 @@ fn without_a_direction_encoding_the_colour_ignores_the_view() {
             assert_eq!(a, b, "{dtype:?}, reference path {force_reference}");
             // The colour is constant in the direction: no gradient reaches it, or a zero one.
             if let Some(g) = grad {
-                let g: Vec<f64> = g
-                    .to_dtype(DType::F64)
-                    .unwrap()
-                    .flatten_all()
-                    .unwrap()
-                    .to_vec1()
-                    .unwrap();
+                let g = v64(&g);
                 assert!(g.iter().all(|&x| x == 0.0), "{g:?}");
             }
         }
