@@ -88,9 +88,19 @@ def parse_args():
                    help="internal: only build the DTU copy from an existing <out>")
     p.add_argument("--resolution", type=int, default=WIDTH,
                    help="image width and height in pixels (the committed dataset: 100)")
+    p.add_argument("--samples", type=int, default=SAMPLES,
+                   help="Cycles samples per pixel (the committed dataset: %d)" % SAMPLES)
+    p.add_argument("--filter-width", type=float, default=None,
+                   help="Cycles' pixel filter width in pixels (default: Blender's, a "
+                        "Blackman-Harris filter 1.5 pixels wide; 0.01, Blender's least, "
+                        "samples each pixel's centre)")
     a = p.parse_args(argv)
     if a.resolution < 1:
         raise SystemExit("--resolution must be at least 1")
+    if a.samples < 1:
+        raise SystemExit("--samples must be at least 1")
+    if a.filter_width is not None and not 0.01 <= a.filter_width <= 10.0:
+        raise SystemExit("--filter-width must lie in [0.01, 10] pixels")
     set_resolution(a.resolution)
     a.out = os.path.abspath(a.out)
     if a.dtu_out is None:
@@ -453,13 +463,15 @@ def setup_lighting(scene):
             "sun": "strength 2.5, angle 5 deg, rotation_euler XYZ (40, 0, 35) deg"}
 
 
-def setup_render(scene, seed):
+def setup_render(scene, seed, samples, filter_width):
     import _cycles
     r = scene.render
     r.engine = "CYCLES"
     c = scene.cycles
     c.device = "CPU"
-    c.samples = SAMPLES
+    c.samples = samples
+    if filter_width is not None:
+        c.filter_width = filter_width
     c.use_adaptive_sampling = False
     c.seed = seed
     c.use_animated_seed = False
@@ -490,7 +502,7 @@ def setup_render(scene, seed):
     scene.view_settings.look = "None"
     scene.view_settings.exposure = 0.0
     scene.view_settings.gamma = 1.0
-    return {"engine": "CYCLES", "device": "CPU", "samples": SAMPLES,
+    return {"engine": "CYCLES", "device": "CPU", "samples": samples,
             "adaptive_sampling": False, "cycles_seed": seed,
             "denoising": "OpenImageDenoise" if oidn else "off (this build has no OpenImageDenoise)",
             "resolution": [WIDTH, HEIGHT], "pixel_aspect": 1, "film_transparent": True,
@@ -567,7 +579,10 @@ def blender_stage(args):
     norm = normalise_mesh(obj, args.up_axis)
     mat_info = make_material(obj)
     light_info = setup_lighting(scene)
-    render_info = setup_render(scene, args.seed)
+    render_info = setup_render(scene, args.seed, args.samples, args.filter_width)
+    if args.filter_width is not None:
+        render_info["pixel_filter"] = {"type": scene.cycles.pixel_filter_type,
+                                       "width_px": args.filter_width}
     cam = make_camera(scene)
     angle_x = float(cam.data.angle_x)
 
