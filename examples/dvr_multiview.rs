@@ -109,7 +109,7 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::{Optimizer, VarMap};
 use common::PositionEncoding;
 use neural_fields::camera::{
-    align_similarity, ray_aabb, Camera, Intersection, PoseParam, Rays, Similarity,
+    align_similarity, ray_aabb, Camera, Intersection, PixelFilter, PoseParam, Rays, Similarity,
 };
 use neural_fields::data::{
     colorize_normals, comparison_strip, load, psnr, write_png, Background, Dataset, LoadConfig,
@@ -725,7 +725,8 @@ fn render_view(
     let cam = data.views()[v].camera();
     let (w, h) = (cam.intrinsics().width, cam.intrinsics().height);
     let [x0, y0, z0, x1, y1, z1] = aabb;
-    let all = cam.rays_for_pixels(&cam.subpixel_grid(k, &Device::Cpu, DType::F32)?)?;
+    let all =
+        cam.rays_for_pixels(&cam.subpixel_grid(k, PixelFilter::Box, &Device::Cpu, DType::F32)?)?;
     let n = all.len();
     let (mut colors, mut masks, mut normals) = (Vec::new(), Vec::new(), Vec::new());
     for start in (0..n).step_by(CHUNK) {

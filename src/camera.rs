@@ -31,6 +31,135 @@ use crate::error::{Error, Result};
 use candle_core::{DType, Device, Tensor, Var};
 use glam::{DAffine3, DMat3, DQuat, DVec2, DVec3};
 
+/// How a pixel integrates the image around its centre: a separable filter, the same along
+/// both axes, whose density over offsets `x` (in pixels, from the centre) weighs the
+/// radiance arriving through `centre + (x, y)`.
+///
+/// - [`PixelFilter::Box`]: uniform over the pixel's square, `x ∈ [−½, ½)`: the ideal
+///   area sensor, and the filter of [`Camera::subpixel_grid`]'s box grid.
+/// - [`PixelFilter::BlackmanHarris`]: the four-term Blackman–Harris window of support
+///   `[−h, h]`, `w(x) ∝ a₀ − a₁ cos 2πs + a₂ cos 4πs − a₃ cos 6πs` with `s = (x + h)/(2h)`
+///   and `(a₀, a₁, a₂, a₃) = (0.35875, 0.48829, 0.14128, 0.01168)`. Blender's Cycles uses
+///   it by default with `filter_width` 1.5, which its table builder doubles, so the
+///   support is ±1.5 px ([`PixelFilter::CYCLES`]; σ ≈ 0.42 px, against a box's 0.29 px).
+///   Images rendered so are the mean of radiance samples at offsets drawn from it.
+///
+/// [`PixelFilter::quantile`] maps a uniform number to an offset (the inverse of the
+/// filter's cumulative distribution), so that `k` equal-mass strata of the filter have
+/// their medians at `quantile((j + ½)/k)`: the plain mean of the `k × k` rays through
+/// those points is a quadrature of the filtered pixel ([`Camera::subpixel_grid`]), and
+/// rays through `quantile(U)` for uniform `U` sample it
+/// ([`crate::data::RaySampler::with_pixel_filter`]).
+///
+/// ```
+/// use neural_fields::camera::PixelFilter;
+///
+/// assert_eq!(PixelFilter::Box.quantile(0.75)?, 0.25);
+/// let bh = PixelFilter::CYCLES;
+/// assert!(bh.quantile(0.5)?.abs() < 1e-12);                  // symmetric
+/// assert!((bh.quantile(0.25)? + bh.quantile(0.75)?).abs() < 1e-12);
+/// assert!(bh.quantile(1.0)? <= 1.5 && bh.quantile(0.99)? > 0.7); // tails to ±1.5 px
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub enum PixelFilter {
+    /// Uniform over the pixel: offsets in `[−½, ½)`.
+    #[default]
+    Box,
+    /// Blackman–Harris window of support `[−half_width, half_width]` pixels.
+    BlackmanHarris {
+        /// Half the support in pixels (Cycles: its `filter_width`, default 1.5); in
+        /// `(0, 64]`.
+        half_width: f64,
+    },
+}
+
+const BLACKMAN_HARRIS: [f64; 4] = [0.35875, 0.48829, 0.14128, 0.01168];
+
+impl PixelFilter {
+    /// Blender Cycles' default pixel filter: Blackman–Harris, support ±1.5 px.
+    pub const CYCLES: PixelFilter = PixelFilter::BlackmanHarris { half_width: 1.5 };
+
+    /// Checks the filter's parameters.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `filter` unless `half_width` is finite and in
+    /// `(0, 64]`.
+    pub fn validate(&self) -> Result<()> {
+        match *self {
+            PixelFilter::Box => Ok(()),
+            PixelFilter::BlackmanHarris { half_width } => {
+                if half_width > 0.0 && half_width <= 64.0 {
+                    Ok(())
+                } else {
+                    Err(Error::invalid(
+                        "filter",
+                        "a Blackman-Harris half width in (0, 64] pixels",
+                        half_width.to_string(),
+                    ))
+                }
+            }
+        }
+    }
+
+    /// The offset `x` from the pixel centre (pixels, one axis) below which the filter has
+    /// mass `u`: the inverse of its cumulative distribution. Box: `u − ½`. Blackman–Harris:
+    /// `x = h(2s − 1)` where `s` solves `F(s) = u` for the window's cumulative distribution
+    /// `F(s) = s − (a₁/2πa₀) sin 2πs + (a₂/4πa₀) sin 4πs − (a₃/6πa₀) sin 6πs` (monotone;
+    /// bisection to f64 resolution). Not differentiable (a sampling rule).
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `u` unless in `[0, 1]`, or `filter` as
+    /// [`PixelFilter::validate`].
+    pub fn quantile(&self, u: f64) -> Result<f64> {
+        self.validate()?;
+        if !(0.0..=1.0).contains(&u) {
+            return Err(Error::invalid(
+                "u",
+                "a probability in [0, 1]",
+                u.to_string(),
+            ));
+        }
+        Ok(self.offset_unchecked(u))
+    }
+
+    /// [`PixelFilter::quantile`] plus ½: the offset from the pixel's top-left corner, for
+    /// checked inputs. The box returns `u` itself, so box offsets are bit for bit those of
+    /// a plain sub-pixel grid.
+    pub(crate) fn corner_offset(&self, u: f64) -> f64 {
+        match self {
+            PixelFilter::Box => u,
+            PixelFilter::BlackmanHarris { .. } => 0.5 + self.offset_unchecked(u),
+        }
+    }
+
+    fn offset_unchecked(&self, u: f64) -> f64 {
+        match *self {
+            PixelFilter::Box => u - 0.5,
+            PixelFilter::BlackmanHarris { half_width } => {
+                let [a0, a1, a2, a3] = BLACKMAN_HARRIS;
+                let tau = std::f64::consts::TAU;
+                let cdf = |s: f64| {
+                    s - a1 / (tau * a0) * (tau * s).sin()
+                        + a2 / (2.0 * tau * a0) * (2.0 * tau * s).sin()
+                        - a3 / (3.0 * tau * a0) * (3.0 * tau * s).sin()
+                };
+                let (mut lo, mut hi) = (0.0f64, 1.0f64);
+                // 64 halvings reach f64 resolution on [0, 1]; F is increasing.
+                for _ in 0..64 {
+                    let mid = 0.5 * (lo + hi);
+                    if cdf(mid) < u {
+                        lo = mid;
+                    } else {
+                        hi = mid;
+                    }
+                }
+                half_width * (lo + hi - 1.0)
+            }
+        }
+    }
+}
+
 /// Camera axis convention; see the [module docs](self) for the pixel → direction formulas.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub enum Convention {
@@ -333,35 +462,49 @@ impl Camera {
     /// # Errors
     /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64.
     pub fn pixel_grid(&self, device: &Device, dtype: DType) -> Result<Tensor> {
-        self.subpixel_grid(1, device, dtype)
+        self.subpixel_grid(1, PixelFilter::Box, device, dtype)
     }
 
-    /// The centres of a `k × k` grid of sub-pixels in every pixel, pixel-major: rows
-    /// `(v · width + u) · k² + i · k + j` are `(u + (j + ½)/k, v + (i + ½)/k)` for
-    /// `i, j < k`, so that averaging each run of `k²` consecutive rows (rendered colours,
-    /// say) gives a box-filtered, supersampled value per pixel. Shape
-    /// `[height · width · k², 2]`, in `dtype` on `device`; feed it to
-    /// [`Camera::rays_for_pixels`].
+    /// `k × k` sub-pixel points in every pixel, pixel-major, that sample `filter`: rows
+    /// `(v · width + u) · k² + i · k + j` are `(u + ½ + q((j + ½)/k), v + ½ + q((i + ½)/k))`
+    /// for `i, j < k`, with `q` the filter's [`PixelFilter::quantile`]: the medians of
+    /// `k × k` equal-mass strata of the filter. Averaging each run of `k²` consecutive
+    /// rows (rendered colours, say) gives the pixel's filtered value by quadrature. With
+    /// [`PixelFilter::Box`] the points are the sub-pixel centres
+    /// `(u + (j + ½)/k, v + (i + ½)/k)` (box-filtered supersampling); with
+    /// [`PixelFilter::CYCLES`] they reach into the neighbouring pixels, as the images
+    /// Blender renders do. Shape `[height · width · k², 2]`, in `dtype` on `device`; feed it
+    /// to [`Camera::rays_for_pixels`].
     ///
     /// ```
-    /// use neural_fields::camera::{Camera, Convention, Intrinsics};
+    /// use neural_fields::camera::{Camera, Convention, Intrinsics, PixelFilter};
     /// use neural_fields::glam::DVec3;
     /// use candle_core::{DType, Device};
     ///
     /// let k = Intrinsics::from_fov_y(3, 2, 0.8)?;
     /// let cam = Camera::look_at(k, DVec3::new(0.0, -3.0, 0.0), DVec3::ZERO, DVec3::Z, Convention::OpenGl)?;
-    /// let grid = cam.subpixel_grid(2, &Device::Cpu, DType::F64)?.to_vec2::<f64>()?;
+    /// let grid = cam.subpixel_grid(2, PixelFilter::Box, &Device::Cpu, DType::F64)?.to_vec2::<f64>()?;
     /// assert_eq!(grid.len(), 3 * 2 * 4);
     /// assert_eq!(grid[..4], [vec![0.25, 0.25], vec![0.75, 0.25], vec![0.25, 0.75], vec![0.75, 0.75]]);
     /// assert_eq!(grid[4], [1.25, 0.25]); // pixel (1, 0)
+    /// let cycles = cam.subpixel_grid(2, PixelFilter::CYCLES, &Device::Cpu, DType::F64)?.to_vec2::<f64>()?;
+    /// assert!(cycles[0][0] < 0.25 && cycles[3][0] > 0.75); // wider than the box
     /// # Ok::<(), neural_fields::Error>(())
     /// ```
     ///
     /// # Errors
-    /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64, or `k` unless between
-    /// 1 and 64 (and at most 2²⁸ rows in all, naming `k`).
-    pub fn subpixel_grid(&self, k: usize, device: &Device, dtype: DType) -> Result<Tensor> {
+    /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64, `k` unless between
+    /// 1 and 64 (and at most 2²⁸ rows in all, naming `k`), or `filter` as
+    /// [`PixelFilter::validate`].
+    pub fn subpixel_grid(
+        &self,
+        k: usize,
+        filter: PixelFilter,
+        device: &Device,
+        dtype: DType,
+    ) -> Result<Tensor> {
         check_dtype(dtype)?;
+        filter.validate()?;
         let (w, h) = (self.intrinsics.width, self.intrinsics.height);
         let n = (w * h).checked_mul(k * k).filter(|&n| n <= 1 << 28);
         let n = match n {
@@ -376,12 +519,15 @@ impl Camera {
         };
         let mut data = Vec::with_capacity(2 * n);
         let side = k as f64;
+        let at: Vec<f64> = (0..k)
+            .map(|j| filter.corner_offset((j as f64 + 0.5) / side))
+            .collect();
         for v in 0..h {
             for u in 0..w {
-                for i in 0..k {
-                    for j in 0..k {
-                        data.push(u as f64 + (j as f64 + 0.5) / side);
-                        data.push(v as f64 + (i as f64 + 0.5) / side);
+                for &di in &at {
+                    for &dj in &at {
+                        data.push(u as f64 + dj);
+                        data.push(v as f64 + di);
                     }
                 }
             }

@@ -15,7 +15,7 @@ fn of_split(split: Split) -> LoadConfig {
 
 use candle_core::{DType, Device, IndexOp, Tensor};
 use common::v64;
-use neural_fields::camera::{Camera, Convention, Intrinsics};
+use neural_fields::camera::{Camera, Convention, Intrinsics, PixelFilter};
 use neural_fields::data::{
     load, Background, Dataset, DatasetLayout, Image, LoadConfig, RaySampler, Split, View,
 };
@@ -469,14 +469,16 @@ fn jittered_rays_stay_inside_their_pixels_and_subpixel_grids_average_to_centres(
     // The mean of each pixel's k × k sub-pixel centres is the pixel centre.
     let camera = data.views()[0].camera();
     let k = 3;
-    let sub = camera.subpixel_grid(k, &d, DType::F64).unwrap();
-    let n = sub.dim(0).unwrap() / (k * k);
-    let means = sub.reshape((n, k * k, 2)).unwrap().mean(1).unwrap();
-    let centres = camera.pixel_grid(&d, DType::F64).unwrap();
-    let err = v64(&(means - centres).unwrap())
-        .into_iter()
-        .fold(0.0f64, |m, x| m.max(x.abs()));
-    assert!(err < 1e-12, "{err}");
+    for filter in [PixelFilter::Box, PixelFilter::CYCLES] {
+        let sub = camera.subpixel_grid(k, filter, &d, DType::F64).unwrap();
+        let n = sub.dim(0).unwrap() / (k * k);
+        let means = sub.reshape((n, k * k, 2)).unwrap().mean(1).unwrap();
+        let centres = camera.pixel_grid(&d, DType::F64).unwrap();
+        let err = v64(&(means - centres).unwrap())
+            .into_iter()
+            .fold(0.0f64, |m, x| m.max(x.abs()));
+        assert!(err < 1e-12, "{filter:?}: {err}");
+    }
 }
 
 /// `pixel_footprints(n, k)`: `n` pixels drawn as `pixels(n)` draws them, each pixel's `k²`
@@ -549,4 +551,152 @@ fn arg(r: neural_fields::Result<neural_fields::data::RayBatch>) -> &'static str 
         Err(Error::InvalidArgument { arg, .. }) => arg,
         other => panic!("{:?}", other.map(|b| b.len())),
     }
+}
+
+/// The Blackman–Harris window's cumulative distribution by the trapezoid rule on its
+/// density (independent of the closed form the library inverts), at offset `x` in pixels.
+fn blackman_harris_cdf(x: f64, h: f64) -> f64 {
+    let density = |t: f64| {
+        let v = std::f64::consts::TAU * (t / (2.0 * h) + 0.5);
+        0.35875 - 0.48829 * v.cos() + 0.14128 * (2.0 * v).cos() - 0.01168 * (3.0 * v).cos()
+    };
+    let steps = 20_000;
+    let integral = |to: f64| {
+        let dt = (to + h) / steps as f64;
+        (0..steps)
+            .map(|i| 0.5 * (density(-h + i as f64 * dt) + density(-h + (i + 1) as f64 * dt)) * dt)
+            .sum::<f64>()
+    };
+    integral(x.clamp(-h, h)) / integral(h)
+}
+
+/// `PixelFilter::quantile` inverts each filter's cumulative distribution: the box's is
+/// `u − ½`; the Blackman–Harris window's (Cycles' default, ±1.5 px) is checked against a
+/// numerical integral of the window, with its symmetry, its ends at ±h, its standard
+/// deviation (0.4155 px at h = 1.5, against the box's 0.2887) and its refusals.
+#[test]
+fn pixel_filter_quantiles_invert_the_filters_distributions() {
+    for u in [0.0, 0.1, 0.25, 0.5, 0.9, 1.0] {
+        assert_eq!(PixelFilter::Box.quantile(u).unwrap(), u - 0.5);
+    }
+    for h in [0.5, 1.5, 4.0] {
+        let f = PixelFilter::BlackmanHarris { half_width: h };
+        assert!((f.quantile(0.0).unwrap() + h).abs() < 1e-12 * h);
+        assert!((f.quantile(1.0).unwrap() - h).abs() < 1e-12 * h);
+        let mut last = -h;
+        for i in 1..100 {
+            let u = i as f64 / 100.0;
+            let x = f.quantile(u).unwrap();
+            assert!(x > last, "quantile not increasing at u = {u}");
+            last = x;
+            assert!(
+                (f.quantile(1.0 - u).unwrap() + x).abs() < 1e-12 * h,
+                "not symmetric at u = {u}"
+            );
+            let back = blackman_harris_cdf(x, h);
+            assert!(
+                (back - u).abs() < 1e-6,
+                "h = {h}, u = {u}: F(q(u)) = {back}"
+            );
+        }
+    }
+    // The standard deviation of the offsets, by the midpoint rule in u.
+    let sd = |f: PixelFilter| {
+        let n = 20_000;
+        let m2: f64 = (0..n)
+            .map(|i| f.quantile((i as f64 + 0.5) / n as f64).unwrap().powi(2))
+            .sum();
+        (m2 / n as f64).sqrt()
+    };
+    assert!((sd(PixelFilter::CYCLES) - 0.4155).abs() < 1e-3);
+    assert!((sd(PixelFilter::Box) - 12f64.sqrt().recip()).abs() < 1e-4);
+    let arg = |r: neural_fields::Result<f64>| match r {
+        Err(Error::InvalidArgument { arg, .. }) => arg,
+        other => panic!("expected an argument error, got {other:?}"),
+    };
+    assert_eq!(arg(PixelFilter::CYCLES.quantile(1.5)), "u");
+    assert_eq!(arg(PixelFilter::CYCLES.quantile(f64::NAN)), "u");
+    for half_width in [0.0, -1.0, 65.0, f64::NAN, f64::INFINITY] {
+        let f = PixelFilter::BlackmanHarris { half_width };
+        assert_eq!(arg(f.quantile(0.5)), "filter");
+    }
+}
+
+/// With Cycles' filter, a jittering sampler's rays pass through offsets from the pixel
+/// centre that follow the Blackman–Harris distribution (empirical distribution within
+/// 0.03 of it, spreading into the neighbouring pixels), with the pixel's own colour; its
+/// footprints without jitter sit at the filter's stratum medians, as
+/// `Camera::subpixel_grid` places them; a bad filter is refused naming `filter`.
+#[test]
+fn a_sampler_with_cycles_filter_draws_offsets_from_the_filter() {
+    let data = load(Path::new(WUSON), &of_split(Split::Train)).unwrap();
+    let d = Device::Cpu;
+    let filter = PixelFilter::CYCLES;
+    let plain = RaySampler::new(&data, 3, &d, DType::F64)
+        .unwrap()
+        .pixels(4096)
+        .unwrap();
+    let mut sampler = RaySampler::new(&data, 3, &d, DType::F64)
+        .unwrap()
+        .with_jitter(true)
+        .with_pixel_filter(filter)
+        .unwrap();
+    let batch = sampler.pixels(4096).unwrap();
+    assert_eq!(
+        batch.colors.to_vec2::<f64>().unwrap(),
+        plain.colors.to_vec2::<f64>().unwrap()
+    );
+    let offsets = |b: &neural_fields::data::RayBatch| -> Vec<[f64; 2]> {
+        let (o, dir) = (
+            b.rays.origins().to_vec2::<f64>().unwrap(),
+            b.rays.directions().to_vec2::<f64>().unwrap(),
+        );
+        let views = b.views.to_vec1::<u32>().unwrap();
+        b.pixels
+            .to_vec2::<u32>()
+            .unwrap()
+            .iter()
+            .enumerate()
+            .map(|(i, px)| {
+                let camera = data.views()[views[i] as usize].camera();
+                let point = DVec3::from_slice(&o[i]) + 2.0 * DVec3::from_slice(&dir[i]);
+                let p = camera.project(point).unwrap();
+                [p.x - f64::from(px[0]) - 0.5, p.y - f64::from(px[1]) - 0.5]
+            })
+            .collect()
+    };
+    let mut xs: Vec<f64> = offsets(&batch).into_iter().flatten().collect();
+    xs.sort_by(f64::total_cmp);
+    let n = xs.len() as f64;
+    let worst = xs
+        .iter()
+        .enumerate()
+        .map(|(i, &x)| (blackman_harris_cdf(x, 1.5) - (i as f64 + 0.5) / n).abs())
+        .fold(0.0f64, f64::max);
+    assert!(worst < 0.03, "empirical distribution off by {worst}");
+    assert!(
+        xs[0] < -0.6 && xs[xs.len() - 1] > 0.6,
+        "no rays into the neighbours"
+    );
+    assert!(xs[0] >= -1.5 - 1e-9 && xs[xs.len() - 1] <= 1.5 + 1e-9);
+    // Footprints without jitter: the stratum medians of the filter.
+    let k = 3;
+    let feet = RaySampler::new(&data, 3, &d, DType::F64)
+        .unwrap()
+        .with_pixel_filter(filter)
+        .unwrap()
+        .pixel_footprints(8, k)
+        .unwrap();
+    for (r, [x, y]) in offsets(&feet).into_iter().enumerate() {
+        let (i, j) = ((r % (k * k)) / k, r % k);
+        let want = |m: usize| filter.quantile((m as f64 + 0.5) / k as f64).unwrap();
+        assert!(
+            (x - want(j)).abs() < 1e-9 && (y - want(i)).abs() < 1e-9,
+            "ray {r}"
+        );
+    }
+    let bad = RaySampler::new(&data, 3, &d, DType::F64)
+        .unwrap()
+        .with_pixel_filter(PixelFilter::BlackmanHarris { half_width: 0.0 });
+    assert!(matches!(bad, Err(Error::InvalidArgument { arg, .. }) if arg == "filter"));
 }

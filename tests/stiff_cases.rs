@@ -9,8 +9,8 @@ mod common;
 use candle_core::{DType, Device, Tensor, Var};
 use common::v64;
 use neural_fields::camera::{
-    align_similarity, ray_aabb, ray_sphere, Camera, Convention, Intrinsics, PoseParam, Rays,
-    Similarity,
+    align_similarity, ray_aabb, ray_sphere, Camera, Convention, Intrinsics, PixelFilter, PoseParam,
+    Rays, Similarity,
 };
 use neural_fields::encoding::{
     coarse_to_fine_weights, integrated_pe, CoarseToFine, FourierFeatures, FrequencyEncoding,
@@ -744,22 +744,53 @@ fn sweep_camera(s: &mut Suite) {
                 &[],
                 || Ok(vec![cam.pixel_grid(&d, dtype)?]),
             );
-            for k in [1, 3, 64, 65] {
+            let filters = [
+                PixelFilter::Box,
+                PixelFilter::CYCLES,
+                PixelFilter::BlackmanHarris { half_width: 64.0 },
+                PixelFilter::BlackmanHarris { half_width: 1e-300 },
+                PixelFilter::BlackmanHarris {
+                    half_width: f64::NAN,
+                },
+            ];
+            for (k, filter) in [1, 3, 64, 65]
+                .into_iter()
+                .flat_map(|k| filters.map(|f| (k, f)))
+            {
                 s.case(
                     "camera::Camera::subpixel_grid",
-                    format!("{label}, k = {k}"),
-                    if k <= 64 {
+                    format!("{label}, k = {k}, {filter:?}"),
+                    if k <= 64 && filter.validate().is_ok() {
                         Expect::Finite
                     } else {
                         Expect::FiniteOrErr
                     },
                     &[],
                     || {
-                        let g = cam.subpixel_grid(k, &d, dtype)?;
+                        let g = cam.subpixel_grid(k, filter, &d, dtype)?;
                         let r = cam.rays_for_pixels(&g)?;
                         Ok(vec![g, r.directions().clone()])
                     },
                 );
+            }
+            for filter in filters {
+                for u in [0.0, 1e-300, 0.5, 1.0 - f64::EPSILON, 1.0, -1e-300, f64::NAN] {
+                    s.case(
+                        "camera::PixelFilter::quantile",
+                        format!("{filter:?}, u = {u:e}"),
+                        if (0.0..=1.0).contains(&u) && filter.validate().is_ok() {
+                            Expect::Finite
+                        } else {
+                            Expect::FiniteOrErr
+                        },
+                        &[],
+                        || {
+                            Ok(vec![
+                                Tensor::new(&[filter.quantile(u)?], &d)?.to_dtype(dtype)?
+                            ])
+                        },
+                    );
+                }
             }
             s.case(
                 "camera::Camera::random_rays",
@@ -2687,6 +2718,7 @@ fn stiff_cases_give_finite_outputs_and_gradients_or_err() {
 /// Items swept above; kept in sync with the sweeps by `covered_matches_list`.
 const COVERED: &[&str] = &[
     "camera::cameras_around",
+    "camera::PixelFilter::quantile",
     "nn::nerf::Nerf::density",
     "nn::nerf::Nerf::radiance",
     "nn::nerf::nerf",
@@ -2759,6 +2791,7 @@ const DATA_COVERED: &[&str] = &[
     "data::batch::RaySampler::new",
     "data::batch::RaySampler::patches",
     "data::batch::RaySampler::pixel_footprints",
+    "data::batch::RaySampler::with_pixel_filter",
     "data::batch::RaySampler::pixels",
     "data::dataset::Dataset::new",
     "data::dataset::View::mask",
@@ -2971,6 +3004,10 @@ const EXEMPT: &[(&str, &str)] = &[
     ("nn::nerf::NerfConfig::default", "constant"),
     ("data::batch::RayBatch::is_empty", "getter"),
     ("data::batch::RayBatch::len", "getter"),
+    (
+        "camera::PixelFilter::validate",
+        "a parameter check; swept through PixelFilter::quantile and Camera::subpixel_grid",
+    ),
     (
         "data::batch::RaySampler::with_jitter",
         "a flag; its jittered rays are checked in tests/data_batches.rs",
@@ -3696,6 +3733,25 @@ fn sweep_data(s: &mut Suite) {
                     Ok(vec![b.rays.directions().clone(), b.colors, b.backgrounds])
                 },
             );
+            for half_width in [1.5, 64.0, 0.0, f64::INFINITY] {
+                s.case(
+                    "data::batch::RaySampler::with_pixel_filter",
+                    format!("{tag}, Blackman-Harris ±{half_width}"),
+                    Expect::FiniteOrErr,
+                    &[],
+                    || {
+                        let filter = PixelFilter::BlackmanHarris { half_width };
+                        let mut sampler = RaySampler::new(&data, 0, &d, dtype)?
+                            .with_jitter(true)
+                            .with_pixel_filter(filter)?;
+                        let (a, b) = (sampler.pixels(64)?, sampler.pixel_footprints(16, 3)?);
+                        Ok(vec![
+                            a.rays.directions().clone(),
+                            b.rays.directions().clone(),
+                        ])
+                    },
+                );
+            }
             s.case(
                 "data::batch::RaySampler::patches",
                 &tag,

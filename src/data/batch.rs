@@ -2,7 +2,7 @@
 //! chunks for evaluation.
 
 use super::dataset::{Background, Dataset};
-use crate::camera::Rays;
+use crate::camera::{PixelFilter, Rays};
 use crate::error::check_dtype;
 use crate::error::{Error, Result};
 use crate::rng::SplitMix64;
@@ -139,6 +139,8 @@ pub struct RaySampler<'a> {
     ends: Vec<u64>,
     /// Whether [`RaySampler::pixels`] jitters each ray inside its pixel.
     jitter: bool,
+    /// The distribution of jittered offsets and footprint strata.
+    filter: PixelFilter,
 }
 
 impl<'a> RaySampler<'a> {
@@ -164,12 +166,31 @@ impl<'a> RaySampler<'a> {
             dtype,
             ends,
             jitter: false,
+            filter: PixelFilter::Box,
         })
+    }
+
+    /// The sampler with the pixel filter that its jittered rays and
+    /// [`RaySampler::pixel_footprints`] sample ([`PixelFilter::Box`] by default: uniform
+    /// over the pixel). With [`PixelFilter::CYCLES`], a jittered ray passes through
+    /// `centre + (q(U₁), q(U₂))` for the filter's quantile function `q`, so its offsets
+    /// are distributed as Blender's Cycles distributes a pixel's samples, reaching into the
+    /// neighbouring pixels; footprints take the medians (or, jittered, random points) of
+    /// the filter's `k × k` equal-mass strata. The pixel's colour is unchanged: the image
+    /// is the filter's mean of what those rays see. Draws no random numbers itself.
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `filter` as [`PixelFilter::validate`].
+    pub fn with_pixel_filter(mut self, filter: PixelFilter) -> Result<Self> {
+        filter.validate()?;
+        self.filter = filter;
+        Ok(self)
     }
 
     /// The sampler with sub-pixel jitter on or off (off by default): with it,
     /// [`RaySampler::pixels`] sends each ray through a uniformly random point of its pixel
-    /// instead of the centre (instant-NGP's training rays), so that a field trained on
+    /// instead of the centre (instant-NGP's training rays; or through a point drawn from
+    /// the filter of [`RaySampler::with_pixel_filter`]), so that a field trained on
     /// images that integrate over each pixel (antialiased renders, real sensors) sees the
     /// whole pixel footprint; evaluate such a field with several rays per pixel
     /// ([`crate::camera::Camera::subpixel_grid`]). Patches keep their pixel centres. The
@@ -199,9 +220,13 @@ impl<'a> RaySampler<'a> {
         check_count(n, "n")?;
         let picks = self.draw_pixels(n);
         let bgs = self.backgrounds(n);
+        let filter = self.filter;
         let offsets: Option<Vec<[f64; 2]>> = self.jitter.then(|| {
             (0..n)
-                .map(|_| [self.rng.uniform(), self.rng.uniform()])
+                .map(|_| {
+                    let (a, b) = (self.rng.uniform(), self.rng.uniform());
+                    [filter.corner_offset(a), filter.corner_offset(b)]
+                })
                 .collect()
         });
         gather(
@@ -215,9 +240,10 @@ impl<'a> RaySampler<'a> {
     }
 
     /// `n` pixels drawn as [`RaySampler::pixels`] draws them, each imaged by `k × k` rays
-    /// on the sub-pixel grid of [`crate::camera::Camera::subpixel_grid`] (with
-    /// [`RaySampler::with_jitter`], through a uniformly random point of each sub-pixel:
-    /// stratified over the pixel). Rays are pixel-major: rays `p·k² … (p + 1)·k² − 1` belong
+    /// on the sub-pixel grid of [`crate::camera::Camera::subpixel_grid`] for the sampler's
+    /// pixel filter ([`RaySampler::with_pixel_filter`]; the box by default) (with
+    /// [`RaySampler::with_jitter`], through a random point of each of the filter's `k × k`
+    /// equal-mass strata: stratified sampling of the filter). Rays are pixel-major: rays `p·k² … (p + 1)·k² − 1` belong
     /// to pixel `p`, and every per-ray field (`colors`, `backgrounds`, `masks`, `views`,
     /// `pixels`) repeats the pixel's value over its `k²` rays. Average a prediction over each
     /// run of `k²` rays (`pred.reshape((n, k², 3))?.mean(1)`) to compare it with a pixel
@@ -266,7 +292,10 @@ impl<'a> RaySampler<'a> {
                     } else {
                         (0.5, 0.5)
                     };
-                    offsets.push([(j as f64 + du) * cell, (i as f64 + dv) * cell]);
+                    offsets.push([
+                        self.filter.corner_offset((j as f64 + du) * cell),
+                        self.filter.corner_offset((i as f64 + dv) * cell),
+                    ]);
                 }
             }
         }
