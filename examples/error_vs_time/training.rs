@@ -66,33 +66,31 @@ fn run_example(example: &str, args: &[String]) -> Result<String, String> {
 /// Minutes of training per run in the curves read from `curve.csv`.
 const CSV_MINUTES: &str = "2";
 
-/// A training example on the committed dataset, once per variant (`(flag, value)` added
-/// to `--minutes 2 --pictures 0 --out DIR`): the rows of its `curve.csv` (`step,
+/// A training example on the committed dataset, once per variant (`(label, flags)`: the
+/// flags added to `--minutes 2 --pictures 0 --out DIR`, the label naming the series): the rows of its `curve.csv` (`step,
 /// train_seconds, metric…`) as errors against training seconds, one series per metric
 /// column (`(column, name, how it becomes an error)`).
 fn csv_curves(
     rows: &mut Vec<Row>,
     notes: &mut Vec<String>,
     example: &str,
-    variants: &[(&str, &str)],
+    variants: &[(&str, &[&str])],
     metrics: &[(usize, &str, Metric)],
 ) {
-    for &(flag, value) in variants {
-        let out = std::env::temp_dir().join(format!("nf_{example}_{value}"));
-        let args: Vec<String> = [
-            "--minutes",
-            CSV_MINUTES,
-            flag,
-            value,
-            "--pictures",
-            "0",
-            "--out",
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .chain([out.to_string_lossy().into_owned()])
-        .collect();
-        let run = format!("`{example} {flag} {value}`");
+    for &(label, flags) in variants {
+        let dir: String = label
+            .chars()
+            .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
+            .collect();
+        let out = std::env::temp_dir().join(format!("nf_{example}_{dir}"));
+        let args: Vec<String> = ["--minutes", CSV_MINUTES]
+            .iter()
+            .chain(flags)
+            .chain(&["--pictures", "0", "--out"])
+            .map(|s| s.to_string())
+            .chain([out.to_string_lossy().into_owned()])
+            .collect();
+        let run = format!("`{example} {}`", flags.join(" "));
         if let Err(why) = run_example(example, &args) {
             notes.push(format!("{run} did not run ({why})"));
             continue;
@@ -112,7 +110,7 @@ fn csv_curves(
             for &(col, name, metric) in metrics {
                 if let (Some(&step), Some(&seconds), Some(&x)) = (v.first(), v.get(1), v.get(col)) {
                     rows.push(Row {
-                        series: format!("{example} (wuson, {value}): {name}"),
+                        series: format!("{example} (wuson, {label}): {name}"),
                         knob: step,
                         error: metric.error(x),
                         seconds,
@@ -242,10 +240,36 @@ pub fn run(quick: bool) -> Vec<Table> {
         &mut notes,
         "nerf",
         &[
-            ("--sampler", "grid"),
-            ("--sampler", "stratified"),
-            ("--sampler", "proposal"),
-            ("--encoding", "hash"),
+            ("grid", &["--sampler", "grid"]),
+            ("stratified", &["--sampler", "stratified"]),
+            ("proposal", &["--sampler", "proposal"]),
+            ("hash", &["--encoding", "hash"]),
+            // Trained through the images' own pixel filter (4 rays per pixel from Cycles'
+            // Blackman-Harris window, their mean against the pixel) and evaluated with it.
+            (
+                "hash, Cycles' pixel filter",
+                &[
+                    "--encoding",
+                    "hash",
+                    "--train-supersample",
+                    "2",
+                    "--pixel-filter",
+                    "cycles",
+                    "--eval-supersample",
+                    "3",
+                ],
+            ),
+            (
+                "PE, Cycles' pixel filter",
+                &[
+                    "--train-supersample",
+                    "2",
+                    "--pixel-filter",
+                    "cycles",
+                    "--eval-supersample",
+                    "3",
+                ],
+            ),
         ],
         &[(2, "held-out MSE", Metric::MseOfPsnr)],
     );
@@ -254,9 +278,9 @@ pub fn run(quick: bool) -> Vec<Table> {
         &mut notes,
         "dvr_multiview",
         &[
-            ("--model", "dvr"),
-            ("--model", "idr"),
-            ("--encoding", "hash"),
+            ("dvr", &["--model", "dvr"]),
+            ("idr", &["--model", "idr"]),
+            ("hash", &["--encoding", "hash"]),
         ],
         &[
             (2, "held-out 1 − mask IoU", Metric::OneMinus),
@@ -279,7 +303,9 @@ pub fn run(quick: bool) -> Vec<Table> {
              10^(−PSNR/10) of tiny_nerf's held-out view (the training time excludes rendering \
              it); NeRF on the committed dataset (`cargo run --release --example nerf -- \
              --minutes 2 --sampler S`, once per sampler, and `--encoding hash` with the grid \
-             sampler), the held-out MSE of its `curve.csv` (PSNR on the first 4 test views \
+             sampler; and both encodings trained and evaluated through Cycles' pixel filter, \
+             `--encoding pe|hash --train-supersample 2 --pixel-filter cycles \
+             --eval-supersample 3`), the held-out MSE of its `curve.csv` (PSNR on the first 4 test views \
              every 250 steps) against training seconds (evaluation excluded); 3-D \
              reconstruction from the committed dataset's masked views (`cargo run --release \
              --example dvr_multiview -- --minutes 2` with `--model dvr` (an occupancy network \
