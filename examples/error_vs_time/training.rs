@@ -235,6 +235,21 @@ pub fn run(quick: bool) -> Vec<Table> {
             }
         }
     }
+    // Trained through the images' own pixel filter (4 rays per pixel from Cycles'
+    // Blackman-Harris window, their mean against the pixel) and evaluated with it.
+    const THROUGH_FILTER: &[&str] = &[
+        "--train-supersample",
+        "2",
+        "--pixel-filter",
+        "cycles",
+        "--eval-supersample",
+        "3",
+    ];
+    let hash_through_filter: Vec<&str> = ["--encoding", "hash"]
+        .iter()
+        .chain(THROUGH_FILTER)
+        .copied()
+        .collect();
     csv_curves(
         &mut rows,
         &mut notes,
@@ -244,32 +259,8 @@ pub fn run(quick: bool) -> Vec<Table> {
             ("stratified", &["--sampler", "stratified"]),
             ("proposal", &["--sampler", "proposal"]),
             ("hash", &["--encoding", "hash"]),
-            // Trained through the images' own pixel filter (4 rays per pixel from Cycles'
-            // Blackman-Harris window, their mean against the pixel) and evaluated with it.
-            (
-                "hash, Cycles' pixel filter",
-                &[
-                    "--encoding",
-                    "hash",
-                    "--train-supersample",
-                    "2",
-                    "--pixel-filter",
-                    "cycles",
-                    "--eval-supersample",
-                    "3",
-                ],
-            ),
-            (
-                "PE, Cycles' pixel filter",
-                &[
-                    "--train-supersample",
-                    "2",
-                    "--pixel-filter",
-                    "cycles",
-                    "--eval-supersample",
-                    "3",
-                ],
-            ),
+            ("hash, Cycles' pixel filter", &hash_through_filter),
+            ("PE, Cycles' pixel filter", THROUGH_FILTER),
         ],
         &[(2, "held-out MSE", Metric::MseOfPsnr)],
     );
