@@ -538,8 +538,8 @@ impl Renderer<'_> {
 
     /// Renders view `v` of `data` whole, in chunks, without keeping a graph, with
     /// `k × k` rays per pixel averaged (the quadrature of `filter`; `k = 1` with the box:
-    /// one ray through the pixel centre): colour `[H, W, 3]`, depth `[H, W]` (NaN where the opacity is below 0.5),
-    /// opacity `[H, W]`.
+    /// one ray through the pixel centre): colour `[H, W, 3]`, depth `[H, W]` (NaN where
+    /// the opacity is below 0.5), opacity `[H, W]`.
     fn render_view(
         &self,
         data: &Dataset,

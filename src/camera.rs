@@ -105,8 +105,9 @@ impl PixelFilter {
     /// The offset `x` from the pixel centre (pixels, one axis) below which the filter has
     /// mass `u`: the inverse of its cumulative distribution. Box: `u − ½`. Blackman–Harris:
     /// `x = h(2s − 1)` where `s` solves `F(s) = u` for the window's cumulative distribution
-    /// `F(s) = s − (a₁/2πa₀) sin 2πs + (a₂/4πa₀) sin 4πs − (a₃/6πa₀) sin 6πs` (monotone;
-    /// bisection to f64 resolution). Not differentiable (a sampling rule).
+    /// `F(s) = s − (a₁/2πa₀) sin 2πs + (a₂/4πa₀) sin 4πs − (a₃/6πa₀) sin 6πs` (increasing;
+    /// Newton's method inside a bisection bracket, to f64 resolution in a few iterations).
+    /// Not differentiable (a sampling rule).
     ///
     /// # Errors
     /// [`Error::InvalidArgument`] naming `u` unless in `[0, 1]`, or `filter` as
@@ -139,22 +140,44 @@ impl PixelFilter {
             PixelFilter::BlackmanHarris { half_width } => {
                 let [a0, a1, a2, a3] = BLACKMAN_HARRIS;
                 let tau = std::f64::consts::TAU;
-                let cdf = |s: f64| {
-                    s - a1 / (tau * a0) * (tau * s).sin()
-                        + a2 / (2.0 * tau * a0) * (2.0 * tau * s).sin()
-                        - a3 / (3.0 * tau * a0) * (3.0 * tau * s).sin()
+                // F(s) − u and F'(s) (the window over a₀), from one sin_cos per harmonic.
+                let residual_and_slope = |s: f64| {
+                    let ((s1, c1), (s2, c2), (s3, c3)) = (
+                        (tau * s).sin_cos(),
+                        (2.0 * tau * s).sin_cos(),
+                        (3.0 * tau * s).sin_cos(),
+                    );
+                    let f = s - a1 / (tau * a0) * s1 + a2 / (2.0 * tau * a0) * s2
+                        - a3 / (3.0 * tau * a0) * s3;
+                    (f - u, (a0 - a1 * c1 + a2 * c2 - a3 * c3) / a0)
                 };
-                let (mut lo, mut hi) = (0.0f64, 1.0f64);
-                // 64 halvings reach f64 resolution on [0, 1]; F is increasing.
-                for _ in 0..64 {
-                    let mid = 0.5 * (lo + hi);
-                    if cdf(mid) < u {
-                        lo = mid;
+                // Newton's method kept inside a shrinking bracket of the root (bisection
+                // where a step would leave it): F is increasing, so a handful of
+                // iterations reach f64 resolution; 200 bound the loop in every case.
+                let (mut lo, mut hi, mut s) = (0.0f64, 1.0f64, u);
+                for _ in 0..200 {
+                    let (r, slope) = residual_and_slope(s);
+                    if r == 0.0 {
+                        break;
+                    }
+                    if r < 0.0 {
+                        lo = s;
                     } else {
-                        hi = mid;
+                        hi = s;
+                    }
+                    let newton = s - r / slope;
+                    let next = if slope > 0.0 && newton > lo && newton < hi {
+                        newton
+                    } else {
+                        0.5 * (lo + hi)
+                    };
+                    let done = (next - s).abs() <= f64::EPSILON * next.abs().max(f64::MIN_POSITIVE);
+                    s = next;
+                    if done || hi - lo <= f64::EPSILON {
+                        break;
                     }
                 }
-                half_width * (lo + hi - 1.0)
+                half_width * (2.0 * s - 1.0)
             }
         }
     }

@@ -414,17 +414,10 @@ fn jittered_rays_stay_inside_their_pixels_and_subpixel_grids_average_to_centres(
         batch.pixels.to_vec2::<u32>().unwrap(),
         plain.pixels.to_vec2::<u32>().unwrap()
     );
-    let (o, dir) = (
-        batch.rays.origins().to_vec2::<f64>().unwrap(),
-        batch.rays.directions().to_vec2::<f64>().unwrap(),
-    );
-    let views = batch.views.to_vec1::<u32>().unwrap();
+    let px = batch.pixels.to_vec2::<u32>().unwrap();
     let (mut fractions, mut spread) = (Vec::new(), 0.0f64);
-    for (i, px) in batch.pixels.to_vec2::<u32>().unwrap().iter().enumerate() {
-        let camera = data.views()[views[i] as usize].camera();
-        let point = DVec3::from_slice(&o[i]) + 2.0 * DVec3::from_slice(&dir[i]);
-        let p = camera.project(point).unwrap();
-        let (fu, fv) = (p.x - f64::from(px[0]), p.y - f64::from(px[1]));
+    for (i, [fu, fv]) in in_pixel(&data, &batch).into_iter().enumerate() {
+        let px = &px[i];
         assert!(
             (-1e-9..1.0 + 1e-9).contains(&fu) && (-1e-9..1.0 + 1e-9).contains(&fv),
             "ray {i} leaves pixel {px:?}: ({fu}, {fv})"
@@ -502,29 +495,22 @@ fn pixel_footprints_cover_each_pixel_with_its_subpixel_grid() {
             .unwrap();
         assert_eq!(batch.len(), n * k * k);
         let px = batch.pixels.to_vec2::<u32>().unwrap();
-        let views = batch.views.to_vec1::<u32>().unwrap();
         let colors = batch.colors.to_vec2::<f64>().unwrap();
         let bgs = batch.backgrounds.to_vec2::<f64>().unwrap();
         // The same pixels and backgrounds as `pixels(n)` with the same seed, each repeated.
         let want_px = plain.pixels.to_vec2::<u32>().unwrap();
         let want_bg = plain.backgrounds.to_vec2::<f64>().unwrap();
         let want_c = plain.colors.to_vec2::<f64>().unwrap();
-        let (o, dir) = (
-            batch.rays.origins().to_vec2::<f64>().unwrap(),
-            batch.rays.directions().to_vec2::<f64>().unwrap(),
-        );
+        let at = in_pixel(&data, &batch);
         for r in 0..n * k * k {
             let (p, sub) = (r / (k * k), r % (k * k));
             assert_eq!(px[r], want_px[p], "ray {r}");
             assert_eq!(bgs[r], want_bg[p], "ray {r}");
             assert_eq!(colors[r], want_c[p], "ray {r}");
-            let camera = data.views()[views[r] as usize].camera();
-            let point = DVec3::from_slice(&o[r]) + 2.0 * DVec3::from_slice(&dir[r]);
-            let at = camera.project(point).unwrap();
             // Sub-pixel (i, j) of the pixel: [(j, i), (j + 1, i + 1)] / k.
             let (i, j) = ((sub / k) as f64, (sub % k) as f64);
-            let fu = (at.x - f64::from(px[r][0])) * k as f64 - j;
-            let fv = (at.y - f64::from(px[r][1])) * k as f64 - i;
+            let fu = at[r][0] * k as f64 - j;
+            let fv = at[r][1] * k as f64 - i;
             if jitter {
                 assert!(
                     (-1e-9..1.0 + 1e-9).contains(&fu) && (-1e-9..1.0 + 1e-9).contains(&fv),
@@ -598,6 +584,16 @@ fn pixel_filter_quantiles_invert_the_filters_distributions() {
                 (back - u).abs() < 1e-6,
                 "h = {h}, u = {u}: F(q(u)) = {back}"
             );
+            // And to rounding against the closed form of the distribution.
+            let [a0, a1, a2, a3] = [0.35875, 0.48829, 0.14128, 0.01168];
+            let (t, z) = (std::f64::consts::TAU, (x + h) / (2.0 * h));
+            let closed = z - a1 / (t * a0) * (t * z).sin()
+                + a2 / (2.0 * t * a0) * (2.0 * t * z).sin()
+                - a3 / (3.0 * t * a0) * (3.0 * t * z).sin();
+            assert!(
+                (closed - u).abs() < 1e-14,
+                "h = {h}, u = {u}: closed-form F(q(u)) = {closed}"
+            );
         }
     }
     // The standard deviation of the offsets, by the midpoint rule in u.
@@ -647,23 +643,8 @@ fn a_sampler_with_cycles_filter_draws_offsets_from_the_filter() {
         plain.colors.to_vec2::<f64>().unwrap()
     );
     let offsets = |b: &neural_fields::data::RayBatch| -> Vec<[f64; 2]> {
-        let (o, dir) = (
-            b.rays.origins().to_vec2::<f64>().unwrap(),
-            b.rays.directions().to_vec2::<f64>().unwrap(),
-        );
-        let views = b.views.to_vec1::<u32>().unwrap();
-        b.pixels
-            .to_vec2::<u32>()
-            .unwrap()
-            .iter()
-            .enumerate()
-            .map(|(i, px)| {
-                let camera = data.views()[views[i] as usize].camera();
-                let point = DVec3::from_slice(&o[i]) + 2.0 * DVec3::from_slice(&dir[i]);
-                let p = camera.project(point).unwrap();
-                [p.x - f64::from(px[0]) - 0.5, p.y - f64::from(px[1]) - 0.5]
-            })
-            .collect()
+        let centred = |[x, y]: [f64; 2]| [x - 0.5, y - 0.5];
+        in_pixel(&data, b).into_iter().map(centred).collect()
     };
     let mut xs: Vec<f64> = offsets(&batch).into_iter().flatten().collect();
     xs.sort_by(f64::total_cmp);
@@ -699,4 +680,27 @@ fn a_sampler_with_cycles_filter_draws_offsets_from_the_filter() {
         .unwrap()
         .with_pixel_filter(PixelFilter::BlackmanHarris { half_width: 0.0 });
     assert!(matches!(bad, Err(Error::InvalidArgument { arg, .. }) if arg == "filter"));
+}
+
+/// Where each ray of `batch` passes through the image of its view, relative to its
+/// pixel's top-left corner (a point on the ray projected by the view's camera).
+fn in_pixel(data: &Dataset, batch: &neural_fields::data::RayBatch) -> Vec<[f64; 2]> {
+    let (o, dir) = (
+        batch.rays.origins().to_vec2::<f64>().unwrap(),
+        batch.rays.directions().to_vec2::<f64>().unwrap(),
+    );
+    let views = batch.views.to_vec1::<u32>().unwrap();
+    batch
+        .pixels
+        .to_vec2::<u32>()
+        .unwrap()
+        .iter()
+        .enumerate()
+        .map(|(i, px)| {
+            let camera = data.views()[views[i] as usize].camera();
+            let point = DVec3::from_slice(&o[i]) + 2.0 * DVec3::from_slice(&dir[i]);
+            let p = camera.project(point).unwrap();
+            [p.x - f64::from(px[0]), p.y - f64::from(px[1])]
+        })
+        .collect()
 }

@@ -126,7 +126,6 @@ def main():
     for k, v in rows.items():
         v = np.array(v)
         print("  %-72s %6.2f dB  (%.2f .. %.2f)" % (k, v.mean(), v.min(), v.max()))
-    # The example averages per-view PSNR; the pooled MSE is printed for reference too.
 
 
 if __name__ == "__main__":

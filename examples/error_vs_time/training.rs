@@ -67,9 +67,9 @@ fn run_example(example: &str, args: &[String]) -> Result<String, String> {
 const CSV_MINUTES: &str = "2";
 
 /// A training example on the committed dataset, once per variant (`(label, flags)`: the
-/// flags added to `--minutes 2 --pictures 0 --out DIR`, the label naming the series): the rows of its `curve.csv` (`step,
-/// train_seconds, metric…`) as errors against training seconds, one series per metric
-/// column (`(column, name, how it becomes an error)`).
+/// flags added to `--minutes 2 --pictures 0 --out DIR`, the label naming the series): the
+/// rows of its `curve.csv` (`step, train_seconds, metric…`) as errors against training
+/// seconds, one series per metric column (`(column, name, how it becomes an error)`).
 fn csv_curves(
     rows: &mut Vec<Row>,
     notes: &mut Vec<String>,
@@ -296,8 +296,8 @@ pub fn run(quick: bool) -> Vec<Table> {
              --minutes 2 --sampler S`, once per sampler, and `--encoding hash` with the grid \
              sampler; and both encodings trained and evaluated through Cycles' pixel filter, \
              `--encoding pe|hash --train-supersample 2 --pixel-filter cycles \
-             --eval-supersample 3`), the held-out MSE of its `curve.csv` (PSNR on the first 4 test views \
-             every 250 steps) against training seconds (evaluation excluded); 3-D \
+             --eval-supersample 3`), the held-out MSE of its `curve.csv` (PSNR on the first 4 \
+             test views every 250 steps) against training seconds (evaluation excluded); 3-D \
              reconstruction from the committed dataset's masked views (`cargo run --release \
              --example dvr_multiview -- --minutes 2` with `--model dvr` (an occupancy network \
              and a texture field), `--model idr` (IDR's SDF and rendering network) and \

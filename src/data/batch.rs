@@ -243,8 +243,8 @@ impl<'a> RaySampler<'a> {
     /// on the sub-pixel grid of [`crate::camera::Camera::subpixel_grid`] for the sampler's
     /// pixel filter ([`RaySampler::with_pixel_filter`]; the box by default) (with
     /// [`RaySampler::with_jitter`], through a random point of each of the filter's `k × k`
-    /// equal-mass strata: stratified sampling of the filter). Rays are pixel-major: rays `p·k² … (p + 1)·k² − 1` belong
-    /// to pixel `p`, and every per-ray field (`colors`, `backgrounds`, `masks`, `views`,
+    /// equal-mass strata: stratified sampling of the filter). Rays are pixel-major: rays
+    /// `p·k² … (p + 1)·k² − 1` belong to pixel `p`, and every per-ray field (`colors`, `backgrounds`, `masks`, `views`,
     /// `pixels`) repeats the pixel's value over its `k²` rays. Average a prediction over each
     /// run of `k²` rays (`pred.reshape((n, k², 3))?.mean(1)`) to compare it with a pixel
     /// that integrates over its footprint (antialiased renders, real sensors): the
@@ -283,19 +283,24 @@ impl<'a> RaySampler<'a> {
         let bgs = self.backgrounds(n);
         let kk = k * k;
         let cell = 1.0 / k as f64;
+        // The strata's medians, the same for every pixel (the filter's quantile is solved
+        // once per stratum, not once per ray).
+        let medians: Vec<f64> = (0..k)
+            .map(|j| self.filter.corner_offset((j as f64 + 0.5) * cell))
+            .collect();
         let mut offsets = Vec::with_capacity(n * kk);
         for _ in 0..n {
             for i in 0..k {
                 for j in 0..k {
-                    let (du, dv) = if self.jitter {
-                        (self.rng.uniform(), self.rng.uniform())
+                    offsets.push(if self.jitter {
+                        let (du, dv) = (self.rng.uniform(), self.rng.uniform());
+                        [
+                            self.filter.corner_offset((j as f64 + du) * cell),
+                            self.filter.corner_offset((i as f64 + dv) * cell),
+                        ]
                     } else {
-                        (0.5, 0.5)
-                    };
-                    offsets.push([
-                        self.filter.corner_offset((j as f64 + du) * cell),
-                        self.filter.corner_offset((i as f64 + dv) * cell),
-                    ]);
+                        [medians[j], medians[i]]
+                    });
                 }
             }
         }
