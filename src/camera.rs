@@ -1484,6 +1484,40 @@ pub fn align_similarity(from: &[DVec3], to: &[DVec3]) -> Result<Similarity> {
     })
 }
 
+/// `pose` (camera-to-world) moved by the rigid step `step = (ω, v)`: rotation
+/// `exp([ω]×)·R` (a turn by `|ω|` radians about the world axis `ω` through the camera
+/// centre), centre `c + v`.
+///
+/// The retraction of a Gauss–Newton or Levenberg–Marquardt step on a camera: the six
+/// parameters are a local chart at `pose` with no singularity near zero, unlike Euler
+/// angles, and no normalisation constraint, unlike a quaternion. Differentiate a
+/// residual w.r.t. `step` at zero (analytically or by differences of this map), solve
+/// for the step ([`crate::numerics::damped_solve`]) and apply it here.
+///
+/// ```
+/// use glam::{DAffine3, DVec3};
+/// use neural_fields::camera::retract_pose;
+///
+/// let pose = DAffine3::from_translation(DVec3::new(0.0, 0.0, 4.0));
+/// let moved = retract_pose(&pose, [0.0, 0.0, std::f64::consts::FRAC_PI_2, 1.0, 0.0, 0.0]);
+/// assert!((moved.transform_vector3(DVec3::X) - DVec3::Y).length() < 1e-15);
+/// assert_eq!(moved.translation, DVec3::new(1.0, 0.0, 4.0));
+/// ```
+#[must_use]
+pub fn retract_pose(pose: &DAffine3, step: [f64; 6]) -> DAffine3 {
+    let omega = DVec3::new(step[0], step[1], step[2]);
+    let angle = omega.length();
+    let turn = if angle > 0.0 {
+        DMat3::from_axis_angle(omega / angle, angle)
+    } else {
+        DMat3::IDENTITY
+    };
+    DAffine3::from_mat3_translation(
+        turn * pose.matrix3,
+        pose.translation + DVec3::new(step[3], step[4], step[5]),
+    )
+}
+
 /// Eigenvalues and unit eigenvectors of the symmetric 4 × 4 matrix `m` (destroyed) by
 /// cyclic Jacobi rotations; `vectors[k]` belongs to `values[k]`.
 fn symmetric_eigen4(m: &mut [[f64; 4]; 4]) -> ([f64; 4], [[f64; 4]; 4]) {

@@ -1,7 +1,8 @@
 //! Defended numerics shared by every module: range-reduced sine and cosine, a stable
-//! sigmoid, softplus and BCE-with-logits, and a sign-preserving guarded denominator.
+//! sigmoid, softplus and BCE-with-logits, a sign-preserving guarded denominator, and
+//! [`damped_solve`], the host-side solve of a Levenberg–Marquardt step.
 //!
-//! All functions are elementwise, follow their input's device and dtype (f32 or f64),
+//! The tensor functions are elementwise, follow their input's device and dtype (f32 or f64),
 //! and are differentiable with respect to their tensor inputs through candle's autograd,
 //! with finite gradients wherever the value is finite. `where_cond` in candle evaluates
 //! the gradient of both branches, so each function feeds the untaken branch a safe input
@@ -334,6 +335,78 @@ pub fn guard_denominator(x: &Tensor, eps: f64) -> Result<Tensor> {
         .where_cond(&x.ones_like()?, &x.ones_like()?.neg()?)?;
     let small = x.abs()?.lt(eps)?;
     Ok(small.where_cond(&sign.affine(eps, 0.0)?, x)?)
+}
+
+/// One Levenberg–Marquardt step: the `δ` that solves `(H + λ·D)·δ = −g`, with
+/// `D = diag(H)` (Marquardt's scaling, each diagonal entry at least `10⁻¹²·max diag(H)`
+/// so that a parameter without signal stays put instead of making the system singular),
+/// by a Cholesky factorisation.
+///
+/// `H` is a Gauss–Newton matrix `Σ jⱼ jⱼᵀ` (symmetric, positive semi-definite; only its
+/// lower triangle is read) and `g = Σ jⱼ rⱼ` the gradient of `½ Σ rⱼ²`; `λ ≥ 0` trades a
+/// Gauss–Newton step (`λ → 0`) for a short scaled gradient step (`λ → ∞`). Plain `f64`
+/// arrays: one small system per camera or per object, not a tensor op.
+///
+/// ```
+/// use neural_fields::numerics::damped_solve;
+///
+/// // ½|J x − b|² with J = diag(2, 4), b = (2, 4): the Gauss–Newton step from x = 0 is (1, 1).
+/// let h = [[4.0, 0.0], [0.0, 16.0]];
+/// let g = [-4.0, -16.0];
+/// assert_eq!(damped_solve(&h, &g, 0.0), Some([1.0, 1.0]));
+/// // λ = 1 doubles the diagonal: half the step.
+/// let half = damped_solve(&h, &g, 1.0).unwrap();
+/// assert!(half.iter().all(|x| (x - 0.5).abs() < 1e-15));
+/// assert_eq!(damped_solve(&[[0.0; 2]; 2], &g, 1.0), None);
+/// ```
+///
+/// Returns `None` when `H` has no positive diagonal entry, an entry or `λ` is not
+/// finite, `λ < 0`, or the damped matrix is not positive definite.
+#[must_use]
+pub fn damped_solve<const N: usize>(
+    h: &[[f64; N]; N],
+    g: &[f64; N],
+    lambda: f64,
+) -> Option<[f64; N]> {
+    if !(lambda >= 0.0 && lambda.is_finite()) {
+        return None;
+    }
+    let finite = h.iter().flatten().chain(g).all(|x| x.is_finite());
+    let top = (0..N).map(|i| h[i][i]).fold(0.0f64, f64::max);
+    if !finite || top <= 0.0 {
+        return None;
+    }
+    // Lower-triangular L with L Lᵀ = H + λ D.
+    let mut l = [[0.0f64; N]; N];
+    for i in 0..N {
+        for j in 0..=i {
+            let mut s = h[i][j];
+            if i == j {
+                s += lambda * h[i][i].max(1e-12 * top);
+            }
+            s -= (0..j).map(|k| l[i][k] * l[j][k]).sum::<f64>();
+            if i == j {
+                if s.is_nan() || s <= 0.0 {
+                    return None;
+                }
+                l[i][i] = s.sqrt();
+            } else {
+                l[i][j] = s / l[j][j];
+            }
+        }
+    }
+    // L y = −g, then Lᵀ δ = y.
+    let mut y = [0.0f64; N];
+    for i in 0..N {
+        let s = (0..i).fold(-g[i], |s, k| s - l[i][k] * y[k]);
+        y[i] = s / l[i][i];
+    }
+    let mut x = [0.0f64; N];
+    for i in (0..N).rev() {
+        let s = (i + 1..N).fold(y[i], |s, k| s - l[k][i] * x[k]);
+        x[i] = s / l[i][i];
+    }
+    x.iter().all(|v| v.is_finite()).then_some(x)
 }
 
 #[cfg(test)]

@@ -2747,6 +2747,8 @@ const COVERED: &[&str] = &[
     "camera::ray_aabb",
     "camera::ray_sphere",
     "camera::align_similarity",
+    "camera::retract_pose",
+    "numerics::damped_solve",
     "camera::Similarity::inverse",
     "camera::Similarity::transform_pose",
     "camera::Similarity::transform_point",
@@ -3414,6 +3416,44 @@ fn host3(v: DVec3) -> neural_fields::Result<Tensor> {
 
 fn sweep_camera_host(s: &mut Suite) {
     let k = Intrinsics::new(500.0, 400.0, 32.0, 24.0, 64, 48).unwrap();
+    // Pose steps and damped Gauss–Newton systems at every magnitude: finite poses, and
+    // steps that are finite or refused (`None`).
+    for &x in &magnitudes(DType::F64) {
+        let x = x.clamp(-1e150, 1e150);
+        s.case(
+            "camera::retract_pose",
+            format!("step of {x:e}"),
+            Expect::Finite,
+            &[],
+            || {
+                let pose = DAffine3::from_translation(DVec3::splat(x));
+                let moved = neural_fields::camera::retract_pose(&pose, [x, -x, 0.5, x, 1.0, -x]);
+                Ok(vec![
+                    host3(moved.translation)?,
+                    host3(moved.matrix3.x_axis)?,
+                    host3(moved.matrix3.z_axis)?,
+                ])
+            },
+        );
+        for lambda in [0.0, 1e-3, 1e300] {
+            s.case(
+                "numerics::damped_solve",
+                format!("system scaled by {x:e}, λ = {lambda:e}"),
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let h = [[4.0 * x, x], [x, 2.0 * x]];
+                    let step = neural_fields::numerics::damped_solve(&h, &[x, -1.0], lambda)
+                        .ok_or_else(|| neural_fields::Error::InvalidArgument {
+                            arg: "h",
+                            expected: "a solvable system".into(),
+                            got: "none".into(),
+                        })?;
+                    Ok(vec![Tensor::new(&step, &Device::Cpu)?])
+                },
+            );
+        }
+    }
     for r in [1e-6, 1.0, 1e6, 1e150] {
         s.case(
             "camera::cameras_around",
