@@ -1382,19 +1382,14 @@ fn render_points(
 ) -> Result<(Planes, Vec<(usize, DVec3)>)> {
     let w = truth.w;
     let pixels = box_pixels(truth, margin);
-    let (mut o, mut d) = (Vec::new(), Vec::new());
-    for &i in &pixels {
-        let (ro, rd) = camera.ray(DVec2::new((i % w) as f64 + 0.5, (i / w) as f64 + 0.5));
-        o.extend_from_slice(&ro.to_array());
-        d.extend_from_slice(&rd.to_array());
-    }
     let n = pixels.len();
     let mut hits = Vec::new();
     if n > 0 {
-        let all = Rays::new(
-            Tensor::from_vec(o, (n, 3), &Device::Cpu)?.to_dtype(DType::F32)?,
-            Tensor::from_vec(d, (n, 3), &Device::Cpu)?.to_dtype(DType::F32)?,
-        )?;
+        let centres: Vec<f32> = pixels
+            .iter()
+            .flat_map(|&i| [(i % w) as f32 + 0.5, (i / w) as f32 + 0.5])
+            .collect();
+        let all = camera.rays_for_pixels(&Tensor::from_vec(centres, (n, 2), &Device::Cpu)?)?;
         let [x0, y0, z0, x1, y1, z1] = aabb;
         for start in (0..n).step_by(CHUNK) {
             let len = CHUNK.min(n - start);
