@@ -3,13 +3,15 @@
 //! on the same cores (`benches/compare_torch.sh`).
 //!
 //! ```text
-//! cargo bench --bench train_step -- --model nerf --steps 20 [--reference] [--phases]
+//! cargo bench --bench train_step -- --model nerf --steps 20 [--reference] [--composed] [--phases]
 //! ```
 //!
 //! * `nerf`: 1024 rays × 64 jittered stratified samples in [2, 6], NeRF's frequency
 //!   encodings (L = 10 positions, L = 4 directions, input included), a 4 × 64 ReLU trunk
 //!   with a 64-wide feature, a 64-wide view-dependent colour head, trunc-exp density
-//!   (shift −1), fused compositing, MSE, Adam (lr 1e-3).
+//!   (shift −1), compositing, MSE, Adam (lr 1e-3): [`neural_fields::nn::Nerf::color_loss`],
+//!   the whole loss as one fused op; `--composed` forms it from `Nerf::radiance`, the
+//!   fused compositing op and candle's MSE, as before that op existed.
 //! * `occupancy`: 2¹⁶ points, a 4 × 64 ReLU occupancy MLP on raw coordinates, binary
 //!   cross-entropy with logits, Adam (lr 1e-3).
 //! * `dvr`: 2048 rays into the box `[−0.55, 0.55]³` from a sphere of radius 1.5, an SDF
@@ -47,6 +49,7 @@ struct Args {
     warmup: usize,
     reference: bool,
     phases: bool,
+    composed: bool,
 }
 
 fn parse() -> Args {
@@ -56,6 +59,7 @@ fn parse() -> Args {
         warmup: 3,
         reference: false,
         phases: false,
+        composed: false,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -64,6 +68,7 @@ fn parse() -> Args {
             "--steps" => a.steps = it.next().and_then(|s| s.parse().ok()).expect("--steps N"),
             "--warmup" => a.warmup = it.next().and_then(|s| s.parse().ok()).expect("--warmup N"),
             "--reference" => a.reference = true,
+            "--composed" => a.composed = true,
             "--phases" => a.phases = true,
             "--bench" => {}
             other => panic!("unknown flag {other}"),
@@ -116,8 +121,12 @@ fn main() -> neural_fields::Result<()> {
             let rays = Rays::new(origins, dirs)?;
             let near = Tensor::full(2f32, rays_n, &dev)?;
             let far = Tensor::full(6f32, rays_n, &dev)?;
+            let composed = args.composed;
             Box::new(move |step| {
                 let iv = stratified(&near, &far, 64, Jitter::PerSample, step as u64)?;
+                if !composed {
+                    return net.color_loss(&rays, &iv, &target, &CompositeConfig::default());
+                }
                 let pos = iv.positions(&rays)?.reshape((rays_n * 64, 3))?;
                 let d = rays
                     .directions()
@@ -233,7 +242,13 @@ fn main() -> neural_fields::Result<()> {
     }
     println!(
         "{{\"impl\": \"candle-{}\", \"model\": \"{}\", \"steps\": {}, \"median_s\": {:.5}, \"forward_s\": {:.5}, \"backward_s\": {:.5}, \"update_s\": {:.5}, \"final_loss\": {:.6}}}",
-        if args.reference { "reference" } else { "fused" },
+        if args.reference {
+            "reference"
+        } else if args.composed {
+            "composed"
+        } else {
+            "fused"
+        },
         args.model,
         args.steps,
         median(&mut total),

@@ -226,6 +226,7 @@ impl Encoding for FrequencyEncoding {
 /// polynomial pass in f64 ([`sin_cos_pi`]), which the compiler vectorises; f32 inputs
 /// are widened (exactly) and the results rounded once, so they are at least as accurate as
 /// the reference path's f32 `sin(π·r)`.
+#[derive(Clone)]
 struct FusedFrequency(FrequencyEncoding);
 
 /// Rows per work item of the fused encoding (its f64 scratch stays in L2).
@@ -333,8 +334,7 @@ impl FusedFrequency {
     }
 
     fn forward<T: candle_core::WithDType>(&self, x: &[T]) -> Vec<T> {
-        let (d, l, w) = (self.0.in_dim, self.0.n_freqs, self.width());
-        let head = if self.0.include_input { d } else { 0 };
+        let (d, w) = (self.0.in_dim, self.width());
         let rows = x.len() / d;
         let mut out = vec![T::from_f64(0.0); rows * w];
         let items: Vec<_> = out
@@ -344,22 +344,27 @@ impl FusedFrequency {
         crate::parallel::for_each_init(
             items,
             || self.scratch(),
-            |t, (out, x)| {
-                self.trig(x, t);
-                for (r, (o, xr)) in out.chunks_mut(w).zip(x.chunks(d)).enumerate() {
-                    o[..head].copy_from_slice(&xr[..head]);
-                    for k in 0..l {
-                        let src = (r * l + k) * d;
-                        let base = head + 2 * d * k;
-                        for j in 0..d {
-                            o[base + j] = T::from_f64(t.1[src + j]);
-                            o[base + d + j] = T::from_f64(t.2[src + j]);
-                        }
-                    }
-                }
-            },
+            |t, (out, x)| self.write_rows(x, out, t),
         );
         out
+    }
+
+    /// Encodes at most [`ENCODE_ROWS`] rows `x: [rows, D]` into `out: [rows, E]`.
+    fn write_rows<T: candle_core::WithDType>(&self, x: &[T], out: &mut [T], t: &mut Trig) {
+        let (d, l, w) = (self.0.in_dim, self.0.n_freqs, self.width());
+        let head = if self.0.include_input { d } else { 0 };
+        self.trig(x, t);
+        for (r, (o, xr)) in out.chunks_mut(w).zip(x.chunks(d)).enumerate() {
+            o[..head].copy_from_slice(&xr[..head]);
+            for k in 0..l {
+                let src = (r * l + k) * d;
+                let base = head + 2 * d * k;
+                for j in 0..d {
+                    o[base + j] = T::from_f64(t.1[src + j]);
+                    o[base + d + j] = T::from_f64(t.2[src + j]);
+                }
+            }
+        }
     }
 
     fn backward<T: candle_core::WithDType>(&self, x: &[T], g: &[T]) -> Vec<T> {
@@ -633,6 +638,61 @@ impl PointEncoding {
             PointEncoding::Fourier(e) => e.forward_jvp(x, dx),
             PointEncoding::HashGrid(e) => e.forward_jvp(x, dx),
             PointEncoding::CoarseToFine(e) => e.forward_jvp(x, dx),
+        }
+    }
+}
+
+/// An encoding that fused CPU ops evaluate inside their own tiles
+/// ([`RowEncoder::new`]): the identity, or frequencies `2ᵏπ` (the fused encoding's
+/// rows, bit for bit those of [`PointEncoding::forward`] on the CPU).
+#[derive(Clone)]
+pub(crate) struct RowEncoder {
+    frequency: Option<FusedFrequency>,
+    in_dim: usize,
+    trig: Trig,
+}
+
+impl RowEncoder {
+    /// The encoder of `enc` on `in_dim`-wide rows, or `None` when `enc` is neither the
+    /// identity nor a frequency encoding with `2ᵏπ`.
+    pub(crate) fn new(enc: &PointEncoding, in_dim: usize) -> Option<Self> {
+        let frequency = match enc {
+            PointEncoding::Identity => None,
+            PointEncoding::Frequency(e) if e.use_pi && e.in_dim == in_dim => {
+                Some(FusedFrequency(e.clone()))
+            }
+            _ => return None,
+        };
+        let trig = frequency
+            .as_ref()
+            .map_or((vec![], vec![], vec![]), FusedFrequency::scratch);
+        Some(Self {
+            frequency,
+            in_dim,
+            trig,
+        })
+    }
+
+    /// Output columns per row.
+    pub(crate) fn out_dim(&self) -> usize {
+        self.frequency
+            .as_ref()
+            .map_or(self.in_dim, FusedFrequency::width)
+    }
+
+    /// Encodes the rows `x: [rows, in_dim]` into `out: [rows, out_dim]`.
+    pub(crate) fn encode<T: candle_core::WithDType>(&mut self, x: &[T], out: &mut [T]) {
+        let (d, w) = (self.in_dim.max(1), self.out_dim().max(1));
+        match &self.frequency {
+            None => out[..x.len()].copy_from_slice(x),
+            Some(f) => {
+                for (x, out) in x
+                    .chunks(ENCODE_ROWS * d)
+                    .zip(out.chunks_mut(ENCODE_ROWS * w))
+                {
+                    f.write_rows(x, out, &mut self.trig);
+                }
+            }
         }
     }
 }

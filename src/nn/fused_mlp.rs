@@ -30,6 +30,8 @@
 //! candle's CPU pool ([`crate::parallel`]).
 
 mod activation;
+#[cfg(feature = "volume")]
+pub(crate) mod nerf_loss;
 #[cfg(target_arch = "x86_64")]
 mod simd;
 
@@ -864,7 +866,7 @@ impl FusedNerf {
         n: usize,
         want: (bool, bool),
     ) -> (Option<Vec<T>>, Option<Vec<T>>, Vec<T>) {
-        let (dd, t_out, h_in) = self.widths();
+        let (dd, _, _) = self.widths();
         let wt = self.transposed(params);
         let (pt, ph) = self.split(params, &wt);
         let (a0p, np) = (self.trunk.a0, params.len());
@@ -897,46 +899,76 @@ impl FusedNerf {
                         pt,
                         sc,
                     );
-                    for i in 0..r {
-                        sc.yh[3 * i..3 * i + 3]
-                            .copy_from_slice(&gy[4 * (t + i) + 1..4 * (t + i) + 4]);
-                    }
-                    let (ha0, yh, g_ha0) = (&sc.ha0, &sc.yh, &mut sc.g_ha0[..r * h_in]);
-                    self.head.backward_tile(
-                        ha0,
-                        ph,
-                        yh,
-                        Rows::plain(r),
-                        &mut sc.head,
-                        gph,
-                        Some(g_ha0),
-                        true,
-                    );
-                    for i in 0..r {
-                        sc.g_yt[i * t_out] = gy[4 * (t + i)];
-                        sc.g_yt[i * t_out + 1..(i + 1) * t_out]
-                            .copy_from_slice(&sc.g_ha0[i * h_in + dd..(i + 1) * h_in]);
-                        if let Some(g) = ged.as_deref_mut() {
-                            g[(t + i) * dd..(t + i + 1) * dd]
-                                .copy_from_slice(&sc.g_ha0[i * h_in..i * h_in + dd]);
-                        }
-                    }
-                    let gp_rows = gep.as_deref_mut().map(|g| &mut g[t * a0p..(t + r) * a0p]);
-                    self.trunk.backward_tile(
+                    self.backward_tile(
                         &ep[t * a0p..(t + r) * a0p],
-                        pt,
-                        &sc.g_yt,
-                        Rows::plain(r),
-                        &mut sc.trunk,
-                        gpt,
-                        gp_rows,
-                        false,
+                        (pt, ph),
+                        &gy[4 * t..4 * (t + r)],
+                        sc,
+                        (gpt, gph),
+                        (
+                            gep.as_deref_mut().map(|g| &mut g[t * a0p..(t + r) * a0p]),
+                            ged.as_deref_mut().map(|g| &mut g[t * dd..(t + r) * dd]),
+                        ),
+                        true,
                     );
                 }
             },
         );
         sum_chunks(&mut gp, np);
         (gep, ged, gp)
+    }
+
+    /// The backward pass of one tile after [`FusedNerf::trunk_tile`] on it (which left
+    /// the trunk's activations and the head's input in `sc`): the head (recomputing its
+    /// forward pass when `head_recompute`; else `sc` holds it), then the trunk. `gy: [r,
+    /// 4]` is the gradient of the op's output rows; the parameter gradients accumulate
+    /// into `gp` (trunk, head) and the encoded inputs' gradients, where given, are
+    /// written to `ga` (position, direction).
+    #[allow(clippy::too_many_arguments, clippy::type_complexity)]
+    fn backward_tile<T: Real>(
+        &self,
+        ep: &[T],
+        (pt, ph): (Params<'_, T>, Params<'_, T>),
+        gy: &[T],
+        sc: &mut NerfScratch<T>,
+        (gpt, gph): (&mut [T], &mut [T]),
+        (gep, mut ged): (Option<&mut [T]>, Option<&mut [T]>),
+        head_recompute: bool,
+    ) {
+        let (dd, t_out, h_in) = self.widths();
+        let r = gy.len() / 4;
+        for i in 0..r {
+            sc.yh[3 * i..3 * i + 3].copy_from_slice(&gy[4 * i + 1..4 * i + 4]);
+        }
+        let (ha0, yh, g_ha0) = (&sc.ha0, &sc.yh, &mut sc.g_ha0[..r * h_in]);
+        self.head.backward_tile(
+            ha0,
+            ph,
+            yh,
+            Rows::plain(r),
+            &mut sc.head,
+            gph,
+            Some(g_ha0),
+            head_recompute,
+        );
+        for i in 0..r {
+            sc.g_yt[i * t_out] = gy[4 * i];
+            sc.g_yt[i * t_out + 1..(i + 1) * t_out]
+                .copy_from_slice(&sc.g_ha0[i * h_in + dd..(i + 1) * h_in]);
+            if let Some(g) = ged.as_deref_mut() {
+                g[i * dd..(i + 1) * dd].copy_from_slice(&sc.g_ha0[i * h_in..i * h_in + dd]);
+            }
+        }
+        self.trunk.backward_tile(
+            ep,
+            pt,
+            &sc.g_yt,
+            Rows::plain(r),
+            &mut sc.trunk,
+            gpt,
+            gep,
+            false,
+        );
     }
 
     fn check(&self, n_ep: usize, n_ed: usize, n_params: usize) -> candle_core::Result<usize> {
