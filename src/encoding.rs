@@ -646,12 +646,14 @@ impl PointEncoding {
 /// ([`RowEncoder::new`]): the identity, or frequencies `2ᵏπ` (the fused encoding's
 /// rows, bit for bit those of [`PointEncoding::forward`] on the CPU).
 #[derive(Clone)]
+#[cfg_attr(not(feature = "volume"), allow(dead_code))]
 pub(crate) struct RowEncoder {
     frequency: Option<FusedFrequency>,
     in_dim: usize,
     trig: Trig,
 }
 
+#[cfg_attr(not(feature = "volume"), allow(dead_code))]
 impl RowEncoder {
     /// The encoder of `enc` on `in_dim`-wide rows, or `None` when `enc` is neither the
     /// identity nor a frequency encoding with `2ᵏπ`.

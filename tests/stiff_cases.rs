@@ -2831,6 +2831,7 @@ const DVR_COVERED: &[&str] = &[
 
 /// Volume items swept by `sweep_volume`.
 const VOLUME_COVERED: &[&str] = &[
+    "nn::nerf::Nerf::color_loss",
     "volume::proposal::interlevel_loss",
     "volume::proposal::proposal_sample",
     "volume::layout::Intervals::retain",
@@ -3202,6 +3203,10 @@ const EXEMPT: &[(&str, &str)] = &[
         "CustomOp internals, swept via Nerf::radiance",
     ),
     (
+        "nn::fused_mlp::nerf_loss::FusedNerfLoss::",
+        "CustomOp internals, swept via Nerf::color_loss",
+    ),
+    (
         "nn::fused_mlp::FusedMlpJvp::",
         "CustomOp internals, swept via Mlp::forward_with_jacobian",
     ),
@@ -3362,6 +3367,7 @@ fn module_enabled(item: &str) -> bool {
         ("nn::pointnet::", cfg!(feature = "occupancy")),
         ("nn::conv_onet::", cfg!(feature = "occupancy")),
         ("flow::", cfg!(feature = "flow")),
+        ("nn::nerf::Nerf::color_loss", cfg!(feature = "volume")),
     ];
     feature_of
         .iter()
@@ -3905,6 +3911,45 @@ fn sweep_nerf(s: &mut Suite) {
                     Ok(vec![sigma, rgb])
                 },
             );
+            // The fused training loss: rays from the origin, from ±big and from 1e-30,
+            // along tiny, huge and ordinary directions (rays have none of length 0), over [0, 1], [0, big] and
+            // [1e-30, 2e-30]; targets in [0, 1].
+            #[cfg(feature = "volume")]
+            {
+                use neural_fields::camera::Rays;
+                use neural_fields::volume::{stratified, CompositeConfig, Jitter};
+                let t = |v: &[f64], shape: &[usize]| {
+                    Tensor::from_slice(v, shape, &d)
+                        .unwrap()
+                        .to_dtype(dtype)
+                        .unwrap()
+                };
+                let mut ray_dirs = dirs;
+                ray_dirs[2] = 1.0;
+                let rays = Rays::new(t(&pts, &[4, 3]), t(&ray_dirs, &[4, 3])).unwrap();
+                let near = t(&[0.0, 0.0, 1e-30, 0.0], &[4]);
+                let far = t(&[1.0, big, 2e-30, 1.0], &[4]);
+                let target = t(
+                    &[0.0, 0.5, 1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.2, 0.3, 0.4],
+                    &[4, 3],
+                );
+                let wrt: Vec<&Var> = vars.iter().collect();
+                s.case(
+                    "nn::nerf::Nerf::color_loss",
+                    &label,
+                    Expect::FiniteOrErr,
+                    &wrt,
+                    || {
+                        let iv = stratified(&near, &far, 150, Jitter::PerSample, 0)?;
+                        Ok(vec![net.color_loss(
+                            &rays,
+                            &iv,
+                            &target,
+                            &CompositeConfig::default(),
+                        )?])
+                    },
+                );
+            }
         }
     }
     #[cfg(feature = "volume")]
