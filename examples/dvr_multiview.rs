@@ -423,10 +423,10 @@ fn parse_args() -> std::result::Result<Args, String> {
     if !(a.aabb > 0.0 && a.aabb.is_finite()) {
         return Err("--aabb must be positive".into());
     }
-    // The learning rates decay log-linearly: a rate of 0 would make them NaN.
-    let positive = |v: f64| v > 0.0 && v.is_finite();
-    if !positive(a.pose_lr) || a.lr.is_some_and(|lr| !positive(lr)) {
-        return Err("--lr and --pose-lr must be positive".into());
+    // A rate of 0 freezes what it drives (`--pose-lr 0`: the poses).
+    let rate = |v: f64| v >= 0.0 && v.is_finite();
+    if !rate(a.pose_lr) || a.lr.is_some_and(|lr| !rate(lr)) {
+        return Err("--lr and --pose-lr must be finite and ≥ 0".into());
     }
     Ok(a)
 }

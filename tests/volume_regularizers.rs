@@ -402,3 +402,32 @@ fn depth_smoothness_weight_decays_log_linearly_from_400_to_0_1_over_512_steps() 
     assert_eq!(log_linear_schedule(5, 2.0, 8.0, 0), 8.0);
     assert!((log_linear_schedule(1, 2.0, 8.0, 2) - 4.0).abs() < 1e-12);
 }
+
+/// A learning rate of 0 (`start = end = 0`) made the schedule NaN at step 0 (0·ln 0), and
+/// a training run that decayed it stopped on a NaN camera rotation.
+#[test]
+fn a_zero_rate_made_the_log_linear_schedule_nan() {
+    for step in [0, 1, 50, 99, 100, 1000] {
+        assert_eq!(log_linear_schedule(step, 0.0, 0.0, 100), 0.0, "step {step}");
+    }
+    // Decaying to 0: the start, then the limit 0.
+    assert_eq!(log_linear_schedule(0, 1e-3, 0.0, 100), 1e-3);
+    for step in [1, 50, 100, 1000] {
+        assert_eq!(
+            log_linear_schedule(step, 1e-3, 0.0, 100),
+            0.0,
+            "step {step}"
+        );
+    }
+    // Rising from 0: 0 until the end.
+    assert_eq!(log_linear_schedule(99, 0.0, 1.0, 100), 0.0);
+    assert_eq!(log_linear_schedule(100, 0.0, 1.0, 100), 1.0);
+    // Extreme positive endpoints stay finite and monotone.
+    let mut last = f64::INFINITY;
+    for step in 0..=64 {
+        let v = log_linear_schedule(step, 1e300, 1e-300, 64);
+        assert!(v.is_finite() && v > 0.0 && v <= last, "step {step}: {v}");
+        last = v;
+    }
+    assert!(log_linear_schedule(3, -1.0, 1.0, 10).is_nan());
+}

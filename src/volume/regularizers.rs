@@ -160,9 +160,20 @@ pub fn depth_smoothness(depth: &Tensor, weights: Option<&Tensor>) -> Result<Tens
 }
 
 /// Log-linear schedule from `start` to `end` over `n_steps`:
-/// `exp((1 − τ) ln start + τ ln end)` with `τ = min(step / n_steps, 1)` (`τ = 1` when
-/// `n_steps = 0`). `start` and `end` must be `> 0`; non-positive values give NaN, so
-/// callers pass constants.
+/// `start^(1 − τ) · end^τ = exp((1 − τ) ln start + τ ln end)` with
+/// `τ = min(step / n_steps, 1)` (`τ = 1` when `n_steps = 0`); exactly `start` at `τ = 0`
+/// and `end` at `τ = 1`.
+///
+/// `start` and `end` are `≥ 0`. A zero endpoint gives the curve's limit, not NaN: with
+/// `end = 0` the value is `start` at `τ = 0` and 0 after, with `start = 0` it is 0 until
+/// `τ = 1` (a learning rate of 0 freezes what it drives). Negative endpoints give NaN.
+///
+/// ```
+/// use neural_fields::volume::log_linear_schedule;
+/// assert_eq!(log_linear_schedule(0, 1e-3, 1e-4, 100), 1e-3);
+/// assert!((log_linear_schedule(50, 1e-2, 1e-4, 100) - 1e-3).abs() < 1e-15);
+/// assert_eq!(log_linear_schedule(0, 0.0, 0.0, 100), 0.0);
+/// ```
 #[must_use]
 pub fn log_linear_schedule(step: usize, start: f64, end: f64, n_steps: usize) -> f64 {
     let tau = if n_steps == 0 {
@@ -170,8 +181,10 @@ pub fn log_linear_schedule(step: usize, start: f64, end: f64, n_steps: usize) ->
     } else {
         (step as f64 / n_steps as f64).min(1.0)
     };
-    if tau >= 1.0 {
-        return end;
+    match tau {
+        t if t <= 0.0 => start,
+        t if t >= 1.0 => end,
+        // powf, not exp∘ln: 0^t = 0 where 0·ln 0 would be NaN.
+        t => start.powf(1.0 - t) * end.powf(t),
     }
-    ((1.0 - tau) * start.ln() + tau * end.ln()).exp()
 }
