@@ -476,20 +476,8 @@ impl Renderer<'_> {
                 stratified(&near, &far, self.samples, jitter, seed.unwrap_or(0))?
             }
         };
-        let (positions, dirs) = match &intervals.layout {
-            Layout::Packed(p) => (
-                intervals.positions(rays)?,
-                rays.directions().index_select(&p.ray_indices, 0)?,
-            ),
-            Layout::Batched => {
-                let (r, s) = intervals.starts.dims2()?;
-                let dirs = rays.directions().unsqueeze(1)?.broadcast_as((r, s, 3))?;
-                (
-                    intervals.positions(rays)?.reshape((r * s, 3))?,
-                    dirs.reshape((r * s, 3))?,
-                )
-            }
-        };
+        let positions = intervals.positions(rays)?.reshape(((), 3))?;
+        let dirs = intervals.directions(rays)?.reshape(((), 3))?;
         let n = positions.dim(0)?;
         let (sigma, rgb) = self.net.radiance(&positions, &dirs)?;
         let (sigma, rgb) = match &intervals.layout {

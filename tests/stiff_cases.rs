@@ -1386,6 +1386,13 @@ fn sweep_volume(s: &mut Suite) {
             || Ok(vec![iv.positions(&sampler_rays)?]),
         );
         s.case(
+            "volume::layout::Intervals::directions",
+            format!("{il}, |d| 1e-20…1e10"),
+            Expect::Finite,
+            &[&dirs],
+            || Ok(vec![iv.directions(&sampler_rays)?]),
+        );
+        s.case(
             "volume::layout::Intervals::new",
             &il,
             Expect::Finite,
@@ -2847,6 +2854,7 @@ const VOLUME_COVERED: &[&str] = &[
     "volume::grid::OccupancyGrid::sample",
     "volume::grid::OccupancyGrid::update",
     "volume::layout::Intervals::deltas",
+    "volume::layout::Intervals::directions",
     "volume::layout::Intervals::midpoints",
     "volume::layout::Intervals::new",
     "volume::layout::Intervals::new_packed",

@@ -76,3 +76,62 @@ fn early_termination_by_retain_changes_the_composite_by_less_than_eps() {
         .retain(&Tensor::zeros((r, s), DType::F32, &dev).unwrap())
         .is_err());
 }
+
+/// `Intervals::directions` gives every sample its own ray's direction in both layouts, in
+/// the order of `Intervals::positions`, and retained samples keep theirs.
+#[test]
+fn sample_directions_follow_their_rays_in_both_layouts() {
+    use neural_fields::camera::Rays;
+    for dtype in [DType::F32, DType::F64] {
+        let dev = Device::Cpu;
+        let mut rng = SplitMix64::new(4);
+        let (r, s) = (5, 7);
+        let origins = rng.uniform_tensor(&[r, 3], -1.0, 1.0, dtype, &dev).unwrap();
+        let dirs = rng.uniform_tensor(&[r, 3], -2.0, 2.0, dtype, &dev).unwrap();
+        let rays = Rays::new(origins.clone(), dirs.clone()).unwrap();
+        let near = Tensor::zeros(r, dtype, &dev).unwrap();
+        let far = Tensor::full(3.0, r, &dev).unwrap().to_dtype(dtype).unwrap();
+        let iv = stratified(&near, &far, s, Jitter::PerSample, 1).unwrap();
+        let d = iv.directions(&rays).unwrap();
+        assert_eq!(d.dims(), &[r, s, 3]);
+        assert_eq!(d.dtype(), dtype);
+        let (d, o, m) = (
+            v64(&d.reshape(((), 3)).unwrap()),
+            v64(&origins),
+            v64(&iv.midpoints().unwrap()),
+        );
+        let p = v64(&iv.positions(&rays).unwrap().reshape(((), 3)).unwrap());
+        let truth = v64(&dirs);
+        for (k, (dk, pk)) in d.chunks(3).zip(p.chunks(3)).enumerate() {
+            let ray = k / s;
+            assert_eq!(dk, &truth[3 * ray..3 * ray + 3], "sample {k}");
+            for c in 0..3 {
+                let want = o[3 * ray + c] + m[k] * dk[c];
+                assert!(
+                    (pk[c] - want).abs() <= 1e-6 * (1.0 + want.abs()),
+                    "sample {k}"
+                );
+            }
+        }
+        // Packed: keep every third sample.
+        let keep: Vec<u8> = (0..r * s).map(|i| u8::from(i % 3 == 0)).collect();
+        let (kept, idx) = iv
+            .retain(&Tensor::from_vec(keep, (r, s), &dev).unwrap())
+            .unwrap();
+        assert!(matches!(kept.layout, Layout::Packed(_)));
+        let packed = v64(&kept.directions(&rays).unwrap());
+        let idx = idx.to_vec1::<u32>().unwrap();
+        assert_eq!(packed.len(), 3 * idx.len());
+        for (dk, &i) in packed.chunks(3).zip(&idx) {
+            assert_eq!(dk, &d[3 * i as usize..3 * i as usize + 3]);
+        }
+        // Another ray count is refused, naming the rays.
+        let two = Rays::new(
+            origins.narrow(0, 0, 2).unwrap(),
+            dirs.narrow(0, 0, 2).unwrap(),
+        )
+        .unwrap();
+        let err = iv.directions(&two).unwrap_err().to_string();
+        assert!(err.contains("rays"), "{err}");
+    }
+}

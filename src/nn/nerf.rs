@@ -328,14 +328,7 @@ impl Nerf {
         {
             return Ok(loss);
         }
-        let directions = match &intervals.layout {
-            Layout::Batched => rays
-                .directions()
-                .unsqueeze(1)?
-                .broadcast_as((r, positions.dim(0)? / r, 3))?
-                .reshape(((), 3))?,
-            Layout::Packed(p) => rays.directions().index_select(&p.ray_indices, 0)?,
-        };
+        let directions = intervals.directions(rays)?.reshape(((), 3))?;
         let (sigma, rgb) = self.radiance(&positions, &directions)?;
         let (sigma, rgb) = match &intervals.layout {
             Layout::Batched => {
@@ -360,10 +353,12 @@ impl Nerf {
     ) -> Result<Option<Tensor>> {
         use super::fused_mlp::nerf_loss::{Density, FusedNerfLoss};
         use crate::volume::Layout;
-        let deltas = intervals.deltas(Some(rays))?.flatten_all()?;
-        let constant = [positions, unit, target, &deltas]
+        // The checks that need no tensor op come first, so that a fallback to the composed
+        // path has computed nothing here.
+        let constant = [positions, unit, target]
             .iter()
-            .chain(config.background.as_ref().as_slice())
+            .copied()
+            .chain(config.background.as_ref())
             .all(|t| !t.track_op());
         if !constant || !self.trunk.fused(positions) || !self.head.fused(positions) {
             return Ok(None);
@@ -389,6 +384,10 @@ impl Nerf {
         else {
             return Ok(None);
         };
+        let deltas = intervals.deltas(Some(rays))?.flatten_all()?;
+        if deltas.track_op() {
+            return Ok(None);
+        }
         let background = match &config.background {
             None => target.zeros_like()?,
             Some(bg) => {

@@ -412,19 +412,52 @@ impl Intervals {
     /// Naming `rays` when their count differs from the intervals' or their dtype or
     /// device differs.
     pub fn positions(&self, rays: &Rays) -> Result<Tensor> {
-        self.check_rays(rays)?;
+        let d = self.directions(rays)?;
         let m = self.midpoints()?.unsqueeze(D::Minus1)?;
-        let (o, d) = match &self.layout {
-            Layout::Batched => (
-                rays.origins().unsqueeze(1)?,
-                rays.directions().unsqueeze(1)?,
-            ),
-            Layout::Packed(p) => (
-                rays.origins().index_select(&p.ray_indices, 0)?,
-                rays.directions().index_select(&p.ray_indices, 0)?,
-            ),
+        let o = match &self.layout {
+            Layout::Batched => rays.origins().unsqueeze(1)?,
+            Layout::Packed(p) => rays.origins().index_select(&p.ray_indices, 0)?,
         };
         Ok(o.broadcast_add(&d.broadcast_mul(&m)?)?)
+    }
+
+    /// Each sample's ray direction `d_r`, the shape of [`Intervals::positions`]:
+    /// `[R, S, 3]` (batched; a broadcast view, nothing copied) or `[M, 3]` (packed,
+    /// gathered). What a radiance field reads beside the positions; flatten both with
+    /// `reshape(((), 3))` for an `[N, 3]` network. The rays' dtype; differentiable w.r.t.
+    /// the directions.
+    ///
+    /// ```
+    /// use candle_core::{Device, Tensor};
+    /// use neural_fields::camera::Rays;
+    /// use neural_fields::volume::{stratified, Jitter};
+    /// # fn main() -> neural_fields::Result<()> {
+    /// let dev = Device::Cpu;
+    /// let origins = Tensor::zeros((2, 3), candle_core::DType::F32, &dev)?;
+    /// let dirs = Tensor::new(&[[0f32, 0., 1.], [1., 0., 0.]], &dev)?;
+    /// let rays = Rays::new(origins, dirs)?;
+    /// let near = Tensor::new(&[1f32, 1.], &dev)?;
+    /// let far = Tensor::new(&[2f32, 2.], &dev)?;
+    /// let iv = stratified(&near, &far, 4, Jitter::None, 0)?;
+    /// let d = iv.directions(&rays)?;
+    /// assert_eq!(d.dims(), &[2, 4, 3]);
+    /// assert_eq!(d.reshape(((), 3))?.to_vec2::<f32>()?[5], vec![1., 0., 0.]);
+    /// # Ok(())
+    /// # }
+    /// ```
+    ///
+    /// # Errors
+    /// Naming `rays` when their count differs from the intervals' or their dtype or
+    /// device differs.
+    pub fn directions(&self, rays: &Rays) -> Result<Tensor> {
+        self.check_rays(rays)?;
+        Ok(match &self.layout {
+            Layout::Batched => {
+                let (r, s) = self.starts.dims2()?;
+                rays.directions().unsqueeze(1)?.broadcast_as((r, s, 3))?
+            }
+            Layout::Packed(p) => rays.directions().index_select(&p.ray_indices, 0)?,
+        })
     }
 
     /// Interval edges `[R, S + 1]` of batched intervals: the starts followed by the last
