@@ -413,9 +413,7 @@ impl candle_core::CustomOp1 for FusedFrequency {
         l: &candle_core::Layout,
     ) -> candle_core::Result<(candle_core::CpuStorage, candle_core::Shape)> {
         use candle_core::CpuStorage;
-        let Some((a, b)) = l.contiguous_offsets() else {
-            candle_core::bail!("frequency encoding: input must be contiguous")
-        };
+        let [(a, b)] = crate::parallel::contiguous([l], "frequency encoding")?;
         let rows = l.dims().first().copied().unwrap_or(0);
         let out = match s {
             CpuStorage::F32(v) => CpuStorage::F32(self.forward(&v[a..b])),

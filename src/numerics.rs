@@ -190,9 +190,7 @@ pub(crate) fn map_cpu<F32: Fn(f32) -> f32 + Sync, F64: Fn(f64) -> f64 + Sync>(
     f32op: F32,
     f64op: F64,
 ) -> candle_core::Result<(CpuStorage, Shape)> {
-    let Some((a, b)) = l.contiguous_offsets() else {
-        candle_core::bail!("{name}: input must be contiguous")
-    };
+    let [(a, b)] = crate::parallel::contiguous([l], name)?;
     let out = match s {
         CpuStorage::F32(v) => CpuStorage::F32(par_map(&v[a..b], f32op)),
         CpuStorage::F64(v) => CpuStorage::F64(par_map(&v[a..b], f64op)),

@@ -28,6 +28,22 @@ pub(crate) fn cpu_slice<'a, T: WithDType>(
     }
 }
 
+/// The element ranges `(start, end)` of a custom op's contiguous CPU inputs, in the order
+/// of `layouts`; the error names the op (`op`) when one is not contiguous.
+pub(crate) fn contiguous<const N: usize>(
+    layouts: [&Layout; N],
+    op: &str,
+) -> candle_core::Result<[(usize, usize); N]> {
+    let mut out = [(0, 0); N];
+    for (o, l) in out.iter_mut().zip(layouts) {
+        match l.contiguous_offsets() {
+            Some(r) => *o = r,
+            None => candle_core::bail!("{op}: inputs must be contiguous"),
+        }
+    }
+    Ok(out)
+}
+
 /// Runs `f(state, item)` for every item, in parallel on candle's CPU worker pool
 /// ([`candle_core::utils::barrier_pool`]), with one `init()` state per claimed chunk of
 /// items (scratch buffers). Returns after every item has been processed; a panic in `f`

@@ -486,10 +486,7 @@ impl candle_core::CustomOp2 for FusedGridSample {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (Some((a, b)), Some((c, e))) = (l1.contiguous_offsets(), l2.contiguous_offsets())
-        else {
-            candle_core::bail!("grid sample: inputs must be contiguous")
-        };
+        let [(a, b), (c, e)] = crate::parallel::contiguous([l1, l2], "grid sample")?;
         let (bs, ch) = (l1.dims()[0], l1.dims()[1]);
         let n = l2.dims()[1];
         let dims = (bs, n, ch);
@@ -865,10 +862,7 @@ impl candle_core::CustomOp2 for FusedScatterMax {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (Some((a, e)), Some((c0, c1))) = (l1.contiguous_offsets(), l2.contiguous_offsets())
-        else {
-            candle_core::bail!("scatter max: inputs must be contiguous")
-        };
+        let [(a, e), (c0, c1)] = crate::parallel::contiguous([l1, l2], "scatter max")?;
         let d = l1.dims();
         let dims = (d[0], d[1], d[2]);
         let CpuStorage::U32(idx) = s2 else {

@@ -704,10 +704,7 @@ impl candle_core::CustomOp2 for FusedHashGrid {
         l2: &candle_core::Layout,
     ) -> candle_core::Result<(candle_core::CpuStorage, candle_core::Shape)> {
         use candle_core::CpuStorage;
-        let (Some((a, b)), Some((c, e))) = (l1.contiguous_offsets(), l2.contiguous_offsets())
-        else {
-            candle_core::bail!("hash grid: inputs must be contiguous")
-        };
+        let [(a, b), (c, e)] = crate::parallel::contiguous([l1, l2], "hash grid")?;
         let rows = l1.dims().first().copied().unwrap_or(0);
         let out = match (s1, s2) {
             (CpuStorage::F32(x), CpuStorage::F32(t)) => {

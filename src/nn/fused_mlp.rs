@@ -681,10 +681,7 @@ impl CustomOp2 for FusedMlp {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (Some((a1, b1)), Some((a2, b2))) = (l1.contiguous_offsets(), l2.contiguous_offsets())
-        else {
-            candle_core::bail!("fused MLP: inputs must be contiguous")
-        };
+        let [(a1, b1), (a2, b2)] = crate::parallel::contiguous([l1, l2], "fused MLP")?;
         let (storage, n) = match (s1, s2) {
             (CpuStorage::F32(x), CpuStorage::F32(p)) => {
                 let (x, p) = (&x[a1..b1], &p[a2..b2]);
@@ -1269,13 +1266,7 @@ fn fused3_cpu_fwd<K: Fused3>(
     (s2, l2): (&CpuStorage, &Layout),
     (s3, l3): (&CpuStorage, &Layout),
 ) -> candle_core::Result<(CpuStorage, Shape)> {
-    let (Some((a1, b1)), Some((a2, b2)), Some((a3, b3))) = (
-        l1.contiguous_offsets(),
-        l2.contiguous_offsets(),
-        l3.contiguous_offsets(),
-    ) else {
-        candle_core::bail!("{}: inputs must be contiguous", K::NAME)
-    };
+    let [(a1, b1), (a2, b2), (a3, b3)] = crate::parallel::contiguous([l1, l2, l3], K::NAME)?;
     let (storage, n) = match (s1, s2, s3) {
         (CpuStorage::F32(x), CpuStorage::F32(y), CpuStorage::F32(p)) => {
             let (x, y, p) = (&x[a1..b1], &y[a2..b2], &p[a3..b3]);

@@ -1052,13 +1052,8 @@ impl CustomOp3 for FusedComposite {
         l3: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
         let shape = Shape::from((self.seg.n_rays(), self.width()));
-        let (Some((a1, b1)), Some((a2, b2)), Some((a3, b3))) = (
-            l1.contiguous_offsets(),
-            l2.contiguous_offsets(),
-            l3.contiguous_offsets(),
-        ) else {
-            candle_core::bail!("fused composite: inputs must be contiguous")
-        };
+        let [(a1, b1), (a2, b2), (a3, b3)] =
+            crate::parallel::contiguous([l1, l2, l3], "fused composite")?;
         match (s1, s2, s3) {
             (CpuStorage::F32(s), CpuStorage::F32(d), CpuStorage::F32(v)) => {
                 let (s, d, v) = (&s[a1..b1], &d[a2..b2], &v[a3..b3]);

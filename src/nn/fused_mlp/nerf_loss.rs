@@ -438,13 +438,8 @@ impl CustomOp3 for FusedNerfLoss {
         s3: &CpuStorage,
         l3: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (Some((a1, b1)), Some((a2, b2)), Some((a3, b3))) = (
-            l1.contiguous_offsets(),
-            l2.contiguous_offsets(),
-            l3.contiguous_offsets(),
-        ) else {
-            candle_core::bail!("fused NeRF loss: inputs must be contiguous")
-        };
+        let [(a1, b1), (a2, b2), (a3, b3)] =
+            crate::parallel::contiguous([l1, l2, l3], "fused NeRF loss")?;
         macro_rules! run {
             ($x:expr, $y:expr, $p:expr, $variant:ident) => {{
                 let (x, y, p) = (&$x[a1..b1], &$y[a2..b2], &$p[a3..b3]);
