@@ -71,7 +71,8 @@
 //! camera (a rotation by DEGREES about a random axis, its centre shifted by FRACTION of its
 //! distance to the origin; seeded), and `--refine-poses on` learns one
 //! [`PoseParam`] per training view (unit quaternion and centre) through the rays, with its
-//! own Adam at `--pose-lr` (1e-3, decaying like the network's). `--coarse-to-fine
+//! own Adam at `--pose-lr` (1e-3, decaying like the network's; with `--pose-solver lm`,
+//! 5e-4 did better on the committed dataset, docs/benchmarks.md). `--coarse-to-fine
 //! START,END` puts every position encoding under BARF's window ([`CoarseToFine`]): only
 //! the raw point (frequency encodings) or the coarsest level (hash grids) at first, the
 //! finer bands fading in from the fraction START of the training budget to END (BARF's
