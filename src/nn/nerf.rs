@@ -322,10 +322,7 @@ impl Nerf {
         check_same(target, "target", rays.origins(), "rays")?;
         crate::error::check_finite(target, "target")?;
         let positions = intervals.positions(rays)?.reshape(((), 3))?;
-        let unit = self.unit_directions(rays.directions())?;
-        if let Some(loss) =
-            self.fused_color_loss(rays, intervals, &positions, &unit, target, config)?
-        {
+        if let Some(loss) = self.fused_color_loss(rays, intervals, &positions, target, config)? {
             return Ok(loss);
         }
         let directions = intervals.directions(rays)?.reshape(((), 3))?;
@@ -347,7 +344,6 @@ impl Nerf {
         rays: &crate::camera::Rays,
         intervals: &crate::volume::Intervals,
         positions: &Tensor,
-        unit: &Tensor,
         target: &Tensor,
         config: &crate::volume::CompositeConfig,
     ) -> Result<Option<Tensor>> {
@@ -355,7 +351,7 @@ impl Nerf {
         use crate::volume::Layout;
         // The checks that need no tensor op come first, so that a fallback to the composed
         // path has computed nothing here.
-        let constant = [positions, unit, target]
+        let constant = [positions, rays.directions(), target]
             .iter()
             .copied()
             .chain(config.background.as_ref())
@@ -390,22 +386,17 @@ impl Nerf {
         }
         let background = match &config.background {
             None => target.zeros_like()?,
-            Some(bg) => {
-                check_same(bg, "config.background", target, "target")?;
-                match bg.rank() {
-                    1 => {
-                        check_shape(bg, "config.background", &[Dim::Is(3)])?;
-                        bg.unsqueeze(0)?.broadcast_as((r, 3))?
-                    }
-                    _ => {
-                        check_shape(bg, "config.background", &[Dim::Is(r), Dim::Is(3)])?;
-                        bg.clone()
-                    }
-                }
-            }
+            Some(bg) => crate::volume::composite::background_rows(
+                bg,
+                "config.background",
+                target,
+                "target",
+            )?
+            .broadcast_as((r, 3))?,
         };
         let samples = Tensor::cat(&[positions, &deltas.unsqueeze(1)?], 1)?;
-        let per_ray = Tensor::cat(&[unit, target, &background], 1)?;
+        let unit = self.unit_directions(rays.directions())?;
+        let per_ray = Tensor::cat(&[&unit, target, &background], 1)?;
         let params = Tensor::cat(&[self.trunk.flat_params()?, self.head.flat_params()?], 0)?;
         Ok(Some(samples.apply_op3(&per_ray, &params, op)?))
     }

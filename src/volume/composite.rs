@@ -106,6 +106,29 @@ impl Composite {
     }
 }
 
+/// A compositing background checked against `like: [R, C]` (dtype, device, channels):
+/// `[1, C]` for one colour shared by every ray, `[R, C]` for one per ray. Errors name the
+/// background `name` (and `like_name` for a dtype or device unlike `like`'s).
+pub(crate) fn background_rows(
+    bg: &Tensor,
+    name: &'static str,
+    like: &Tensor,
+    like_name: &'static str,
+) -> Result<Tensor> {
+    let (r, c) = like.dims2()?;
+    check_same(bg, name, like, like_name)?;
+    Ok(match bg.rank() {
+        1 => {
+            check_shape(bg, name, &[Dim::Is(c)])?;
+            bg.unsqueeze(0)?
+        }
+        _ => {
+            check_shape(bg, name, &[Dim::Is(r), Dim::Is(c)])?;
+            bg.clone()
+        }
+    })
+}
+
 /// Adds the background term and packages the results.
 fn finish(
     acc_color: Tensor,
@@ -116,18 +139,7 @@ fn finish(
     let color = match &config.background {
         None => acc_color,
         Some(bg) => {
-            let (r, c) = acc_color.dims2()?;
-            check_same(bg, "background", &acc_color, "colors")?;
-            let bg = match bg.rank() {
-                1 => {
-                    check_shape(bg, "background", &[Dim::Is(c)])?;
-                    bg.unsqueeze(0)?
-                }
-                _ => {
-                    check_shape(bg, "background", &[Dim::Is(r), Dim::Is(c)])?;
-                    bg.clone()
-                }
-            };
+            let bg = background_rows(bg, "background", &acc_color, "colors")?;
             let rest = opacity.neg()?.affine(1.0, 1.0)?.unsqueeze(1)?;
             (acc_color + rest.broadcast_mul(&bg)?)?
         }
