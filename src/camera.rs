@@ -1484,6 +1484,212 @@ pub fn align_similarity(from: &[DVec3], to: &[DVec3]) -> Result<Similarity> {
     })
 }
 
+/// The similarity `S` from the frame of the cameras `from` (a reconstruction's, with its
+/// scene) to the frame of the cameras `to` (the reference) under which the cameras agree
+/// best in **what they see**: the least-squares fit of the reprojections of the scene
+/// `points` (in `from`'s frame),
+///
+/// `min_S Σᵢ Σₖ |π_toᵢ(S·yₖ) − π_fromᵢ(yₖ)|²` (pixels),
+///
+/// over every pair of camera `i` and point `yₖ` that `fromᵢ` sees in front of it and
+/// inside its image ([`Camera::project`]). A pinhole projection is unchanged when its
+/// camera and the point move by one similarity, so each residual is the disagreement of
+/// the reference camera `toᵢ` and the reconstruction's camera moved by `S` on the moved
+/// point: a point of the scene lands on the same pixel in both.
+///
+/// Why not the centres ([`align_similarity`], BARF's protocol for comparing poses): a
+/// camera refined from images is determined worst along the direction in which a shift
+/// of its centre across the line of sight and the matching turn leave the scene's image
+/// in place. A fit of the centres gives that direction full weight, so each camera's
+/// error along it moves the whole fitted scene; this fit gives it the little weight the
+/// images give it, and places the scene where the cameras' views put it. For a scene
+/// learnt with refined cameras, compare the scene after this alignment and the poses
+/// after the centres' one.
+///
+/// Solved by Levenberg–Marquardt ([`crate::numerics::damped_solve`]) on a local chart
+/// `x ↦ e^σ·exp([ω]×)·(S(x) − m) + m + v` about the moved points' centroid `m`, with
+/// central-difference Jacobians in f64 (7 parameters), from the centres' fit, for at
+/// most 100 iterations. The pairs are chosen once, at `S`'s start; a step that takes
+/// one of them behind its reference camera is refused. Cost per iteration: `O(15·P)`
+/// projections for `P` pairs. The cameras' intrinsics may differ between `from` and
+/// `to`.
+///
+/// ```
+/// use glam::{DQuat, DVec3};
+/// use neural_fields::camera::{align_cameras, Camera, Convention, Intrinsics, Similarity};
+///
+/// let k = Intrinsics::from_fov_y(64, 64, 0.7)?;
+/// let truth = Similarity {
+///     scale: 1.5,
+///     rotation: DQuat::from_rotation_y(0.4),
+///     translation: DVec3::new(0.2, -0.1, 0.3),
+/// };
+/// let eyes = [(3.0, 0.0, 0.5), (0.0, 3.0, -0.5), (-3.0, 0.5, 0.0), (0.5, -3.0, 1.0)];
+/// let mut from = Vec::new();
+/// let mut to = Vec::new();
+/// for (x, y, z) in eyes {
+///     let c = Camera::look_at(k, DVec3::new(x, y, z), DVec3::ZERO, DVec3::Z, Convention::OpenCv)?;
+///     to.push(Camera::new(k, truth.transform_pose(&c.cam_to_world()), Convention::OpenCv)?);
+///     from.push(c);
+/// }
+/// let points = [DVec3::ZERO, DVec3::X * 0.3, DVec3::Y * 0.3, DVec3::Z * 0.3];
+/// let s = align_cameras(&from, &to, &points)?;
+/// assert!((s.scale - 1.5).abs() < 1e-9);
+/// assert!(s.rotation.angle_between(truth.rotation) < 1e-9);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `to` if its length differs from `from`'s; `from` if
+/// the centres' fit that starts the solve fails (fewer than 3 cameras, or centres on one
+/// line: [`align_similarity`]); `points` if it is empty, has a non-finite coordinate, or
+/// no camera of `from` sees any of its points.
+pub fn align_cameras(from: &[Camera], to: &[Camera], points: &[DVec3]) -> Result<Similarity> {
+    if to.len() != from.len() {
+        return Err(Error::invalid(
+            "to",
+            format!("{} cameras (as many as from)", from.len()),
+            to.len().to_string(),
+        ));
+    }
+    if points.is_empty() {
+        return Err(Error::invalid("points", "at least one point", "none"));
+    }
+    if let Some(p) = points.iter().find(|p| !p.is_finite()) {
+        return Err(Error::invalid("points", "finite points", format!("{p:?}")));
+    }
+    let centres = |cams: &[Camera]| cams.iter().map(Camera::center).collect::<Vec<_>>();
+    let start = align_similarity(&centres(from), &centres(to))?;
+    // Each pair: the reference camera, the point, and the pixel `from` sees it at.
+    let mut pairs: Vec<(usize, usize, DVec2)> = Vec::new();
+    for (i, (f, t)) in from.iter().zip(to).enumerate() {
+        let k = f.intrinsics();
+        for (j, &y) in points.iter().enumerate() {
+            let inside = |p: DVec3| {
+                (0.0..=k.width as f64).contains(&p.x) && (0.0..=k.height as f64).contains(&p.y)
+            };
+            if let (Some(p), Some(_)) = (
+                f.project(y).filter(|&p| inside(p)),
+                t.project(start.transform_point(y)),
+            ) {
+                pairs.push((i, j, p.truncate()));
+            }
+        }
+    }
+    if pairs.is_empty() {
+        return Err(Error::invalid(
+            "points",
+            "points that some camera of from sees (in front of it, inside its image)",
+            format!("none of {} points", points.len()),
+        ));
+    }
+    // The residuals of `s`, or `None` when a pair's point falls behind its camera.
+    let residuals = |s: &Similarity| -> Option<Vec<f64>> {
+        let mut r = Vec::with_capacity(2 * pairs.len());
+        for &(i, j, seen) in &pairs {
+            let p = to[i].project(s.transform_point(points[j]))?;
+            r.push(p.x - seen.x);
+            r.push(p.y - seen.y);
+        }
+        Some(r)
+    };
+    let cost = |r: &[f64]| r.iter().map(|x| x * x).sum::<f64>();
+    // The chart at `s`: 7 parameters (ω, v, σ) about the moved points' centroid.
+    let centroid = |s: &Similarity| {
+        points
+            .iter()
+            .fold(DVec3::ZERO, |a, &y| a + s.transform_point(y))
+            / points.len() as f64
+    };
+    let chart = |s: &Similarity, m: DVec3, p: &[f64; 7]| -> Similarity {
+        let omega = DVec3::new(p[0], p[1], p[2]);
+        let angle = omega.length();
+        let turn = if angle > 0.0 {
+            DQuat::from_axis_angle(omega / angle, angle)
+        } else {
+            DQuat::IDENTITY
+        };
+        let grow = p[6].exp();
+        Similarity {
+            scale: grow * s.scale,
+            rotation: (turn * s.rotation).normalize(),
+            translation: grow * (turn * (s.translation - m)) + m + DVec3::new(p[3], p[4], p[5]),
+        }
+    };
+    let mut s = start;
+    let Some(mut r) = residuals(&s) else {
+        // invariant: every pair was kept only where `to` projects it at `start`.
+        return Ok(start);
+    };
+    let mut lambda = 1e-3;
+    for _ in 0..100 {
+        let m = centroid(&s);
+        let spread = (points
+            .iter()
+            .map(|&y| (s.transform_point(y) - m).length_squared())
+            .sum::<f64>()
+            / points.len() as f64)
+            .sqrt()
+            .max(1e-300);
+        // Central differences: unit-free steps for ω and σ, a fraction of the points'
+        // spread for v.
+        let mut jac: Vec<Vec<f64>> = Vec::with_capacity(7);
+        for a in 0..7 {
+            let h = if (3..6).contains(&a) {
+                1e-6 * spread
+            } else {
+                1e-6
+            };
+            let mut p = [0.0; 7];
+            p[a] = h;
+            let plus = residuals(&chart(&s, m, &p));
+            p[a] = -h;
+            let minus = residuals(&chart(&s, m, &p));
+            let (Some(plus), Some(minus)) = (plus, minus) else {
+                return Ok(s);
+            };
+            jac.push(
+                plus.iter()
+                    .zip(&minus)
+                    .map(|(a, b)| (a - b) / (2.0 * h))
+                    .collect(),
+            );
+        }
+        let mut h = [[0.0f64; 7]; 7];
+        let mut g = [0.0f64; 7];
+        for a in 0..7 {
+            g[a] = jac[a].iter().zip(&r).map(|(x, y)| x * y).sum();
+            for b in 0..=a {
+                h[a][b] = jac[a].iter().zip(&jac[b]).map(|(x, y)| x * y).sum();
+                h[b][a] = h[a][b];
+            }
+        }
+        let current = cost(&r);
+        let mut accepted = false;
+        while lambda < 1e12 {
+            let Some(step) = crate::numerics::damped_solve(&h, &g, lambda) else {
+                lambda *= 10.0;
+                continue;
+            };
+            let trial = chart(&s, m, &step);
+            match residuals(&trial) {
+                Some(next) if cost(&next) < current => {
+                    s = trial;
+                    r = next;
+                    lambda = (lambda / 10.0).max(1e-12);
+                    accepted = true;
+                    break;
+                }
+                _ => lambda *= 10.0,
+            }
+        }
+        if !accepted || current - cost(&r) <= 1e-12 * current {
+            break;
+        }
+    }
+    Ok(s)
+}
+
 /// `pose` (camera-to-world) moved by the rigid step `step = (ω, v)`: rotation
 /// `exp([ω]×)·R` (a turn by `|ω|` radians about the world axis `ω` through the camera
 /// centre), centre `c + v`.
