@@ -2305,6 +2305,75 @@ mod tests {
         let _ = std::fs::remove_dir_all(&out);
     }
 
+    /// Regression: a registration took out the similarity common to the registered
+    /// cameras' moves, which moved every camera off the scene it had just been registered
+    /// to. The poses `register_training` leaves are the ones `register_poses` found (and
+    /// the registration did move them).
+    #[test]
+    fn a_registration_moved_the_cameras_off_their_scene() {
+        use neural_fields::camera::{Convention, Intrinsics};
+        use neural_fields::data::Image;
+        // The untrained network's own scene, rendered from eight cameras 6 units away:
+        // views the network explains exactly at the true poses. The cameras are then
+        // perturbed and registered to it.
+        let args = Args {
+            lm_iterations: 1,
+            ..Args::default()
+        };
+        let aabb = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0];
+        let varmap = VarMap::new();
+        let (net, _) = build(&args, aabb, 16.0, &varmap, &Device::Cpu, DType::F32).unwrap();
+        let n = 48;
+        let k = Intrinsics::from_fov_y(n, n, 0.6).unwrap();
+        let whole = Planes {
+            w: n,
+            h: n,
+            px: vec![[1.0; 4]; n * n],
+        };
+        let views = (0..8)
+            .map(|i| {
+                let a = i as f64 * std::f64::consts::TAU / 8.0;
+                let eye = DVec3::new(6.0 * a.cos(), 6.0 * a.sin(), 1.5);
+                let cam =
+                    Camera::look_at(k, eye, DVec3::ZERO, DVec3::Z, Convention::OpenGl).unwrap();
+                let (render, _) = render_points(&net, &cam, &whole, aabb, 0).unwrap();
+                let byte = |x: f64| (x.clamp(0.0, 1.0) * 255.0).round() as u8;
+                let rgb = render
+                    .px
+                    .iter()
+                    .flat_map(|p| [byte(p[0]), byte(p[1]), byte(p[2])]);
+                let alpha = render.px.iter().map(|p| byte(p[3]));
+                View::new(
+                    cam,
+                    Image::new(n, n, 3, rgb.collect()).unwrap(),
+                    Some(Image::new(n, n, 1, alpha.collect()).unwrap()),
+                    format!("v{i}"),
+                )
+                .unwrap()
+            })
+            .collect();
+        let data = Dataset::new(views, Background::Color([1.0; 3]), None).unwrap();
+        let truth = poses_of(&data);
+        let train = perturb(&data, 3.0, 0.03, 7).unwrap();
+        let start = poses_of(&train);
+        let expected = register_poses(&net, &train, &start, aabb, 1, &mut |_, _| {}).unwrap();
+        let (turn, shift) = pose_errors(&expected, &start);
+        assert!(turn > 1e-3 && shift > 1e-4, "{turn}° / {shift}");
+        let poses: Vec<PoseParam> = start
+            .iter()
+            .map(|p| PoseParam::from_affine(p, &Device::Cpu, DType::F32).unwrap())
+            .collect();
+        register_training(&net, &args, &train, &poses, &truth, aabb, 0).unwrap();
+        for (p, e) in poses.iter().zip(&expected) {
+            let got = p.to_affine().unwrap();
+            let (turn, shift) = pose_errors(&[got], &[*e]);
+            assert!(
+                turn < 1e-4 && shift < 1e-6,
+                "{turn}° / {shift} from the registration"
+            );
+        }
+    }
+
     /// Bilinear sampling: exact at pixel centres, its derivative that of the
     /// interpolation (central differences inside a cell); blurring keeps a constant image.
     #[test]
