@@ -235,6 +235,7 @@ macro_rules! scalar_softplus {
         relu + (-(beta * x).abs()).exp().ln_1p() / beta
     }};
 }
+pub(crate) use {scalar_sigmoid, scalar_softplus};
 
 /// CPU kernel of [`softplus`].
 struct SoftplusOp {

@@ -37,6 +37,7 @@
 
 use super::{sum_chunks, FusedNerf, NerfScratch, Params, Real, CHUNK, TILE};
 use crate::encoding::RowEncoder;
+use crate::numerics::{scalar_sigmoid, scalar_softplus};
 use crate::parallel::for_each_init;
 use crate::volume::{TRUNC_EXP_GRAD_CLAMP, TRUNC_EXP_MAX_F32, TRUNC_EXP_MAX_F64, X_MAX};
 use candle_core::{CpuStorage, CustomOp3, Layout, Shape, Tensor};
@@ -366,14 +367,7 @@ impl FusedNerfLoss {
             }
             Density::Softplus(shift) => {
                 let z = round(raw + round(shift));
-                let value = z.max(0.0) + (-z.abs()).exp().ln_1p();
-                let e = (-z.abs()).exp();
-                let slope = if z >= 0.0 {
-                    1.0 / (1.0 + e)
-                } else {
-                    e / (1.0 + e)
-                };
-                (round(value), slope)
+                (round(scalar_softplus!(z, 1.0)), scalar_sigmoid!(z))
             }
         }
     }
