@@ -79,8 +79,10 @@
 //! schedule is `0.1,0.5`), so that the poses move while the fields are still smooth.
 //!
 //! `--pose-solver lm` registers the cameras to the scene once it is nearly right
-//! ([`register_poses`]): after the last step (and, from the fraction `--lm-start` of the
-//! budget on, every `--lm-every` steps; the default 1 makes only the last), the network is
+//! ([`register_poses`]): after the last step (and first at the fraction `--lm-start` of
+//! the budget, then every `--lm-every` steps if given; the default 1 makes only the last;
+//! `--lm-start 0.85` registers once more at 85 % and lets the scene train on the
+//! registered cameras, the poses held, for the rest of the budget), the network is
 //! held fixed and each training camera is aligned to the scene `--lm-iterations` times
 //! (2). The scene is rendered from the camera (surface points and colours on the mask's
 //! bounding box), and the pose moves until the true image, seen where those points
@@ -238,11 +240,13 @@ pub struct Args {
     pub resume: Option<PathBuf>,
     /// How the poses are refined: Adam beside the network, or Levenberg–Marquardt.
     pub pose_solver: PoseSolver,
-    /// Levenberg–Marquardt: a registration every this many steps.
-    pub lm_every: usize,
+    /// Levenberg–Marquardt: after the first registration, another every this many steps
+    /// (`None`: only the last).
+    pub lm_every: Option<usize>,
     /// Renders (each followed by a coarse-to-fine alignment) per registration.
     pub lm_iterations: usize,
-    /// The fraction of the budget before which no registration is made.
+    /// The fraction of the budget at which the first registration is made (1: only the
+    /// one after the last step).
     pub lm_start: f64,
 }
 
@@ -304,7 +308,7 @@ impl Default for Args {
             resume_poses: None,
             resume: None,
             pose_solver: PoseSolver::Adam,
-            lm_every: 500,
+            lm_every: None,
             lm_iterations: 2,
             lm_start: 1.0,
         }
@@ -413,7 +417,7 @@ fn parse_args() -> std::result::Result<Args, String> {
             "--resume-poses" => a.resume_poses = Some(value.into()),
             "--test-pose-steps" => a.test_pose_steps = int(flag, value)?,
             "--pose-solver" => a.pose_solver = PoseSolver::parse(value)?,
-            "--lm-every" => a.lm_every = int(flag, value)?,
+            "--lm-every" => a.lm_every = Some(int(flag, value)?),
             "--lm-iterations" => a.lm_iterations = int(flag, value)?,
             "--lm-start" => a.lm_start = num(flag, value)?,
             other => return Err(format!("unknown flag {other}\n{USAGE}")),
@@ -421,7 +425,7 @@ fn parse_args() -> std::result::Result<Args, String> {
         Ok(())
     })?;
     training::check_budget(&mut a.minutes, a.steps, 15.0)?;
-    if a.lm_every == 0 || a.lm_iterations == 0 || !(0.0..=1.0).contains(&a.lm_start) {
+    if a.lm_every == Some(0) || a.lm_iterations == 0 || !(0.0..=1.0).contains(&a.lm_start) {
         return Err("--lm-every and --lm-iterations must be positive, --lm-start in [0, 1]".into());
     }
     if a.rays < 4 || a.eval_every == 0 || a.eval_views == 0 || a.mise_resolution < 2 {
@@ -1882,11 +1886,11 @@ pub fn run(args: &Args) -> Result<Summary> {
             pose_opt.step(&grads)?;
         }
         step += 1;
-        if !poses.is_empty()
-            && args.pose_solver == PoseSolver::Lm
-            && step.is_multiple_of(args.lm_every)
-            && progress >= args.lm_start
-        {
+        let registration_due = match registered_at {
+            None => args.lm_start < 1.0 && progress >= args.lm_start,
+            Some(at) => args.lm_every.is_some_and(|n| step >= at + n),
+        };
+        if !poses.is_empty() && args.pose_solver == PoseSolver::Lm && registration_due {
             register_training(&net, args, &train, &poses, &true_poses, aabb, step)?;
             registered_at = Some(step);
         }
@@ -2256,11 +2260,11 @@ mod tests {
             test_pose_steps: 2,
             ..Args::default()
         };
-        // With the cameras registered by Levenberg–Marquardt (after step 2 and after the
-        // last): finite poses that moved.
+        // With the cameras registered by Levenberg–Marquardt (after the first step, two
+        // steps later and after the last): finite poses that moved.
         let lm = Args {
             pose_solver: PoseSolver::Lm,
-            lm_every: 2,
+            lm_every: Some(2),
             lm_iterations: 1,
             lm_start: 0.0,
             ..shortened(out.join("lm"))
