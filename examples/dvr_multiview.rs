@@ -116,11 +116,10 @@
 //! fit), `pose_solver`, `pose_rotation_error_deg` and `pose_centre_error_fraction`
 //! (`before` and `after` training and `after_aligned`, means over the training views
 //! against the unperturbed poses), and `poses.json` the refined cameras (`views`: `name`,
-//! `cam_to_world` in the learnt frame and `cam_to_world_aligned` moved with the scene, 4 × 4
-//! rows). With
-//! `--perturb` alone the pose errors are reported and nothing is aligned. After the
-//! alignment, each held-out camera is refined against its own image with the network
-//! fixed (BARF's test-time refinement: `--test-pose-steps` Adam steps of 256 rays at
+//! `cam_to_world` in the learnt frame and `cam_to_world_aligned` moved with the scene,
+//! 4 × 4 rows). With `--perturb` alone the pose errors are reported and nothing is
+//! aligned. After the alignment, each held-out camera is refined against its own image
+//! with the network fixed (BARF's test-time refinement: `--test-pose-steps` Adam steps of 256 rays at
 //! `--pose-lr`, default 100, or with `--pose-solver lm` the registration above, whatever
 //! the count; 0 skips either), so that the held-out metrics measure the scene rather than
 //! the alignment; `aligned` in `metrics.json` holds them before that refinement. `--resume-poses FILE`
@@ -1083,7 +1082,8 @@ fn alignment(poses: &[PoseParam], truth: &[DAffine3]) -> Result<(Similarity, Vec
 /// The similarity from the learnt frame to the dataset's under which the training cameras
 /// (`refined`, learnt frame) and the true ones (`truth`) see the extracted surface `mesh`
 /// alike ([`align_cameras`] on at most 2 000 of its vertices), or `centres` (the fit of
-/// the camera centres) for a run whose mesh is empty.
+/// the camera centres) for a run whose mesh is empty or that no camera sees (said on
+/// stderr).
 fn view_alignment(
     train: &Dataset,
     refined: &[DAffine3],
@@ -1108,7 +1108,13 @@ fn view_alignment(
             .map(|v| *v.camera())
             .collect())
     };
-    align_cameras(&cameras(refined)?, &cameras(truth)?, &points)
+    match align_cameras(&cameras(refined)?, &cameras(truth)?, &points) {
+        Ok(frame) => Ok(frame),
+        Err(e) => {
+            eprintln!("the scene is placed by the camera centres' fit: {e}");
+            Ok(centres)
+        }
+    }
 }
 
 /// `eval` with its (true) cameras moved into the learnt frame by the inverse of `frame`.
