@@ -80,9 +80,8 @@
 //!
 //! `--pose-solver lm` registers the cameras to the scene once it is nearly right
 //! ([`register_poses`]): after the last step (and first at the fraction `--lm-start` of
-//! the budget, then every `--lm-every` steps if given; the default 1 makes only the last;
-//! `--lm-start 0.85` registers once more at 85 % and lets the scene train on the
-//! registered cameras, the poses held, for the rest of the budget), the network is
+//! the budget, then every `--lm-every` steps if given; the default 1 makes only the last,
+//! which did best on the committed dataset: docs/benchmarks.md), the network is
 //! held fixed and each training camera is aligned to the scene `--lm-iterations` times
 //! (2). The scene is rendered from the camera (surface points and colours on the mask's
 //! bounding box), and the pose moves until the true image, seen where those points
