@@ -1101,11 +1101,15 @@ fn view_alignment(
         .map(|&v| DVec3::from_array(v))
         .collect();
     let cameras = |poses: &[DAffine3]| -> Result<Vec<Camera>> {
-        Ok(with_poses(train, poses)?
+        train
             .views()
             .iter()
-            .map(|v| *v.camera())
-            .collect())
+            .zip(poses)
+            .map(|(v, pose)| {
+                let cam = v.camera();
+                Camera::new(*cam.intrinsics(), *pose, cam.convention())
+            })
+            .collect()
     };
     match align_cameras(&cameras(refined)?, &cameras(truth)?, &points) {
         Ok(frame) => Ok(frame),

@@ -1564,10 +1564,10 @@ pub fn align_cameras(from: &[Camera], to: &[Camera], points: &[DVec3]) -> Result
     let mut pairs: Vec<(usize, usize, DVec2)> = Vec::new();
     for (i, (f, t)) in from.iter().zip(to).enumerate() {
         let k = f.intrinsics();
+        let inside = |p: DVec3| {
+            (0.0..=k.width as f64).contains(&p.x) && (0.0..=k.height as f64).contains(&p.y)
+        };
         for (j, &y) in points.iter().enumerate() {
-            let inside = |p: DVec3| {
-                (0.0..=k.width as f64).contains(&p.x) && (0.0..=k.height as f64).contains(&p.y)
-            };
             if let (Some(p), Some(_)) = (
                 f.project(y).filter(|&p| inside(p)),
                 t.project(start.transform_point(y)),
@@ -1585,9 +1585,10 @@ pub fn align_cameras(from: &[Camera], to: &[Camera], points: &[DVec3]) -> Result
     }
     // The residuals of `s`, or `None` when a pair's point falls behind its camera.
     let residuals = |s: &Similarity| -> Option<Vec<f64>> {
+        let moved: Vec<DVec3> = points.iter().map(|&y| s.transform_point(y)).collect();
         let mut r = Vec::with_capacity(2 * pairs.len());
         for &(i, j, seen) in &pairs {
-            let p = to[i].project(s.transform_point(points[j]))?;
+            let p = to[i].project(moved[j])?;
             r.push(p.x - seen.x);
             r.push(p.y - seen.y);
         }
@@ -1602,13 +1603,7 @@ pub fn align_cameras(from: &[Camera], to: &[Camera], points: &[DVec3]) -> Result
             / points.len() as f64
     };
     let chart = |s: &Similarity, m: DVec3, p: &[f64; 7]| -> Similarity {
-        let omega = DVec3::new(p[0], p[1], p[2]);
-        let angle = omega.length();
-        let turn = if angle > 0.0 {
-            DQuat::from_axis_angle(omega / angle, angle)
-        } else {
-            DQuat::IDENTITY
-        };
+        let turn = DQuat::from_scaled_axis(DVec3::new(p[0], p[1], p[2]));
         let grow = p[6].exp();
         Similarity {
             scale: grow * s.scale,
