@@ -2382,10 +2382,8 @@ mod tests {
         let _ = std::fs::remove_dir_all(&out);
     }
 
-    /// Regression: a registration took out the similarity common to the registered
-    /// cameras' moves, which moved every camera off the scene it had just been registered
-    /// to. The poses `register_training` leaves are the ones `register_poses` found (and
-    /// the registration did move them).
+    /// `pose_reprojection_px`: zero for the same cameras seen through their frame, f·θ
+    /// for a turn of θ, and a fraction of that for an orbit of θ about the scene.
     #[test]
     fn reprojection_error_is_zero_under_the_frame_and_small_for_an_orbit() {
         use neural_fields::camera::{Convention, Intrinsics};
@@ -2445,6 +2443,10 @@ mod tests {
         assert!(orbit < 0.3 * turn, "orbit {orbit} px, turn {turn} px");
     }
 
+    /// Regression: a registration took out the similarity common to the registered
+    /// cameras' moves, which moved every camera off the scene it had just been registered
+    /// to. The poses `register_training` leaves are the ones `register_poses` found (and
+    /// the registration did move them).
     #[test]
     fn a_registration_moved_the_cameras_off_their_scene() {
         use neural_fields::camera::{Convention, Intrinsics};
