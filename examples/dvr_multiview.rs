@@ -1146,18 +1146,19 @@ fn reprojection_px(
     points: &[DVec3],
     frame: &Similarity,
 ) -> Option<f64> {
+    let moved: Vec<DVec3> = points.iter().map(|&y| frame.transform_point(y)).collect();
     let (mut sum, mut count) = (0.0, 0usize);
     for (from, to) in cameras.iter().zip(truth) {
-        let (w, h) = (
-            from.intrinsics().width as f64,
-            from.intrinsics().height as f64,
-        );
-        for &y in points {
-            let Some(a) = from.project(y) else { continue };
-            if !(0.0..w).contains(&a.x) || !(0.0..h).contains(&a.y) {
+        let k = from.intrinsics();
+        // The image bounds as `align_cameras` draws them (edges included).
+        let inside = |p: DVec3| {
+            (0.0..=k.width as f64).contains(&p.x) && (0.0..=k.height as f64).contains(&p.y)
+        };
+        for (&y, &m) in points.iter().zip(&moved) {
+            let Some(a) = from.project(y).filter(|&a| inside(a)) else {
                 continue;
-            }
-            if let Some(b) = to.project(frame.transform_point(y)) {
+            };
+            if let Some(b) = to.project(m) {
                 sum += (b.truncate() - a.truncate()).length();
                 count += 1;
             }
