@@ -2,10 +2,12 @@
 //! up to a half turn, planar points), least-squares optimality under noise, the inverse,
 //! moved poses, and the inputs it refuses. `align_cameras`: recovery from the views,
 //! least-squares optimality of the reprojections, a scene placed by its views where the
-//! centres' fit misplaces it, and the inputs it refuses.
+//! centres' fit misplaces it, and the inputs it refuses. `reprojection_error`: zero
+//! under the cameras' own frame, f·θ for a turn, far less for an orbit about the scene, and
+//! the inputs it refuses.
 
 use neural_fields::camera::{
-    align_cameras, align_similarity, Camera, Convention, Intrinsics, Similarity,
+    align_cameras, align_similarity, reprojection_error, Camera, Convention, Intrinsics, Similarity,
 };
 use neural_fields::glam::{DAffine3, DMat3, DQuat, DVec3};
 use neural_fields::rng::SplitMix64;
@@ -368,4 +370,90 @@ fn align_cameras_refuses_bad_input_naming_the_argument() {
     }
     let s = align_cameras(&cams, &cams, &points).unwrap();
     assert!((s.scale - 1.0).abs() < 1e-12 && s.translation.length() < 1e-12);
+}
+
+/// `reprojection_error`: zero for the same cameras seen through their frame, f·θ
+/// for a turn of θ, and a fraction of that for an orbit of θ about the scene.
+#[test]
+fn reprojection_error_is_zero_under_the_frame_and_small_for_an_orbit() {
+    let k = Intrinsics::from_fov_y(100, 100, 0.7).unwrap();
+    let cameras: Vec<Camera> = (0..6)
+        .map(|i| {
+            let a = i as f64 * std::f64::consts::TAU / 6.0;
+            let eye = DVec3::new(4.0 * a.cos(), 4.0 * a.sin(), 1.0);
+            Camera::look_at(k, eye, DVec3::ZERO, DVec3::Z, Convention::OpenGl).unwrap()
+        })
+        .collect();
+    let mut rng = SplitMix64::new(7);
+    let points: Vec<DVec3> = (0..300)
+        .map(|_| DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.25)
+        .collect();
+    let moved_by = |s: &Similarity| -> Vec<Camera> {
+        cameras
+            .iter()
+            .map(|c| Camera::new(k, s.transform_pose(&c.cam_to_world()), c.convention()).unwrap())
+            .collect()
+    };
+    // The same cameras in another frame, seen through that frame: no error.
+    let s = Similarity {
+        scale: 1.7,
+        rotation: DQuat::from_rotation_y(0.3),
+        translation: DVec3::new(0.2, -0.4, 0.1),
+    };
+    let e = reprojection_error(&cameras, &moved_by(&s), &points, &s).unwrap();
+    assert!(e < 1e-9, "{e}");
+    // Each camera turned by θ about its own vertical axis: every point moves by about
+    // f·θ pixels.
+    let theta = 0.2f64.to_radians();
+    let turned: Vec<Camera> = cameras
+        .iter()
+        .map(|c| {
+            let p = c.cam_to_world() * DAffine3::from_rotation_y(theta);
+            Camera::new(k, p, c.convention()).unwrap()
+        })
+        .collect();
+    let turn = reprojection_error(&cameras, &turned, &points, &Similarity::IDENTITY).unwrap();
+    assert!(
+        (turn / (k.fy * theta) - 1.0).abs() < 0.05,
+        "{turn} px against {}",
+        k.fy * theta
+    );
+    // Each camera orbited by θ about the scene's centre (turned to match): only
+    // parallax, several times less.
+    let orbit = Similarity {
+        scale: 1.0,
+        rotation: DQuat::from_rotation_z(theta),
+        translation: DVec3::ZERO,
+    };
+    let orbit =
+        reprojection_error(&cameras, &moved_by(&orbit), &points, &Similarity::IDENTITY).unwrap();
+    assert!(orbit < 0.3 * turn, "orbit {orbit} px, turn {turn} px");
+}
+
+#[test]
+fn reprojection_error_refuses_bad_input_naming_the_argument() {
+    let k = Intrinsics::from_fov_y(64, 64, 0.6).unwrap();
+    let cams: Vec<Camera> = [DVec3::X, -DVec3::X, DVec3::Y]
+        .iter()
+        .map(|&e| Camera::look_at(k, e * 3.0, DVec3::ZERO, DVec3::Z, Convention::OpenCv).unwrap())
+        .collect();
+    let points = [DVec3::ZERO, DVec3::X * 0.2];
+    let id = Similarity::IDENTITY;
+    let nan = Similarity {
+        scale: f64::NAN,
+        ..Similarity::IDENTITY
+    };
+    type Case<'a> = (&'a [Camera], &'a [DVec3], &'a Similarity, &'a str);
+    let cases: [Case; 5] = [
+        (&cams[..2], &points, &id, "to"),
+        (&cams, &[], &id, "points"),
+        (&cams, &[DVec3::new(0.0, f64::INFINITY, 0.0)], &id, "points"),
+        // Off every camera's image.
+        (&cams, &[DVec3::splat(40.0)], &id, "points"),
+        (&cams, &points, &nan, "frame"),
+    ];
+    for (to, pts, frame, arg) in cases {
+        let e = reprojection_error(&cams, to, pts, frame).unwrap_err();
+        assert!(e.to_string().contains(arg), "expected `{arg}` in: {e}");
+    }
 }

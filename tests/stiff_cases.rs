@@ -9,8 +9,8 @@ mod common;
 use candle_core::{DType, Device, Tensor, Var};
 use common::v64;
 use neural_fields::camera::{
-    align_cameras, align_similarity, ray_aabb, ray_sphere, Camera, Convention, Intrinsics,
-    PixelFilter, PoseParam, Rays, Similarity,
+    align_cameras, align_similarity, ray_aabb, ray_sphere, reprojection_error, Camera, Convention,
+    Intrinsics, PixelFilter, PoseParam, Rays, Similarity,
 };
 use neural_fields::encoding::{
     coarse_to_fine_weights, integrated_pe, CoarseToFine, FourierFeatures, FrequencyEncoding,
@@ -2754,6 +2754,7 @@ const COVERED: &[&str] = &[
     "camera::ray_aabb",
     "camera::ray_sphere",
     "camera::align_cameras",
+    "camera::reprojection_error",
     "camera::align_similarity",
     "camera::retract_pose",
     "numerics::damped_solve",
@@ -3496,6 +3497,21 @@ fn sweep_camera_host(s: &mut Suite) {
     // Alignment by the views of scenes at every magnitude (cameras 3·x from the scene,
     // points within 0.3·x), onto a copy scaled by up to 1e±150: finite maps, or `Err`
     // for scenes whose cameras or points over- or underflow.
+    let cams = |x: f64, scale: f64| -> neural_fields::Result<Vec<Camera>> {
+        let k = Intrinsics::from_fov_y(32, 32, 0.6)?;
+        [DVec3::X, -DVec3::X, DVec3::Y, DVec3::Z]
+            .iter()
+            .map(|&e| {
+                Camera::look_at(
+                    k,
+                    e * 3.0 * x * scale,
+                    DVec3::ZERO,
+                    DVec3::new(0.1, 0.2, 1.0),
+                    Convention::OpenCv,
+                )
+            })
+            .collect()
+    };
     for &x in &magnitudes(DType::F64) {
         for ratio in [1e-150, 1.0, 1e150] {
             s.case(
@@ -3504,27 +3520,28 @@ fn sweep_camera_host(s: &mut Suite) {
                 Expect::FiniteOrErr,
                 &[],
                 || {
-                    let k = Intrinsics::from_fov_y(32, 32, 0.6)?;
-                    let cams = |scale: f64| -> neural_fields::Result<Vec<Camera>> {
-                        [DVec3::X, -DVec3::X, DVec3::Y, DVec3::Z]
-                            .iter()
-                            .map(|&e| {
-                                Camera::look_at(
-                                    k,
-                                    e * 3.0 * x * scale,
-                                    DVec3::ZERO,
-                                    DVec3::new(0.1, 0.2, 1.0),
-                                    Convention::OpenCv,
-                                )
-                            })
-                            .collect()
-                    };
                     let points = [DVec3::ZERO, DVec3::X * 0.3 * x, DVec3::Y * 0.3 * x];
-                    let sim = align_cameras(&cams(1.0)?, &cams(ratio)?, &points)?;
+                    let sim = align_cameras(&cams(x, 1.0)?, &cams(x, ratio)?, &points)?;
                     Ok(vec![
                         host3(sim.transform_point(points[1]))?,
                         Tensor::new(&[sim.scale, sim.rotation.w], &Device::Cpu)?,
                     ])
+                },
+            );
+            // The residual of that alignment: finite pixels, or `Err`.
+            s.case(
+                "camera::reprojection_error",
+                format!("scene at scale {x:e}, copy scaled by {ratio:e}"),
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let points = [DVec3::ZERO, DVec3::X * 0.3 * x, DVec3::Y * 0.3 * x];
+                    let frame = Similarity {
+                        scale: ratio,
+                        ..Similarity::IDENTITY
+                    };
+                    let px = reprojection_error(&cams(x, 1.0)?, &cams(x, ratio)?, &points, &frame)?;
+                    Ok(vec![Tensor::new(&[px], &Device::Cpu)?])
                 },
             );
         }
