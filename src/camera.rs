@@ -372,6 +372,8 @@ fn rotation_t(m: &DMat3, like: &Tensor) -> Result<Tensor> {
 pub struct Camera {
     intrinsics: Intrinsics,
     cam_to_world: DAffine3,
+    /// `cam_to_world`'s inverse, made once for [`Camera::project`].
+    world_to_cam: DAffine3,
     convention: Convention,
 }
 
@@ -391,6 +393,7 @@ impl Camera {
         Ok(Self {
             intrinsics,
             cam_to_world,
+            world_to_cam: cam_to_world.inverse(),
             convention,
         })
     }
@@ -650,7 +653,7 @@ impl Camera {
     /// The inverse of [`Camera::ray`] for points in front of the camera.
     #[must_use]
     pub fn project(&self, point: DVec3) -> Option<DVec3> {
-        let p = self.cam_to_world.inverse().transform_point3(point);
+        let p = self.world_to_cam.transform_point3(point);
         let depth = match self.convention {
             Convention::OpenCv => p.z,
             Convention::OpenGl => -p.z,
