@@ -116,9 +116,9 @@
 //! (`before` and `after` training and `after_aligned`, means over the training views
 //! against the unperturbed poses), `pose_reprojection_px` (`before`, `after`: the mean
 //! distance in pixels between where the training cameras and the true ones see the
-//! extracted surface, after the scene's alignment ([`reprojection_error`]); unlike the two errors before it, it
-//! leaves out a camera's error along its weakest direction, which its image barely
-//! shows), and `poses.json` the refined cameras (`views`: `name`,
+//! extracted surface, after the scene's alignment ([`reprojection_error`]); unlike the
+//! two errors before it, it leaves out a camera's error along its weakest direction,
+//! which its image barely shows), and `poses.json` the refined cameras (`views`: `name`,
 //! `cam_to_world` in the learnt frame and `cam_to_world_aligned` moved with the scene,
 //! 4 × 4 rows). With `--perturb` alone the pose errors are reported and nothing is
 //! aligned. After the alignment, each held-out camera is refined against its own image
