@@ -1714,11 +1714,12 @@ fn seen_pairs(
 /// `(1/|P|) Σ_{(i,k)∈P} |π_toᵢ(S·yₖ) − π_fromᵢ(yₖ)|`,
 ///
 /// over the pairs `P` of camera `i` and point `yₖ` that `fromᵢ` sees in front of it and
-/// inside its image and `toᵢ` sees in front of it: the pairs of [`align_cameras`], whose
-/// residual this is (as distances, not squares) when `frame` is its result.
+/// inside its image and `toᵢ` sees in front of it. [`align_cameras`] selects its pairs
+/// the same way (at its starting similarity) and minimises their squared residuals, so
+/// with `frame` its result this is that fit's residual, as a mean distance.
 ///
-/// It measures a camera's error as a scene learnt with that camera feels it. Unlike the rotation and centre
-/// errors after [`align_similarity`], it leaves out what the images do not show: a camera
+/// It measures a camera's error as a scene learnt with that camera feels it. Unlike the
+/// rotation and centre errors after [`align_similarity`], it leaves out what the images do not show: a camera
 /// orbited a little about the scene and turned to match sees nearly the same image and
 /// scores nearly zero here. `points` are in `from`'s frame (for a reconstruction: points
 /// of its surface), `frame` maps them into `to`'s (the identity when both are in one).
@@ -1732,7 +1733,8 @@ fn seen_pairs(
 /// let eye = DVec3::new(0.0, -3.0, 0.0);
 /// let cam = Camera::look_at(k, eye, DVec3::ZERO, DVec3::Z, Convention::OpenCv)?;
 /// // The same camera shifted sideways by 0.03 (a hundredth of its distance).
-/// let shifted = Camera::look_at(k, eye + DVec3::X * 0.03, DVec3::X * 0.03, DVec3::Z, Convention::OpenCv)?;
+/// let side = DVec3::X * 0.03;
+/// let shifted = Camera::look_at(k, eye + side, side, DVec3::Z, Convention::OpenCv)?;
 /// let points = [DVec3::ZERO, DVec3::new(0.2, 0.0, 0.1)];
 /// let none = reprojection_error(&[cam], &[cam], &points, &Similarity::IDENTITY)?;
 /// let some = reprojection_error(&[cam], &[shifted], &points, &Similarity::IDENTITY)?;
