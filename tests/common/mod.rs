@@ -10,6 +10,7 @@ pub mod hits;
 pub mod host;
 #[cfg(feature = "volume")]
 pub mod intervals;
+pub mod stiff;
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;

@@ -1,0 +1,325 @@
+//! Stiff cases of `data`: views, datasets, ray batches, image conversions, metrics and
+//! image output at extreme values.
+
+#![cfg(feature = "data")]
+
+mod common;
+
+use candle_core::{DType, Device, Tensor};
+
+use common::stiff::{magnitudes, Expect, Suite, DTYPES};
+
+use neural_fields::camera::{Camera, Convention, Intrinsics, PixelFilter};
+use neural_fields::glam::{DAffine3, DVec3};
+
+#[test]
+fn data_stays_finite() {
+    let mut s = Suite::default();
+    sweep_data(&mut s);
+    s.finish("data", DATA);
+}
+
+#[test]
+fn every_public_data_function_is_swept_or_exempt() {
+    common::stiff::check_coverage("stiff_cases_data", &[DATA], EXEMPT, &[], &[]);
+}
+
+/// Items swept by `sweep_data`.
+const DATA: &[&str] = &[
+    "data::Dataset::new",
+    "data::Dataset::view_rays",
+    "data::Image::from_tensor",
+    "data::Image::to_tensor",
+    "data::RaySampler::new",
+    "data::RaySampler::patches",
+    "data::RaySampler::pixel_footprints",
+    "data::RaySampler::pixels",
+    "data::RaySampler::with_pixel_filter",
+    "data::View::mask",
+    "data::View::new",
+    "data::View::rgb",
+    "data::colorize_depth",
+    "data::colorize_normals",
+    "data::comparison_strip",
+    "data::load",
+    "data::psnr",
+    "data::ssim",
+    "data::write_blender",
+    "data::write_png",
+];
+
+/// Public items without floating-point input (or only reached through a swept item),
+/// with the reason. Matching is by prefix.
+const EXEMPT: &[(&str, &str)] = &[
+    ("data::RayBatch::is_empty", "getter"),
+    ("data::RayBatch::len", "getter"),
+    (
+        "data::RaySampler::with_jitter",
+        "a flag; its jittered rays are checked in tests/data_batches.rs",
+    ),
+    ("data::Background::", "constants"),
+    ("data::Dataset::background", "getter"),
+    ("data::Dataset::bounds", "getter"),
+    ("data::Dataset::image_bytes", "integer count"),
+    ("data::Dataset::is_empty", "getter"),
+    ("data::Dataset::len", "getter"),
+    ("data::Dataset::views", "getter"),
+    (
+        "data::DatasetLayout::detect",
+        "file-system probe, no floats",
+    ),
+    ("data::LoadConfig::default", "constant"),
+    ("data::Split::name", "constant"),
+    ("data::View::camera", "getter"),
+    ("data::View::has_mask", "getter"),
+    ("data::View::image", "getter"),
+    ("data::View::mask_image", "getter"),
+    ("data::View::name", "getter"),
+    ("data::Image::channels", "getter"),
+    ("data::Image::data", "getter"),
+    ("data::Image::height", "getter"),
+    ("data::Image::new", "bytes, no floats"),
+    ("data::Image::pixel", "bytes, no floats"),
+    ("data::Image::width", "getter"),
+];
+
+fn sweep_data(s: &mut Suite) {
+    use neural_fields::data::{
+        colorize_depth, colorize_normals, comparison_strip, load, psnr, ssim, write_blender,
+        write_png, Background, Dataset, Image, LoadConfig, RaySampler, Split, View,
+    };
+    let d = Device::Cpu;
+    let scalar = |x: f64| Ok::<_, neural_fields::Error>(Tensor::new(x, &d)?);
+    let dir = std::env::temp_dir().join(format!("neural-fields-stiff-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for dtype in DTYPES {
+        for &x in &magnitudes(dtype) {
+            let tag = format!("{dtype:?}, {x}");
+            let full = |shape: &[usize]| Tensor::full(x, shape, &d).and_then(|t| t.to_dtype(dtype));
+            let half =
+                |shape: &[usize]| Tensor::full(0.5, shape, &d).and_then(|t| t.to_dtype(dtype));
+            s.case("data::psnr", &tag, Expect::FiniteOrErr, &[], || {
+                let p = psnr(&full(&[12, 12, 3])?, &half(&[12, 12, 3])?, None)?;
+                // Identical images (x = 0.5) give +∞ by contract; never NaN or −∞.
+                assert!(!p.is_nan() && p != f64::NEG_INFINITY);
+                Ok(if p == f64::INFINITY {
+                    vec![]
+                } else {
+                    vec![scalar(p)?]
+                })
+            });
+            s.case("data::ssim", &tag, Expect::FiniteOrErr, &[], || {
+                let p = ssim(&full(&[12, 12, 3])?, &half(&[12, 12, 3])?, None)?;
+                Ok(vec![scalar(p)?])
+            });
+            s.case("data::colorize_depth", &tag, Expect::Finite, &[], || {
+                let depth = Tensor::cat(&[&full(&[2, 2])?, &half(&[2, 2])?], 1)?;
+                let (rgb, (lo, hi)) = colorize_depth(&depth, None)?;
+                Ok(vec![rgb, scalar(lo)?, scalar(hi)?])
+            });
+            s.case(
+                "data::colorize_normals",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || Ok(vec![colorize_normals(&full(&[2, 2, 3])?)?]),
+            );
+            s.case(
+                "data::comparison_strip",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    Ok(vec![comparison_strip(
+                        &half(&[2, 2, 3])?,
+                        &full(&[2, 2, 3])?,
+                    )?])
+                },
+            );
+            s.case(
+                "data::Image::from_tensor",
+                &tag,
+                Expect::Finite,
+                &[],
+                || {
+                    let img = Image::from_tensor(&full(&[2, 3, 4])?)?;
+                    Ok(vec![img.to_tensor(&d, dtype)?])
+                },
+            );
+            s.case("data::write_png", &tag, Expect::Finite, &[], || {
+                write_png(&dir.join("stiff.png"), &full(&[2, 3, 3])?)?;
+                Ok(vec![])
+            });
+            s.case("data::Dataset::new", &tag, Expect::FiniteOrErr, &[], || {
+                let k = Intrinsics::new(3.0, 3.0, 1.0, 1.0, 2, 2)?;
+                let cam = Camera::new(k, DAffine3::IDENTITY, Convention::OpenCv)?;
+                let view = View::new(cam, Image::new(2, 2, 3, vec![9; 12])?, None, "v".into())?;
+                let data = Dataset::new(vec![view], Background::Color([x; 3]), None)?;
+                Ok(vec![data.views()[0].rgb(
+                    [x.clamp(0.0, 1.0); 3],
+                    &d,
+                    dtype,
+                )?])
+            });
+        }
+        s.case(
+            "data::Image::to_tensor",
+            format!("{dtype:?}, bytes 0 and 255"),
+            Expect::Finite,
+            &[],
+            || {
+                Ok(vec![
+                    Image::new(2, 1, 3, vec![0, 0, 0, 255, 255, 255])?.to_tensor(&d, dtype)?
+                ])
+            },
+        );
+        // Cameras at extreme focal lengths and distances: rays finite or an error.
+        for (f, eye) in [(1e-6, 1.0), (1e8, 1.0), (500.0, 1e10), (500.0, 1e-10)] {
+            let tag = format!("{dtype:?}, fx {f}, eye at {eye}");
+            let view = || -> neural_fields::Result<View> {
+                let k = Intrinsics::new(f, f, 2.0, 2.0, 4, 4)?;
+                let cam = Camera::look_at(
+                    k,
+                    DVec3::new(eye, 0.0, 0.0),
+                    DVec3::ZERO,
+                    DVec3::Z,
+                    Convention::OpenGl,
+                )?;
+                View::new(
+                    cam,
+                    Image::new(4, 4, 4, (0..64).map(|i| (i * 4) as u8).collect())?,
+                    None,
+                    "v".into(),
+                )
+            };
+            s.case("data::View::new", &tag, Expect::Finite, &[], || {
+                let v = view()?;
+                Ok(vec![
+                    v.rgb([0.0; 3], &d, dtype)?,
+                    v.mask(&d, dtype)?.expect("alpha"),
+                ])
+            });
+            s.case("data::View::rgb", &tag, Expect::Finite, &[], || {
+                Ok(vec![view()?.rgb([1.0; 3], &d, dtype)?])
+            });
+            s.case("data::View::mask", &tag, Expect::Finite, &[], || {
+                Ok(view()?.mask(&d, dtype)?.into_iter().collect())
+            });
+            let data = Dataset::new(vec![view().unwrap()], Background::Random, None).unwrap();
+            s.case(
+                "data::RaySampler::new",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    RaySampler::new(&data, 0, &d, dtype)?;
+                    Ok(vec![])
+                },
+            );
+            s.case(
+                "data::RaySampler::pixels",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let b = RaySampler::new(&data, 0, &d, dtype)?.pixels(64)?;
+                    Ok(vec![
+                        b.rays.directions().clone(),
+                        b.rays.origins().clone(),
+                        b.colors,
+                        b.backgrounds,
+                    ])
+                },
+            );
+            s.case(
+                "data::RaySampler::pixel_footprints",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let b = RaySampler::new(&data, 0, &d, dtype)?
+                        .with_jitter(true)
+                        .pixel_footprints(16, 2)?;
+                    Ok(vec![b.rays.directions().clone(), b.colors, b.backgrounds])
+                },
+            );
+            for half_width in [1.5, 64.0, 0.0, f64::INFINITY] {
+                s.case(
+                    "data::RaySampler::with_pixel_filter",
+                    format!("{tag}, Blackman-Harris ±{half_width}"),
+                    Expect::FiniteOrErr,
+                    &[],
+                    || {
+                        let filter = PixelFilter::BlackmanHarris { half_width };
+                        let mut sampler = RaySampler::new(&data, 0, &d, dtype)?
+                            .with_jitter(true)
+                            .with_pixel_filter(filter)?;
+                        let (a, b) = (sampler.pixels(64)?, sampler.pixel_footprints(16, 3)?);
+                        Ok(vec![
+                            a.rays.directions().clone(),
+                            b.rays.directions().clone(),
+                        ])
+                    },
+                );
+            }
+            s.case(
+                "data::RaySampler::patches",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let b = RaySampler::new(&data, 0, &d, dtype)?.patches(4, 3)?;
+                    Ok(vec![b.rays.directions().clone(), b.colors])
+                },
+            );
+            s.case(
+                "data::Dataset::view_rays",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let b = data.view_rays(0, 0, 16, &d, dtype)?;
+                    Ok(vec![b.rays.directions().clone(), b.colors])
+                },
+            );
+            s.case(
+                "data::write_blender",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let out = dir.join(format!("blender-{f}-{eye}"));
+                    write_blender(&out, Split::Test, &data)?;
+                    let back = load(
+                        &out,
+                        &LoadConfig {
+                            split: Split::Test,
+                            ..LoadConfig::default()
+                        },
+                    )?;
+                    Ok(vec![back.views()[0].rgb([0.0; 3], &d, dtype)?])
+                },
+            );
+        }
+    }
+    for downscale in [1, 7, 100, 101, usize::MAX] {
+        s.case(
+            "data::load",
+            format!("downscale {downscale}"),
+            Expect::FiniteOrErr,
+            &[],
+            || {
+                let data = load(
+                    std::path::Path::new("examples/data/wuson"),
+                    &LoadConfig {
+                        split: Split::Val,
+                        downscale,
+                        ..LoadConfig::default()
+                    },
+                )?;
+                Ok(vec![data.views()[0].rgb([1.0; 3], &d, DType::F32)?])
+            },
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

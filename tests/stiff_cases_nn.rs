@@ -1,0 +1,146 @@
+//! Stiff cases of `nn`: the MLP and its Jacobian at extreme inputs.
+
+mod common;
+
+use candle_core::{DType, Device, Tensor, Var};
+
+use common::stiff::{var, Expect, Suite, DTYPES};
+
+use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
+use neural_fields::field::Field;
+use neural_fields::nn::{build_seeded, mlp, Activation, MlpConfig};
+
+#[test]
+fn mlp_stays_finite() {
+    let mut s = Suite::default();
+    sweep_mlp(&mut s);
+    s.finish("mlp", MLP);
+}
+
+#[test]
+fn every_public_nn_function_is_swept_or_exempt() {
+    common::stiff::check_coverage("stiff_cases_nn", &[MLP], EXEMPT, &[], &[]);
+}
+
+/// Items swept by `sweep_mlp`.
+const MLP: &[&str] = &[
+    "nn::Mlp::forward",
+    "nn::Mlp::forward_with_jacobian",
+    "nn::MlpConfig::sdf",
+    "nn::mlp",
+];
+
+/// Public items without floating-point input (or only reached through a swept item),
+/// with the reason. Matching is by prefix.
+const EXEMPT: &[(&str, &str)] = &[
+    ("nn::SeededBackend::", "private"),
+    (
+        "nn::build_seeded",
+        "integer seed; its draws are swept via the Mlp cases",
+    ),
+    ("nn::Mlp::config", "getter"),
+    (
+        "nn::Mlp::forward_with_code",
+        "the ConditionalField forward: the Field forward with codes (swept as Mlp::forward)",
+    ),
+    ("nn::Mlp::inside", "getter"),
+    ("nn::Mlp::out_dim", "getter"),
+    ("nn::Mlp::value", "forwards to Field::forward"),
+    ("nn::Mlp::code_dim", "getter"),
+    (
+        "nn::Mlp::value_and_grad",
+        "forwards to forward_with_jacobian",
+    ),
+    ("nn::MlpConfig::default", "constant"),
+    (
+        "nn::FusedMlp::",
+        "CustomOp internals, swept via Mlp::forward",
+    ),
+    (
+        "nn::FusedNerf::",
+        "CustomOp internals, swept via Nerf::radiance",
+    ),
+    (
+        "nn::FusedMlpJvp::",
+        "CustomOp internals, swept via Mlp::forward_with_jacobian",
+    ),
+    (
+        "nn::f32::sigmoid_times_slice",
+        "crate-internal activation slices of the fused ops, swept via the softplus Mlp \
+         (Mlp::value_and_grad) and tested against the standard library in their module",
+    ),
+    (
+        "nn::f32::softplus_slice",
+        "crate-internal activation slices of the fused ops, swept via the softplus Mlp \
+         (Mlp::value_and_grad) and tested against the standard library in their module",
+    ),
+    (
+        "nn::f64::sigmoid_times_slice",
+        "crate-internal activation slices of the fused ops, swept via the softplus Mlp \
+         (Mlp::value_and_grad) and tested against the standard library in their module",
+    ),
+    (
+        "nn::f64::softplus_slice",
+        "crate-internal activation slices of the fused ops, swept via the softplus Mlp \
+         (Mlp::value_and_grad) and tested against the standard library in their module",
+    ),
+];
+
+fn sweep_mlp(s: &mut Suite) {
+    let d = Device::Cpu;
+    for dtype in DTYPES {
+        let big = if dtype == DType::F32 { 1e8 } else { 1e100 };
+        let x = var(
+            &[
+                0.0, 0.0, 0.0, 1e-30, 0.0, 0.0, big, -big, big, 1e4, 1.0, -1e4,
+            ],
+            &[4, 3],
+            dtype,
+        );
+        for (activation, radius, tag) in [
+            (Activation::Relu, None, "ReLU"),
+            (
+                Activation::Softplus { beta: 100.0 },
+                Some(0.5),
+                "softplus(100), geometric init",
+            ),
+            (Activation::Softplus { beta: 1e-3 }, None, "softplus(1e-3)"),
+        ] {
+            let config = MlpConfig {
+                hidden: 16,
+                depth: 3,
+                skips: vec![2],
+                activation,
+                geometric_init: radius,
+                encoding: PointEncoding::Frequency(FrequencyEncoding::new(3, 4).unwrap()),
+                ..MlpConfig::default()
+            };
+            let varmap = candle_nn::VarMap::new();
+            let net = build_seeded(&varmap, dtype, &d, 3, |vb| mlp(&config, vb)).unwrap();
+            let label = format!("{dtype:?}, {tag}, |x| up to {big:e}");
+            let vars = varmap.all_vars();
+            let mut wrt: Vec<&Var> = vars.iter().collect();
+            wrt.push(&x);
+            s.case("nn::mlp", &label, Expect::Finite, &[], || Ok(vec![]));
+            s.case(
+                "nn::Mlp::forward_with_jacobian",
+                &label,
+                Expect::Finite,
+                &wrt,
+                || {
+                    let (y, j) = net.forward_with_jacobian(x.as_tensor(), None)?;
+                    Ok(vec![y, j])
+                },
+            );
+            s.case("nn::Mlp::forward", &label, Expect::Finite, &wrt, || {
+                Ok(vec![Field::forward(&net, x.as_tensor())?])
+            });
+            s.case("nn::MlpConfig::sdf", &label, Expect::Finite, &[], || {
+                Ok(vec![Tensor::new(
+                    MlpConfig::sdf(1e-30).geometric_init.unwrap_or(0.0),
+                    &d,
+                )?])
+            });
+        }
+    }
+}

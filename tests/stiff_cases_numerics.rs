@@ -1,0 +1,212 @@
+//! Stiff cases of `numerics`, `rng` and `error`: the defended scalar maths at every
+//! magnitude in f32 and f64, the damped linear solve, and the seeded tensor makers.
+
+mod common;
+
+use candle_core::{DType, Device, Tensor};
+
+use common::stiff::{magnitudes, var, Expect, Suite, DTYPES};
+
+use neural_fields::numerics::{
+    bce_with_logits, cos_pi, guard_denominator, safe_cos, safe_sin, sigmoid, sin_pi, softplus,
+};
+use neural_fields::rng::SplitMix64;
+
+#[test]
+fn numerics_stay_finite_at_every_magnitude() {
+    let mut s = Suite::default();
+    sweep_numerics(&mut s);
+    s.finish("numerics", NUMERICS);
+}
+
+#[test]
+fn damped_solve_stays_finite_or_refuses() {
+    let mut s = Suite::default();
+    sweep_damped_solve(&mut s);
+    s.finish("damped solve", DAMPED_SOLVE);
+}
+
+#[test]
+fn every_source_file_has_a_stiff_case_file() {
+    common::stiff::check_owners();
+}
+
+#[test]
+fn rng_tensor_makers_stay_finite() {
+    let mut s = Suite::default();
+    sweep_rng(&mut s);
+    s.finish("rng", RNG);
+}
+
+#[test]
+fn every_public_numerics_function_is_swept_or_exempt() {
+    common::stiff::check_coverage(
+        "stiff_cases_numerics",
+        &[NUMERICS, DAMPED_SOLVE, RNG],
+        EXEMPT,
+        &[],
+        &[],
+    );
+}
+
+/// Items swept by `sweep_numerics`.
+const NUMERICS: &[&str] = &[
+    "numerics::bce_with_logits",
+    "numerics::cos_pi",
+    "numerics::guard_denominator",
+    "numerics::safe_cos",
+    "numerics::safe_sin",
+    "numerics::sigmoid",
+    "numerics::sin_pi",
+    "numerics::softplus",
+];
+
+/// Items swept by `sweep_damped_solve`.
+const DAMPED_SOLVE: &[&str] = &["numerics::damped_solve"];
+
+/// Items swept by `sweep_rng`.
+const RNG: &[&str] = &[
+    "rng::SplitMix64::normal_tensor",
+    "rng::SplitMix64::uniform_tensor",
+];
+
+/// Public items without floating-point input (or only reached through a swept item),
+/// with the reason. Matching is by prefix.
+const EXEMPT: &[(&str, &str)] = &[
+    (
+        "error::",
+        "validation helpers: their job is to return Err for bad input (unit-tested)",
+    ),
+    ("rng::SplitMix64::", "integer state; tensor makers swept"),
+    (
+        "numerics::SoftplusOp::",
+        "CustomOp internals, swept via numerics::softplus",
+    ),
+    (
+        "numerics::SigmoidOfScaled::",
+        "CustomOp internals (softplus backward), swept via numerics::softplus",
+    ),
+];
+
+fn sweep_numerics(s: &mut Suite) {
+    for dtype in DTYPES {
+        let xs = magnitudes(dtype);
+        let n = xs.len();
+        let x = var(&xs, &[n], dtype);
+        let t = x.as_tensor();
+        let half = Tensor::full(0.5f64, n, &Device::Cpu)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap();
+        let tag = format!("{dtype:?}, |x| up to max");
+        s.case("numerics::safe_sin", &tag, Expect::Finite, &[&x], || {
+            Ok(vec![safe_sin(t)?])
+        });
+        s.case("numerics::safe_cos", &tag, Expect::Finite, &[&x], || {
+            Ok(vec![safe_cos(t)?])
+        });
+        s.case("numerics::sin_pi", &tag, Expect::Finite, &[&x], || {
+            Ok(vec![sin_pi(t)?])
+        });
+        s.case("numerics::cos_pi", &tag, Expect::Finite, &[&x], || {
+            Ok(vec![cos_pi(t)?])
+        });
+        s.case("numerics::sigmoid", &tag, Expect::Finite, &[&x], || {
+            Ok(vec![sigmoid(t)?])
+        });
+        for beta in [1e-3, 1.0, 100.0, 1e6] {
+            // softplus_β(x) ≈ x for large x: finite as long as x is.
+            s.case(
+                "numerics::softplus",
+                format!("{tag}, β = {beta}"),
+                Expect::Finite,
+                &[&x],
+                || Ok(vec![softplus(t, beta)?]),
+            );
+        }
+        s.case(
+            "numerics::bce_with_logits",
+            &tag,
+            Expect::Finite,
+            &[&x],
+            || Ok(vec![bce_with_logits(t, &half)?]),
+        );
+        // guard bounds 1/x by 1/eps and its derivative by 1/eps²; eps must keep 1/eps²
+        // representable (≥ 5.4e-20 in f32), which is the caller's choice.
+        let tiny_eps = if dtype == DType::F32 { 1e-19 } else { 1e-150 };
+        for eps in [tiny_eps, 1e-3, 1.0] {
+            s.case(
+                "numerics::guard_denominator",
+                format!("{tag}, eps = {eps}"),
+                Expect::Finite,
+                &[&x],
+                || Ok(vec![guard_denominator(t, eps)?.recip()?]),
+            );
+        }
+    }
+}
+
+fn sweep_rng(s: &mut Suite) {
+    let d = Device::Cpu;
+    for dtype in DTYPES {
+        let tag = format!("{dtype:?}");
+        for (a, b) in [(0.0f64, 1e-30f64), (-1e30, 1e30), (1e10, 1e10)] {
+            s.case(
+                "rng::SplitMix64::normal_tensor",
+                format!("{tag}, mean {a}, std {b}"),
+                Expect::Finite,
+                &[],
+                || {
+                    Ok(vec![SplitMix64::new(1).normal_tensor(
+                        &[64],
+                        a,
+                        b.abs(),
+                        dtype,
+                        &d,
+                    )?])
+                },
+            );
+            s.case(
+                "rng::SplitMix64::uniform_tensor",
+                format!("{tag}, [{a}, {b})"),
+                Expect::Finite,
+                &[],
+                || {
+                    Ok(vec![SplitMix64::new(1).uniform_tensor(
+                        &[64],
+                        a,
+                        b,
+                        dtype,
+                        &d,
+                    )?])
+                },
+            );
+        }
+    }
+}
+
+/// Damped Gauss–Newton systems at every magnitude: steps that are finite or refused
+/// (`None`).
+fn sweep_damped_solve(s: &mut Suite) {
+    for &x in &magnitudes(DType::F64) {
+        let x = x.clamp(-1e150, 1e150);
+        for lambda in [0.0, 1e-3, 1e300] {
+            s.case(
+                "numerics::damped_solve",
+                format!("system scaled by {x:e}, λ = {lambda:e}"),
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let h = [[4.0 * x, x], [x, 2.0 * x]];
+                    let step = neural_fields::numerics::damped_solve(&h, &[x, -1.0], lambda)
+                        .ok_or_else(|| neural_fields::Error::InvalidArgument {
+                            arg: "h",
+                            expected: "a solvable system".into(),
+                            got: "none".into(),
+                        })?;
+                    Ok(vec![Tensor::new(&step, &Device::Cpu)?])
+                },
+            );
+        }
+    }
+}

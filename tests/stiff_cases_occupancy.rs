@@ -1,0 +1,857 @@
+//! Stiff cases of `occupancy`: inside tests, samplers, metrics, losses, marching cubes
+//! and MISE at extreme inputs; the ONet, PointNet and Conv. ONet networks.
+
+#![cfg(feature = "occupancy")]
+
+mod common;
+
+use candle_core::{DType, Device, Tensor, Var};
+
+use common::stiff::{magnitudes, var, Expect, Suite, DTYPES};
+
+use neural_fields::field::{Field, SignedDistance, Sphere};
+use neural_fields::nn::build_seeded;
+
+#[test]
+fn occupancy_on_meshes_stays_finite() {
+    let mut s = Suite::default();
+    sweep_occupancy_on_meshes(&mut s);
+    s.finish("occupancy on meshes", ON_MESHES);
+}
+
+#[test]
+fn occupancy_losses_samplers_and_extraction_stay_finite() {
+    let mut s = Suite::default();
+    sweep_occupancy(&mut s);
+    s.finish("occupancy", OCCUPANCY);
+}
+
+#[test]
+fn onet_networks_stay_finite() {
+    let mut s = Suite::default();
+    sweep_onet_networks(&mut s);
+    s.finish("onet networks", ONET);
+}
+
+#[test]
+fn conv_onet_stays_finite() {
+    let mut s = Suite::default();
+    sweep_conv_onet(&mut s);
+    s.finish("conv onet", CONV_ONET);
+}
+
+#[test]
+fn every_public_occupancy_function_is_swept_or_exempt() {
+    common::stiff::check_coverage(
+        "stiff_cases_occupancy",
+        &[ON_MESHES, OCCUPANCY, ONET, CONV_ONET],
+        EXEMPT,
+        &[],
+        UNSEEN,
+    );
+}
+
+/// The decoders' `ConditionalField` methods, which a macro in src/nn/onet.rs defines.
+const UNSEEN: &[&str] = &[
+    "nn::OnetDecoder::forward_with_code",
+    "nn::OnetDecoder::value_and_grad_with_code",
+    "nn::SimpleDecoder::forward_with_code",
+    "nn::SimpleDecoder::value_and_grad_with_code",
+];
+
+/// Items swept by `sweep_occupancy_on_meshes`.
+const ON_MESHES: &[&str] = &[
+    "occupancy::KdTree::new",
+    "occupancy::inside_mesh",
+    "occupancy::iou",
+    "occupancy::mesh_metrics",
+    "occupancy::near_surface",
+    "occupancy::surface_metrics",
+    "occupancy::winding_numbers",
+    "occupancy::winding_numbers_exact",
+];
+
+/// Items swept by `sweep_occupancy`.
+const OCCUPANCY: &[&str] = &[
+    "occupancy::Grid::from_fn",
+    "occupancy::Grid::new",
+    "occupancy::Grid::sample",
+    "occupancy::MiseConfig::new",
+    "occupancy::RefineConfig::new",
+    "occupancy::from_tensor",
+    "occupancy::kl_standard_normal",
+    "occupancy::logit_threshold",
+    "occupancy::marching_cubes",
+    "occupancy::mise",
+    "occupancy::points_tensor",
+    "occupancy::reconstruction_loss",
+    "occupancy::refine_vertices",
+    "occupancy::reparameterize",
+    "occupancy::uniform_in_padded_cube",
+];
+
+/// Items swept by `sweep_onet_networks`.
+const ONET: &[&str] = &[
+    "nn::OnetDecoder::forward_with_code",
+    "nn::OnetDecoder::logits",
+    "nn::OnetDecoder::set_mode",
+    "nn::OnetDecoder::value_and_grad_with_code",
+    "nn::PointNetEncoder::forward",
+    "nn::PointNetEncoder::forward_features",
+    "nn::SimpleDecoder::forward_with_code",
+    "nn::SimpleDecoder::logits",
+    "nn::SimpleDecoder::value_and_grad_with_code",
+    "nn::onet_decoder",
+    "nn::pointnet_encoder",
+    "nn::simple_decoder",
+];
+
+/// Items swept by `sweep_conv_onet`.
+const CONV_ONET: &[&str] = &[
+    "nn::ConvOnetEncoder::encode_cloud",
+    "nn::ConvOnetEncoder::forward",
+    "nn::LocalDecoder::bind",
+    "nn::LocalDecoder::logits",
+    "nn::SceneField::forward",
+    "nn::conv3d",
+    "nn::conv_onet_encoder",
+    "nn::local_decoder",
+];
+
+/// Public items without floating-point input (or only reached through a swept item),
+/// with the reason. Matching is by prefix.
+const EXEMPT: &[(&str, &str)] = &[
+    ("nn::ConvOnetConfig::default", "constant"),
+    ("nn::UnetConfig::default", "constant"),
+    ("nn::LocalDecoderConfig::default", "constant"),
+    ("nn::ConvOnetEncoder::config", "getter"),
+    ("nn::LocalDecoder::config", "getter"),
+    ("nn::LocalFeatures::batch_and_channels", "getter"),
+    ("nn::SceneField::features", "getter"),
+    ("nn::SceneField::out_dim", "constant"),
+    ("nn::SimpleDecoderConfig::default", "constant"),
+    ("nn::SimpleDecoder::code_dim", "getter"),
+    ("nn::SimpleDecoder::config", "getter"),
+    ("nn::SimpleDecoder::inside", "getter"),
+    ("nn::SimpleDecoder::out_dim", "getter"),
+    ("nn::PointNetConfig::default", "constant"),
+    ("nn::PointNetEncoder::config", "getter"),
+    ("nn::OnetConfig::default", "constant"),
+    ("nn::OnetDecoder::code_dim", "getter"),
+    ("nn::OnetDecoder::config", "getter"),
+    ("nn::OnetDecoder::inside", "getter"),
+    ("nn::OnetDecoder::out_dim", "getter"),
+    ("occupancy::Grid::spacing", "swept through Grid::from_fn"),
+    ("occupancy::KdTree::nearest", "swept through KdTree::new"),
+];
+
+/// Inside/outside tests, near-surface samples and metrics on meshes at three scales, and
+/// IoU of empty and disjoint sets.
+fn sweep_occupancy_on_meshes(s: &mut Suite) {
+    use neural_fields::occupancy::{
+        inside_mesh, iou, mesh_metrics, near_surface, surface_metrics, winding_numbers,
+        winding_numbers_exact, KdTree, Mesh,
+    };
+    let d = Device::Cpu;
+    let flat = |v: Vec<[f64; 3]>| Tensor::from_vec(v.concat(), v.len() * 3, &d);
+    let vt = |v: Vec<f64>| Tensor::from_vec(v.clone(), v.len(), &d);
+    // A tetrahedron at three scales: tiny, unit, huge.
+    let tet = |scale: f64| {
+        Mesh::new(
+            vec![
+                [0.0, 0.0, 0.0],
+                [scale, 0.0, 0.0],
+                [0.0, scale, 0.0],
+                [0.0, 0.0, scale],
+            ],
+            vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
+        )
+    };
+    for scale in [1e-6, 1.0, 1e6] {
+        let label = format!("tetrahedron of size {scale:e}");
+        let mesh = tet(scale).unwrap();
+        let q = vec![
+            [0.1 * scale, 0.1 * scale, 0.1 * scale],
+            [10.0 * scale, 0.0, 0.0],
+            [0.0, 0.0, 0.0],
+            [1e-30, 0.0, 0.0],
+        ];
+        s.case(
+            "occupancy::winding_numbers",
+            &label,
+            Expect::Finite,
+            &[],
+            || Ok(vec![vt(winding_numbers(&mesh, &q)?)?]),
+        );
+        s.case(
+            "occupancy::winding_numbers_exact",
+            &label,
+            Expect::Finite,
+            &[],
+            || Ok(vec![vt(winding_numbers_exact(&mesh, &q)?)?]),
+        );
+        s.case(
+            "occupancy::inside_mesh",
+            &label,
+            Expect::Finite,
+            &[],
+            || {
+                Ok(vec![vt(inside_mesh(&mesh, &q)?
+                    .into_iter()
+                    .map(f64::from)
+                    .collect())?])
+            },
+        );
+        for sigma in [0.0, 1e-30, 1e3] {
+            s.case(
+                "occupancy::near_surface",
+                format!("{label}, σ = {sigma:e}"),
+                Expect::FiniteOrErr,
+                &[],
+                || Ok(vec![flat(near_surface(&mesh, 32, sigma, 2)?)?]),
+            );
+        }
+        s.case(
+            "occupancy::KdTree::new",
+            &label,
+            Expect::Finite,
+            &[],
+            || {
+                let tree = KdTree::new(&mesh.vertices)?;
+                Ok(vec![vt(q.iter().map(|p| tree.nearest(*p).1).collect())?])
+            },
+        );
+        // 0.1's `nearest_distances(queries, reference)`.
+        s.case(
+            "occupancy::KdTree::new",
+            format!("{label}, nearest distances"),
+            Expect::Finite,
+            &[],
+            || {
+                let tree = KdTree::new(&mesh.vertices)?;
+                Ok(vec![vt(q
+                    .iter()
+                    .map(|&p| tree.nearest(p))
+                    .map(|(_, dist)| dist)
+                    .collect())?])
+            },
+        );
+        s.case(
+            "occupancy::surface_metrics",
+            &label,
+            Expect::Finite,
+            &[],
+            || {
+                let m = surface_metrics(&q, None, &mesh.vertices, None, 0.01 * scale)?;
+                Ok(vec![vt(vec![
+                    m.accuracy,
+                    m.completeness,
+                    m.chamfer_l1,
+                    m.normal_consistency.unwrap_or(0.0),
+                    m.f_score,
+                ])?])
+            },
+        );
+        s.case(
+            "occupancy::mesh_metrics",
+            &label,
+            Expect::Finite,
+            &[],
+            || {
+                let m = mesh_metrics(&mesh, &tet(scale * 1.01)?, 256, 0.01 * scale, 3)?;
+                Ok(vec![vt(vec![
+                    m.accuracy,
+                    m.completeness,
+                    m.chamfer_l1,
+                    m.normal_consistency.unwrap_or(0.0),
+                    m.f_score,
+                ])?])
+            },
+        );
+    }
+    s.case(
+        "occupancy::iou",
+        "empty union and disjoint sets",
+        Expect::FiniteOrErr,
+        &[],
+        || {
+            Ok(vec![vt(vec![
+                iou(&[false, false], &[false, false])?,
+                iou(&[true, false], &[false, true])?,
+            ])?])
+        },
+    );
+}
+
+/// Occupancy losses at extreme logits, means and log-variances; samplers; marching cubes
+/// on grids of extreme values and extents; MISE on analytic fields.
+fn sweep_occupancy(s: &mut Suite) {
+    use neural_fields::field::Inside;
+
+    use neural_fields::occupancy::{
+        from_tensor, kl_standard_normal, logit_threshold, marching_cubes, mise, points_tensor,
+        reconstruction_loss, refine_vertices, reparameterize, uniform_in_padded_cube, Grid, Mesh,
+        MiseConfig, RefineConfig,
+    };
+    let d = Device::Cpu;
+    let flat = |v: Vec<[f64; 3]>| Tensor::from_vec(v.concat(), v.len() * 3, &d);
+    let _vt = |v: Vec<f64>| Tensor::from_vec(v.clone(), v.len(), &d);
+    // A tetrahedron at three scales: tiny, unit, huge.
+    let _tet = |scale: f64| {
+        Mesh::new(
+            vec![
+                [0.0, 0.0, 0.0],
+                [scale, 0.0, 0.0],
+                [0.0, scale, 0.0],
+                [0.0, 0.0, scale],
+            ],
+            vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
+        )
+    };
+    for dtype in DTYPES {
+        let tag = format!("{dtype:?}");
+        // Losses at extreme logits, means and log-variances.
+        let xs = magnitudes(dtype);
+        let n = xs.len();
+        let logits = var(&xs, &[1, n], dtype);
+        let targets = Tensor::full(1.0f64, (1, n), &d)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap();
+        s.case(
+            "occupancy::reconstruction_loss",
+            format!("{tag}, logits up to max"),
+            Expect::Finite,
+            &[&logits],
+            || Ok(vec![reconstruction_loss(logits.as_tensor(), &targets)?]),
+        );
+        let mean = var(&[0.0, 1e-30, 1e3, -1e3], &[1, 4], dtype);
+        let logvar = var(&[0.0, -50.0, 50.0, -1e-30], &[1, 4], dtype);
+        s.case(
+            "occupancy::kl_standard_normal",
+            format!("{tag}, log-variances ±50"),
+            Expect::Finite,
+            &[&mean, &logvar],
+            || {
+                Ok(vec![kl_standard_normal(
+                    mean.as_tensor(),
+                    logvar.as_tensor(),
+                )?])
+            },
+        );
+        s.case(
+            "occupancy::reparameterize",
+            format!("{tag}, log-variances ±50"),
+            Expect::Finite,
+            &[&mean, &logvar],
+            || {
+                Ok(vec![reparameterize(
+                    mean.as_tensor(),
+                    logvar.as_tensor(),
+                    4,
+                )?])
+            },
+        );
+        for pad in [0.0, 0.1, 1e6] {
+            s.case(
+                "occupancy::uniform_in_padded_cube",
+                format!("{tag}, padding {pad}"),
+                Expect::Finite,
+                &[],
+                || {
+                    let p = uniform_in_padded_cube(64, pad, 1, &d, dtype)?;
+                    Ok(vec![points_tensor(&from_tensor(&p)?, &d, dtype)?, p])
+                },
+            );
+        }
+        s.case(
+            "occupancy::points_tensor",
+            format!("{tag}, 1e-30…1e30"),
+            Expect::Finite,
+            &[],
+            || Ok(vec![points_tensor(&[[1e-30, 1e30, 0.0]], &d, dtype)?]),
+        );
+        s.case("occupancy::from_tensor", &tag, Expect::Finite, &[], || {
+            Ok(vec![flat(from_tensor(
+                &Tensor::new(&[[1e-30f64, 1e30, 0.0]], &d)?.to_dtype(dtype)?,
+            )?)?])
+        });
+        // Grids of extreme values and extents, and MISE on analytic fields.
+        for (ext, amp) in [(1e-6, 1e-30), (1.0, 1.0), (1e6, 1e30)] {
+            let gl = format!("{tag}, box ±{ext}, values ±{amp:e}");
+            let f = move |p: [f64; 3]| {
+                amp * ((p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt() - 0.5 * ext)
+            };
+            s.case("occupancy::Grid::from_fn", &gl, Expect::Finite, &[], || {
+                let g = Grid::from_fn([9, 9, 9], [-ext; 3], [ext; 3], f)?;
+                let sp = g.spacing();
+                Ok(vec![
+                    flat(marching_cubes(&g, 0.0, Inside::Negative)?.vertices)?,
+                    // x of grid point (1, 2, 3).
+                    Tensor::new(&[sp[0], g.min[0] + sp[0]], &d)?,
+                ])
+            });
+            s.case(
+                "occupancy::marching_cubes",
+                &gl,
+                Expect::Finite,
+                &[],
+                || {
+                    Ok(vec![flat(
+                        marching_cubes(
+                            &Grid::from_fn([9, 9, 9], [-ext; 3], [ext; 3], f)?,
+                            0.0,
+                            Inside::Negative,
+                        )?
+                        .vertices,
+                    )?])
+                },
+            );
+            s.case(
+                "occupancy::Grid::new",
+                &gl,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let vals: Vec<f32> = (0..27)
+                        .map(|i| if i == 13 { -(amp as f32) } else { amp as f32 })
+                        .collect();
+                    Ok(vec![flat(
+                        marching_cubes(
+                            &Grid::new(vals, [3, 3, 3], [-ext; 3], [ext; 3])?,
+                            0.0,
+                            Inside::Negative,
+                        )?
+                        .vertices,
+                    )?])
+                },
+            );
+            s.case("occupancy::Grid::sample", &gl, Expect::Finite, &[], || {
+                let sphere = Sphere::new([0.0; 3], 0.5 * ext, &d, dtype)?.sdf();
+                Ok(vec![flat(
+                    marching_cubes(
+                        &Grid::sample(&sphere, [9, 9, 9], [-ext; 3], [ext; 3], 64, &d, dtype)?,
+                        0.0,
+                        Inside::Negative,
+                    )?
+                    .vertices,
+                )?])
+            });
+            s.case("occupancy::mise", &gl, Expect::Finite, &[], || {
+                let sphere = Sphere::new([0.0; 3], 0.5 * ext, &d, dtype)?.occupancy(100.0 / ext);
+                let mut cfg = MiseConfig::new(8, 2, &d, dtype);
+                cfg.min = [-ext; 3];
+                cfg.max = [ext; 3];
+                let out = mise(&sphere, &cfg)?;
+                Ok(vec![
+                    flat(out.mesh.vertices)?,
+                    Tensor::new(out.evaluations as f64, &d)?,
+                ])
+            });
+            s.case(
+                "occupancy::refine_vertices",
+                &gl,
+                Expect::Finite,
+                &[],
+                || {
+                    let sphere =
+                        Sphere::new([0.0; 3], 0.5 * ext, &d, dtype)?.occupancy(100.0 / ext);
+                    let mut cfg = MiseConfig::new(8, 1, &d, dtype);
+                    cfg.min = [-ext; 3];
+                    cfg.max = [ext; 3];
+                    let mut mesh = mise(&sphere, &cfg)?.mesh;
+                    let (before, after) = refine_vertices(
+                        &sphere,
+                        &mut mesh,
+                        &RefineConfig::new(0.1 * ext, &d, dtype),
+                    )?;
+                    Ok(vec![
+                        flat(mesh.vertices)?,
+                        Tensor::new(&[before, after], &d)?,
+                    ])
+                },
+            );
+            s.case(
+                "occupancy::RefineConfig::new",
+                &gl,
+                Expect::Finite,
+                &[],
+                || {
+                    Ok(vec![Tensor::new(
+                        RefineConfig::new(ext, &d, dtype).max_shift,
+                        &d,
+                    )?])
+                },
+            );
+            s.case(
+                "occupancy::MiseConfig::new",
+                &gl,
+                Expect::Finite,
+                &[],
+                || {
+                    let cfg = MiseConfig::new(4, 1, &d, dtype);
+                    Ok(vec![Tensor::new(
+                        ((cfg.resolution0 << cfg.upsampling_steps) + 1) as f64,
+                        &d,
+                    )?])
+                },
+            );
+        }
+        for p in [0.0, 1e-30, 0.5, 1.0 - 1e-12, 1.0] {
+            s.case(
+                "occupancy::logit_threshold",
+                format!("p = {p}"),
+                Expect::FiniteOrErr,
+                &[],
+                || Ok(vec![Tensor::new(logit_threshold(p)?, &d)?]),
+            );
+        }
+    }
+}
+
+/// The PointNet encoder and the ONet decoders at extreme points, labels and codes.
+fn sweep_onet_networks(s: &mut Suite) {
+    use neural_fields::nn::{onet_decoder, NormMode, OnetConfig};
+    use neural_fields::occupancy::Mesh;
+    let d = Device::Cpu;
+    let _flat = |v: Vec<[f64; 3]>| Tensor::from_vec(v.concat(), v.len() * 3, &d);
+    let _vt = |v: Vec<f64>| Tensor::from_vec(v.clone(), v.len(), &d);
+    // A tetrahedron at three scales: tiny, unit, huge.
+    let _tet = |scale: f64| {
+        Mesh::new(
+            vec![
+                [0.0, 0.0, 0.0],
+                [scale, 0.0, 0.0],
+                [0.0, scale, 0.0],
+                [0.0, 0.0, scale],
+            ],
+            vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
+        )
+    };
+    for dtype in DTYPES {
+        let tag = format!("{dtype:?}");
+        // PointNet encoder on extreme points and labels.
+        {
+            use neural_fields::nn::{pointnet_encoder, PointNetConfig};
+            let cfg = PointNetConfig {
+                hidden: 8,
+                layers: 2,
+                latent_dim: 3,
+                point_features: 1,
+            };
+            let vm = candle_nn::VarMap::new();
+            let enc = build_seeded(&vm, dtype, &d, 2, |vb| pointnet_encoder(&cfg, vb)).unwrap();
+            let big = if dtype == DType::F32 { 1e15 } else { 1e100 };
+            let p = var(
+                &[
+                    0.0, 0.0, 0.0, 1e-30, -1.0, 1.0, big, -big, big, 0.5, 0.5, 0.5,
+                ],
+                &[1, 4, 3],
+                dtype,
+            );
+            let o = var(&[0.0, 1.0, 1e-30, 0.5], &[1, 4], dtype);
+            let el = format!("{tag}, |p| up to {big:e}");
+            s.case(
+                "nn::pointnet_encoder",
+                &el,
+                Expect::Finite,
+                &[&p, &o],
+                || {
+                    let (m, l) = enc.forward(p.as_tensor(), o.as_tensor())?;
+                    Ok(vec![m, l])
+                },
+            );
+            s.case(
+                "nn::PointNetEncoder::forward",
+                &el,
+                Expect::Finite,
+                &[&p, &o],
+                || {
+                    let (m, l) = enc.forward(p.as_tensor(), o.as_tensor())?;
+                    Ok(vec![m, l])
+                },
+            );
+            // Points with extreme per-point features (Texture Fields' normals).
+            let cfg3 = PointNetConfig {
+                point_features: 3,
+                ..cfg.clone()
+            };
+            let vm3 = candle_nn::VarMap::new();
+            let enc3 = build_seeded(&vm3, dtype, &d, 3, |vb| pointnet_encoder(&cfg3, vb)).unwrap();
+            let nrm = var(
+                &[
+                    0.0, 0.0, 0.0, 1.0, 0.0, 0.0, -big, big, 1e-30, 0.5, -0.5, 0.5,
+                ],
+                &[1, 4, 3],
+                dtype,
+            );
+            s.case(
+                "nn::PointNetEncoder::forward_features",
+                &el,
+                Expect::Finite,
+                &[&p, &nrm],
+                || {
+                    let (m, l) = enc3.forward_features(p.as_tensor(), nrm.as_tensor())?;
+                    Ok(vec![m, l])
+                },
+            );
+        }
+        // ONet's simple decoder on extreme points and codes.
+        {
+            use neural_fields::nn::{simple_decoder, SimpleDecoderConfig};
+            let cfg = SimpleDecoderConfig {
+                hidden: 8,
+                blocks: 2,
+                code_dim: 4,
+            };
+            let vm = candle_nn::VarMap::new();
+            let dec = build_seeded(&vm, dtype, &d, 6, |vb| simple_decoder(&cfg, vb)).unwrap();
+            let big = if dtype == DType::F32 { 1e15 } else { 1e100 };
+            let p = var(
+                &[0.0, 0.0, 0.0, 1e-30, 1.0, -1.0, big, -big, big],
+                &[3, 3],
+                dtype,
+            );
+            let c = var(
+                &[
+                    0.0, 1e-30, 1.0, -1.0, 1e3, -1e3, 0.5, 0.0, big, 0.0, 0.0, 0.0,
+                ],
+                &[3, 4],
+                dtype,
+            );
+            let sl = format!("{tag}, |p|, |z| up to {big:e}");
+            s.case("nn::simple_decoder", &sl, Expect::Finite, &[&p, &c], || {
+                Ok(vec![dec.logits(p.as_tensor(), c.as_tensor())?])
+            });
+            s.case(
+                "nn::SimpleDecoder::logits",
+                &sl,
+                Expect::Finite,
+                &[&p, &c],
+                || Ok(vec![dec.logits(p.as_tensor(), c.as_tensor())?]),
+            );
+            s.case(
+                "nn::SimpleDecoder::value_and_grad_with_code",
+                &sl,
+                Expect::Finite,
+                &[&p, &c],
+                || {
+                    let (v, g) = neural_fields::field::ConditionalField::value_and_grad_with_code(
+                        &dec,
+                        p.as_tensor(),
+                        c.as_tensor(),
+                    )?;
+                    Ok(vec![v, g])
+                },
+            );
+            s.case(
+                "nn::SimpleDecoder::forward_with_code",
+                &sl,
+                Expect::Finite,
+                &[&p, &c],
+                || {
+                    Ok(vec![
+                        neural_fields::field::ConditionalField::forward_with_code(
+                            &dec,
+                            p.as_tensor(),
+                            c.as_tensor(),
+                        )?,
+                    ])
+                },
+            );
+        }
+        // ONet decoder on extreme points and codes, both norm modes.
+        let config = OnetConfig {
+            hidden: 16,
+            blocks: 2,
+            code_dim: 4,
+            ..OnetConfig::default()
+        };
+        let varmap = candle_nn::VarMap::new();
+        let net = build_seeded(&varmap, dtype, &d, 1, |vb| onet_decoder(&config, vb)).unwrap();
+        let big = if dtype == DType::F32 { 1e6 } else { 1e100 };
+        let pts = var(
+            &[0.0, 0.0, 0.0, 1e-30, 1.0, -1.0, big, -big, big],
+            &[3, 3],
+            dtype,
+        );
+        let codes = var(
+            &[
+                0.0, 1e-30, 1.0, -1.0, 1e3, -1e3, 0.5, 0.0, big, 0.0, 0.0, 0.0,
+            ],
+            &[3, 4],
+            dtype,
+        );
+        for mode in [NormMode::Train, NormMode::Eval] {
+            let ol = format!("{tag}, |p|, |z| up to {big:e}, {mode:?}");
+            net.set_mode(mode);
+            s.case(
+                "nn::onet_decoder",
+                &ol,
+                Expect::Finite,
+                &[&pts, &codes],
+                || Ok(vec![net.logits(pts.as_tensor(), codes.as_tensor())?]),
+            );
+            s.case(
+                "nn::OnetDecoder::logits",
+                &ol,
+                Expect::Finite,
+                &[&pts, &codes],
+                || Ok(vec![net.logits(pts.as_tensor(), codes.as_tensor())?]),
+            );
+            s.case(
+                "nn::OnetDecoder::set_mode",
+                &ol,
+                Expect::Finite,
+                &[],
+                || Ok(vec![]),
+            );
+            s.case(
+                "nn::OnetDecoder::forward_with_code",
+                &ol,
+                Expect::Finite,
+                &[&pts, &codes],
+                || {
+                    Ok(vec![
+                        neural_fields::field::ConditionalField::forward_with_code(
+                            &net,
+                            pts.as_tensor(),
+                            codes.as_tensor(),
+                        )?,
+                    ])
+                },
+            );
+            s.case(
+                "nn::OnetDecoder::value_and_grad_with_code",
+                &ol,
+                Expect::Finite,
+                &[&pts, &codes],
+                || {
+                    let (v, g) = neural_fields::field::ConditionalField::value_and_grad_with_code(
+                        &net,
+                        pts.as_tensor(),
+                        codes.as_tensor(),
+                    )?;
+                    Ok(vec![v, g])
+                },
+            );
+        }
+    }
+}
+
+/// Conv. ONet on point clouds with coordinates from 0 to far outside the padded box (in
+/// both layouts), the decoder at such points, and `conv3d` on extreme inputs.
+fn sweep_conv_onet(s: &mut Suite) {
+    use neural_fields::nn::{
+        conv3d, conv_onet_encoder, local_decoder, ConvOnetConfig, FeatureLayout,
+        LocalDecoderConfig, UnetConfig,
+    };
+    use neural_fields::occupancy::PointCloud;
+    let d = Device::Cpu;
+    for dtype in DTYPES {
+        let big = if dtype == DType::F32 { 1e8 } else { 1e100 };
+        let rows: Vec<[f64; 3]> = vec![
+            [0.0, 0.0, 0.0],
+            [1e-30, 0.0, 0.0],
+            [0.5, 0.5, 0.5],
+            [-0.55, 0.55, 0.0],
+            [big, -big, big],
+            [1e4, 1.0, -1e4],
+        ];
+        let n = rows.len();
+        let p = var(&rows.concat(), &[1, n, 3], dtype);
+        for layout in [
+            FeatureLayout::Planes { resolution: 4 },
+            FeatureLayout::Grid { resolution: 4 },
+        ] {
+            let config = ConvOnetConfig {
+                layout,
+                hidden: 8,
+                blocks: 2,
+                feature_dim: 4,
+                unet: UnetConfig {
+                    depth: 2,
+                    start_filters: 4,
+                },
+                ..ConvOnetConfig::default()
+            };
+            let dconfig = LocalDecoderConfig {
+                hidden: 8,
+                blocks: 2,
+                feature_dim: 4,
+                padding: config.padding,
+            };
+            let vm = candle_nn::VarMap::new();
+            let (enc, dec) = build_seeded(&vm, dtype, &d, 6, |vb| {
+                Ok((
+                    conv_onet_encoder(&config, vb.pp("enc"))?,
+                    local_decoder(&dconfig, vb.pp("dec"))?,
+                ))
+            })
+            .unwrap();
+            let mut wrt: Vec<Var> = vm.all_vars();
+            wrt.push(p.clone());
+            let wrt: Vec<&Var> = wrt.iter().collect();
+            let label = format!("{dtype:?}, {layout:?}, |p| up to {big:e}");
+            for item in ["nn::conv_onet_encoder", "nn::local_decoder"] {
+                s.case(item, &label, Expect::Finite, &[], || Ok(vec![]));
+            }
+            s.case(
+                "nn::ConvOnetEncoder::forward",
+                &label,
+                Expect::Finite,
+                &wrt,
+                || {
+                    let f = enc.forward(p.as_tensor())?;
+                    Ok(match f {
+                        neural_fields::nn::LocalFeatures::Planes { xz, xy, yz } => {
+                            vec![xz, xy, yz]
+                        }
+                        neural_fields::nn::LocalFeatures::Grid(g) => vec![g],
+                    })
+                },
+            );
+            s.case(
+                "nn::LocalDecoder::logits",
+                &label,
+                Expect::Finite,
+                &wrt,
+                || {
+                    let f = enc.forward(p.as_tensor())?;
+                    Ok(vec![dec.logits(p.as_tensor(), &f)?])
+                },
+            );
+            let cloud = PointCloud::new(rows.clone()).unwrap();
+            for item in [
+                "nn::ConvOnetEncoder::encode_cloud",
+                "nn::LocalDecoder::bind",
+                "nn::SceneField::forward",
+            ] {
+                s.case(item, &label, Expect::Finite, &wrt, || {
+                    let field = dec.bind(enc.encode_cloud(&cloud)?)?;
+                    Ok(vec![field.forward(&p.as_tensor().squeeze(0)?)?])
+                });
+            }
+        }
+        // conv3d: extreme inputs under unit weights, extreme weights under unit inputs.
+        let mags = magnitudes(dtype);
+        let extreme: Vec<f64> = (0..2 * 27).map(|i| mags[(i * 5) % mags.len()]).collect();
+        let unit: Vec<f64> = (0..2 * 27).map(|i| ((i % 7) as f64 - 3.0) / 3.0).collect();
+        for (x, w, tag) in [(&extreme, &unit, "inputs"), (&unit, &extreme, "weights")] {
+            let x = var(x, &[1, 2, 3, 3, 3], dtype);
+            let w = var(w, &[1, 2, 3, 3, 3], dtype);
+            s.case(
+                "nn::conv3d",
+                format!("{dtype:?}, extreme {tag}"),
+                Expect::Finite,
+                &[&x, &w],
+                || {
+                    Ok(vec![
+                        conv3d(x.as_tensor(), w.as_tensor(), 1)?,
+                        conv3d(x.as_tensor(), w.as_tensor(), 0)?,
+                    ])
+                },
+            );
+        }
+    }
+}
