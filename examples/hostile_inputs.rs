@@ -4,7 +4,8 @@
 //! outcome, time and peak memory of each case.
 //!
 //! ```text
-//! cargo run --release --example hostile_inputs -- [--out PATH]   # default docs/hostile_inputs.md
+//! cargo run --release --example hostile_inputs                   # target/hostile_inputs/
+//! cargo run --release --example hostile_inputs -- --out docs      # regenerates the docs' table
 //! ```
 //!
 //! Each case's file (or dataset folder) is written into a fresh scratch directory
@@ -26,13 +27,15 @@
 //! included). Each reader's first row is a valid control file, so that every hostile case
 //! fails for its own reason and not for a broken fixture.
 //!
-//! The table goes to PATH and to stdout, below the command, the date (UTC), the machine
+//! The table goes to `OUT/hostile_inputs.md` (`--out`, default `target/hostile_inputs`) and
+//! to stdout, below the command, the date (UTC), the machine
 //! and the git commit. The command is a check: it exits non-zero when a case panics or
 //! aborts, runs past 60 s, peaks above 256 MiB, or ends otherwise than expected: hostile
 //! cases must be errors; the controls and the cases that are legitimate files (a
 //! property-less PLY element with a huge count, convex 255-gons, a stray byte in an OBJ
 //! group name) must load. Unix only (process groups, `/usr/bin/time`, `uname`).
 
+use clap::Parser;
 use neural_fields::data::{load, LoadConfig, Split};
 use neural_fields::occupancy::{Mesh, MeshFormat, PointCloud};
 use std::error::Error;
@@ -50,7 +53,6 @@ type Bytes = Rc<dyn Fn() -> Res<Vec<u8>>>;
 /// Writes a case's input into its scratch directory and returns the path to read.
 type Make = Rc<dyn Fn(&Path) -> Res<PathBuf>>;
 
-const DEFAULT_OUT: &str = "docs/hostile_inputs.md";
 const LIMIT: Duration = Duration::from_secs(60);
 const MAX_RSS_MIB: f64 = 256.0;
 const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/examples/data");
@@ -67,21 +69,31 @@ const UTF8: &str = "6 non-UTF-8";
 const DIRECTORY: &str = "7 directory";
 const MISSING: &str = "8 missing";
 
+/// Every file reader of the crate against hostile files: a table of the outcome, time
+/// and peak memory of each case; exits non-zero on an unexpected outcome.
+#[derive(Parser, Debug)]
+struct Args {
+    /// The folder for hostile_inputs.md (`--out docs` regenerates the docs' table).
+    #[arg(long, default_value = "target/hostile_inputs")]
+    out: PathBuf,
+    /// The child process: read PATH with READER (ply, obj, stl, off, cloud, blender, npz)
+    /// and print one line, `ok: …` or `err: …`.
+    #[arg(long, num_args = 2, value_names = ["READER", "PATH"], conflicts_with = "out")]
+    read: Option<Vec<String>>,
+}
+
 fn main() -> Res<()> {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    match args.as_slice() {
-        [flag, reader, path] if flag == "--read" => {
-            let line = match read(reader, Path::new(path)) {
-                Ok(summary) => format!("ok: {summary}"),
-                Err(e) => format!("err: {e}"),
-            };
-            println!("{}", line.replace('\n', " "));
-            Ok(())
-        }
-        [] => report(Path::new(DEFAULT_OUT), &args),
-        [flag, out] if flag == "--out" => report(Path::new(out), &args),
-        _ => Err("usage: hostile_inputs [--out PATH]  (or --read READER PATH)".into()),
+    let args = Args::parse();
+    if let Some([reader, path]) = args.read.as_deref() {
+        let line = match read(reader, Path::new(path)) {
+            Ok(summary) => format!("ok: {summary}"),
+            Err(e) => format!("err: {e}"),
+        };
+        println!("{}", line.replace('\n', " "));
+        return Ok(());
     }
+    let given: Vec<String> = std::env::args().skip(1).collect();
+    report(&args.out.join("hostile_inputs.md"), &given)
 }
 
 /// The child: one reader on one path, summarised.

@@ -10,11 +10,11 @@
 //! ```
 //!
 //! Flags: `--minutes M` or `--steps N` (default 8 minutes of training, evaluation not
-//! counted), `--out DIR` (default `occupancy_flow_out`), `--seed S`, `--solver` for
+//! counted), `--out DIR` (default `target/occupancy_flow`), `--seed S`, `--solver` for
 //! training (`rk4:N`, N steps per unit of time, default `rk4:4`; or `dopri5:RTOL`, with
 //! `atol = RTOL/100`). Evaluation always integrates with Dormand–Prince at `rtol 1e-5`.
 //!
-//! The motion is analytic (see `common/deforming_torus.rs`), so occupancy and
+//! The motion is analytic ([`DeformingTorus`]), so occupancy and
 //! correspondences are exact at every time. Each step draws, as Occupancy Flow trains:
 //! points at time 0 (BCE on the decoder), points at a random time carried back to 0
 //! (BCE through the flow), and surface points of time 0 carried forward to
@@ -28,92 +28,84 @@
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{AdamW, Optimizer, VarMap};
+use clap::Parser;
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::ImplicitSurface;
 use neural_fields::flow::{
-    correspondence_loss, velocity_field, Graph, OccupancyFlow, Solver, VelocityField,
-    VelocityFieldConfig,
+    correspondence_loss, velocity_field, DeformingTorus, Graph, OccupancyFlow, Solver,
+    VelocityField, VelocityFieldConfig,
 };
-use neural_fields::nn::{build_seeded, mlp, Activation, Mlp, MlpConfig};
+use neural_fields::nn::{
+    adam, build_seeded, mlp, Activation, Budget, Clock, FiniteGuard, Mlp, MlpConfig,
+};
 use neural_fields::numerics::bce_with_logits;
 use neural_fields::occupancy::{from_tensor, iou, mise, points_tensor, MiseConfig};
 use neural_fields::rng::SplitMix64;
-use neural_fields::Result;
+use neural_fields::{Error, Result};
 use serde_json::json;
-use std::path::PathBuf;
-
-mod common;
-#[path = "common/deforming_torus.rs"]
-mod motion;
-#[path = "common/training.rs"]
-mod training;
+use std::path::{Path, PathBuf};
 
 /// Times at which the correspondence loss and the evaluation look.
 const TIMES: [f64; 5] = [0.0, 0.25, 0.5, 0.75, 1.0];
-const USAGE: &str = "usage: occupancy_flow [--minutes M | --steps N] [--out DIR] [--seed S] \
-                     [--solver rk4:N | dopri5:RTOL]";
 
+/// Occupancy Flow on a torus that twists, stretches and moves: IoU over time, the error
+/// of the correspondences, and meshes of every time with the same faces.
+#[derive(Parser, Debug)]
 struct Args {
+    /// Minutes of training, evaluation not counted (default 8 without --steps).
+    #[arg(long, conflicts_with = "steps")]
     minutes: Option<f64>,
+    /// Training steps instead of minutes.
+    #[arg(long)]
     steps: Option<usize>,
+    /// The folder for metrics.json, curve.csv and the meshes.
+    #[arg(long, default_value = "target/occupancy_flow")]
     out: PathBuf,
+    /// The seed of the networks' weights and of the training points.
+    #[arg(long, default_value_t = 0)]
     seed: u64,
-    solver: Solver,
-    solver_name: String,
+    /// The training solver: rk4:N (N steps per unit of time) or dopri5:RTOL (atol =
+    /// RTOL/100).
+    #[arg(long, default_value = "rk4:4", value_parser = parse_solver)]
+    solver: SolverFlag,
 }
 
-fn parse_solver(value: &str) -> std::result::Result<Solver, String> {
-    match value.split_once(':') {
-        Some(("rk4", n)) => Ok(Solver::Rk4 {
-            steps: training::count("--solver rk4", n)?,
-        }),
+/// `--solver` as given, and the solver it names.
+#[derive(Clone, Debug)]
+struct SolverFlag {
+    solver: Solver,
+    name: String,
+}
+
+fn parse_solver(value: &str) -> std::result::Result<SolverFlag, String> {
+    let solver = match value.split_once(':') {
+        Some(("rk4", n)) => Solver::Rk4 {
+            steps: n.parse().map_err(|_| format!("rk4:N: not a count: {n}"))?,
+        },
         Some(("dopri5", r)) => {
-            let rtol = training::number("--solver dopri5", r)?;
-            Ok(Solver::Dopri5 {
+            let rtol: f64 = r
+                .parse()
+                .map_err(|_| format!("dopri5:RTOL: not a number: {r}"))?;
+            Solver::Dopri5 {
                 rtol,
                 atol: rtol / 100.0,
                 max_steps: 10_000,
-            })
+            }
         }
-        _ => Err(format!("--solver: rk4:N or dopri5:RTOL, not {value}")),
-    }
+        _ => return Err(format!("rk4:N or dopri5:RTOL, not {value}")),
+    };
+    Ok(SolverFlag {
+        solver,
+        name: value.into(),
+    })
 }
 
-fn args() -> std::result::Result<Args, String> {
-    let mut a = Args {
-        minutes: None,
-        steps: None,
-        out: "occupancy_flow_out".into(),
-        seed: 0,
-        solver: Solver::Rk4 { steps: 4 },
-        solver_name: "rk4:4".into(),
-    };
-    let mut data = PathBuf::new();
-    training::parse_flags(USAGE, |flag, value| {
-        if flag == "--solver" {
-            a.solver = parse_solver(value)?;
-            a.solver_name = value.into();
-            return Ok(());
-        }
-        if flag == "--data" {
-            return Err(format!("--data: this example's scene is analytic\n{USAGE}"));
-        }
-        if training::take_run_flag(
-            flag,
-            value,
-            &mut data,
-            &mut a.minutes,
-            &mut a.steps,
-            &mut a.out,
-            &mut a.seed,
-        )? {
-            Ok(())
-        } else {
-            Err(format!("unknown flag {flag}\n{USAGE}"))
-        }
-    })?;
-    training::check_budget(&mut a.minutes, a.steps, 8.0)?;
-    Ok(a)
+/// Writes `text` to `path`.
+fn write(path: &Path, text: &str) -> Result<()> {
+    std::fs::write(path, text).map_err(|source| Error::Io {
+        path: path.display().to_string(),
+        source,
+    })
 }
 
 /// The two networks and their optimiser.
@@ -165,17 +157,18 @@ impl Model {
 /// Labelled points at time `t`: half uniform in the padded cube, half near the moved
 /// surface (time-0 surface points plus Gaussian noise of σ = 0.03, carried by `Φ`).
 fn labelled(n: usize, t: f64, rng: &mut SplitMix64) -> (Vec<[f64; 3]>, Vec<f32>) {
+    let motion = DeformingTorus::default();
     let mut pts = Vec::with_capacity(n);
     for _ in 0..n / 2 {
         pts.push([0.0; 3].map(|_| 1.1 * rng.uniform() - 0.55));
     }
-    for s in motion::surface(n - n / 2, rng) {
+    for s in motion.surface(n - n / 2, rng) {
         let jittered = [0, 1, 2].map(|i| s[i] + 0.03 * rng.normal());
-        pts.push(motion::forward(jittered, t));
+        pts.push(motion.carry(jittered, 0.0, t));
     }
     let labels = pts
         .iter()
-        .map(|&p| f32::from(u8::from(motion::inside(p, t))))
+        .map(|&p| f32::from(u8::from(motion.inside(p, t))))
         .collect();
     (pts, labels)
 }
@@ -207,19 +200,21 @@ struct Held {
 
 impl Held {
     fn new(device: &Device, dtype: DType) -> Result<Self> {
+        let motion = DeformingTorus::default();
         let mut rng = SplitMix64::new(1234);
         let uniform: Vec<[f64; 3]> = (0..50_000)
             .map(|_| [0.0; 3].map(|_| 1.1 * rng.uniform() - 0.55))
             .collect();
         let truth = TIMES
             .iter()
-            .map(|&t| uniform.iter().map(|&p| motion::inside(p, t)).collect())
+            .map(|&t| uniform.iter().map(|&p| motion.inside(p, t)).collect())
             .collect();
-        let surface = motion::surface(4000, &mut rng);
+        let surface = motion.surface(4000, &mut rng);
         let surface_truth = TIMES
             .iter()
             .map(|&t| {
-                let moved: Vec<[f64; 3]> = surface.iter().map(|&p| motion::forward(p, t)).collect();
+                let moved: Vec<[f64; 3]> =
+                    surface.iter().map(|&p| motion.carry(p, 0.0, t)).collect();
                 points_tensor(&moved, device, dtype)
             })
             .collect::<Result<_>>()?;
@@ -290,11 +285,12 @@ fn train_step(
     let logits_t = flow.logits(&points_tensor(&pt, device, dtype)?, t)?;
     let bce_t = bce_with_logits(&logits_t, &labels(yt)?)?.mean_all()?;
     // Correspondences: time-0 surface points carried to every time.
-    let surface = motion::surface(256, rng);
+    let motion = DeformingTorus::default();
+    let surface = motion.surface(256, rng);
     let moved = flow.correspondences(&points_tensor(&surface, device, dtype)?, &TIMES[1..])?;
     let mut corr = Tensor::zeros((), dtype, device)?;
     for (m, &t) in moved.iter().zip(&TIMES[1..]) {
-        let truth: Vec<[f64; 3]> = surface.iter().map(|&p| motion::forward(p, t)).collect();
+        let truth: Vec<[f64; 3]> = surface.iter().map(|&p| motion.carry(p, 0.0, t)).collect();
         let l = correspondence_loss(m, &points_tensor(&truth, device, dtype)?)?;
         corr = (corr + l)?;
     }
@@ -308,29 +304,38 @@ fn train_step(
 fn run(a: &Args) -> Result<()> {
     let device = Device::Cpu;
     let dtype = DType::F32;
-    training::create_dir(&a.out)?;
+    std::fs::create_dir_all(&a.out).map_err(|source| Error::Io {
+        path: a.out.display().to_string(),
+        source,
+    })?;
     let model = Model::new(a.seed, &device, dtype)?;
-    let vars = training::named_vars(&model.varmap);
-    let mut opt = common::adam(&model.varmap, 1e-3)?;
+    let guard = FiniteGuard::new(&model.varmap);
+    let mut opt = adam(&model.varmap, 1e-3)?;
     let held = Held::new(&device, dtype)?;
     let mut rng = SplitMix64::new(a.seed.wrapping_add(99));
-    let mut clock = training::Clock::start(a.steps, a.minutes);
+    let mut clock = Clock::start(match a.steps {
+        Some(n) => Budget::Steps(n),
+        None => Budget::Minutes(a.minutes.unwrap_or(8.0)),
+    })?;
+    let bar = indicatif::ProgressBar::new(1000);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {percent}% {msg}")
+            .expect("template")
+            .progress_chars("=> "),
+    );
     let mut curve = String::from("seconds,step,loss,iou_min,correspondence_mean\n");
     let mut next_eval = 120.0;
     let mut lr_dropped = false;
     let mut step = 0;
     let mut last_loss = f64::NAN;
     while clock.progress(step) < 1.0 {
-        let (loss, grads) = train_step(&model, &mut opt, a.solver, &mut rng, &device, dtype)?;
-        training::check_finite(&loss, step, "the loss")?;
-        if step % 50 == 0 {
-            training::check_gradients(&grads, &vars, step)?;
-            training::check_weights(&vars, step)?;
-        }
+        let (loss, grads) =
+            train_step(&model, &mut opt, a.solver.solver, &mut rng, &device, dtype)?;
+        guard.check(step, &loss, (step % 50 == 0).then_some(&grads))?;
         last_loss = loss.to_dtype(DType::F64)?.to_scalar::<f64>()?;
         step += 1;
-        clock.tick(step);
-        clock.bar.set_message(format!("loss {last_loss:.4}"));
+        bar.set_position((1000.0 * clock.progress(step).min(1.0)) as u64);
+        bar.set_message(format!("loss {last_loss:.4}"));
         if !lr_dropped && clock.progress(step) > 0.75 {
             opt.set_learning_rate(3e-4);
             lr_dropped = true;
@@ -338,14 +343,16 @@ fn run(a: &Args) -> Result<()> {
         if clock.train_seconds() > next_eval && clock.progress(step) < 1.0 {
             next_eval += 120.0;
             let seconds = clock.train_seconds();
-            let e = clock.off_clock(|| -> Result<Evaluation> {
-                let e = evaluate(&model, &held)?;
-                println!(
-                    "{seconds:>6.0} s  step {step:>5}  loss {last_loss:.4}  IoU min {:.4}  correspondence {:.4}",
-                    e.iou_min(),
-                    e.correspondence_mean()
-                );
-                Ok(e)
+            let e = clock.pause(|| {
+                bar.suspend(|| -> Result<Evaluation> {
+                    let e = evaluate(&model, &held)?;
+                    println!(
+                        "{seconds:>6.0} s  step {step:>5}  loss {last_loss:.4}  IoU min {:.4}  correspondence {:.4}",
+                        e.iou_min(),
+                        e.correspondence_mean()
+                    );
+                    Ok(e)
+                })
             })?;
             curve += &format!(
                 "{seconds:.1},{step},{last_loss:.6},{:.5},{:.5}\n",
@@ -354,7 +361,7 @@ fn run(a: &Args) -> Result<()> {
             );
         }
     }
-    clock.bar.finish_and_clear();
+    bar.finish_and_clear();
     let train_seconds = clock.train_seconds();
     let e = evaluate(&model, &held)?;
     curve += &format!(
@@ -362,7 +369,7 @@ fn run(a: &Args) -> Result<()> {
         e.iou_min(),
         e.correspondence_mean()
     );
-    training::write_text(&a.out.join("curve.csv"), &curve)?;
+    write(&a.out.join("curve.csv"), &curve)?;
     // Meshes: MISE on the time-0 decoder, its vertices carried to every time.
     let out = mise(
         &model.decoder as &dyn ImplicitSurface,
@@ -398,23 +405,18 @@ fn run(a: &Args) -> Result<()> {
         "correspondence_max": e.correspondence[1..].iter().copied().fold(0.0, f64::max),
         "train_seconds": train_seconds,
         "steps": step,
-        "solver": a.solver_name,
+        "solver": a.solver.name,
         "eval_solver": "dopri5:1e-5",
     });
-    training::write_json(&a.out.join("metrics.json"), &metrics)?;
-    println!("{}", serde_json::to_string_pretty(&metrics).expect("JSON"));
+    let metrics = serde_json::to_string_pretty(&metrics).expect("JSON");
+    write(&a.out.join("metrics.json"), &metrics)?;
+    println!("{metrics}");
     println!("wrote {}", a.out.display());
     Ok(())
 }
 
 fn main() {
-    let a = match args() {
-        Ok(a) => a,
-        Err(msg) => {
-            eprintln!("{msg}");
-            std::process::exit(2);
-        }
-    };
+    let a = Args::parse();
     if let Err(e) = run(&a) {
         eprintln!("occupancy_flow: {e}");
         std::process::exit(1);
@@ -425,31 +427,6 @@ fn main() {
 mod tests {
     use super::*;
 
-    /// The analytic motion: `Φ⁻¹(Φ(p, t), t) = p`, and its Eulerian velocity is the time
-    /// derivative of `Φ` (central differences).
-    #[test]
-    fn the_analytic_motion_inverts_and_its_velocity_is_its_derivative() -> Result<()> {
-        let mut rng = SplitMix64::new(3);
-        for _ in 0..100 {
-            let p = [0.0; 3].map(|_| rng.uniform() - 0.5);
-            let t = rng.uniform();
-            let back = motion::inverse(motion::forward(p, t), t);
-            assert!(
-                (0..3).all(|i| (back[i] - p[i]).abs() < 1e-12),
-                "{p:?} {back:?}"
-            );
-            let h = 1e-6;
-            let (a, b) = (motion::forward(p, t + h), motion::forward(p, t - h));
-            let at = motion::forward(p, t);
-            let v = motion::velocity(&Tensor::new(&[at], &Device::Cpu)?, t)?.to_vec2::<f64>()?;
-            for i in 0..3 {
-                let fd = (a[i] - b[i]) / (2.0 * h);
-                assert!((v[0][i] - fd).abs() < 1e-6, "axis {i}: {} vs {fd}", v[0][i]);
-            }
-        }
-        Ok(())
-    }
-
     /// A few steps train without error and every output is finite.
     #[test]
     fn a_short_run_writes_finite_metrics_and_meshes() {
@@ -459,8 +436,7 @@ mod tests {
             steps: Some(3),
             out: out.clone(),
             seed: 1,
-            solver: Solver::Rk4 { steps: 2 },
-            solver_name: "rk4:2".into(),
+            solver: parse_solver("rk4:2").expect("a solver"),
         };
         run(&a).expect("a short run");
         let text = std::fs::read_to_string(out.join("metrics.json")).expect("metrics.json");

@@ -1,17 +1,17 @@
 //! The front door: fit a small MLP occupancy field to an analytic torus.
 //!
 //! ```text
-//! cargo run --release --example quickstart
-//! cargo run --release --example quickstart -- --encoding hash out/torus.ply
+//! cargo run --release --example quickstart                 # writes target/quickstart/
+//! cargo run --release --example quickstart -- --encoding hash --out /tmp/torus
 //! ```
 //!
 //! Samples points uniformly in the padded cube [−0.55, 0.55]³ (ONet's box), labels them
 //! with the exact torus, trains a 4 × 64 ReLU MLP on frequency-encoded points with the
 //! stable BCE-with-logits and Adam, and prints the loss and the volumetric IoU on 100 000
 //! held-out points as it goes, then extracts the learned surface with MISE (16³ → 128³)
-//! and writes it to `quickstart_torus.ply` (or the path given as the first argument), and
+//! and writes it to `OUT/quickstart_torus.ply` (`--out`, default `target/quickstart`), and
 //! renders it with DVR's ray marcher, shaded by the network's normals, to
-//! `quickstart_torus.png` (the same path with a `.png` extension).
+//! `OUT/quickstart_torus.png`.
 //! Finishes in well under a minute on 2 cores.
 //!
 //! `--encoding hash` replaces the frequency encoding and the 4 × 64 trunk by instant-NGP's
@@ -21,21 +21,20 @@
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::Optimizer;
-use common::PositionEncoding;
-use neural_fields::camera::ray_aabb;
+use clap::{Parser, ValueEnum};
+use neural_fields::camera::{ray_aabb, Camera, Convention, Intrinsics};
 use neural_fields::data::write_png;
 use neural_fields::dvr::{march, MarchConfig};
+use neural_fields::encoding::{hash_grid, FrequencyEncoding, HashGridConfig, PointEncoding};
 use neural_fields::field::{ImplicitSurface, SignedDistance, Torus};
 use neural_fields::glam::DVec3;
-use neural_fields::nn::{build_seeded, mlp, Activation, Mlp, MlpConfig};
+use neural_fields::nn::{adam, build_seeded, mlp, Activation, Mlp, MlpConfig};
 use neural_fields::numerics::bce_with_logits;
 use neural_fields::occupancy::{mesh_metrics, mise, Grid, MiseConfig};
 use neural_fields::rng::SplitMix64;
+use neural_fields::Error;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
-
-#[path = "common/cameras.rs"]
-mod cameras;
-mod common;
 
 const BOX: f64 = 0.55;
 
@@ -55,49 +54,43 @@ fn iou(predicted: &Tensor, truth: &Tensor) -> neural_fields::Result<f64> {
     Ok(if union > 0.0 { inter / union } else { 1.0 })
 }
 
-const USAGE: &str = "usage: quickstart [--encoding pe|hash] [OUTPUT.ply]";
+/// Fit a small MLP occupancy field to an analytic torus, extract it with MISE and
+/// render it with DVR's ray marcher.
+#[derive(Parser, Debug)]
+struct Args {
+    /// The position encoding: frequencies on a 4 × 64 trunk, or a hash grid on 2 × 64.
+    #[arg(long, value_enum, default_value_t = Encoding::Pe)]
+    encoding: Encoding,
+    /// The folder for quickstart_torus.ply and quickstart_torus.png.
+    #[arg(long, default_value = "target/quickstart")]
+    out: PathBuf,
+}
 
-/// The command line: the encoding and the mesh's path.
-fn parse_args() -> Result<(PositionEncoding, String), String> {
-    let mut encoding = PositionEncoding::Pe;
-    let mut path = None;
-    let mut args = std::env::args().skip(1);
-    while let Some(arg) = args.next() {
-        match arg.as_str() {
-            "--encoding" => {
-                let value = args
-                    .next()
-                    .ok_or(format!("--encoding needs a value\n{USAGE}"))?;
-                encoding = PositionEncoding::parse(&value)?;
-            }
-            flag if flag.starts_with("--") => return Err(format!("unknown flag {flag}\n{USAGE}")),
-            _ if path.is_some() => return Err(format!("one output path only\n{USAGE}")),
-            _ => path = Some(arg),
-        }
-    }
-    Ok((
-        encoding,
-        path.unwrap_or_else(|| "quickstart_torus.ply".into()),
-    ))
+/// The value of `--encoding`.
+#[derive(Clone, Copy, Debug, PartialEq, ValueEnum)]
+enum Encoding {
+    /// A frequency encoding with 4 octaves.
+    Pe,
+    /// instant-NGP's multiresolution hash grid over the box.
+    Hash,
 }
 
 fn main() -> std::process::ExitCode {
-    match parse_args() {
-        Err(msg) => {
-            eprintln!("{msg}");
-            std::process::ExitCode::from(2)
+    let args = Args::parse();
+    match run(&args) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("quickstart: {e}");
+            std::process::ExitCode::FAILURE
         }
-        Ok((encoding, path)) => match run(encoding, &path) {
-            Ok(()) => std::process::ExitCode::SUCCESS,
-            Err(e) => {
-                eprintln!("quickstart: {e}");
-                std::process::ExitCode::FAILURE
-            }
-        },
     }
 }
 
-fn run(encoding: PositionEncoding, path: &str) -> neural_fields::Result<()> {
+fn run(args: &Args) -> neural_fields::Result<()> {
+    std::fs::create_dir_all(&args.out).map_err(|source| Error::Io {
+        path: args.out.display().to_string(),
+        source,
+    })?;
     let device = Device::Cpu;
     let dtype = DType::F32;
     // The shape to learn: occupancy logits of a torus (inside positive).
@@ -105,9 +98,9 @@ fn run(encoding: PositionEncoding, path: &str) -> neural_fields::Result<()> {
 
     // The model: points → PE(L = 4) → 4 × 64 ReLU → one occupancy logit, or points →
     // hash grid → 2 × 64 ReLU → one logit.
-    let (depth, lr) = match encoding {
-        PositionEncoding::Pe => (4, 2e-3),
-        PositionEncoding::Hash => (2, 1e-2),
+    let (depth, lr) = match args.encoding {
+        Encoding::Pe => (4, 2e-3),
+        Encoding::Hash => (2, 1e-2),
     };
     let varmap = candle_nn::VarMap::new();
     let net = build_seeded(&varmap, dtype, &device, 0, |vb| {
@@ -115,12 +108,25 @@ fn run(encoding: PositionEncoding, path: &str) -> neural_fields::Result<()> {
             hidden: 64,
             depth,
             activation: Activation::Relu,
-            encoding: encoding.build(4, [-BOX; 3], [BOX; 3], 14, 256.0, &vb)?,
+            encoding: match args.encoding {
+                Encoding::Pe => PointEncoding::Frequency(FrequencyEncoding::new(3, 4)?),
+                // 16 levels of 2 features, 2¹⁴ rows, resolutions 16 to 256 over the box.
+                Encoding::Hash => PointEncoding::HashGrid(hash_grid(
+                    &HashGridConfig {
+                        lo: vec![-BOX; 3],
+                        hi: vec![BOX; 3],
+                        log2_table_size: 14,
+                        finest_resolution: 256.0,
+                        ..HashGridConfig::default()
+                    },
+                    vb.pp("grid"),
+                )?),
+            },
             ..MlpConfig::default()
         };
         mlp(&config, vb)
     })?;
-    let mut opt = common::adam(&varmap, lr)?;
+    let mut opt = adam(&varmap, lr)?;
 
     let mut rng = SplitMix64::new(1);
     let eval_points = rng.uniform_tensor(&[100_000, 3], -BOX, BOX, dtype, &device)?;
@@ -168,20 +174,22 @@ fn run(encoding: PositionEncoding, path: &str) -> neural_fields::Result<()> {
             m.normal_consistency.unwrap_or(f64::NAN),
             m.f_score
         );
-        out.mesh.save(path)?;
-        println!("wrote {path} (open it in MeshLab or Blender)");
-        let png = std::path::Path::new(path).with_extension("png");
-        render(&net, &png)?;
+        let path = args.out.join("quickstart_torus.ply");
+        out.mesh.save(&path)?;
+        println!("wrote {} (open it in MeshLab or Blender)", path.display());
+        render(&net, &args.out.join("quickstart_torus.png"))?;
     }
     Ok(())
 }
 
 /// Renders the learned field with DVR's ray marcher (the surface points a DVR training
 /// step would differentiate), shaded by the field's normals, to a grey-scale PNG.
-fn render(net: &Mlp, path: &std::path::Path) -> neural_fields::Result<()> {
+fn render(net: &Mlp, path: &Path) -> neural_fields::Result<()> {
     let t = Instant::now();
     let side = 160;
-    let cam = cameras::looking_at_origin(side, 0.75, DVec3::new(0.45, -0.75, 0.8))?;
+    let k = Intrinsics::from_fov_y(side, side, 0.75)?;
+    let eye = DVec3::new(0.45, -0.75, 0.8);
+    let cam = Camera::look_at(k, eye, DVec3::ZERO, DVec3::Z, Convention::OpenGl)?;
     let rays = cam.rays(&Device::Cpu, DType::F32)?;
     let bounds = ray_aabb(&rays, [-BOX; 3], [BOX; 3])?;
     // 64 samples + 8 secant steps per ray: the depth error is far below a pixel here.

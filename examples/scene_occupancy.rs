@@ -2,7 +2,7 @@
 //! convolutional occupancy network, and compare them.
 //!
 //! ```text
-//! cargo run --release --example scene_occupancy --features occupancy -- \
+//! cargo run --release --example scene_occupancy -- \
 //!     [--minutes M | --steps N] [--encoder planes|grid] [--out DIR] [--seed S]
 //! ```
 //!
@@ -32,18 +32,20 @@
 //! uniform points of the held-out scene at ConvONet's threshold (occupancy probability
 //! 0.2), Chamfer-L1 (unscaled; the papers print ×10) between the MISE mesh (32³ → 128³)
 //! and the held-out scene's, from 100 000 samples each, training seconds and steps.
-//! Written to `OUT` (default `scene_occupancy_out`): `global.ply`, `conv.ply`,
+//! Written to `OUT` (default `target/scene_occupancy`): `global.ply`, `conv.ply`,
 //! `scene.ply` (the held-out scene), `metrics.json` and `curve.csv` (IoU on 10 000
 //! held-out points against training seconds, every 30 s).
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{Optimizer, VarMap};
+use clap::{Parser, ValueEnum};
 use neural_fields::field::{Conditioned, Cuboid, Field, ImplicitSurface, Inside, SignedDistance};
 use neural_fields::field::{Sphere, Torus};
 use neural_fields::nn::{
-    build_seeded, conv_onet_encoder, local_decoder, onet_decoder, pointnet_encoder, ConvOnetConfig,
-    ConvOnetEncoder, FeatureLayout, LocalDecoder, LocalDecoderConfig, NormMode, OnetConfig,
-    OnetDecoder, PointNetConfig, PointNetEncoder, UnetConfig,
+    adam, build_seeded, conv_onet_encoder, local_decoder, onet_decoder, pointnet_encoder, Budget,
+    Clock, ConvOnetConfig, ConvOnetEncoder, FeatureLayout, FiniteGuard, LocalDecoder,
+    LocalDecoderConfig, NormMode, OnetConfig, OnetDecoder, PointNetConfig, PointNetEncoder,
+    UnetConfig,
 };
 use neural_fields::occupancy::{
     from_tensor, iou, logit_threshold, mesh_metrics, mise, points_tensor, reconstruction_loss,
@@ -54,11 +56,6 @@ use neural_fields::{Error, Result};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-mod common;
-
-const USAGE: &str = "scene_occupancy [--minutes M | --steps N] [--encoder planes|grid] \
-[--out DIR] [--seed S]   (budget per encoder; default --minutes 6)";
-
 /// Input points per cloud, their noise, query points per step.
 const CLOUD: usize = 3000;
 const NOISE: f64 = 0.005;
@@ -68,58 +65,35 @@ const CURVE_POINTS: usize = 10_000;
 /// ConvONet's occupancy threshold.
 const THRESHOLD: f64 = 0.2;
 
-#[derive(Clone, Debug)]
+/// Reconstruct a held-out scene of several objects from a noisy point cloud with a global
+/// and a convolutional occupancy network, trained on the same budget each.
+#[derive(Parser, Clone, Debug)]
 struct Args {
+    /// Minutes of training per encoder, evaluation not counted (default 6 without
+    /// --steps).
+    #[arg(long, conflicts_with = "steps")]
     minutes: Option<f64>,
+    /// Training steps per encoder instead of minutes.
+    #[arg(long)]
     steps: Option<usize>,
-    grid: bool,
+    /// The convolutional encoder's features: three planes or a 3-D grid.
+    #[arg(long, value_enum, default_value_t = Encoder::Planes)]
+    encoder: Encoder,
+    /// The folder for the meshes, metrics.json and curve.csv.
+    #[arg(long, default_value = "target/scene_occupancy")]
     out: PathBuf,
+    /// The seed of the weights and of the scene stream.
+    #[arg(long, default_value_t = 0)]
     seed: u64,
 }
 
-fn parse_args() -> std::result::Result<Args, String> {
-    let mut a = Args {
-        minutes: None,
-        steps: None,
-        grid: false,
-        out: "scene_occupancy_out".into(),
-        seed: 0,
-    };
-    let mut it = std::env::args().skip(1);
-    while let Some(flag) = it.next() {
-        if flag == "--help" || flag == "-h" {
-            return Err(USAGE.into());
-        }
-        let v = it.next().ok_or(format!("{flag} needs a value\n{USAGE}"))?;
-        let bad = |what: &str| format!("{flag}: not {what}: {v}");
-        match flag.as_str() {
-            "--minutes" => {
-                let m: f64 = v.parse().map_err(|_| bad("a number"))?;
-                if !(m > 0.0 && m.is_finite()) {
-                    return Err("--minutes must be positive".into());
-                }
-                a.minutes = Some(m);
-            }
-            "--steps" => a.steps = Some(v.parse().map_err(|_| bad("a count"))?),
-            "--encoder" => {
-                a.grid = match v.as_str() {
-                    "planes" => false,
-                    "grid" => true,
-                    _ => return Err(bad("planes or grid")),
-                }
-            }
-            "--out" => a.out = v.into(),
-            "--seed" => a.seed = v.parse().map_err(|_| bad("a u64"))?,
-            _ => return Err(format!("unknown flag {flag}\n{USAGE}")),
-        }
-    }
-    if a.minutes.is_some() && a.steps.is_some() {
-        return Err("give --minutes or --steps, not both".into());
-    }
-    if a.minutes.is_none() && a.steps.is_none() {
-        a.minutes = Some(6.0);
-    }
-    Ok(a)
+/// The value of `--encoder`.
+#[derive(Clone, Copy, Debug, PartialEq, ValueEnum)]
+enum Encoder {
+    /// Three 64² feature planes and a 2-D U-Net.
+    Planes,
+    /// A 32³ feature grid and a 3-D U-Net.
+    Grid,
 }
 
 /// One object of a scene, with what its surface sampler needs.
@@ -553,24 +527,6 @@ fn volume_iou(logits: &[f32], truth: &[bool]) -> Result<f64> {
     iou(&pred, truth)
 }
 
-/// Stops on a NaN or infinity, naming the step and the tensor.
-fn check_finite(t: &Tensor, step: usize, what: &str) -> Result<()> {
-    let s = t
-        .abs()?
-        .sum_all()?
-        .to_dtype(DType::F64)?
-        .to_scalar::<f64>()?;
-    if s.is_finite() {
-        Ok(())
-    } else {
-        Err(Error::InvalidArgument {
-            arg: "training",
-            expected: "finite losses and gradients".into(),
-            got: format!("a NaN or infinity in {what} at step {step}"),
-        })
-    }
-}
-
 #[allow(clippy::too_many_arguments)]
 fn train(
     name: &str,
@@ -581,50 +537,38 @@ fn train(
     curve: &mut String,
 ) -> Result<Run> {
     let dev = data.eval_points.device().clone();
-    let mut opt = common::adam(varmap, 2e-3)?;
-    let vars: Vec<(String, candle_core::Var)> = {
-        let d = varmap.data().lock().expect("an unpoisoned varmap");
-        let mut v: Vec<_> = d.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
-        v.sort_by(|a, b| a.0.cmp(&b.0));
-        v
-    };
-    let budget = args.minutes.map(|m| m * 60.0);
-    let bar = indicatif::ProgressBar::new(match (args.steps, budget) {
-        (Some(n), _) => n as u64,
-        (None, Some(s)) => s.ceil() as u64,
-        _ => 0,
-    });
+    let mut opt = adam(varmap, 2e-3)?;
+    let guard = FiniteGuard::new(varmap);
+    let mut clock = Clock::start(match args.steps {
+        Some(n) => Budget::Steps(n),
+        None => Budget::Minutes(args.minutes.unwrap_or(6.0)),
+    })?;
+    let bar = indicatif::ProgressBar::new(1000);
     bar.set_style(
         indicatif::ProgressStyle::with_template(
-            "{prefix} {elapsed_precise} [{bar:30}] {pos}/{len} {msg}",
+            "{prefix} {elapsed_precise} [{bar:30}] {percent}% {msg}",
         )
         .expect("template")
         .progress_chars("=> "),
     );
     bar.set_prefix(name.to_string());
     let eval_subset = data.eval_points.narrow(0, 0, CURVE_POINTS)?;
-    let start = Instant::now();
-    let mut paused = 0.0f64;
     let mut next_eval = 0.0;
     let mut step = 0usize;
     let mut lowered = false;
     model.train_mode(true);
     loop {
-        let t = start.elapsed().as_secs_f64() - paused;
-        let progress = match (args.steps, budget) {
-            (Some(n), _) => step as f64 / n.max(1) as f64,
-            (None, Some(s)) => t / s,
-            _ => 1.0,
-        };
+        let t = clock.train_seconds();
+        let progress = clock.progress(step);
         if t >= next_eval || progress >= 1.0 {
-            let e = Instant::now();
-            model.train_mode(false);
-            let (v, _) = model.evaluate(&data.eval_cloud, &eval_subset, false)?;
-            model.train_mode(true);
-            let i = volume_iou(&v, &data.eval_truth[..CURVE_POINTS])?;
+            let i = clock.pause(|| -> Result<f64> {
+                model.train_mode(false);
+                let (v, _) = model.evaluate(&data.eval_cloud, &eval_subset, false)?;
+                model.train_mode(true);
+                volume_iou(&v, &data.eval_truth[..CURVE_POINTS])
+            })?;
             curve.push_str(&format!("{name},{step},{t:.2},{i:.5}\n"));
             bar.set_message(format!("IoU {i:.4}"));
-            paused += e.elapsed().as_secs_f64();
             next_eval += 30.0;
         }
         if progress >= 1.0 {
@@ -636,25 +580,17 @@ fn train(
         }
         let (cloud, q, y) = example(args.seed, step, &dev)?;
         let loss = reconstruction_loss(&model.logits(&cloud, &q)?, &y)?;
-        check_finite(&loss, step, "the loss")?;
         let grads = loss.backward()?;
-        for (vname, var) in &vars {
-            if let Some(g) = grads.get(var) {
-                check_finite(g, step, &format!("the gradient of {vname}"))?;
-            }
-        }
+        guard.check(step, &loss, Some(&grads))?;
         opt.step(&grads)?;
         step += 1;
-        match args.steps {
-            Some(_) => bar.set_position(step as u64),
-            None => bar.set_position((start.elapsed().as_secs_f64() - paused) as u64),
-        }
+        bar.set_position((1000.0 * clock.progress(step).min(1.0)) as u64);
         if step.is_multiple_of(20) {
             let l = loss.to_scalar::<f32>()? / QUERIES as f32;
             bar.set_message(format!("bce/point {l:.4}"));
         }
     }
-    let seconds = start.elapsed().as_secs_f64() - paused;
+    let seconds = clock.train_seconds();
     bar.finish_and_clear();
     model.train_mode(false);
     let (v, mesh) = model.evaluate(&data.eval_cloud, &data.eval_points, true)?;
@@ -694,13 +630,7 @@ fn json(r: &Run) -> String {
 }
 
 fn main() -> Result<()> {
-    let args = match parse_args() {
-        Ok(a) => a,
-        Err(msg) => {
-            eprintln!("{msg}");
-            std::process::exit(2);
-        }
-    };
+    let args = Args::parse();
     let total = Instant::now();
     std::fs::create_dir_all(&args.out).map_err(|source| Error::Io {
         path: args.out.display().to_string(),
@@ -728,7 +658,7 @@ fn main() -> Result<()> {
     })?;
     let g = train("global", &global, &global_vars, &data, &args, &mut curve)?;
 
-    let conv_config = if args.grid {
+    let conv_config = if args.encoder == Encoder::Grid {
         ConvOnetConfig {
             layout: FeatureLayout::Grid { resolution: 32 },
             unet: UnetConfig {
@@ -760,7 +690,11 @@ fn main() -> Result<()> {
             "{{\n  \"global\": {},\n  \"conv\": {},\n  \"encoder\": \"{}\"\n}}\n",
             json(&g),
             json(&c),
-            if args.grid { "grid" } else { "planes" }
+            if args.encoder == Encoder::Grid {
+                "grid"
+            } else {
+                "planes"
+            }
         ),
     )?;
     write(&args.out.join("curve.csv"), &curve)?;

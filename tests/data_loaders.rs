@@ -17,7 +17,8 @@ use candle_core::{DType, Device};
 use common::datasets::{flat, npy, npz, pattern, png, scratch};
 use neural_fields::camera::{Camera, Convention, Intrinsics};
 use neural_fields::data::{
-    load, write_blender, Background, Bounds, Dataset, DatasetLayout, Image, LoadConfig, Split, View,
+    load, load_eval, write_blender, Background, Bounds, Dataset, DatasetLayout, Image, LoadConfig,
+    Split, View,
 };
 use neural_fields::glam::{DAffine3, DMat3, DQuat, DVec2, DVec3, EulerRot};
 use neural_fields::Error;
@@ -671,4 +672,69 @@ fn slightly_non_orthonormal_poses_are_orthonormalised() {
         .fold(0.0f64, |a, b| a.max(b.abs()));
     assert!(dev < 1e-12, "{dev}");
     let _ = DQuat::from_euler(EulerRot::XYZ, 0.0, 0.0, 0.0);
+}
+
+#[test]
+fn held_out_split_falls_back_to_val_only_where_the_layout_has_no_test_split() {
+    // Blender with a test split: the test split, even when a val split exists too.
+    let dir = scratch("eval-blender-test");
+    blender_sample(&dir, "train", 2);
+    blender_sample(&dir, "val", 1);
+    blender_sample(&dir, "test", 3);
+    let (eval, split) = load_eval(&dir, &LoadConfig::default()).unwrap();
+    assert_eq!((split, eval.len()), (Split::Test, 3));
+    // Without transforms_test.json: the val split.
+    let dir = scratch("eval-blender-val");
+    blender_sample(&dir, "train", 2);
+    blender_sample(&dir, "val", 1);
+    let (eval, split) = load_eval(&dir, &LoadConfig::default()).unwrap();
+    assert_eq!((split, eval.len()), (Split::Val, 1));
+    // A test split that is there but broken is an error, not a fallback.
+    let dir = scratch("eval-blender-broken");
+    blender_sample(&dir, "train", 2);
+    blender_sample(&dir, "val", 1);
+    std::fs::write(dir.join("transforms_test.json"), "{").unwrap();
+    expect_format(
+        load_eval(&dir, &LoadConfig::default()),
+        "transforms_test.json",
+        "JSON",
+    );
+    // IDR/DTU: the hold-out rule, as the test split; its scene box is the unit sphere's.
+    let dir = scratch("eval-dtu");
+    dtu_sample(&dir, 3, 200.0, DVec3::new(30.0, -20.0, 500.0));
+    let (eval, split) = load_eval(&dir, &LoadConfig::default()).unwrap();
+    assert_eq!((split, eval.len()), (Split::Test, 1));
+    assert_eq!(eval.scene_box(0.3), [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]);
+    // DTU images are 6×5: five cells per pixel of 6, raised to the coarsest level 16.
+    assert_eq!(eval.hash_finest(), 30.0);
+}
+
+#[test]
+fn scene_box_is_the_stated_bounds_or_the_given_cube() {
+    let cube = analytic_dataset(Convention::OpenGl, 3);
+    assert_eq!(cube.bounds(), None);
+    assert_eq!(cube.scene_box(1.5), [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5]);
+    let views = cube.views().to_vec();
+    let boxed = Dataset::new(
+        views.clone(),
+        Background::default(),
+        Some(Bounds::Aabb {
+            min: [-1.0, -2.0, -3.0],
+            max: [4.0, 5.0, 6.0],
+        }),
+    )
+    .unwrap();
+    assert_eq!(boxed.scene_box(1.5), [-1.0, -2.0, -3.0, 4.0, 5.0, 6.0]);
+    let ball = Dataset::new(
+        views,
+        Background::default(),
+        Some(Bounds::Sphere {
+            center: [1.0, 0.0, -1.0],
+            radius: 0.5,
+        }),
+    )
+    .unwrap();
+    assert_eq!(ball.scene_box(1.5), [0.5, -0.5, -1.5, 1.5, 0.5, -0.5]);
+    // The hash grid's finest level: five cells per pixel of the 7-pixel side.
+    assert_eq!(cube.hash_finest(), 35.0);
 }

@@ -7,8 +7,8 @@ use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarMap;
 use neural_fields::field::{Field, Occupancy, Sphere};
 use neural_fields::flow::{
-    correspondence_loss, odeint, velocity_field, Graph, OccupancyFlow, Solver, VelocityField,
-    VelocityFieldConfig,
+    correspondence_loss, odeint, velocity_field, DeformingTorus, Graph, OccupancyFlow, Solver,
+    VelocityField, VelocityFieldConfig,
 };
 use neural_fields::nn::build_seeded;
 use neural_fields::rng::SplitMix64;
@@ -550,5 +550,68 @@ fn a_nan_beside_finite_state_values_is_an_error_not_a_result() -> Result<()> {
         Graph::Keep,
     ));
     assert!(e.starts_with("f:"), "{e}");
+    Ok(())
+}
+
+/// The analytic motion: carrying a point to time `t` and back returns it, its Eulerian
+/// velocity is the time derivative of the motion (central differences), a surface point
+/// stays on the moved surface (inside a slightly fatter torus, outside a slightly
+/// thinner one), and the flow that `odeint` integrates along the velocity is the motion.
+#[test]
+fn deforming_torus_inverts_and_its_velocity_is_its_derivative() -> Result<()> {
+    let torus = DeformingTorus::default();
+    let mut rng = SplitMix64::new(3);
+    for _ in 0..100 {
+        let p = [0.0; 3].map(|_| rng.uniform() - 0.5);
+        let t = rng.uniform();
+        let back = torus.carry(torus.carry(p, 0.0, t), t, 0.0);
+        assert!(
+            (0..3).all(|i| (back[i] - p[i]).abs() < 1e-12),
+            "{p:?} {back:?}"
+        );
+        let h = 1e-6;
+        let (a, b) = (torus.carry(p, 0.0, t + h), torus.carry(p, 0.0, t - h));
+        let at = torus.carry(p, 0.0, t);
+        let v = torus
+            .velocity(&Tensor::new(&[at], &DEV)?, t)?
+            .to_vec2::<f64>()?;
+        for i in 0..3 {
+            let fd = (a[i] - b[i]) / (2.0 * h);
+            assert!((v[0][i] - fd).abs() < 1e-6, "axis {i}: {} vs {fd}", v[0][i]);
+        }
+    }
+    let fatter = DeformingTorus {
+        minor: torus.minor * 1.01,
+        ..torus
+    };
+    let thinner = DeformingTorus {
+        minor: torus.minor * 0.99,
+        ..torus
+    };
+    let surface = torus.surface(200, &mut rng);
+    for &p in &surface {
+        let moved = torus.carry(p, 0.0, 0.7);
+        assert!(
+            fatter.inside(moved, 0.7) && !thinner.inside(moved, 0.7),
+            "{p:?}"
+        );
+    }
+    let flat: Vec<f64> = surface.iter().flatten().copied().collect();
+    let p0 = Tensor::from_vec(flat, (surface.len(), 3), &DEV)?;
+    let flow = odeint(
+        |t, p| torus.velocity(p, t),
+        &p0,
+        &[0.0, 1.0],
+        &dopri5(1e-9),
+        Graph::Detach,
+    )?;
+    let got = flow.states[1].to_vec2::<f64>()?;
+    for (g, &p) in got.iter().zip(&surface) {
+        let exact = torus.carry(p, 0.0, 1.0);
+        assert!(
+            (0..3).all(|i| (g[i] - exact[i]).abs() < 1e-6),
+            "{g:?} vs {exact:?}"
+        );
+    }
     Ok(())
 }

@@ -5,16 +5,18 @@
 
 use crate::report::{median_seconds, v64, Row, Table, TIME_PER_CALL};
 use candle_core::{DType, Device, Tensor};
-use candle_nn::Optimizer;
-use neural_fields::camera::{ray_sphere, Intersection, Rays};
+use candle_nn::{Optimizer, VarMap};
+use neural_fields::camera::{ray_sphere, Camera, Convention, Intersection, Intrinsics, Rays};
 use neural_fields::dvr::{march, sphere_trace, Hits, MarchConfig, SphereTraceConfig};
 use neural_fields::field::{ImplicitSurface, SignedDistance, Torus};
 use neural_fields::glam::DVec3;
-use neural_fields::nn::{Activation, Mlp, MlpConfig};
+use neural_fields::nn::{adam, build_seeded, mlp, Activation, Mlp, MlpConfig};
 use neural_fields::rng::SplitMix64;
 
 fn scene(side: usize, dtype: DType) -> (Rays, Intersection) {
-    let cam = crate::cameras::looking_at_origin(side, 0.7, DVec3::new(0.4, 1.6, 1.8)).unwrap();
+    let k = Intrinsics::from_fov_y(side, side, 0.7).unwrap();
+    let eye = DVec3::new(0.4, 1.6, 1.8);
+    let cam = Camera::look_at(k, eye, DVec3::ZERO, DVec3::Z, Convention::OpenGl).unwrap();
     let rays = cam.rays(&Device::Cpu, dtype).unwrap();
     let bounds = ray_sphere(&rays, [0.0; 3], 1.0).unwrap();
     (rays, bounds)
@@ -209,7 +211,9 @@ fn trained_mlp(torus: &dyn ImplicitSurface, quick: bool) -> (Mlp, f64) {
         activation: Activation::Relu,
         ..MlpConfig::sdf(0.5)
     };
-    let (net, mut opt) = crate::common::seeded_mlp(&cfg, 3, 1e-3, &dev, dt).unwrap();
+    let varmap = VarMap::new();
+    let net = build_seeded(&varmap, dt, &dev, 3, |vb| mlp(&cfg, vb)).unwrap();
+    let mut opt = adam(&varmap, 1e-3).unwrap();
     let mut rng = SplitMix64::new(17);
     let mut batch = |n: usize| {
         let p = rng.uniform_tensor(&[n, 3], -1.0, 1.0, dt, &dev).unwrap();

@@ -2,10 +2,9 @@
 //! whose flow is known in closed form, integrated by RK4 at several step counts and by
 //! Dormand–Prince at several tolerances.
 
-use crate::motion;
 use crate::report::{median_seconds, v64, Row, Table, TIME_PER_CALL};
 use candle_core::{DType, Device, Tensor};
-use neural_fields::flow::{odeint, Graph, Solver};
+use neural_fields::flow::{odeint, DeformingTorus, Graph, Solver};
 use neural_fields::occupancy::points_tensor;
 use neural_fields::rng::SplitMix64;
 
@@ -28,9 +27,10 @@ fn mean_error(got: &Tensor, exact: &[[f64; 3]]) -> f64 {
 pub fn run(quick: bool) -> Vec<Table> {
     let n = if quick { 256 } else { 4096 };
     let reps = if quick { 1 } else { 5 };
+    let motion = DeformingTorus::default();
     let mut rng = SplitMix64::new(7);
-    let start = motion::surface(n, &mut rng);
-    let exact: Vec<[f64; 3]> = start.iter().map(|&p| motion::forward(p, 1.0)).collect();
+    let start = motion.surface(n, &mut rng);
+    let exact: Vec<[f64; 3]> = start.iter().map(|&p| motion.carry(p, 0.0, 1.0)).collect();
     let mut rows = Vec::new();
     let mut solvers: Vec<(String, f64, Solver)> = [1usize, 2, 4, 8, 16, 32, 64]
         .into_iter()
@@ -62,7 +62,7 @@ pub fn run(quick: bool) -> Vec<Table> {
         for (series, knob, solver) in &solvers {
             let solve = || {
                 odeint(
-                    |t, p| motion::velocity(p, t),
+                    |t, p| motion.velocity(p, t),
                     &p0,
                     &[0.0, 1.0],
                     solver,
@@ -84,7 +84,7 @@ pub fn run(quick: bool) -> Vec<Table> {
     vec![Table {
         title: "ODE solver error vs steps and tolerance".into(),
         description: format!(
-            "Occupancy Flow's integration on the twisting, stretching, moving torus of `examples/occupancy_flow` (closed-form flow Φ): {n} surface points carried from t = 0 to 1 by `flow::odeint` along the analytic velocity (candle ops), without graph (`Graph::Detach`); error = mean ‖Φ̂(p, 1) − Φ(p, 1)‖ over the points; time = median of {reps} solves on CPU; work = evaluations of the velocity. RK4's knob is steps per unit of time, Dormand–Prince's the relative tolerance (Occupancy Flow trains with rtol 1e-3, atol 1e-5). The example trains with RK4 at 4 steps and evaluates with Dormand–Prince at 1e-5."
+            "Occupancy Flow's integration on the twisting, stretching, moving torus of `examples/occupancy_flow` (`flow::DeformingTorus`, closed-form flow Φ): {n} surface points carried from t = 0 to 1 by `flow::odeint` along the analytic velocity (candle ops), without graph (`Graph::Detach`); error = mean ‖Φ̂(p, 1) − Φ(p, 1)‖ over the points; time = median of {reps} solves on CPU; work = evaluations of the velocity. RK4's knob is steps per unit of time, Dormand–Prince's the relative tolerance (Occupancy Flow trains with rtol 1e-3, atol 1e-5). The example trains with RK4 at 4 steps and evaluates with Dormand–Prince at 1e-5."
         ),
         knob: "steps or rtol".into(),
         error_name: "mean ‖Φ̂ − Φ‖ at t = 1".into(),

@@ -1,41 +1,16 @@
-//! Runs every study of `examples/error_vs_time` in quick mode, so the report command
-//! never rots: each table has rows, finite non-negative errors and positive times, and
-//! renders to Markdown and SVG.
-
-#[path = "../examples/error_vs_time/report.rs"]
-mod report;
-
-#[path = "../examples/error_vs_time/encoding.rs"]
-mod encoding;
-
-#[cfg(feature = "volume")]
-#[path = "../examples/error_vs_time/volume.rs"]
-mod volume;
+//! Runs every study in quick mode, so the report command never rots: each table has
+//! rows, finite non-negative errors and positive times, and renders to Markdown and SVG.
 
 #[cfg(feature = "dvr")]
-#[path = "../examples/error_vs_time/dvr.rs"]
-mod dvr;
-
-// What the DVR study shares with the examples.
-#[cfg(feature = "dvr")]
-#[path = "../examples/common/cameras.rs"]
-mod cameras;
-#[cfg(feature = "dvr")]
-#[path = "../examples/common/mod.rs"]
-mod common;
-
+use crate::dvr;
+use crate::encoding;
+#[cfg(all(feature = "flow", feature = "occupancy"))]
+use crate::flow;
 #[cfg(feature = "occupancy")]
-#[path = "../examples/error_vs_time/mise.rs"]
-mod mise;
-
-#[cfg(all(feature = "flow", feature = "occupancy"))]
-#[path = "../examples/error_vs_time/flow.rs"]
-mod flow;
-#[cfg(all(feature = "flow", feature = "occupancy"))]
-#[path = "../examples/common/deforming_torus.rs"]
-mod motion;
-
-use report::Table;
+use crate::mise;
+use crate::report::{self, Table};
+#[cfg(feature = "volume")]
+use crate::volume;
 
 fn check(tables: Vec<Table>) {
     assert!(!tables.is_empty());

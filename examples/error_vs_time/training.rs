@@ -149,7 +149,7 @@ pub fn run(quick: bool) -> Vec<Table> {
     let curves = [
         Curve {
             example: "quickstart",
-            args: vec![out("nf_quickstart_torus.ply")],
+            args: vec!["--out".into(), out("nf_quickstart")],
             what: "quickstart (torus, 4×64 MLP)",
             runs: &[],
             columns: 4,
@@ -162,7 +162,8 @@ pub fn run(quick: bool) -> Vec<Table> {
             args: vec![
                 "--encoding".into(),
                 "hash".into(),
-                out("nf_quickstart_hash_torus.ply"),
+                "--out".into(),
+                out("nf_quickstart_hash"),
             ],
             what: "quickstart --encoding hash (torus, hash grid + 2×64 MLP)",
             runs: &[],
@@ -174,8 +175,9 @@ pub fn run(quick: bool) -> Vec<Table> {
         Curve {
             example: "fit_occupancy",
             args: vec![
+                "--out".into(),
+                out("nf_fit_occupancy"),
                 "/usr/share/assimp/models/PLY/Wuson.ply".into(),
-                out("nf_fit_occupancy.ply"),
             ],
             what: "fit_occupancy (Wuson.ply, 4×128 MLP)",
             runs: &[],

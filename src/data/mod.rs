@@ -13,7 +13,9 @@
 //!
 //! [`LoadConfig`] picks the split, the background behind transparent pixels, an integer
 //! downscale and a subset of frames (sparse views). Layouts without split files hold out
-//! every 8th frame for validation and testing ([`Split`]).
+//! every 8th frame for validation and testing ([`Split`]). [`load_eval`] loads the
+//! held-out views (test, else validation); [`Dataset::scene_box`] and
+//! [`Dataset::hash_finest`] size a scene's box and a hash grid's finest level.
 //!
 //! # Batches
 //! [`RaySampler`] draws seeded batches of random pixels ([`RaySampler::pixels`]) or
@@ -45,6 +47,7 @@ mod dtu;
 mod image;
 mod metrics;
 mod output;
+mod scene;
 mod transforms;
 
 pub use batch::{RayBatch, RaySampler};
@@ -52,4 +55,5 @@ pub use dataset::{load, Background, Bounds, Dataset, DatasetLayout, LoadConfig, 
 pub use image::Image;
 pub use metrics::{psnr, ssim};
 pub use output::{colorize_depth, colorize_normals, comparison_strip, write_png};
+pub use scene::load_eval;
 pub use transforms::write_blender;

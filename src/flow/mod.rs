@@ -11,6 +11,9 @@
 //! * [`OccupancyFlow`]: occupancy at any time from a time-0 decoder (points carried back
 //!   to time 0) and correspondences (time-0 points carried forward);
 //!   [`correspondence_loss`], the mean Euclidean distance.
+//! * [`DeformingTorus`]: an analytic motion (a torus that twists, stretches and moves)
+//!   with closed-form occupancy, correspondences and velocity at every time, as ground
+//!   truth for tests, examples and solver benchmarks.
 //!
 //! Memory: backpropagating through the solver keeps every stage of every step
 //! (`7·N·3` values per Dopri5 step plus the network's activations); the adjoint method,
@@ -36,9 +39,11 @@
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 
+mod analytic;
 mod ode;
 mod velocity;
 
+pub use analytic::DeformingTorus;
 pub use ode::{odeint, Graph, Solver, Trajectory};
 pub use velocity::{
     correspondence_loss, velocity_field, OccupancyFlow, VelocityField, VelocityFieldConfig,

@@ -17,6 +17,10 @@
 //!   head).
 //! * [`build_seeded`]: reproducible initialisation (candle's CPU generator cannot be
 //!   seeded; this draws every variable's initial value from a `u64` seed instead).
+//! * The training loop's companions: [`adam`] (Adam without weight decay over a
+//!   `VarMap`), [`FiniteGuard`] (stops at the first NaN or infinity in the loss, a
+//!   gradient or a weight, naming the step and the tensor) and [`Clock`] (a [`Budget`]
+//!   of steps or minutes, with evaluations kept off the clock).
 
 #[cfg(feature = "occupancy")]
 mod conv_onet;
@@ -31,6 +35,7 @@ mod pointnet;
 pub(crate) mod resnet_fc;
 #[cfg(feature = "texture")]
 mod texture;
+mod training;
 
 #[cfg(feature = "occupancy")]
 pub use conv_onet::{
@@ -51,6 +56,7 @@ pub use texture::{
     joint_decoder, rendering_net, texture_decoder, JointDecoder, RenderingNet, RenderingNetConfig,
     TextureDecoder, TextureDecoderConfig,
 };
+pub use training::{adam, Budget, Clock, FiniteGuard};
 
 use crate::error::{Error, Result};
 use crate::rng::SplitMix64;
