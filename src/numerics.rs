@@ -1,6 +1,7 @@
 //! Defended numerics shared by every module: range-reduced sine and cosine, a stable
 //! sigmoid, softplus and BCE-with-logits, a sign-preserving guarded denominator, and
-//! [`damped_solve`], the host-side solve of a Levenberg–Marquardt step.
+//! [`levenberg_marquardt`], the host-side solver of small nonlinear least-squares
+//! problems (camera alignment and registration).
 //!
 //! The tensor functions are elementwise, follow their input's device and dtype (f32 or f64),
 //! and are differentiable with respect to their tensor inputs through candle's autograd,
@@ -344,25 +345,13 @@ pub fn guard_denominator(x: &Tensor, eps: f64) -> Result<Tensor> {
 /// `H` is a Gauss–Newton matrix `Σ jⱼ jⱼᵀ` (symmetric, positive semi-definite; only its
 /// lower triangle is read) and `g = Σ jⱼ rⱼ` the gradient of `½ Σ rⱼ²`; `λ ≥ 0` trades a
 /// Gauss–Newton step (`λ → 0`) for a short scaled gradient step (`λ → ∞`). Plain `f64`
-/// arrays: one small system per camera or per object, not a tensor op.
-///
-/// ```
-/// use neural_fields::numerics::damped_solve;
-///
-/// // ½|J x − b|² with J = diag(2, 4), b = (2, 4): the Gauss–Newton step from x = 0 is (1, 1).
-/// let h = [[4.0, 0.0], [0.0, 16.0]];
-/// let g = [-4.0, -16.0];
-/// assert_eq!(damped_solve(&h, &g, 0.0), Some([1.0, 1.0]));
-/// // λ = 1 doubles the diagonal: half the step.
-/// let half = damped_solve(&h, &g, 1.0);
-/// assert!(half.is_some_and(|x| x.iter().all(|x| (x - 0.5).abs() < 1e-15)));
-/// assert_eq!(damped_solve(&[[0.0; 2]; 2], &g, 1.0), None);
-/// ```
+/// arrays: one small system per camera or per object, not a tensor op. The step of
+/// [`levenberg_marquardt`].
 ///
 /// Returns `None` when `H` has no positive diagonal entry, an entry or `λ` is not
 /// finite, `λ < 0`, or the damped matrix is not positive definite.
 #[must_use]
-pub fn damped_solve<const N: usize>(
+pub(crate) fn damped_solve<const N: usize>(
     h: &[[f64; N]; N],
     g: &[f64; N],
     lambda: f64,
@@ -406,6 +395,205 @@ pub fn damped_solve<const N: usize>(
         x[i] = s / l[i][i];
     }
     x.iter().all(|v| v.is_finite()).then_some(x)
+}
+
+/// The settings of [`levenberg_marquardt`]: the damping schedule, the iteration budget,
+/// the stopping tolerance and an optional robust loss. The defaults suit a converging
+/// fit of a few parameters (camera alignment); a registration that runs a fixed budget
+/// sets `tolerance` to 0 and its own `iterations`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LmConfig {
+    /// Trial steps at most, accepted or refused; 100.
+    pub iterations: usize,
+    /// The starting damping `λ₀`; 1e-3.
+    pub lambda: f64,
+    /// `λ` is multiplied by this after an accepted step, in `(0, 1)`; ⅓.
+    pub shrink: f64,
+    /// `λ` is multiplied by this after a refused step, > 1; 4.
+    pub grow: f64,
+    /// The floor of `λ`; 1e-9.
+    pub lambda_min: f64,
+    /// The solver stops once `λ` exceeds this (no step lowers the cost); 1e12.
+    pub lambda_max: f64,
+    /// The solver stops after an accepted step that lowers the cost by at most this
+    /// fraction of it; 1e-12 (0: only the budget and `lambda_max` stop it).
+    pub tolerance: f64,
+    /// Huber's threshold `k` on each residual (`None`: least squares, the default).
+    pub huber: Option<f64>,
+}
+
+impl Default for LmConfig {
+    fn default() -> Self {
+        Self {
+            iterations: 100,
+            lambda: 1e-3,
+            shrink: 1.0 / 3.0,
+            grow: 4.0,
+            lambda_min: 1e-9,
+            lambda_max: 1e12,
+            tolerance: 1e-12,
+            huber: None,
+        }
+    }
+}
+
+/// The normal equations `H = Σ wᵢ jᵢ jᵢᵀ`, `g = Σ wᵢ jᵢ rᵢ` of residuals `rᵢ` with
+/// Jacobian rows `jᵢ` and their cost `Σ ρ(rᵢ)`: `ρ(r) = ½r²`, or under Huber's loss of
+/// threshold `k`, `½r²` for `|r| ≤ k` and `k(|r| − ½k)` beyond, with the iteratively
+/// reweighted least-squares weight `w = min(1, k/|r|)` (1 without a threshold).
+pub(crate) struct NormalEquations<const N: usize> {
+    pub(crate) h: [[f64; N]; N],
+    pub(crate) g: [f64; N],
+    pub(crate) cost: f64,
+}
+
+impl<const N: usize> NormalEquations<N> {
+    /// The equations of `residuals` (one Jacobian row each) under `huber`.
+    pub(crate) fn new(residuals: &[f64], jacobian: &[[f64; N]], huber: Option<f64>) -> Self {
+        let mut e = Self {
+            h: [[0.0; N]; N],
+            g: [0.0; N],
+            cost: 0.0,
+        };
+        for (&r, j) in residuals.iter().zip(jacobian) {
+            let (w, rho) = robust(r, huber);
+            e.cost += rho;
+            for p in 0..N {
+                e.g[p] += w * j[p] * r;
+                for q in 0..=p {
+                    e.h[p][q] += w * j[p] * j[q];
+                }
+            }
+        }
+        for p in 0..N {
+            for q in p + 1..N {
+                e.h[p][q] = e.h[q][p];
+            }
+        }
+        e
+    }
+}
+
+/// The weight and cost `(w, ρ(r))` of residual `r` (see [`NormalEquations`]).
+fn robust(r: f64, huber: Option<f64>) -> (f64, f64) {
+    match huber {
+        Some(k) if r.abs() > k => (k / r.abs(), k * (r.abs() - 0.5 * k)),
+        _ => (1.0, 0.5 * r * r),
+    }
+}
+
+/// The cost `Σ ρ(rᵢ)` of `residuals` under `huber` (see [`NormalEquations`]).
+pub(crate) fn robust_cost(residuals: &[f64], huber: Option<f64>) -> f64 {
+    residuals.iter().map(|&r| robust(r, huber).1).sum()
+}
+
+/// Minimises `Σ ρ(rᵢ(x))` over a state `x` with `N` local parameters by Levenberg–Marquardt:
+/// at the current state, the residuals `r` and their Jacobian `J` w.r.t. a step `δ` of the
+/// state's local chart (`linearize`) give the normal equations `H = JᵀWJ`, `g = JᵀWr`
+/// (`W` Huber's reweighting, the identity without `config.huber`); the trial step solves
+/// `(H + λ·diag H)·δ = −g` (Marquardt's scaling, a Cholesky factorisation), and the trial
+/// state `retract(x, δ)` is accepted if its cost is lower (`λ ← max(λ·shrink,
+/// lambda_min)`), else refused (`λ ← λ·grow`). It stops after `config.iterations` trials,
+/// when `λ` exceeds `lambda_max`, or after an accepted step that lowers the cost by at most
+/// `tolerance` of it. Returns the last accepted state and its cost (the start, with an
+/// infinite cost, if `linearize` returns `None` there).
+///
+/// `linearize(x)` returns `Ok(None)` for a state where the residuals are not defined (a
+/// point behind a camera): a trial step there is refused. The number of residuals may
+/// differ between states. Plain `f64` on the host: one small problem per camera or per
+/// scene (`N` of 6 or 7), not a tensor op; nothing here is differentiable.
+///
+/// ```
+/// use neural_fields::numerics::{levenberg_marquardt, LmConfig};
+///
+/// // Fit y = a·exp(b·t) to exact samples of a = 2, b = −1, from a = 1, b = 0.
+/// let t: Vec<f64> = (0..10).map(|i| i as f64 / 3.0).collect();
+/// let y: Vec<f64> = t.iter().map(|t| 2.0 * (-t).exp()).collect();
+/// let (fit, cost) = levenberg_marquardt(
+///     [1.0, 0.0],
+///     &LmConfig::default(),
+///     |p: &[f64; 2]| {
+///         let r = t.iter().zip(&y).map(|(t, y)| p[0] * (p[1] * t).exp() - y).collect();
+///         let j = t.iter().map(|t| [(p[1] * t).exp(), p[0] * t * (p[1] * t).exp()]).collect();
+///         Ok(Some((r, j)))
+///     },
+///     |p, d| [p[0] + d[0], p[1] + d[1]],
+/// )?;
+/// assert!((fit[0] - 2.0).abs() < 1e-6 && (fit[1] + 1.0).abs() < 1e-6 && cost < 1e-12);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
+/// # Errors
+/// [`crate::Error::InvalidArgument`] naming `config` unless `lambda` and `lambda_min` are
+/// finite and > 0, `lambda_max ≥ lambda`, `shrink` in `(0, 1)`, `grow` finite and > 1,
+/// `tolerance` finite and ≥ 0 and `huber`, if set, finite and > 0; `linearize` if it
+/// returns a Jacobian with a row count other than the residuals'; and whatever
+/// `linearize` returns.
+pub fn levenberg_marquardt<S, const N: usize>(
+    start: S,
+    config: &LmConfig,
+    mut linearize: impl FnMut(&S) -> Result<Option<(Vec<f64>, Vec<[f64; N]>)>>,
+    mut retract: impl FnMut(&S, &[f64; N]) -> S,
+) -> Result<(S, f64)> {
+    let c = config;
+    let positive = |x: f64| x > 0.0 && x.is_finite();
+    if !(positive(c.lambda)
+        && positive(c.lambda_min)
+        && c.lambda_max >= c.lambda
+        && c.shrink > 0.0
+        && c.shrink < 1.0
+        && c.grow > 1.0
+        && c.grow.is_finite()
+        && c.tolerance >= 0.0
+        && c.tolerance.is_finite()
+        && c.huber.is_none_or(positive))
+    {
+        return Err(crate::Error::invalid(
+            "config",
+            "λ, λ_min > 0, λ_max ≥ λ, shrink in (0, 1), grow > 1, tolerance ≥ 0, huber > 0",
+            format!("{c:?}"),
+        ));
+    }
+    let mut equations = |x: &S| -> Result<Option<NormalEquations<N>>> {
+        let Some((r, j)) = linearize(x)? else {
+            return Ok(None);
+        };
+        if r.len() != j.len() {
+            return Err(crate::Error::invalid(
+                "linearize",
+                format!("a Jacobian row per residual ({})", r.len()),
+                format!("{} rows", j.len()),
+            ));
+        }
+        Ok(Some(NormalEquations::new(&r, &j, c.huber)))
+    };
+    let Some(mut current) = equations(&start)? else {
+        return Ok((start, f64::INFINITY));
+    };
+    let mut state = start;
+    let mut lambda = c.lambda;
+    for _ in 0..c.iterations {
+        if lambda > c.lambda_max {
+            break;
+        }
+        if let Some(step) = damped_solve(&current.h, &current.g, lambda) {
+            let trial = retract(&state, &step);
+            if let Some(next) = equations(&trial)? {
+                if next.cost < current.cost {
+                    let decrease = current.cost - next.cost;
+                    let before = current.cost;
+                    (state, current) = (trial, next);
+                    lambda = (lambda * c.shrink).max(c.lambda_min);
+                    if decrease <= c.tolerance * before {
+                        break;
+                    }
+                    continue;
+                }
+            }
+        }
+        lambda *= c.grow;
+    }
+    Ok((state, current.cost))
 }
 
 #[cfg(test)]
@@ -578,5 +766,144 @@ mod tests {
             proptest::prop_assert!(g.is_finite());
             proptest::prop_assert!((g - fd).abs() <= 1e-5 * g.abs().max(fd.abs()).max(1e-3), "at {}: {} vs {}", x, g, fd);
         }
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(64))]
+
+    /// With λ = 0 the step solves the normal equations; a larger λ gives a shorter step
+    /// that tends to the scaled gradient step −g/(λ·diag H). Systems scaled by 1e±100.
+    #[test]
+    fn damped_solve_solves_the_damped_normal_equations(seed in 0u64..10_000, log_scale in -100.0f64..100.0) {
+        let mut rng = crate::rng::SplitMix64::new(seed);
+        let scale = 10f64.powf(log_scale);
+        let rows: Vec<[f64; 6]> = (0..10).map(|_| std::array::from_fn(|_| rng.normal())).collect();
+        let r: Vec<f64> = (0..10).map(|_| rng.normal()).collect();
+        let mut h = [[0.0; 6]; 6];
+        let mut g = [0.0; 6];
+        for (j, &ri) in rows.iter().zip(&r) {
+            for p in 0..6 {
+                g[p] += j[p] * ri * scale;
+                for q in 0..6 {
+                    h[p][q] += j[p] * j[q] * scale;
+                }
+            }
+        }
+        let x = damped_solve(&h, &g, 0.0).unwrap();
+        let gmax = g.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        for p in 0..6 {
+            let hx: f64 = (0..6).map(|q| h[p][q] * x[q]).sum();
+            proptest::prop_assert!((hx + g[p]).abs() < 1e-9 * gmax, "row {}: {} vs {}", p, hx, -g[p]);
+        }
+        let norm = |v: &[f64; 6]| v.iter().map(|a| a * a).sum::<f64>().sqrt();
+        let damped = damped_solve(&h, &g, 1.0).unwrap();
+        proptest::prop_assert!(norm(&damped) < norm(&x));
+        let lambda = 1e8;
+        let far = damped_solve(&h, &g, lambda).unwrap();
+        let gradient_step: [f64; 6] = std::array::from_fn(|p| -g[p] / (lambda * h[p][p]));
+        for p in 0..6 {
+            proptest::prop_assert!((far[p] - gradient_step[p]).abs() < 1e-6 * norm(&gradient_step));
+        }
+    }
+    }
+
+    /// ½|J x − b|² with J = diag(2, 4), b = (2, 4): the Gauss–Newton step from x = 0 is
+    /// (1, 1), and λ = 1 doubles the diagonal: half the step.
+    #[test]
+    fn damped_solve_takes_the_gauss_newton_step_and_its_damped_half() {
+        let h = [[4.0, 0.0], [0.0, 16.0]];
+        let g = [-4.0, -16.0];
+        assert_eq!(damped_solve(&h, &g, 0.0), Some([1.0, 1.0]));
+        let half = damped_solve(&h, &g, 1.0);
+        assert!(half.is_some_and(|x| x.iter().all(|x| (x - 0.5).abs() < 1e-15)));
+        assert_eq!(damped_solve(&[[0.0; 2]; 2], &g, 1.0), None);
+    }
+
+    #[test]
+    fn damped_solve_refuses_what_it_cannot_solve() {
+        assert_eq!(damped_solve(&[[1.0]], &[1.0], -1.0), None);
+        assert_eq!(damped_solve(&[[1.0]], &[1.0], f64::NAN), None);
+        assert_eq!(damped_solve(&[[1.0]], &[f64::NAN], 1.0), None);
+        assert_eq!(damped_solve(&[[0.0]], &[1.0], 1.0), None);
+        // Indefinite: not a Gauss–Newton matrix.
+        assert_eq!(
+            damped_solve(&[[1.0, 2.0], [2.0, 1.0]], &[1.0, 1.0], 0.0),
+            None
+        );
+        // A parameter without signal stays put instead of making the system singular.
+        let step = damped_solve(&[[2.0, 0.0], [0.0, 0.0]], &[-2.0, 0.0], 1e-3).unwrap();
+        assert!((step[0] - 1.0 / 1.001).abs() < 1e-12 && step[1] == 0.0);
+    }
+
+    /// The settings are checked, naming `config`; a Jacobian of the wrong length names
+    /// `linearize`; a start without residuals is returned with an infinite cost; Huber's
+    /// cost is ½r² inside the threshold and linear beyond.
+    #[test]
+    fn levenberg_marquardt_checks_its_settings_and_its_linearization() {
+        let fit = |c: &LmConfig| {
+            levenberg_marquardt(
+                [0.0],
+                c,
+                |p: &[f64; 1]| Ok(Some((vec![p[0] - 1.0], vec![[1.0]]))),
+                |p, d| [p[0] + d[0]],
+            )
+        };
+        let (x, cost) = fit(&LmConfig::default()).unwrap();
+        assert!((x[0] - 1.0).abs() < 1e-9 && cost < 1e-18);
+        for bad in [
+            LmConfig {
+                lambda: 0.0,
+                ..LmConfig::default()
+            },
+            LmConfig {
+                shrink: 1.0,
+                ..LmConfig::default()
+            },
+            LmConfig {
+                grow: 1.0,
+                ..LmConfig::default()
+            },
+            LmConfig {
+                lambda_max: 1e-6,
+                ..LmConfig::default()
+            },
+            LmConfig {
+                tolerance: f64::NAN,
+                ..LmConfig::default()
+            },
+            LmConfig {
+                huber: Some(0.0),
+                ..LmConfig::default()
+            },
+        ] {
+            let e = fit(&bad).unwrap_err();
+            assert!(
+                matches!(e, crate::Error::InvalidArgument { arg: "config", .. }),
+                "{bad:?}"
+            );
+        }
+        let short = levenberg_marquardt(
+            [0.0],
+            &LmConfig::default(),
+            |_: &[f64; 1]| Ok(Some((vec![1.0, 2.0], vec![[1.0]]))),
+            |p, d| [p[0] + d[0]],
+        );
+        assert!(matches!(
+            short,
+            Err(crate::Error::InvalidArgument {
+                arg: "linearize",
+                ..
+            })
+        ));
+        let (x, cost) = levenberg_marquardt(
+            [3.0],
+            &LmConfig::default(),
+            |_: &[f64; 1]| Ok(None::<(Vec<f64>, Vec<[f64; 1]>)>),
+            |p, d| [p[0] + d[0]],
+        )
+        .unwrap();
+        assert_eq!((x, cost), ([3.0], f64::INFINITY));
+        assert_eq!(robust_cost(&[0.5, -3.0], Some(1.0)), 0.125 + 2.5);
+        assert_eq!(robust_cost(&[0.5, -3.0], None), 0.125 + 4.5);
     }
 }

@@ -7,7 +7,8 @@ use candle_core::{DType, Device, Tensor, Var};
 use common::v64;
 use glam::{DAffine3, DMat3, DQuat, DVec3};
 use neural_fields::camera::{
-    ray_aabb, ray_sphere, Camera, Convention, Intersection, Intrinsics, PoseParam, Rays,
+    ray_aabb, ray_sphere, Camera, Convention, Intersection, Intrinsics, PixelFilter, PoseParam,
+    Rays,
 };
 use neural_fields::Error;
 use proptest::prelude::*;
@@ -157,7 +158,9 @@ fn look_at_centre_ray_hits_the_target_and_image_up_is_world_up() {
                 .unwrap()
                 .to_dtype(dtype)
                 .unwrap();
-            let p = v2(&rays.at(&t).unwrap());
+            let p = v2(&(rays.origins()
+                + rays.directions().broadcast_mul(&t.unsqueeze(1).unwrap()))
+            .unwrap());
             for k in 0..3 {
                 assert!(
                     close(p[0][k], target[k], 10.0 * tol(dtype)),
@@ -182,7 +185,9 @@ fn rays_cover_all_pixels_row_major() {
         assert_eq!(rays.len(), 12);
         assert!(!rays.is_empty());
         assert_eq!(rays.directions().dtype(), dtype);
-        let grid = v2(&cam.pixel_grid(&dev(), dtype).unwrap());
+        let grid = v2(&cam
+            .subpixel_grid(1, PixelFilter::Box, &dev(), dtype)
+            .unwrap());
         assert_eq!(grid.len(), 12);
         for (idx, g) in grid.iter().enumerate() {
             assert_eq!(g, &vec![(idx % 4) as f64 + 0.5, (idx / 4) as f64 + 0.5]);
@@ -627,144 +632,6 @@ proptest! {
     }
 }
 
-// ---------------------------------------------------------------- differentiable pose
-
-fn set_var(v: &Var, data: &[f64]) {
-    v.set(&Tensor::new(data, &dev()).unwrap()).unwrap();
-}
-
-#[test]
-fn pose_param_round_trips_and_matches_camera_rays() {
-    let pose = DAffine3::from_rotation_translation(
-        DQuat::from_axis_angle(DVec3::new(-0.3, 0.2, 1.0).normalize(), 2.9),
-        DVec3::new(1.0, 2.0, -3.0),
-    );
-    for dtype in DTYPES {
-        for conv in CONVENTIONS {
-            let cam = Camera::new(intr(), pose, conv).unwrap();
-            let p = cam.pose_param(&dev(), dtype).unwrap();
-            // the optimiser's variables (`PoseParam::vars()` is gone: the fields are public)
-            assert_eq!(p.rotation.dims(), [4]);
-            assert_eq!(p.translation.dims(), [3]);
-            assert_eq!((p.rotation.dtype(), p.translation.dtype()), (dtype, dtype));
-            let back = p.to_affine().unwrap();
-            assert!(back.abs_diff_eq(pose, 10.0 * tol(dtype)), "{back:?}");
-            let px = Tensor::new(&[[0.5f64, 0.5], [40.0, 7.25]], &dev())
-                .unwrap()
-                .to_dtype(dtype)
-                .unwrap();
-            let a = cam.rays_for_pixels(&px).unwrap();
-            let b = p.rays(cam.intrinsics(), conv, &px).unwrap();
-            for (x, y) in v2(a.directions())
-                .iter()
-                .flatten()
-                .zip(v2(b.directions()).iter().flatten())
-            {
-                assert!(close(*x, *y, 10.0 * tol(dtype)));
-            }
-            assert_eq!(v2(a.origins()), v2(b.origins()));
-        }
-    }
-}
-
-#[test]
-fn rotation_matrix_is_that_of_the_normalised_quaternion() {
-    let p = PoseParam::from_affine(&DAffine3::IDENTITY, &dev(), DType::F64).unwrap();
-    let raw = [0.3, -1.7, 0.4, 2.2];
-    set_var(&p.rotation, &raw);
-    let r = v2(&p.rotation_matrix().unwrap());
-    let q = DQuat::from_xyzw(raw[1], raw[2], raw[3], raw[0]).normalize();
-    let m = DMat3::from_quat(q);
-    for (i, row) in r.iter().enumerate() {
-        for (j, x) in row.iter().enumerate() {
-            assert!(close(*x, m.col(j)[i], 1e-14));
-        }
-    }
-    // scale invariance, including tiny quaternions whose square underflows
-    set_var(&p.rotation, &raw.map(|x| x * 1e-200));
-    let r2 = v2(&p.rotation_matrix().unwrap());
-    for (a, b) in r.iter().flatten().zip(r2.iter().flatten()) {
-        assert!(close(*a, *b, 1e-14));
-    }
-    p.renormalize().unwrap();
-    let unit = v64(&p.rotation);
-    assert!(
-        close(unit.iter().map(|x| x * x).sum::<f64>(), 1.0, 1e-15),
-        "{unit:?}"
-    );
-    let r3 = v2(&p.rotation_matrix().unwrap());
-    for (a, b) in r.iter().flatten().zip(r3.iter().flatten()) {
-        assert!(close(*a, *b, 1e-14));
-    }
-    set_var(&p.rotation, &[0.0; 4]);
-    assert_eq!(arg_of(p.renormalize()), "rotation");
-    assert_eq!(arg_of(p.rotation_matrix()), "rotation");
-    assert_eq!(arg_of(p.to_affine()), "rotation");
-}
-
-/// `Σ w·(o + t·d)` for rays from `p`, as a function of the variables.
-fn pose_objective(p: &PoseParam, px: &Tensor, t: &Tensor, w: &Tensor, conv: Convention) -> Tensor {
-    let rays = p.rays(&intr(), conv, px).unwrap();
-    (rays.at(t).unwrap() * w).unwrap().sum_all().unwrap()
-}
-
-proptest! {
-    #![proptest_config(ProptestConfig::with_cases(64))]
-
-    #[test]
-    fn ray_point_gradient_wrt_pose_matches_finite_differences(
-        q in prop::array::uniform4(-1.0f64..1.0),
-        tr in prop::array::uniform3(-10.0f64..10.0),
-        px in prop::array::uniform2(0.0f64..64.0),
-        t in 0.0f64..20.0,
-        w in prop::array::uniform3(-1.0f64..1.0),
-        qscale in -3.0f64..3.0,
-        gl in proptest::bool::ANY,
-    ) {
-        let norm = q.iter().map(|x| x * x).sum::<f64>().sqrt();
-        prop_assume!(norm > 0.1);
-        let q = q.map(|x| x * 10f64.powf(qscale));
-        let conv = if gl { Convention::OpenGl } else { Convention::OpenCv };
-        let p = PoseParam::from_affine(&DAffine3::IDENTITY, &dev(), DType::F64).unwrap();
-        set_var(&p.rotation, &q);
-        set_var(&p.translation, &tr);
-        let pxt = Tensor::new(&[px], &dev()).unwrap();
-        let tt = Tensor::new(&[t], &dev()).unwrap();
-        let wt = Tensor::new(&[w], &dev()).unwrap();
-        let g = pose_objective(&p, &pxt, &tt, &wt, conv).backward().unwrap();
-        let gq = v64(g.get(&p.rotation).unwrap());
-        let gt = v64(g.get(&p.translation).unwrap());
-        let eval = |q: &[f64], tr: &[f64]| {
-            set_var(&p.rotation, q);
-            set_var(&p.translation, tr);
-            pose_objective(&p, &pxt, &tt, &wt, conv).to_scalar::<f64>().unwrap()
-        };
-        // relative error against the gradient's largest entry (FD noise scales with it)
-        let fd_check = |g: &[f64], k: usize, fd: f64, what: &str| -> Result<(), TestCaseError> {
-            let gmax = g.iter().fold(1e-300f64, |a, b| a.max(b.abs()));
-            prop_assert!((g[k] - fd).abs() / gmax <= 1e-6, "{what}: grad {} fd {fd}", g[k]);
-            Ok(())
-        };
-        let qnorm = q.iter().map(|x| x * x).sum::<f64>().sqrt();
-        for k in 0..4 {
-            let h = 1e-5 * qnorm;
-            let (mut a, mut b) = (q, q);
-            a[k] += h;
-            b[k] -= h;
-            let fd = (eval(&a, &tr) - eval(&b, &tr)) / (2.0 * h);
-            fd_check(&gq, k, fd, &format!("q[{k}]"))?;
-        }
-        for k in 0..3 {
-            let h = 1e-5 * tr[k].abs().max(1.0);
-            let (mut a, mut b) = (tr, tr);
-            a[k] += h;
-            b[k] -= h;
-            let fd = (eval(&q, &a) - eval(&q, &b)) / (2.0 * h);
-            fd_check(&gt, k, fd, &format!("t[{k}]"))?;
-        }
-    }
-}
-
 // ---------------------------------------------------------------- degenerate cameras
 
 #[test]
@@ -876,9 +743,11 @@ fn camera_methods_reject_bad_dtype_and_n() {
     let cam = Camera::look_at(intr(), DVec3::ZERO, DVec3::Z, DVec3::Y, Convention::OpenCv).unwrap();
     for dt in [DType::U8, DType::U32, DType::I64, DType::BF16] {
         assert_eq!(arg_of(cam.rays(&dev(), dt)), "dtype");
-        assert_eq!(arg_of(cam.pixel_grid(&dev(), dt)), "dtype");
+        assert_eq!(
+            arg_of(cam.subpixel_grid(1, PixelFilter::Box, &dev(), dt)),
+            "dtype"
+        );
         assert_eq!(arg_of(cam.random_rays(4, 0, &dev(), dt)), "dtype");
-        assert_eq!(arg_of(cam.pose_param(&dev(), dt)), "dtype");
     }
     assert_eq!(arg_of(cam.random_rays(0, 0, &dev(), DType::F32)), "n");
 }
@@ -957,59 +826,11 @@ fn rays_methods_reject_bad_arguments() {
     let o = rows(&[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], DType::F32);
     let d = rows(&[[0.0, 0.0, 1.0], [0.0, 2.0, 0.0]], DType::F32);
     let rays = Rays::new(o, d).unwrap();
-    assert_eq!(
-        arg_of(rays.at(&Tensor::zeros(3, DType::F32, &dev()).unwrap())),
-        "t"
-    );
-    assert_eq!(
-        arg_of(rays.at(&Tensor::zeros((2, 1), DType::F32, &dev()).unwrap())),
-        "t"
-    );
-    assert_eq!(
-        arg_of(rays.at(&Tensor::zeros(2, DType::F64, &dev()).unwrap())),
-        "t"
-    );
-    assert_eq!(
-        arg_of(rays.at(&Tensor::zeros(2, DType::U32, &dev()).unwrap())),
-        "t"
-    );
     assert_eq!(arg_of(rays.narrow(3, 0)), "start");
     assert_eq!(arg_of(rays.narrow(1, 2)), "len");
     assert!(rays.narrow(2, 0).unwrap().is_empty());
-    let p = v2(&rays
-        .at(&Tensor::new(&[2.0f32, 0.5], &dev()).unwrap())
-        .unwrap());
-    assert_eq!(p, vec![vec![0.0, 0.0, 2.0], vec![1.0, 1.0, 0.0]]);
     let n = v2(rays.normalized().unwrap().directions());
     assert_eq!(n, vec![vec![0.0, 0.0, 1.0], vec![0.0, 1.0, 0.0]]);
-}
-
-#[test]
-fn pose_param_rejects_bad_arguments() {
-    let p = PoseParam::from_affine(&DAffine3::IDENTITY, &dev(), DType::F32).unwrap();
-    let i = intr();
-    let px64 = Tensor::zeros((2, 2), DType::F64, &dev()).unwrap();
-    let px3 = Tensor::zeros((2, 3), DType::F32, &dev()).unwrap();
-    let pxu = Tensor::zeros((2, 2), DType::U32, &dev()).unwrap();
-    for px in [&px64, &px3, &pxu] {
-        assert_eq!(arg_of(p.rays(&i, Convention::OpenCv, px)), "pixels");
-    }
-    let wrong_rot = PoseParam {
-        rotation: Var::zeros(3, DType::F32, &dev()).unwrap(),
-        translation: p.translation.clone(),
-    };
-    assert_eq!(arg_of(wrong_rot.rotation_matrix()), "rotation");
-    assert_eq!(arg_of(wrong_rot.to_affine()), "rotation");
-    let wrong_tr = PoseParam {
-        rotation: p.rotation.clone(),
-        translation: Var::zeros(3, DType::F64, &dev()).unwrap(),
-    };
-    assert_eq!(arg_of(wrong_tr.rotation_matrix()), "translation");
-    let wrong_shape_tr = PoseParam {
-        rotation: p.rotation.clone(),
-        translation: Var::zeros(4, DType::F32, &dev()).unwrap(),
-    };
-    assert_eq!(arg_of(wrong_shape_tr.to_affine()), "translation");
 }
 
 // ---------------------------------------------------------------- stiff batches
@@ -1153,7 +974,10 @@ fn normalized_and_camera_directions_gradients_match_finite_differences() {
 #[test]
 fn cameras_around_sit_at_the_mean_distance_and_look_at_the_centre() {
     use neural_fields::camera::cameras_around;
-    use neural_fields::glam::DVec2;
+    let ray_point = |t: &Tensor| {
+        let v = v2(t);
+        DVec3::new(v[0][0], v[0][1], v[0][2])
+    };
     let k = Intrinsics::from_fov_y(20, 20, 0.7).unwrap();
     let centre = DVec3::new(0.5, -0.2, 0.1);
     let cams: Vec<Camera> = [0.0f64, 1.2, 2.5, 4.0]
@@ -1167,10 +991,12 @@ fn cameras_around_sit_at_the_mean_distance_and_look_at_the_centre() {
     let new = cameras_around(&cams, 200, 5).unwrap();
     assert_eq!(new, cameras_around(&cams, 200, 5).unwrap(), "seeded");
     for cam in &new {
-        assert!((cam.center() - centre).length() / radius - 1.0 < 0.3);
+        assert!((cam.cam_to_world().translation - centre).length() / radius - 1.0 < 0.3);
         assert_eq!(cam.convention(), Convention::OpenGl);
         // The principal ray passes within 0.25·r of the centre (target jitter 0.05·r).
-        let (o, d) = cam.ray(DVec2::new(10.0, 10.0));
+        let px = Tensor::new(&[[10.0f64, 10.0]], &dev()).unwrap();
+        let ray = cam.rays_for_pixels(&px).unwrap();
+        let (o, d) = (ray_point(ray.origins()), ray_point(ray.directions()));
         let t = (centre - o).dot(d) / d.length_squared();
         assert!((o + d * t - centre).length() < 0.25 * radius);
         // Image up stays within 90° of the cameras' up (+z).

@@ -26,7 +26,7 @@ fn unit_quat(rng: &mut SplitMix64) -> DQuat {
 fn residual(s: &Similarity, from: &[DVec3], to: &[DVec3]) -> f64 {
     from.iter()
         .zip(to)
-        .map(|(&x, &y)| (s.transform_point(x) - y).length_squared())
+        .map(|(&x, &y)| (s.apply(x) - y).length_squared())
         .sum()
 }
 
@@ -47,7 +47,7 @@ proptest! {
             translation: DVec3::new(rng.normal(), rng.normal(), rng.normal()) * offset,
         };
         let from = cloud(&mut rng, n);
-        let to: Vec<DVec3> = from.iter().map(|&p| truth.transform_point(p)).collect();
+        let to: Vec<DVec3> = from.iter().map(|&p| truth.apply(p)).collect();
         let s = align_similarity(&from, &to).unwrap();
         prop_assert!((s.scale / truth.scale - 1.0).abs() < 1e-9, "{} vs {}", s.scale, truth.scale);
         prop_assert!(s.rotation.angle_between(truth.rotation) < 1e-7);
@@ -64,7 +64,7 @@ proptest! {
         let from = cloud(&mut rng, 20);
         let to: Vec<DVec3> = from
             .iter()
-            .map(|&p| truth.transform_point(p) + DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.1)
+            .map(|&p| truth.apply(p) + DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.1)
             .collect();
         let s = align_similarity(&from, &to).unwrap();
         let best = residual(&s, &from, &to);
@@ -95,7 +95,7 @@ fn a_half_turn_and_planar_points_are_recovered() {
             rotation,
             translation: DVec3::new(4.0, 5.0, 6.0),
         };
-        let to: Vec<DVec3> = from.iter().map(|&p| truth.transform_point(p)).collect();
+        let to: Vec<DVec3> = from.iter().map(|&p| truth.apply(p)).collect();
         let s = align_similarity(&from, &to).unwrap();
         assert!(
             s.rotation.angle_between(rotation) < 1e-9,
@@ -107,24 +107,31 @@ fn a_half_turn_and_planar_points_are_recovered() {
 }
 
 #[test]
-fn the_inverse_undoes_the_map_and_moved_poses_stay_rigid() {
+fn the_documented_inverse_undoes_the_map_and_moved_poses_stay_rigid() {
     let s = Similarity {
         scale: 3.0,
         rotation: DQuat::from_axis_angle(DVec3::new(1.0, 2.0, 3.0).normalize(), 0.7),
         translation: DVec3::new(-1.0, 0.5, 2.0),
     };
     let p = DVec3::new(0.2, -0.4, 1.1);
-    assert!((s.inverse().transform_point(s.transform_point(p)) - p).length() < 1e-12);
+    // The inverse as the docs of `Similarity` state it.
+    let r = s.rotation.inverse();
+    let inverse = Similarity {
+        scale: 1.0 / s.scale,
+        rotation: r,
+        translation: -(r * s.translation) / s.scale,
+    };
+    assert!((inverse.apply(s.apply(p)) - p).length() < 1e-12);
     let pose =
         DAffine3::from_rotation_translation(DQuat::from_rotation_y(0.3), DVec3::new(0.0, 0.0, 4.0));
-    let moved = s.transform_pose(&pose);
+    let moved = s.apply(pose);
     let r = moved.matrix3;
     assert!((r.transpose() * r - DMat3::IDENTITY)
         .to_cols_array()
         .iter()
         .all(|v| v.abs() < 1e-12));
-    assert!((moved.translation - s.transform_point(pose.translation)).length() < 1e-12);
-    assert_eq!(Similarity::IDENTITY.transform_point(p), p);
+    assert!((moved.translation - s.apply(pose.translation)).length() < 1e-12);
+    assert_eq!(Similarity::IDENTITY.apply(p), p);
 }
 
 /// A mirror image has no proper rotation onto it: the result is still a rotation (the
@@ -179,13 +186,7 @@ fn ring(rng: &mut SplitMix64, n: usize, convention: Convention) -> Vec<Camera> {
 fn moved(cameras: &[Camera], s: &Similarity) -> Vec<Camera> {
     cameras
         .iter()
-        .map(|c| {
-            Camera::new(
-                *c.intrinsics(),
-                s.transform_pose(&c.cam_to_world()),
-                c.convention(),
-            )
-        })
+        .map(|c| Camera::new(*c.intrinsics(), s.apply(c.cam_to_world()), c.convention()))
         .collect::<Result<_, _>>()
         .unwrap()
 }
@@ -200,7 +201,7 @@ fn reprojection_cost(s: &Similarity, from: &[Camera], to: &[Camera], points: &[D
             if !(0.0..=k.width as f64).contains(&p.x) || !(0.0..=k.height as f64).contains(&p.y) {
                 continue;
             }
-            let q = t.project(s.transform_point(y)).unwrap();
+            let q = t.project(s.apply(y)).unwrap();
             cost += (q.truncate() - p.truncate()).length_squared();
         }
     }
@@ -211,7 +212,7 @@ fn reprojection_cost(s: &Similarity, from: &[Camera], to: &[Camera], points: &[D
 fn misplacement(s: &Similarity, truth: &Similarity, points: &[DVec3]) -> f64 {
     (points
         .iter()
-        .map(|&y| (s.transform_point(y) - truth.transform_point(y)).length_squared())
+        .map(|&y| (s.apply(y) - truth.apply(y)).length_squared())
         .sum::<f64>()
         / points.len() as f64)
         .sqrt()
@@ -316,7 +317,11 @@ fn orbit_errors_misplace_the_scene_less_by_the_views_than_by_the_centres() {
             })
             .collect();
         let points: Vec<DVec3> = cloud(&mut rng, 200).iter().map(|&p| p * 0.3).collect();
-        let centres = |c: &[Camera]| c.iter().map(Camera::center).collect::<Vec<_>>();
+        let centres = |c: &[Camera]| {
+            c.iter()
+                .map(|c| c.cam_to_world().translation)
+                .collect::<Vec<_>>()
+        };
         by_centres += misplacement(
             &align_similarity(&centres(&from), &centres(&to)).unwrap(),
             &truth,
@@ -391,7 +396,7 @@ fn reprojection_error_is_zero_under_the_frame_and_small_for_an_orbit() {
     let moved_by = |s: &Similarity| -> Vec<Camera> {
         cameras
             .iter()
-            .map(|c| Camera::new(k, s.transform_pose(&c.cam_to_world()), c.convention()).unwrap())
+            .map(|c| Camera::new(k, s.apply(c.cam_to_world()), c.convention()).unwrap())
             .collect()
     };
     // The same cameras in another frame, seen through that frame: no error.

@@ -46,7 +46,7 @@ fn check_point(camera: &Camera, point: DVec3, blender: DVec2) -> (f64, f64) {
         .project(point)
         .expect("the point is in front of the camera");
     let reprojection = (p.truncate() - blender).length();
-    let (o, d) = camera.ray(blender);
+    let (o, d) = common::camera_ray(camera, blender);
     // Distance of the point from the ray, in pixels at the point's depth (d has unit depth).
     let t = (point - o).dot(d) / d.length_squared();
     let miss = (o + d * t - point).length() / t * camera.intrinsics().fx;
@@ -466,7 +466,9 @@ fn jittered_rays_stay_inside_their_pixels_and_subpixel_grids_average_to_centres(
         let sub = camera.subpixel_grid(k, filter, &d, DType::F64).unwrap();
         let n = sub.dim(0).unwrap() / (k * k);
         let means = sub.reshape((n, k * k, 2)).unwrap().mean(1).unwrap();
-        let centres = camera.pixel_grid(&d, DType::F64).unwrap();
+        let centres = camera
+            .subpixel_grid(1, PixelFilter::Box, &d, DType::F64)
+            .unwrap();
         let err = v64(&(means - centres).unwrap())
             .into_iter()
             .fold(0.0f64, |m, x| m.max(x.abs()));

@@ -13,7 +13,9 @@ use common::counting::Counting;
 use common::hits::count;
 use common::{central_diff, close, v64};
 use glam::DVec3;
-use neural_fields::camera::{Camera, Convention, Intersection, Intrinsics, Rays};
+use neural_fields::camera::{
+    pose_rays, Camera, Convention, Intersection, Intrinsics, PoseParam, Rays,
+};
 use neural_fields::dvr::{
     implicit_surface, march, Hits, ImplicitConfig, MarchConfig, RayStatus, SurfacePoints,
 };
@@ -414,7 +416,8 @@ fn depth_gradient_reaches_the_camera_pose_and_matches_finite_differences() {
         Convention::OpenGl,
     )
     .unwrap();
-    let pose = cam.pose_param(&DEV, DType::F64).unwrap();
+    let pose = PoseParam::from_affine(&cam.cam_to_world(), &DEV, DType::F64).unwrap();
+    let views = Tensor::zeros(3, DType::U32, &DEV).unwrap();
     let pixels = Tensor::new(&[[8.5f64, 6.5], [7.0, 5.0], [9.5, 7.5]], &DEV).unwrap();
     let field = Sphere::new([0.0, 0.05, 0.0], 0.6, &DEV, DType::F64)
         .unwrap()
@@ -422,11 +425,11 @@ fn depth_gradient_reaches_the_camera_pose_and_matches_finite_differences() {
     let c = [1.0, -0.7, 0.4];
     let n = Tensor::zeros(3, DType::F64, &DEV).unwrap();
     let fa = Tensor::new(&[5.0f64, 5.0, 5.0], &DEV).unwrap();
-    let rays = pose.rays(&k, Convention::OpenGl, &pixels).unwrap();
+    let rays = pose_rays(std::slice::from_ref(&pose), &[cam], &views, &pixels).unwrap();
     let (l, _) = implicit_loss(&field, rays.origins(), rays.directions(), &n, &fa, &c).unwrap();
     let grads = l.backward().unwrap();
     let mut loss = || {
-        let r = pose.rays(&k, Convention::OpenGl, &pixels).unwrap();
+        let r = pose_rays(std::slice::from_ref(&pose), &[cam], &views, &pixels).unwrap();
         loss_from_march(&field, r.origins(), r.directions(), &n, &fa, &c)
     };
     let gq = v64(grads.get(&pose.rotation).unwrap());

@@ -396,6 +396,50 @@ impl Dataset {
         self.bounds
     }
 
+    /// The same dataset with its views' cameras moved to `poses` (camera-to-world, one per
+    /// view, in order): intrinsics, conventions, images, masks, names, the background and
+    /// the bounds kept. For cameras perturbed or refined, or moved into another frame
+    /// ([`crate::camera::Similarity::apply`]).
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `poses` unless there is one per view, each a
+    /// finite rigid transform (as [`Camera::new`] requires).
+    pub fn with_poses(&self, poses: &[DAffine3]) -> Result<Dataset> {
+        if poses.len() != self.views.len() {
+            return Err(Error::invalid(
+                "poses",
+                format!("{} poses (one per view)", self.views.len()),
+                poses.len().to_string(),
+            ));
+        }
+        let views = self
+            .views
+            .iter()
+            .zip(poses)
+            .enumerate()
+            .map(|(i, (v, pose))| {
+                let cam = v.camera();
+                let moved = Camera::new(*cam.intrinsics(), *pose, cam.convention()).map_err(
+                    |e| match e {
+                        Error::InvalidArgument { expected, got, .. } => Error::InvalidArgument {
+                            arg: "poses",
+                            expected,
+                            got: format!("pose {i}: {got}"),
+                        },
+                        other => other,
+                    },
+                )?;
+                View::new(
+                    moved,
+                    v.image().clone(),
+                    v.mask_image().cloned(),
+                    v.name().to_string(),
+                )
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Dataset::new(views, self.background, self.bounds)
+    }
+
     /// The number of decoded image and mask bytes held.
     #[must_use]
     pub fn image_bytes(&self) -> usize {

@@ -51,7 +51,7 @@ mod triangulate;
 pub use losses::{kl_standard_normal, reconstruction_loss, reparameterize};
 pub use marching_cubes::{marching_cubes, Grid};
 pub use mesh::{points_tensor, Mesh, MeshFormat, SurfaceSamples};
-pub use metrics::{iou, mesh_metrics, surface_metrics, KdTree, SurfaceMetrics};
+pub use metrics::{chamfer_icp, iou, mesh_metrics, surface_metrics, KdTree, SurfaceMetrics};
 pub use mise::{logit_threshold, mise, refine_vertices, MiseConfig, MiseOutput, RefineConfig};
 pub use point_cloud::PointCloud;
 pub use sampling::{

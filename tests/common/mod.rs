@@ -125,3 +125,18 @@ pub fn assimp_models() -> Option<&'static std::path::Path> {
         None
     }
 }
+
+/// The ray `(origin, direction)` of `camera` through the continuous pixel coordinate
+/// `pixel`, in f64 on the host (through [`neural_fields::camera::Camera::rays_for_pixels`]).
+pub fn camera_ray(
+    camera: &neural_fields::camera::Camera,
+    pixel: glam::DVec2,
+) -> (glam::DVec3, glam::DVec3) {
+    let px = candle_core::Tensor::new(&[[pixel.x, pixel.y]], &candle_core::Device::Cpu).unwrap();
+    let rays = camera.rays_for_pixels(&px).unwrap();
+    let row = |t: &candle_core::Tensor| {
+        let v = t.to_vec2::<f64>().unwrap();
+        glam::DVec3::new(v[0][0], v[0][1], v[0][2])
+    };
+    (row(rays.origins()), row(rays.directions()))
+}
