@@ -51,12 +51,12 @@
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{Optimizer, VarMap};
 use clap::{Parser, ValueEnum};
-use common::PositionEncoding;
 use neural_fields::camera::{
     align_cameras, align_similarity, pose_error, pose_rays, ray_aabb, register_poses,
     reprojection_error, Camera, Intersection, PixelFilter, PoseParam, Rays, RegistrationConfig,
     Similarity,
 };
+use neural_fields::data::load_eval;
 use neural_fields::data::{
     colorize_normals, comparison_strip, load, psnr, write_png, Background, Dataset, LoadConfig,
     RayBatch, RaySampler,
@@ -66,12 +66,15 @@ use neural_fields::dvr::{
     normal_smoothness_loss, photometric_loss, sphere_trace, AlphaSchedule, Hits, ImplicitConfig,
     MarchConfig, Photometric, SphereTraceConfig,
 };
-use neural_fields::encoding::{CoarseToFine, FrequencyEncoding, PointEncoding};
+use neural_fields::encoding::{
+    hash_grid, CoarseToFine, FrequencyEncoding, HashGridConfig, PointEncoding,
+};
 use neural_fields::field::{ImplicitSurface, SignedDistance, Sphere};
 use neural_fields::glam::{DAffine3, DMat3, DMat4, DVec3};
 use neural_fields::nn::{
-    build_seeded, joint_decoder, mlp, rendering_net, texture_decoder, JointDecoder, Mlp, MlpConfig,
-    RenderingNet, RenderingNetConfig, TextureDecoder, TextureDecoderConfig,
+    adam, build_seeded, joint_decoder, mlp, rendering_net, texture_decoder, Budget, Clock,
+    FiniteGuard, JointDecoder, Mlp, MlpConfig, RenderingNet, RenderingNetConfig, TextureDecoder,
+    TextureDecoderConfig,
 };
 use neural_fields::numerics::bce_with_logits;
 use neural_fields::occupancy::{chamfer_icp, mesh_metrics, mise, Mesh, MiseConfig};
@@ -80,11 +83,6 @@ use neural_fields::texture::{image_gradient_loss, vertex_colors, TextureField, T
 use neural_fields::volume::log_linear_schedule;
 use neural_fields::{Error, Result};
 use std::path::{Path, PathBuf};
-
-#[path = "common/mod.rs"]
-mod common;
-#[path = "common/training.rs"]
-mod training;
 
 #[global_allocator]
 static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
@@ -126,6 +124,87 @@ pub enum PoseSolver {
     /// Adam until a Levenberg–Marquardt registration of every camera to the scene held
     /// fixed takes over; the held-out cameras are registered the same way.
     Lm,
+}
+
+/// The position encoding of the networks.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum PositionEncoding {
+    /// A frequency encoding.
+    Pe,
+    /// instant-NGP's multiresolution hash grid over the scene box.
+    Hash,
+}
+
+impl PositionEncoding {
+    /// The encoding of 3-D points: `Pe` the frequency encoding with `frequencies` octaves;
+    /// `Hash` [`HashGridConfig::default`] (2^[`HASH_LOG2`] rows per level) over the box
+    /// `[lo, hi]` at resolutions 16 to `finest`, its table in `vb.pp("grid")`.
+    fn build(
+        self,
+        frequencies: usize,
+        (lo, hi): ([f64; 3], [f64; 3]),
+        finest: f64,
+        vb: &candle_nn::VarBuilder,
+    ) -> Result<PointEncoding> {
+        Ok(match self {
+            Self::Pe => PointEncoding::Frequency(FrequencyEncoding::new(3, frequencies)?),
+            Self::Hash => {
+                let config = HashGridConfig {
+                    lo: lo.to_vec(),
+                    hi: hi.to_vec(),
+                    log2_table_size: HASH_LOG2,
+                    finest_resolution: finest,
+                    ..HashGridConfig::default()
+                };
+                PointEncoding::HashGrid(hash_grid(&config, vb.pp("grid"))?)
+            }
+        })
+    }
+}
+
+/// Rows `idx` of `t`.
+fn rows(t: &Tensor, idx: &[u32]) -> Result<Tensor> {
+    Ok(t.index_select(&Tensor::from_slice(idx, idx.len(), t.device())?, 0)?)
+}
+
+/// Rays `idx` of `rays` and their range on each.
+fn select(rays: &Rays, range: &Intersection, idx: &[u32]) -> Result<(Rays, Intersection)> {
+    let picked = Rays::new(rows(rays.origins(), idx)?, rows(rays.directions(), idx)?)?;
+    let range = Intersection {
+        near: rows(&range.near, idx)?,
+        far: rows(&range.far, idx)?,
+        hit: rows(&range.hit, idx)?,
+    };
+    Ok((picked, range))
+}
+
+/// Writes `bytes` to `path`.
+fn write(path: &Path, bytes: impl AsRef<[u8]>) -> Result<()> {
+    std::fs::write(path, bytes).map_err(|source| Error::Io {
+        path: path.display().to_string(),
+        source,
+    })
+}
+
+/// `value` as pretty JSON in `path`.
+fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
+    write(path, serde_json::to_string_pretty(value).expect("JSON")) // invariant: a Value
+}
+
+/// Stops on a NaN or infinity in a weight of `varmap`, naming it and the step.
+fn check_weights(varmap: &VarMap, step: usize) -> Result<()> {
+    let vars = varmap.data().lock().expect("an unpoisoned VarMap"); // invariant: not shared
+    for (name, var) in vars.iter() {
+        let sum = var.as_tensor().abs()?.sum_all()?.to_dtype(DType::F64)?;
+        if !sum.to_scalar::<f64>()?.is_finite() {
+            return Err(Error::InvalidArgument {
+                arg: "training",
+                expected: "finite losses, gradients and weights".into(),
+                got: format!("a NaN or infinity in the weight {name} at step {step}"),
+            });
+        }
+    }
+    Ok(())
 }
 
 /// The name of a flag's value, as on the command line and in `metrics.json`.
@@ -174,8 +253,7 @@ pub struct Args {
     /// The learning rate (default 1e-3, or 1e-2 for the DVR models on hash grids).
     #[arg(long)]
     pub lr: Option<f64>,
-    /// `pe` (frequency encoding) or `hash` (instant-NGP's hash grid).
-    #[arg(long, default_value = "pe", value_parser = PositionEncoding::parse)]
+    #[arg(long, value_enum, default_value_t = PositionEncoding::Pe)]
     pub encoding: PositionEncoding,
     #[arg(long, value_enum, default_value_t = RenderInputs::Full)]
     pub render_inputs: RenderInputs,
@@ -190,12 +268,12 @@ pub struct Args {
     pub perturb: Option<(f64, f64)>,
     /// `on` learns the training poses.
     #[arg(long, default_value = "off", action = clap::ArgAction::Set,
-          value_parser = |v: &str| training::on_off("--refine-poses", v))]
+          value_parser = on_off)]
     pub refine_poses: bool,
     #[arg(long, default_value_t = 1e-3)]
     pub pose_lr: f64,
     /// BARF's coarse-to-fine window: START,END fractions of the budget.
-    #[arg(long, value_parser = |v: &str| training::window_span("--coarse-to-fine", v))]
+    #[arg(long, value_parser = window_span)]
     pub coarse_to_fine: Option<(f64, f64)>,
     /// Test-time refinement steps per held-out camera (0: none).
     #[arg(long, default_value_t = 100)]
@@ -225,18 +303,59 @@ impl Default for Args {
     }
 }
 
+/// Two finite numbers `A,B`.
+fn pair(value: &str) -> Option<(f64, f64)> {
+    let (a, b) = value.split_once(',')?;
+    let (a, b) = (a.trim().parse::<f64>().ok()?, b.trim().parse::<f64>().ok()?);
+    (a.is_finite() && b.is_finite()).then_some((a, b))
+}
+
 /// `--perturb DEGREES,FRACTION`, both ≥ 0.
 fn perturbation(value: &str) -> std::result::Result<(f64, f64), String> {
-    match training::pair("--perturb", value, "3,0.03")? {
-        [d, f] if d >= 0.0 && f >= 0.0 => Ok((d, f)),
-        _ => Err(format!("--perturb: DEGREES,FRACTION ≥ 0, not {value}")),
+    pair(value)
+        .filter(|&(d, f)| d >= 0.0 && f >= 0.0)
+        .ok_or_else(|| format!("DEGREES,FRACTION ≥ 0 like 3,0.03, not {value}"))
+}
+
+/// `--coarse-to-fine START,END`: 0 ≤ START < 1, START < END (END > 1 leaves the windows
+/// still opening when training ends).
+fn window_span(value: &str) -> std::result::Result<(f64, f64), String> {
+    pair(value)
+        .filter(|&(s, e)| 0.0 <= s && s < e && s < 1.0)
+        .ok_or_else(|| format!("START,END with 0 ≤ START < 1 and START < END, not {value}"))
+}
+
+/// `on` or `off`.
+fn on_off(value: &str) -> std::result::Result<bool, String> {
+    match value {
+        "on" => Ok(true),
+        "off" => Ok(false),
+        other => Err(format!("on or off, not {other}")),
     }
+}
+
+/// Opens each coarse-to-fine window to `bands · clamp((progress − START)/(END − START), 0,
+/// 1)`; without `--coarse-to-fine` there are none.
+fn open_windows(windows: &[CoarseToFine], progress: f64, span: Option<(f64, f64)>) -> Result<()> {
+    let open = span.map_or(1.0, |(s, e)| ((progress - s) / (e - s)).clamp(0.0, 1.0));
+    for w in windows {
+        w.set_alpha(open * w.bands() as f64)?;
+    }
+    Ok(())
 }
 
 impl Args {
     /// The checks that span flags, and the default budget.
     fn check(mut self) -> std::result::Result<Self, String> {
-        training::check_budget(&mut self.minutes, self.steps, 15.0)?;
+        if self.minutes.is_some() && self.steps.is_some() {
+            return Err("give --minutes or --steps, not both".into());
+        }
+        if self.minutes.is_none() && self.steps.is_none() {
+            self.minutes = Some(15.0);
+        }
+        if self.minutes.is_some_and(|m| !(m > 0.0 && m.is_finite())) {
+            return Err("--minutes must be positive".into());
+        }
         if self.lm_every == Some(0)
             || self.lm_iterations == 0
             || !(0.0..=1.0).contains(&self.lm_start)
@@ -381,10 +500,7 @@ fn build(
         Ok(PointEncoding::CoarseToFine(c))
     };
     let encode = |frequencies: usize, vb: &candle_nn::VarBuilder| {
-        window(
-            args.encoding
-                .build(frequencies, lo, hi, HASH_LOG2, finest, vb)?,
-        )
+        window(args.encoding.build(frequencies, (lo, hi), finest, vb)?)
     };
     // The occupancy network: PE(L = 4) on 5 × 128 with a skip, or a hash grid on 2 × 64.
     let shape = |vb: &candle_nn::VarBuilder| -> Result<MlpConfig> {
@@ -536,8 +652,8 @@ fn step_loss(
     if !on.is_empty() {
         let on_rays: Vec<u32> = on.iter().map(|&k| hit_rays[k as usize]).collect();
         photo = photometric_loss(
-            &common::rows(&shaded.rgb, &on)?,
-            &common::rows(colors, &on_rays)?,
+            &rows(&shaded.rgb, &on)?,
+            &rows(colors, &on_rays)?,
             None,
             Photometric::L1,
         )?;
@@ -580,7 +696,7 @@ fn step_loss(
                 if which.is_empty() {
                     continue;
                 }
-                let (sub, sub_range) = common::select(rays, &range, which)?;
+                let (sub, sub_range) = select(rays, &range, which)?;
                 let logits = most_inside_along_rays(decoder, &sub, &sub_range, 64)?;
                 let y = Tensor::full(target, which.len(), &device)?.to_dtype(dtype)?;
                 let bce = bce_with_logits(&logits, &y)?.mean_all()?;
@@ -599,7 +715,7 @@ fn step_loss(
                 .map(|r| r as u32)
                 .collect();
             if !outside.is_empty() {
-                let (sub, sub_range) = common::select(rays, &range, &outside)?;
+                let (sub, sub_range) = select(rays, &range, &outside)?;
                 let values = most_inside_along_rays(geometry, &sub, &sub_range, 64)?;
                 let target: Vec<f32> = outside
                     .iter()
@@ -1151,7 +1267,7 @@ fn write_poses(
             })
         })
         .collect();
-    training::write_json(path, &serde_json::json!({ "views": views }))
+    write_json(path, &serde_json::json!({ "views": views }))
 }
 
 /// What a run measured on the held-out views.
@@ -1207,24 +1323,29 @@ pub fn run(args: &Args) -> Result<Summary> {
     };
     let mut pose_opt =
         candle_nn::AdamW::new(pose_vars.iter().map(|(_, v)| v.clone()).collect(), params)?;
-    let (eval, eval_split) = training::load_eval(&args.data, &config)?;
-    training::create_dir(&args.out)?;
-    let aabb = training::scene_box(&train, args.aabb);
+    let (eval, eval_split) = load_eval(&args.data, &config)?;
+    let eval_split = eval_split.name();
+    std::fs::create_dir_all(&args.out).map_err(|source| Error::Io {
+        path: args.out.display().to_string(),
+        source,
+    })?;
+    let aabb = train.scene_box(args.aabb);
     let mut varmap = VarMap::new();
-    let (net, windows) = build(
-        args,
-        aabb,
-        training::hash_finest(&train),
-        &varmap,
-        &device,
-        dtype,
-    )?;
-    let vars = training::named_vars(&varmap);
+    let (net, windows) = build(args, aabb, train.hash_finest(), &varmap, &device, dtype)?;
+    let guard = FiniteGuard::new(&varmap);
+    // The poses' variables, checked by a guard of their own.
+    let pose_map = VarMap::new();
+    pose_map
+        .data()
+        .lock()
+        .expect("an unpoisoned VarMap") // invariant: not shared
+        .extend(pose_vars.iter().cloned());
+    let pose_guard = FiniteGuard::new(&pose_map);
     let lr0 = args.lr.unwrap_or(match (args.encoding, args.model) {
         (PositionEncoding::Hash, Model::Dvr | Model::DvrJoint) => 1e-2,
         _ => 1e-3,
     });
-    let mut opt = common::adam(&varmap, lr0)?;
+    let mut opt = adam(&varmap, lr0)?;
     if let Some(path) = &args.resume_poses {
         set_poses(&poses, &read_poses(path, &train)?)?;
     }
@@ -1241,7 +1362,16 @@ pub fn run(args: &Args) -> Result<Summary> {
         }
     }
     let mut sampler = RaySampler::new(&train, args.seed, &device, dtype)?;
-    let mut clock = training::Clock::start(args.steps, args.minutes);
+    let mut clock = Clock::start(match args.steps {
+        Some(n) => Budget::Steps(n),
+        None => Budget::Minutes(args.minutes.unwrap_or(15.0)),
+    })?;
+    let bar = indicatif::ProgressBar::new(1000);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {percent}% {msg}")
+            .expect("a valid template") // invariant: a literal
+            .progress_chars("=> "),
+    );
     let (model, lm) = (
         name(args.model),
         args.pose_solver == PoseSolver::Lm && !poses.is_empty(),
@@ -1263,7 +1393,7 @@ pub fn run(args: &Args) -> Result<Summary> {
             |lr: f64| log_linear_schedule((progress * 10_000.0) as usize, lr, lr / 10.0, 10_000);
         opt.set_learning_rate(decay(lr0));
         pose_opt.set_learning_rate(decay(args.pose_lr));
-        training::open_windows(&windows, progress, args.coarse_to_fine)?;
+        open_windows(&windows, progress, args.coarse_to_fine)?;
         let batch = sampler.patches(args.rays / 4, 2)?;
         let rays = match poses.is_empty() {
             true => batch.rays.clone(),
@@ -1272,10 +1402,9 @@ pub fn run(args: &Args) -> Result<Summary> {
         let seed = args.seed ^ (step as u64).wrapping_mul(0x9E37_79B9);
         let mask = batch_mask(&batch, &train)?;
         let (loss, photo) = step_loss(&net, &rays, &batch.colors, &mask, aabb, progress, seed)?;
-        training::check_finite(&loss, step, "the loss")?;
         let grads = loss.backward()?;
-        training::check_gradients(&grads, &vars, step)?;
-        training::check_gradients(&grads, &pose_vars, step)?;
+        guard.check(step, &loss, Some(&grads))?;
+        pose_guard.check(step, &loss, Some(&grads))?;
         opt.step(&grads)?;
         // Adam moves the poses until the first registration; from then on the
         // registrations do.
@@ -1291,17 +1420,15 @@ pub fn run(args: &Args) -> Result<Summary> {
             register_training(&net, args, &train, (&poses, &true_poses), aabb, step)?;
             registered_at = Some(step);
         }
-        clock.tick(step);
+        bar.set_position((1000.0 * clock.progress(step).min(1.0)) as u64);
         if step.is_multiple_of(10) {
             let l1 = photo.to_dtype(DType::F64)?.to_scalar::<f64>()?;
-            clock
-                .bar
-                .set_message(format!("step {step} photometric L1 {l1:.4}"));
+            bar.set_message(format!("step {step} photometric L1 {l1:.4}"));
         }
         if step.is_multiple_of(args.eval_every) {
             let seconds = clock.train_seconds();
-            let (iou, p) = clock.off_clock(|| -> Result<(f64, f64)> {
-                training::check_weights(&vars, step)?;
+            let (iou, p) = clock.pause(|| -> Result<(f64, f64)> {
+                check_weights(&varmap, step)?;
                 // The held-out cameras in the learnt frame by the fit of the centres.
                 let (aligned, pose_note) = match poses.is_empty() {
                     true => (None, String::new()),
@@ -1336,10 +1463,10 @@ pub fn run(args: &Args) -> Result<Summary> {
         register_training(&net, args, &train, (&poses, &true_poses), aabb, step)?;
     }
     let train_seconds = clock.train_seconds();
-    clock.bar.finish_and_clear();
+    bar.finish_and_clear();
     // The windows as the schedule leaves them (every band open unless END > 1).
-    training::open_windows(&windows, 1.0, args.coarse_to_fine)?;
-    training::check_weights(&vars, step)?;
+    open_windows(&windows, 1.0, args.coarse_to_fine)?;
+    check_weights(&varmap, step)?;
     // With refined poses the scene was learnt in a frame of its own: the held-out cameras
     // are moved into it (and the mesh out of it) by the alignment of what the training
     // cameras see on the extracted surface; the poses are compared after the fit of their
@@ -1423,7 +1550,7 @@ pub fn run(args: &Args) -> Result<Summary> {
         mesh.save(args.out.join("mesh.ply"))?;
     }
     varmap.save(args.out.join("weights.safetensors"))?;
-    training::write_text(&args.out.join("curve.csv"), &curve)?;
+    write(&args.out.join("curve.csv"), &curve)?;
     let mut metrics = eval_json(&all);
     for (key, value) in [
         ("chamfer_l1", serde_json::json!(chamfer_l1)),
@@ -1431,7 +1558,7 @@ pub fn run(args: &Args) -> Result<Summary> {
         ("train_seconds", serde_json::json!(train_seconds)),
         ("steps", serde_json::json!(step)),
         ("model", serde_json::json!(model)),
-        ("encoding", serde_json::json!(args.encoding.name())),
+        ("encoding", serde_json::json!(name(args.encoding))),
         ("render_inputs", serde_json::json!(name(args.render_inputs))),
         ("eval_split", serde_json::json!(eval_split)),
         ("eval_views", serde_json::json!(eval.len())),
@@ -1490,7 +1617,7 @@ pub fn run(args: &Args) -> Result<Summary> {
         metrics["chamfer_l1_centres"] = serde_json::json!(by_centres);
         write_poses(&args.out.join("poses.json"), &train, &refined, &frame)?;
     }
-    training::write_json(&args.out.join("metrics.json"), &metrics)?;
+    write_json(&args.out.join("metrics.json"), &metrics)?;
     println!(
         "{step} steps in {train_seconds:.1} s: held-out mask IoU {:.4}, masked PSNR {:.2} dB, \
          Chamfer-L1 {} over {} {eval_split} views; wrote {}",
@@ -1571,7 +1698,7 @@ mod tests {
             let summary = run(&args).unwrap();
             assert!((0.0..=1.0).contains(&summary.mask_iou));
             let metrics = read_json(&out.join("metrics.json"));
-            assert_eq!(metrics["encoding"], encoding.name());
+            assert_eq!(metrics["encoding"], name(encoding));
             for key in [
                 "mask_iou",
                 "psnr_masked",

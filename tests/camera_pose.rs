@@ -64,7 +64,7 @@ fn rotation_of(p: &PoseParam) -> neural_fields::Result<Vec<Vec<f64>>> {
     let px = Tensor::new(&[[0.0f64, 0.0], [1.0, 0.0], [0.0, 1.0]], like.device())?
         .to_dtype(like.dtype())?;
     let views = Tensor::zeros(3, DType::U32, like.device())?;
-    let d = v2(pose_rays(&[p.clone()], &[cam], &views, &px)?.directions());
+    let d = v2(pose_rays(std::slice::from_ref(p), &[cam], &views, &px)?.directions());
     let col = |k: usize| -> Vec<f64> {
         match k {
             2 => d[0].clone(),
@@ -146,7 +146,7 @@ fn pose_param_round_trips_and_matches_camera_rays() {
                 .to_dtype(dtype)
                 .unwrap();
             let a = cam.rays_for_pixels(&px).unwrap();
-            let b = pose_rays(&[p.clone()], &[cam], &zeros(2), &px).unwrap();
+            let b = pose_rays(std::slice::from_ref(&p), &[cam], &zeros(2), &px).unwrap();
             for (x, y) in v2(a.directions())
                 .iter()
                 .flatten()
@@ -197,7 +197,7 @@ fn pose_rays_turn_by_the_rotation_of_the_normalised_quaternion() {
 /// `Σ w·(o + t·d)` for rays from `p`, as a function of the variables.
 fn pose_objective(p: &PoseParam, px: &Tensor, t: &Tensor, w: &Tensor, conv: Convention) -> Tensor {
     let cam = Camera::new(intr(), DAffine3::IDENTITY, conv).unwrap();
-    let rays = pose_rays(&[p.clone()], &[cam], &zeros(1), px).unwrap();
+    let rays = pose_rays(std::slice::from_ref(p), &[cam], &zeros(1), px).unwrap();
     let points =
         (rays.origins() + rays.directions().broadcast_mul(&t.unsqueeze(1).unwrap())).unwrap();
     (points * w).unwrap().sum_all().unwrap()
@@ -269,7 +269,7 @@ fn pose_param_rejects_bad_arguments() {
     let pxu = Tensor::zeros((2, 2), DType::U32, &dev()).unwrap();
     for px in [&px64, &px3, &pxu] {
         assert_eq!(
-            arg_of(pose_rays(&[p.clone()], &[cam], &zeros(2), px)),
+            arg_of(pose_rays(std::slice::from_ref(&p), &[cam], &zeros(2), px)),
             "pixels"
         );
     }

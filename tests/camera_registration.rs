@@ -56,7 +56,13 @@ fn registration_aligns_a_camera_to_a_textured_ball() {
     let mut cameras = vec![Camera::new(k, start, gl).unwrap()];
     let config = RegistrationConfig::default();
     for _ in 0..4 {
-        cameras = register_poses(&cameras, &[image.clone()], textured_ball, &config).unwrap();
+        cameras = register_poses(
+            &cameras,
+            std::slice::from_ref(&image),
+            textured_ball,
+            &config,
+        )
+        .unwrap();
     }
     let after = pose_error(&[cameras[0].cam_to_world()], &[pose]).unwrap();
     assert!(
@@ -152,7 +158,12 @@ fn registration_refuses_bad_arguments() {
         Ok((rgb.narrow(1, 0, 2)?, depth, opacity))
     };
     assert_eq!(
-        arg(register_poses(&[cam], &[image.clone()], short, &config)),
+        arg(register_poses(
+            &[cam],
+            std::slice::from_ref(&image),
+            short,
+            &config
+        )),
         "render"
     );
     for bad in [
@@ -176,7 +187,7 @@ fn registration_refuses_bad_arguments() {
         assert_eq!(
             arg(register_poses(
                 &[cam],
-                &[image.clone()],
+                std::slice::from_ref(&image),
                 textured_ball,
                 &bad
             )),

@@ -1,5 +1,5 @@
 //! Stiff cases of `numerics`, `rng` and `error`: the defended scalar maths at every
-//! magnitude in f32 and f64, the damped linear solve, and the seeded tensor makers.
+//! magnitude in f32 and f64, the Levenberg–Marquardt solver, and the seeded tensor makers.
 
 mod common;
 
@@ -20,10 +20,10 @@ fn numerics_stay_finite_at_every_magnitude() {
 }
 
 #[test]
-fn damped_solve_stays_finite_or_refuses() {
+fn levenberg_marquardt_stays_finite_or_refuses() {
     let mut s = Suite::default();
-    sweep_damped_solve(&mut s);
-    s.finish("damped solve", DAMPED_SOLVE);
+    sweep_levenberg_marquardt(&mut s);
+    s.finish("Levenberg–Marquardt", LEVENBERG_MARQUARDT);
 }
 
 #[test]
@@ -42,7 +42,7 @@ fn rng_tensor_makers_stay_finite() {
 fn every_public_numerics_function_is_swept_or_exempt() {
     common::stiff::check_coverage(
         "stiff_cases_numerics",
-        &[NUMERICS, DAMPED_SOLVE, RNG],
+        &[NUMERICS, LEVENBERG_MARQUARDT, RNG],
         EXEMPT,
         &[],
         &[],
@@ -61,8 +61,8 @@ const NUMERICS: &[&str] = &[
     "numerics::softplus",
 ];
 
-/// Items swept by `sweep_damped_solve`.
-const DAMPED_SOLVE: &[&str] = &["numerics::damped_solve"];
+/// Items swept by `sweep_levenberg_marquardt`.
+const LEVENBERG_MARQUARDT: &[&str] = &["numerics::levenberg_marquardt"];
 
 /// Items swept by `sweep_rng`.
 const RNG: &[&str] = &[
@@ -73,6 +73,7 @@ const RNG: &[&str] = &[
 /// Public items without floating-point input (or only reached through a swept item),
 /// with the reason. Matching is by prefix.
 const EXEMPT: &[(&str, &str)] = &[
+    ("numerics::LmConfig::default", "constant"),
     (
         "error::",
         "validation helpers: their job is to return Err for bad input (unit-tested)",
@@ -185,26 +186,34 @@ fn sweep_rng(s: &mut Suite) {
     }
 }
 
-/// Damped Gauss–Newton systems at every magnitude: steps that are finite or refused
-/// (`None`).
-fn sweep_damped_solve(s: &mut Suite) {
+/// Levenberg–Marquardt on least-squares problems scaled to every magnitude, from every
+/// damping: a finite fit and cost, or a refusal.
+fn sweep_levenberg_marquardt(s: &mut Suite) {
     for &x in &magnitudes(DType::F64) {
         let x = x.clamp(-1e150, 1e150);
-        for lambda in [0.0, 1e-3, 1e300] {
+        for lambda in [1e-300, 1e-3, 1e300] {
             s.case(
-                "numerics::damped_solve",
-                format!("system scaled by {x:e}, λ = {lambda:e}"),
+                "numerics::levenberg_marquardt",
+                format!("residuals scaled by {x:e}, λ = {lambda:e}"),
                 Expect::FiniteOrErr,
                 &[],
                 || {
-                    let h = [[4.0 * x, x], [x, 2.0 * x]];
-                    let step = neural_fields::numerics::damped_solve(&h, &[x, -1.0], lambda)
-                        .ok_or_else(|| neural_fields::Error::InvalidArgument {
-                            arg: "h",
-                            expected: "a solvable system".into(),
-                            got: "none".into(),
-                        })?;
-                    Ok(vec![Tensor::new(&step, &Device::Cpu)?])
+                    let config = neural_fields::numerics::LmConfig {
+                        lambda,
+                        lambda_min: lambda.min(1e-9),
+                        lambda_max: lambda.max(1e12),
+                        ..Default::default()
+                    };
+                    let (p, cost) = neural_fields::numerics::levenberg_marquardt(
+                        [0.0, 0.0],
+                        &config,
+                        |p: &[f64; 2]| {
+                            let r = vec![x * p[0] - 1.0, 2.0 * x * p[1] + x];
+                            Ok(Some((r, vec![[x, 0.0], [0.0, 2.0 * x]])))
+                        },
+                        |p, d| [p[0] + d[0], p[1] + d[1]],
+                    )?;
+                    Ok(vec![Tensor::new(&[p[0], p[1], cost], &Device::Cpu)?])
                 },
             );
         }

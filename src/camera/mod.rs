@@ -130,8 +130,8 @@ impl PixelFilter {
     /// Not differentiable (a sampling rule).
     ///
     /// # Errors
-    /// [`Error::InvalidArgument`] naming `u` unless in `[0, 1]`, or `filter` as
-    /// [`PixelFilter::validate`].
+    /// [`Error::InvalidArgument`] naming `u` unless in `[0, 1]`, or `filter` unless a
+    /// Blackman–Harris `half_width` is finite and in `(0, 64]`.
     pub fn quantile(&self, u: f64) -> Result<f64> {
         self.validate()?;
         if !(0.0..=1.0).contains(&u) {
@@ -503,7 +503,7 @@ impl Camera {
     /// # Errors
     /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64, `k` unless between
     /// 1 and 64 (and at most 2²⁸ rows in all, naming `k`), or `filter` as
-    /// [`PixelFilter::validate`].
+    /// [`PixelFilter::quantile`].
     pub fn subpixel_grid(
         &self,
         k: usize,

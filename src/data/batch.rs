@@ -180,7 +180,7 @@ impl<'a> RaySampler<'a> {
     /// is the filter's mean of what those rays see. Draws no random numbers itself.
     ///
     /// # Errors
-    /// [`Error::InvalidArgument`] naming `filter` as [`PixelFilter::validate`].
+    /// [`Error::InvalidArgument`] naming `filter` as [`PixelFilter::quantile`].
     pub fn with_pixel_filter(mut self, filter: PixelFilter) -> Result<Self> {
         filter.validate()?;
         self.filter = filter;

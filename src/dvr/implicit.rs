@@ -76,7 +76,7 @@ pub struct SurfacePoints {
 /// * `field`: the field that was marched (possibly [`crate::field::Conditioned`] with a
 ///   shared `[D]` code or one `[R, D]` code per ray; gradients then reach the code).
 /// * `rays`: the `R` rays that were marched, *with* their graph (e.g. from
-///   [`crate::camera::PoseParam::rays`]) so that gradients reach the camera.
+///   [`crate::camera::pose_rays`]) so that gradients reach the camera.
 /// * `hits`: the march's result for these rays; only its detached depths and statuses
 ///   are read.
 ///
