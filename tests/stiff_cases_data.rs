@@ -51,12 +51,18 @@ const DATA: &[&str] = &[
 /// Public items without floating-point input (or only reached through a swept item),
 /// with the reason. Matching is by prefix.
 const EXEMPT: &[(&str, &str)] = &[
-    ("data::Dataset::hash_finest", "a resolution from the images' integer sizes"),
+    (
+        "data::Dataset::hash_finest",
+        "a resolution from the images' integer sizes",
+    ),
     (
         "data::Dataset::scene_box",
         "the bounds the layout states or the given cube; checked in tests/data_loaders.rs",
     ),
-    ("data::load_eval", "a loader: load's checks, with the split chosen by the files present"),
+    (
+        "data::load_eval",
+        "a loader: load's checks, with the split chosen by the files present",
+    ),
     (
         "data::Dataset::with_poses",
         "moves the cameras: Camera::new's checks, swept",

@@ -47,7 +47,8 @@ impl Rays {
     ///
     /// let o = Tensor::new(&[[0.0f32, 0.0, 0.0]], &Device::Cpu)?;
     /// let rays = Rays::new(o.clone(), Tensor::new(&[[0.0f32, 0.0, 2.0]], &Device::Cpu)?)?;
-    /// assert_eq!(rays.at(&Tensor::new(&[1.5f32], &Device::Cpu)?)?.to_vec2::<f32>()?, vec![vec![0.0, 0.0, 3.0]]);
+    /// assert_eq!(rays.len(), 1);
+    /// assert_eq!(rays.normalized()?.directions().to_vec2::<f32>()?, vec![vec![0.0, 0.0, 1.0]]);
     /// assert!(Rays::new(o, Tensor::zeros((1, 3), candle_core::DType::F32, &Device::Cpu)?).is_err());
     /// # Ok::<(), neural_fields::Error>(())
     /// ```
