@@ -58,8 +58,7 @@ use neural_fields::camera::{
 };
 use neural_fields::data::load_eval;
 use neural_fields::data::{
-    colorize_normals, comparison_strip, load, psnr, write_png, Background, Dataset, LoadConfig,
-    RayBatch, RaySampler,
+    comparison_strip, load, psnr, write_png, Background, Dataset, LoadConfig, RayBatch, RaySampler,
 };
 use neural_fields::dvr::{
     eikonal_loss, idr_mask_loss, implicit_surface, march, most_inside_along_rays,
@@ -71,13 +70,14 @@ use neural_fields::encoding::{
 };
 use neural_fields::field::{ImplicitSurface, SignedDistance, Sphere};
 use neural_fields::glam::{DAffine3, DMat3, DMat4, DVec3};
+use neural_fields::mesh::Mesh;
 use neural_fields::nn::{
     adam, build_seeded, joint_decoder, mlp, rendering_net, texture_decoder, Budget, Clock,
     FiniteGuard, JointDecoder, Mlp, MlpConfig, RenderingNet, RenderingNetConfig, TextureDecoder,
     TextureDecoderConfig,
 };
 use neural_fields::numerics::bce_with_logits;
-use neural_fields::occupancy::{chamfer_icp, mesh_metrics, mise, Mesh, MiseConfig};
+use neural_fields::occupancy::{chamfer_icp, mesh_metrics, mise, MiseConfig};
 use neural_fields::rng::SplitMix64;
 use neural_fields::texture::{image_gradient_loss, vertex_colors, TextureField, TextureInput};
 use neural_fields::volume::log_linear_schedule;
@@ -584,15 +584,13 @@ fn build(
 /// # Errors
 /// Naming `data`: a view without a mask (naming it), or masks that are all empty.
 fn check_masks(data: &Dataset) -> Result<()> {
-    if let Some(v) = data.views().iter().find(|v| !v.has_mask()) {
-        return Err(no_mask(v.name()));
-    }
     let mut covered = 0.0;
     for v in data.views() {
-        if let Some(m) = v.mask(&Device::Cpu, DType::F32)? {
-            let inside = m.ge(0.5)?.to_dtype(DType::F32)?.sum_all()?;
-            covered += f64::from(inside.to_scalar::<f32>()?);
-        }
+        let m = v
+            .mask(&Device::Cpu, DType::F32)?
+            .ok_or_else(|| no_mask(v.name()))?;
+        let inside = m.ge(0.5)?.to_dtype(DType::F32)?.sum_all()?;
+        covered += f64::from(inside.to_scalar::<f32>()?);
     }
     if covered == 0.0 {
         return Err(Error::InvalidArgument {
@@ -933,7 +931,7 @@ fn extract_mesh(net: &Net, aabb: [f64; 6], resolution0: usize) -> Result<Mesh> {
         max: [aabb[3], aabb[4], aabb[5]],
         ..MiseConfig::new(resolution0, 2, &device, dtype)
     };
-    let mesh = mise(net.surface(), &config)?.mesh;
+    let mut mesh = mise(net.surface(), &config)?.mesh;
     if mesh.faces.is_empty() {
         return Ok(mesh);
     }
@@ -945,7 +943,9 @@ fn extract_mesh(net: &Net, aabb: [f64; 6], resolution0: usize) -> Result<Mesh> {
             .rgb
             .detach())
     })?;
-    mesh.with_colors(colors)
+    mesh.colors = Some(colors);
+    mesh.validate()?;
+    Ok(mesh)
 }
 
 /// Chamfer-L1 of `pred` to `gt` in `gt`'s unit cube (ONet's normalisation, 100 000
@@ -1324,7 +1324,7 @@ pub fn run(args: &Args) -> Result<Summary> {
     let mut pose_opt =
         candle_nn::AdamW::new(pose_vars.iter().map(|(_, v)| v.clone()).collect(), params)?;
     let (eval, eval_split) = load_eval(&args.data, &config)?;
-    let eval_split = eval_split.name();
+    let eval_split = format!("{eval_split:?}").to_lowercase();
     std::fs::create_dir_all(&args.out).map_err(|source| Error::Io {
         path: args.out.display().to_string(),
         source,
@@ -1523,7 +1523,7 @@ pub fn run(args: &Args) -> Result<Summary> {
         )?;
         write_png(
             &args.out.join(format!("normals_{i}.png")),
-            &colorize_normals(normals)?,
+            &normals.affine(0.5, 0.5)?,
         )?;
     }
     // The mesh in the dataset's frame; as extracted too when the frames differ.

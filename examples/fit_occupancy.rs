@@ -24,11 +24,11 @@ use candle_nn::{Optimizer, VarMap};
 use clap::Parser;
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::ImplicitSurface;
+use neural_fields::mesh::{points_from_tensor, points_to_tensor, Mesh};
 use neural_fields::nn::{adam, build_seeded, mlp, Activation, MlpConfig};
 use neural_fields::numerics::bce_with_logits;
 use neural_fields::occupancy::{
-    from_tensor, inside_mesh, iou, mesh_metrics, mise, near_surface, points_tensor,
-    uniform_in_padded_cube, Mesh, MiseConfig,
+    inside_mesh, iou, mesh_metrics, mise, near_surface, uniform_in_padded_cube, MiseConfig,
 };
 use neural_fields::rng::SplitMix64;
 use neural_fields::Error;
@@ -78,7 +78,7 @@ fn main() -> neural_fields::Result<()> {
     let dtype = DType::F32;
 
     // Labelled training pool and held-out IoU points.
-    let mut pool: Vec<[f64; 3]> = from_tensor(&uniform_in_padded_cube(
+    let mut pool: Vec<[f64; 3]> = points_from_tensor(&uniform_in_padded_cube(
         60_000,
         0.1,
         1,
@@ -91,7 +91,7 @@ fn main() -> neural_fields::Result<()> {
         .into_iter()
         .map(|b| f32::from(u8::from(b)))
         .collect();
-    let eval_pts = from_tensor(&uniform_in_padded_cube(
+    let eval_pts = points_from_tensor(&uniform_in_padded_cube(
         50_000,
         0.1,
         4,
@@ -99,8 +99,8 @@ fn main() -> neural_fields::Result<()> {
         DType::F64,
     )?)?;
     let eval_truth = inside_mesh(&gt, &eval_pts)?;
-    let eval_tensor = points_tensor(&eval_pts, &device, dtype)?;
-    let pool_t = points_tensor(&pool, &device, dtype)?;
+    let eval_tensor = points_to_tensor(&eval_pts, &device, dtype)?;
+    let pool_t = points_to_tensor(&pool, &device, dtype)?;
     let labels_t = Tensor::from_vec(labels, pool.len(), &device)?;
     println!(
         "labelled {} training and {} IoU points in {:.1} s (occupied fraction {:.3})",

@@ -37,7 +37,7 @@
 
 use clap::Parser;
 use neural_fields::data::{load, LoadConfig, Split};
-use neural_fields::occupancy::{Mesh, MeshFormat, PointCloud};
+use neural_fields::mesh::{Mesh, MeshFormat, PointCloud};
 use std::error::Error;
 use std::fs;
 use std::io::Write;

@@ -58,7 +58,7 @@
 //! `--eval-supersample K` (1 to 8) the mean of `K × K` rays on a sub-pixel grid (a box
 //! filter, as the images were rendered by integrating over each pixel). `--jitter on`
 //! trains on rays through random points of their pixels instead of the centres
-//! ([`RaySampler::with_jitter`], instant-NGP's training rays); `--train-supersample K`
+//! ([`RaySampler::with_pixel_filter`], instant-NGP's training rays); `--train-supersample K`
 //! renders `K × K` rays per training pixel and compares their mean with the pixel
 //! ([`RaySampler::pixel_footprints`]: box-filtered training, the model of such images,
 //! with `--rays / K²` pixels per step). `--march-jitter on` shifts each training ray's
@@ -723,8 +723,7 @@ pub fn run(args: &Args) -> Result<Summary> {
         Sampler::Stratified | Sampler::Proposal => None,
     };
     let mut sampler = RaySampler::new(&train, args.seed, &device, dtype)?
-        .with_jitter(args.jitter)
-        .with_pixel_filter(args.pixel_filter)?;
+        .with_pixel_filter(args.pixel_filter, args.jitter)?;
     let train_cameras: Vec<Camera> = train.views().iter().map(|v| *v.camera()).collect();
     let mut clock = training::Clock::start(args.steps, args.minutes);
     println!(

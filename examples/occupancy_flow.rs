@@ -35,11 +35,12 @@ use neural_fields::flow::{
     correspondence_loss, velocity_field, DeformingTorus, Graph, OccupancyFlow, Solver,
     VelocityField, VelocityFieldConfig,
 };
+use neural_fields::mesh::{points_from_tensor, points_to_tensor};
 use neural_fields::nn::{
     adam, build_seeded, mlp, Activation, Budget, Clock, FiniteGuard, Mlp, MlpConfig,
 };
 use neural_fields::numerics::bce_with_logits;
-use neural_fields::occupancy::{from_tensor, iou, mise, points_tensor, MiseConfig};
+use neural_fields::occupancy::{iou, mise, MiseConfig};
 use neural_fields::rng::SplitMix64;
 use neural_fields::{Error, Result};
 use serde_json::json;
@@ -215,13 +216,13 @@ impl Held {
             .map(|&t| {
                 let moved: Vec<[f64; 3]> =
                     surface.iter().map(|&p| motion.carry(p, 0.0, t)).collect();
-                points_tensor(&moved, device, dtype)
+                points_to_tensor(&moved, device, dtype)
             })
             .collect::<Result<_>>()?;
         Ok(Self {
-            uniform: points_tensor(&uniform, device, dtype)?,
+            uniform: points_to_tensor(&uniform, device, dtype)?,
             truth,
-            surface: points_tensor(&surface, device, dtype)?,
+            surface: points_to_tensor(&surface, device, dtype)?,
             surface_truth,
         })
     }
@@ -277,21 +278,21 @@ fn train_step(
     };
     // BCE at time 0 (the decoder alone).
     let (p0, y0) = labelled(2048, 0.0, rng);
-    let logits0 = flow.logits(&points_tensor(&p0, device, dtype)?, 0.0)?;
+    let logits0 = flow.logits(&points_to_tensor(&p0, device, dtype)?, 0.0)?;
     let bce0 = bce_with_logits(&logits0, &labels(y0)?)?.mean_all()?;
     // BCE at a random time, through the flow.
     let t = 0.05 + 0.95 * rng.uniform();
     let (pt, yt) = labelled(1024, t, rng);
-    let logits_t = flow.logits(&points_tensor(&pt, device, dtype)?, t)?;
+    let logits_t = flow.logits(&points_to_tensor(&pt, device, dtype)?, t)?;
     let bce_t = bce_with_logits(&logits_t, &labels(yt)?)?.mean_all()?;
     // Correspondences: time-0 surface points carried to every time.
     let motion = DeformingTorus::default();
     let surface = motion.surface(256, rng);
-    let moved = flow.correspondences(&points_tensor(&surface, device, dtype)?, &TIMES[1..])?;
+    let moved = flow.correspondences(&points_to_tensor(&surface, device, dtype)?, &TIMES[1..])?;
     let mut corr = Tensor::zeros((), dtype, device)?;
     for (m, &t) in moved.iter().zip(&TIMES[1..]) {
         let truth: Vec<[f64; 3]> = surface.iter().map(|&p| motion.carry(p, 0.0, t)).collect();
-        let l = correspondence_loss(m, &points_tensor(&truth, device, dtype)?)?;
+        let l = correspondence_loss(m, &points_to_tensor(&truth, device, dtype)?)?;
         corr = (corr + l)?;
     }
     let corr = corr.affine(1.0 / (TIMES.len() - 1) as f64, 0.0)?;
@@ -379,12 +380,12 @@ fn run(a: &Args) -> Result<()> {
     if mesh.faces.is_empty() {
         println!("the time-0 decoder has no surface: no meshes written");
     } else {
-        let verts = points_tensor(&mesh.vertices, &device, dtype)?;
+        let verts = points_to_tensor(&mesh.vertices, &device, dtype)?;
         let moved = model
             .flow(eval_solver(), Graph::Detach)
             .correspondences(&verts, &TIMES)?;
         for (m, t) in moved.iter().zip(TIMES) {
-            mesh.vertices = from_tensor(&m.to_dtype(DType::F64)?)?;
+            mesh.vertices = points_from_tensor(&m.to_dtype(DType::F64)?)?;
             mesh.save(a.out.join(format!("mesh_t{t:.2}.ply")))?;
         }
     }

@@ -41,6 +41,7 @@ use candle_nn::{Optimizer, VarMap};
 use clap::{Parser, ValueEnum};
 use neural_fields::field::{Conditioned, Cuboid, Field, ImplicitSurface, Inside, SignedDistance};
 use neural_fields::field::{Sphere, Torus};
+use neural_fields::mesh::{points_from_tensor, points_to_tensor, Mesh};
 use neural_fields::nn::{
     adam, build_seeded, conv_onet_encoder, local_decoder, onet_decoder, pointnet_encoder, Budget,
     Clock, ConvOnetConfig, ConvOnetEncoder, FeatureLayout, FiniteGuard, LocalDecoder,
@@ -48,8 +49,8 @@ use neural_fields::nn::{
     UnetConfig,
 };
 use neural_fields::occupancy::{
-    from_tensor, iou, logit_threshold, mesh_metrics, mise, points_tensor, reconstruction_loss,
-    uniform_in_padded_cube, Mesh, MiseConfig,
+    iou, logit_threshold, mesh_metrics, mise, reconstruction_loss, uniform_in_padded_cube,
+    MiseConfig,
 };
 use neural_fields::rng::SplitMix64;
 use neural_fields::{Error, Result};
@@ -199,7 +200,7 @@ impl Scene {
         let mut out = Vec::with_capacity(points.len());
         for chunk in points.chunks(65_536) {
             let d = self
-                .distance_and_grad(&points_tensor(chunk, dev, DType::F64)?)?
+                .distance_and_grad(&points_to_tensor(chunk, dev, DType::F64)?)?
                 .0;
             out.extend(d.to_vec1::<f64>()?);
         }
@@ -321,7 +322,7 @@ fn noisy_cloud(
             ]
         })
         .collect();
-    Ok(points_tensor(&pts, dev, DType::F32)?.unsqueeze(0)?)
+    Ok(points_to_tensor(&pts, dev, DType::F32)?.unsqueeze(0)?)
 }
 
 /// One training example, drawn from `(seed, step)` alone so that both encoders see the
@@ -358,7 +359,7 @@ fn example(seed: u64, step: usize, dev: &Device) -> Result<(Tensor, Tensor, Tens
         .collect();
     Ok((
         cloud,
-        points_tensor(&q, dev, DType::F32)?.unsqueeze(0)?,
+        points_to_tensor(&q, dev, DType::F32)?.unsqueeze(0)?,
         Tensor::from_vec(y, (1, QUERIES), dev)?,
     ))
 }
@@ -378,7 +379,7 @@ fn prepare(seed: u64, dev: &Device) -> Result<Data> {
     let scene = Scene::random(&mut rng, dev)?;
     let gt = mise(&scene, &MiseConfig::new(32, 2, dev, DType::F64))?.mesh;
     let surface = scene.surface(2 * CLOUD, &mut rng, dev)?;
-    let eval = from_tensor(&uniform_in_padded_cube(
+    let eval = points_from_tensor(&uniform_in_padded_cube(
         100_000,
         0.1,
         seed ^ 4,
@@ -388,7 +389,7 @@ fn prepare(seed: u64, dev: &Device) -> Result<Data> {
     let eval_truth = scene.labels(&eval, dev)?;
     let data = Data {
         eval_cloud: noisy_cloud(&surface, CLOUD, &mut rng, dev)?,
-        eval_points: points_tensor(&eval, dev, DType::F32)?,
+        eval_points: points_to_tensor(&eval, dev, DType::F32)?,
         eval_truth,
         gt,
     };

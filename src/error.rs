@@ -66,7 +66,6 @@ impl Error {
     }
 
     /// Builds an [`Error::Format`] for the file at `path`.
-    #[cfg(any(feature = "data", feature = "occupancy"))]
     #[must_use]
     pub(crate) fn format(
         path: impl AsRef<std::path::Path>,

@@ -105,13 +105,14 @@
 //! [`numerics`] (e.g. [`numerics::bce_with_logits`], finite for logits of ±10⁴). See
 //! `examples/quickstart.rs`, which fits an occupancy network to a torus in seconds.
 //!
-//! **7. Meshes.** [`occupancy::mise()`] extracts the surface of any implicit field
-//! (evaluating it only near the surface) with watertight [`occupancy::marching_cubes()`];
-//! [`occupancy::Mesh`] reads and writes PLY, OBJ, STL and OFF (every reader's work
-//! bounded by the file's size, concave polygons ear-clipped), [`occupancy::PointCloud`]
-//! holds scans (points with normals and colours), and [`occupancy::metrics`] computes
-//! ONet's IoU, Chamfer-L1, normal consistency and F-score. See
-//! `examples/fit_occupancy.rs`.
+//! **7. Meshes.** [`mesh::Mesh`] reads and writes PLY, OBJ, STL and OFF (every reader's
+//! work bounded by the file's size, concave polygons ear-clipped), [`mesh::PointCloud`]
+//! holds scans (points with normals and colours), and [`mesh::points_to_tensor`] moves
+//! host points to any device and dtype; the `mesh` module is always built. With the
+//! `occupancy` feature, [`occupancy::mise()`] extracts the surface of any implicit field
+//! (evaluating it only near the surface) with watertight [`occupancy::marching_cubes()`],
+//! and [`occupancy::metrics`] computes ONet's IoU, Chamfer-L1, normal consistency and
+//! F-score. See `examples/fit_occupancy.rs`.
 //!
 //! **8. Texture fields** (feature `texture`). A [`texture::TextureField`] colours surface
 //! points from whatever it reads of a [`texture::TextureInput`] (normals, view directions,
@@ -136,7 +137,7 @@
 //! ## Features
 //! | feature | default | module |
 //! |---|---|---|
-//! | `occupancy` | yes | occupancy networks: losses, samplers, meshes, marching cubes, MISE, metrics |
+//! | `occupancy` | yes | occupancy networks: losses, samplers, marching cubes, MISE, metrics |
 //! | `dvr` | yes | surface rendering with implicit gradients: ray marching + secant, sphere tracing, implicit surface points, DVR/IDR losses |
 //! | `volume` | yes | NeRF samplers, compositing (reference and fused CPU kernel), occupancy grid, regularisers |
 //! | `texture` | yes | texture fields: the `TextureField` trait, the Texture Fields decoder, IDR's rendering network, DVR's joint decoder, the image-gradient loss, vertex colours for meshes |
@@ -159,6 +160,7 @@ pub mod error;
 pub mod field;
 #[cfg(feature = "flow")]
 pub mod flow;
+pub mod mesh;
 mod narrow;
 pub mod nn;
 pub mod numerics;

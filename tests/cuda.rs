@@ -884,7 +884,7 @@ fn mlp_dvr(
 
 // --- meshes ---------------------------------------------------------------------------
 
-fn mesh_outs(out: &mut Outs, label: &str, mesh: &neural_fields::occupancy::Mesh) {
+fn mesh_outs(out: &mut Outs, label: &str, mesh: &neural_fields::mesh::Mesh) {
     out.push((
         format!("{label}.vertices"),
         Out::Host(mesh.vertices.iter().flatten().copied().collect()),

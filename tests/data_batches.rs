@@ -111,7 +111,7 @@ fn committed_dtu_dataset_rays_pass_through_blender_projected_vertices() {
         .map(|p| (vec3(p) - offset) / scale) // into the normalised frame of the cameras
         .collect();
     assert_eq!(
-        DatasetLayout::detect(Path::new(WUSON_DTU)).unwrap(),
+        common::datasets::detected_layout(Path::new(WUSON_DTU)),
         DatasetLayout::Dtu
     );
     let data = load(Path::new(WUSON_DTU), &of_split(Split::All)).unwrap();
@@ -214,7 +214,7 @@ fn sampled_rays_colours_and_masks_are_those_of_their_pixels() {
                 assert!((colors[3 * i + c] - rgb[c]).abs() < tol);
                 assert_eq!(bgs[3 * i + c] as f32, [0.2f32, 0.4, 0.6][c]);
             }
-            let alpha = f64::from(view.image().pixel(u, v).unwrap()[3]) / 255.0;
+            let alpha = f64::from(common::datasets::pixel(view.image(), u, v)[3]) / 255.0;
             assert!((masks[i] - alpha).abs() < tol);
         }
         // The rays are the camera module's rays through the pixel centres.
@@ -338,10 +338,11 @@ fn random_backgrounds_are_drawn_per_ray_and_composited_into_the_targets() {
     let mean_bg = bgs.iter().sum::<f64>() / bgs.len() as f64;
     assert!((mean_bg - 0.5).abs() < 0.02, "{mean_bg}");
     for i in 0..2000 {
-        let p = data.views()[views[i] as usize]
-            .image()
-            .pixel(pixels[2 * i] as usize, pixels[2 * i + 1] as usize)
-            .unwrap();
+        let p = common::datasets::pixel(
+            data.views()[views[i] as usize].image(),
+            pixels[2 * i] as usize,
+            pixels[2 * i + 1] as usize,
+        );
         let a = f64::from(p[3]) / 255.0;
         for c in 0..3 {
             let want = f64::from(p[c]) / 255.0 * a + bgs[3 * i + c] * (1.0 - a);
@@ -408,7 +409,8 @@ fn jittered_rays_stay_inside_their_pixels_and_subpixel_grids_average_to_centres(
         .unwrap();
     let mut sampler = RaySampler::new(&data, 5, &d, DType::F64)
         .unwrap()
-        .with_jitter(true);
+        .with_pixel_filter(PixelFilter::Box, true)
+        .unwrap();
     let batch = sampler.pixels(512).unwrap();
     assert_eq!(
         batch.pixels.to_vec2::<u32>().unwrap(),
@@ -492,7 +494,8 @@ fn pixel_footprints_cover_each_pixel_with_its_subpixel_grid() {
     for jitter in [false, true] {
         let batch = RaySampler::new(&data, 11, &d, DType::F64)
             .unwrap()
-            .with_jitter(jitter)
+            .with_pixel_filter(PixelFilter::Box, jitter)
+            .unwrap()
             .pixel_footprints(n, k)
             .unwrap();
         assert_eq!(batch.len(), n * k * k);
@@ -636,8 +639,7 @@ fn a_sampler_with_cycles_filter_draws_offsets_from_the_filter() {
         .unwrap();
     let mut sampler = RaySampler::new(&data, 3, &d, DType::F64)
         .unwrap()
-        .with_jitter(true)
-        .with_pixel_filter(filter)
+        .with_pixel_filter(filter, true)
         .unwrap();
     let batch = sampler.pixels(4096).unwrap();
     assert_eq!(
@@ -666,7 +668,7 @@ fn a_sampler_with_cycles_filter_draws_offsets_from_the_filter() {
     let k = 3;
     let feet = RaySampler::new(&data, 3, &d, DType::F64)
         .unwrap()
-        .with_pixel_filter(filter)
+        .with_pixel_filter(filter, false)
         .unwrap()
         .pixel_footprints(8, k)
         .unwrap();
@@ -680,7 +682,7 @@ fn a_sampler_with_cycles_filter_draws_offsets_from_the_filter() {
     }
     let bad = RaySampler::new(&data, 3, &d, DType::F64)
         .unwrap()
-        .with_pixel_filter(PixelFilter::BlackmanHarris { half_width: 0.0 });
+        .with_pixel_filter(PixelFilter::BlackmanHarris { half_width: 0.0 }, false);
     assert!(matches!(bad, Err(Error::InvalidArgument { arg, .. }) if arg == "filter"));
 }
 

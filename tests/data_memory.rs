@@ -51,7 +51,11 @@ fn loading_the_committed_dataset_peaks_below_twice_its_image_bytes() {
     let batch = sampler.pixels(4096).unwrap();
     let peak = PEAK.load(Ordering::Relaxed) - base;
     let held = LIVE.load(Ordering::Relaxed) - base;
-    let images = data.image_bytes();
+    let images: usize = data
+        .views()
+        .iter()
+        .map(|v| v.image().data().len() + v.mask_image().map_or(0, |m| m.data().len()))
+        .sum();
     assert_eq!(images, 80 * 100 * 100 * 4);
     eprintln!(
         "image bytes {images}, held {held}, peak {peak} ({:.2}×)",

@@ -6,9 +6,7 @@ mod common;
 
 use candle_core::{DType, Device, Tensor};
 use common::datasets::scratch;
-use neural_fields::data::{
-    colorize_depth, colorize_normals, comparison_strip, psnr, ssim, write_png, Image,
-};
+use neural_fields::data::{colorize_depth, comparison_strip, psnr, ssim, write_png, Image};
 use neural_fields::Error;
 use std::path::Path;
 
@@ -209,7 +207,8 @@ fn strips_and_normal_pictures_have_the_documented_layout() {
     // An error of 0.25 is the top of the scale: turbo's dark red end.
     assert!(v[0][10][0] > 0.4 && v[0][10][2] < 0.1, "{:?}", v[0][10]);
     let n = Tensor::new(&[[[0.0f32, 0.0, 1.0], [-1.0, 0.0, 0.0]]], &Device::Cpu).unwrap();
-    let c: Vec<Vec<Vec<f32>>> = colorize_normals(&n).unwrap().to_vec3().unwrap();
+    // Normals as colours (n + 1) / 2, as the module documentation writes them.
+    let c: Vec<Vec<Vec<f32>>> = n.affine(0.5, 0.5).unwrap().to_vec3().unwrap();
     assert_eq!(c[0], vec![vec![0.5, 0.5, 1.0], vec![0.0, 0.5, 0.5]]);
     assert!(comparison_strip(&gt, &gt.narrow(1, 0, 4).unwrap()).is_err());
 }

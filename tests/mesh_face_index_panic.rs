@@ -1,9 +1,8 @@
 //! Regression: a `Mesh` built as a struct literal with a face index past its vertices
 //! panicked (index out of bounds) in the geometric accessors instead of returning an
 //! error naming the mesh.
-#![cfg(feature = "occupancy")]
 
-use neural_fields::occupancy::Mesh;
+use neural_fields::mesh::Mesh;
 use neural_fields::Error;
 
 fn names_mesh<T: std::fmt::Debug>(r: Result<T, Error>) {

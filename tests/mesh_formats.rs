@@ -1,9 +1,8 @@
 //! STL and OFF meshes, point clouds, concave polygons, and the PLY defects found from
 //! outside (lying counts, trailing data, amplification, truncated point clouds).
 //! Real files come from Debian's assimp-testmodels when it is installed.
-#![cfg(feature = "occupancy")]
 
-use neural_fields::occupancy::{Mesh, MeshFormat, PointCloud};
+use neural_fields::mesh::{Mesh, MeshFormat, PointCloud};
 
 type TestResult = Result<(), Box<dyn std::error::Error>>;
 
@@ -70,7 +69,10 @@ fn stl_and_off_round_trip_a_closed_mesh() -> TestResult {
     assert_eq!(bin.len(), 84 + 50 * 12);
     assert!(!bin.starts_with(b"solid"));
     // OFF keeps colours (COFF).
-    let coloured = c.clone().with_colors(vec![[0.2, 0.4, 1.0]; 8])?;
+    let coloured = Mesh {
+        colors: Some(vec![[0.2, 0.4, 1.0]; 8]),
+        ..c.clone()
+    };
     let back = Mesh::from_bytes(&coloured.to_bytes(MeshFormat::Off)?, MeshFormat::Off)?;
     let col = back.colors.ok_or("colours lost")?;
     assert!((col[3][0] - 51.0 / 255.0).abs() < 1e-12);
@@ -262,9 +264,10 @@ fn self_intersecting_and_huge_concave_polygons_are_errors() {
 #[test]
 fn point_cloud_ply_loads_as_a_point_cloud_and_the_mesh_reader_says_so() -> TestResult {
     // Positions, normals, colours and an extra property, no faces, in both encodings.
-    let cloud = PointCloud::new(vec![[0.0, 0.0, 0.0], [1.0, 0.5, 0.25], [0.0, 2.0, 0.0]])?
-        .with_normals(vec![[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])?
-        .with_colors(vec![[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])?;
+    let points = vec![[0.0, 0.0, 0.0], [1.0, 0.5, 0.25], [0.0, 2.0, 0.0]];
+    let normals = vec![[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+    let colors = vec![[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    let cloud = PointCloud::new(points.clone(), Some(normals.clone()), Some(colors.clone()))?;
     for format in [MeshFormat::PlyAscii, MeshFormat::PlyBinary] {
         let bytes = cloud.to_bytes(format)?;
         let back = PointCloud::from_bytes(&bytes, format)?;
@@ -290,10 +293,13 @@ fn point_cloud_ply_loads_as_a_point_cloud_and_the_mesh_reader_says_so() -> TestR
     )?;
     assert_eq!(obj.normals().map(<[_]>::len), Some(2));
     // A cloud is never empty, never non-finite, and its colours lie in [0, 1].
-    assert!(PointCloud::new(vec![]).is_err());
-    assert!(PointCloud::new(vec![[f64::NAN, 0.0, 0.0]]).is_err());
-    assert!(cloud.clone().with_colors(vec![[2.0, 0.0, 0.0]; 3]).is_err());
-    assert!(cloud.clone().with_normals(vec![[0.0; 3]; 2]).is_err());
+    assert!(PointCloud::new(vec![], None, None).is_err());
+    assert!(PointCloud::new(vec![[f64::NAN, 0.0, 0.0]], None, None).is_err());
+    let e = PointCloud::new(points.clone(), None, Some(vec![[2.0, 0.0, 0.0]; 3])).unwrap_err();
+    assert!(e.to_string().starts_with("colors"), "{e}");
+    let e = PointCloud::new(points.clone(), Some(vec![[0.0; 3]; 2]), None).unwrap_err();
+    assert!(e.to_string().starts_with("normals"), "{e}");
+    assert_eq!(PointCloud::new(points, Some(normals), Some(colors))?, cloud);
     assert!(
         PointCloud::from_bytes(&cloud.to_bytes(MeshFormat::PlyAscii)?, MeshFormat::StlAscii)
             .is_err()

@@ -8,11 +8,12 @@ use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
 use common::v64;
 use neural_fields::field::Field;
+use neural_fields::mesh::PointCloud;
 use neural_fields::nn::{
     conv3d, conv_onet_encoder, local_decoder, ConvOnetConfig, ConvOnetEncoder, FeatureLayout,
     LocalDecoder, LocalDecoderConfig, LocalFeatures, UnetConfig,
 };
-use neural_fields::occupancy::{reconstruction_loss, PointCloud};
+use neural_fields::occupancy::reconstruction_loss;
 use neural_fields::rng::SplitMix64;
 
 fn small(layout: FeatureLayout) -> ConvOnetConfig {
@@ -73,8 +74,12 @@ fn planes_and_grid_have_the_documented_shapes() {
         let q = cloud(2, 2, 17, DType::F32);
         assert_eq!(dec.logits(&q, &f).unwrap().dims(), &[2, 17]);
         // One scene as a Field; a batch of two cannot be bound.
-        let pc =
-            PointCloud::new(vec![[0.1, 0.2, 0.3], [-0.2, 0.1, 0.0], [0.4, -0.4, 0.1]]).unwrap();
+        let pc = PointCloud::new(
+            vec![[0.1, 0.2, 0.3], [-0.2, 0.1, 0.0], [0.4, -0.4, 0.1]],
+            None,
+            None,
+        )
+        .unwrap();
         let one = enc.encode_cloud(&pc).unwrap();
         let field = dec.bind(one).unwrap();
         let y = field.forward(&q.get(0).unwrap()).unwrap();

@@ -5,12 +5,12 @@
 mod common;
 
 use candle_core::{DType, Device, Tensor, Var};
+use neural_fields::mesh::{points_from_tensor, Mesh};
 use neural_fields::occupancy::sampling::{
-    from_tensor, inside_mesh, near_surface, uniform_in_padded_cube, winding_numbers,
-    winding_numbers_exact,
+    inside_mesh, near_surface, uniform_in_padded_cube, winding_numbers, winding_numbers_exact,
 };
 use neural_fields::occupancy::{kl_standard_normal, reconstruction_loss, reparameterize};
-use neural_fields::occupancy::{marching_cubes, Grid, Mesh};
+use neural_fields::occupancy::{marching_cubes, Grid};
 use proptest::prelude::*;
 
 fn t2(v: &[f64], r: usize, c: usize) -> Tensor {
@@ -124,8 +124,10 @@ fn sphere_mesh(n: usize) -> Mesh {
 #[test]
 fn winding_number_inside_test_is_exact_on_closed_meshes_and_robust_to_holes() {
     let mut mesh = sphere_mesh(25);
-    let pts = from_tensor(&uniform_in_padded_cube(4000, 0.1, 5, &Device::Cpu, DType::F64).unwrap())
-        .unwrap();
+    let pts = points_from_tensor(
+        &uniform_in_padded_cube(4000, 0.1, 5, &Device::Cpu, DType::F64).unwrap(),
+    )
+    .unwrap();
     let truth: Vec<bool> = pts
         .iter()
         .map(|p| (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt() < 0.35)
@@ -172,9 +174,10 @@ fn winding_number_inside_test_is_exact_on_closed_meshes_and_robust_to_holes() {
         .filter(|&&b| b)
         .count();
     assert!((600..1400).contains(&ins), "{ins}");
-    let box_pts =
-        from_tensor(&uniform_in_padded_cube(1000, 0.1, 2, &Device::Cpu, DType::F32).unwrap())
-            .unwrap();
+    let box_pts = points_from_tensor(
+        &uniform_in_padded_cube(1000, 0.1, 2, &Device::Cpu, DType::F32).unwrap(),
+    )
+    .unwrap();
     assert!(box_pts.iter().flatten().all(|c| c.abs() <= 0.55));
     assert!(uniform_in_padded_cube(10, -1.0, 0, &Device::Cpu, DType::F32).is_err());
 }

@@ -1,8 +1,6 @@
 //! Stiff cases of the mesh types: point clouds and meshes at extreme scales, through
 //! every file format.
 
-#![cfg(feature = "occupancy")]
-
 mod common;
 
 use candle_core::{DType, Device, Tensor};
@@ -36,123 +34,85 @@ fn every_public_mesh_function_is_swept_or_exempt() {
 
 /// Items swept by `sweep_point_clouds`.
 const POINT_CLOUDS: &[&str] = &[
-    "occupancy::Mesh::from_bytes",
-    "occupancy::PointCloud::from_bytes",
-    "occupancy::PointCloud::load",
-    "occupancy::PointCloud::new",
-    "occupancy::PointCloud::normals_tensor",
-    "occupancy::PointCloud::sample",
-    "occupancy::PointCloud::save",
-    "occupancy::PointCloud::to_bytes",
-    "occupancy::PointCloud::to_tensor",
-    "occupancy::PointCloud::with_colors",
-    "occupancy::PointCloud::with_normals",
+    "mesh::Mesh::from_bytes",
+    "mesh::PointCloud::from_bytes",
+    "mesh::PointCloud::load",
+    "mesh::PointCloud::new",
+    "mesh::PointCloud::sample",
+    "mesh::PointCloud::save",
+    "mesh::PointCloud::to_bytes",
+    "mesh::points_to_tensor",
 ];
 
 /// Items swept by `sweep_meshes`.
 const MESHES: &[&str] = &[
-    "occupancy::Mesh::from_bytes",
-    "occupancy::Mesh::load",
-    "occupancy::Mesh::new",
-    "occupancy::Mesh::normalize_unit_cube",
-    "occupancy::Mesh::sample_surface",
-    "occupancy::Mesh::save",
-    "occupancy::Mesh::to_bytes",
-    "occupancy::Mesh::validate",
-    "occupancy::Mesh::with_colors",
-    "occupancy::points_tensor",
+    "mesh::Mesh::from_bytes",
+    "mesh::Mesh::load",
+    "mesh::Mesh::new",
+    "mesh::Mesh::normalize_unit_cube",
+    "mesh::Mesh::sample_surface",
+    "mesh::Mesh::save",
+    "mesh::Mesh::to_bytes",
+    "mesh::Mesh::validate",
+    "mesh::points_from_tensor",
+    "mesh::points_to_tensor",
 ];
 
 /// Public items without floating-point input (or only reached through a swept item),
 /// with the reason. Matching is by prefix.
 const EXEMPT: &[(&str, &str)] = &[
-    ("occupancy::PointCloud::points", "getter"),
-    ("occupancy::PointCloud::normals", "getter"),
-    ("occupancy::PointCloud::colors", "getter"),
-    ("occupancy::PointCloud::len", "getter"),
-    ("occupancy::PointCloud::is_empty", "getter"),
-    (
-        "occupancy::MeshFormat::from_path",
-        "an extension; no float input",
-    ),
-    (
-        "occupancy::Polygons::iter",
-        "crate-private reader, swept via Mesh::from_bytes and PointCloud::from_bytes",
-    ),
-    (
-        "occupancy::Polygons::len",
-        "crate-private reader, swept via Mesh::from_bytes and PointCloud::from_bytes",
-    ),
-    (
-        "occupancy::Polygons::push",
-        "crate-private reader, swept via Mesh::from_bytes and PointCloud::from_bytes",
-    ),
-    (
-        "occupancy::Soup::locate",
-        "crate-private reader, swept via Mesh::from_bytes",
-    ),
-    (
-        "occupancy::ObjContent::",
-        "crate-private reader, swept via Mesh::from_bytes",
-    ),
-    (
-        "occupancy::Mesh::bounds",
-        "swept through normalize_unit_cube",
-    ),
-    ("occupancy::Mesh::edge_report", "integer topology"),
-    ("occupancy::Mesh::face_areas", "swept through Mesh::new"),
-    ("occupancy::Mesh::face_normals", "swept through Mesh::new"),
-    (
-        "occupancy::Mesh::is_watertight_and_oriented",
-        "integer topology",
-    ),
-    ("occupancy::Mesh::signed_volume", "swept through Mesh::new"),
-    ("occupancy::Mesh::vertex_normals", "swept through Mesh::new"),
+    ("mesh::PointCloud::points", "getter"),
+    ("mesh::PointCloud::normals", "getter"),
+    ("mesh::PointCloud::colors", "getter"),
+    ("mesh::PointCloud::len", "getter"),
+    ("mesh::PointCloud::is_empty", "getter"),
+    ("mesh::Mesh::bounds", "swept through normalize_unit_cube"),
+    ("mesh::Mesh::edge_report", "integer topology"),
+    ("mesh::Mesh::face_areas", "swept through Mesh::new"),
+    ("mesh::Mesh::face_normals", "swept through Mesh::new"),
+    ("mesh::Mesh::is_watertight_and_oriented", "integer topology"),
+    ("mesh::Mesh::signed_volume", "swept through Mesh::new"),
+    ("mesh::Mesh::vertex_normals", "swept through Mesh::new"),
 ];
 
 /// Point clouds at three scales through their constructors, sampling, tensors and files,
 /// and the mesh formats' round trips.
 fn sweep_point_clouds(s: &mut Suite) {
-    use neural_fields::occupancy::{Mesh, MeshFormat, PointCloud};
+    use neural_fields::mesh::{points_to_tensor, Mesh, MeshFormat, PointCloud};
     let d = Device::Cpu;
     let flat = |v: &[[f64; 3]]| Tensor::from_vec(v.concat(), v.len() * 3, &d);
     for scale in [1e-300, 1e-6, 1.0, 1e6, 1e300] {
         let label = format!("scale {scale:e}");
         let pts = vec![[0.0, 0.0, 0.0], [scale, 0.0, 0.0], [0.0, scale, -scale]];
         let normals = vec![[0.0, 0.0, scale]; 3];
+        s.case("mesh::PointCloud::new", &label, Expect::Finite, &[], || {
+            Ok(vec![flat(
+                PointCloud::new(pts.clone(), None, None)?.points(),
+            )?])
+        });
         s.case(
-            "occupancy::PointCloud::new",
-            &label,
-            Expect::Finite,
-            &[],
-            || Ok(vec![flat(PointCloud::new(pts.clone())?.points())?]),
-        );
-        s.case(
-            "occupancy::PointCloud::with_normals",
-            &label,
+            "mesh::PointCloud::new",
+            format!("{label}, normals"),
             Expect::Finite,
             &[],
             || {
-                let c = PointCloud::new(pts.clone())?.with_normals(normals.clone())?;
+                let c = PointCloud::new(pts.clone(), Some(normals.clone()), None)?;
                 Ok(vec![flat(c.normals().unwrap_or(&[]))?])
             },
         );
         s.case(
-            "occupancy::PointCloud::with_colors",
-            &label,
+            "mesh::PointCloud::new",
+            format!("{label}, colours"),
             Expect::Finite,
             &[],
             || {
-                let c = PointCloud::new(pts.clone())?.with_colors(vec![[0.0, 0.5, 1.0]; 3])?;
+                let c = PointCloud::new(pts.clone(), None, Some(vec![[0.0, 0.5, 1.0]; 3]))?;
                 Ok(vec![flat(c.colors().unwrap_or(&[]))?])
             },
         );
-        let cloud = PointCloud::new(pts.clone())
-            .unwrap()
-            .with_normals(normals.clone())
-            .unwrap();
+        let cloud = PointCloud::new(pts.clone(), Some(normals.clone()), None).unwrap();
         s.case(
-            "occupancy::PointCloud::sample",
+            "mesh::PointCloud::sample",
             &label,
             Expect::Finite,
             &[],
@@ -166,23 +126,29 @@ fn sweep_point_clouds(s: &mut Suite) {
                 Expect::Finite
             };
             s.case(
-                "occupancy::PointCloud::to_tensor",
-                format!("{label}, {dtype:?}"),
+                "mesh::points_to_tensor",
+                format!("{label}, cloud points, {dtype:?}"),
                 expect,
                 &[],
-                || Ok(vec![cloud.to_tensor(&d, dtype)?]),
+                || Ok(vec![points_to_tensor(cloud.points(), &d, dtype)?]),
             );
             s.case(
-                "occupancy::PointCloud::normals_tensor",
-                format!("{label}, {dtype:?}"),
+                "mesh::points_to_tensor",
+                format!("{label}, cloud normals, {dtype:?}"),
                 expect,
                 &[],
-                || Ok(vec![cloud.normals_tensor(&d, dtype)?]),
+                || {
+                    Ok(vec![points_to_tensor(
+                        cloud.normals().unwrap_or(&[]),
+                        &d,
+                        dtype,
+                    )?])
+                },
             );
         }
         for format in [MeshFormat::PlyAscii, MeshFormat::PlyBinary] {
             s.case(
-                "occupancy::PointCloud::to_bytes",
+                "mesh::PointCloud::to_bytes",
                 format!("{label}, {format:?}"),
                 Expect::FiniteOrErr,
                 &[],
@@ -194,7 +160,7 @@ fn sweep_point_clouds(s: &mut Suite) {
                 },
             );
             s.case(
-                "occupancy::PointCloud::from_bytes",
+                "mesh::PointCloud::from_bytes",
                 format!("{label}, {format:?}"),
                 Expect::FiniteOrErr,
                 &[],
@@ -207,7 +173,7 @@ fn sweep_point_clouds(s: &mut Suite) {
         }
         let path = std::env::temp_dir().join(format!("nf-stiff-cloud-{}.ply", std::process::id()));
         s.case(
-            "occupancy::PointCloud::save",
+            "mesh::PointCloud::save",
             &label,
             Expect::FiniteOrErr,
             &[],
@@ -217,7 +183,7 @@ fn sweep_point_clouds(s: &mut Suite) {
             },
         );
         s.case(
-            "occupancy::PointCloud::load",
+            "mesh::PointCloud::load",
             &label,
             Expect::FiniteOrErr,
             &[],
@@ -240,7 +206,7 @@ fn sweep_point_clouds(s: &mut Suite) {
         .unwrap();
         for format in [MeshFormat::StlAscii, MeshFormat::StlBinary, MeshFormat::Off] {
             s.case(
-                "occupancy::Mesh::from_bytes",
+                "mesh::Mesh::from_bytes",
                 format!("{label}, {format:?}"),
                 Expect::FiniteOrErr,
                 &[],
@@ -257,7 +223,7 @@ fn sweep_point_clouds(s: &mut Suite) {
 /// Meshes at three scales (tiny, unit, huge): construction, validation, colours, the unit
 /// cube, surface samples, PLY/OBJ/STL/OFF round trips, and loading a missing file.
 fn sweep_meshes(s: &mut Suite) {
-    use neural_fields::occupancy::{points_tensor, Mesh, MeshFormat};
+    use neural_fields::mesh::{points_from_tensor, points_to_tensor, Mesh, MeshFormat};
     let d = Device::Cpu;
     let flat = |v: Vec<[f64; 3]>| Tensor::from_vec(v.concat(), v.len() * 3, &d);
     let vt = |v: Vec<f64>| Tensor::from_vec(v.clone(), v.len(), &d);
@@ -282,7 +248,7 @@ fn sweep_meshes(s: &mut Suite) {
             [0.0, 0.0, 0.0],
             [1e-30, 0.0, 0.0],
         ];
-        s.case("occupancy::Mesh::new", &label, Expect::Finite, &[], || {
+        s.case("mesh::Mesh::new", &label, Expect::Finite, &[], || {
             let m = tet(scale)?;
             m.validate()?;
             Ok(vec![
@@ -295,19 +261,13 @@ fn sweep_meshes(s: &mut Suite) {
                 )?,
             ])
         });
-        s.case(
-            "occupancy::Mesh::validate",
-            &label,
-            Expect::Finite,
-            &[],
-            || {
-                mesh.validate()?;
-                Ok(vec![])
-            },
-        );
+        s.case("mesh::Mesh::validate", &label, Expect::Finite, &[], || {
+            mesh.validate()?;
+            Ok(vec![])
+        });
         for c in [0.0, 1e-300, 1.0, -1e-300, 1.0 + 1e-12, 1e300, f64::NAN] {
             s.case(
-                "occupancy::Mesh::with_colors",
+                "mesh::Mesh::validate",
                 format!("{label}, colour {c:e}"),
                 if (0.0..=1.0).contains(&c) {
                     Expect::Finite
@@ -316,16 +276,18 @@ fn sweep_meshes(s: &mut Suite) {
                 },
                 &[],
                 || {
-                    let coloured = mesh
-                        .clone()
-                        .with_colors(vec![[c; 3]; mesh.vertices.len()])?;
+                    let coloured = Mesh {
+                        colors: Some(vec![[c; 3]; mesh.vertices.len()]),
+                        ..mesh.clone()
+                    };
+                    coloured.validate()?;
                     let flat: Vec<f64> = coloured.colors.unwrap_or_default().concat();
                     Ok(vec![Tensor::from_vec(flat.clone(), flat.len(), &d)?])
                 },
             );
         }
         s.case(
-            "occupancy::Mesh::normalize_unit_cube",
+            "mesh::Mesh::normalize_unit_cube",
             &label,
             Expect::Finite,
             &[],
@@ -339,7 +301,7 @@ fn sweep_meshes(s: &mut Suite) {
             },
         );
         s.case(
-            "occupancy::Mesh::sample_surface",
+            "mesh::Mesh::sample_surface",
             &label,
             Expect::Finite,
             &[],
@@ -349,21 +311,21 @@ fn sweep_meshes(s: &mut Suite) {
             },
         );
         s.case(
-            "occupancy::points_tensor",
+            "mesh::points_to_tensor",
             format!("{label}, vertices"),
             Expect::Finite,
             &[],
-            || Ok(vec![points_tensor(&mesh.vertices, &d, DType::F32)?]),
+            || Ok(vec![points_to_tensor(&mesh.vertices, &d, DType::F32)?]),
         );
         s.case(
-            "occupancy::points_tensor",
+            "mesh::points_to_tensor",
             &label,
             Expect::Finite,
             &[],
-            || Ok(vec![points_tensor(&q, &d, DType::F32)?]),
+            || Ok(vec![points_to_tensor(&q, &d, DType::F32)?]),
         );
         s.case(
-            "occupancy::Mesh::to_bytes",
+            "mesh::Mesh::to_bytes",
             format!("{label}, PLY"),
             Expect::Finite,
             &[],
@@ -376,7 +338,7 @@ fn sweep_meshes(s: &mut Suite) {
             },
         );
         s.case(
-            "occupancy::Mesh::from_bytes",
+            "mesh::Mesh::from_bytes",
             format!("{label}, ASCII PLY"),
             Expect::Finite,
             &[],
@@ -388,7 +350,7 @@ fn sweep_meshes(s: &mut Suite) {
             },
         );
         s.case(
-            "occupancy::Mesh::to_bytes",
+            "mesh::Mesh::to_bytes",
             format!("{label}, OBJ"),
             Expect::Finite,
             &[],
@@ -400,7 +362,7 @@ fn sweep_meshes(s: &mut Suite) {
             },
         );
         s.case(
-            "occupancy::Mesh::from_bytes",
+            "mesh::Mesh::from_bytes",
             format!("{label}, OBJ"),
             Expect::Finite,
             &[],
@@ -411,7 +373,7 @@ fn sweep_meshes(s: &mut Suite) {
                 )?])
             },
         );
-        s.case("occupancy::Mesh::save", &label, Expect::Finite, &[], || {
+        s.case("mesh::Mesh::save", &label, Expect::Finite, &[], || {
             let path =
                 std::env::temp_dir().join(format!("nf_stiff_{}_{scale:e}.ply", std::process::id()));
             mesh.save(&path)?;
@@ -419,12 +381,30 @@ fn sweep_meshes(s: &mut Suite) {
             let _ = std::fs::remove_file(&path);
             Ok(vec![flat(m.vertices)?])
         });
+        s.case("mesh::Mesh::load", &label, Expect::FiniteOrErr, &[], || {
+            Ok(vec![flat(Mesh::load("/nonexistent/mesh.ply")?.vertices)?])
+        });
+    }
+    // Host points to tensors and back, from 1e-30 to 1e30 in one point.
+    for dtype in DTYPES {
+        let tag = format!("{dtype:?}");
         s.case(
-            "occupancy::Mesh::load",
-            &label,
-            Expect::FiniteOrErr,
+            "mesh::points_to_tensor",
+            format!("{tag}, 1e-30…1e30"),
+            Expect::Finite,
             &[],
-            || Ok(vec![flat(Mesh::load("/nonexistent/mesh.ply")?.vertices)?]),
+            || Ok(vec![points_to_tensor(&[[1e-30, 1e30, 0.0]], &d, dtype)?]),
+        );
+        s.case(
+            "mesh::points_from_tensor",
+            &tag,
+            Expect::Finite,
+            &[],
+            || {
+                Ok(vec![flat(points_from_tensor(
+                    &Tensor::new(&[[1e-30f64, 1e30, 0.0]], &d)?.to_dtype(dtype)?,
+                )?)?])
+            },
         );
     }
 }

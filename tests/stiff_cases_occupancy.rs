@@ -78,12 +78,10 @@ const OCCUPANCY: &[&str] = &[
     "occupancy::Grid::sample",
     "occupancy::MiseConfig::new",
     "occupancy::RefineConfig::new",
-    "occupancy::from_tensor",
     "occupancy::kl_standard_normal",
     "occupancy::logit_threshold",
     "occupancy::marching_cubes",
     "occupancy::mise",
-    "occupancy::points_tensor",
     "occupancy::reconstruction_loss",
     "occupancy::refine_vertices",
     "occupancy::reparameterize",
@@ -152,9 +150,10 @@ const EXEMPT: &[(&str, &str)] = &[
 /// Inside/outside tests, near-surface samples and metrics on meshes at three scales, and
 /// IoU of empty and disjoint sets.
 fn sweep_occupancy_on_meshes(s: &mut Suite) {
+    use neural_fields::mesh::Mesh;
     use neural_fields::occupancy::{
         inside_mesh, iou, mesh_metrics, near_surface, surface_metrics, winding_numbers,
-        winding_numbers_exact, KdTree, Mesh,
+        winding_numbers_exact, KdTree,
     };
     let d = Device::Cpu;
     let flat = |v: Vec<[f64; 3]>| Tensor::from_vec(v.concat(), v.len() * 3, &d);
@@ -292,10 +291,10 @@ fn sweep_occupancy_on_meshes(s: &mut Suite) {
 fn sweep_occupancy(s: &mut Suite) {
     use neural_fields::field::Inside;
 
+    use neural_fields::mesh::{points_from_tensor, points_to_tensor, Mesh};
     use neural_fields::occupancy::{
-        from_tensor, kl_standard_normal, logit_threshold, marching_cubes, mise, points_tensor,
-        reconstruction_loss, refine_vertices, reparameterize, uniform_in_padded_cube, Grid, Mesh,
-        MiseConfig, RefineConfig,
+        kl_standard_normal, logit_threshold, marching_cubes, mise, reconstruction_loss,
+        refine_vertices, reparameterize, uniform_in_padded_cube, Grid, MiseConfig, RefineConfig,
     };
     let d = Device::Cpu;
     let flat = |v: Vec<[f64; 3]>| Tensor::from_vec(v.concat(), v.len() * 3, &d);
@@ -364,22 +363,13 @@ fn sweep_occupancy(s: &mut Suite) {
                 &[],
                 || {
                     let p = uniform_in_padded_cube(64, pad, 1, &d, dtype)?;
-                    Ok(vec![points_tensor(&from_tensor(&p)?, &d, dtype)?, p])
+                    Ok(vec![
+                        points_to_tensor(&points_from_tensor(&p)?, &d, dtype)?,
+                        p,
+                    ])
                 },
             );
         }
-        s.case(
-            "occupancy::points_tensor",
-            format!("{tag}, 1e-30…1e30"),
-            Expect::Finite,
-            &[],
-            || Ok(vec![points_tensor(&[[1e-30, 1e30, 0.0]], &d, dtype)?]),
-        );
-        s.case("occupancy::from_tensor", &tag, Expect::Finite, &[], || {
-            Ok(vec![flat(from_tensor(
-                &Tensor::new(&[[1e-30f64, 1e30, 0.0]], &d)?.to_dtype(dtype)?,
-            )?)?])
-        });
         // Grids of extreme values and extents, and MISE on analytic fields.
         for (ext, amp) in [(1e-6, 1e-30), (1.0, 1.0), (1e6, 1e30)] {
             let gl = format!("{tag}, box ±{ext}, values ±{amp:e}");
@@ -515,8 +505,8 @@ fn sweep_occupancy(s: &mut Suite) {
 
 /// The PointNet encoder and the ONet decoders at extreme points, labels and codes.
 fn sweep_onet_networks(s: &mut Suite) {
+    use neural_fields::mesh::Mesh;
     use neural_fields::nn::{onet_decoder, NormMode, OnetConfig};
-    use neural_fields::occupancy::Mesh;
     let d = Device::Cpu;
     let _flat = |v: Vec<[f64; 3]>| Tensor::from_vec(v.concat(), v.len() * 3, &d);
     let _vt = |v: Vec<f64>| Tensor::from_vec(v.clone(), v.len(), &d);
@@ -746,11 +736,11 @@ fn sweep_onet_networks(s: &mut Suite) {
 /// Conv. ONet on point clouds with coordinates from 0 to far outside the padded box (in
 /// both layouts), the decoder at such points, and `conv3d` on extreme inputs.
 fn sweep_conv_onet(s: &mut Suite) {
+    use neural_fields::mesh::PointCloud;
     use neural_fields::nn::{
         conv3d, conv_onet_encoder, local_decoder, ConvOnetConfig, FeatureLayout,
         LocalDecoderConfig, UnetConfig,
     };
-    use neural_fields::occupancy::PointCloud;
     let d = Device::Cpu;
     for dtype in DTYPES {
         let big = if dtype == DType::F32 { 1e8 } else { 1e100 };
@@ -825,7 +815,7 @@ fn sweep_conv_onet(s: &mut Suite) {
                     Ok(vec![dec.logits(p.as_tensor(), &f)?])
                 },
             );
-            let cloud = PointCloud::new(rows.clone()).unwrap();
+            let cloud = PointCloud::new(rows.clone(), None, None).unwrap();
             for item in [
                 "nn::ConvOnetEncoder::encode_cloud",
                 "nn::LocalDecoder::bind",

@@ -18,23 +18,12 @@ use neural_fields::rng::SplitMix64;
 fn texture_stays_finite() {
     let mut s = Suite::default();
     sweep_texture(&mut s);
-    // `vertex_colors` takes a mesh, which the `occupancy` feature builds.
-    let listed: Vec<&str> = TEXTURE
-        .iter()
-        .copied()
-        .filter(|i| cfg!(feature = "occupancy") || *i != "texture::vertex_colors")
-        .collect();
-    s.finish("texture", &listed);
+    s.finish("texture", TEXTURE);
 }
 
 #[test]
 fn every_public_texture_function_is_swept_or_exempt() {
-    let absent: &[&str] = if cfg!(feature = "occupancy") {
-        &[]
-    } else {
-        &["texture::vertex_colors"]
-    };
-    common::stiff::check_coverage("stiff_cases_texture", &[TEXTURE], EXEMPT, absent, &[]);
+    common::stiff::check_coverage("stiff_cases_texture", &[TEXTURE], EXEMPT, &[], &[]);
 }
 
 /// Items swept by `sweep_texture`.
@@ -200,9 +189,8 @@ fn sweep_texture(s: &mut Suite) {
                 ])
             },
         );
-        #[cfg(feature = "occupancy")]
         {
-            use neural_fields::occupancy::Mesh;
+            use neural_fields::mesh::Mesh;
             use neural_fields::texture::vertex_colors;
             let mesh = Mesh::new(
                 vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],

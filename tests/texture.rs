@@ -559,10 +559,9 @@ fn pointnet_encodes_points_with_normals_order_independently() -> neural_fields::
     Ok(())
 }
 
-#[cfg(feature = "occupancy")]
 #[test]
 fn vertex_colors_evaluate_in_chunks_and_reject_bad_colours() -> neural_fields::Result<()> {
-    use neural_fields::occupancy::Mesh;
+    use neural_fields::mesh::Mesh;
     use neural_fields::texture::vertex_colors;
     let mesh = Mesh::new(
         vec![

@@ -5,7 +5,7 @@
 use crate::report::{median_seconds, v64, Row, Table, TIME_PER_CALL};
 use candle_core::{DType, Device, Tensor};
 use neural_fields::flow::{odeint, DeformingTorus, Graph, Solver};
-use neural_fields::occupancy::points_tensor;
+use neural_fields::mesh::points_to_tensor;
 use neural_fields::rng::SplitMix64;
 
 /// Mean Euclidean distance between the solver's points at t = 1 and the exact ones.
@@ -58,7 +58,7 @@ pub fn run(quick: bool) -> Vec<Table> {
             }),
     );
     for dtype in [DType::F32, DType::F64] {
-        let p0 = points_tensor(&start, &Device::Cpu, dtype).unwrap();
+        let p0 = points_to_tensor(&start, &Device::Cpu, dtype).unwrap();
         for (series, knob, solver) in &solvers {
             let solve = || {
                 odeint(

@@ -5,7 +5,8 @@
 use crate::report::{median_seconds, Row, Table, TIME_PER_CALL};
 use candle_core::{DType, Device};
 use neural_fields::field::{Inside, SignedDistance, Torus};
-use neural_fields::occupancy::{marching_cubes, mise, Grid, KdTree, Mesh, MiseConfig};
+use neural_fields::mesh::Mesh;
+use neural_fields::occupancy::{marching_cubes, mise, Grid, KdTree, MiseConfig};
 use neural_fields::rng::SplitMix64;
 use std::f64::consts::TAU;
 

@@ -2,6 +2,6 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use neural_fields::occupancy::MeshFormat;
+use neural_fields::mesh::MeshFormat;
 
 fuzz_target!(|data: &[u8]| neural_fields_fuzz::check_readers(data, MeshFormat::Obj));

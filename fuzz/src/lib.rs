@@ -1,6 +1,6 @@
 //! What every mesh-reader fuzz target checks.
 
-use neural_fields::occupancy::{Mesh, MeshFormat, PointCloud};
+use neural_fields::mesh::{Mesh, MeshFormat, PointCloud};
 
 /// Reads `data` as a mesh and as a point cloud in `format`: any bytes must give `Ok` or
 /// `Err`, in time and memory bounded by their size. What loads must be valid, write back,

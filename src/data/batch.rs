@@ -31,7 +31,8 @@ pub struct RayBatch {
     pub views: Tensor,
     /// `[N, 2]` u32: each ray's pixel `(u, v)` (column, row); the ray passes through the
     /// pixel's centre `(u + 0.5, v + 0.5)`, or through a uniformly random point of the
-    /// pixel for a [`RaySampler::with_jitter`] sampler's [`RaySampler::pixels`].
+    /// pixel for a jittered sampler's [`RaySampler::pixels`]
+    /// ([`RaySampler::with_pixel_filter`]).
     pub pixels: Tensor,
 }
 
@@ -155,7 +156,8 @@ impl<'a> RaySampler<'a> {
             .views()
             .iter()
             .map(|v| {
-                total += (v.image().width() * v.image().height()) as u64;
+                let (w, h, _) = v.image().size();
+                total += (w * h) as u64;
                 total
             })
             .collect();
@@ -172,34 +174,29 @@ impl<'a> RaySampler<'a> {
 
     /// The sampler with the pixel filter that its jittered rays and
     /// [`RaySampler::pixel_footprints`] sample ([`PixelFilter::Box`] by default: uniform
-    /// over the pixel). With [`PixelFilter::CYCLES`], a jittered ray passes through
+    /// over the pixel), and sub-pixel jitter on or off (off by default).
+    ///
+    /// With `jitter`, [`RaySampler::pixels`] sends each ray through a random point of its
+    /// pixel instead of the centre (instant-NGP's training rays), so that a field trained
+    /// on images that integrate over each pixel (antialiased renders, real sensors) sees
+    /// the whole pixel footprint; evaluate such a field with several rays per pixel
+    /// ([`crate::camera::Camera::subpixel_grid`]). With [`PixelFilter::Box`] the point is
+    /// uniform over the pixel; with [`PixelFilter::CYCLES`], a jittered ray passes through
     /// `centre + (q(U₁), q(U₂))` for the filter's quantile function `q`, so its offsets
     /// are distributed as Blender's Cycles distributes a pixel's samples, reaching into the
-    /// neighbouring pixels; footprints take the medians (or, jittered, random points) of
-    /// the filter's `k × k` equal-mass strata. The pixel's colour is unchanged: the image
-    /// is the filter's mean of what those rays see. Draws no random numbers itself.
+    /// neighbouring pixels. Footprints take the medians (or, jittered, random points) of
+    /// the filter's `k × k` equal-mass strata. Patches keep their pixel centres. The
+    /// pixel's colour is unchanged: the image is the filter's mean of what those rays see.
+    /// Draws no random numbers itself; the offsets are drawn after the pixels and
+    /// backgrounds, so a sampler without jitter draws the same batches as before.
     ///
     /// # Errors
     /// [`Error::InvalidArgument`] naming `filter` as [`PixelFilter::quantile`].
-    pub fn with_pixel_filter(mut self, filter: PixelFilter) -> Result<Self> {
+    pub fn with_pixel_filter(mut self, filter: PixelFilter, jitter: bool) -> Result<Self> {
         filter.validate()?;
         self.filter = filter;
+        self.jitter = jitter;
         Ok(self)
-    }
-
-    /// The sampler with sub-pixel jitter on or off (off by default): with it,
-    /// [`RaySampler::pixels`] sends each ray through a uniformly random point of its pixel
-    /// instead of the centre (instant-NGP's training rays; or through a point drawn from
-    /// the filter of [`RaySampler::with_pixel_filter`]), so that a field trained on
-    /// images that integrate over each pixel (antialiased renders, real sensors) sees the
-    /// whole pixel footprint; evaluate such a field with several rays per pixel
-    /// ([`crate::camera::Camera::subpixel_grid`]). Patches keep their pixel centres. The
-    /// offsets are drawn after the pixels and backgrounds, so a sampler without jitter
-    /// draws the same batches as before.
-    #[must_use]
-    pub fn with_jitter(mut self, on: bool) -> Self {
-        self.jitter = on;
-        self
     }
 
     fn backgrounds(&mut self, n: usize) -> Vec<[f64; 3]> {
@@ -211,7 +208,7 @@ impl<'a> RaySampler<'a> {
         }
     }
 
-    /// `n` rays through pixel centres (or, [`RaySampler::with_jitter`], uniformly random
+    /// `n` rays through pixel centres (or, jittered ([`RaySampler::with_pixel_filter`]), random
     /// points of the pixels) drawn uniformly over all pixels of all views.
     ///
     /// # Errors
@@ -241,8 +238,8 @@ impl<'a> RaySampler<'a> {
 
     /// `n` pixels drawn as [`RaySampler::pixels`] draws them, each imaged by `k × k` rays
     /// on the sub-pixel grid of [`crate::camera::Camera::subpixel_grid`] for the sampler's
-    /// pixel filter ([`RaySampler::with_pixel_filter`]; the box by default) (with
-    /// [`RaySampler::with_jitter`], through a random point of each of the filter's `k × k`
+    /// pixel filter ([`RaySampler::with_pixel_filter`]; the box by default) (jittered,
+    /// through a random point of each of the filter's `k × k`
     /// equal-mass strata: stratified sampling of the filter). Rays are pixel-major: rays
     /// `p·k² … (p + 1)·k² − 1` belong to pixel `p`, and every per-ray field (`colors`, `backgrounds`, `masks`, `views`,
     /// `pixels`) repeats the pixel's value over its `k²` rays. Average a prediction over each
@@ -327,7 +324,7 @@ impl<'a> RaySampler<'a> {
                 let i = self.rng.below(total);
                 let view = self.ends.partition_point(|&e| e <= i);
                 let start = if view == 0 { 0 } else { self.ends[view - 1] };
-                let w = self.dataset.views()[view].image().width() as u64;
+                let w = self.dataset.views()[view].image().size().0 as u64;
                 let local = i - start;
                 (view, (local % w) as usize, (local / w) as usize)
             })
@@ -362,7 +359,7 @@ impl<'a> RaySampler<'a> {
             .views()
             .iter()
             .map(|v| {
-                let (w, h) = (v.image().width(), v.image().height());
+                let (w, h, _) = v.image().size();
                 if w >= k && h >= k {
                     total += ((w - k + 1) * (h - k + 1)) as u64;
                 }
@@ -382,7 +379,7 @@ impl<'a> RaySampler<'a> {
             let i = self.rng.below(total);
             let view = ends.partition_point(|&e| e <= i);
             let start = if view == 0 { 0 } else { ends[view - 1] };
-            let span = (self.dataset.views()[view].image().width() - k + 1) as u64;
+            let span = (self.dataset.views()[view].image().size().0 - k + 1) as u64;
             let local = i - start;
             let (u0, v0) = ((local % span) as usize, (local / span) as usize);
             let bg = self.backgrounds(1)[0];
@@ -422,7 +419,7 @@ impl Dataset {
             ));
         };
         check_count(len, "len")?;
-        let (w, h) = (v.image().width(), v.image().height());
+        let (w, h, _) = v.image().size();
         if start.checked_add(len).is_none_or(|end| end > w * h) {
             return Err(Error::invalid(
                 "start",

@@ -1,13 +1,16 @@
-//! Views, datasets, the loading options and the loader entry point.
+//! Views, datasets, the loading options and the loader entry point, which detects the
+//! layout and hands the folder to that layout's reader (Blender, nerfstudio, IDR/DTU).
 
 use super::image::Image;
-use crate::camera::{orthonormality, Camera, Convention, Intrinsics};
+use super::layout::{Bounds, DatasetLayout, FrameSpec, IntrinsicsSpec, Split};
+use super::{blender, dtu, nerfstudio};
+use crate::camera::{Camera, Intrinsics};
 use crate::error::check_dtype;
 use crate::error::{Error, Result};
 use candle_core::{DType, Device, Tensor};
-use glam::{DAffine3, DMat3, DVec3};
+use glam::DAffine3;
 use rayon::prelude::*;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// One calibrated picture: a camera, its image and an optional mask.
 ///
@@ -31,33 +34,24 @@ impl View {
     /// camera's, and `mask` unless it has 1 channel and the camera's size.
     pub fn new(camera: Camera, image: Image, mask: Option<Image>, name: String) -> Result<Self> {
         let k = camera.intrinsics();
-        let size = |i: &Image| (i.width(), i.height());
-        if image.channels() == 1 || size(&image) != (k.width, k.height) {
+        let (w, h, c) = image.size();
+        if c == 1 || (w, h) != (k.width, k.height) {
             return Err(Error::invalid(
                 "image",
                 format!(
                     "an RGB or RGBA image of the camera's size {} × {}",
                     k.width, k.height
                 ),
-                format!(
-                    "{} × {} with {} channels",
-                    image.width(),
-                    image.height(),
-                    image.channels()
-                ),
+                format!("{w} × {h} with {c} channels"),
             ));
         }
         if let Some(m) = &mask {
-            if m.channels() != 1 || size(m) != (k.width, k.height) {
+            let (mw, mh, mc) = m.size();
+            if mc != 1 || (mw, mh) != (k.width, k.height) {
                 return Err(Error::invalid(
                     "mask",
                     format!("a one-channel mask of size {} × {}", k.width, k.height),
-                    format!(
-                        "{} × {} with {} channels",
-                        m.width(),
-                        m.height(),
-                        m.channels()
-                    ),
+                    format!("{mw} × {mh} with {mc} channels"),
                 ));
             }
         }
@@ -94,9 +88,8 @@ impl View {
     }
 
     /// Whether the view has a mask (a mask file or an alpha channel).
-    #[must_use]
-    pub fn has_mask(&self) -> bool {
-        self.mask.is_some() || self.image.channels() == 4
+    pub(crate) fn has_mask(&self) -> bool {
+        self.mask.is_some() || self.image.size().2 == 4
     }
 
     /// Colour of pixel `(u, v)` composited on `background`: `c·a + b·(1 − a)` with the
@@ -116,9 +109,7 @@ impl View {
     pub(crate) fn mask_value(&self, u: usize, v: usize) -> Option<f64> {
         match &self.mask {
             Some(m) => Some(f64::from(m.pixel(u, v)?[0]) / 255.0),
-            None if self.image.channels() == 4 => {
-                Some(f64::from(self.image.pixel(u, v)?[3]) / 255.0)
-            }
+            None if self.image.size().2 == 4 => Some(f64::from(self.image.pixel(u, v)?[3]) / 255.0),
             None => None,
         }
     }
@@ -132,7 +123,7 @@ impl View {
     pub fn rgb(&self, background: [f64; 3], device: &Device, dtype: DType) -> Result<Tensor> {
         check_dtype(dtype)?;
         check_background(&Background::Color(background))?;
-        let (w, h) = (self.image.width(), self.image.height());
+        let (w, h, _) = self.image.size();
         let mut data = Vec::with_capacity(3 * w * h);
         for v in 0..h {
             for u in 0..w {
@@ -152,7 +143,7 @@ impl View {
         if !self.has_mask() {
             return Ok(None);
         }
-        let (w, h) = (self.image.width(), self.image.height());
+        let (w, h, _) = self.image.size();
         let mut data = Vec::with_capacity(w * h);
         for v in 0..h {
             for u in 0..w {
@@ -206,116 +197,12 @@ fn check_background(background: &Background) -> Result<()> {
     }
 }
 
-/// The region a layout says the scene occupies, in the loaded (normalised) world frame.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Bounds {
-    /// An axis-aligned box.
-    Aabb {
-        /// Minimum corner.
-        min: [f64; 3],
-        /// Maximum corner.
-        max: [f64; 3],
-    },
-    /// A sphere (IDR/DTU: the unit sphere after `scale_mat`).
-    Sphere {
-        /// Centre.
-        center: [f64; 3],
-        /// Radius.
-        radius: f64,
-    },
-}
-
-/// Which frames of a dataset to load.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
-pub enum Split {
-    /// Training frames.
-    #[default]
-    Train,
-    /// Validation frames.
-    Val,
-    /// Test frames.
-    Test,
-    /// Every frame: the three splits in the order train, val, test where the layout has
-    /// split files, else all frames in file order.
-    All,
-}
-
-impl Split {
-    /// The split's name in file names: `train`, `val`, `test`, `all`.
-    #[must_use]
-    pub fn name(&self) -> &'static str {
-        match self {
-            Split::Train => "train",
-            Split::Val => "val",
-            Split::Test => "test",
-            Split::All => "all",
-        }
-    }
-
-    /// For layouts without split files (nerfstudio's single `transforms.json`, IDR/DTU):
-    /// whether frame `i` belongs to the split by the hold-out rule of LLFF and mip-NeRF,
-    /// every 8th frame (`i % 8 == 0`) held out for validation and testing.
-    pub(crate) fn holds(&self, i: usize) -> bool {
-        match self {
-            Split::Train => !i.is_multiple_of(8),
-            Split::Val | Split::Test => i.is_multiple_of(8),
-            Split::All => true,
-        }
-    }
-}
-
-/// A dataset layout on disk.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum DatasetLayout {
-    /// The Blender synthetic layout (NeRF): `transforms_{train,val,test}.json` with
-    /// `camera_angle_x` and per-frame `file_path` / `transform_matrix` (OpenGL axes).
-    Blender,
-    /// The nerfstudio / instant-NGP layout: one `transforms.json` with pinhole intrinsics
-    /// (`fl_x, fl_y, cx, cy, w, h`, global or per frame).
-    Nerfstudio,
-    /// The IDR/DTU layout: `image/`, optional `mask/`, and `cameras.npz` (or
-    /// `cameras_sphere.npz`) with `world_mat_i` and `scale_mat_i`.
-    Dtu,
-}
-
-impl DatasetLayout {
-    /// The layout of the dataset in `dir`, from the files present: `transforms_train.json`
-    /// → Blender, `transforms.json` → nerfstudio, `cameras.npz` or `cameras_sphere.npz` →
-    /// IDR/DTU.
-    ///
-    /// # Errors
-    /// [`Error::Io`] naming `dir` if it is not a directory; [`Error::Format`] naming `dir`
-    /// if none of those files is there.
-    pub fn detect(dir: &Path) -> Result<Self> {
-        if !dir.is_dir() {
-            return Err(Error::Io {
-                path: dir.display().to_string(),
-                source: std::io::Error::new(std::io::ErrorKind::NotFound, "not a directory"),
-            });
-        }
-        if dir.join("transforms_train.json").is_file() {
-            Ok(Self::Blender)
-        } else if dir.join("transforms.json").is_file() {
-            Ok(Self::Nerfstudio)
-        } else if super::dtu::cameras_file(dir).is_some() {
-            Ok(Self::Dtu)
-        } else {
-            Err(Error::format(
-                dir,
-                "layout",
-                "transforms_train.json (Blender), transforms.json (nerfstudio) or cameras.npz (IDR/DTU)",
-                "none of them",
-            ))
-        }
-    }
-}
-
 /// How to load a dataset ([`load`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct LoadConfig {
     /// The split to load (default train).
     pub split: Split,
-    /// The layout; `None` detects it ([`DatasetLayout::detect`]).
+    /// The layout; `None` detects it from the files present (see [`DatasetLayout`]).
     pub layout: Option<DatasetLayout>,
     /// The colour behind transparent pixels (default white).
     pub background: Background,
@@ -439,15 +326,6 @@ impl Dataset {
             .collect::<Result<Vec<_>>>()?;
         Dataset::new(views, self.background, self.bounds)
     }
-
-    /// The number of decoded image and mask bytes held.
-    #[must_use]
-    pub fn image_bytes(&self) -> usize {
-        self.views
-            .iter()
-            .map(|v| v.image.data().len() + v.mask.as_ref().map_or(0, |m| m.data().len()))
-            .sum()
-    }
 }
 
 /// Loads the dataset in `dir` ([`DatasetLayout`]: Blender, nerfstudio or IDR/DTU).
@@ -484,15 +362,14 @@ pub fn load(dir: &Path, config: &LoadConfig) -> Result<Dataset> {
         None => DatasetLayout::detect(dir)?,
     };
     let (frames, bounds) = match layout {
-        DatasetLayout::Blender | DatasetLayout::Nerfstudio => {
-            super::transforms::frames(dir, layout, config.split)?
-        }
-        DatasetLayout::Dtu => super::dtu::frames(dir, config.split)?,
+        DatasetLayout::Blender => blender::frames(dir, config.split)?,
+        DatasetLayout::Nerfstudio => nerfstudio::frames(dir, config.split)?,
+        DatasetLayout::Dtu => dtu::frames(dir, config.split)?,
     };
     let frames = select(frames, config.frames.as_deref())?;
     let views = frames
         .into_par_iter()
-        .map(|f| f.load(config.downscale))
+        .map(|f| load_view(f, config.downscale))
         .collect::<Result<Vec<View>>>()?;
     Dataset::new(views, config.background, bounds)
 }
@@ -520,182 +397,87 @@ fn select(frames: Vec<FrameSpec>, subset: Option<&[usize]>) -> Result<Vec<FrameS
         .collect()
 }
 
-/// The intrinsics a layout states for a frame, before the image's size is known.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub(crate) enum IntrinsicsSpec {
-    /// Horizontal (and optionally vertical) field of view, principal point at the centre.
-    Fov { angle_x: f64, angle_y: Option<f64> },
-    /// Focal lengths and principal point in pixels, with the image size if stated.
-    Pinhole {
-        fx: f64,
-        fy: f64,
-        cx: Option<f64>,
-        cy: Option<f64>,
-        size: Option<(usize, usize)>,
-    },
-}
-
-/// One frame as a layout describes it: where its files are and its camera.
-#[derive(Clone, Debug)]
-pub(crate) struct FrameSpec {
-    pub image: PathBuf,
-    pub mask: Option<PathBuf>,
-    pub intrinsics: IntrinsicsSpec,
-    pub cam_to_world: DAffine3,
-    pub convention: Convention,
-    /// The file the camera came from, and the field, for error messages.
-    pub source: PathBuf,
-    pub field: String,
-}
-
-impl FrameSpec {
-    fn load(self, downscale: usize) -> Result<View> {
-        let image = Image::decode(&self.image, false)?;
-        let (w, h) = (image.width(), image.height());
-        let intrinsics = match self.intrinsics {
-            IntrinsicsSpec::Fov { angle_x, angle_y } => {
-                let fx = 0.5 * w as f64 / (0.5 * angle_x).tan();
-                let fy = angle_y.map_or(fx, |a| 0.5 * h as f64 / (0.5 * a).tan());
-                (fx, fy, 0.5 * w as f64, 0.5 * h as f64)
-            }
-            IntrinsicsSpec::Pinhole {
-                fx,
-                fy,
-                cx,
-                cy,
-                size,
-            } => {
-                if let Some((sw, sh)) = size {
-                    if (sw, sh) != (w, h) {
-                        return Err(Error::format(
-                            &self.image,
-                            "image size",
-                            format!("{sw} × {sh} (w, h in {})", self.source.display()),
-                            format!("{w} × {h}"),
-                        ));
-                    }
-                }
-                (
-                    fx,
-                    fy,
-                    cx.unwrap_or(0.5 * w as f64),
-                    cy.unwrap_or(0.5 * h as f64),
-                )
-            }
-        };
-        let mask = match &self.mask {
-            Some(path) => {
-                let m = Image::decode(path, true)?;
-                if (m.width(), m.height()) != (w, h) {
+/// The view of one frame: its image (and mask) decoded, checked against the stated size,
+/// downscaled, and its camera built and validated.
+fn load_view(frame: FrameSpec, downscale: usize) -> Result<View> {
+    let image = Image::decode(&frame.image, false)?;
+    let (w, h, _) = image.size();
+    let intrinsics = match frame.intrinsics {
+        IntrinsicsSpec::Fov { angle_x, angle_y } => {
+            let fx = 0.5 * w as f64 / (0.5 * angle_x).tan();
+            let fy = angle_y.map_or(fx, |a| 0.5 * h as f64 / (0.5 * a).tan());
+            (fx, fy, 0.5 * w as f64, 0.5 * h as f64)
+        }
+        IntrinsicsSpec::Pinhole {
+            fx,
+            fy,
+            cx,
+            cy,
+            size,
+        } => {
+            if let Some((sw, sh)) = size {
+                if (sw, sh) != (w, h) {
                     return Err(Error::format(
-                        path,
-                        "mask size",
-                        format!("{w} × {h}, the size of {}", self.image.display()),
-                        format!("{} × {}", m.width(), m.height()),
+                        &frame.image,
+                        "image size",
+                        format!("{sw} × {sh} (w, h in {})", frame.source.display()),
+                        format!("{w} × {h}"),
                     ));
                 }
-                Some(m)
             }
-            None => None,
-        };
-        if downscale > w.min(h) {
-            return Err(Error::invalid(
-                "downscale",
-                format!("at most the image's smaller side ({})", w.min(h)),
-                downscale.to_string(),
-            ));
-        }
-        let (image, mask) = (
-            image.downscale(downscale),
-            mask.map(|m| m.downscale(downscale)),
-        );
-        let s = downscale as f64;
-        let (fx, fy, cx, cy) = intrinsics;
-        let k = Intrinsics::new(
-            fx / s,
-            fy / s,
-            cx / s,
-            cy / s,
-            image.width(),
-            image.height(),
-        )
-        .map_err(|e| {
-            Error::format(
-                &self.source,
-                format!("{} intrinsics", self.field),
-                "valid pinhole intrinsics",
-                e.to_string(),
+            (
+                fx,
+                fy,
+                cx.unwrap_or(0.5 * w as f64),
+                cy.unwrap_or(0.5 * h as f64),
             )
-        })?;
-        let camera = Camera::new(k, self.cam_to_world, self.convention).map_err(|e| {
-            Error::format(
-                &self.source,
-                &self.field,
-                "a rigid camera-to-world pose",
-                e.to_string(),
-            )
-        })?;
-        View::new(camera, image, mask, self.image.display().to_string())
-    }
-}
-
-/// A camera-to-world pose from the rows of a 3×4 or 4×4 matrix, checked: finite, last row
-/// `[0, 0, 0, 1]`, rotation part within 1e-3 of orthonormal with determinant +1.
-/// Orthonormalised (polar decomposition) where it deviates by more than 1e-6.
-pub(crate) fn pose_from_rows(rows: &[[f64; 4]], path: &Path, field: &str) -> Result<DAffine3> {
-    let bad = |expected: &str, got: String| Error::format(path, field, expected, got);
-    if rows.len() != 3 && rows.len() != 4 {
-        return Err(bad("a 3×4 or 4×4 matrix", format!("{} rows", rows.len())));
-    }
-    if rows.iter().flatten().any(|x| !x.is_finite()) {
-        return Err(bad("finite entries", format!("{rows:?}")));
-    }
-    if rows.len() == 4 {
-        let last = rows[3];
-        let dev = (0..4)
-            .map(|j| (last[j] - if j == 3 { 1.0 } else { 0.0 }).abs())
-            .fold(0.0, f64::max);
-        if dev > 1e-6 {
-            return Err(bad("a last row [0, 0, 0, 1]", format!("{last:?}")));
         }
-    }
-    let col = |j: usize| DVec3::new(rows[0][j], rows[1][j], rows[2][j]);
-    let mut r = DMat3::from_cols(col(0), col(1), col(2));
-    let det = r.determinant();
-    let dev = orthonormality(&r);
-    if det.is_nan() || det <= 0.0 || dev > 1e-3 {
-        return Err(bad(
-            "a rigid transform (rotation part orthonormal within 1e-3, det +1)",
-            format!("max |RᵀR − I| = {dev:.3e}, det R = {det:.6}"),
-        ));
-    }
-    if dev > 1e-6 {
-        // Polar decomposition by Newton's iteration R ← (R + R⁻ᵀ)/2, quadratically
-        // convergent from this close.
-        for _ in 0..8 {
-            r = (r + r.inverse().transpose()) * 0.5;
-        }
-    }
-    Ok(DAffine3::from_mat3_translation(r, col(3)))
-}
-
-/// Reads a whole file of at most `cap` bytes.
-pub(crate) fn read_capped(path: &Path, cap: u64) -> Result<Vec<u8>> {
-    use std::io::Read;
-    let io = |source| Error::Io {
-        path: path.display().to_string(),
-        source,
     };
-    let file = std::fs::File::open(path).map_err(io)?;
-    let mut bytes = Vec::new();
-    file.take(cap + 1).read_to_end(&mut bytes).map_err(io)?;
-    if bytes.len() as u64 > cap {
-        return Err(Error::format(
-            path,
-            "file size",
-            format!("at most {cap} bytes"),
-            "a larger file",
+    let mask = match &frame.mask {
+        Some(path) => {
+            let m = Image::decode(path, true)?;
+            let (mw, mh, _) = m.size();
+            if (mw, mh) != (w, h) {
+                return Err(Error::format(
+                    path,
+                    "mask size",
+                    format!("{w} × {h}, the size of {}", frame.image.display()),
+                    format!("{mw} × {mh}"),
+                ));
+            }
+            Some(m)
+        }
+        None => None,
+    };
+    if downscale > w.min(h) {
+        return Err(Error::invalid(
+            "downscale",
+            format!("at most the image's smaller side ({})", w.min(h)),
+            downscale.to_string(),
         ));
     }
-    Ok(bytes)
+    let (image, mask) = (
+        image.downscale(downscale),
+        mask.map(|m| m.downscale(downscale)),
+    );
+    let s = downscale as f64;
+    let (fx, fy, cx, cy) = intrinsics;
+    let (w, h, _) = image.size();
+    let k = Intrinsics::new(fx / s, fy / s, cx / s, cy / s, w, h).map_err(|e| {
+        Error::format(
+            &frame.source,
+            format!("{} intrinsics", frame.field),
+            "valid pinhole intrinsics",
+            e.to_string(),
+        )
+    })?;
+    let camera = Camera::new(k, frame.cam_to_world, frame.convention).map_err(|e| {
+        Error::format(
+            &frame.source,
+            &frame.field,
+            "a rigid camera-to-world pose",
+            e.to_string(),
+        )
+    })?;
+    View::new(camera, image, mask, frame.image.display().to_string())
 }

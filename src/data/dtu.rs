@@ -1,7 +1,9 @@
 //! The IDR/DTU layout: `image/`, `mask/`, `cameras.npz` with `world_mat_i = K·[R|t]` and
 //! `scale_mat_i`; a bounded reader of the npz (a zip of `.npy` members).
 
-use super::dataset::{pose_from_rows, read_capped, Bounds, FrameSpec, IntrinsicsSpec, Split};
+use super::layout::{
+    cameras_file, pose_from_rows, read_capped, Bounds, FrameSpec, IntrinsicsSpec, Split,
+};
 use crate::camera::Convention;
 use crate::error::{Error, Result};
 use glam::{DMat3, DMat4, DVec3};
@@ -15,15 +17,6 @@ const MAX_NPZ_BYTES: u64 = 64 << 20;
 const MAX_MEMBER_BYTES: u64 = 1 << 20;
 /// The largest number of images read from `image/`.
 const MAX_IMAGES: usize = 1 << 20;
-
-/// The cameras file of an IDR/DTU dataset in `dir`: `cameras.npz` (IDR) or
-/// `cameras_sphere.npz` (NeuS).
-pub(crate) fn cameras_file(dir: &Path) -> Option<PathBuf> {
-    ["cameras.npz", "cameras_sphere.npz"]
-        .iter()
-        .map(|n| dir.join(n))
-        .find(|p| p.is_file())
-}
 
 /// Image files of `dir`, sorted by name (IDR pairs the i-th with `world_mat_i`).
 fn listing(dir: &Path) -> Result<Vec<PathBuf>> {

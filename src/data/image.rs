@@ -104,22 +104,11 @@ impl Image {
         Ok((t.to_dtype(dtype)? / 255.0)?)
     }
 
-    /// Width in pixels.
+    /// The size `(width, height, channels)`: pixels per row, rows, and bytes per pixel
+    /// (1, 3 or 4), in the order [`Image::new`] takes them.
     #[must_use]
-    pub fn width(&self) -> usize {
-        self.width
-    }
-
-    /// Height in pixels.
-    #[must_use]
-    pub fn height(&self) -> usize {
-        self.height
-    }
-
-    /// Bytes per pixel: 1, 3 or 4.
-    #[must_use]
-    pub fn channels(&self) -> usize {
-        self.channels
+    pub fn size(&self) -> (usize, usize, usize) {
+        (self.width, self.height, self.channels)
     }
 
     /// The bytes, row-major, `channels` per pixel.
@@ -129,8 +118,7 @@ impl Image {
     }
 
     /// The bytes of pixel `(u, v)` (column, row); `None` outside the image.
-    #[must_use]
-    pub fn pixel(&self, u: usize, v: usize) -> Option<&[u8]> {
+    pub(crate) fn pixel(&self, u: usize, v: usize) -> Option<&[u8]> {
         if u >= self.width || v >= self.height {
             return None;
         }

@@ -26,9 +26,10 @@
 //!
 //! # Metrics and pictures
 //! [`psnr`] and [`ssim`] (scikit-image's Gaussian SSIM, to 1e-4) with optional masks;
-//! [`write_png`] for RGB, opacity and the colour maps [`colorize_depth`],
-//! [`colorize_normals`] and [`comparison_strip`]; [`write_blender`] turns any [`Dataset`]
-//! (e.g. renders of an analytic scene) into a Blender-layout dataset.
+//! [`write_png`] for RGB, opacity and the colour maps [`colorize_depth`] and
+//! [`comparison_strip`] (normals `n` show as the colours `(n + 1) / 2`,
+//! `n.affine(0.5, 0.5)`); [`write_blender`] turns any [`Dataset`] (e.g. renders of an
+//! analytic scene) into a Blender-layout dataset.
 //!
 //! ```
 //! use candle_core::{DType, Device};
@@ -42,18 +43,20 @@
 //! ```
 
 mod batch;
+mod blender;
 mod dataset;
 mod dtu;
 mod image;
+mod layout;
 mod metrics;
+mod nerfstudio;
 mod output;
 mod scene;
-mod transforms;
 
 pub use batch::{RayBatch, RaySampler};
-pub use dataset::{load, Background, Bounds, Dataset, DatasetLayout, LoadConfig, Split, View};
+pub use dataset::{load, Background, Dataset, LoadConfig, View};
 pub use image::Image;
+pub use layout::{Bounds, DatasetLayout, Split};
 pub use metrics::{psnr, ssim};
-pub use output::{colorize_depth, colorize_normals, comparison_strip, write_png};
+pub use output::{colorize_depth, comparison_strip, write_blender, write_png};
 pub use scene::load_eval;
-pub use transforms::write_blender;

@@ -1,8 +1,14 @@
-//! Pictures out: PNG writing (atomic), colour maps for depth and error, normals, strips.
+//! Pictures and datasets out: PNG writing (atomic), colour maps for depth and error,
+//! comparison strips, and the Blender-layout writer.
 
+use super::dataset::Dataset;
 use super::image::Image;
+use super::layout::Split;
+use crate::camera::Convention;
 use crate::error::{Error, Result};
 use candle_core::{DType, Tensor};
+use glam::DMat3;
+use serde_json::Value;
 use std::path::Path;
 
 /// Writes `bytes` to `path` through a temporary file beside it and a rename, so that
@@ -71,7 +77,8 @@ pub(crate) fn encode_png(
 /// [`Error::Io`] naming the path if it cannot be written.
 pub fn write_png(path: &Path, image: &Tensor) -> Result<()> {
     let img = Image::from_tensor(image)?;
-    let png = encode_png(img.width(), img.height(), img.channels(), img.data())?;
+    let (w, h, c) = img.size();
+    let png = encode_png(w, h, c, img.data())?;
     write_atomic(path, &png)
 }
 
@@ -179,23 +186,6 @@ pub fn colorize_depth(depth: &Tensor, range: Option<(f64, f64)>) -> Result<(Tens
     Ok((rgb_tensor(data, h, w, depth)?, (lo, hi)))
 }
 
-/// Maps normals `normals: [H, W, 3]` (unit vectors, any frame) to colours `(n + 1) / 2`.
-/// Dtype and device follow `normals`; differentiable (plain candle ops).
-///
-/// # Errors
-/// [`Error::InvalidArgument`] naming `normals` for another shape.
-pub fn colorize_normals(normals: &Tensor) -> Result<Tensor> {
-    let dims = normals.dims();
-    if dims.len() != 3 || dims[2] != 3 {
-        return Err(Error::invalid(
-            "normals",
-            "shape [H, W, 3]",
-            format!("{dims:?}"),
-        ));
-    }
-    Ok(((normals + 1.0)? * 0.5)?)
-}
-
 /// A side-by-side strip `target | pred | error` of two `[H, W, 3]` images in `[0, 1]`: the
 /// error panel is the per-pixel mean absolute difference over channels through turbo on
 /// `[0, 0.25]` (so 0.25 and above is red), the same scale for every picture. Returns
@@ -240,4 +230,78 @@ pub fn comparison_strip(target: &Tensor, pred: &Tensor) -> Result<Tensor> {
     let heat = rgb_tensor(heat, h, w, pred)?;
     let target = target.to_dtype(pred.dtype())?.to_device(pred.device())?;
     Ok(Tensor::cat(&[&target, pred, &heat], 1)?)
+}
+
+/// Writes `dataset` as the `split` of a Blender-layout dataset in `dir` (created if
+/// needed): `transforms_{split}.json` and `{split}/r_{i}.png`.
+///
+/// The JSON holds `camera_angle_x` (from the first view) and, per frame, `file_path`
+/// (`./{split}/r_{i}`, without extension as in the published scenes), `transform_matrix`
+/// (camera-to-world in OpenGL axes; OpenCV cameras are converted exactly, by negating the
+/// second and third axes) and the exact pinhole intrinsics `fl_x, fl_y, cx, cy, w, h`, which
+/// [`load`](crate::data::load) prefers over `camera_angle_x`, so that a write → load round
+/// trip reproduces poses to rounding and pixels bit for bit. Images are written as RGBA
+/// PNG (RGB images with a mask file take the mask as alpha), masks otherwise dropped.
+///
+/// Every file is written to a temporary name beside its destination and renamed into
+/// place, the JSON last, so no file is left half-written and the JSON never names an image
+/// that is not complete.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `split` for [`Split::All`]; [`Error::Io`] naming the
+/// file that could not be written.
+pub fn write_blender(dir: &Path, split: Split, dataset: &Dataset) -> Result<()> {
+    if split == Split::All {
+        return Err(Error::invalid("split", "train, val or test", "all"));
+    }
+    let name = split.name();
+    let image_dir = dir.join(name);
+    std::fs::create_dir_all(&image_dir).map_err(|source| Error::Io {
+        path: image_dir.display().to_string(),
+        source,
+    })?;
+    let first = dataset.views()[0].camera().intrinsics();
+    let angle_x = 2.0 * (0.5 * first.width as f64 / first.fx).atan();
+    let mut frames = Vec::with_capacity(dataset.len());
+    for (i, view) in dataset.views().iter().enumerate() {
+        let image = view.image();
+        let (w, h, channels) = image.size();
+        let rgba = match (channels, view.mask_image()) {
+            (4, _) => image.data().to_vec(),
+            (_, mask) => image
+                .data()
+                .chunks_exact(3)
+                .enumerate()
+                .flat_map(|(p, c)| [c[0], c[1], c[2], mask.map_or(255, |m| m.data()[p])])
+                .collect(),
+        };
+        let png = encode_png(w, h, 4, &rgba)?;
+        write_atomic(&image_dir.join(format!("r_{i}.png")), &png)?;
+        let camera = view.camera();
+        let mut m = camera.cam_to_world().matrix3;
+        if camera.convention() == Convention::OpenCv {
+            m = DMat3::from_cols(m.x_axis, -m.y_axis, -m.z_axis);
+        }
+        let t = camera.cam_to_world().translation;
+        let rows: Vec<Value> = (0..3)
+            .map(|r| Value::from(vec![m.row(r).x, m.row(r).y, m.row(r).z, t[r]]))
+            .chain(std::iter::once(Value::from(vec![0.0, 0.0, 0.0, 1.0])))
+            .collect();
+        let k = camera.intrinsics();
+        frames.push(serde_json::json!({
+            "file_path": format!("./{name}/r_{i}"),
+            "rotation": 0.0,
+            "transform_matrix": rows,
+            "fl_x": k.fx, "fl_y": k.fy, "cx": k.cx, "cy": k.cy, "w": k.width, "h": k.height,
+        }));
+    }
+    let json = serde_json::json!({ "camera_angle_x": angle_x, "frames": frames });
+    let text = serde_json::to_string_pretty(&json).map_err(|e| Error::Io {
+        path: dir.display().to_string(),
+        source: std::io::Error::other(e),
+    })?;
+    write_atomic(
+        &dir.join(format!("transforms_{name}.json")),
+        text.as_bytes(),
+    )
 }

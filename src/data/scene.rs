@@ -1,7 +1,8 @@
 //! What a training run sets up from a dataset: the held-out split to evaluate on, the
 //! scene box, and the finest resolution a hash grid needs for the images' pixels.
 
-use super::dataset::{load, Bounds, Dataset, DatasetLayout, LoadConfig, Split};
+use super::dataset::{load, Dataset, LoadConfig};
+use super::layout::{Bounds, DatasetLayout, Split};
 use crate::error::Result;
 use std::path::Path;
 

@@ -5,7 +5,7 @@ use super::resnet_fc::ResnetFc;
 use crate::encoding::grid_sample::{cell_index, grid_sample, scatter_max, scatter_mean};
 use crate::error::{check_float, check_points, check_same, check_shape, Dim, Error, Result};
 use crate::field::Field;
-use crate::occupancy::PointCloud;
+use crate::mesh::{points_to_tensor, PointCloud};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{Init, Linear, Module, VarBuilder};
 
@@ -482,7 +482,7 @@ pub struct ConvOnetEncoder {
 /// use candle_core::{DType, Device};
 /// use candle_nn::{VarBuilder, VarMap};
 /// use neural_fields::nn::{conv_onet_encoder, ConvOnetConfig, FeatureLayout, LocalFeatures, UnetConfig};
-/// use neural_fields::occupancy::PointCloud;
+/// use neural_fields::mesh::PointCloud;
 ///
 /// let varmap = VarMap::new();
 /// let vb = VarBuilder::from_varmap(&varmap, DType::F64, &Device::Cpu);
@@ -492,7 +492,7 @@ pub struct ConvOnetEncoder {
 ///     ..ConvOnetConfig::default()
 /// };
 /// let encoder = conv_onet_encoder(&config, vb)?;
-/// let cloud = PointCloud::new(vec![[0.1, 0.2, -0.3], [-0.4, 0.0, 0.25]])?;
+/// let cloud = PointCloud::new(vec![[0.1, 0.2, -0.3], [-0.4, 0.0, 0.25]], None, None)?;
 /// let LocalFeatures::Grid(grid) = encoder.encode_cloud(&cloud)? else { unreachable!() };
 /// assert_eq!(grid.dims(), &[1, 32, 4, 4, 4]);
 /// # Ok::<(), neural_fields::Error>(())
@@ -676,7 +676,7 @@ impl ConvOnetEncoder {
     /// # Errors
     /// As [`forward`](Self::forward) (a [`PointCloud`] always holds a point).
     pub fn encode_cloud(&self, cloud: &PointCloud) -> Result<LocalFeatures> {
-        self.forward(&cloud.to_tensor(&self.device, self.dtype)?.unsqueeze(0)?)
+        self.forward(&points_to_tensor(cloud.points(), &self.device, self.dtype)?.unsqueeze(0)?)
     }
 }
 

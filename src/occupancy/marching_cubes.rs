@@ -19,9 +19,9 @@
 //! 2-manifold along edges (every edge in exactly two triangles, traversed in opposite
 //! directions) with outward normals (positive signed volume).
 
-use super::mesh::Mesh;
 use crate::error::{check_scalar, Error, Result};
 use crate::field::{ImplicitSurface, Inside};
+use crate::mesh::{cross, dot, sub, Mesh};
 use candle_core::{DType, Device, Tensor};
 use rayon::prelude::*;
 use std::sync::OnceLock;
@@ -337,9 +337,9 @@ fn build_case(config: usize) -> Vec<[u8; 3]> {
                 _ => {}
             }
             for (ea, eb, s) in segs {
-                let d = super::mesh::cross(nf, s);
+                let d = cross(nf, s);
                 let (ma, mb) = (mid(ea), mid(eb));
-                let dir = super::mesh::dot(super::mesh::sub(mb, ma), d);
+                let dir = dot(sub(mb, ma), d);
                 if dir > 0.0 {
                     next[ea] = eb;
                 } else {

@@ -16,9 +16,9 @@
 //! * **The papers print Chamfer-L1 × 10** (ONet Table 1: 0.215 means 0.0215 in unit-cube
 //!   units; ONet issues #20, #61, #89). This module returns the unscaled value.
 
-use super::mesh::{dot, Mesh};
 use crate::camera::{align_similarity, Similarity};
 use crate::error::{check_scalar, Error, Result};
+use crate::mesh::{dot, Mesh};
 use glam::DVec3;
 use rayon::prelude::*;
 

@@ -20,9 +20,9 @@
 //! the level [`logit_threshold`]`(p)` on the logits.
 
 use super::marching_cubes::{evaluate_points, marching_cubes, Grid};
-use super::mesh::Mesh;
 use crate::error::{check_scalar, Error, Result};
 use crate::field::ImplicitSurface;
+use crate::mesh::Mesh;
 use candle_core::{DType, Device};
 use rayon::prelude::*;
 

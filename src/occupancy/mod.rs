@@ -1,13 +1,8 @@
-//! Occupancy networks (Mescheder et al. 2019): meshes and their files, marching cubes,
-//! Multiresolution IsoSurface Extraction (MISE), the ONet metrics, training losses and
-//! point samplers.
+//! Occupancy networks (Mescheder et al. 2019): marching cubes, Multiresolution
+//! IsoSurface Extraction (MISE), the ONet metrics, training losses and point samplers.
+//! The meshes and point clouds they produce and consume, and their files, are in
+//! [`crate::mesh`].
 //!
-//! * [`mesh`]: [`Mesh`] with validation, PLY (ASCII and binary), OBJ, STL (ASCII and
-//!   binary) and OFF read/write, concave polygons triangulated by ear clipping,
-//!   unit-cube normalisation, area-weighted surface sampling. Every reader's work and
-//!   memory are bounded by the file's size, whatever its header claims.
-//! * [`point_cloud`]: [`PointCloud`], points with optional normals and colours (PLY,
-//!   OBJ and OFF files without faces, scanners' output), validated by construction.
 //! * [`mod@marching_cubes`]: watertight, consistently oriented marching cubes over a dense
 //!   grid of values.
 //! * [`mod@mise`]: coarse-to-fine extraction of the level set of any
@@ -22,7 +17,8 @@
 //! ```
 //! use candle_core::{DType, Device};
 //! use neural_fields::field::{SignedDistance, Torus};
-//! use neural_fields::occupancy::{mesh_metrics, mise, Mesh, MeshFormat, MiseConfig};
+//! use neural_fields::mesh::{Mesh, MeshFormat};
+//! use neural_fields::occupancy::{mesh_metrics, mise, MiseConfig};
 //!
 //! // Any ImplicitSurface works: an analytic torus here, a trained `Mlp` in practice.
 //! let torus = Torus::new([0.0; 3], 0.3, 0.1, &Device::Cpu, DType::F32)?.occupancy(10.0);
@@ -38,23 +34,14 @@
 
 pub mod losses;
 pub mod marching_cubes;
-pub mod mesh;
 pub mod metrics;
 pub mod mise;
-mod off;
-mod ply;
-pub mod point_cloud;
 pub mod sampling;
-mod stl;
-mod triangulate;
 
 pub use losses::{kl_standard_normal, reconstruction_loss, reparameterize};
 pub use marching_cubes::{marching_cubes, Grid};
-pub use mesh::{points_tensor, Mesh, MeshFormat, SurfaceSamples};
 pub use metrics::{chamfer_icp, iou, mesh_metrics, surface_metrics, KdTree, SurfaceMetrics};
 pub use mise::{logit_threshold, mise, refine_vertices, MiseConfig, MiseOutput, RefineConfig};
-pub use point_cloud::PointCloud;
 pub use sampling::{
-    from_tensor, inside_mesh, near_surface, uniform_in_padded_cube, winding_numbers,
-    winding_numbers_exact,
+    inside_mesh, near_surface, uniform_in_padded_cube, winding_numbers, winding_numbers_exact,
 };

@@ -11,8 +11,8 @@
 //! close to those values away from the defects, so `|w| > ½` is a robust inside test
 //! (taking `|w|` also makes it indifferent to the global orientation).
 
-use super::mesh::{cross, dot, norm, sub, Mesh};
 use crate::error::{check_scalar, Error, Result};
+use crate::mesh::{cross, dot, norm, sub, Mesh};
 use crate::rng::SplitMix64;
 use candle_core::{DType, Device, Tensor};
 use rayon::prelude::*;
@@ -239,17 +239,4 @@ pub fn inside_mesh(mesh: &Mesh, points: &[[f64; 3]]) -> Result<Vec<bool>> {
         .into_iter()
         .map(|w| w.abs() > 0.5)
         .collect())
-}
-
-/// A tensor `[n, 3]` back to host points.
-///
-/// # Errors
-/// Not `[n, 3]` floats; candle's.
-pub fn from_tensor(points: &Tensor) -> Result<Vec<[f64; 3]>> {
-    crate::error::check_points(points, "points")?;
-    let v = points
-        .to_dtype(DType::F64)?
-        .to_device(&Device::Cpu)?
-        .to_vec2::<f64>()?;
-    Ok(v.into_iter().map(|r| [r[0], r[1], r[2]]).collect())
 }

@@ -177,7 +177,7 @@ pub trait TextureField {
 
 /// Vertex colours for a mesh: `texture` evaluated at the mesh's vertices in chunks of
 /// `chunk` points, without graph, as `[V][3]` in `[0, 1]` (for
-/// [`crate::occupancy::Mesh::with_colors`], whose PLY writer stores them as `uchar`
+/// [`Mesh::colors`](crate::mesh::Mesh::colors), whose PLY writer stores them as `uchar`
 /// red/green/blue that MeshLab and Blender show).
 ///
 /// `inputs` builds the texture's inputs for a chunk of vertices `[n, 3]` (in `dtype` on
@@ -189,9 +189,8 @@ pub trait TextureField {
 /// # Errors
 /// `chunk` 0; a closure result that is not `[n, 3]` or has non-finite values (naming
 /// `colors`); errors of the closure.
-#[cfg(feature = "occupancy")]
 pub fn vertex_colors(
-    mesh: &crate::occupancy::Mesh,
+    mesh: &crate::mesh::Mesh,
     chunk: usize,
     device: &candle_core::Device,
     dtype: candle_core::DType,
@@ -203,7 +202,7 @@ pub fn vertex_colors(
     crate::error::check_dtype(dtype)?;
     let mut colors = Vec::with_capacity(mesh.vertices.len());
     for part in mesh.vertices.chunks(chunk) {
-        let p = crate::occupancy::points_tensor(part, device, dtype)?;
+        let p = crate::mesh::points_to_tensor(part, device, dtype)?;
         let c = inputs(&p)?.detach();
         check_shape(&c, "colors", &[Dim::Is(part.len()), Dim::Is(3)])?;
         let rows = c.to_dtype(candle_core::DType::F64)?.to_vec2::<f64>()?;

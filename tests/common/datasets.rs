@@ -71,3 +71,45 @@ pub fn npz(path: &Path, members: &[(String, Vec<u8>)]) {
 pub fn flat(rows: &[[f64; 4]; 4]) -> Vec<f64> {
     rows.iter().flatten().copied().collect()
 }
+
+/// The bytes of pixel `(u, v)` (column, row) of `image`, from its row-major bytes.
+pub fn pixel(image: &neural_fields::data::Image, u: usize, v: usize) -> &[u8] {
+    let (w, h, c) = image.size();
+    assert!(u < w && v < h, "pixel ({u}, {v}) outside {w} × {h}");
+    let i = (v * w + u) * c;
+    &image.data()[i..i + c]
+}
+
+/// Whether `view` has a mask: a mask file, or an alpha channel.
+pub fn has_mask(view: &neural_fields::data::View) -> bool {
+    view.mask_image().is_some() || view.image().size().2 == 4
+}
+
+/// The layout that `load` detects in `dir`: the only layout that, named in
+/// `LoadConfig::layout`, loads the same training views as detection does.
+pub fn detected_layout(dir: &Path) -> neural_fields::data::DatasetLayout {
+    use neural_fields::data::{load, DatasetLayout, LoadConfig};
+    let names = |layout: Option<DatasetLayout>| {
+        let config = LoadConfig {
+            layout,
+            ..LoadConfig::default()
+        };
+        load(dir, &config).map(|d| {
+            d.views()
+                .iter()
+                .map(|v| v.name().to_string())
+                .collect::<Vec<_>>()
+        })
+    };
+    let detected = names(None).unwrap();
+    let same: Vec<DatasetLayout> = [
+        DatasetLayout::Blender,
+        DatasetLayout::Nerfstudio,
+        DatasetLayout::Dtu,
+    ]
+    .into_iter()
+    .filter(|&l| names(Some(l)).is_ok_and(|n| n == detected))
+    .collect();
+    assert_eq!(same.len(), 1, "layouts loading as detection does: {same:?}");
+    same[0]
+}

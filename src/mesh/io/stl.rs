@@ -1,4 +1,4 @@
-//! STL (stereolithography) reading and writing for [`Mesh`](super::Mesh).
+//! STL (stereolithography) reading and writing for [`Mesh`](crate::mesh::Mesh).
 //!
 //! STL stores a triangle soup: each facet repeats its three corners. The reader welds
 //! corners with bit-identical coordinates (`-0.0` and `0.0` are one) into shared
@@ -18,8 +18,9 @@
 //! file with the count its bytes 80..84 hold (binary headers written by some exporters
 //! start with `solid` too).
 
-use super::ply::Polygons;
+use super::{check_not_utf16, Polygons};
 use crate::error::{Error, Result};
+use crate::mesh::vector::{cross, norm, sub};
 use std::collections::HashMap;
 
 fn stl_err(expected: impl Into<String>, got: impl Into<String>) -> Error {
@@ -38,7 +39,7 @@ pub(crate) struct Soup {
 
 impl Soup {
     /// Where polygon `i` came from, for errors.
-    pub fn locate(&self, i: usize) -> String {
+    pub(crate) fn locate(&self, i: usize) -> String {
         match &self.lines {
             Some(lines) => format!("facet at line {}", lines.get(i).copied().unwrap_or(0)),
             None => format!("facet {i} (byte {})", 84 + 50 * i),
@@ -78,7 +79,7 @@ pub(crate) fn read(bytes: &[u8]) -> Result<Soup> {
 
 fn read_binary(bytes: &[u8], count: Option<u64>) -> Result<Soup> {
     if bytes.starts_with(&[0xFF, 0xFE]) || bytes.starts_with(&[0xFE, 0xFF]) {
-        super::mesh::check_not_utf16("stl", bytes)?;
+        check_not_utf16("stl", bytes)?;
     }
     let Some(count) = count else {
         return Err(stl_err(
@@ -121,7 +122,7 @@ fn read_binary(bytes: &[u8], count: Option<u64>) -> Result<Soup> {
 }
 
 fn read_ascii(bytes: &[u8]) -> Result<Soup> {
-    super::mesh::check_not_utf16("stl", bytes)?;
+    check_not_utf16("stl", bytes)?;
     let text = std::str::from_utf8(bytes).map_err(|e| {
         stl_err(
             "ASCII text (or a binary STL of 84 + 50 · count bytes)",
@@ -214,7 +215,6 @@ fn read_ascii(bytes: &[u8]) -> Result<Soup> {
 /// header that does not start with `solid`) or ASCII; facet normals are the unit normals
 /// of the triangles (zero for degenerate ones).
 pub(crate) fn write(vertices: &[[f64; 3]], faces: &[[u32; 3]], binary: bool) -> Vec<u8> {
-    use super::mesh::{cross, norm, sub};
     let normal = |f: &[u32; 3]| {
         let [a, b, c] = f.map(|i| vertices[i as usize]);
         let n = cross(sub(b, a), sub(c, a));

@@ -22,7 +22,7 @@
 //! whose net area vanishes although its triangles would not (a symmetric bow tie) is
 //! refused.
 
-use super::mesh::{cross, dot, sub};
+use super::vector::{cross, dot, sub};
 
 /// The most corners a concave polygon may have (ear clipping is quadratic in them).
 pub(crate) const MAX_CONCAVE: usize = 256;

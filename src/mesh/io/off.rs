@@ -15,7 +15,7 @@
 //! face is an error, so a lying header cannot make the reader loop, allocate or drop
 //! faces silently.
 
-use super::ply::Polygons;
+use super::{check_not_utf16, color_to_u8, Polygons};
 use crate::error::{Error, Result};
 
 fn off_err(expected: impl Into<String>, got: impl Into<String>) -> Error {
@@ -35,7 +35,7 @@ pub(crate) struct OffContent {
 
 /// Parses OFF bytes (see the module documentation).
 pub(crate) fn read(bytes: &[u8]) -> Result<OffContent> {
-    super::mesh::check_not_utf16("off", bytes)?;
+    check_not_utf16("off", bytes)?;
     let text = std::str::from_utf8(bytes).map_err(|e| {
         off_err(
             "ASCII text (binary OFF is not read)",
@@ -228,7 +228,7 @@ pub(crate) fn write(
     for (i, p) in vertices.iter().enumerate() {
         s.push_str(&format!("{} {} {}", p[0], p[1], p[2]));
         if let Some(c) = colors {
-            let [r, g, b] = c[i].map(super::ply::color_to_u8);
+            let [r, g, b] = c[i].map(color_to_u8);
             s.push_str(&format!(" {r} {g} {b}"));
         }
         s.push('\n');

@@ -1,9 +1,11 @@
-//! Triangle meshes: validation, PLY and OBJ read/write, normalisation to the unit cube,
-//! area-weighted surface sampling, and the topological checks (watertight, oriented)
-//! used by the marching-cubes tests.
+//! Triangle meshes: validation, geometry (areas, normals, signed volume, bounds),
+//! normalisation to the unit cube, area-weighted surface sampling, the topological checks
+//! (watertight, oriented) used by the marching-cubes tests, and reading and writing in
+//! every [`MeshFormat`].
 //!
 //! Vertices are `f64` on the host (meshes are inputs and outputs of the pipeline, not
-//! part of a gradient); [`points_tensor`] moves them to any device and dtype.
+//! part of a gradient); [`points_to_tensor`](super::points_to_tensor) moves them to any
+//! device and dtype.
 //!
 //! Files written here load in standard tools: `assimp info` (assimp 5.2.5, Debian's
 //! `assimp-utils`) imports the binary PLY written by `examples/fit_occupancy.rs`
@@ -12,13 +14,13 @@
 //! trimesh read, with `uchar red green blue` vertex colours when the mesh has them. The
 //! tests read every format back.
 
-use super::ply::{self, Polygons};
-use super::point_cloud::{check_f32_range, check_points};
+use super::io::{check_f32_range, in_file, obj, off, ply, read_file, stl, write_file};
+use super::io::{MeshFormat, Polygons};
+use super::points::check_points;
 use super::triangulate::triangulate;
-use super::{off, stl};
+use super::vector::{cross, dot, norm, sub};
 use crate::error::{Error, Result};
 use crate::rng::SplitMix64;
-use candle_core::{DType, Device, Tensor};
 use std::collections::HashMap;
 use std::path::Path;
 
@@ -39,92 +41,6 @@ pub struct Mesh {
 
 /// Surface samples: points `[n][3]` and the unit normals of their faces `[n][3]`.
 pub type SurfaceSamples = (Vec<[f64; 3]>, Vec<[f64; 3]>);
-
-/// A mesh file format, for [`Mesh::to_bytes`] and [`Mesh::from_bytes`].
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum MeshFormat {
-    /// PLY, written as `format ascii 1.0`. Reading accepts every PLY encoding (the
-    /// header names it), whichever PLY variant is passed.
-    PlyAscii,
-    /// PLY, written as `format binary_little_endian 1.0`. Reading accepts every PLY
-    /// encoding.
-    PlyBinary,
-    /// Wavefront OBJ (ASCII).
-    Obj,
-    /// STL, written as ASCII (`solid` … `endsolid`). Reading accepts both STL
-    /// encodings, whichever STL variant is passed.
-    StlAscii,
-    /// STL, written as binary (80-byte header, facet count, 50 bytes per facet).
-    /// Reading accepts both STL encodings.
-    StlBinary,
-    /// OFF (ASCII; `COFF` when the mesh has colours), as ModelNet and many ShapeNet
-    /// conversions store meshes.
-    Off,
-}
-
-impl MeshFormat {
-    /// The format of a file by its extension, case-insensitive: `.ply` → `PlyBinary`,
-    /// `.obj` → `Obj`, `.stl` → `StlBinary`, `.off` → `Off` (for reading, each variant
-    /// reads every encoding of its format).
-    ///
-    /// # Errors
-    /// Another extension, naming `path`.
-    pub fn from_path(path: &Path) -> Result<Self> {
-        match extension(path).as_str() {
-            "ply" => Ok(Self::PlyBinary),
-            "obj" => Ok(Self::Obj),
-            "stl" => Ok(Self::StlBinary),
-            "off" => Ok(Self::Off),
-            other => Err(file_err(
-                "path",
-                "a .ply, .obj, .stl or .off file",
-                format!("{} (extension {other:?})", path.display()),
-            )),
-        }
-    }
-}
-
-/// The bytes of the file at `path` (an error naming the path).
-pub(crate) fn read_file(path: &Path) -> Result<Vec<u8>> {
-    std::fs::read(path).map_err(|source| Error::Io {
-        path: path.display().to_string(),
-        source,
-    })
-}
-
-/// Writes `bytes` to `path` (an error naming the path).
-pub(crate) fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
-    std::fs::write(path, bytes).map_err(|source| Error::Io {
-        path: path.display().to_string(),
-        source,
-    })
-}
-
-/// A reader's error as an error about the file at `path`: [`Error::Format`] naming the
-/// file and the format or argument the reader named.
-pub(crate) fn in_file(e: Error, path: &Path) -> Error {
-    match e {
-        Error::InvalidArgument { arg, expected, got } => Error::format(path, arg, expected, got),
-        other => other,
-    }
-}
-
-pub(crate) fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-pub(crate) fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-pub(crate) fn norm(a: [f64; 3]) -> f64 {
-    dot(a, a).sqrt()
-}
 
 fn mesh_err(expected: &str, got: impl Into<String>) -> Error {
     Error::invalid("mesh", expected.to_string(), got)
@@ -150,31 +66,21 @@ impl Mesh {
         Ok(m)
     }
 
-    /// The mesh with per-vertex colours `colors` (RGB, each component in `[0, 1]`),
-    /// validated.
-    ///
-    /// ```
-    /// use neural_fields::occupancy::Mesh;
-    ///
-    /// let tri = Mesh::new(vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], vec![[0, 1, 2]])?
-    ///     .with_colors(vec![[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])?;
-    /// assert_eq!(tri.colors.as_ref().map(Vec::len), Some(3));
-    /// assert!(tri.clone().with_colors(vec![[2.0, 0.0, 0.0]; 3]).is_err());
-    /// # Ok::<(), neural_fields::Error>(())
-    /// ```
-    ///
-    /// # Errors
-    /// See [`Mesh::validate`]: a colour count other than the vertex count, or a component
-    /// that is not finite or lies outside `[0, 1]` (naming `colors`).
-    pub fn with_colors(mut self, colors: Vec<[f64; 3]>) -> Result<Self> {
-        self.colors = Some(colors);
-        self.validate()?;
-        Ok(self)
-    }
-
     /// Checks the mesh: at least one vertex and one face, every face index `< V`, every
     /// coordinate (and normal component) finite, normals (if any) one per vertex, colours
-    /// (if any) one per vertex with every component finite and in `[0, 1]`.
+    /// (if any) one per vertex with every component finite and in `[0, 1]`. The fields
+    /// are public: set normals or colours, then validate (the writers validate too).
+    ///
+    /// ```
+    /// use neural_fields::mesh::Mesh;
+    ///
+    /// let mut tri = Mesh::new(vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], vec![[0, 1, 2]])?;
+    /// tri.colors = Some(vec![[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]);
+    /// tri.validate()?;
+    /// tri.colors = Some(vec![[2.0, 0.0, 0.0]; 3]);
+    /// assert!(tri.validate().is_err());
+    /// # Ok::<(), neural_fields::Error>(())
+    /// ```
     ///
     /// # Errors
     /// [`Error::InvalidArgument`] naming `mesh` and the first offending face, vertex,
@@ -441,7 +347,7 @@ impl Mesh {
     // ------------------------------------------------------------------ files
 
     /// Reads a `.ply`, `.obj`, `.stl` or `.off` file (by extension, case-insensitive;
-    /// see [`MeshFormat::from_path`] and [`Mesh::from_bytes`]).
+    /// each extension reads every encoding of its format; see [`Mesh::from_bytes`]).
     ///
     /// # Errors
     /// I/O errors ([`Error::Io`] with the path); an unknown extension; the parse errors
@@ -476,7 +382,7 @@ impl Mesh {
     ///   for them, so [`Mesh::colors`] is dropped.
     ///
     /// ```
-    /// use neural_fields::occupancy::{Mesh, MeshFormat};
+    /// use neural_fields::mesh::{Mesh, MeshFormat};
     ///
     /// let tri = Mesh::new(vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], vec![[0, 1, 2]])?;
     /// for format in [MeshFormat::PlyAscii, MeshFormat::PlyBinary, MeshFormat::Obj] {
@@ -507,28 +413,36 @@ impl Mesh {
                 Some(f),
                 format == MeshFormat::PlyBinary,
             ),
-            MeshFormat::Obj => self.to_obj().into_bytes(),
+            MeshFormat::Obj => obj::write(v, self.normals.as_deref(), f),
             MeshFormat::StlAscii => stl::write(v, f, false),
             MeshFormat::StlBinary => stl::write(v, f, true),
             MeshFormat::Off => off::write(v, c, f),
         })
     }
 
-    /// Parses a mesh file's bytes in `format` (PLY in any encoding, or OBJ).
+    /// Parses a mesh file's bytes in `format` (PLY in any encoding, OBJ, STL in either
+    /// encoding, OFF).
     ///
     /// - PLY (ASCII, binary little- or big-endian): reads `element vertex` (`x, y, z`,
     ///   optional `nx, ny, nz`, optional colours `red, green, blue` when all three are
     ///   present; any other properties, `alpha` among them, are skipped) and
     ///   `element face` (a list property named `vertex_indices` or `vertex_index`, any
-    ///   count and index types). Other elements are skipped. Polygons with more than three vertices are
-    ///   triangulated as fans `(0, i, i+1)`.
+    ///   count and index types). Other elements are skipped.
     /// - OBJ: `v` (extra components such as `w` or colours ignored), `vn`, and `f` with
     ///   `a`, `a/b`, `a//c` or `a/b/c` references, 1-based or negative (relative).
-    ///   Polygons are fan-triangulated. Other statements (`vt`, `o`, `g`, `usemtl`,
+    ///   Other statements (`vt`, `o`, `g`, `usemtl`,
     ///   `mtllib`, `s`, `l`, `p`) are ignored. Normals are kept only when every face
     ///   corner names the normal with the same index as its vertex (as
     ///   [`Mesh::to_bytes`] writes them); otherwise they are dropped. Invalid UTF-8 is
     ///   replaced; UTF-16 text is refused with an error naming the encoding.
+    ///
+    /// - STL: facets welded into shared vertices (corners with bit-identical
+    ///   coordinates); the stored facet normals are ignored.
+    /// - OFF: `OFF`, `COFF`, `NOFF` and `CNOFF`, with normals and colours when present.
+    ///
+    /// Polygons with more than three vertices are triangulated in their own plane: fans
+    /// for convex polygons, ear clipping for concave ones; self-intersecting polygons are
+    /// refused.
     ///
     /// PLY colours: `uchar` values are divided by 255, other unsigned and signed integer
     /// types by their largest value (`ushort` by 65 535), and `float`/`double` values are
@@ -550,7 +464,7 @@ impl Mesh {
                 m
             }
             MeshFormat::Obj => {
-                let c = parse_obj(bytes)?;
+                let c = obj::read(bytes)?;
                 let normals = c.normals_by_reference();
                 let mut m = Self::from_polygons(c.vertices, &c.polygons, "obj", |i| {
                     format!("line {}", c.lines[i])
@@ -580,7 +494,7 @@ impl Mesh {
 
     /// A mesh from vertices and polygons, triangulated ([`triangulate`]); a file with
     /// vertices and no polygons is refused as the point cloud it is.
-    pub(crate) fn from_polygons(
+    fn from_polygons(
         vertices: Vec<[f64; 3]>,
         polygons: &Polygons,
         what: &'static str,
@@ -628,203 +542,4 @@ impl Mesh {
             colors: None,
         })
     }
-
-    /// OBJ text (see [`Mesh::to_bytes`]).
-    fn to_obj(&self) -> String {
-        let mut s = String::from("# neural-fields\n");
-        for v in &self.vertices {
-            s.push_str(&format!("v {} {} {}\n", v[0], v[1], v[2]));
-        }
-        if let Some(ns) = &self.normals {
-            for n in ns {
-                s.push_str(&format!("vn {} {} {}\n", n[0], n[1], n[2]));
-            }
-        }
-        let with_n = self.normals.is_some();
-        for f in &self.faces {
-            let (a, b, c) = (f[0] + 1, f[1] + 1, f[2] + 1);
-            if with_n {
-                s.push_str(&format!("f {a}//{a} {b}//{b} {c}//{c}\n"));
-            } else {
-                s.push_str(&format!("f {a} {b} {c}\n"));
-            }
-        }
-        s
-    }
-}
-
-/// What an OBJ file holds: vertices, normals (kept only when every face corner names
-/// the normal with its vertex's index and there is one per vertex), polygons and the
-/// line of each.
-pub(crate) struct ObjContent {
-    pub vertices: Vec<[f64; 3]>,
-    /// The `vn` statements.
-    pub vn: Vec<[f64; 3]>,
-    /// Every face corner named the normal with its vertex's index.
-    pub normals_match: bool,
-    pub polygons: Polygons,
-    pub lines: Vec<usize>,
-}
-
-impl ObjContent {
-    /// The normals of a mesh: one per vertex, and every face corner named the normal
-    /// with its vertex's index (as [`Mesh::to_bytes`] writes them).
-    pub fn normals_by_reference(&self) -> Option<Vec<[f64; 3]>> {
-        if self.normals_match {
-            self.normals_by_count()
-        } else {
-            None
-        }
-    }
-
-    /// The normals of a point cloud: one `vn` per `v`.
-    pub fn normals_by_count(&self) -> Option<Vec<[f64; 3]>> {
-        (!self.vn.is_empty() && self.vn.len() == self.vertices.len()).then(|| self.vn.clone())
-    }
-}
-
-/// Parses OBJ bytes (see [`Mesh::from_bytes`]).
-pub(crate) fn parse_obj(bytes: &[u8]) -> Result<ObjContent> {
-    check_not_utf16("obj", bytes)?;
-    let text = String::from_utf8_lossy(bytes);
-    let mut vertices: Vec<[f64; 3]> = Vec::new();
-    let mut polygons = Polygons::default();
-    let mut lines = Vec::new();
-    let mut poly = Vec::new();
-    let mut vn: Vec<[f64; 3]> = Vec::new();
-    let mut normals_match = true;
-    let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
-    for (ln, raw) in text.lines().enumerate() {
-        let line_no = ln + 1;
-        let line = raw.split('#').next().unwrap_or("").trim();
-        let mut tok = line.split_whitespace();
-        let Some(kw) = tok.next() else { continue };
-        match kw {
-            "v" | "vn" => {
-                let mut c = [0.0; 3];
-                for slot in &mut c {
-                    let t = tok.next().ok_or_else(|| {
-                        file_err(
-                            "obj",
-                            "three coordinates",
-                            format!("line {line_no}: {line:?}"),
-                        )
-                    })?;
-                    *slot = t.parse::<f64>().map_err(|_| {
-                        file_err("obj", "a number", format!("line {line_no}: {t:?}"))
-                    })?;
-                }
-                if kw == "v" {
-                    vertices.push(c);
-                } else {
-                    vn.push(c);
-                }
-            }
-            "f" => {
-                poly.clear();
-                for t in tok {
-                    let mut parts = t.split('/');
-                    let vi = resolve_obj_index(parts.next().unwrap_or(""), vertices.len())
-                        .map_err(|e| {
-                            file_err(
-                                "obj",
-                                "a face vertex reference",
-                                format!("line {line_no}: {t:?} ({e})"),
-                            )
-                        })?;
-                    let _tex = parts.next();
-                    match parts.next() {
-                        Some(n) if !n.is_empty() => {
-                            let ni = resolve_obj_index(n, vn.len()).map_err(|e| {
-                                file_err(
-                                    "obj",
-                                    "a face normal reference",
-                                    format!("line {line_no}: {t:?} ({e})"),
-                                )
-                            })?;
-                            if ni != vi {
-                                normals_match = false;
-                            }
-                        }
-                        _ => normals_match = false,
-                    }
-                    poly.push(vi);
-                }
-                polygons.push(&poly).map_err(|got| {
-                    file_err(
-                        "obj",
-                        "faces of at least 3 vertices with indices in 1 to 2³²",
-                        format!("line {line_no}: {got}"),
-                    )
-                })?;
-                lines.push(line_no);
-            }
-            _ => {}
-        }
-    }
-    Ok(ObjContent {
-        vertices,
-        vn,
-        normals_match,
-        polygons,
-        lines,
-    })
-}
-
-/// A `[N, 3]` tensor of `dtype` on `device` from host points `[N][3]`.
-///
-/// # Errors
-/// A coordinate that is not finite in `dtype` (1e300 overflows f32 to infinity), naming
-/// `points` and the point; candle's.
-pub fn points_tensor(points: &[[f64; 3]], device: &Device, dtype: DType) -> Result<Tensor> {
-    let flat: Vec<f64> = points.iter().flatten().copied().collect();
-    let t = Tensor::from_vec(flat, (points.len(), 3), &Device::Cpu)?.to_dtype(dtype)?;
-    if !points.is_empty() {
-        let back: Vec<f64> = t.to_dtype(DType::F64)?.flatten_all()?.to_vec1()?;
-        if let Some(i) = back.iter().position(|v| !v.is_finite()) {
-            return Err(Error::invalid(
-                "points",
-                format!("coordinates that are finite in {dtype:?}"),
-                format!("point {} = {:?}", i / 3, points[i / 3]),
-            ));
-        }
-    }
-    Ok(t.to_device(device)?)
-}
-
-/// Refuses UTF-16 text (a byte-order mark, or NUL bytes among the first kilobyte, which
-/// ASCII and UTF-8 text never holds), naming the encoding: read lossily as UTF-8 it
-/// would parse as an empty mesh.
-pub(crate) fn check_not_utf16(what: &'static str, bytes: &[u8]) -> Result<()> {
-    let bom = bytes.starts_with(&[0xFF, 0xFE]) || bytes.starts_with(&[0xFE, 0xFF]);
-    if bom || bytes.iter().take(1024).any(|&b| b == 0) {
-        return Err(file_err(
-            what,
-            "ASCII or UTF-8 text",
-            "UTF-16 (or other NUL-bearing) text: convert the file to UTF-8",
-        ));
-    }
-    Ok(())
-}
-
-fn extension(path: &Path) -> String {
-    path.extension()
-        .map(|e| e.to_string_lossy().to_ascii_lowercase())
-        .unwrap_or_default()
-}
-
-/// 1-based (or negative, relative) OBJ index → 0-based.
-fn resolve_obj_index(t: &str, count: usize) -> std::result::Result<i64, String> {
-    let i: i64 = t.parse().map_err(|_| format!("{t:?} is not an integer"))?;
-    let z = if i > 0 {
-        i - 1
-    } else if i < 0 {
-        count as i64 + i
-    } else {
-        return Err("index 0 (OBJ indices start at 1)".into());
-    };
-    if z < 0 {
-        return Err(format!("relative index {i} before the first element"));
-    }
-    Ok(z)
 }

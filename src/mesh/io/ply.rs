@@ -15,17 +15,18 @@
 //! - data after the declared rows is an error, so a header that declares fewer rows than
 //!   the file holds (a lying count) is not read as a smaller mesh.
 //!
-//! [`Mesh`]: super::Mesh
-//! [`PointCloud`]: super::PointCloud
+//! [`Mesh`]: crate::mesh::Mesh
+//! [`PointCloud`]: crate::mesh::PointCloud
 
+use super::{check_not_utf16, color_to_u8, Polygons};
 use crate::error::{Error, Result};
 
 fn file_err(expected: impl Into<String>, got: impl Into<String>) -> Error {
     Error::invalid("ply", expected, got)
 }
 
-/// What a PLY file holds, as [`Mesh`](super::Mesh) and [`PointCloud`](super::PointCloud)
-/// read it.
+/// What a PLY file holds, as [`Mesh`](crate::mesh::Mesh) and
+/// [`PointCloud`](crate::mesh::PointCloud) read it.
 #[derive(Debug, Default)]
 pub(crate) struct PlyContent {
     pub vertices: Vec<[f64; 3]>,
@@ -35,43 +36,6 @@ pub(crate) struct PlyContent {
     pub colors: Option<Vec<[f64; 3]>>,
     /// The faces' vertex indices, polygon after polygon.
     pub polygons: Polygons,
-}
-
-/// Polygons as one flat list of vertex indices and the index where each polygon ends.
-#[derive(Debug, Default, Clone, PartialEq)]
-pub(crate) struct Polygons {
-    pub indices: Vec<u32>,
-    pub ends: Vec<usize>,
-}
-
-impl Polygons {
-    /// Appends a polygon, refusing fewer than three vertices and indices that are
-    /// negative or beyond `u32`.
-    pub fn push(&mut self, poly: &[i64]) -> std::result::Result<(), String> {
-        if poly.len() < 3 {
-            return Err(format!("{} vertices", poly.len()));
-        }
-        if let Some(&b) = poly.iter().find(|&&k| k < 0 || k > i64::from(u32::MAX)) {
-            return Err(format!("index {b}"));
-        }
-        // The check above keeps every index in u32's range.
-        self.indices.extend(poly.iter().map(|&k| k as u32));
-        self.ends.push(self.indices.len());
-        Ok(())
-    }
-
-    /// The number of polygons.
-    pub fn len(&self) -> usize {
-        self.ends.len()
-    }
-
-    /// The polygons in order.
-    pub fn iter(&self) -> impl Iterator<Item = &[u32]> {
-        let starts = std::iter::once(0).chain(self.ends.iter().copied());
-        starts
-            .zip(self.ends.iter().copied())
-            .map(move |(a, b)| &self.indices[a..b])
-    }
 }
 
 /// Parses PLY bytes (see the module documentation).
@@ -270,12 +234,6 @@ pub(crate) fn write(
     out
 }
 
-/// A colour component in `[0, 1]` as a PLY `uchar`: `round(c · 255)`, clamped to `0..=255`.
-pub(crate) fn color_to_u8(c: f64) -> u8 {
-    // The clamp keeps the value in 0..=255, so the cast neither wraps nor saturates.
-    (c * 255.0).round().clamp(0.0, 255.0) as u8
-}
-
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum PlyTy {
     I8,
@@ -406,7 +364,7 @@ fn parse_ply_header(bytes: &[u8]) -> Result<PlyHeader> {
         let toks: Vec<&str> = line.split_whitespace().collect();
         if line_no == 1 {
             if line != "ply" {
-                super::mesh::check_not_utf16("ply", bytes)?;
+                check_not_utf16("ply", bytes)?;
                 return Err(file_err(
                     "a file starting with \"ply\"",
                     format!("line 1: {line:?}"),

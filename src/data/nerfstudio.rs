@@ -1,13 +1,17 @@
-//! The `transforms*.json` layouts: Blender synthetic (NeRF) and nerfstudio / instant-NGP,
-//! and the Blender-layout writer.
+//! The nerfstudio / instant-NGP layout: one `transforms.json` with pinhole intrinsics
+//! (`fl_x, fl_y, cx, cy, w, h`, global or per frame), `camera_model`, distortion
+//! coefficients (refused unless zero), `scale`/`offset` applied to the camera centres,
+//! `aabb_scale` as the stated bounds, and per-frame `file_path`, `mask_path` and
+//! `transform_matrix` (camera-to-world, OpenGL axes).
+//!
+//! Its reader of one `transforms*.json` file, [`read_transforms`], also reads the Blender
+//! layout's split files: nerfstudio's format extends Blender's (the same frames and
+//! `transform_matrix`, with `camera_angle_x` when no focal length is given).
 
-use super::dataset::{
-    pose_from_rows, read_capped, Bounds, Dataset, DatasetLayout, FrameSpec, IntrinsicsSpec, Split,
-};
-use super::output::write_atomic;
+use super::layout::{pose_from_rows, read_capped, Bounds, FrameSpec, IntrinsicsSpec, Split};
 use crate::camera::Convention;
 use crate::error::{Error, Result};
-use glam::{DAffine3, DMat3};
+use glam::DAffine3;
 use serde_json::{Map, Value};
 use std::path::{Path, PathBuf};
 
@@ -22,33 +26,18 @@ const EXTENSIONS: [&str; 5] = ["png", "PNG", "jpg", "jpeg", "JPG"];
 /// Distortion coefficients of the nerfstudio layout; any non-zero one is refused.
 const DISTORTION: [&str; 6] = ["k1", "k2", "k3", "k4", "p1", "p2"];
 
-/// The frames (and stated bounds) of a Blender or nerfstudio dataset's split.
-pub(crate) fn frames(
-    dir: &Path,
-    layout: DatasetLayout,
-    split: Split,
-) -> Result<(Vec<FrameSpec>, Option<Bounds>)> {
-    match layout {
-        DatasetLayout::Blender => {
-            let names = match split {
-                Split::All => vec!["train", "val", "test"],
-                one => vec![one.name()],
-            };
-            let mut all = Vec::new();
-            let mut bounds = None;
-            for name in names {
-                let path = dir.join(format!("transforms_{name}.json"));
-                let (frames, b) = parse(&path, |_| true)?;
-                all.extend(frames);
-                bounds = bounds.or(b);
-            }
-            Ok((all, bounds))
-        }
-        _ => parse(&dir.join("transforms.json"), |i| split.holds(i)),
-    }
+/// The frames (and stated bounds) of a nerfstudio dataset's split: `dir/transforms.json`,
+/// with the hold-out rule of [`Split`].
+pub(crate) fn frames(dir: &Path, split: Split) -> Result<(Vec<FrameSpec>, Option<Bounds>)> {
+    read_transforms(&dir.join("transforms.json"), |i| split.holds(i))
 }
 
-fn parse(path: &Path, keep: impl Fn(usize) -> bool) -> Result<(Vec<FrameSpec>, Option<Bounds>)> {
+/// The frames of the `transforms*.json` file at `path` whose index passes `keep`, and the
+/// bounds it states (`aabb_scale`).
+pub(crate) fn read_transforms(
+    path: &Path,
+    keep: impl Fn(usize) -> bool,
+) -> Result<(Vec<FrameSpec>, Option<Bounds>)> {
     let bytes = read_capped(path, MAX_JSON_BYTES)?;
     let root: Value = serde_json::from_slice(&bytes)
         .map_err(|e| Error::format(path, "JSON", "valid JSON", e.to_string()))?;
@@ -364,77 +353,4 @@ fn resolve(dir: &Path, file: &str) -> PathBuf {
         .map(|e| dir.join(format!("{file}.{e}")))
         .find(|p| p.is_file())
         .unwrap_or(path)
-}
-
-/// Writes `dataset` as the `split` of a Blender-layout dataset in `dir` (created if
-/// needed): `transforms_{split}.json` and `{split}/r_{i}.png`.
-///
-/// The JSON holds `camera_angle_x` (from the first view) and, per frame, `file_path`
-/// (`./{split}/r_{i}`, without extension as in the published scenes), `transform_matrix`
-/// (camera-to-world in OpenGL axes; OpenCV cameras are converted exactly, by negating the
-/// second and third axes) and the exact pinhole intrinsics `fl_x, fl_y, cx, cy, w, h`, which
-/// [`load`](crate::data::load) prefers over `camera_angle_x`, so that a write → load round
-/// trip reproduces poses to rounding and pixels bit for bit. Images are written as RGBA
-/// PNG (RGB images with a mask file take the mask as alpha), masks otherwise dropped.
-///
-/// Every file is written to a temporary name beside its destination and renamed into
-/// place, the JSON last, so no file is left half-written and the JSON never names an image
-/// that is not complete.
-///
-/// # Errors
-/// [`Error::InvalidArgument`] naming `split` for [`Split::All`]; [`Error::Io`] naming the
-/// file that could not be written.
-pub fn write_blender(dir: &Path, split: Split, dataset: &Dataset) -> Result<()> {
-    if split == Split::All {
-        return Err(Error::invalid("split", "train, val or test", "all"));
-    }
-    let name = split.name();
-    let image_dir = dir.join(name);
-    std::fs::create_dir_all(&image_dir).map_err(|source| Error::Io {
-        path: image_dir.display().to_string(),
-        source,
-    })?;
-    let first = dataset.views()[0].camera().intrinsics();
-    let angle_x = 2.0 * (0.5 * first.width as f64 / first.fx).atan();
-    let mut frames = Vec::with_capacity(dataset.len());
-    for (i, view) in dataset.views().iter().enumerate() {
-        let image = view.image();
-        let rgba = match (image.channels(), view.mask_image()) {
-            (4, _) => image.data().to_vec(),
-            (_, mask) => image
-                .data()
-                .chunks_exact(3)
-                .enumerate()
-                .flat_map(|(p, c)| [c[0], c[1], c[2], mask.map_or(255, |m| m.data()[p])])
-                .collect(),
-        };
-        let png = super::output::encode_png(image.width(), image.height(), 4, &rgba)?;
-        write_atomic(&image_dir.join(format!("r_{i}.png")), &png)?;
-        let camera = view.camera();
-        let mut m = camera.cam_to_world().matrix3;
-        if camera.convention() == Convention::OpenCv {
-            m = DMat3::from_cols(m.x_axis, -m.y_axis, -m.z_axis);
-        }
-        let t = camera.cam_to_world().translation;
-        let rows: Vec<Value> = (0..3)
-            .map(|r| Value::from(vec![m.row(r).x, m.row(r).y, m.row(r).z, t[r]]))
-            .chain(std::iter::once(Value::from(vec![0.0, 0.0, 0.0, 1.0])))
-            .collect();
-        let k = camera.intrinsics();
-        frames.push(serde_json::json!({
-            "file_path": format!("./{name}/r_{i}"),
-            "rotation": 0.0,
-            "transform_matrix": rows,
-            "fl_x": k.fx, "fl_y": k.fy, "cx": k.cx, "cy": k.cy, "w": k.width, "h": k.height,
-        }));
-    }
-    let json = serde_json::json!({ "camera_angle_x": angle_x, "frames": frames });
-    let text = serde_json::to_string_pretty(&json).map_err(|e| Error::Io {
-        path: dir.display().to_string(),
-        source: std::io::Error::other(e),
-    })?;
-    write_atomic(
-        &dir.join(format!("transforms_{name}.json")),
-        text.as_bytes(),
-    )
 }

@@ -1,33 +1,33 @@
 //! Point clouds: positions with optional normals and colours, as scanners produce them
 //! and as the encoders of Occupancy Networks and Texture Fields take them.
-//!
-//! A [`PointCloud`] is valid by construction: its fields are private, and every
-//! constructor checks that there is at least one point, that every coordinate and
-//! normal is finite, and that colours lie in `[0, 1]`, one per point.
-//!
-//! ```
-//! use candle_core::{DType, Device};
-//! use neural_fields::occupancy::{MeshFormat, PointCloud};
-//!
-//! let cloud = PointCloud::new(vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])?
-//!     .with_normals(vec![[0.0, 0.0, 1.0]; 3])?;
-//! let back = PointCloud::from_bytes(&cloud.to_bytes(MeshFormat::PlyBinary)?, MeshFormat::PlyBinary)?;
-//! assert_eq!(back, cloud);
-//! // ONet-style encoder input: a fixed number of points per shape, as a batch of one.
-//! let input = cloud.sample(300, 0)?.to_tensor(&Device::Cpu, DType::F32)?.unsqueeze(0)?;
-//! assert_eq!(input.dims(), &[1, 300, 3]);
-//! # Ok::<(), neural_fields::Error>(())
-//! ```
 
-use super::mesh::{points_tensor, MeshFormat};
-use super::{off, ply};
+use super::io::{check_f32_range, in_file, obj, off, ply, read_file, write_file, MeshFormat};
+use super::points::check_points;
 use crate::error::{Error, Result};
 use crate::rng::SplitMix64;
-use candle_core::{DType, Device, Tensor};
 use std::path::Path;
 
-/// Points `[N][3]` (N ≥ 1) with optional per-point normals and colours; see the
-/// [module documentation](self).
+/// Points `[N][3]` (N ≥ 1) with optional per-point normals and colours, as scanners
+/// produce them and as the encoders of Occupancy Networks and Texture Fields take them.
+///
+/// A point cloud is valid by construction: its fields are private, and every
+/// constructor checks that there is at least one point, that every coordinate and
+/// normal is finite, and that colours lie in `[0, 1]`, one per point.
+///
+/// ```
+/// use candle_core::{DType, Device};
+/// use neural_fields::mesh::{points_to_tensor, MeshFormat, PointCloud};
+///
+/// let points = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+/// let cloud = PointCloud::new(points, Some(vec![[0.0, 0.0, 1.0]; 3]), None)?;
+/// let back = PointCloud::from_bytes(&cloud.to_bytes(MeshFormat::PlyBinary)?, MeshFormat::PlyBinary)?;
+/// assert_eq!(back, cloud);
+/// // ONet-style encoder input: a fixed number of points per shape, as a batch of one.
+/// let input = points_to_tensor(cloud.sample(300, 0)?.points(), &Device::Cpu, DType::F32)?;
+/// let input = input.unsqueeze(0)?;
+/// assert_eq!(input.dims(), &[1, 300, 3]);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
 #[derive(Clone, Debug, PartialEq)]
 pub struct PointCloud {
     points: Vec<[f64; 3]>,
@@ -35,123 +35,33 @@ pub struct PointCloud {
     colors: Option<Vec<[f64; 3]>>,
 }
 
-/// Checks positions and their optional normals and colours, naming `arg` and each
-/// element `noun i`: at least one position, every coordinate and normal component
-/// finite, one normal and one colour per position, colour components in `[0, 1]`.
-pub(crate) fn check_points(
-    arg: &'static str,
-    [noun, nouns]: [&str; 2],
-    points: &[[f64; 3]],
-    normals: Option<&[[f64; 3]]>,
-    colors: Option<&[[f64; 3]]>,
-) -> Result<()> {
-    let n = points.len();
-    if let Some(i) = points.iter().position(|v| v.iter().any(|c| !c.is_finite())) {
-        return Err(Error::invalid(
-            arg,
-            format!("finite {noun} coordinates"),
-            format!("{noun} {i} = {:?} (NaN or infinite)", points[i]),
-        ));
-    }
-    if let Some(nr) = normals {
-        if nr.len() != n {
-            return Err(Error::invalid(
-                arg,
-                format!("one normal per {noun}"),
-                format!("{} normals for {n} {nouns}", nr.len()),
-            ));
-        }
-        if let Some(i) = nr.iter().position(|v| v.iter().any(|c| !c.is_finite())) {
-            return Err(Error::invalid(
-                arg,
-                "finite normals",
-                format!("normal {i} = {:?}", nr[i]),
-            ));
-        }
-    }
-    if let Some(col) = colors {
-        if col.len() != n {
-            return Err(Error::invalid(
-                arg,
-                format!("one entry of colors per {noun}"),
-                format!("{} colors for {n} {nouns}", col.len()),
-            ));
-        }
-        let in_unit = |c: &f64| (0.0..=1.0).contains(c); // false for NaN
-        if let Some(i) = col.iter().position(|v| !v.iter().all(in_unit)) {
-            return Err(Error::invalid(
-                arg,
-                "colors with finite components in [0, 1]",
-                format!("colors[{i}] = {:?}", col[i]),
-            ));
-        }
-    }
-    Ok(())
-}
-
-/// Refuses coordinates that a 32-bit float cannot hold (PLY and binary STL store
-/// `float`): written as they are, they would become infinities in the file.
-pub(crate) fn check_f32_range(arg: &'static str, what: &str, v: &[[f64; 3]]) -> Result<()> {
-    let max = f64::from(f32::MAX);
-    if let Some(i) = v.iter().position(|p| p.iter().any(|c| c.abs() > max)) {
-        return Err(Error::invalid(
-            arg,
-            format!("{what} within ±3.4e38, as the file's 32-bit floats hold"),
-            format!("{what} {i} = {:?}", v[i]),
-        ));
-    }
-    Ok(())
-}
-
 impl PointCloud {
-    /// A point cloud of `points` (at least one, finite), without normals or colours.
+    /// A point cloud of `points` (at least one, finite) with optional per-point `normals`
+    /// (finite, one per point; not required to be unit vectors: scanners store them as
+    /// they are) and `colors` (RGB, components in `[0, 1]`, one per point).
     ///
     /// # Errors
-    /// No points, or a non-finite coordinate (naming `points` and the point).
-    pub fn new(points: Vec<[f64; 3]>) -> Result<Self> {
+    /// No points, or a non-finite coordinate (naming `points` and the point); a normal
+    /// count other than the point count or a non-finite component (naming `normals`); a
+    /// colour count other than the point count or a component outside `[0, 1]` or NaN
+    /// (naming `colors`).
+    pub fn new(
+        points: Vec<[f64; 3]>,
+        normals: Option<Vec<[f64; 3]>>,
+        colors: Option<Vec<[f64; 3]>>,
+    ) -> Result<Self> {
         if points.is_empty() {
             return Err(Error::invalid("points", "at least one point", "none"));
         }
-        check_points("points", ["point", "points"], &points, None, None)?;
+        let nouns = ["point", "points"];
+        check_points("points", nouns, &points, None, None)?;
+        check_points("normals", nouns, &points, normals.as_deref(), None)?;
+        check_points("colors", nouns, &points, None, colors.as_deref())?;
         Ok(Self {
             points,
-            normals: None,
-            colors: None,
+            normals,
+            colors,
         })
-    }
-
-    /// The cloud with per-point `normals` (finite, one per point; not required to be
-    /// unit vectors: scanners store them as they are).
-    ///
-    /// # Errors
-    /// A count other than the point count or a non-finite component (naming `normals`).
-    pub fn with_normals(mut self, normals: Vec<[f64; 3]>) -> Result<Self> {
-        check_points(
-            "normals",
-            ["point", "points"],
-            &self.points,
-            Some(&normals),
-            None,
-        )?;
-        self.normals = Some(normals);
-        Ok(self)
-    }
-
-    /// The cloud with per-point `colors` (RGB, components in `[0, 1]`, one per point).
-    ///
-    /// # Errors
-    /// A count other than the point count or a component outside `[0, 1]` or NaN
-    /// (naming `colors`).
-    pub fn with_colors(mut self, colors: Vec<[f64; 3]>) -> Result<Self> {
-        check_points(
-            "colors",
-            ["point", "points"],
-            &self.points,
-            None,
-            Some(&colors),
-        )?;
-        self.colors = Some(colors);
-        Ok(self)
     }
 
     /// The positions `[N][3]`.
@@ -220,28 +130,6 @@ impl PointCloud {
         })
     }
 
-    /// The positions as a `[N, 3]` tensor of `dtype` on `device` (add a batch axis with
-    /// `unsqueeze(0)` for the encoders, which take `[B, N, 3]`).
-    ///
-    /// # Errors
-    /// candle's (an unsupported dtype).
-    pub fn to_tensor(&self, device: &Device, dtype: DType) -> Result<Tensor> {
-        points_tensor(&self.points, device, dtype)
-    }
-
-    /// The normals as a `[N, 3]` tensor (the per-point features of Texture Fields'
-    /// shape encoder, `PointNetEncoder::forward_features` with `point_features: 3`).
-    ///
-    /// # Errors
-    /// A cloud without normals (naming `normals`); candle's.
-    pub fn normals_tensor(&self, device: &Device, dtype: DType) -> Result<Tensor> {
-        let n = self
-            .normals
-            .as_ref()
-            .ok_or_else(|| Error::invalid("normals", "a point cloud with normals", "none"))?;
-        points_tensor(n, device, dtype)
-    }
-
     /// Reads a point cloud from a `.ply`, `.obj` or `.off` file (by extension,
     /// case-insensitive); see [`PointCloud::from_bytes`].
     ///
@@ -251,8 +139,8 @@ impl PointCloud {
     pub fn load(path: impl AsRef<Path>) -> Result<Self> {
         let path = path.as_ref();
         let format = MeshFormat::from_path(path)?;
-        let bytes = super::mesh::read_file(path)?;
-        Self::from_bytes(&bytes, format).map_err(|e| super::mesh::in_file(e, path))
+        let bytes = read_file(path)?;
+        Self::from_bytes(&bytes, format).map_err(|e| in_file(e, path))
     }
 
     /// Writes the cloud as binary little-endian PLY (the only point-cloud format written);
@@ -272,7 +160,7 @@ impl PointCloud {
                 ))
             }
         };
-        super::mesh::write_file(path, &self.to_bytes(format)?)
+        write_file(path, &self.to_bytes(format)?)
     }
 
     /// Parses a file's bytes in `format`: the vertices of a PLY (with `nx ny nz` and
@@ -292,7 +180,7 @@ impl PointCloud {
                 (c.vertices, c.normals, c.colors)
             }
             MeshFormat::Obj => {
-                let c = super::mesh::parse_obj(bytes)?;
+                let c = obj::read(bytes)?;
                 let normals = c.normals_by_count();
                 (c.vertices, normals, None)
             }
