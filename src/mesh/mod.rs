@@ -40,10 +40,10 @@ mod point_cloud;
 mod points;
 mod triangle_mesh;
 mod triangulate;
-mod vector;
+// The vector helpers serve `occupancy` too (marching cubes, samplers, metrics).
+pub(crate) mod vector;
 
 pub use io::MeshFormat;
 pub use point_cloud::PointCloud;
 pub use points::{points_from_tensor, points_to_tensor};
 pub use triangle_mesh::{Mesh, SurfaceSamples};
-pub(crate) use vector::{cross, dot, norm, sub};

@@ -21,7 +21,8 @@
 
 use crate::error::{check_scalar, Error, Result};
 use crate::field::{ImplicitSurface, Inside};
-use crate::mesh::{cross, dot, sub, Mesh};
+use crate::mesh::vector::{cross, dot, sub};
+use crate::mesh::Mesh;
 use candle_core::{DType, Device, Tensor};
 use rayon::prelude::*;
 use std::sync::OnceLock;

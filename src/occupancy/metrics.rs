@@ -18,7 +18,8 @@
 
 use crate::camera::{align_similarity, Similarity};
 use crate::error::{check_scalar, Error, Result};
-use crate::mesh::{dot, Mesh};
+use crate::mesh::vector::dot;
+use crate::mesh::Mesh;
 use glam::DVec3;
 use rayon::prelude::*;
 

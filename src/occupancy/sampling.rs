@@ -12,7 +12,8 @@
 //! (taking `|w|` also makes it indifferent to the global orientation).
 
 use crate::error::{check_scalar, Error, Result};
-use crate::mesh::{cross, dot, norm, sub, Mesh};
+use crate::mesh::vector::{cross, dot, norm, sub};
+use crate::mesh::Mesh;
 use crate::rng::SplitMix64;
 use candle_core::{DType, Device, Tensor};
 use rayon::prelude::*;
