@@ -39,6 +39,8 @@
 //!   samples only in occupied cells, in the packed layout.
 //! - [`proposal`]: proposal-network sampling (mip-NeRF 360) and its interlevel loss.
 //! - [`regularizers`]: distortion loss, depth smoothness; [`activations`]: trunc-exp.
+//! - [`render_image`]: a whole image from any per-ray renderer, in chunks, supersampled
+//!   through the camera's pixel filter.
 //!
 //! See `docs/math.md`, section "Volume compositing", for the derivations.
 
@@ -50,6 +52,7 @@ pub mod layout;
 pub mod proposal;
 mod reference;
 pub mod regularizers;
+mod render;
 pub mod sampling;
 
 pub use activations::{trunc_exp, TRUNC_EXP_GRAD_CLAMP, TRUNC_EXP_MAX_F32, TRUNC_EXP_MAX_F64};
@@ -63,6 +66,7 @@ pub use proposal::{
     interlevel_loss, proposal_sample, ProposalConfig, ProposalField, ProposalSamples,
 };
 pub use regularizers::{depth_smoothness, distortion_loss, log_linear_schedule};
+pub use render::{render_image, ImageConfig};
 pub use sampling::{
     anneal_near_far, merge_sorted, sample_pdf, step_cdf, stratified, Jitter, ANNEAL_MID_RATIO,
     ANNEAL_P_START, PDF_PADDING,
