@@ -41,8 +41,8 @@ use neural_fields::occupancy::{marching_cubes, mise, Grid, MiseConfig};
 use neural_fields::rng::SplitMix64;
 use neural_fields::volume::{
     anneal_near_far, composite, distortion_loss, merge_sorted, render_weights, sample_pdf,
-    step_cdf, stratified, visible_mask, CompositeConfig, Intervals, Jitter, Packed,
-    ANNEAL_MID_RATIO, ANNEAL_P_START, PDF_PADDING,
+    stratified, visible_mask, CompositeConfig, Intervals, Jitter, Layout, Packed, ANNEAL_MID_RATIO,
+    ANNEAL_P_START, PDF_PADDING,
 };
 use neural_fields::Result;
 
@@ -355,9 +355,12 @@ fn composite_case(dev: &Device, dtype: DType) -> Result<Outs> {
     // Early termination and the packed layout.
     let mask = visible_mask(&sig, &iv, None, 1e-3)?;
     out.push(("visible_mask".into(), Out::T(mask.clone())));
-    let (packed, idx) = Packed::from_mask(&mask)?;
+    let (kept, idx) = iv.retain(&mask)?;
+    let Layout::Packed(packed) = kept.layout else {
+        unreachable!("retain returns the packed layout")
+    };
     out.push(("packed.offsets".into(), Out::T(packed.offsets.clone())));
-    let m = packed.n_samples();
+    let m = packed.ray_indices.dim(0)?;
     let ps = sig.as_tensor().flatten_all()?.index_select(&idx, 0)?;
     let pst = starts.as_tensor().flatten_all()?.index_select(&idx, 0)?;
     let pen = ends.as_tensor().flatten_all()?.index_select(&idx, 0)?;
@@ -454,7 +457,6 @@ fn sampling_case(dev: &Device, dtype: DType) -> Result<Outs> {
     let w = render_weights(&sig, &iv, Some(&rays), &CompositeConfig::default())?
         .weights
         .detach();
-    out.push(("step_cdf".into(), Out::T(step_cdf(&w, PDF_PADDING)?)));
     for (label, det) in [("deterministic", true), ("random", false)] {
         let fine = sample_pdf(&iv, &w, 48, det, 4, PDF_PADDING)?;
         out.push((format!("sample_pdf.{label}"), Out::T(fine.clone())));

@@ -9,7 +9,8 @@ use candle_core::{DType, Device, Tensor, Var};
 
 use common::stiff::{magnitudes, var, Expect, Suite, DTYPES};
 
-use neural_fields::camera::Rays;
+use neural_fields::camera::{Camera, Convention, Intrinsics, Rays};
+use neural_fields::glam::DVec3;
 use neural_fields::nn::build_seeded;
 use neural_fields::rng::SplitMix64;
 
@@ -35,8 +36,6 @@ fn every_public_volume_function_is_swept_or_exempt() {
 /// Items swept by `sweep_volume`.
 const VOLUME: &[&str] = &[
     "volume::Composite::normalized_depth",
-    "volume::GridMarchConfig::new",
-    "volume::GridMarchConfig::with_jitter",
     "volume::Intervals::deltas",
     "volume::Intervals::directions",
     "volume::Intervals::from_samples",
@@ -44,11 +43,11 @@ const VOLUME: &[&str] = &[
     "volume::Intervals::new",
     "volume::Intervals::new_packed",
     "volume::Intervals::positions",
+    "volume::Intervals::retain",
     "volume::OccupancyGrid::new",
     "volume::OccupancyGrid::sample",
     "volume::OccupancyGrid::update",
     "volume::Packed::from_counts",
-    "volume::Packed::from_mask",
     "volume::accumulate",
     "volume::anneal_near_far",
     "volume::composite",
@@ -56,9 +55,9 @@ const VOLUME: &[&str] = &[
     "volume::distortion_loss",
     "volume::log_linear_schedule",
     "volume::merge_sorted",
+    "volume::render_image",
     "volume::render_weights",
     "volume::sample_pdf",
-    "volume::step_cdf",
     "volume::stratified",
     "volume::trunc_exp",
     "volume::visible_mask",
@@ -80,10 +79,6 @@ const NERF: &[&str] = &[
 const EXEMPT: &[(&str, &str)] = &[
     ("nn::Nerf::config", "getter"),
     ("volume::ProposalConfig::default", "constant"),
-    (
-        "volume::OccupancyGrid::occupied_fraction",
-        "counts booleans; no float input",
-    ),
     ("nn::Nerf::forward", "swept through Nerf::density"),
     ("nn::Nerf::out_dim", "constant"),
     ("nn::NerfConfig::default", "constant"),
@@ -92,8 +87,6 @@ const EXEMPT: &[(&str, &str)] = &[
         "CustomOp internals, swept via activations::trunc_exp",
     ),
     ("volume::Intervals::n_rays", "getter"),
-    ("volume::Packed::n_samples", "getter"),
-    ("volume::Packed::offsets_host", "getter"),
     (
         "volume::FusedComposite::",
         "CustomOp internals, swept via composite",
@@ -103,8 +96,8 @@ const EXEMPT: &[(&str, &str)] = &[
         "CustomOp internals, swept via Nerf::color_loss",
     ),
     ("volume::GridConfig::default", "constant"),
-    ("volume::OccupancyGrid::config", "getter"),
-    ("volume::OccupancyGrid::density", "getter"),
+    ("volume::GridMarchConfig::default", "constant"),
+    ("volume::ImageConfig::default", "constant"),
     (
         "volume::OccupancyGrid::is_occupied",
         "lookup, swept through sample",
@@ -115,9 +108,9 @@ const EXEMPT: &[(&str, &str)] = &[
 fn sweep_volume(s: &mut Suite) {
     use neural_fields::volume::{
         accumulate, anneal_near_far, composite, depth_smoothness, distortion_loss,
-        log_linear_schedule, merge_sorted, render_weights, sample_pdf, step_cdf, stratified,
+        log_linear_schedule, merge_sorted, render_image, render_weights, sample_pdf, stratified,
         trunc_exp, visible_mask, Composite, CompositeConfig, GridConfig, GridMarchConfig,
-        Intervals, Jitter, Layout, OccupancyGrid, Packed,
+        ImageConfig, Intervals, Jitter, Layout, OccupancyGrid, Packed,
     };
     let d = Device::Cpu;
     let (r, n) = (7usize, 5usize);
@@ -126,6 +119,33 @@ fn sweep_volume(s: &mut Suite) {
     };
     for dtype in DTYPES {
         let huge = if dtype == DType::F32 { 1e30 } else { 1e300 };
+        // Whole images: per-pixel means of a renderer's tiny to huge outputs.
+        let cam = Camera::look_at(
+            Intrinsics::from_fov_y(4, 3, 0.8).unwrap(),
+            DVec3::new(0.0, 0.0, 3.0),
+            DVec3::ZERO,
+            DVec3::Y,
+            Convention::OpenGl,
+        )
+        .unwrap();
+        for x in [0.0, 1e-30, 1.0, huge] {
+            s.case(
+                "volume::render_image",
+                format!("{dtype:?}, outputs {x:e}"),
+                Expect::Finite,
+                &[],
+                || {
+                    let config = ImageConfig {
+                        supersample: 2,
+                        ..ImageConfig::default()
+                    };
+                    let [image] = render_image(&cam, &config, &d, dtype, |rays| {
+                        Ok([(rays.directions().ones_like()? * x)?])
+                    })?;
+                    Ok(vec![image])
+                },
+            );
+        }
         // Rows: empty, tiny, huge, one opaque slab, f32 transmittance underflow along a long
         // ray (σδ summing to 5e5), mixed extremes, huge steps.
         let sig = [
@@ -353,14 +373,14 @@ fn sweep_volume(s: &mut Suite) {
             );
         }
         s.case(
-            "volume::Packed::from_mask",
-            &label,
+            "volume::Intervals::retain",
+            format!("{label}, visible samples"),
             Expect::Finite,
             &[],
             || {
                 let mask = visible_mask(sigmas.as_tensor(), &iv, None, 1e-4)?;
-                let (p, idx) = Packed::from_mask(&mask)?;
-                Ok(vec![Tensor::new(p.n_samples() as f64, &d)?, idx])
+                let (kept, idx) = iv.retain(&mask)?;
+                Ok(vec![kept.starts, kept.ends, idx.to_dtype(DType::F64)?])
             },
         );
         // Samplers over tiny, huge and far-away ranges.
@@ -447,9 +467,6 @@ fn sweep_volume(s: &mut Suite) {
                 )?])
             });
         }
-        s.case("volume::step_cdf", &il, Expect::Finite, &[&weights], || {
-            Ok(vec![step_cdf(weights.as_tensor(), 1e-5)?])
-        });
         let fine = sample_pdf(&iv, weights.as_tensor(), 32, false, 9, 1e-5).unwrap();
         s.case(
             "volume::merge_sorted",
@@ -606,16 +623,20 @@ fn sweep_volume(s: &mut Suite) {
             for cone in [0.0, 1e-2] {
                 let cl = format!("{gl}, cone {cone}");
                 let march = GridMarchConfig {
+                    far: 6.0 * half,
+                    step_size: half / 64.0,
                     cone_angle: cone,
-                    ..GridMarchConfig::new(0.0, 6.0 * half, half / 64.0)
+                    alpha_threshold: 1e-3,
+                    ..GridMarchConfig::default()
                 };
                 s.case(
-                    "volume::GridMarchConfig::new",
-                    &cl,
+                    "volume::OccupancyGrid::sample",
+                    format!("{cl}, density {sigma:e} everywhere"),
                     Expect::Finite,
                     &[],
                     || {
-                        let gs = grid.sample(&grid_rays, &march)?;
+                        let mut density = |p: &Tensor| Ok((p.sum(1)?.ones_like()? * sigma)?);
+                        let gs = grid.sample(&grid_rays, &march, Some(&mut density))?;
                         Ok(vec![gs.intervals.starts, gs.intervals.ends])
                     },
                 );
@@ -625,7 +646,7 @@ fn sweep_volume(s: &mut Suite) {
                     Expect::Finite,
                     &[],
                     || {
-                        let gs = grid.sample(&grid_rays, &march)?;
+                        let gs = grid.sample(&grid_rays, &march, None)?;
                         let iv = &gs.intervals;
                         Ok(vec![
                             iv.midpoints()?,
@@ -635,12 +656,19 @@ fn sweep_volume(s: &mut Suite) {
                     },
                 );
                 s.case(
-                    "volume::GridMarchConfig::with_jitter",
-                    &cl,
+                    "volume::OccupancyGrid::sample",
+                    format!("{cl}, jittered"),
                     Expect::Finite,
                     &[],
                     || {
-                        let gs = grid.sample(&grid_rays, &march.with_jitter(u64::MAX))?;
+                        let gs = grid.sample(
+                            &grid_rays,
+                            &GridMarchConfig {
+                                jitter: Some(u64::MAX),
+                                ..march
+                            },
+                            None,
+                        )?;
                         let iv = &gs.intervals;
                         Ok(vec![
                             iv.deltas(Some(&grid_rays))?,
@@ -648,7 +676,7 @@ fn sweep_volume(s: &mut Suite) {
                         ])
                     },
                 );
-                let gs = grid.sample(&grid_rays, &march).unwrap();
+                let gs = grid.sample(&grid_rays, &march, None).unwrap();
                 s.case(
                     "volume::Intervals::midpoints",
                     format!("{cl}, grid samples"),
@@ -736,7 +764,8 @@ fn sweep_nerf(s: &mut Suite) {
             // [1e-30, 2e-30]; targets in [0, 1].
             #[cfg(feature = "volume")]
             {
-                use neural_fields::camera::Rays;
+                use neural_fields::camera::{Camera, Convention, Intrinsics, Rays};
+use neural_fields::glam::DVec3;
                 use neural_fields::volume::{stratified, CompositeConfig, Jitter};
                 let t = |v: &[f64], shape: &[usize]| {
                     Tensor::from_slice(v, shape, &d)

@@ -352,7 +352,7 @@ proptest! {
     ) {
         let c = 3;
         let packed = Packed::from_counts(&counts, &dev()).unwrap();
-        let m = packed.n_samples();
+        let m = packed.ray_indices.dim(0).unwrap();
         prop_assume!(m > 0);
         let (sig, del, col) = inputs(seed, m, c);
         let sig = Tensor::from_vec(sig, m, &dev()).unwrap();

@@ -8,7 +8,7 @@ use neural_fields::camera::Rays;
 use neural_fields::rng::SplitMix64;
 use neural_fields::volume::{
     composite, merge_sorted, render_weights, sample_pdf, stratified, visible_mask, CompositeConfig,
-    GridConfig, GridMarchConfig, Intervals, Jitter, OccupancyGrid, Packed, DEFAULT_TERMINATION_EPS,
+    GridConfig, GridMarchConfig, Intervals, Jitter, OccupancyGrid, DEFAULT_TERMINATION_EPS,
 };
 use neural_fields::Result;
 
@@ -76,11 +76,9 @@ fn render(scene: &Scene, iv: &Intervals, early: bool) -> Result<(Tensor, usize)>
     // evaluate and composite only the visible samples in the packed layout.
     let sigma_probe = scene.sigma(&t)?;
     let mask = visible_mask(&sigma_probe, iv, None, DEFAULT_TERMINATION_EPS)?;
-    let (packed, idx) = Packed::from_mask(&mask)?;
-    let select = |x: &Tensor| x.flatten_all()?.index_select(&idx, 0);
-    let visible = Intervals::new_packed(select(&iv.starts)?, select(&iv.ends)?, packed)?;
+    let (visible, idx) = iv.retain(&mask)?;
     let flat_t = visible.midpoints()?;
-    let flat_s = select(&sigma_probe)?;
+    let flat_s = sigma_probe.flatten_all()?.index_select(&idx, 0)?;
     let color = composite(&flat_s, &flat_t.unsqueeze(1)?, &visible, None, &opts)?.color;
     Ok((color, idx.elem_count()))
 }
@@ -207,7 +205,14 @@ fn ball_rays(side: usize, dtype: DType) -> Result<(Rays, Vec<f64>)> {
 /// Returns the colours `[R, 1]` and the number of samples evaluated.
 fn render_grid(grid: &OccupancyGrid, rays: &Rays, step: f64) -> Result<(Tensor, usize)> {
     let iv = grid
-        .sample(rays, &GridMarchConfig::new(0.0, f64::INFINITY, step))?
+        .sample(
+            rays,
+            &GridMarchConfig {
+                step_size: step,
+                ..GridMarchConfig::default()
+            },
+            None,
+        )?
         .intervals;
     let sigma = ball_sigma(&iv.positions(rays)?)?;
     let m = sigma.elem_count();

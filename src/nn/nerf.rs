@@ -386,13 +386,8 @@ impl Nerf {
         }
         let background = match &config.background {
             None => target.zeros_like()?,
-            Some(bg) => crate::volume::composite::background_rows(
-                bg,
-                "config.background",
-                target,
-                "target",
-            )?
-            .broadcast_as((r, 3))?,
+            Some(bg) => crate::volume::background_rows(bg, "config.background", target, "target")?
+                .broadcast_as((r, 3))?,
         };
         let samples = Tensor::cat(&[positions, &deltas.unsqueeze(1)?], 1)?;
         let unit = self.unit_directions(rays.directions())?;

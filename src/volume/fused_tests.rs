@@ -5,7 +5,7 @@
 use super::{composite as fused_composite, FusedGeometry, KernelBuild};
 use crate::rng::SplitMix64;
 use crate::test_host::{extreme_inputs, v64};
-use crate::volume::composite::{composite_with, CompositeConfig};
+use crate::volume::compositing::{composite_with, CompositeConfig};
 use crate::volume::layout::{Intervals, Layout};
 use crate::volume::reference;
 use crate::Result;

@@ -1,52 +1,17 @@
 //! An occupancy-grid estimator (in the spirit of nerfacc's `OccGridEstimator`): a
 //! multi-resolution binary grid over an axis-aligned box, updated from the field every
 //! few steps, and a ray marcher that emits samples only in occupied cells.
-//!
-//! # Grid
-//! Level 0 covers the box `aabb = [x₀, y₀, z₀, x₁, y₁, z₁]`; level `l` covers the box
-//! with the same centre and `2^l` times the extent, so that unbounded-ish scenes get
-//! coarse cells far away. Each level has `resolution³` cells. A point belongs to the
-//! finest level whose box contains it; points outside the last level are empty.
-//!
-//! # Update
-//! Every cell keeps a density estimate `dᵢ` (host f32). An update evaluates the
-//! field's density σ at one point per chosen cell, jittered uniformly inside the cell,
-//! and sets `dᵢ ← max(decay·dᵢ, σ)` (nerfacc's decayed maximum, `decay = 0.95`). During
-//! warm-up every cell is evaluated; after it, per level, a quarter of the cells drawn
-//! uniformly and a quarter drawn from the occupied ones. A cell is then occupied iff
-//! `dᵢ > τ` with `τ = min(threshold, max(mean(d), floor))`: the mean clamp keeps the
-//! densest cells occupied while the field's scale is still small early in training, and
-//! the floor lets a field that has become empty everywhere empty the grid (a cell that
-//! saw density `D` is empty after at most `⌈ln(D/floor)/ln(1/decay)⌉` updates that
-//! evaluate it). With [`GridConfig::dilate`], the occupied set is then grown by one
-//! cell in every direction (a conservative grid that does not miss thin slivers of
-//! density at cell corners).
-//!
-//! A new grid has every cell occupied, so that nothing is skipped before the first
-//! update.
-//!
-//! # Sampling
-//! [`OccupancyGrid::sample`] marches each ray with a fixed step `Δt` (or, with a cone
-//! angle `c > 0`, `Δt = clamp(c·t, step_size, max_step)`) from
-//! `max(near, t_entry)` to `min(far, t_exit)` of the outermost box, and keeps the
-//! interval `[t, t + Δt]` iff the cell containing its midpoint is occupied. The kept
-//! intervals are exactly the ones the same march would produce without a grid, minus
-//! those in empty cells: skipping changes a render only through density the grid has
-//! missed. With a fixed step, interval `k` is `[t₀ + k·Δt, min(t₀ + (k+1)·Δt, t₁)]` and
-//! runs of steps inside one empty cell are jumped over in O(1) (the jump is verified so
-//! that the result is exactly the step-by-step one; see `skip_empty`); cone stepping
-//! visits every step. The traversal runs on the host over `to_vec` copies of the rays, in
-//! parallel over rays with rayon; the results are placed on the rays' device.
 
+use super::compositing::{visible_mask, DEFAULT_TERMINATION_EPS};
+use super::layout::{host_f64, Intervals, Layout, Packed, X_MAX};
+use super::sampling::{from_host, stream, DensityFn};
 use crate::camera::Rays;
-use crate::error::{check_float, check_scalar, Error, Result};
+use crate::error::{check_finite, check_float, check_same, check_scalar, Error, Result};
 use crate::rng::SplitMix64;
-use crate::volume::layout::{host_f64, Intervals, Layout, Packed};
-use crate::volume::sampling::{from_host, stream};
 use candle_core::{DType, Device, Tensor};
 use rayon::prelude::*;
 
-/// An [`OccupancyGrid`]'s box, resolution and update rule (see the module docs).
+/// An [`OccupancyGrid`]'s box, resolution and update rule (see [`OccupancyGrid`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct GridConfig {
     /// The level-0 box `[x₀, y₀, z₀, x₁, y₁, z₁]`. Default `[−1, −1, −1, 1, 1, 1]`.
@@ -100,7 +65,47 @@ impl Default for GridConfig {
     }
 }
 
-/// A multi-resolution binary occupancy grid (see the module docs).
+/// A multi-resolution binary occupancy grid over an axis-aligned box, updated from the
+/// field every few steps, and a ray marcher that emits samples only in occupied cells.
+///
+/// # Grid
+/// Level 0 covers the box `aabb = [x₀, y₀, z₀, x₁, y₁, z₁]`; level `l` covers the box
+/// with the same centre and `2^l` times the extent, so that unbounded-ish scenes get
+/// coarse cells far away. Each level has `resolution³` cells. A point belongs to the
+/// finest level whose box contains it; points outside the last level are empty.
+///
+/// # Update
+/// Every cell keeps a density estimate `dᵢ` (host f32). An update evaluates the
+/// field's density σ at one point per chosen cell, jittered uniformly inside the cell,
+/// and sets `dᵢ ← max(decay·dᵢ, σ)` (nerfacc's decayed maximum, `decay = 0.95`). During
+/// warm-up every cell is evaluated; after it, per level, a quarter of the cells drawn
+/// uniformly and a quarter drawn from the occupied ones. A cell is then occupied iff
+/// `dᵢ > τ` with `τ = min(threshold, max(mean(d), floor))`: the mean clamp keeps the
+/// densest cells occupied while the field's scale is still small early in training, and
+/// the floor lets a field that has become empty everywhere empty the grid (a cell that
+/// saw density `D` is empty after at most `⌈ln(D/floor)/ln(1/decay)⌉` updates that
+/// evaluate it). With [`GridConfig::dilate`], the occupied set is then grown by one
+/// cell in every direction (a conservative grid that does not miss thin slivers of
+/// density at cell corners).
+///
+/// A new grid has every cell occupied, so that nothing is skipped before the first
+/// update.
+///
+/// # Sampling
+/// [`OccupancyGrid::sample`] marches each ray with a fixed step `Δt` (or, with a cone
+/// angle `c > 0`, `Δt = clamp(c·t, step_size, max_step)`) from
+/// `max(near, t_entry)` to `min(far, t_exit)` of the outermost box, and keeps the
+/// interval `[t, t + Δt]` iff the cell containing its midpoint is occupied. The kept
+/// intervals are exactly the ones the same march would produce without a grid, minus
+/// those in empty cells: skipping changes a render only through density the grid has
+/// missed. With a fixed step, interval `k` is `[t₀ + k·Δt, min(t₀ + (k+1)·Δt, t₁)]` and
+/// runs of steps inside one empty cell are jumped over in O(1) (the jump is verified so
+/// that the result is exactly the step-by-step one; see `skip_empty`); cone stepping
+/// visits every step. The traversal runs on the host over `to_vec` copies of the rays, in
+/// parallel over rays with rayon; the results are placed on the rays' device. Given the
+/// field's density, the sampling also drops the samples hidden behind spent
+/// transmittance and the empty ones, so that only the samples worth the whole network
+/// come out.
 #[derive(Clone, Debug)]
 pub struct OccupancyGrid {
     density: Vec<f32>,
@@ -108,17 +113,19 @@ pub struct OccupancyGrid {
     config: GridConfig,
 }
 
-/// How [`OccupancyGrid::sample`] marches: the range `[near, far]` in ray parameter `t`,
-/// the step, and optional cone stepping. Build it with [`GridMarchConfig::new`] and
-/// struct-update syntax for the rest:
-/// `GridMarchConfig { cone_angle: 0.004, ..GridMarchConfig::new(0.0, 10.0, 1e-2) }`.
+/// How [`OccupancyGrid::sample`] marches (the range `[near, far]` in ray parameter `t`,
+/// the step, optional cone stepping and jitter) and which samples a density function
+/// lets through (`early_stop_eps`, `alpha_threshold`). The defaults are nerfacc's; set
+/// the rest with struct-update syntax:
+/// `GridMarchConfig { step_size: 1e-2, ..GridMarchConfig::default() }`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct GridMarchConfig {
-    /// Start of the march, `≥ 0`.
+    /// Start of the march, `≥ 0`. Default 0.
     pub near: f64,
     /// End of the march, `> near` (may be `+∞`: the march stops at the grid's box).
+    /// Default `+∞`.
     pub far: f64,
-    /// Step `Δt > 0`, in units of `t` (world units for unit directions).
+    /// Step `Δt > 0`, in units of `t` (world units for unit directions). Default 1e-3.
     pub step_size: f64,
     /// Cone angle `c ≥ 0`: the step is `clamp(c·t, step_size, max_step)`; 0 (the
     /// default) gives a fixed step.
@@ -129,32 +136,30 @@ pub struct GridMarchConfig {
     /// (nerfacc's stratified march, for training), so that over the steps a field sees
     /// every point along a ray rather than the same `t` each time; the first interval is
     /// then the partial one `[t_entry, t_entry + u·Δt]`, `u ∈ (0, 1]` uniform, drawn per
-    /// ray from `seed` and the ray index. The intervals still tile `[t_entry, t_exit]`. `None`
-    /// (the default): the lattice starts at `t_entry` (evaluation). Cone stepping ignores it.
+    /// ray from `seed` and the ray index. The intervals still tile `[t_entry, t_exit]`.
+    /// The seed should change every training step. `None` (the default): the lattice
+    /// starts at `t_entry` (evaluation). Cone stepping ignores it.
     pub jitter: Option<u64>,
+    /// With a density function: drop the samples behind which the transmittance
+    /// `Tᵢ = exp(−Σ_{j<i} σⱼδⱼ)` has fallen below this, in `[0, 1]` (0 drops none).
+    /// Default 1e-4 ([`DEFAULT_TERMINATION_EPS`], nerfacc's `early_stop_eps`).
+    pub early_stop_eps: f64,
+    /// With a density function: drop the samples whose opacity `αᵢ = 1 − e^{−σᵢδᵢ}` is
+    /// below this, in `[0, 1]` (0 drops none). Default 0 (nerfacc's `alpha_thre`).
+    pub alpha_threshold: f64,
 }
 
-impl GridMarchConfig {
-    /// A fixed-step march over `[near, far]`.
-    #[must_use]
-    pub fn new(near: f64, far: f64, step_size: f64) -> Self {
+impl Default for GridMarchConfig {
+    fn default() -> Self {
         GridMarchConfig {
-            near,
-            far,
-            step_size,
+            near: 0.0,
+            far: f64::INFINITY,
+            step_size: 1e-3,
             cone_angle: 0.0,
             max_step: 1e10,
             jitter: None,
-        }
-    }
-
-    /// The same march with each ray's step lattice shifted at random (see
-    /// [`GridMarchConfig::jitter`]): `seed` should change every training step.
-    #[must_use]
-    pub fn with_jitter(self, seed: u64) -> Self {
-        GridMarchConfig {
-            jitter: Some(seed),
-            ..self
+            early_stop_eps: DEFAULT_TERMINATION_EPS,
+            alpha_threshold: 0.0,
         }
     }
 }
@@ -233,7 +238,8 @@ impl OccupancyGrid {
     ///     Tensor::new(&[[0.0f32, 0.0, -2.0], [0.9, 0.9, -2.0]], &dev)?,
     ///     Tensor::new(&[[0.0f32, 0.0, 1.0], [0.0, 0.0, 1.0]], &dev)?,
     /// )?;
-    /// let samples = grid.sample(&rays, &GridMarchConfig::new(0.0, 4.0, 0.01))?;
+    /// let march = GridMarchConfig { far: 4.0, step_size: 0.01, ..GridMarchConfig::default() };
+    /// let samples = grid.sample(&rays, &march, None)?;
     /// let m = samples.intervals.starts.dim(0)?;                   // packed: [M]
     /// assert!(m > 0 && m < samples.n_marched);                      // empty space skipped
     /// assert_eq!(samples.intervals.positions(&rays)?.dims(), &[m, 3]);
@@ -295,20 +301,9 @@ impl OccupancyGrid {
         })
     }
 
-    /// The box, resolution, levels and update rule.
-    #[must_use]
-    pub fn config(&self) -> &GridConfig {
-        &self.config
-    }
-
-    /// Per-cell density estimates, `levels · resolution³` values; cell
-    /// `(l, i, j, k)` (x, y, z indices) is at `((l·res + i)·res + j)·res + k`.
-    #[must_use]
-    pub fn density(&self) -> &[f32] {
-        &self.density
-    }
-
-    /// Per-cell occupancy, indexed as [`OccupancyGrid::density`].
+    /// Per-cell occupancy, `levels · resolution³` values; cell `(l, i, j, k)` (x, y, z
+    /// indices) is at `((l·res + i)·res + j)·res + k`. The occupied fraction is
+    /// `occupied().iter().filter(|&&o| o).count() as f64 / occupied().len() as f64`.
     #[must_use]
     pub fn occupied(&self) -> &[bool] {
         &self.occupied
@@ -462,13 +457,6 @@ impl OccupancyGrid {
         }
     }
 
-    /// The fraction of cells (all levels) that are occupied, in `[0, 1]`.
-    #[must_use]
-    pub fn occupied_fraction(&self) -> f64 {
-        let occupied = self.occupied();
-        occupied.iter().filter(|&&o| o).count() as f64 / occupied.len().max(1) as f64
-    }
-
     /// Whether the point `p` lies in an occupied cell (false outside the last level).
     #[must_use]
     pub fn is_occupied(&self, p: [f64; 3]) -> bool {
@@ -480,7 +468,7 @@ impl OccupancyGrid {
     /// `sigma_fn` maps points `[N, 3]` (dtype `dtype`, on `device`, `N ≤ chunk_size`)
     /// to densities `[N]` or `[N, 1]` (after the density activation, ≥ 0; negative
     /// values count as 0). It is called without a gradient being needed: detach inside
-    /// it, or pass a closure over a detached copy of the field. See the module docs for
+    /// it, or pass a closure over a detached copy of the field. See [`OccupancyGrid`] for
     /// which cells are evaluated and the decayed-maximum rule. Returns whether an update
     /// ran.
     ///
@@ -586,23 +574,74 @@ impl OccupancyGrid {
         Ok(true)
     }
 
-    /// Marches rays through the grid and returns the intervals in occupied cells.
+    /// Marches rays through the grid and returns the samples worth a full evaluation of
+    /// the field: the intervals in occupied cells and, given a density function, of
+    /// those only the ones that are visible and not empty (nerfacc's
+    /// `OccGridEstimator.sampling`).
     ///
     /// * `rays`: `R` rays, f32 or f64 (directions need not be unit: `t` is the ray
     ///   parameter, and `step_size` is in units of `t`).
     /// * `config`: [`GridMarchConfig`]; the march covers `[max(near, t_entry),
     ///   min(far, t_exit)]` of the outermost level's box with steps
     ///   `Δt = clamp(cone_angle·t, step_size, max_step)` (fixed for `cone_angle = 0`).
+    /// * `sigma_fn`: `None` keeps every interval in an occupied cell. `Some(f)`: `f` is
+    ///   called once with the positions `[M, 3]` of all of them (the midpoints
+    ///   [`Intervals::positions`], the rays' dtype and device) and returns their
+    ///   densities σ, `[M]` or `[M, 1]` (negative values count as 0); sample `i` of a ray
+    ///   is then kept iff
     ///
-    /// Returns [`GridSamples`]: packed intervals `[M]` in the rays' dtype and device,
-    /// sorted along each ray; the last interval of a ray ends at its exit point.
-    /// Detached: the intervals carry no gradient (get one to origins and directions
-    /// through [`Intervals::positions`]).
+    ///   ```text
+    ///   Tᵢ = exp(−Σ_{j<i} xⱼ) ≥ early_stop_eps   and   αᵢ = 1 − e^{−xᵢ} ≥ alpha_threshold,
+    ///   xᵢ = min(σᵢδᵢ, X_MAX),  δᵢ = (endᵢ − startᵢ)·‖d‖,
+    ///   ```
+    ///
+    ///   the sums running over all of the ray's intervals in occupied cells (a dropped
+    ///   empty sample still attenuates what lies behind it). `f` is not called when
+    ///   there is no interval, or when both thresholds are 0. Its result is only read
+    ///   back to the host: nothing of its graph is kept, so it may as well be detached.
+    ///   Dropping the samples behind `T < ε` changes a composite by less than `ε` in
+    ///   opacity (see [`DEFAULT_TERMINATION_EPS`]); dropping empty samples changes the
+    ///   transmittance of those behind by a factor of at most `1/(1 − alpha_threshold)`
+    ///   per dropped sample.
+    ///
+    /// Returns [`GridSamples`]: packed intervals `[M']` in the rays' dtype and device,
+    /// sorted along each ray; without a density function the last interval of a ray
+    /// ends at its exit point. Detached: the intervals carry no gradient (get one to
+    /// origins and directions through [`Intervals::positions`]); kept intervals are
+    /// exactly those of the march without `sigma_fn`, bit for bit.
+    ///
+    /// ```
+    /// use candle_core::{DType, Device, Tensor};
+    /// use neural_fields::camera::Rays;
+    /// use neural_fields::volume::{GridConfig, GridMarchConfig, OccupancyGrid};
+    ///
+    /// let dev = Device::Cpu;
+    /// let grid = OccupancyGrid::new(GridConfig { resolution: 16, ..GridConfig::default() })?;
+    /// let rays = Rays::new(Tensor::new(&[[0.0f32, 0.0, -2.0]], &dev)?, Tensor::new(&[[0.0f32, 0.0, 1.0]], &dev)?)?;
+    /// // An opaque wall at z > 0: every sample behind it is hidden.
+    /// let mut wall = |p: &Tensor| -> neural_fields::Result<Tensor> {
+    ///     Ok((p.narrow(1, 2, 1)?.squeeze(1)?.gt(0.0)?.to_dtype(DType::F32)? * 1e4)?)
+    /// };
+    /// let config = GridMarchConfig { step_size: 0.1, ..GridMarchConfig::default() };
+    /// let all = grid.sample(&rays, &config, None)?;
+    /// let visible = grid.sample(&rays, &config, Some(&mut wall))?;
+    /// assert_eq!(all.intervals.starts.dim(0)?, 20);          // z from −1 to 1
+    /// assert_eq!(visible.intervals.starts.dim(0)?, 11);      // up to the wall's first sample
+    /// # Ok::<(), neural_fields::Error>(())
+    /// ```
     ///
     /// # Errors
-    /// Naming `near`, `far`, `step_size`, `cone_angle`, `max_step` for bad scalars;
-    /// `step_size` when a single ray would take more than 2²⁴ steps.
-    pub fn sample(&self, rays: &Rays, config: &GridMarchConfig) -> Result<GridSamples> {
+    /// Naming `near`, `far`, `step_size`, `cone_angle`, `max_step`, `early_stop_eps`,
+    /// `alpha_threshold` for bad scalars; `step_size` when a single ray would take more
+    /// than 2²⁴ steps; `sigma_fn` when it returns another shape or dtype than
+    /// `[M]`/`[M, 1]` of the rays', or a NaN or infinite density; whatever `sigma_fn`
+    /// returns.
+    pub fn sample(
+        &self,
+        rays: &Rays,
+        config: &GridMarchConfig,
+        sigma_fn: Option<DensityFn<'_>>,
+    ) -> Result<GridSamples> {
         let GridMarchConfig {
             near,
             far,
@@ -610,6 +649,8 @@ impl OccupancyGrid {
             cone_angle,
             max_step,
             jitter,
+            early_stop_eps,
+            alpha_threshold,
         } = *config;
         let r = rays.len();
         let (origins, directions) = (rays.origins(), rays.directions());
@@ -634,6 +675,14 @@ impl OccupancyGrid {
             ));
         }
         check_scalar(max_step, "max_step", true)?;
+        for (x, name) in [
+            (early_stop_eps, "early_stop_eps"),
+            (alpha_threshold, "alpha_threshold"),
+        ] {
+            if !(0.0..=1.0).contains(&x) {
+                return Err(Error::invalid(name, "a number in [0, 1]", format!("{x}")));
+            }
+        }
         let o = host_f64(origins)?;
         let d = host_f64(directions)?;
         let (c, h) = self.centre_half();
@@ -761,13 +810,87 @@ impl OccupancyGrid {
         }
         let m = starts.len();
         let (dtype, device) = (origins.dtype(), origins.device());
+        let marched = Intervals {
+            starts: from_host(starts.clone(), &[m], dtype, device)?,
+            ends: from_host(ends.clone(), &[m], dtype, device)?,
+            layout: Layout::Packed(Packed::from_counts(&counts, device)?),
+        };
+        let Some(sigma_fn) = sigma_fn else {
+            return Ok(GridSamples {
+                intervals: marched,
+                n_marched,
+            });
+        };
+        if m == 0 || (early_stop_eps == 0.0 && alpha_threshold == 0.0) {
+            return Ok(GridSamples {
+                intervals: marched,
+                n_marched,
+            });
+        }
+        let keep = worth_evaluating(&marched, rays, sigma_fn, early_stop_eps, alpha_threshold)?;
+        let mut kept_counts = vec![0usize; r];
+        let (mut kept_starts, mut kept_ends) = (Vec::new(), Vec::new());
+        let mut i = 0;
+        for (ray, &count) in counts.iter().enumerate() {
+            for _ in 0..count {
+                if keep[i] {
+                    kept_counts[ray] += 1;
+                    kept_starts.push(starts[i]);
+                    kept_ends.push(ends[i]);
+                }
+                i += 1;
+            }
+        }
+        let k = kept_starts.len();
         Ok(GridSamples {
             intervals: Intervals {
-                starts: from_host(starts, &[m], dtype, device)?,
-                ends: from_host(ends, &[m], dtype, device)?,
-                layout: Layout::Packed(Packed::from_counts(&counts, device)?),
+                starts: from_host(kept_starts, &[k], dtype, device)?,
+                ends: from_host(kept_ends, &[k], dtype, device)?,
+                layout: Layout::Packed(Packed::from_counts(&kept_counts, device)?),
             },
             n_marched,
         })
     }
+}
+
+/// Which of the packed `intervals` along `rays` are visible and not empty under the
+/// densities `sigma_fn` gives at their positions (see [`OccupancyGrid::sample`]).
+fn worth_evaluating(
+    intervals: &Intervals,
+    rays: &Rays,
+    sigma_fn: DensityFn<'_>,
+    early_stop_eps: f64,
+    alpha_threshold: f64,
+) -> Result<Vec<bool>> {
+    let Layout::Packed(packed) = &intervals.layout else {
+        unreachable!("the march emits packed intervals")
+    };
+    let m = packed.ray_indices.dim(0)?;
+    let sigma = sigma_fn(&intervals.positions(rays)?)?;
+    if sigma.dims() != [m] && sigma.dims() != [m, 1] {
+        return Err(Error::invalid(
+            "sigma_fn",
+            format!("densities of shape [{m}] or [{m}, 1]"),
+            format!("shape {:?}", sigma.dims()),
+        ));
+    }
+    check_same(&sigma, "sigma_fn", &intervals.starts, "rays")?;
+    let sigma = sigma.detach().flatten_all()?;
+    check_finite(&sigma, "sigma_fn")?;
+    let sigma = sigma.relu()?;
+    let mut keep = vec![true; m];
+    if early_stop_eps > 0.0 {
+        let visible = visible_mask(&sigma, intervals, Some(rays), early_stop_eps)?;
+        for (k, v) in keep.iter_mut().zip(visible.to_vec1::<u8>()?) {
+            *k = v != 0;
+        }
+    }
+    if alpha_threshold > 0.0 {
+        // x = min(σδ, X_MAX) in the rays' dtype, as compositing forms it; α = −expm1(−x).
+        let x = (sigma * intervals.deltas(Some(rays))?)?.minimum(X_MAX)?;
+        for (k, x) in keep.iter_mut().zip(host_f64(&x)?) {
+            *k &= -(-x).exp_m1() >= alpha_threshold;
+        }
+    }
+    Ok(keep)
 }

@@ -1,7 +1,7 @@
 //! The sample layouts and the checks shared by every compositing path.
 //!
 //! This module sits below the reference path (candle ops) and the fused CPU kernel, both
-//! crate-private, and the entry points ([`super::composite`](mod@super::composite)): it
+//! crate-private, and the entry points ([`super::composite()`]): it
 //! imports none of them.
 //!
 //! Samples along rays are described by [`Intervals`]: per sample an interval
@@ -39,8 +39,7 @@ pub const X_MAX: f64 = 1000.0;
 /// use neural_fields::volume::Packed;
 ///
 /// let packed = Packed::from_counts(&[2, 0, 3], &Device::Cpu)?; // 3 rays, 5 samples
-/// assert_eq!(packed.n_samples(), 5);
-/// assert_eq!(packed.offsets_host(), &[0, 2, 2, 5]);
+/// assert_eq!(packed.offsets.to_vec1::<u32>()?, vec![0, 2, 2, 5]);
 /// assert_eq!(packed.ray_indices.to_vec1::<u32>()?, vec![0, 0, 2, 2, 2]);
 /// # Ok::<(), neural_fields::Error>(())
 /// ```
@@ -92,11 +91,11 @@ impl Packed {
     /// Builds the layout from a `[R, S]` visibility mask (u8, nonzero = keep), e.g. from
     /// [`super::visible_mask`]. Returns the layout and the `[M]` u32 flat indices (into
     /// the `R·S` samples, row-major) of the kept samples, for `index_select` on flattened
-    /// per-sample tensors.
+    /// per-sample tensors ([`Intervals::retain`] for batched intervals).
     ///
     /// # Errors
     /// `mask` when it is not a 2-D u8 tensor.
-    pub fn from_mask(mask: &Tensor) -> Result<(Self, Tensor)> {
+    pub(crate) fn from_mask(mask: &Tensor) -> Result<(Self, Tensor)> {
         let dims = check_shape(mask, "mask", &[Dim::Any("R"), Dim::Any("S")])?;
         if mask.dtype() != DType::U8 {
             return Err(Error::invalid(
@@ -122,13 +121,13 @@ impl Packed {
 
     /// Total number of samples `M`.
     #[must_use]
-    pub fn n_samples(&self) -> usize {
+    pub(crate) fn n_samples(&self) -> usize {
         self.offsets_host.last().copied().unwrap_or(0)
     }
 
     /// Host copy of the offsets (`R + 1` entries).
     #[must_use]
-    pub fn offsets_host(&self) -> &[usize] {
+    pub(crate) fn offsets_host(&self) -> &[usize] {
         &self.offsets_host
     }
 
@@ -260,7 +259,7 @@ impl Intervals {
         })
     }
 
-    /// Packed intervals: `starts`, `ends`: `[M]` with `M = packed.n_samples()`, ray `r`
+    /// Packed intervals: `starts`, `ends`: `[M]` with `M` the samples of `packed`, ray `r`
     /// owning `offsets[r]..offsets[r + 1]`; validated as [`Intervals::new`] does.
     ///
     /// # Errors

@@ -28,46 +28,49 @@
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 //!
-//! - [`sampling`]: stratified intervals, importance samples from the coarse weights,
-//!   merging, RegNeRF's annealed near/far.
-//! - [`layout`]: [`Intervals`] in the batched `[R, S]` or packed `[M]` [`Layout`]
-//!   ([`Packed`]), their midpoints, lengths and positions.
-//! - [`composite`](mod@composite): [`composite`](fn@composite), [`render_weights`],
-//!   [`accumulate`], [`visible_mask`] — one function per operation, either layout; the
-//!   fused CPU kernel runs on the CPU, candle ops elsewhere.
-//! - [`grid`]: the [`OccupancyGrid`] estimator, whose [`OccupancyGrid::sample`] emits
-//!   samples only in occupied cells, in the packed layout.
-//! - [`proposal`]: proposal-network sampling (mip-NeRF 360) and its interlevel loss.
-//! - [`regularizers`]: distortion loss, depth smoothness; [`activations`]: trunc-exp.
+//! What is here, all at this module's root:
+//! - samplers: [`stratified`] intervals, importance samples from the coarse weights
+//!   ([`sample_pdf`]), [`merge_sorted`], RegNeRF's annealed near/far
+//!   ([`anneal_near_far`]);
+//! - [`Intervals`] in the batched `[R, S]` or packed `[M]` [`Layout`] ([`Packed`]),
+//!   their midpoints, lengths and positions;
+//! - compositing: [`composite()`], [`render_weights`], [`accumulate`] — one function per
+//!   operation, either layout; the fused CPU kernel runs on the CPU, candle ops elsewhere;
+//! - the [`OccupancyGrid`] estimator, whose [`OccupancyGrid::sample`] emits samples only
+//!   in occupied cells, in the packed layout, and given a density function only those
+//!   that are visible and not empty;
+//! - proposal-network sampling (mip-NeRF 360, [`proposal_sample`]) and its
+//!   [`interlevel_loss`];
+//! - regularisers: [`distortion_loss`], [`depth_smoothness`]; the density activation
+//!   [`trunc_exp`];
 //! - [`render_image`]: a whole image from any per-ray renderer, in chunks, supersampled
 //!   through the camera's pixel filter.
 //!
 //! See `docs/math.md`, section "Volume compositing", for the derivations.
 
-pub mod activations;
-pub mod composite;
+mod activations;
+mod compositing;
 mod fused;
-pub mod grid;
-pub mod layout;
-pub mod proposal;
+mod grid;
+mod layout;
+mod proposal;
 mod reference;
-pub mod regularizers;
+mod regularizers;
 mod render;
-pub mod sampling;
+mod sampling;
 
 pub use activations::{trunc_exp, TRUNC_EXP_GRAD_CLAMP, TRUNC_EXP_MAX_F32, TRUNC_EXP_MAX_F64};
-pub use composite::{
+pub(crate) use compositing::background_rows;
+pub use compositing::{
     accumulate, composite, render_weights, visible_mask, Composite, CompositeConfig,
     DEFAULT_TERMINATION_EPS,
 };
 pub use grid::{GridConfig, GridMarchConfig, GridSamples, OccupancyGrid};
 pub use layout::{Intervals, Layout, Packed, Weights, X_MAX};
-pub use proposal::{
-    interlevel_loss, proposal_sample, ProposalConfig, ProposalField, ProposalSamples,
-};
+pub use proposal::{interlevel_loss, proposal_sample, ProposalConfig, ProposalSamples};
 pub use regularizers::{depth_smoothness, distortion_loss, log_linear_schedule};
 pub use render::{render_image, ImageConfig};
 pub use sampling::{
-    anneal_near_far, merge_sorted, sample_pdf, step_cdf, stratified, Jitter, ANNEAL_MID_RATIO,
+    anneal_near_far, merge_sorted, sample_pdf, stratified, DensityFn, Jitter, ANNEAL_MID_RATIO,
     ANNEAL_P_START, PDF_PADDING,
 };

@@ -10,15 +10,12 @@
 //! proposals learn only from [`interlevel_loss`] against the final weights (detached), so
 //! the radiance field's photometric loss never reaches them.
 
-use super::composite::{render_weights, CompositeConfig};
+use super::compositing::{render_weights, CompositeConfig};
 use super::layout::{Intervals, Layout};
-use super::sampling::{sample_pdf, stratified, Jitter};
+use super::sampling::{sample_pdf, stratified, DensityFn, Jitter};
 use crate::camera::Rays;
 use crate::error::{check_float, check_scalar, Error, Result};
 use candle_core::{DType, Tensor};
-
-/// A proposal network as [`proposal_sample`] takes it: positions `[N, 3]` → densities `[N]`.
-pub type ProposalField<'a> = &'a mut dyn FnMut(&Tensor) -> Result<Tensor>;
 
 /// Samples per level of a [`proposal_sample`] and the draw's settings.
 #[derive(Clone, Debug, PartialEq)]
@@ -89,7 +86,7 @@ pub fn proposal_sample(
     rays: &Rays,
     near: &Tensor,
     far: &Tensor,
-    proposals: &mut [ProposalField<'_>],
+    proposals: &mut [DensityFn<'_>],
     config: &ProposalConfig,
     seed: Option<u64>,
 ) -> Result<ProposalSamples> {

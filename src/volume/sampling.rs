@@ -47,6 +47,11 @@ pub(crate) fn from_host(
     Ok(t)
 }
 
+/// A density function as [`super::OccupancyGrid::sample`] and [`super::proposal_sample`]
+/// take it: positions `[N, 3]` → densities `[N]` (≥ 0), in the positions' dtype and on
+/// their device.
+pub type DensityFn<'a> = &'a mut dyn FnMut(&Tensor) -> Result<Tensor>;
+
 /// NeRF's padding of the weights in [`sample_pdf`] (added before normalising).
 pub const PDF_PADDING: f64 = 1e-5;
 
@@ -327,31 +332,6 @@ fn check_weights(weights: &Tensor, padding: f64) -> Result<(Vec<f64>, usize, usi
     Ok((w, r, s))
 }
 
-/// The CDF that [`sample_pdf`] inverts, at the bin edges: `[R, S + 1]` with
-/// `F₀ = 0` and `F_S = 1` exactly and `F_k = min(1, Σ_{i<k}(wᵢ + padding) / W)` in
-/// between (uniform when `W = 0`). Computed on the host in f64, returned detached on the
-/// weights' device in their dtype.
-///
-/// ```
-/// use candle_core::{Device, Tensor};
-/// use neural_fields::volume::step_cdf;
-///
-/// let cdf = step_cdf(&Tensor::new(&[[1.0f64, 1.0, 2.0]], &Device::Cpu)?, 0.0)?;
-/// assert_eq!(cdf.to_vec2::<f64>()?, vec![vec![0.0, 0.25, 0.5, 1.0]]);
-/// # Ok::<(), neural_fields::Error>(())
-/// ```
-///
-/// # Errors
-/// As [`sample_pdf`] for `weights` and `padding`.
-pub fn step_cdf(weights: &Tensor, padding: f64) -> Result<Tensor> {
-    let (w, r, s) = check_weights(weights, padding)?;
-    let mut out = Vec::with_capacity(r * (s + 1));
-    for ray in 0..r {
-        out.extend(host_cdf(&w[ray * s..(ray + 1) * s], padding));
-    }
-    from_host(out, &[r, s + 1], weights.dtype(), weights.device())
-}
-
 /// Importance samples from the step-function PDF given by `weights` on the bins of
 /// `intervals`: bin `i` of a ray is `[bᵢ, bᵢ₊₁]` with `b` the interval starts followed by
 /// the last end ([`stratified`]'s intervals are contiguous, so the bins are exactly the
@@ -550,4 +530,33 @@ pub fn anneal_near_far(
     let n2 = (&mid + ((near - &mid)? * scale)?)?.maximum(near)?;
     let f2 = (&mid + ((far - &mid)? * scale)?)?.minimum(far)?;
     Ok((n2, f2))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::host_cdf;
+
+    /// The CDF that `sample_pdf` inverts starts at exactly 0, ends at exactly 1, is
+    /// monotone and at most 1, for weights as f32 and f64 tensors hold them, and is
+    /// uniform for all-zero weights without padding.
+    #[test]
+    fn cdf_starts_at_exactly_zero_and_ends_at_exactly_one() {
+        // Weights whose running sum rounds above the total in floating point.
+        let w = [0.1, 0.2, 0.3, 0.1, 0.2, 0.1, 1e-9, 0.7];
+        for rounded in [
+            w.map(|x: f64| f64::from(x as f32)),
+            w, // f64
+        ] {
+            for pad in [0.0, 1e-5, 1.0] {
+                let c = host_cdf(&rounded, pad);
+                assert_eq!(c.len(), 9);
+                assert_eq!(c[0], 0.0);
+                assert_eq!(c[8], 1.0);
+                assert!(c.windows(2).all(|p| p[0] <= p[1]));
+                assert!(c.iter().all(|x| *x <= 1.0));
+            }
+        }
+        assert_eq!(host_cdf(&[0.0; 4], 0.0), vec![0.0, 0.25, 0.5, 0.75, 1.0]);
+        assert_eq!(host_cdf(&[1.0, 1.0, 2.0], 0.0), vec![0.0, 0.25, 0.5, 1.0]);
+    }
 }

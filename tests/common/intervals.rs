@@ -53,13 +53,15 @@ pub fn batched_from_deltas(
     Intervals::new(mk(st), mk(en)).unwrap()
 }
 
-/// Packed `[M]` intervals with lengths `deltas` (`M = packed.n_samples()` values), each
+/// Packed `[M]` intervals with lengths `deltas` (`M` values, the samples of `packed`), each
 /// ray starting at 0, in `dtype` on `packed`'s device.
 pub fn packed_from_deltas(deltas: &[f64], packed: &Packed, dtype: DType) -> Intervals {
     let counts: Vec<usize> = packed
-        .offsets_host()
+        .offsets
+        .to_vec1::<u32>()
+        .unwrap()
         .windows(2)
-        .map(|w| w[1] - w[0])
+        .map(|w| (w[1] - w[0]) as usize)
         .collect();
     let (st, en) = starts_ends(deltas, &counts);
     let dev = packed.offsets.device().clone();
