@@ -1,13 +1,16 @@
-//! Sparse views: train the NeRF of `examples/nerf.rs` from 3 views twice for the same wall
-//! time, plain and regularised, and compare on the held-out views.
+//! Sparse views: train a NeRF from 3 views twice for the same budget, plain and
+//! regularised, and compare on the held-out views.
 //!
 //! ```text
 //! cargo run --release --example sparse_views                       # committed dataset, 3 min per run
-//! cargo run --release --example sparse_views -- --data DIR --frames 0,10,20 --minutes 5 --out out/sv
+//! cargo run --release --example sparse_views -- --data DIR --frames 0,10,20 --minutes 5 --out target/sv
 //! ```
 //!
-//! Both runs use the stratified sampler (32 samples) and the same seed. The plain run is
-//! the NeRF example's model as it is. The regularised run adds, by default:
+//! Both runs train [`Nerf`] (NeRF's defaults) with Adam (learning rate 1e-3 decaying
+//! log-linearly to 1e-4) on `--rays` random pixels of the training views per step, each
+//! ray composited over a random background, with `--samples` (32) jittered stratified
+//! samples across the scene box and the fused [`Nerf::color_loss`]; the same seed. The
+//! regularised run adds, by default:
 //! - a **frequency window** (FreeNeRF, Yang et al. 2023: BARF's coarse-to-fine window used
 //!   as a regulariser) that opens the position encoding's octaves linearly over training
 //!   and stops at 3 of its 10 (`--coarse-to-fine 0,3.3333`; `off` to drop it);
@@ -15,33 +18,390 @@
 //!   head that sees the view direction explains wrong geometry by view-dependent colour;
 //! - with `--regnerf on`, RegNeRF's regularisers (Niemeyer et al. 2022): the depth
 //!   smoothness of 16 patches of 8 × 8 pixels rendered from random cameras around the
-//!   training cameras ([`cameras_around`](neural_fields::camera::cameras_around)),
-//!   weighted log-linearly over the first 512 steps (`--regnerf-weight START,END`,
-//!   default RegNeRF's `400,0.1`), and the sampling range annealed from the middle of each
-//!   ray's `[near, far]` over the first 256 steps. Off by default: on the committed
-//!   object-centric scene they cost half the steps and gained nothing
-//!   (docs/benchmarks.md, "Sparse views").
+//!   training cameras ([`cameras_around`]), weighted log-linearly over the first 512 steps
+//!   (`--regnerf-weight START,END`, default RegNeRF's `400,0.1`), and the sampling range
+//!   annealed from the middle of each ray's `[near, far]` over the first 256 steps. Off by
+//!   default: on the committed object-centric scene they cost half the steps and gained
+//!   nothing (docs/benchmarks.md, "Sparse views").
 //!
-//! Flags: `--data DIR` (default `examples/data/wuson`), `--frames I,J,K` (training views,
-//! default `0,17,34`), `--minutes M` per run (default 3) or `--steps N`, `--out DIR`
-//! (default `out/sparse_views`), `--seed S`, `--downscale K`, and the regularised run's
-//! `--coarse-to-fine START,END|off`, `--view-dependence on|off`, `--regnerf on|off`,
-//! `--regnerf-weight START,END`. Writes `OUT/plain/` and `OUT/regularised/` (each run's
-//! own outputs, see `examples/nerf.rs`), `OUT/compare_{i}.png` (truth | plain |
-//! regularised), `OUT/depth_{i}.png` (plain depth | regularised depth, on one colour
-//! scale) and `OUT/metrics.json` with both runs' `psnr` and `depth_tv` (the mean absolute
-//! difference of neighbouring depths where both pixels are opaque, lower is smoother) and
-//! the regularisers used.
+//! Held-out views are rendered on white with [`render_image`]. Writes, under `--out`
+//! (default `target/sparse_views`): `plain/` and `regularised/` (each run's `metrics.json`
+//! with `psnr`, `steps`, `train_seconds`, and `view_{i}.png`: truth | prediction | error),
+//! `compare_{i}.png` (truth | plain | regularised), `depth_{i}.png` (plain depth |
+//! regularised depth, on one colour scale) and `metrics.json` with both runs' `psnr` and
+//! `depth_tv` (the mean absolute difference of neighbouring depths where both pixels are
+//! opaque, lower is smoother) and the regularisers used.
 
-#[allow(dead_code)] // the NeRF example's `main`, flags and test are not used here
-#[path = "nerf.rs"]
-mod nerf;
-
-use candle_core::{DType, Tensor};
-use nerf::training;
-use neural_fields::data::{colorize_depth, write_png};
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
+use clap::Parser;
+use neural_fields::camera::{cameras_around, ray_aabb, Camera, Rays};
+use neural_fields::data::{
+    colorize_depth, comparison_strip, load, psnr, write_png, Bounds, LoadConfig, RaySampler, Split,
+};
+use neural_fields::encoding::{CoarseToFine, PointEncoding};
+use neural_fields::nn::{build_seeded, nerf, Nerf, NerfConfig};
+use neural_fields::volume::{
+    anneal_near_far, composite, depth_smoothness, log_linear_schedule, render_image, stratified,
+    Composite, CompositeConfig, ImageConfig, Intervals, Jitter, ANNEAL_MID_RATIO, ANNEAL_P_START,
+};
 use neural_fields::{Error, Result};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+#[global_allocator]
+static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+/// The command line (see the module docs).
+#[derive(Parser, Debug, Clone)]
+#[command(about = "Train a NeRF from a few views, plain and regularised, and compare")]
+struct Args {
+    /// Dataset folder (Blender synthetic, nerfstudio or IDR/DTU layout).
+    #[arg(long, default_value = "examples/data/wuson")]
+    data: PathBuf,
+    /// Training views.
+    #[arg(long, value_delimiter = ',', default_value = "0,17,34")]
+    frames: Vec<usize>,
+    /// Minutes of training per run (default 3 unless --steps is given).
+    #[arg(long, conflicts_with = "steps")]
+    minutes: Option<f64>,
+    /// Optimiser steps per run.
+    #[arg(long)]
+    steps: Option<usize>,
+    #[arg(long, default_value = "target/sparse_views")]
+    out: PathBuf,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Divide the images' resolution by this.
+    #[arg(long, default_value_t = 1)]
+    downscale: usize,
+    /// Rays per step.
+    #[arg(long, default_value_t = 1024)]
+    rays: usize,
+    /// Stratified samples per ray.
+    #[arg(long, default_value_t = 32)]
+    samples: usize,
+    /// Held-out views written as pictures.
+    #[arg(long, default_value_t = 4)]
+    pictures: usize,
+    /// Regularised run: START,END of the encoding's window, or `off`.
+    #[arg(long, value_parser = window, default_value = "0,3.3333")]
+    coarse_to_fine: Window,
+    /// Regularised run: whether the colour depends on the view direction.
+    #[arg(long, value_parser = on_off, action = clap::ArgAction::Set, default_value = "off")]
+    view_dependence: bool,
+    /// Regularised run: RegNeRF's depth smoothness and annealed sampling range.
+    #[arg(long, value_parser = on_off, action = clap::ArgAction::Set, default_value = "off")]
+    regnerf: bool,
+    #[arg(long, value_parser = weights, default_value = "400,0.1")]
+    regnerf_weight: [f64; 2],
+}
+
+/// `--coarse-to-fine`: the fractions of training over which the window opens, or none.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Window(Option<(f64, f64)>);
+
+fn on_off(value: &str) -> std::result::Result<bool, String> {
+    match value {
+        "on" => Ok(true),
+        "off" => Ok(false),
+        other => Err(format!("on or off, not {other}")),
+    }
+}
+
+fn pair(value: &str) -> std::result::Result<(f64, f64), String> {
+    match value
+        .split_once(',')
+        .map(|(a, b)| (a.trim().parse(), b.trim().parse()))
+    {
+        Some((Ok(a), Ok(b))) if f64::is_finite(a) && f64::is_finite(b) => Ok((a, b)),
+        _ => Err(format!("two numbers A,B, not {value}")),
+    }
+}
+
+fn window(value: &str) -> std::result::Result<Window, String> {
+    match value {
+        "off" => Ok(Window(None)),
+        _ => match pair(value)? {
+            (s, e) if 0.0 <= s && s < e && s < 1.0 => Ok(Window(Some((s, e)))),
+            _ => Err(format!(
+                "START,END with 0 ≤ START < 1, START < END, not {value}"
+            )),
+        },
+    }
+}
+
+fn weights(value: &str) -> std::result::Result<[f64; 2], String> {
+    match pair(value)? {
+        (a, b) if a > 0.0 && b > 0.0 => Ok([a, b]),
+        _ => Err(format!("two weights > 0, not {value}")),
+    }
+}
+
+/// What one run leaves: the mean held-out PSNR and, per held-out view, `[truth, colour,
+/// depth, opacity]` (depth NaN where the opacity is below 0.5).
+struct Run {
+    psnr: f64,
+    renders: Vec<[Tensor; 4]>,
+}
+
+/// The scene box: the layout's bounds, or the cube of half-side 1.5 (nerfacc's for the
+/// Blender scenes) for layouts that state none.
+fn scene_box(bounds: Option<Bounds>) -> ([f64; 3], [f64; 3]) {
+    match bounds {
+        Some(Bounds::Aabb { min, max }) => (min, max),
+        Some(Bounds::Sphere {
+            center: c,
+            radius: r,
+        }) => (c.map(|x| x - r), c.map(|x| x + r)),
+        _ => ([-1.5; 3], [1.5; 3]),
+    }
+}
+
+/// Stratified intervals across the scene box (jittered with `seed`, annealed to RegNeRF's
+/// range at `anneal = Some(step)`).
+fn intervals(
+    rays: &Rays,
+    scene: ([f64; 3], [f64; 3]),
+    n: usize,
+    seed: Option<u64>,
+    anneal: Option<usize>,
+) -> Result<Intervals> {
+    let hit = ray_aabb(rays, scene.0, scene.1)?;
+    let (near, far) = match anneal {
+        Some(step) => anneal_near_far(
+            &hit.near,
+            &hit.far,
+            step,
+            256,
+            ANNEAL_P_START,
+            ANNEAL_MID_RATIO,
+        )?,
+        None => (hit.near, hit.far),
+    };
+    let jitter = if seed.is_some() {
+        Jitter::PerSample
+    } else {
+        Jitter::None
+    };
+    stratified(&near, &far, n, jitter, seed.unwrap_or(0))
+}
+
+/// The field along `rays` at `iv`, composited over `background` (`[3]` or `[R, 3]`).
+fn render(net: &Nerf, rays: &Rays, iv: &Intervals, background: &Tensor) -> Result<Composite> {
+    let (r, s) = iv.starts.dims2()?;
+    let positions = iv.positions(rays)?.reshape(((), 3))?;
+    let (sigma, rgb) = net.radiance(&positions, &iv.directions(rays)?.reshape(((), 3))?)?;
+    let config = CompositeConfig {
+        background: Some(background.clone()),
+        ..CompositeConfig::default()
+    };
+    composite(
+        &sigma.reshape((r, s))?,
+        &rgb.reshape((r, s, 3))?,
+        iv,
+        Some(rays),
+        &config,
+    )
+}
+
+/// RegNeRF's depth smoothness of 16 patches of 8 × 8 pixels seen from random cameras around
+/// `cameras`, each pixel weighted by its own (detached) opacity.
+fn patch_smoothness(
+    net: &Nerf,
+    cameras: &[Camera],
+    scene: ([f64; 3], [f64; 3]),
+    args: &Args,
+    step: usize,
+) -> Result<Tensor> {
+    const K: usize = 8;
+    let seed = args.seed ^ step as u64;
+    let unseen = cameras_around(cameras, 16, seed)?;
+    let mut rng = neural_fields::rng::SplitMix64::new(seed);
+    let mut pixels = Vec::new();
+    for (c, cam) in unseen.iter().enumerate() {
+        let k = cam.intrinsics();
+        let u0 = rng.below((k.width.saturating_sub(K) + 1) as u64) as f64;
+        let v0 = rng.below((k.height.saturating_sub(K) + 1) as u64) as f64;
+        let grid: Vec<f32> = (0..K * K)
+            .flat_map(|i| {
+                [
+                    (u0 + (i % K) as f64 + 0.5) as f32,
+                    (v0 + (i / K) as f64 + 0.5) as f32,
+                ]
+            })
+            .collect();
+        let rays = cam.rays_for_pixels(&Tensor::from_vec(grid, (K * K, 2), &Device::Cpu)?)?;
+        pixels.push((c, rays));
+    }
+    let origins: Vec<&Tensor> = pixels.iter().map(|(_, r)| r.origins()).collect();
+    let directions: Vec<&Tensor> = pixels.iter().map(|(_, r)| r.directions()).collect();
+    let rays = Rays::new(Tensor::cat(&origins, 0)?, Tensor::cat(&directions, 0)?)?;
+    let iv = intervals(&rays, scene, args.samples, Some(seed), Some(step))?;
+    let out = render(
+        net,
+        &rays,
+        &iv,
+        &Tensor::zeros(3, DType::F32, &Device::Cpu)?,
+    )?;
+    let depth = out.normalized_depth(1e-6)?.reshape((16, K, K))?;
+    let opacity = out.opacity.detach().reshape((16, K, K))?;
+    Ok(depth_smoothness(&depth, Some(&opacity))?.mean_all()?)
+}
+
+/// One run, plain or regularised, written to `OUT/name`.
+fn train(args: &Args, name: &str, regularised: bool) -> Result<Run> {
+    let (dev, dt) = (Device::Cpu, DType::F32);
+    let config = LoadConfig {
+        downscale: args.downscale,
+        ..LoadConfig::default()
+    };
+    let train = load(
+        &args.data,
+        &LoadConfig {
+            frames: Some(args.frames.clone()),
+            background: neural_fields::data::Background::Random,
+            ..config.clone()
+        },
+    )?;
+    let eval = load(
+        &args.data,
+        &LoadConfig {
+            split: Split::Test,
+            ..config.clone()
+        },
+    )
+    .or_else(|_| {
+        load(
+            &args.data,
+            &LoadConfig {
+                split: Split::Val,
+                ..config
+            },
+        )
+    })?;
+    let scene = scene_box(train.bounds());
+    let span = regularised.then_some(args.coarse_to_fine.0).flatten();
+    let varmap = VarMap::new();
+    let windows = std::cell::RefCell::new(Vec::new());
+    let net = build_seeded(&varmap, dt, &dev, args.seed, |vb| {
+        let mut config = NerfConfig::default();
+        if regularised && !args.view_dependence {
+            config.direction_encoding = None;
+        }
+        windows.borrow_mut().clear();
+        if span.is_some() {
+            let window = CoarseToFine::new(config.position_encoding)?;
+            windows.borrow_mut().push(window.clone());
+            config.position_encoding = PointEncoding::CoarseToFine(window);
+        }
+        nerf(&config, vb)
+    })?;
+    let params = ParamsAdamW {
+        lr: 1e-3,
+        weight_decay: 0.0,
+        ..ParamsAdamW::default()
+    };
+    let mut adam = AdamW::new(varmap.all_vars(), params)?;
+    let mut rays = RaySampler::new(&train, args.seed, &dev, dt)?;
+    let cameras: Vec<Camera> = train.views().iter().map(|v| *v.camera()).collect();
+    let regnerf = regularised && args.regnerf;
+    let seconds = args.minutes.unwrap_or(3.0) * 60.0;
+    let start = Instant::now();
+    let mut step = 0;
+    loop {
+        let progress = match args.steps {
+            Some(n) => step as f64 / n.max(1) as f64 + f64::from(u8::from(n == 0)),
+            None => start.elapsed().as_secs_f64() / seconds,
+        };
+        if progress >= 1.0 {
+            break;
+        }
+        adam.set_learning_rate(log_linear_schedule(
+            (progress * 1e4) as usize,
+            1e-3,
+            1e-4,
+            10_000,
+        ));
+        let open = span.map_or(1.0, |(s, e)| ((progress - s) / (e - s)).clamp(0.0, 1.0));
+        for w in windows.borrow().iter() {
+            w.set_alpha(open * w.bands() as f64)?;
+        }
+        let batch = rays.pixels(args.rays)?;
+        let seed = Some(args.seed ^ step as u64);
+        let iv = intervals(
+            &batch.rays,
+            scene,
+            args.samples,
+            seed,
+            regnerf.then_some(step),
+        )?;
+        let background = CompositeConfig {
+            background: Some(batch.backgrounds.clone()),
+            ..CompositeConfig::default()
+        };
+        let mut loss = net.color_loss(&batch.rays, &iv, &batch.colors, &background)?;
+        if regnerf {
+            let [w0, w1] = args.regnerf_weight;
+            let smooth = patch_smoothness(&net, &cameras, scene, args, step)?;
+            loss = (loss + (smooth * log_linear_schedule(step, w0, w1, 512))?)?;
+        }
+        if !loss.to_dtype(DType::F64)?.to_scalar::<f64>()?.is_finite() {
+            return Err(Error::InvalidArgument {
+                arg: "training",
+                expected: "a finite loss".into(),
+                got: format!("a NaN or infinity in the loss at step {step}"),
+            });
+        }
+        adam.backward_step(&loss)?;
+        step += 1;
+    }
+    let train_seconds = start.elapsed().as_secs_f64();
+    let white = Tensor::ones(3, dt, &dev)?;
+    let out = args.out.join(name);
+    std::fs::create_dir_all(&out).map_err(|source| io(&out, source))?;
+    let (mut total, mut renders) = (0.0, Vec::new());
+    for (i, view) in eval.views().iter().enumerate() {
+        let config = ImageConfig::default();
+        let [color, depth, opacity] = render_image(view.camera(), &config, &dev, dt, |r| {
+            let out = render(
+                &net,
+                r,
+                &intervals(r, scene, args.samples, None, None)?,
+                &white,
+            )?;
+            let depth = out.normalized_depth(1e-6)?;
+            Ok([out.color, depth, out.opacity])
+        })?;
+        let nan = Tensor::full(f32::NAN, depth.shape(), &dev)?;
+        let depth = opacity.ge(0.5)?.where_cond(&depth, &nan)?;
+        let truth = view.rgb([1.0; 3], &dev, dt)?;
+        total += psnr(&color, &truth, None)?;
+        if i < args.pictures {
+            let strip = comparison_strip(&truth, &color)?;
+            write_png(&out.join(format!("view_{i}.png")), &strip)?;
+        }
+        renders.push([truth, color, depth, opacity]);
+    }
+    let psnr = total / eval.len() as f64;
+    let metrics =
+        serde_json::json!({ "psnr": psnr, "steps": step, "train_seconds": train_seconds });
+    write_json(&out.join("metrics.json"), &metrics)?;
+    println!("{name}: {step} steps in {train_seconds:.1} s, held-out PSNR {psnr:.2} dB");
+    Ok(Run { psnr, renders })
+}
+
+fn io(path: &Path, source: std::io::Error) -> Error {
+    Error::Io {
+        path: path.display().to_string(),
+        source,
+    }
+}
+
+fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
+    let text = serde_json::to_string_pretty(value).expect("JSON");
+    std::fs::write(path, text).map_err(|source| io(path, source))
+}
 
 /// Mean |d(i, j) − d(i, j+1)| and |d(i, j) − d(i+1, j)| over neighbours that are both
 /// finite (opaque) in a `[H, W]` depth map.
@@ -54,14 +414,11 @@ fn depth_tv(depth: &Tensor) -> Result<f64> {
     let (mut sum, mut n) = (0.0, 0usize);
     for i in 0..h {
         for j in 0..w {
-            let a = d[i * w + j];
             for (ii, jj) in [(i, j + 1), (i + 1, j)] {
-                if ii < h && jj < w {
-                    let b = d[ii * w + jj];
-                    if a.is_finite() && b.is_finite() {
-                        sum += (a - b).abs();
-                        n += 1;
-                    }
+                let (a, b) = (d[i * w + j], *d.get(ii * w + jj).unwrap_or(&f64::NAN));
+                if ii < h && jj < w && a.is_finite() && b.is_finite() {
+                    sum += (a - b).abs();
+                    n += 1;
                 }
             }
         }
@@ -69,170 +426,55 @@ fn depth_tv(depth: &Tensor) -> Result<f64> {
     Ok(if n == 0 { 0.0 } else { sum / n as f64 })
 }
 
-fn run() -> Result<()> {
-    let mut minutes = Some(3.0);
-    let mut base = nerf::Args {
-        out: PathBuf::from("out/sparse_views"),
-        sampler: nerf::Sampler::Stratified,
-        samples: 32,
-        pictures: 4,
-        frames: Some(vec![0, 17, 34]),
-        ..nerf::Args::default()
-    };
-    let mut it = std::env::args().skip(1);
-    let bad = |m: String| Error::InvalidArgument {
-        arg: "flags",
-        expected: "see the example's docs".into(),
-        got: m,
-    };
-    let mut reg = Regularisers::default();
-    while let Some(flag) = it.next() {
-        let value = it
-            .next()
-            .ok_or_else(|| bad(format!("{flag} needs a value")))?;
-        match flag.as_str() {
-            "--data" => base.data = value.into(),
-            "--out" => base.out = value.into(),
-            "--minutes" => {
-                minutes = Some(
-                    value
-                        .parse()
-                        .map_err(|_| bad(format!("--minutes {value}")))?,
-                )
-            }
-            "--steps" => {
-                base.steps = Some(value.parse().map_err(|_| bad(format!("--steps {value}")))?);
-                minutes = None;
-            }
-            "--seed" => base.seed = value.parse().map_err(|_| bad(format!("--seed {value}")))?,
-            "--downscale" => {
-                base.downscale = value
-                    .parse()
-                    .map_err(|_| bad(format!("--downscale {value}")))?
-            }
-            "--frames" => {
-                let list: std::result::Result<Vec<usize>, _> =
-                    value.split(',').map(|v| v.trim().parse()).collect();
-                base.frames = Some(list.map_err(|_| bad(format!("--frames {value}")))?);
-            }
-            "--regnerf-weight" => {
-                base.regnerf_weight = nerf::regnerf_weight(&value).map_err(bad)?
-            }
-            "--coarse-to-fine" if value == "off" => reg.coarse_to_fine = None,
-            "--coarse-to-fine" => {
-                reg.coarse_to_fine = Some(training::window_span(&flag, &value).map_err(bad)?)
-            }
-            "--view-dependence" => {
-                reg.view_dependence = training::on_off(&flag, &value).map_err(bad)?
-            }
-            "--regnerf" => reg.regnerf = training::on_off(&flag, &value).map_err(bad)?,
-            other => return Err(bad(format!("unknown flag {other}"))),
-        }
-    }
-    base.minutes = minutes;
-    compare(&base, &reg)
-}
-
-/// What the regularised run adds to the plain one.
-#[derive(Clone, Debug)]
-struct Regularisers {
-    /// The position encoding's window (see `examples/nerf.rs --coarse-to-fine`).
-    coarse_to_fine: Option<(f64, f64)>,
-    view_dependence: bool,
-    /// RegNeRF's depth smoothness and annealed sampling range.
-    regnerf: bool,
-}
-
-impl Default for Regularisers {
-    fn default() -> Self {
-        Self {
-            coarse_to_fine: Some((0.0, 10.0 / 3.0)),
-            view_dependence: false,
-            regnerf: false,
-        }
-    }
-}
-
-/// Runs `base` plain and with `reg`, and writes the comparison to `base.out`.
-fn compare(base: &nerf::Args, reg: &Regularisers) -> Result<()> {
-    let minutes = base.minutes;
-    let root = base.out.clone();
-    let mut results = Vec::new();
-    for name in ["plain", "regularised"] {
-        println!("== {name}");
-        let plain = nerf::Args {
-            out: root.join(name),
-            frames: base.frames.clone(),
-            data: base.data.clone(),
-            resume: None,
-            proposal_samples: base.proposal_samples.clone(),
-            ..*base
-        };
-        let args = if name == "plain" {
-            plain
-        } else {
-            nerf::Args {
-                regnerf: reg.regnerf,
-                coarse_to_fine: reg.coarse_to_fine,
-                view_dependence: reg.view_dependence,
-                ..plain
-            }
-        };
-        results.push(nerf::run(&args)?);
-    }
-    let (plain, reg_run) = (&results[0], &results[1]);
-    let tv = |s: &nerf::Summary| -> Result<f64> {
-        let v: Result<Vec<f64>> = s.renders.iter().map(|r| depth_tv(&r[2])).collect();
-        let v = v?;
+/// Both runs, and the comparison written to `args.out`.
+fn compare(args: &Args) -> Result<()> {
+    let plain = train(args, "plain", false)?;
+    let reg = train(args, "regularised", true)?;
+    let tv = |run: &Run| -> Result<f64> {
+        let v = run
+            .renders
+            .iter()
+            .map(|r| depth_tv(&r[2]))
+            .collect::<Result<Vec<f64>>>()?;
         Ok(v.iter().sum::<f64>() / v.len().max(1) as f64)
     };
-    let (tv_plain, tv_reg) = (tv(plain)?, tv(reg_run)?);
+    let (tv_plain, tv_reg) = (tv(&plain)?, tv(&reg)?);
     for (i, (a, b)) in plain
         .renders
         .iter()
-        .zip(&reg_run.renders)
+        .zip(&reg.renders)
         .enumerate()
-        .take(base.pictures)
+        .take(args.pictures)
     {
-        write_png(
-            &root.join(format!("compare_{i}.png")),
-            &Tensor::cat(&[&a[0], &a[1], &b[1]], 1)?,
-        )?;
+        let strip = Tensor::cat(&[&a[0], &a[1], &b[1]], 1)?;
+        write_png(&args.out.join(format!("compare_{i}.png")), &strip)?;
         // One colour scale for both depth maps.
-        let both = Tensor::cat(&[&a[2], &b[2]], 1)?;
-        let (rgb, _) = colorize_depth(&both, None)?;
-        write_png(&root.join(format!("depth_{i}.png")), &rgb)?;
+        let (rgb, _) = colorize_depth(&Tensor::cat(&[&a[2], &b[2]], 1)?, None)?;
+        write_png(&args.out.join(format!("depth_{i}.png")), &rgb)?;
     }
     let metrics = serde_json::json!({
         "plain": { "psnr": plain.psnr, "depth_tv": tv_plain },
-        "regularised": { "psnr": reg_run.psnr, "depth_tv": tv_reg },
+        "regularised": { "psnr": reg.psnr, "depth_tv": tv_reg },
         "regularisers": {
-            "coarse_to_fine": reg.coarse_to_fine.map(|(s, e)| [s, e]),
-            "view_dependence": reg.view_dependence,
-            "regnerf": reg.regnerf,
-            "regnerf_weight": reg.regnerf.then_some(base.regnerf_weight),
+            "coarse_to_fine": args.coarse_to_fine.0.map(|(s, e)| [s, e]),
+            "view_dependence": args.view_dependence,
+            "regnerf": args.regnerf,
+            "regnerf_weight": args.regnerf.then_some(args.regnerf_weight),
         },
-        "frames": base.frames,
-        "minutes_per_run": minutes,
-        "steps_per_run": base.steps,
+        "frames": args.frames,
+        "minutes_per_run": args.steps.is_none().then(|| args.minutes.unwrap_or(3.0)),
+        "steps_per_run": args.steps,
     });
-    std::fs::write(
-        root.join("metrics.json"),
-        serde_json::to_string_pretty(&metrics).expect("JSON"),
-    )
-    .map_err(|source| Error::Io {
-        path: root.join("metrics.json").display().to_string(),
-        source,
-    })?;
+    write_json(&args.out.join("metrics.json"), &metrics)?;
     println!(
         "held-out PSNR: plain {:.2} dB, regularised {:.2} dB; depth TV: plain {tv_plain:.4}, regularised {tv_reg:.4}",
-        plain.psnr, reg_run.psnr
+        plain.psnr, reg.psnr
     );
     Ok(())
 }
 
 fn main() -> std::process::ExitCode {
-    match run() {
+    match compare(&Args::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("sparse_views: {e}");
@@ -251,31 +493,30 @@ mod sparse_tests {
     fn a_shortened_comparison_writes_both_runs_and_the_metrics() {
         let out = std::env::temp_dir().join(format!("sparse-views-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&out);
-        let base = nerf::Args {
-            steps: Some(3),
-            out: out.clone(),
-            sampler: nerf::Sampler::Stratified,
-            downscale: 4,
-            rays: 128,
-            samples: 16,
-            eval_every: 3,
-            eval_views: 1,
-            pictures: 1,
-            frames: Some(vec![0, 17, 34]),
-            ..nerf::Args::default()
-        };
-        compare(
-            &base,
-            &Regularisers {
-                regnerf: true,
-                ..Regularisers::default()
-            },
-        )
-        .unwrap();
+        let out_flag = out.display().to_string();
+        let args = Args::parse_from([
+            "sparse_views",
+            "--steps",
+            "3",
+            "--out",
+            &out_flag,
+            "--downscale",
+            "4",
+            "--rays",
+            "128",
+            "--samples",
+            "16",
+            "--pictures",
+            "1",
+            "--regnerf",
+            "on",
+        ]);
+        compare(&args).unwrap();
         let m: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap())
                 .unwrap();
         assert_eq!(m["regularisers"]["view_dependence"], false, "{m}");
+        assert_eq!(m["frames"], serde_json::json!([0, 17, 34]));
         for run in ["plain", "regularised"] {
             for key in ["psnr", "depth_tv"] {
                 assert!(
@@ -283,6 +524,7 @@ mod sparse_tests {
                     "{run}.{key}: {m}"
                 );
             }
+            assert!(out.join(run).join("metrics.json").is_file());
         }
         assert!(out.join("compare_0.png").is_file() && out.join("depth_0.png").is_file());
         let _ = std::fs::remove_dir_all(&out);
