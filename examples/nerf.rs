@@ -1,88 +1,61 @@
 //! NeRF on a real capture: train a radiance field on a dataset folder and evaluate it on the
-//! held-out views.
+//! held-out views. `--help` lists every flag with its default.
 //!
 //! ```text
 //! cargo run --release --example nerf                                  # the committed dataset, 10 minutes
 //! cargo run --release --example nerf -- --data DIR --minutes 5 --out target/mine
 //! cargo run --release --example nerf -- --steps 2000 --sampler stratified --seed 3
-//! cargo run --release --example nerf -- --help                        # every flag
 //! ```
 //!
-//! **Data.** `--data DIR` is any dataset [`neural_fields::data::load`] reads (Blender
-//! synthetic, nerfstudio, IDR/DTU; default `examples/data/wuson`). Training uses the
-//! `train` split with a random background colour per ray (`--background`; so transparency
-//! is learnt as transparency); evaluation uses the `test` split (`val` without one) on
-//! white. `--downscale K` divides the resolution by K; `--frames I,J,K` trains on those
-//! views only.
+//! **Data**: any dataset [`neural_fields::data::load`] reads (Blender, nerfstudio,
+//! IDR/DTU); training on the `train` split with a random background per ray, evaluation on
+//! `test` (or `val`) on white. **Model**: [`Nerf`] with its defaults, Adam with a learning
+//! rate decaying log-linearly to a tenth of `--lr`; `--encoding hash` puts instant-NGP's
+//! hash grid over the scene box on a 1 × 64 trunk.
 //!
-//! **Model.** [`Nerf`] with its defaults (frequency encodings L = 10 and 4, a 4 × 64 ReLU
-//! trunk, trunc-exp density, a view-dependent colour head). Adam, learning rate decaying
-//! log-linearly from `--lr` (1e-3) to a tenth of it over the run. `--encoding hash`
-//! replaces the position encoding by instant-NGP's hash grid over the scene box (16 levels
-//! of 2 features, resolutions 16 to `--hash-finest`, default five cells per pixel of the
-//! images' larger side; tables of 2^`--hash-log2` rows) on a 1 × 64 trunk, learning rate
-//! 1e-2.
+//! **Samplers** (`--sampler`): `grid` (default), an [`OccupancyGrid`] (64³ cells) updated
+//! every 16 steps, marched at the box diagonal / 64 while more than a quarter of it is
+//! occupied, then / 256, whose sampling lets only the visible samples (transmittance ≥
+//! 1e-4) through to the whole network; `stratified`, `--samples` jittered samples across
+//! the scene box; `proposal`, two proposal networks placing `--proposal-samples`, then
+//! `--samples` intervals ([`proposal_sample`], [`interlevel_loss`]), of which only the
+//! visible ones with opacity ≥ `--alpha-threshold` (nerfacc's `alpha_thre`) go on.
 //!
-//! **Samplers** (`--sampler`):
-//! - `grid` (default): an [`OccupancyGrid`] (64³ cells over the scene box) updated from the
-//!   density every 16 steps; rays march at a fixed step (the box diagonal / 64 while more
-//!   than a quarter of the cells are occupied, then / 256) through occupied cells, and the
-//!   grid's sampling, given the network's density, lets only the visible samples
-//!   (transmittance ≥ 1e-4) through to the whole network.
-//! - `stratified`: `--samples` (64) jittered samples per ray across the scene box.
-//! - `proposal`: two proposal networks (2 × 32 ReLU, frequency encoding L = 6) place 16 and
-//!   8 samples (`--proposal-samples`), from which `--samples` intervals are drawn
-//!   ([`proposal_sample`]); the proposals learn from [`interlevel_loss`]. Only samples that
-//!   are visible and not empty (opacity ≥ `--alpha-threshold`, default 1e-2, nerfacc's
-//!   `alpha_thre`; 0 keeps all) go through the whole network.
+//! **Rays**: `--eval-supersample K` renders `K × K` rays per held-out pixel
+//! ([`render_image`]); `--jitter on` trains on random points of the pixels,
+//! `--train-supersample K` on the mean of `K × K` rays per pixel, `--march-jitter on` on
+//! shifted march lattices; `--pixel-filter cycles` makes all three sample Cycles'
+//! Blackman–Harris filter ([`PixelFilter::CYCLES`]). **Regularisers**: `--coarse-to-fine
+//! START,END` opens the encoding's octaves over that fraction of training
+//! ([`CoarseToFine`]), `--view-dependence off` drops the view direction, `--regnerf on`
+//! adds RegNeRF's depth smoothness on patches from unseen cameras and its annealed range.
 //!
-//! The scene box is the layout's bounds, or the cube of half-side `--aabb` (1.5) for
-//! layouts that state none (Blender).
-//!
-//! **Rays and pixels.** Evaluation renders one ray per held-out pixel centre, or with
-//! `--eval-supersample K` the mean of `K × K` rays ([`render_image`]). `--jitter on` trains
-//! on rays through random points of their pixels; `--train-supersample K` compares the
-//! mean of `K × K` rays with each pixel (`--rays / K²` pixels per step); `--march-jitter
-//! on` shifts each training ray's march by a random fraction of a step. `--pixel-filter
-//! cycles` makes all three sample Blender Cycles' Blackman–Harris filter instead of the
-//! pixel's square ([`PixelFilter::CYCLES`]; docs/benchmarks.md, "The pixel filter").
-//!
-//! **Regularisers.** `--coarse-to-fine START,END` opens the position encoding's octaves
-//! ([`CoarseToFine`]) from the fraction START of training to END (END > 1 leaves the
-//! highest ones closed); `--view-dependence off` drops the view direction from the colour
-//! head; `--regnerf on` adds RegNeRF's depth smoothness on patches seen from random
-//! cameras around the training ones (weight `--regnerf-weight START,END`, default
-//! `400,0.1`, over the first 512 steps) and anneals the stratified range.
-//!
-//! **Output** in `--out DIR` (default `target/nerf`):
-//! - `metrics.json`: `psnr`, `ssim` (means over the held-out views), `train_seconds`
-//!   (evaluation excluded), `steps`, `samples_per_ray`, `sampler`, `encoding`,
-//!   `eval_split`, `eval_views`, `eval_supersample`, `pixel_filter`, `jitter`,
-//!   `train_supersample`, `march_jitter`, `coarse_to_fine` (`[START, END]` or null),
-//!   `view_dependence`, `alpha_threshold`, `proposal_samples`, `data`;
-//! - `curve.csv`: `step,train_seconds,psnr` every `--eval-every` steps (PSNR on the first
-//!   `--eval-views` held-out views) and at the end;
-//! - `view_{i}.png` (truth | prediction | error), `depth_{i}.png`, `opacity_{i}.png` for
-//!   the first `--pictures` held-out views;
-//! - `weights.safetensors`, which `--resume FILE` loads to continue training.
-//!
-//! A NaN or infinity in the loss, a gradient or a weight stops the run with an error naming
-//! the step and the tensor. Past runs and their commands are in docs/benchmarks.md. The
-//! example uses mimalloc (see `examples/tiny_nerf.rs`).
+//! **Output** in `--out` (default `target/nerf`): `metrics.json` (`psnr`, `ssim`,
+//! `train_seconds` without evaluations, `steps`, `samples_per_ray`, `sampler`, `encoding`,
+//! `eval_split`, `eval_views`, `eval_supersample`, `pixel_filter`, `jitter`,
+//! `train_supersample`, `march_jitter`, `coarse_to_fine`, `view_dependence`,
+//! `alpha_threshold`, `proposal_samples`, `data`); `curve.csv` (`step,train_seconds,psnr`
+//! every `--eval-every` steps on `--eval-views` views, and at the end); `view_{i}.png`
+//! (truth | prediction | error), `depth_{i}.png`, `opacity_{i}.png` for `--pictures`
+//! views; `weights.safetensors`, which `--resume` loads. A NaN or infinity in the loss, a
+//! gradient or a weight stops the run naming the step and the tensor. Past runs and their
+//! commands: docs/benchmarks.md. Uses mimalloc (see `examples/tiny_nerf.rs`).
 
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+use candle_nn::{Optimizer, VarBuilder, VarMap};
 use clap::{Parser, ValueEnum};
 use neural_fields::camera::{cameras_around, ray_aabb, Camera, PixelFilter, Rays};
 use neural_fields::data::{
-    colorize_depth, comparison_strip, load, psnr, ssim, write_png, Background, Bounds, Dataset,
+    colorize_depth, comparison_strip, load, load_eval, psnr, ssim, write_png, Background, Dataset,
     LoadConfig, RaySampler, Split,
 };
 use neural_fields::encoding::{
     hash_grid, CoarseToFine, FrequencyEncoding, HashGridConfig, PointEncoding,
 };
 use neural_fields::glam::DVec2;
-use neural_fields::nn::{build_seeded, mlp, nerf, Mlp, MlpConfig, Nerf, NerfConfig};
+use neural_fields::nn::{
+    adam, build_seeded, mlp, nerf, Budget, Clock, FiniteGuard, Mlp, MlpConfig, Nerf, NerfConfig,
+};
 use neural_fields::volume::{
     anneal_near_far, composite, depth_smoothness, interlevel_loss, log_linear_schedule,
     proposal_sample, render_image, render_weights, stratified, trunc_exp, Composite,
@@ -609,12 +582,12 @@ fn run(args: &Args) -> Result<()> {
         path: args.out.display().to_string(),
         source,
     })?;
-    let aabb = scene_box(&train, args.aabb);
+    let aabb = train.scene_box(args.aabb);
     let diag = (0..3)
         .map(|a| (aabb[a + 3] - aabb[a]).powi(2))
         .sum::<f64>()
         .sqrt();
-    let finest = args.hash_finest.unwrap_or_else(|| hash_finest(&train));
+    let finest = args.hash_finest.unwrap_or_else(|| train.hash_finest());
     let mut varmap = VarMap::new();
     let windows = std::cell::RefCell::new(Vec::new());
     let net = build_seeded(&varmap, dtype, &device, args.seed, |vb| {
@@ -853,136 +826,6 @@ fn main() -> std::process::ExitCode {
     }
 }
 
-/// A training budget: steps, or minutes of training (evaluations excluded).
-#[derive(Clone, Copy, Debug, PartialEq)]
-enum Budget {
-    Steps(usize),
-    Minutes(f64),
-}
-
-/// The budget spent so far, with evaluations kept off the clock.
-struct Clock {
-    budget: Budget,
-    start: std::time::Instant,
-    paused: f64,
-}
-
-impl Clock {
-    fn start(budget: Budget) -> Result<Self> {
-        Ok(Self {
-            budget,
-            start: std::time::Instant::now(),
-            paused: 0.0,
-        })
-    }
-    fn train_seconds(&self) -> f64 {
-        self.start.elapsed().as_secs_f64() - self.paused
-    }
-    fn progress(&self, step: usize) -> f64 {
-        match self.budget {
-            Budget::Steps(0) => 1.0,
-            Budget::Steps(n) => step as f64 / n as f64,
-            Budget::Minutes(m) => self.train_seconds() / (60.0 * m),
-        }
-    }
-    fn pause<T>(&mut self, f: impl FnOnce() -> T) -> T {
-        let t = std::time::Instant::now();
-        let out = f();
-        self.paused += t.elapsed().as_secs_f64();
-        out
-    }
-}
-
-/// Stops the run at the first NaN or infinity in the loss, a gradient or a weight.
-struct FiniteGuard(Vec<(String, candle_core::Var)>);
-
-impl FiniteGuard {
-    fn new(varmap: &VarMap) -> Self {
-        let data = varmap.data().lock().expect("an unpoisoned VarMap");
-        let mut vars: Vec<_> = data.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
-        vars.sort_by(|a, b| a.0.cmp(&b.0));
-        Self(vars)
-    }
-    fn check(
-        &self,
-        step: usize,
-        loss: &Tensor,
-        grads: Option<&candle_core::backprop::GradStore>,
-    ) -> Result<()> {
-        let finite = |t: &Tensor, what: String| -> Result<()> {
-            let s = t
-                .abs()?
-                .sum_all()?
-                .to_dtype(DType::F64)?
-                .to_scalar::<f64>()?;
-            if s.is_finite() {
-                return Ok(());
-            }
-            Err(Error::InvalidArgument {
-                arg: "training",
-                expected: "finite losses, gradients and weights".into(),
-                got: format!("a NaN or infinity in {what} at step {step}"),
-            })
-        };
-        finite(loss, "the loss".into())?;
-        for (name, var) in self.0.iter().filter(|_| grads.is_some()) {
-            if let Some(g) = grads.and_then(|g| g.get(var)) {
-                finite(g, format!("the gradient of {name}"))?;
-            }
-            finite(var.as_tensor(), format!("the weight {name}"))?;
-        }
-        Ok(())
-    }
-}
-
-fn adam(varmap: &VarMap, lr: f64) -> Result<AdamW> {
-    let params = ParamsAdamW {
-        lr,
-        weight_decay: 0.0,
-        ..ParamsAdamW::default()
-    };
-    Ok(AdamW::new(varmap.all_vars(), params)?)
-}
-
-/// The held-out split: `test`, or `val` for a layout without one.
-fn load_eval(dir: &Path, config: &LoadConfig) -> Result<(Dataset, Split)> {
-    let with = |split| LoadConfig {
-        split,
-        ..config.clone()
-    };
-    match load(dir, &with(Split::Test)) {
-        Ok(d) => Ok((d, Split::Test)),
-        Err(_) => Ok((load(dir, &with(Split::Val))?, Split::Val)),
-    }
-}
-
-/// The scene box: the layout's bounds, or the cube of half-side `half`.
-fn scene_box(data: &Dataset, half: f64) -> [f64; 6] {
-    match data.bounds() {
-        Some(Bounds::Aabb { min: a, max: b }) => [a[0], a[1], a[2], b[0], b[1], b[2]],
-        Some(Bounds::Sphere {
-            center: c,
-            radius: r,
-        }) => [c[0] - r, c[1] - r, c[2] - r, c[0] + r, c[1] + r, c[2] + r],
-        _ => [-half, -half, -half, half, half, half],
-    }
-}
-
-/// Five hash-grid cells per pixel of the images' larger side, at least 16.
-fn hash_finest(data: &Dataset) -> f64 {
-    let side = data
-        .views()
-        .iter()
-        .map(|v| {
-            v.camera()
-                .intrinsics()
-                .width
-                .max(v.camera().intrinsics().height)
-        })
-        .max();
-    (5.0 * side.unwrap_or(1) as f64).max(16.0)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1075,59 +918,39 @@ mod tests {
     fn flags_parse_as_documented() {
         let a = Args::default();
         assert_eq!(a.out, PathBuf::from("target/nerf"));
+        let counts = (a.rays, a.samples, a.eval_every, a.eval_views, a.pictures);
+        assert_eq!(counts, (1024, 64, 250, 4, 8));
+        assert_eq!((a.sampler, a.encoding), (Sampler::Grid, Encoding::Pe));
         assert_eq!(
-            (a.rays, a.samples, a.eval_every, a.eval_views, a.pictures),
-            (1024, 64, 250, 4, 8)
-        );
-        assert_eq!(
-            (a.sampler, a.encoding, a.background),
-            (Sampler::Grid, Encoding::Pe, BackgroundFlag::Random)
-        );
-        assert_eq!(
-            (a.regnerf_weight, a.proposal_samples, a.alpha_threshold),
-            ([400.0, 0.1], [16, 8], 1e-2)
+            (a.regnerf_weight, a.proposal_samples),
+            ([400.0, 0.1], [16, 8])
         );
         assert!(a.view_dependence && !a.jitter && !a.march_jitter && !a.regnerf);
         assert_eq!(a.budget().unwrap(), Budget::Minutes(10.0));
-        let b = Args::parse_from([
-            "nerf",
-            "--sampler",
-            "proposal",
-            "--frames",
-            "0,17,34",
-            "--jitter",
-            "on",
-            "--coarse-to-fine",
-            "0,3.5",
-            "--pixel-filter",
-            "cycles",
-            "--background",
-            "black",
-            "--proposal-samples",
-            "32,16",
-            "--steps",
-            "7",
-            "--encoding",
-            "hash",
-        ]);
-        assert_eq!(b.frames, Some(vec![0, 17, 34]));
+        let flags = "nerf --sampler proposal --frames 0,17,34 --jitter on --coarse-to-fine 0,3.5 \
+            --pixel-filter cycles --background black --proposal-samples 32,16 --steps 7";
+        let b = Args::parse_from(flags.split_whitespace());
         assert_eq!(
-            (b.coarse_to_fine, b.proposal_samples),
-            (Some((0.0, 3.5)), [32, 16])
+            (b.frames.clone(), b.proposal_samples),
+            (Some(vec![0, 17, 34]), [32, 16])
         );
-        assert_eq!(b.budget().unwrap(), Budget::Steps(7));
+        assert_eq!(
+            (b.coarse_to_fine, b.budget().unwrap()),
+            (Some((0.0, 3.5)), Budget::Steps(7))
+        );
         for bad in [
-            &["nerf", "--steps", "1", "--minutes", "2"][..],
-            &["nerf", "--jitter", "yes"],
-            &["nerf", "--coarse-to-fine", "0.5,0.2"],
-            &["nerf", "--proposal-samples", "16"],
+            "--steps 1 --minutes 2",
+            "--jitter yes",
+            "--coarse-to-fine 0.5,0.2",
         ] {
-            assert!(Args::try_parse_from(bad).is_err(), "{bad:?}");
+            let flags = std::iter::once("nerf").chain(bad.split_whitespace());
+            assert!(Args::try_parse_from(flags).is_err(), "{bad}");
         }
-        let zero = Args {
+        assert!(Args {
             rays: 0,
             ..Args::default()
-        };
-        assert!(zero.budget().is_err());
+        }
+        .budget()
+        .is_err());
     }
 }

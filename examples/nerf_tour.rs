@@ -1,10 +1,10 @@
 //! The crate tour's NeRF step: a whole trainer on the public API. `cargo run --release --example
 //! nerf_tour` trains on the committed scene, renders every test view, prints the mean PSNR.
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
+use candle_nn::{Optimizer, VarMap};
 use clap::Parser;
-use neural_fields::data::{load, psnr, write_png, LoadConfig, RaySampler, Split};
-use neural_fields::nn::{build_seeded, nerf, NerfConfig};
+use neural_fields::data::{load, load_eval, psnr, write_png, LoadConfig, RaySampler};
+use neural_fields::nn::{adam, build_seeded, nerf, NerfConfig};
 use neural_fields::volume::{composite, render_image, CompositeConfig, GridConfig};
 use neural_fields::volume::{GridMarchConfig, ImageConfig, OccupancyGrid};
 
@@ -20,15 +20,11 @@ struct Args {
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (args, dev, dt) = (Args::parse(), Device::Cpu, DType::F32);
-    let mut data = LoadConfig::default(); // white backgrounds
-    let train = load(&args.data, &data)?;
-    data.split = Split::Test;
-    let test = load(&args.data, &data)?;
+    let data = LoadConfig::default(); // white backgrounds
+    let (train, (test, _)) = (load(&args.data, &data)?, load_eval(&args.data, &data)?);
     let varmap = VarMap::new();
     let net = build_seeded(&varmap, dt, &dev, 0, |vb| nerf(&NerfConfig::default(), vb))?;
-    let mut params = ParamsAdamW::default();
-    (params.lr, params.weight_decay) = (1e-3, 0.0); // Adam
-    let mut adam = AdamW::new(varmap.all_vars(), params)?;
+    let mut adam = adam(&varmap, 1e-3)?;
     let mut cells = GridConfig::default();
     (cells.aabb, cells.resolution, cells.decay) = ([-1.5, -1.5, -1.5, 1.5, 1.5, 1.5], 64, 0.7);
     let mut grid = OccupancyGrid::new(cells)?;
@@ -41,11 +37,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         grid.update(step, 16, &dev, dt, &mut density)?;
         let batch = rays.pixels(1024)?;
         march.jitter = Some(step as u64);
-        let iv = grid
-            .sample(&batch.rays, &march, Some(&mut density))?
-            .intervals;
+        let kept = grid.sample(&batch.rays, &march, Some(&mut density))?;
         config.background = Some(batch.backgrounds);
-        let loss = net.color_loss(&batch.rays, &iv, &batch.colors, &config)?;
+        let loss = net.color_loss(&batch.rays, &kept.intervals, &batch.colors, &config)?;
         adam.backward_step(&loss)?;
     }
     (march.jitter, config.background) = (None, Some(Tensor::ones(3, dt, &dev)?));

@@ -764,8 +764,7 @@ fn sweep_nerf(s: &mut Suite) {
             // [1e-30, 2e-30]; targets in [0, 1].
             #[cfg(feature = "volume")]
             {
-                use neural_fields::camera::{Camera, Convention, Intrinsics, Rays};
-use neural_fields::glam::DVec3;
+                use neural_fields::camera::Rays;
                 use neural_fields::volume::{stratified, CompositeConfig, Jitter};
                 let t = |v: &[f64], shape: &[usize]| {
                     Tensor::from_slice(v, shape, &d)

@@ -351,7 +351,7 @@ pub fn accumulate(weights: &Tensor, values: &Tensor, layout: &Layout) -> Result<
 /// opacity changes by less than ε and the depth by less than ε·max tᵢ.
 ///
 /// Shapes: `sigmas` of the intervals' sample shape (`[R, S]` or `[M]`) → u8 of that shape
-/// (1 = keep). Use [`super::Packed::from_mask`] to turn a batched mask into a packed
+/// (1 = keep). Use [`super::Intervals::retain`] to keep the marked samples in the packed
 /// layout. The exclusive sums are one O(S) scan per ray in f64 on the host (the mask is
 /// read back by its users anyway), so every device gives the same mask.
 ///
