@@ -52,7 +52,6 @@ use neural_fields::data::{
 use neural_fields::encoding::{
     hash_grid, CoarseToFine, FrequencyEncoding, HashGridConfig, PointEncoding,
 };
-use neural_fields::glam::DVec2;
 use neural_fields::nn::{
     adam, build_seeded, mlp, nerf, Budget, Clock, FiniteGuard, Mlp, MlpConfig, Nerf, NerfConfig,
 };
@@ -474,19 +473,16 @@ fn regnerf_depth_smoothness(r: &Renderer, cameras: &[Camera], seed: u64) -> Resu
         let k = cam.intrinsics();
         let u0 = rng.below((k.width.saturating_sub(K) + 1) as u64) as f64;
         let v0 = rng.below((k.height.saturating_sub(K) + 1) as u64) as f64;
-        for i in 0..K {
-            for j in 0..K {
-                let (origin, dir) = cam.ray(DVec2::new(u0 + j as f64 + 0.5, v0 + i as f64 + 0.5));
-                o.extend_from_slice(&origin.to_array());
-                d.extend_from_slice(&dir.to_array());
-            }
-        }
+        let pixels: Vec<f64> = (0..K * K)
+            .flat_map(|p| [u0 + (p % K) as f64 + 0.5, v0 + (p / K) as f64 + 0.5])
+            .collect();
+        let pixels = Tensor::from_vec(pixels, (K * K, 2), &Device::Cpu)?.to_dtype(DType::F32)?;
+        let patch = cam.rays_for_pixels(&pixels)?;
+        o.push(patch.origins().clone());
+        d.push(patch.directions().clone());
     }
     let n = PATCHES * K * K;
-    let rays = Rays::new(
-        Tensor::from_vec(o, (n, 3), &Device::Cpu)?.to_dtype(DType::F32)?,
-        Tensor::from_vec(d, (n, 3), &Device::Cpu)?.to_dtype(DType::F32)?,
-    )?;
+    let rays = Rays::new(Tensor::cat(&o, 0)?, Tensor::cat(&d, 0)?)?;
     let black = Tensor::zeros((n, 3), DType::F32, &Device::Cpu)?;
     let (out, _, _) = r.render(&rays, &black, Some(seed))?;
     let depth = out.normalized_depth(1e-6)?.reshape((PATCHES, K, K))?;
