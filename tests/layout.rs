@@ -587,7 +587,7 @@ const KNOWN_UPWARD: &[&str] = &[
     "nn/fused_mlp.rs imports parallel.rs",
     "nn/nerf.rs imports camera/rays.rs",
     "nn/nerf.rs imports volume/activations.rs",
-    "nn/nerf.rs imports volume/composite.rs",
+    "nn/nerf.rs imports volume/compositing.rs",
     "nn/nerf.rs imports volume/layout.rs",
     "nn/texture.rs imports texture/mod.rs",
     "numerics.rs imports parallel.rs",
