@@ -72,8 +72,8 @@ impl Default for ImageConfig {
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `config.supersample` unless in `1..=64`,
-/// `config.chunk` when 0, `dtype` unless f32 or f64, `filter` as
-/// [`PixelFilter::validate`]; naming `render` when an output is not float, or not `[n]`
+/// `config.chunk` when 0, `dtype` unless f32 or f64, `filter` for a Blackman–Harris
+/// half width outside `(0, 64]`; naming `render` when an output is not float, or not `[n]`
 /// or `[n, C]` for its chunk of `n` rays; whatever `render` returns.
 pub fn render_image<const N: usize, F>(
     camera: &Camera,
