@@ -35,6 +35,24 @@ const MLP: &[&str] = &[
 const EXEMPT: &[(&str, &str)] = &[
     ("nn::SeededBackend::", "private"),
     (
+        "nn::adam",
+        "one scalar, refused unless positive and finite (tests/nn_training.rs)",
+    ),
+    (
+        "nn::Clock::",
+        "wall time and step counts; a budget of minutes is refused unless positive and \
+         finite (tests/nn_training.rs)",
+    ),
+    (
+        "nn::FiniteGuard::",
+        "its input is checked for NaN and infinity, which it reports by name \
+         (tests/nn_training.rs feeds it both)",
+    ),
+    (
+        "nn::Budget",
+        "an enum of a count or minutes, checked by Clock::start",
+    ),
+    (
         "nn::build_seeded",
         "integer seed; its draws are swept via the Mlp cases",
     ),
