@@ -191,18 +191,15 @@ fn main() -> neural_fields::Result<()> {
             })
         }
         "hash_grid" => {
-            let grid = build_seeded(&varmap, DType::F32, &dev, 0, |vb| {
-                hash_grid(&HashGridConfig::default(), vb)
-            })?;
+            let config = HashGridConfig {
+                force_reference: args.reference,
+                ..HashGridConfig::default()
+            };
+            let grid = build_seeded(&varmap, DType::F32, &dev, 0, |vb| hash_grid(&config, vb))?;
             let points = uniform(&[1 << 18, 3], -1.0, 1.0, 7);
             let c = uniform(&[grid.out_dim(), 1], -1.0, 1.0, 8);
-            let reference = args.reference;
             Box::new(move |_| {
-                let y = if reference {
-                    grid.forward_reference(&points)?
-                } else {
-                    grid.forward(&points)?
-                };
+                let y = grid.forward(&points)?;
                 Ok(y.matmul(&c)?.sqr()?.mean_all()?)
             })
         }

@@ -464,10 +464,12 @@ impl Net {
                 let k = y.dim(1)?;
                 let normal = jac.narrow(2, 0, 1)?.squeeze(2)?;
                 let feature = y.narrow(1, 1, k - 1)?;
-                let input = TextureInput::new(points)
-                    .normals(&normal)
-                    .view_dirs(dirs)
-                    .features(&feature);
+                let input = TextureInput {
+                    normals: Some(&normal),
+                    view_dirs: Some(dirs),
+                    features: Some(&feature),
+                    ..TextureInput::new(points)
+                };
                 Ok(Shaded {
                     rgb: render.rgb(&input)?,
                     gradient: Some(normal),

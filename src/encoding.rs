@@ -1,8 +1,9 @@
 //! Input encodings: frequency positional encoding, Gaussian Fourier features, the
 //! integrated positional encoding of mip-NeRF, and instant-NGP's multiresolution hash
-//! grid ([`HashGrid`], learned tables); and, in [`grid_sample`], bilinear/trilinear
-//! sampling of feature planes and grids with scatter pooling of point features into
-//! cells (Convolutional Occupancy Networks).
+//! grid ([`HashGrid`], learned tables); BARF's coarse-to-fine window over an encoding's
+//! bands ([`CoarseToFine`]); and bilinear/trilinear sampling of feature planes and grids
+//! ([`grid_sample`]) with scatter pooling of point features into cells ([`scatter`]), the
+//! pieces of Convolutional Occupancy Networks.
 //!
 //! Every encoding maps `x: [N, D]` to `γ(x): [N, E]` and can push tangents forward
 //! ([`Encoding::forward_jvp`]), which is how [`crate::nn::Mlp`] obtains spatial
@@ -11,8 +12,8 @@
 //! Accuracy: the arguments `2ᵏπx` grow with the frequency, and a naive `sin(π·2ᵏ·x)` in
 //! f32 rounds the product to an absolute error of about `2ᵏ·|x|·6e-8` (3e-4 at
 //! `k = 9`, `|x| = π`). Here `2ᵏx` is formed exactly (a power of two) and reduced
-//! exactly before the multiplication by π ([`crate::numerics::sin_pi`]), and encodings
-//! without π use the Cody–Waite [`crate::numerics::safe_sin`], so f32 encodings match an
+//! exactly before the multiplication by π ([`crate::numerics::sin_cos_pi`]), and encodings
+//! without π use the Cody–Waite [`crate::numerics::safe_sin_cos`], so f32 encodings match an
 //! f64 reference to about 1e-6 at every frequency.
 //!
 //! ```
@@ -25,15 +26,18 @@
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 
-pub mod coarse_to_fine;
-pub mod grid_sample;
-pub mod hash_grid;
+mod coarse_to_fine;
+mod feature_grid;
+mod hash;
 
 pub use coarse_to_fine::{coarse_to_fine_weights, CoarseToFine};
-pub use hash_grid::{hash_grid, HashGrid, HashGridConfig};
+pub use feature_grid::{
+    cell_index, grid_sample, scatter, GridSampleConfig, Pooling, ScatterConfig,
+};
+pub use hash::{hash_grid, HashGrid, HashGridConfig};
 
 use crate::error::{check_float, check_same, check_scalar, check_shape, Dim, Error, Result};
-use crate::numerics::{cos_pi, round_to_integer, safe_cos, safe_sin, sin_pi};
+use crate::numerics::{round_to_integer, safe_sin_cos, sin_cos_pi};
 use crate::rng::SplitMix64;
 use candle_core::{DType, Device, Tensor};
 
@@ -128,8 +132,7 @@ impl FrequencyEncoding {
     }
 
     /// The number of frequencies `L`.
-    #[must_use]
-    pub fn n_freqs(&self) -> usize {
+    pub(crate) fn n_freqs(&self) -> usize {
         self.n_freqs
     }
 
@@ -146,9 +149,9 @@ impl FrequencyEncoding {
     /// `sin(ωy)`, `cos(ωy)` for the scaled arguments `y`, accurately.
     fn sin_cos(&self, y: &Tensor) -> Result<(Tensor, Tensor)> {
         if self.use_pi {
-            Ok((sin_pi(y)?, cos_pi(y)?))
+            sin_cos_pi(y)
         } else {
-            Ok((safe_sin(y)?, safe_cos(y)?))
+            safe_sin_cos(y)
         }
     }
 
@@ -222,8 +225,8 @@ impl Encoding for FrequencyEncoding {
 /// (no intermediate `[N, L, D]` tensors) and the backward pass
 /// `∂L/∂x_d = ḡ_{x_d} + Σ_k π2ᵏ (ḡ_{sin,k,d} cos(π2ᵏx_d) − ḡ_{cos,k,d} sin(π2ᵏx_d))`,
 /// recomputing the sines and cosines. The argument is reduced exactly, as
-/// [`crate::numerics::sin_pi`] does, and the sine and cosine come from one branch-free
-/// polynomial pass in f64 ([`sin_cos_pi`]), which the compiler vectorises; f32 inputs
+/// [`crate::numerics::sin_cos_pi`] does, and the sine and cosine come from one branch-free
+/// polynomial pass in f64 ([`sin_cos_pi_slices`]), which the compiler vectorises; f32 inputs
 /// are widened (exactly) and the results rounded once, so they are at least as accurate as
 /// the reference path's f32 `sin(π·r)`.
 #[derive(Clone)]
@@ -232,11 +235,11 @@ struct FusedFrequency(FrequencyEncoding);
 /// Rows per work item of the fused encoding (its f64 scratch stays in L2).
 const ENCODE_ROWS: usize = 256;
 
-/// The loop of [`sin_cos_pi`], inlined into each instruction-set build.
+/// The loop of [`sin_cos_pi_slices`], inlined into each instruction-set build.
 // The coefficients are written with the decimals they were published with.
 #[allow(clippy::excessive_precision)]
 #[inline(always)]
-fn sin_cos_pi_body(y: &[f64], s: &mut [f64], c: &mut [f64]) {
+fn sin_cos_pi_slices_body(y: &[f64], s: &mut [f64], c: &mut [f64]) {
     const S: [f64; 6] = [
         -1.666_666_666_666_663_243_48e-1,
         8.333_333_333_322_489_461_24e-3,
@@ -279,16 +282,16 @@ fn sin_cos_pi_body(y: &[f64], s: &mut [f64], c: &mut [f64]) {
 /// and negates them. Rounding to an integer is [`crate::numerics::round_to_integer`], so
 /// the loop has no calls and no branches; it runs compiled for AVX-512 or AVX2 where
 /// the CPU has them.
-fn sin_cos_pi(y: &[f64], s: &mut [f64], c: &mut [f64]) {
+fn sin_cos_pi_slices(y: &[f64], s: &mut [f64], c: &mut [f64]) {
     #[cfg(target_arch = "x86_64")]
     {
         #[target_feature(enable = "avx512f,avx512dq,avx512vl,fma")]
         fn avx512(y: &[f64], s: &mut [f64], c: &mut [f64]) {
-            sin_cos_pi_body(y, s, c)
+            sin_cos_pi_slices_body(y, s, c)
         }
         #[target_feature(enable = "avx2,fma")]
         fn avx2(y: &[f64], s: &mut [f64], c: &mut [f64]) {
-            sin_cos_pi_body(y, s, c)
+            sin_cos_pi_slices_body(y, s, c)
         }
         use std::arch::is_x86_feature_detected as has;
         if has!("avx512f") && has!("avx512dq") && has!("avx512vl") && has!("fma") {
@@ -300,7 +303,7 @@ fn sin_cos_pi(y: &[f64], s: &mut [f64], c: &mut [f64]) {
             return unsafe { avx2(y, s, c) };
         }
     }
-    sin_cos_pi_body(y, s, c)
+    sin_cos_pi_slices_body(y, s, c)
 }
 
 /// Per-worker scratch of the fused encoding: arguments, sines, cosines.
@@ -329,7 +332,7 @@ impl FusedFrequency {
                 scale *= 2.0;
             }
         }
-        sin_cos_pi(&t.0[..m], &mut t.1[..m], &mut t.2[..m]);
+        sin_cos_pi_slices(&t.0[..m], &mut t.1[..m], &mut t.2[..m]);
         m
     }
 
@@ -521,14 +524,15 @@ impl Encoding for FourierFeatures {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         check_input(x, self.in_dim())?;
         let v = self.twice_projection(x)?;
-        Ok(Tensor::cat(&[sin_pi(&v)?, cos_pi(&v)?], 1)?)
+        let (s, c) = sin_cos_pi(&v)?;
+        Ok(Tensor::cat(&[s, c], 1)?)
     }
 
     fn forward_jvp(&self, x: &Tensor, dx: &Tensor) -> Result<(Tensor, Tensor)> {
         let n = check_input(x, self.in_dim())?;
         let k = check_tangents(x, dx, n, self.in_dim())?;
         let v = self.twice_projection(x)?;
-        let (s, c) = (sin_pi(&v)?, cos_pi(&v)?);
+        let (s, c) = sin_cos_pi(&v)?;
         let bt = self.b.to_device(x.device())?.to_dtype(x.dtype())?.t()?;
         let f = bt.dim(1)?;
         // d(2Bx) = 2B dx; d sin(π·2Bx) = 2π cos(2πBx) B dx.
@@ -743,7 +747,7 @@ pub fn integrated_pe(
     let mu = means.unsqueeze(1)?.broadcast_mul(&s)?; // [N, L, D]
     let var = variances.unsqueeze(1)?.broadcast_mul(&s2)?;
     let damp = var.affine(-0.5, 0.0)?.exp()?;
-    let sin = (safe_sin(&mu)? * &damp)?;
-    let cos = (safe_cos(&mu)? * &damp)?;
+    let (sin, cos) = safe_sin_cos(&mu)?;
+    let (sin, cos) = ((sin * &damp)?, (cos * &damp)?);
     Ok(Tensor::cat(&[sin, cos], 2)?.reshape((n, 2 * l * d))?)
 }

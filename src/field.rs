@@ -174,12 +174,6 @@ impl<'a, F: ConditionalField + ?Sized> Conditioned<'a, F> {
         Ok(Self { field, code })
     }
 
-    /// The bound code.
-    #[must_use]
-    pub fn code(&self) -> &Tensor {
-        &self.code
-    }
-
     fn codes_for(&self, points: &Tensor) -> Result<Tensor> {
         let n = check_points(points, "points")?;
         check_same(&self.code, "code", points, "points")?;

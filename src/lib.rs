@@ -52,7 +52,7 @@
 //!
 //! **3. Encodings.** [`encoding::FrequencyEncoding`] (NeRF), [`encoding::FourierFeatures`]
 //! (Tancik et al.) and [`encoding::integrated_pe`] (mip-NeRF), accurate in f32 at every
-//! frequency thanks to exact argument reduction ([`numerics::sin_pi`]), and
+//! frequency thanks to exact argument reduction ([`numerics::sin_cos_pi`]), and
 //! [`encoding::HashGrid`] (instant-NGP), whose learned tables train in a fused CPU op
 //! with a deterministic gradient.
 //!
@@ -116,10 +116,10 @@
 //! work bounded by the file's size, concave polygons ear-clipped), [`mesh::PointCloud`]
 //! holds scans (points with normals and colours), and [`mesh::points_to_tensor`] moves
 //! host points to any device and dtype; the `mesh` module is always built. With the
-//! `occupancy` feature, [`occupancy::mise()`] extracts the surface of any implicit field
-//! (evaluating it only near the surface) with watertight [`occupancy::marching_cubes()`],
-//! and [`occupancy::metrics`] computes ONet's IoU, Chamfer-L1, normal consistency and
-//! F-score. See `examples/fit_occupancy.rs`.
+//! `occupancy` feature, [`occupancy::mise`] extracts the surface of any implicit field
+//! (evaluating it only near the surface) with watertight [`occupancy::marching_cubes`],
+//! and [`occupancy::iou`] and [`occupancy::mesh_metrics`] compute ONet's IoU,
+//! Chamfer-L1, normal consistency and F-score. See `examples/fit_occupancy.rs`.
 //!
 //! **8. Texture fields** (feature `texture`). A [`texture::TextureField`] colours surface
 //! points from whatever it reads of a [`texture::TextureInput`] (normals, view directions,

@@ -32,35 +32,24 @@ fn reduce_two_pi(x: &Tensor) -> Result<Tensor> {
     Ok((r - k.affine(TWO_PI_3, 0.0)?)?)
 }
 
-/// Range-reduced sine: `sin(x)` accurate for large `|x|`.
+/// Range-reduced sine and cosine: `(sin(x), cos(x))`, accurate for large `|x|`.
 ///
-/// The argument is reduced in f64 by a three-part Cody–Waite reduction,
+/// The argument is reduced once, in f64, by a three-part Cody–Waite reduction,
 /// `r = x − k·C₁ − k·C₂ − k·C₃` with `k = round(x/2π)` and `C₁ + C₂ + C₃ = 2π`, before
-/// `sin(r)` is taken, so the result is accurate to about 1e-15 (absolute, before rounding
-/// to the input dtype) for `|x| ≤ 10¹⁰`, on every backend — including GPUs whose fast
-/// `sin` loses accuracy as the argument grows. An f32 input is reduced exactly as the
+/// `sin(r)` and `cos(r)` are taken, so both are accurate to about 1e-15 (absolute, before
+/// rounding to the input dtype) for `|x| ≤ 10¹⁰`, on every backend — including GPUs whose
+/// fast `sin` loses accuracy as the argument grows. An f32 input is reduced exactly as the
 /// f32 number it is.
 ///
-/// * `x`: any shape, f32 or f64. Output: same shape and dtype.
-/// * Differentiable w.r.t. `x`: `d/dx = cos(x)`.
+/// * `x`: any shape, f32 or f64. Outputs: same shape and dtype.
+/// * Differentiable w.r.t. `x`: `d sin/dx = cos(x)`, `d cos/dx = −sin(x)`.
 ///
 /// # Errors
 /// `x` not f32/f64.
-pub fn safe_sin(x: &Tensor) -> Result<Tensor> {
+pub fn safe_sin_cos(x: &Tensor) -> Result<(Tensor, Tensor)> {
     let dtype = check_float(x, "x")?;
-    Ok(reduce_two_pi(x)?.sin()?.to_dtype(dtype)?)
-}
-
-/// Range-reduced cosine: `cos(x)`; see [`safe_sin`] for the reduction and accuracy.
-///
-/// * `x`: any shape, f32 or f64. Output: same shape and dtype.
-/// * Differentiable w.r.t. `x`: `d/dx = −sin(x)`.
-///
-/// # Errors
-/// `x` not f32/f64.
-pub fn safe_cos(x: &Tensor) -> Result<Tensor> {
-    let dtype = check_float(x, "x")?;
-    Ok(reduce_two_pi(x)?.cos()?.to_dtype(dtype)?)
+    let r = reduce_two_pi(x)?;
+    Ok((r.sin()?.to_dtype(dtype)?, r.cos()?.to_dtype(dtype)?))
 }
 
 /// Exact reduction for `sin(πx)` and `cos(πx)`: `r = x − 2·round(x/2) ∈ [−1, 1]`.
@@ -72,34 +61,23 @@ fn reduce_two(x: &Tensor) -> Result<Tensor> {
     Ok((x - k2)?)
 }
 
-/// `sin(πx)` with exact argument reduction in the input dtype.
+/// `(sin(πx), cos(πx))` with exact argument reduction in the input dtype.
 ///
 /// Computing `sin(π·x)` naively rounds the product `π·x`, an absolute error of about
-/// `|x|·ε` (0.25 rad for f32 at `x = 2²⁰`); here `x` is first reduced exactly to
+/// `|x|·ε` (0.25 rad for f32 at `x = 2²⁰`); here `x` is first reduced exactly, once, to
 /// `r = x − 2·round(x/2) ∈ [−1, 1]` and only `π·r` is rounded, so the error stays at
 /// a few ulps of 1 for every `x`. This is what makes positional encodings with
 /// `2ᵏπx` accurate in f32 (see [`crate::encoding`]).
 ///
-/// * `x`: any shape, f32 or f64. Output: same shape and dtype.
-/// * Differentiable w.r.t. `x`: `d/dx = π·cos(πx)`.
+/// * `x`: any shape, f32 or f64. Outputs: same shape and dtype.
+/// * Differentiable w.r.t. `x`: `d sin(πx)/dx = π·cos(πx)`, `d cos(πx)/dx = −π·sin(πx)`.
 ///
 /// # Errors
 /// `x` not f32/f64.
-pub fn sin_pi(x: &Tensor) -> Result<Tensor> {
+pub fn sin_cos_pi(x: &Tensor) -> Result<(Tensor, Tensor)> {
     check_float(x, "x")?;
-    Ok(reduce_two(x)?.affine(std::f64::consts::PI, 0.0)?.sin()?)
-}
-
-/// `cos(πx)` with exact argument reduction; see [`sin_pi`].
-///
-/// * `x`: any shape, f32 or f64. Output: same shape and dtype.
-/// * Differentiable w.r.t. `x`: `d/dx = −π·sin(πx)`.
-///
-/// # Errors
-/// `x` not f32/f64.
-pub fn cos_pi(x: &Tensor) -> Result<Tensor> {
-    check_float(x, "x")?;
-    Ok(reduce_two(x)?.affine(std::f64::consts::PI, 0.0)?.cos()?)
+    let r = reduce_two(x)?.affine(std::f64::consts::PI, 0.0)?;
+    Ok((r.sin()?, r.cos()?))
 }
 
 /// Logistic sigmoid `σ(x) = 1 / (1 + e^{−x})`, computed without overflow.
@@ -613,8 +591,8 @@ mod tests {
     fn safe_sin_is_accurate_for_huge_f32_arguments() -> Result<()> {
         let xs: Vec<f32> = vec![0.0, 1.0, -3.5, 1e4, 3.3e7, -7.77e8, 1e10, -1e10, 123456.78];
         let t = Tensor::new(xs.as_slice(), &Device::Cpu)?;
-        let s = vec64(&safe_sin(&t)?);
-        let c = vec64(&safe_cos(&t)?);
+        let (s, c) = safe_sin_cos(&t)?;
+        let (s, c) = (vec64(&s), vec64(&c));
         for (i, &x) in xs.iter().enumerate() {
             let x = f64::from(x);
             assert!(
@@ -636,7 +614,7 @@ mod tests {
     #[test]
     fn sin_pi_of_large_integers_is_zero() -> Result<()> {
         let t = Tensor::new(&[1e6f32, 2f32.powi(20) + 1.0, 3.0], &Device::Cpu)?;
-        for v in vec64(&sin_pi(&t)?) {
+        for v in vec64(&sin_cos_pi(&t)?.0) {
             assert!(v.abs() < 1e-6, "{v}");
         }
         Ok(())

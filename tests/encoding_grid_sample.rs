@@ -7,12 +7,54 @@ mod common;
 
 use candle_core::{DType, Device, Tensor, Var};
 use common::v64;
-use neural_fields::encoding::grid_sample::{
-    cell_index, grid_sample, grid_sample_reference, scatter_max, scatter_max_reference,
-    scatter_mean,
+use neural_fields::encoding::{
+    cell_index, grid_sample, scatter, GridSampleConfig, Pooling, ScatterConfig,
 };
 use neural_fields::rng::SplitMix64;
 use proptest::prelude::*;
+
+/// `grid_sample` on the fused path (the default configuration).
+fn fused_sample(features: &Tensor, coords: &Tensor) -> neural_fields::Result<Tensor> {
+    grid_sample(features, coords, &GridSampleConfig::default())
+}
+
+/// `grid_sample` on the reference path (`force_reference`).
+fn reference_sample(features: &Tensor, coords: &Tensor) -> neural_fields::Result<Tensor> {
+    grid_sample(
+        features,
+        coords,
+        &GridSampleConfig {
+            force_reference: true,
+        },
+    )
+}
+
+/// `scatter` with the mean.
+fn mean_pool(values: &Tensor, index: &Tensor, cells: usize) -> neural_fields::Result<Tensor> {
+    scatter(values, index, cells, &ScatterConfig::default())
+}
+
+/// `scatter` with the maximum on the fused path.
+fn max_pool(values: &Tensor, index: &Tensor, cells: usize) -> neural_fields::Result<Tensor> {
+    let config = ScatterConfig {
+        pooling: Pooling::Max,
+        force_reference: false,
+    };
+    scatter(values, index, cells, &config)
+}
+
+/// `scatter` with the maximum on the reference path (`force_reference`).
+fn max_pool_reference(
+    values: &Tensor,
+    index: &Tensor,
+    cells: usize,
+) -> neural_fields::Result<Tensor> {
+    let config = ScatterConfig {
+        pooling: Pooling::Max,
+        force_reference: true,
+    };
+    scatter(values, index, cells, &config)
+}
 
 /// A problem: features `[B, C, spatial…]` and coordinates `[B, N, k]` as host values.
 #[derive(Clone, Debug)]
@@ -70,7 +112,7 @@ impl Problem {
             x: x.to_vec(),
             ..self.clone()
         };
-        let y = grid_sample(&p.features(DType::F64), &p.coords(DType::F64)).unwrap();
+        let y = fused_sample(&p.features(DType::F64), &p.coords(DType::F64)).unwrap();
         (y * self.weights(DType::F64))
             .unwrap()
             .sum_all()
@@ -84,9 +126,9 @@ impl Problem {
         let fv = Var::from_tensor(&self.features(dtype)).unwrap();
         let xv = Var::from_tensor(&self.coords(dtype)).unwrap();
         let y = if reference {
-            grid_sample_reference(fv.as_tensor(), xv.as_tensor()).unwrap()
+            reference_sample(fv.as_tensor(), xv.as_tensor()).unwrap()
         } else {
-            grid_sample(fv.as_tensor(), xv.as_tensor()).unwrap()
+            fused_sample(fv.as_tensor(), xv.as_tensor()).unwrap()
         };
         let g = (&y * self.weights(dtype))
             .unwrap()
@@ -253,7 +295,7 @@ proptest! {
         let w: Vec<f64> = (0..b * cells * c).map(|i| ((i * 37) % 11) as f64 - 5.0).collect();
         let w = Tensor::from_vec(w, (b, cells, c), &Device::Cpu).unwrap();
         type Op = fn(&Tensor, &Tensor, usize) -> neural_fields::Result<Tensor>;
-        for op in [scatter_mean as Op, scatter_max as Op, scatter_max_reference as Op] {
+        for op in [mean_pool as Op, max_pool as Op, max_pool_reference as Op] {
             let loss = |v: &[f64]| {
                 let t = Tensor::from_vec(v.to_vec(), (b, n, c), &Device::Cpu).unwrap();
                 (op(&t, &index, cells).unwrap() * &w).unwrap().sum_all().unwrap()
@@ -348,9 +390,9 @@ fn border_derivatives_are_the_documented_one_sided_values() {
             let x =
                 Var::from_tensor(&Tensor::new(&[[[c, 0.5f64]]], &Device::Cpu).unwrap()).unwrap();
             let y = if reference {
-                grid_sample_reference(&f, x.as_tensor()).unwrap()
+                reference_sample(&f, x.as_tensor()).unwrap()
             } else {
-                grid_sample(&f, x.as_tensor()).unwrap()
+                fused_sample(&f, x.as_tensor()).unwrap()
             };
             let g = v64(y
                 .sum_all()
@@ -456,15 +498,15 @@ fn scatters_match_brute_force_and_the_tie_rule() {
         }
     }
     let var = Var::from_vec(v.clone(), (b, n, c), &Device::Cpu).unwrap();
-    let got = v64(&scatter_mean(var.as_tensor(), &index, cells).unwrap());
+    let got = v64(&mean_pool(var.as_tensor(), &index, cells).unwrap());
     assert!(max_diff(&got, &mean) < 1e-12);
     for dtype in [DType::F64, DType::F32] {
         let var = Var::from_tensor(&var.as_tensor().to_dtype(dtype).unwrap()).unwrap();
         for reference in [false, true] {
             let y = if reference {
-                scatter_max_reference(var.as_tensor(), &index, cells).unwrap()
+                max_pool_reference(var.as_tensor(), &index, cells).unwrap()
             } else {
-                scatter_max(var.as_tensor(), &index, cells).unwrap()
+                max_pool(var.as_tensor(), &index, cells).unwrap()
             };
             assert_eq!(v64(&y), max, "reference {reference}");
             let w: Vec<f64> = (0..b * cells * c).map(|i| 1.0 + i as f64).collect();
@@ -528,9 +570,9 @@ fn zero_points_give_empty_results() {
     let x = Tensor::zeros((2, 0, 2), DType::F64, &Device::Cpu).unwrap();
     for reference in [false, true] {
         let y = if reference {
-            grid_sample_reference(f.as_tensor(), &x).unwrap()
+            reference_sample(f.as_tensor(), &x).unwrap()
         } else {
-            grid_sample(f.as_tensor(), &x).unwrap()
+            fused_sample(f.as_tensor(), &x).unwrap()
         };
         assert_eq!(y.dims(), &[2, 0, 3]);
         let g = y.sum_all().unwrap().backward().unwrap();
@@ -541,9 +583,9 @@ fn zero_points_give_empty_results() {
     let v = Tensor::zeros((2, 0, 3), DType::F32, &Device::Cpu).unwrap();
     let i = Tensor::zeros((2, 0), DType::U32, &Device::Cpu).unwrap();
     for y in [
-        scatter_mean(&v, &i, 5).unwrap(),
-        scatter_max(&v, &i, 5).unwrap(),
-        scatter_max_reference(&v, &i, 5).unwrap(),
+        mean_pool(&v, &i, 5).unwrap(),
+        max_pool(&v, &i, 5).unwrap(),
+        max_pool_reference(&v, &i, 5).unwrap(),
     ] {
         assert_eq!(y.dims(), &[2, 5, 3]);
         assert!(v64(&y).iter().all(|&x| x == 0.0));
@@ -566,24 +608,24 @@ fn bad_inputs_are_errors_naming_the_argument() {
     let x = Tensor::full(0.5f32, (1, 4, 2), &d).unwrap();
     let nan = Tensor::new(&[[[0.5f32, f32::NAN]]], &d).unwrap();
     let cases: Vec<(neural_fields::Result<Tensor>, &str)> = vec![
-        (grid_sample(&f.flatten_all().unwrap(), &x), "features"),
+        (fused_sample(&f.flatten_all().unwrap(), &x), "features"),
         (
-            grid_sample(&Tensor::ones((1, 2, 0, 3), DType::F32, &d).unwrap(), &x),
+            fused_sample(&Tensor::ones((1, 2, 0, 3), DType::F32, &d).unwrap(), &x),
             "features",
         ),
         (
-            grid_sample(&f, &Tensor::full(0.5f32, (1, 4, 3), &d).unwrap()),
+            fused_sample(&f, &Tensor::full(0.5f32, (1, 4, 3), &d).unwrap()),
             "coords",
         ),
         (
-            grid_sample(&f, &Tensor::full(0.5f32, (2, 4, 2), &d).unwrap()),
+            fused_sample(&f, &Tensor::full(0.5f32, (2, 4, 2), &d).unwrap()),
             "coords",
         ),
-        (grid_sample(&f, &x.to_dtype(DType::F64).unwrap()), "coords"),
-        (grid_sample(&f, &nan), "coords"),
-        (grid_sample_reference(&f, &nan), "coords"),
+        (fused_sample(&f, &x.to_dtype(DType::F64).unwrap()), "coords"),
+        (fused_sample(&f, &nan), "coords"),
+        (reference_sample(&f, &nan), "coords"),
         (
-            grid_sample(&f.to_dtype(DType::U32).unwrap(), &x),
+            fused_sample(&f.to_dtype(DType::U32).unwrap(), &x),
             "features",
         ),
         (cell_index(&nan, 4), "coords"),
@@ -603,11 +645,7 @@ fn bad_inputs_are_errors_naming_the_argument() {
     let wrong_type = good.to_dtype(DType::F32).unwrap();
     let wrong_shape = Tensor::new(&[[0u32, 1]], &d).unwrap();
     type Op = fn(&Tensor, &Tensor, usize) -> neural_fields::Result<Tensor>;
-    for op in [
-        scatter_mean as Op,
-        scatter_max as Op,
-        scatter_max_reference as Op,
-    ] {
+    for op in [mean_pool as Op, max_pool as Op, max_pool_reference as Op] {
         assert!(op(&v, &good, 3).is_ok());
         for bad in [&far, &wrong_type, &wrong_shape] {
             assert_eq!(arg_of(op(&v, bad, 3).unwrap_err()), "index");

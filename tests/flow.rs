@@ -280,7 +280,7 @@ fn occupancy_flow_decodes_points_carried_back_to_time_zero() -> Result<()> {
             decoder: &decoder,
             velocity: &v,
             code: None,
-            solver: Solver::occupancy_flow(),
+            solver: Solver::default(),
             graph: Graph::Keep,
         };
         let p = SplitMix64::new(2).uniform_tensor(&[100, 3], -0.5, 0.5, dtype, &DEV)?;
@@ -379,7 +379,7 @@ fn correspondence_loss_is_the_mean_distance_with_finite_gradients_at_zero() -> R
 fn empty_point_sets_flow_to_empty_point_sets() -> Result<()> {
     let (_vm, v) = random_velocity(DType::F32, 0)?;
     let p = Tensor::zeros((0, 3), DType::F32, &DEV)?;
-    for solver in [Solver::Rk4 { steps: 3 }, Solver::occupancy_flow()] {
+    for solver in [Solver::Rk4 { steps: 3 }, Solver::default()] {
         let out = v.carry(&p, &[0.0, 1.0], None, &solver, Graph::Keep)?;
         assert_eq!(out.states[1].dims(), &[0, 3]);
     }
@@ -452,7 +452,7 @@ fn exploding_and_stiff_fields_end_in_an_error_not_an_endless_loop() -> Result<()
         blow_up,
         &y0,
         &[0.0, 2.0],
-        &Solver::occupancy_flow(),
+        &Solver::default(),
         Graph::Keep,
     ));
     assert!(
@@ -467,7 +467,7 @@ fn exploding_and_stiff_fields_end_in_an_error_not_an_endless_loop() -> Result<()
             y.clone()
         })
     };
-    for s in [Solver::Rk4 { steps: 8 }, Solver::occupancy_flow()] {
+    for s in [Solver::Rk4 { steps: 8 }, Solver::default()] {
         assert!(err_text(odeint(nan, &y0, &[0.0, 1.0], &s, Graph::Keep)).starts_with("f:"));
     }
     // y' = −10⁹ y needs ~10⁹ explicit steps: the step limit stops it.
@@ -535,7 +535,7 @@ fn a_nan_beside_finite_state_values_is_an_error_not_a_result() -> Result<()> {
         let mask = Tensor::new(&mask, &DEV)?;
         let y0 = Tensor::new(&[1.0f64, 2.0, 3.0], &DEV)?;
         let f = |_: f64, y: &Tensor| Ok(y.mul(&mask)?);
-        for s in [Solver::Rk4 { steps: 4 }, Solver::occupancy_flow()] {
+        for s in [Solver::Rk4 { steps: 4 }, Solver::default()] {
             let e = err_text(odeint(f, &y0, &[0.0, 1.0], &s, Graph::Keep));
             assert!(e.starts_with("f:"), "NaN at {position}, {s:?}: {e}");
         }

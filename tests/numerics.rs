@@ -6,7 +6,7 @@ mod common;
 use candle_core::{DType, Device, Tensor, Var};
 use common::{central_diff, v64};
 use neural_fields::numerics::{
-    bce_with_logits, cos_pi, guard_denominator, safe_cos, safe_sin, sigmoid, sin_pi, softplus,
+    bce_with_logits, guard_denominator, safe_sin_cos, sigmoid, sin_cos_pi, softplus,
 };
 use proptest::prelude::*;
 
@@ -64,10 +64,10 @@ proptest! {
         check_grad(|t| sigmoid(t).unwrap(), x)?;
         check_grad(|t| softplus(t, 100.0).unwrap(), x)?;
         check_grad(|t| softplus(t, 0.5).unwrap(), x)?;
-        check_grad(|t| safe_sin(t).unwrap(), x * 1e3)?;
-        check_grad(|t| safe_cos(t).unwrap(), x * 1e3)?;
-        check_grad(|t| sin_pi(t).unwrap(), x)?;
-        check_grad(|t| cos_pi(t).unwrap(), x)?;
+        check_grad(|t| safe_sin_cos(t).unwrap().0, x * 1e3)?;
+        check_grad(|t| safe_sin_cos(t).unwrap().1, x * 1e3)?;
+        check_grad(|t| sin_cos_pi(t).unwrap().0, x)?;
+        check_grad(|t| sin_cos_pi(t).unwrap().1, x)?;
     }
 }
 
@@ -80,8 +80,8 @@ fn f32_extremes_give_finite_values_and_gradients() {
         sigmoid(v.as_tensor()).unwrap(),
         softplus(v.as_tensor(), 100.0).unwrap(),
         bce_with_logits(v.as_tensor(), &ones).unwrap(),
-        safe_sin(v.as_tensor()).unwrap(),
-        sin_pi(v.as_tensor()).unwrap(),
+        safe_sin_cos(v.as_tensor()).unwrap().0,
+        sin_cos_pi(v.as_tensor()).unwrap().0,
         guard_denominator(v.as_tensor(), 1e-3).unwrap(),
     ];
     for (i, y) in outputs.iter().enumerate() {
@@ -104,10 +104,8 @@ fn bad_inputs_name_the_argument() {
     let ints = Tensor::new(&[1u32, 2], &d).unwrap();
     let x = Tensor::new(&[1f32, 2.0], &d).unwrap();
     for e in [
-        safe_sin(&ints).unwrap_err(),
-        safe_cos(&ints).unwrap_err(),
-        sin_pi(&ints).unwrap_err(),
-        cos_pi(&ints).unwrap_err(),
+        safe_sin_cos(&ints).unwrap_err(),
+        sin_cos_pi(&ints).unwrap_err(),
         sigmoid(&ints).unwrap_err(),
         softplus(&ints, 1.0).unwrap_err(),
         guard_denominator(&ints, 1e-3).unwrap_err(),

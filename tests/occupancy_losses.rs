@@ -6,8 +6,8 @@ mod common;
 
 use candle_core::{DType, Device, Tensor, Var};
 use neural_fields::mesh::{points_from_tensor, Mesh};
-use neural_fields::occupancy::sampling::{
-    inside_mesh, near_surface, uniform_in_padded_cube, winding_numbers, winding_numbers_exact,
+use neural_fields::occupancy::{
+    inside_mesh, near_surface, uniform_in_padded_cube, winding_numbers, WindingConfig,
 };
 use neural_fields::occupancy::{kl_standard_normal, reconstruction_loss, reparameterize};
 use neural_fields::occupancy::{marching_cubes, Grid};
@@ -132,8 +132,11 @@ fn winding_number_inside_test_is_exact_on_closed_meshes_and_robust_to_holes() {
         .iter()
         .map(|p| (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt() < 0.35)
         .collect();
-    let w = winding_numbers(&mesh, &pts).unwrap();
-    let we = winding_numbers_exact(&mesh, &pts).unwrap();
+    let w = winding_numbers(&mesh, &pts, &WindingConfig::default()).unwrap();
+    let exact = WindingConfig {
+        force_reference: true,
+    };
+    let we = winding_numbers(&mesh, &pts, &exact).unwrap();
     let worst = w
         .iter()
         .zip(&we)

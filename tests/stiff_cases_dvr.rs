@@ -38,7 +38,6 @@ const DVR: &[&str] = &[
     "dvr::normal_smoothness_loss",
     "dvr::photometric_loss",
     "dvr::random_points_on_rays",
-    "dvr::secant_point",
     "dvr::sphere_trace",
 ];
 
@@ -60,8 +59,8 @@ fn sweep_dvr(s: &mut Suite) {
     use neural_fields::dvr::{
         depth_loss, eikonal_loss, freespace_loss, idr_mask_loss, implicit_surface, march,
         missed_foreground_loss, most_inside_along_rays, normal_smoothness_loss, photometric_loss,
-        random_points_on_rays, secant_point, sphere_trace, AlphaSchedule, ImplicitConfig,
-        MarchConfig, Photometric, SphereTraceConfig,
+        random_points_on_rays, sphere_trace, AlphaSchedule, ImplicitConfig, MarchConfig,
+        Photometric, SphereTraceConfig,
     };
     use neural_fields::field::Inside;
     let d = Device::Cpu;
@@ -300,27 +299,6 @@ fn sweep_dvr(s: &mut Suite) {
                 Ok(vec![Tensor::new(
                     &[a.alpha_at(0), a.alpha_at(usize::MAX)],
                     &d,
-                )?])
-            },
-        );
-    }
-    let m = f64::MAX;
-    for (lo, slo, hi, shi) in [
-        (0.0, -m, 1.0, m),
-        (0.0, 0.0, 1.0, 0.0),
-        (0.0, f64::NAN, 1.0, 1.0),
-        (-1e300, -1e-300, 1e300, 1e-300),
-        (0.0, -f64::INFINITY, 1.0, f64::INFINITY),
-    ] {
-        s.case(
-            "dvr::secant_point",
-            format!("[{lo:e}, {hi:e}], s {slo:e}…{shi:e}"),
-            Expect::Finite,
-            &[],
-            || {
-                Ok(vec![Tensor::new(
-                    &[secant_point(lo, slo, hi, shi).0],
-                    &Device::Cpu,
                 )?])
             },
         );

@@ -8,8 +8,8 @@ use candle_core::{DType, Device, Tensor};
 use common::stiff::{magnitudes, var, Expect, Suite, DTYPES};
 
 use neural_fields::encoding::{
-    coarse_to_fine_weights, integrated_pe, CoarseToFine, FourierFeatures, FrequencyEncoding,
-    PointEncoding,
+    coarse_to_fine_weights, integrated_pe, CoarseToFine, Encoding, FourierFeatures,
+    FrequencyEncoding, PointEncoding,
 };
 
 #[test]
@@ -63,7 +63,6 @@ const POINT_ENCODINGS: &[&str] = &[
 const HASH_GRID: &[&str] = &[
     "encoding::HashGrid::forward",
     "encoding::HashGrid::forward_jvp",
-    "encoding::HashGrid::forward_reference",
     "encoding::hash_grid",
 ];
 
@@ -71,10 +70,7 @@ const HASH_GRID: &[&str] = &[
 const GRID_SAMPLE: &[&str] = &[
     "encoding::cell_index",
     "encoding::grid_sample",
-    "encoding::grid_sample_reference",
-    "encoding::scatter_max",
-    "encoding::scatter_max_reference",
-    "encoding::scatter_mean",
+    "encoding::scatter",
 ];
 
 /// Public items without floating-point input (or only reached through a swept item),
@@ -86,16 +82,14 @@ const EXEMPT: &[(&str, &str)] = &[
     ),
     (
         "encoding::FusedScatterMax::",
-        "CustomOp internals, swept via scatter_max",
+        "CustomOp internals, swept via scatter",
     ),
     ("encoding::HashGrid::config", "getter"),
-    ("encoding::CoarseToFine::inner", "getter"),
     ("encoding::CoarseToFine::bands", "getter"),
     ("encoding::CoarseToFine::alpha", "getter"),
     ("encoding::CoarseToFine::in_dim", "getter"),
     ("encoding::CoarseToFine::out_dim", "getter"),
     ("encoding::HashGrid::table", "getter"),
-    ("encoding::HashGrid::levels", "getter"),
     ("encoding::HashGrid::in_dim", "getter"),
     ("encoding::HashGrid::out_dim", "getter"),
     ("encoding::HashGridConfig::default", "constant"),
@@ -120,7 +114,6 @@ const EXEMPT: &[(&str, &str)] = &[
         "swept through PointEncoding::forward",
     ),
     ("encoding::FrequencyEncoding::in_dim", "getter"),
-    ("encoding::FrequencyEncoding::n_freqs", "getter"),
     ("encoding::FrequencyEncoding::new", "integer arguments"),
     ("encoding::FrequencyEncoding::out_dim", "getter"),
     (
@@ -267,6 +260,13 @@ fn sweep_hash_grid(s: &mut Suite) {
             ..HashGridConfig::default()
         };
         let grid = hash_grid(&config, vb).unwrap();
+        // The same table on the reference path.
+        let reference = HashGridConfig {
+            force_reference: true,
+            ..config
+        };
+        let vb = candle_nn::VarBuilder::from_varmap(&varmap, dtype, &d);
+        let reference = hash_grid(&reference, vb).unwrap();
         let table = varmap.all_vars().remove(0);
         s.case(
             "encoding::hash_grid",
@@ -283,11 +283,11 @@ fn sweep_hash_grid(s: &mut Suite) {
             || Ok(vec![grid.forward(t)?]),
         );
         s.case(
-            "encoding::HashGrid::forward_reference",
-            &label,
+            "encoding::HashGrid::forward",
+            format!("{label}, reference path"),
             Expect::Finite,
             &[&x, &table],
-            || Ok(vec![grid.forward_reference(t)?]),
+            || Ok(vec![reference.forward(t)?]),
         );
         let dx = Tensor::ones((3, 2, 3), dtype, &d).unwrap();
         s.case(
@@ -304,7 +304,7 @@ fn sweep_hash_grid(s: &mut Suite) {
             .unwrap()
             .to_dtype(dtype)
             .unwrap();
-        if grid.forward(&nan).is_ok() || grid.forward_reference(&nan).is_ok() {
+        if grid.forward(&nan).is_ok() || reference.forward(&nan).is_ok() {
             s.failures.push(format!(
                 "HashGrid::forward [{dtype:?}]: a NaN position gave Ok"
             ));
@@ -315,9 +315,12 @@ fn sweep_hash_grid(s: &mut Suite) {
 /// Bilinear/trilinear sampling at coordinates far outside, on and just inside the border,
 /// of features of every magnitude; scatter pooling of extreme values with ties.
 fn sweep_grid_sample(s: &mut Suite) {
-    use neural_fields::encoding::grid_sample::{
-        cell_index, grid_sample, grid_sample_reference, scatter_max, scatter_max_reference,
-        scatter_mean,
+    use neural_fields::encoding::{
+        cell_index, grid_sample, scatter, GridSampleConfig, Pooling, ScatterConfig,
+    };
+    let fused = GridSampleConfig::default();
+    let reference = GridSampleConfig {
+        force_reference: true,
     };
     let d = Device::Cpu;
     for dtype in DTYPES {
@@ -344,17 +347,24 @@ fn sweep_grid_sample(s: &mut Suite) {
                 &label,
                 Expect::Finite,
                 &[&features, &coords],
-                || Ok(vec![grid_sample(features.as_tensor(), coords.as_tensor())?]),
+                || {
+                    Ok(vec![grid_sample(
+                        features.as_tensor(),
+                        coords.as_tensor(),
+                        &fused,
+                    )?])
+                },
             );
             s.case(
-                "encoding::grid_sample_reference",
-                &label,
+                "encoding::grid_sample",
+                format!("{label}, reference path"),
                 Expect::Finite,
                 &[&features, &coords],
                 || {
-                    Ok(vec![grid_sample_reference(
+                    Ok(vec![grid_sample(
                         features.as_tensor(),
                         coords.as_tensor(),
+                        &reference,
                     )?])
                 },
             );
@@ -371,8 +381,8 @@ fn sweep_grid_sample(s: &mut Suite) {
                         .unwrap(),
                 )
                 .unwrap();
-            if grid_sample(features.as_tensor(), &nan).is_ok()
-                || grid_sample_reference(features.as_tensor(), &nan).is_ok()
+            if grid_sample(features.as_tensor(), &nan, &fused).is_ok()
+                || grid_sample(features.as_tensor(), &nan, &reference).is_ok()
                 || cell_index(&nan, 4).is_ok()
             {
                 s.failures.push(format!(
@@ -387,17 +397,27 @@ fn sweep_grid_sample(s: &mut Suite) {
             let values: Vec<f64> = (0..n * 3).map(|i| mags[(i * 3) % mags.len()]).collect();
             let values = var(&values, &[1, n, 3], dtype);
             let cells = 1usize << k;
-            for (item, f) in [
-                (
-                    "encoding::scatter_mean",
-                    scatter_mean as fn(&Tensor, &Tensor, usize) -> neural_fields::Result<Tensor>,
-                ),
-                ("encoding::scatter_max", scatter_max),
-                ("encoding::scatter_max_reference", scatter_max_reference),
+            for (pooling, force_reference) in [
+                (Pooling::Mean, false),
+                (Pooling::Max, false),
+                (Pooling::Max, true),
             ] {
-                s.case(item, &label, Expect::Finite, &[&values], || {
-                    Ok(vec![f(values.as_tensor(), &index, cells)?])
-                });
+                let config = ScatterConfig {
+                    pooling,
+                    force_reference,
+                };
+                let path = if force_reference {
+                    ", reference path"
+                } else {
+                    ""
+                };
+                s.case(
+                    "encoding::scatter",
+                    format!("{label}, {pooling:?}{path}"),
+                    Expect::Finite,
+                    &[&values],
+                    || Ok(vec![scatter(values.as_tensor(), &index, cells, &config)?]),
+                );
             }
         }
     }

@@ -37,7 +37,7 @@ const FLOW: &[&str] = &[
 /// Public items without floating-point input (or only reached through a swept item),
 /// with the reason. Matching is by prefix.
 const EXEMPT: &[(&str, &str)] = &[
-    ("flow::Solver::occupancy_flow", "constant"),
+    ("flow::Solver::default", "constant"),
     ("flow::VelocityField::config", "getter"),
     ("flow::VelocityFieldConfig::default", "constant"),
 ];
@@ -184,7 +184,7 @@ fn sweep_flow(s: &mut Suite) {
             decoder: &decoder,
             velocity: &v,
             code: Some(&shared),
-            solver: Solver::occupancy_flow(),
+            solver: Solver::default(),
             graph: Graph::Keep,
         };
         let mut fwrt: Vec<Var> = vm.all_vars();

@@ -8,7 +8,7 @@ use candle_core::{DType, Device, Tensor};
 use common::stiff::{magnitudes, var, Expect, Suite, DTYPES};
 
 use neural_fields::numerics::{
-    bce_with_logits, cos_pi, guard_denominator, safe_cos, safe_sin, sigmoid, sin_pi, softplus,
+    bce_with_logits, guard_denominator, safe_sin_cos, sigmoid, sin_cos_pi, softplus,
 };
 use neural_fields::rng::SplitMix64;
 
@@ -52,12 +52,10 @@ fn every_public_numerics_function_is_swept_or_exempt() {
 /// Items swept by `sweep_numerics`.
 const NUMERICS: &[&str] = &[
     "numerics::bce_with_logits",
-    "numerics::cos_pi",
     "numerics::guard_denominator",
-    "numerics::safe_cos",
-    "numerics::safe_sin",
+    "numerics::safe_sin_cos",
     "numerics::sigmoid",
-    "numerics::sin_pi",
+    "numerics::sin_cos_pi",
     "numerics::softplus",
 ];
 
@@ -100,17 +98,28 @@ fn sweep_numerics(s: &mut Suite) {
             .to_dtype(dtype)
             .unwrap();
         let tag = format!("{dtype:?}, |x| up to max");
-        s.case("numerics::safe_sin", &tag, Expect::Finite, &[&x], || {
-            Ok(vec![safe_sin(t)?])
+        // The sine and the cosine each on their own, so that each gradient is checked.
+        let sin = format!("{tag}, sin");
+        s.case(
+            "numerics::safe_sin_cos",
+            &sin,
+            Expect::Finite,
+            &[&x],
+            || Ok(vec![safe_sin_cos(t)?.0]),
+        );
+        let cos = format!("{tag}, cos");
+        s.case(
+            "numerics::safe_sin_cos",
+            &cos,
+            Expect::Finite,
+            &[&x],
+            || Ok(vec![safe_sin_cos(t)?.1]),
+        );
+        s.case("numerics::sin_cos_pi", &sin, Expect::Finite, &[&x], || {
+            Ok(vec![sin_cos_pi(t)?.0])
         });
-        s.case("numerics::safe_cos", &tag, Expect::Finite, &[&x], || {
-            Ok(vec![safe_cos(t)?])
-        });
-        s.case("numerics::sin_pi", &tag, Expect::Finite, &[&x], || {
-            Ok(vec![sin_pi(t)?])
-        });
-        s.case("numerics::cos_pi", &tag, Expect::Finite, &[&x], || {
-            Ok(vec![cos_pi(t)?])
+        s.case("numerics::sin_cos_pi", &cos, Expect::Finite, &[&x], || {
+            Ok(vec![sin_cos_pi(t)?.1])
         });
         s.case("numerics::sigmoid", &tag, Expect::Finite, &[&x], || {
             Ok(vec![sigmoid(t)?])

@@ -68,7 +68,6 @@ const ON_MESHES: &[&str] = &[
     "occupancy::near_surface",
     "occupancy::surface_metrics",
     "occupancy::winding_numbers",
-    "occupancy::winding_numbers_exact",
 ];
 
 /// Items swept by `sweep_occupancy`.
@@ -143,7 +142,6 @@ const EXEMPT: &[(&str, &str)] = &[
     ("nn::OnetDecoder::config", "getter"),
     ("nn::OnetDecoder::inside", "getter"),
     ("nn::OnetDecoder::out_dim", "getter"),
-    ("occupancy::Grid::spacing", "swept through Grid::from_fn"),
     ("occupancy::KdTree::nearest", "swept through KdTree::new"),
 ];
 
@@ -152,8 +150,8 @@ const EXEMPT: &[(&str, &str)] = &[
 fn sweep_occupancy_on_meshes(s: &mut Suite) {
     use neural_fields::mesh::Mesh;
     use neural_fields::occupancy::{
-        inside_mesh, iou, mesh_metrics, near_surface, surface_metrics, winding_numbers,
-        winding_numbers_exact, KdTree,
+        inside_mesh, iou, mesh_metrics, near_surface, surface_metrics, winding_numbers, KdTree,
+        WindingConfig,
     };
     let d = Device::Cpu;
     let flat = |v: Vec<[f64; 3]>| Tensor::from_vec(v.concat(), v.len() * 3, &d);
@@ -184,14 +182,25 @@ fn sweep_occupancy_on_meshes(s: &mut Suite) {
             &label,
             Expect::Finite,
             &[],
-            || Ok(vec![vt(winding_numbers(&mesh, &q)?)?]),
+            || {
+                Ok(vec![vt(winding_numbers(
+                    &mesh,
+                    &q,
+                    &WindingConfig::default(),
+                )?)?])
+            },
         );
         s.case(
-            "occupancy::winding_numbers_exact",
-            &label,
+            "occupancy::winding_numbers",
+            format!("{label}, reference path"),
             Expect::Finite,
             &[],
-            || Ok(vec![vt(winding_numbers_exact(&mesh, &q)?)?]),
+            || {
+                let exact = WindingConfig {
+                    force_reference: true,
+                };
+                Ok(vec![vt(winding_numbers(&mesh, &q, &exact)?)?])
+            },
         );
         s.case(
             "occupancy::inside_mesh",
@@ -378,7 +387,8 @@ fn sweep_occupancy(s: &mut Suite) {
             };
             s.case("occupancy::Grid::from_fn", &gl, Expect::Finite, &[], || {
                 let g = Grid::from_fn([9, 9, 9], [-ext; 3], [ext; 3], f)?;
-                let sp = g.spacing();
+                let sp: [f64; 3] =
+                    std::array::from_fn(|c| (g.max[c] - g.min[c]) / (g.dims[c] - 1) as f64);
                 Ok(vec![
                     flat(marching_cubes(&g, 0.0, Inside::Negative)?.vertices)?,
                     // x of grid point (1, 2, 3).

@@ -101,9 +101,11 @@ fn sweep_texture(s: &mut Suite) {
         let tex = build_seeded(&vm, dtype, &d, 1, |vb| texture_decoder(&tcfg, vb)).unwrap();
         for item in ["nn::texture_decoder", "nn::TextureDecoder::rgb"] {
             s.case(item, &tag, Expect::Finite, &[&p, &c, &z], || {
-                let input = TextureInput::new(p.as_tensor())
-                    .shape_code(c.as_tensor())
-                    .image_code(z.as_tensor());
+                let input = TextureInput {
+                    shape_code: Some(c.as_tensor()),
+                    image_code: Some(z.as_tensor()),
+                    ..TextureInput::new(p.as_tensor())
+                };
                 Ok(vec![tex.rgb(&input)?])
             });
         }
@@ -122,10 +124,12 @@ fn sweep_texture(s: &mut Suite) {
                 Expect::Finite,
                 &[&p, &nrm, &dirs, &feat],
                 || {
-                    let input = TextureInput::new(p.as_tensor())
-                        .normals(nrm.as_tensor())
-                        .view_dirs(dirs.as_tensor())
-                        .features(feat.as_tensor());
+                    let input = TextureInput {
+                        normals: Some(nrm.as_tensor()),
+                        view_dirs: Some(dirs.as_tensor()),
+                        features: Some(feat.as_tensor()),
+                        ..TextureInput::new(p.as_tensor())
+                    };
                     Ok(vec![render.rgb(&input)?])
                 },
             );

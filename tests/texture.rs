@@ -90,7 +90,7 @@ proptest! {
         let config = fd_config();
         let net = texture_decoder(&config, VarBuilder::from_varmap(&varmap, DType::F64, &DEV)).unwrap();
         let loss = || {
-            let input = TextureInput::new(p.as_tensor()).shape_code(c.as_tensor()).image_code(z.as_tensor());
+            let input = TextureInput { shape_code: Some(c.as_tensor()), image_code: Some(z.as_tensor()), ..TextureInput::new(p.as_tensor()) };
             weighted(&net.rgb(&input).unwrap(), &w)
         };
         let grads = loss().backward().unwrap();
@@ -124,7 +124,10 @@ fn texture_decoder_starts_grey_and_reads_only_its_codes() -> neural_fields::Resu
         let net = build_seeded(&varmap, dtype, &DEV, 1, |vb| texture_decoder(&config, vb))?;
         let p = Tensor::ones((7, 3), dtype, &DEV)?.affine(1e6, 0.0)?;
         let c = Tensor::ones((7, 3), dtype, &DEV)?;
-        let rgb = net.rgb(&TextureInput::new(&p).shape_code(&c))?;
+        let rgb = net.rgb(&TextureInput {
+            shape_code: Some(&c),
+            ..TextureInput::new(&p)
+        })?;
         assert_eq!(rgb.dtype(), dtype);
         assert!(
             v64(&rgb).iter().all(|&x| x == 0.5),
@@ -137,7 +140,10 @@ fn texture_decoder_starts_grey_and_reads_only_its_codes() -> neural_fields::Resu
         );
         let bad = Tensor::ones((6, 3), dtype, &DEV)?;
         let e = net
-            .rgb(&TextureInput::new(&p).shape_code(&bad))
+            .rgb(&TextureInput {
+                shape_code: Some(&bad),
+                ..TextureInput::new(&p)
+            })
             .unwrap_err()
             .to_string();
         assert!(e.starts_with("shape_code: expected shape [7, 3]"), "{e}");
@@ -150,7 +156,11 @@ fn texture_decoder_starts_grey_and_reads_only_its_codes() -> neural_fields::Resu
         let empty = Tensor::zeros((0, 3), dtype, &DEV)?;
         let e0 = Tensor::zeros((0, 3), dtype, &DEV)?;
         assert_eq!(
-            net.rgb(&TextureInput::new(&empty).shape_code(&e0))?.dims(),
+            net.rgb(&TextureInput {
+                shape_code: Some(&e0),
+                ..TextureInput::new(&empty)
+            })?
+            .dims(),
             &[0, 3]
         );
     }
@@ -190,10 +200,12 @@ fn rendering_net_modes_read_what_they_are_configured_to() -> neural_fields::Resu
     let v = Tensor::ones((n, 3), DType::F64, &DEV)?;
     let nrm = Tensor::ones((n, 3), DType::F64, &DEV)?;
     let f = Tensor::ones((n, 5), DType::F64, &DEV)?;
-    let full = TextureInput::new(&p)
-        .view_dirs(&v)
-        .normals(&nrm)
-        .features(&f);
+    let full = TextureInput {
+        view_dirs: Some(&v),
+        normals: Some(&nrm),
+        features: Some(&f),
+        ..TextureInput::new(&p)
+    };
     let pe = PointEncoding::Frequency(FrequencyEncoding::new(3, 3)?);
     for (view, normals, features, point_encoding) in [
         (Some(4), true, 5, PointEncoding::Identity),
@@ -221,13 +233,13 @@ fn rendering_net_modes_read_what_they_are_configured_to() -> neural_fields::Resu
         // Inputs the mode does not read may be missing.
         let mut only = TextureInput::new(&p);
         if view.is_some() {
-            only = only.view_dirs(&v);
+            only.view_dirs = Some(&v);
         }
         if normals {
-            only = only.normals(&nrm);
+            only.normals = Some(&nrm);
         }
         if features > 0 {
-            only = only.features(&f);
+            only.features = Some(&f);
         }
         assert_eq!(v64(&net.rgb(&only)?), v64(&rgb));
         // The fused op and the reference path agree.
@@ -253,19 +265,36 @@ fn rendering_net_modes_read_what_they_are_configured_to() -> neural_fields::Resu
     })?;
     for (input, name) in [
         (
-            TextureInput::new(&p).normals(&nrm).features(&f),
+            TextureInput {
+                normals: Some(&nrm),
+                features: Some(&f),
+                ..TextureInput::new(&p)
+            },
             "view_dirs",
         ),
-        (TextureInput::new(&p).view_dirs(&v).features(&f), "normals"),
         (
-            TextureInput::new(&p).view_dirs(&v).normals(&nrm),
+            TextureInput {
+                view_dirs: Some(&v),
+                features: Some(&f),
+                ..TextureInput::new(&p)
+            },
+            "normals",
+        ),
+        (
+            TextureInput {
+                view_dirs: Some(&v),
+                normals: Some(&nrm),
+                ..TextureInput::new(&p)
+            },
             "features",
         ),
         (
-            TextureInput::new(&p)
-                .view_dirs(&v)
-                .normals(&nrm)
-                .features(&nrm),
+            TextureInput {
+                view_dirs: Some(&v),
+                normals: Some(&nrm),
+                features: Some(&nrm),
+                ..TextureInput::new(&p)
+            },
             "features",
         ),
     ] {
@@ -274,12 +303,12 @@ fn rendering_net_modes_read_what_they_are_configured_to() -> neural_fields::Resu
     }
     // A zero view direction stays finite (the normalisation is floored).
     let zero = Tensor::zeros((n, 3), DType::F64, &DEV)?;
-    let rgb = net.rgb(
-        &TextureInput::new(&p)
-            .view_dirs(&zero)
-            .normals(&nrm)
-            .features(&f),
-    )?;
+    let rgb = net.rgb(&TextureInput {
+        view_dirs: Some(&zero),
+        normals: Some(&nrm),
+        features: Some(&f),
+        ..TextureInput::new(&p)
+    })?;
     assert!(v64(&rgb).iter().all(|x| x.is_finite()));
     Ok(())
 }
@@ -401,10 +430,12 @@ mod idr {
         };
         let feature = y.narrow(1, 1, k - 1).unwrap();
         let dirs = rays.directions().index_select(&surf.indices, 0).unwrap();
-        let input = TextureInput::new(&surf.points)
-            .normals(&normal)
-            .view_dirs(&dirs)
-            .features(&feature);
+        let input = TextureInput {
+            normals: Some(&normal),
+            view_dirs: Some(&dirs),
+            features: Some(&feature),
+            ..TextureInput::new(&surf.points)
+        };
         Some(weighted(&tex.rgb(&input).unwrap(), c))
     }
 

@@ -1,29 +1,6 @@
 //! Differentiable surface points from detached hits, by the implicit function theorem.
-//!
-//! ## Math (see docs/math.md, "DVR: implicit gradients")
-//! The depth `t(θ, o, w)` of the first surface point is defined by `f_θ(o + t·w) = τ`.
-//! Differentiating, `∇f·(δo + t·δw + w·δt) + ∂f/∂θ·δθ = 0`, so with `D = ∇f·w ≠ 0`:
-//!
-//! ```text
-//! ∂t/∂θ = −(∂f/∂θ)/D,    ∂t/∂o = −∇f/D,    ∂t/∂w = −t·∇f/D.
-//! ```
-//!
-//! IDR's form produces all three with ordinary autograd and one field evaluation: with
-//! `t₀` the detached depth of the march and `x₀ = o + t₀·w` built from `o`, `w` *with
-//! their graph*,
-//!
-//! ```text
-//! t̂ = t₀ − (f(x₀) − sg[f(x₀)]) / sg[D],      p̂ = o + t̂·w,
-//! ```
-//!
-//! where `sg` stops gradients: the value is exactly `t₀`, and the derivative of
-//! `f(x₀)` w.r.t. `θ`, `o` (via `∂x₀/∂o = I`) and `w` (via `∂x₀/∂w = t₀·I`) divided by
-//! `−D` is exactly the implicit derivative above. The denominator is guarded in a
-//! sign-preserving way on the cosine `c = D/(‖∇f‖‖w‖)`: `D̃ = s·guard(c, ε)` with
-//! `s = max(‖∇f‖, min_gradient)·‖w‖` (see [`crate::numerics::guard_denominator`]), so
-//! `|∂t/∂f| ≤ 1/(ε·s)` and grazing rays keep the sign of their gradient.
 
-use super::march::Hits;
+use super::marching::Hits;
 use crate::camera::Rays;
 use crate::error::{check_scalar, Error, Result};
 use crate::field::ImplicitSurface;
@@ -70,8 +47,8 @@ pub struct SurfacePoints {
     pub guarded: Tensor,
 }
 
-/// Makes the surface points of `hits` differentiable (IDR's implicit form; see the
-/// [module docs](self)).
+/// Makes the surface points of `hits` differentiable (IDR's implicit form; the math
+/// below).
 ///
 /// * `field`: the field that was marched (possibly [`crate::field::Conditioned`] with a
 ///   shared `[D]` code or one `[R, D]` code per ray; gradients then reach the code).
@@ -84,6 +61,29 @@ pub struct SurfacePoints {
 /// and device are those of the rays. Everything is finite whenever the inputs are: the
 /// guarded denominator bounds `|∂t̂/∂f|` by `1/(grazing_eps·max(‖∇f‖, min_gradient)·‖w‖)`.
 /// (In f32 the true `∂t/∂w ∝ t/‖w‖` itself overflows where `t/‖w‖` exceeds ~1e38.)
+///
+/// # Math (see docs/math.md, "DVR: implicit gradients")
+/// The depth `t(θ, o, w)` of the first surface point is defined by `f_θ(o + t·w) = τ`.
+/// Differentiating, `∇f·(δo + t·δw + w·δt) + ∂f/∂θ·δθ = 0`, so with `D = ∇f·w ≠ 0`:
+///
+/// ```text
+/// ∂t/∂θ = −(∂f/∂θ)/D,    ∂t/∂o = −∇f/D,    ∂t/∂w = −t·∇f/D.
+/// ```
+///
+/// IDR's form produces all three with ordinary autograd and one field evaluation: with
+/// `t₀` the detached depth of the march and `x₀ = o + t₀·w` built from `o`, `w` *with
+/// their graph*,
+///
+/// ```text
+/// t̂ = t₀ − (f(x₀) − sg[f(x₀)]) / sg[D],      p̂ = o + t̂·w,
+/// ```
+///
+/// where `sg` stops gradients: the value is exactly `t₀`, and the derivative of
+/// `f(x₀)` w.r.t. `θ`, `o` (via `∂x₀/∂o = I`) and `w` (via `∂x₀/∂w = t₀·I`) divided by
+/// `−D` is exactly the implicit derivative above. The denominator is guarded in a
+/// sign-preserving way on the cosine `c = D/(‖∇f‖‖w‖)`: `D̃ = s·guard(c, ε)` with
+/// `s = max(‖∇f‖, min_gradient)·‖w‖` (see [`crate::numerics::guard_denominator`]), so
+/// `|∂t/∂f| ≤ 1/(ε·s)` and grazing rays keep the sign of their gradient.
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `hits` if it has a different number of rays or dtype

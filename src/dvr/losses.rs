@@ -3,7 +3,7 @@
 //! gradients stay finite at 0).
 //!
 //! Logits of an implicit surface are `s = σ·(f − τ)` (inside positive for both
-//! occupancy logits and SDFs, see [`crate::dvr::march`](mod@crate::dvr::march)).
+//! occupancy logits and SDFs, see [`crate::dvr::march`]).
 
 use crate::camera::{Intersection, Rays};
 use crate::error::{
@@ -293,7 +293,7 @@ impl AlphaSchedule {
 /// 65 536 points), plus one evaluation with graph per ray.
 ///
 /// # Errors
-/// As [`crate::dvr::march`](fn@crate::dvr::march) for the rays and bounds; `steps` below 1.
+/// As [`crate::dvr::march`] for the rays and bounds; `steps` below 1.
 pub fn most_inside_along_rays<F: ImplicitSurface + ?Sized>(
     field: &F,
     rays: &Rays,
@@ -304,9 +304,9 @@ pub fn most_inside_along_rays<F: ImplicitSurface + ?Sized>(
         return Err(Error::invalid("steps", "at least 1", "0"));
     }
     let (origins, directions) = (rays.origins(), rays.directions());
-    let rays = super::march::read_problem(rays, range)?;
+    let rays = super::marching::read_problem(rays, range)?;
     let r = rays.o.len();
-    let mut ev = super::march::Evaluator::new(field, &rays, 65_536);
+    let mut ev = super::marching::Evaluator::new(field, &rays, 65_536);
     let per_chunk = (65_536 / steps).max(1);
     let mut best_t = vec![0.0; r];
     let idx: Vec<usize> = (0..r).collect();
@@ -318,7 +318,7 @@ pub fn most_inside_along_rays<F: ImplicitSurface + ?Sized>(
         }
     };
     for chunk in idx.chunks(per_chunk) {
-        let mut pts = super::march::RayPoints::with_capacity(steps * chunk.len());
+        let mut pts = super::marching::RayPoints::with_capacity(steps * chunk.len());
         for &i in chunk {
             for j in 0..steps {
                 let t = rays.near[i] + (rays.far[i] - rays.near[i]) * frac(j);

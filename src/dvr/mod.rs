@@ -1,12 +1,16 @@
 //! Surface rendering of implicit fields with implicit gradients (DVR, IDR).
 //!
-//! One training step: [`march`](fn@march) (or [`sphere_trace`] for SDFs) finds the first surface
+//! One training step: [`march`] (or [`sphere_trace`] for SDFs) finds the first surface
 //! point on each ray, detached and in chunks (memory O(rays)); [`implicit_surface`]
 //! evaluates the field once more at those points and returns depths and points whose
 //! gradients are the implicit-function ones, w.r.t. the field's parameters, a bound latent
 //! code ([`crate::field::Conditioned`], shared `[D]` or one `[R, D]` row per ray), and the
 //! ray origins and directions (so a
-//! [`crate::camera::PoseParam`] is trained too). The [`losses`] are DVR's and IDR's.
+//! [`crate::camera::PoseParam`] is trained too). The losses are DVR's and IDR's, all finite
+//! for any finite input (BCE terms use [`crate::numerics::bce_with_logits`]; norms have a
+//! floored square root so their gradients stay finite at 0); logits of an implicit
+//! surface are `s = σ·(f − τ)`, inside positive for both occupancy logits and SDFs (see
+//! [`march`]).
 //!
 //! ```
 //! use candle_core::{DType, Device, Tensor, Var};
@@ -35,9 +39,9 @@
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 
-pub mod implicit;
-pub mod losses;
-pub mod march;
+mod implicit;
+mod losses;
+mod marching;
 
 pub use implicit::{implicit_surface, ImplicitConfig, SurfacePoints};
 pub use losses::{
@@ -45,7 +49,6 @@ pub use losses::{
     most_inside_along_rays, normal_smoothness_loss, photometric_loss, random_points_on_rays,
     AlphaSchedule, Photometric,
 };
-pub use march::{
-    march, secant_point, sphere_trace, Hits, MarchConfig, RayStatus, SecantRule, SphereTraceConfig,
-    StepSchedule,
+pub use marching::{
+    march, sphere_trace, Hits, MarchConfig, RayStatus, SecantRule, SphereTraceConfig, StepSchedule,
 };

@@ -1,44 +1,4 @@
-//! BARF's coarse-to-fine window over an encoding's frequency bands (Lin et al. 2021,
-//! "BARF: Bundle-Adjusting Neural Radiance Fields"), for fields trained jointly with
-//! their cameras.
-//!
-//! The band `k` of an encoding is scaled by
-//!
-//! ```text
-//! w_k(α) = (1 − cos(π · clamp(α − k, 0, 1))) / 2,     k = 0, …, B − 1,
-//! ```
-//!
-//! so at `α = 0` only the always-on columns reach the network, band `k` fades in while
-//! `α` runs from `k` to `k + 1`, and at `α ≥ B` the encoding is the plain one. High
-//! frequencies make the photometric loss a function of the camera pose with many local
-//! minima; holding them back while the poses move leaves a smooth loss, whose gradient
-//! points the poses towards their truth (BARF §3.3).
-//!
-//! The bands of each encoding:
-//!
-//! | encoding | always on | band `k` |
-//! |---|---|---|
-//! | [`FrequencyEncoding`] | the raw input (if included) | the sines and cosines of frequency `2ᵏ` |
-//! | [`HashGrid`](super::HashGrid) | the coarsest level | the features of level `k + 1` |
-//!
-//! The window is a handle shared by every clone of the [`CoarseToFine`] encoding: a
-//! network built with one keeps a clone in its configuration, and the training loop moves
-//! the window of that network with [`CoarseToFine::set_alpha`] on its own clone.
-//!
-//! ```
-//! use candle_core::{Device, Tensor};
-//! use neural_fields::encoding::{CoarseToFine, FrequencyEncoding, PointEncoding};
-//!
-//! let window = CoarseToFine::new(PointEncoding::Frequency(FrequencyEncoding::new(3, 4)?))?;
-//! let encoding = PointEncoding::CoarseToFine(window.clone()); // give this to a network
-//! let x = Tensor::new(&[[0.1f64, -0.2, 0.3]], &Device::Cpu)?;
-//! window.set_alpha(0.0)?; // only the raw input reaches the network
-//! let y = encoding.forward(&x)?.to_vec2::<f64>()?;
-//! assert_eq!(&y[0][..3], &[0.1, -0.2, 0.3]);
-//! assert!(y[0][3..].iter().all(|&v| v == 0.0));
-//! window.set_alpha(4.0)?; // every band: the plain encoding
-//! # Ok::<(), neural_fields::Error>(())
-//! ```
+//! BARF's coarse-to-fine window over an encoding's frequency bands ([`CoarseToFine`]).
 
 use super::{Encoding, FrequencyEncoding, PointEncoding};
 use crate::error::{Error, Result};
@@ -66,8 +26,47 @@ pub fn coarse_to_fine_weights(alpha: f64, bands: usize) -> Result<Vec<f64>> {
         .collect())
 }
 
-/// An encoding whose bands fade in under BARF's coarse-to-fine window (see the
-/// [module docs](self) for the weights and the bands of each encoding).
+/// An encoding whose bands fade in under BARF's coarse-to-fine window (Lin et al. 2021,
+/// "BARF: Bundle-Adjusting Neural Radiance Fields"), for fields trained jointly with
+/// their cameras.
+///
+/// The band `k` of an encoding is scaled by
+///
+/// ```text
+/// w_k(α) = (1 − cos(π · clamp(α − k, 0, 1))) / 2,     k = 0, …, B − 1,
+/// ```
+///
+/// so at `α = 0` only the always-on columns reach the network, band `k` fades in while
+/// `α` runs from `k` to `k + 1`, and at `α ≥ B` the encoding is the plain one. High
+/// frequencies make the photometric loss a function of the camera pose with many local
+/// minima; holding them back while the poses move leaves a smooth loss, whose gradient
+/// points the poses towards their truth (BARF §3.3).
+///
+/// The bands of each encoding:
+///
+/// | encoding | always on | band `k` |
+/// |---|---|---|
+/// | [`FrequencyEncoding`] | the raw input (if included) | the sines and cosines of frequency `2ᵏ` |
+/// | [`HashGrid`](super::HashGrid) | the coarsest level | the features of level `k + 1` |
+///
+/// The window is a handle shared by every clone of the [`CoarseToFine`] encoding: a
+/// network built with one keeps a clone in its configuration, and the training loop moves
+/// the window of that network with [`CoarseToFine::set_alpha`] on its own clone.
+///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::encoding::{CoarseToFine, FrequencyEncoding, PointEncoding};
+///
+/// let window = CoarseToFine::new(PointEncoding::Frequency(FrequencyEncoding::new(3, 4)?))?;
+/// let encoding = PointEncoding::CoarseToFine(window.clone()); // give this to a network
+/// let x = Tensor::new(&[[0.1f64, -0.2, 0.3]], &Device::Cpu)?;
+/// window.set_alpha(0.0)?; // only the raw input reaches the network
+/// let y = encoding.forward(&x)?.to_vec2::<f64>()?;
+/// assert_eq!(&y[0][..3], &[0.1, -0.2, 0.3]);
+/// assert!(y[0][3..].iter().all(|&v| v == 0.0));
+/// window.set_alpha(4.0)?; // every band: the plain encoding
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
 ///
 /// `γ_α(x) = γ(x) ⊙ w(α)`: the wrapped encoding's output with each column scaled by the
 /// weight of its band (1 for the always-on columns). Same shapes and dtypes as the
@@ -104,8 +103,7 @@ impl CoarseToFine {
     }
 
     /// The wrapped encoding.
-    #[must_use]
-    pub fn inner(&self) -> &PointEncoding {
+    pub(crate) fn inner(&self) -> &PointEncoding {
         &self.inner
     }
 
@@ -159,19 +157,6 @@ impl CoarseToFine {
         }
     }
 
-    /// The input dimension `D` of the wrapped encoding.
-    #[must_use]
-    pub fn in_dim(&self) -> usize {
-        // invariant: both admitted encodings have a fixed input dimension.
-        self.inner.in_dim().unwrap_or(0)
-    }
-
-    /// The output dimension `E` of the wrapped encoding.
-    #[must_use]
-    pub fn out_dim(&self) -> usize {
-        self.inner.out_dim_for(self.in_dim())
-    }
-
     /// `None` once every band is fully on, else the weights as a `[1, E]` tensor like `y`.
     fn weights_like(&self, y: &Tensor) -> Result<Option<Tensor>> {
         if self.alpha() >= self.bands() as f64 {
@@ -183,13 +168,26 @@ impl CoarseToFine {
             Tensor::from_vec(w, (1, e), y.device())?.to_dtype(y.dtype())?,
         ))
     }
+}
+
+impl Encoding for CoarseToFine {
+    /// The input dimension `D` of the wrapped encoding.
+    fn in_dim(&self) -> usize {
+        // invariant: both admitted encodings have a fixed input dimension.
+        self.inner.in_dim().unwrap_or(0)
+    }
+
+    /// The output dimension `E` of the wrapped encoding.
+    fn out_dim(&self) -> usize {
+        self.inner.out_dim_for(self.in_dim())
+    }
 
     /// `γ(x) ⊙ w(α)`: `x: [N, D]` → `[N, E]`, differentiable w.r.t. `x` and the wrapped
     /// encoding's parameters.
     ///
     /// # Errors
     /// Those of the wrapped encoding's forward pass.
-    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let y = self.inner.forward(x)?;
         match self.weights_like(&y)? {
             None => Ok(y),
@@ -202,7 +200,7 @@ impl CoarseToFine {
     ///
     /// # Errors
     /// Those of the wrapped encoding's forward-mode pass.
-    pub fn forward_jvp(&self, x: &Tensor, dx: &Tensor) -> Result<(Tensor, Tensor)> {
+    fn forward_jvp(&self, x: &Tensor, dx: &Tensor) -> Result<(Tensor, Tensor)> {
         let (y, dy) = self.inner.forward_jvp(x, dx)?;
         match self.weights_like(&y)? {
             None => Ok((y, dy)),

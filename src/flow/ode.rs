@@ -33,18 +33,19 @@ pub enum Solver {
     },
 }
 
-impl Solver {
+impl Default for Solver {
     /// Occupancy Flow's solver: Dormand–Prince with `rtol = 1e-3`, `atol = 1e-5`, and
     /// at most 10 000 steps.
-    #[must_use]
-    pub fn occupancy_flow() -> Self {
+    fn default() -> Self {
         Self::Dopri5 {
             rtol: 1e-3,
             atol: 1e-5,
             max_steps: 10_000,
         }
     }
+}
 
+impl Solver {
     fn check(&self) -> Result<()> {
         match *self {
             Self::Rk4 { steps: 0 } => Err(Error::invalid(

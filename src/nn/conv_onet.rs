@@ -2,7 +2,7 @@
 //! [`ConvOnetEncoder`].
 
 use super::resnet_fc::ResnetFc;
-use crate::encoding::grid_sample::{cell_index, grid_sample, scatter_max, scatter_mean};
+use crate::encoding::{cell_index, grid_sample, scatter, GridSampleConfig, Pooling, ScatterConfig};
 use crate::error::{check_float, check_points, check_same, check_shape, Dim, Error, Result};
 use crate::field::Field;
 use crate::mesh::{points_to_tensor, PointCloud};
@@ -119,12 +119,16 @@ impl LocalFeatures {
     /// normalised coordinates `u: [B, M, 3]` → `[B, M, C]`.
     fn sample(&self, u: &Tensor) -> Result<Tensor> {
         match self {
-            LocalFeatures::Grid(g) => grid_sample(g, u),
+            LocalFeatures::Grid(g) => grid_sample(g, u, &GridSampleConfig::default()),
             LocalFeatures::Planes { xz, xy, yz } => {
                 let mut sum: Option<Tensor> = None;
                 for (plane, cols) in [xz, xy, yz].into_iter().zip(PLANES) {
                     let idx = Tensor::new(&cols, u.device())?;
-                    let s = grid_sample(plane, &u.index_select(&idx, 2)?)?;
+                    let s = grid_sample(
+                        plane,
+                        &u.index_select(&idx, 2)?,
+                        &GridSampleConfig::default(),
+                    )?;
                     sum = Some(match sum {
                         Some(acc) => (acc + s)?,
                         None => s,
@@ -419,9 +423,9 @@ impl Unet {
 ///
 /// **Encoder** ([`ConvOnetEncoder`]): `net = fc_pos(p)` (`3 → 2h`), ResNet-FC block
 /// `2h → h`; then for each further block, the per-cell maximum of `net` over the points of
-/// each cell ([`scatter_max`]) is read back at every point's cell, summed over the planes,
+/// each cell ([`scatter`] with [`Pooling::Max`]) is read back at every point's cell, summed over the planes,
 /// concatenated to `net` (`2h`) and passed through the block (`2h → h`); `c = fc_c(net)`
-/// (`h → C`); the per-cell mean of `c` ([`scatter_mean`]) forms each plane `[B, C, R, R]`
+/// (`h → C`); the per-cell mean of `c` ([`scatter`] with [`Pooling::Mean`]) forms each plane `[B, C, R, R]`
 /// (or the grid `[B, C, R, R, R]`), empty cells 0, and a U-Net maps it to the features.
 ///
 /// **U-Net** ([`UnetConfig`]): `depth` levels of two 3×3 (3×3×3) convolutions with ReLU,
@@ -635,7 +639,11 @@ impl ConvOnetEncoder {
             if i > 0 {
                 let mut pooled: Option<Tensor> = None;
                 for (idx, fl) in index.iter().zip(&flat) {
-                    let m = scatter_max(&net, idx, cells)?.reshape((b * cells, h))?;
+                    let max = ScatterConfig {
+                        pooling: Pooling::Max,
+                        ..ScatterConfig::default()
+                    };
+                    let m = scatter(&net, idx, cells, &max)?.reshape((b * cells, h))?;
                     let back = m.index_select(fl, 0)?.reshape((b, n, h))?;
                     pooled = Some(match pooled {
                         Some(p) => (p + back)?,
@@ -652,7 +660,7 @@ impl ConvOnetEncoder {
         let ch = self.config.feature_dim;
         let mut grids = Vec::with_capacity(index.len());
         for idx in &index {
-            let m = scatter_mean(&c, idx, cells)?.transpose(1, 2)?; // [B, C, cells]
+            let m = scatter(&c, idx, cells, &ScatterConfig::default())?.transpose(1, 2)?; // [B, C, cells]
             grids.push(match self.config.layout {
                 FeatureLayout::Planes { .. } => m.reshape((b, ch, res, res))?,
                 FeatureLayout::Grid { .. } => m.reshape((b, ch, res, res, res))?,

@@ -5,7 +5,7 @@
 //! For a shape with `K` labelled points `(pₖ, oₖ)`: `h⁰ₖ = [pₖ, oₖ] ∈ ℝ⁴`,
 //! `hˡ⁺¹ₖ = ReLU(Wˡhˡₖ + bˡ)`, `g = maxₖ hᴸₖ` (elementwise), `μ = W_μ g + b_μ`,
 //! `log σ² = W_σ g + b_σ`. The max-pool makes the code independent of the order of the
-//! points. Train with `occupancy::losses::{reparameterize, kl_standard_normal}`:
+//! points. Train with `occupancy::{reparameterize, kl_standard_normal}`:
 //! `z = μ + σ ⊙ ε`, loss `Σ BCE(f(p, z), o) + KL(q ‖ N(0, I))`.
 //!
 //! The same network encodes points with other per-point features

@@ -80,7 +80,7 @@ pub struct TextureDecoder {
 /// let net = build_seeded(&varmap, DType::F32, &Device::Cpu, 0, |vb| texture_decoder(&config, vb))?;
 /// let p = Tensor::zeros((4, 3), DType::F32, &Device::Cpu)?;
 /// let c = Tensor::ones((4, 16), DType::F32, &Device::Cpu)?;
-/// let rgb = net.rgb(&TextureInput::new(&p).shape_code(&c))?;
+/// let rgb = net.rgb(&TextureInput { shape_code: Some(&c), ..TextureInput::new(&p) })?;
 /// assert_eq!(rgb.to_vec2::<f32>()?[0], vec![0.5; 3]); // grey at initialisation
 /// # Ok::<(), neural_fields::Error>(())
 /// ```

@@ -1,20 +1,5 @@
 //! The ONet evaluation metrics: volumetric IoU, Chamfer-L1, normal consistency and
 //! F-score, with nearest neighbours from a k-d tree.
-//!
-//! ## Conventions (Mescheder et al. 2019, and how to compare with the papers)
-//! * Both meshes are normalised to the unit cube first ([`Mesh::normalize_unit_cube`]
-//!   on the ground truth, the same transform applied to the prediction).
-//! * 100 000 points are sampled on each surface ([`Mesh::sample_surface`]);
-//!   **Chamfer-L1** = ½(accuracy + completeness), where accuracy is the mean Euclidean
-//!   distance from predicted samples to their nearest ground-truth sample and
-//!   completeness the reverse. The distances are not squared (the "L1" is the mean of
-//!   norms).
-//! * **Normal consistency** = ½(mean |n_pred · n_gt(nn)| + mean |n_gt · n_pred(nn)|),
-//!   with the normals of the faces the samples lie on (absolute value: insensitive to
-//!   orientation).
-//! * **IoU** on 100 000 points uniform in the padded box, occupancy = probability ≥ ½.
-//! * **The papers print Chamfer-L1 × 10** (ONet Table 1: 0.215 means 0.0215 in unit-cube
-//!   units; ONet issues #20, #61, #89). This module returns the unscaled value.
 
 use crate::camera::{align_similarity, Similarity};
 use crate::error::{check_scalar, Error, Result};
@@ -153,7 +138,22 @@ pub struct SurfaceMetrics {
 }
 
 /// Chamfer-L1, normal consistency and F-score between two point sets with optional
-/// normals (one per point), see the module docs.
+/// normals (one per point), with the conventions below.
+///
+/// # Conventions (Mescheder et al. 2019, and how to compare with the papers)
+/// * Both meshes are normalised to the unit cube first ([`Mesh::normalize_unit_cube`]
+///   on the ground truth, the same transform applied to the prediction).
+/// * 100 000 points are sampled on each surface ([`Mesh::sample_surface`]);
+///   **Chamfer-L1** = ½(accuracy + completeness), where accuracy is the mean Euclidean
+///   distance from predicted samples to their nearest ground-truth sample and
+///   completeness the reverse. The distances are not squared (the "L1" is the mean of
+///   norms).
+/// * **Normal consistency** = ½(mean |n_pred · n_gt(nn)| + mean |n_gt · n_pred(nn)|),
+///   with the normals of the faces the samples lie on (absolute value: insensitive to
+///   orientation).
+/// * **IoU** on 100 000 points uniform in the padded box, occupancy = probability ≥ ½.
+/// * **The papers print Chamfer-L1 × 10** (ONet Table 1: 0.215 means 0.0215 in unit-cube
+///   units; ONet issues #20, #61, #89). This module returns the unscaled value.
 ///
 /// # Errors
 /// Empty or non-finite point sets, normals of the wrong length, a non-positive threshold;

@@ -3,16 +3,19 @@
 //! The meshes and point clouds they produce and consume, and their files, are in
 //! [`crate::mesh`].
 //!
-//! * [`mod@marching_cubes`]: watertight, consistently oriented marching cubes over a dense
-//!   grid of values.
-//! * [`mod@mise`]: coarse-to-fine extraction of the level set of any
+//! * [`marching_cubes`]: watertight, consistently oriented marching cubes over a dense
+//!   [`Grid`] of values.
+//! * [`mise`]: coarse-to-fine extraction of the level set of any
 //!   [`ImplicitSurface`](crate::field::ImplicitSurface), evaluating the field only near
-//!   the surface.
-//! * [`metrics`]: IoU, Chamfer-L1, normal consistency and F-score with ONet's conventions.
-//! * [`losses`]: BCE summed over points and averaged over shapes, KL to `N(0, I)` and the
-//!   reparameterised sample.
-//! * [`sampling`]: uniform, near-surface and labelled samples (generalised winding
-//!   number inside test, robust to small holes).
+//!   the surface; [`refine_vertices`] moves its vertices onto the level set.
+//! * Metrics: [`iou`], and Chamfer-L1, normal consistency and F-score with ONet's
+//!   conventions ([`surface_metrics`], [`mesh_metrics`]).
+//! * Losses: BCE summed over points and averaged over shapes
+//!   ([`reconstruction_loss`]), KL to `N(0, I)` ([`kl_standard_normal`]) and the
+//!   reparameterised sample ([`reparameterize`]).
+//! * Samplers: uniform ([`uniform_in_padded_cube`]), near-surface ([`near_surface`]) and
+//!   labelled samples ([`inside_mesh`]: a generalised winding number inside test, robust
+//!   to small holes).
 //!
 //! ```
 //! use candle_core::{DType, Device};
@@ -32,16 +35,16 @@
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 
-pub mod losses;
-pub mod marching_cubes;
-pub mod metrics;
-pub mod mise;
-pub mod sampling;
+mod isosurface;
+mod losses;
+mod metrics;
+mod multires;
+mod sampling;
 
+pub use isosurface::{marching_cubes, Grid};
 pub use losses::{kl_standard_normal, reconstruction_loss, reparameterize};
-pub use marching_cubes::{marching_cubes, Grid};
 pub use metrics::{chamfer_icp, iou, mesh_metrics, surface_metrics, KdTree, SurfaceMetrics};
-pub use mise::{logit_threshold, mise, refine_vertices, MiseConfig, MiseOutput, RefineConfig};
+pub use multires::{logit_threshold, mise, refine_vertices, MiseConfig, MiseOutput, RefineConfig};
 pub use sampling::{
-    inside_mesh, near_surface, uniform_in_padded_cube, winding_numbers, winding_numbers_exact,
+    inside_mesh, near_surface, uniform_in_padded_cube, winding_numbers, WindingConfig,
 };

@@ -1,15 +1,5 @@
 //! Training points for occupancy networks: uniform in the padded cube, near the
 //! surface, and labelled against a real mesh with the generalised winding number.
-//!
-//! The generalised winding number (Jacobson et al. 2013) of a point `p` w.r.t. a
-//! triangle soup is `w(p) = (1/4π) Σ_f Ω_f(p)`, the sum of the signed solid angles
-//! subtended by the faces; `Ω` of a triangle with corners `a, b, c` relative to `p`
-//! (Van Oosterom & Strackee 1983) is
-//! `2 atan2(a·(b × c), |a||b||c| + (a·b)|c| + (b·c)|a| + (c·a)|b|)`.
-//! For a closed oriented surface `w` is 1 inside and 0 outside; for a surface with small
-//! holes, duplicated or unshared vertices (triangle soups such as `Wuson.ply`) it stays
-//! close to those values away from the defects, so `|w| > ½` is a robust inside test
-//! (taking `|w|` also makes it indifferent to the global orientation).
 
 use crate::error::{check_scalar, Error, Result};
 use crate::mesh::vector::{cross, dot, norm, sub};
@@ -64,7 +54,7 @@ pub fn near_surface(mesh: &Mesh, n: usize, sigma: f64, seed: u64) -> Result<Vec<
         .collect())
 }
 
-/// Signed solid angle of triangle `(a, b, c)` seen from `p` (see the module docs).
+/// Signed solid angle of triangle `(a, b, c)` seen from `p` (see [`winding_numbers`]).
 fn solid_angle(p: [f64; 3], a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> f64 {
     let (a, b, c) = (sub(a, p), sub(b, p), sub(c, p));
     let (la, lb, lc) = (norm(a), norm(b), norm(c));
@@ -73,19 +63,10 @@ fn solid_angle(p: [f64; 3], a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> f64 {
     2.0 * num.atan2(den)
 }
 
-/// Generalised winding numbers `w(p)` of `points` w.r.t. the mesh's triangles, exact
-/// (`O(points × faces)`, in parallel over points).
-///
-/// # Errors
-/// Invalid mesh.
-pub fn winding_numbers_exact(mesh: &Mesh, points: &[[f64; 3]]) -> Result<Vec<f64>> {
-    mesh.validate()?;
-    let tris: Vec<[[f64; 3]; 3]> = mesh
-        .faces
-        .iter()
-        .map(|f| f.map(|k| mesh.vertices[k as usize]))
-        .collect();
-    Ok(points
+/// The exact generalised winding numbers: every triangle's solid angle summed, in
+/// parallel over points (the reference path of [`winding_numbers`]).
+fn winding_numbers_exact(tris: &[[[f64; 3]; 3]], points: &[[f64; 3]]) -> Vec<f64> {
+    points
         .par_iter()
         .map(|&p| {
             tris.iter()
@@ -93,7 +74,7 @@ pub fn winding_numbers_exact(mesh: &Mesh, points: &[[f64; 3]]) -> Result<Vec<f64
                 .sum::<f64>()
                 / (4.0 * std::f64::consts::PI)
         })
-        .collect())
+        .collect()
 }
 
 /// A node of the triangle hierarchy for the fast winding number: the faces
@@ -183,22 +164,51 @@ fn wn_build(
     id
 }
 
-/// Generalised winding numbers `w(p)` by the fast hierarchical approximation (Barill et
-/// al. 2018, first order): a binary tree over the triangles; a subtree whose bounding
-/// ball is far from `p` (`‖p − c‖ > 2.5·radius`) contributes its dipole term
+/// Settings of [`winding_numbers`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct WindingConfig {
+    /// Sum the solid angle of every triangle at every point (exact, `O(points × faces)`):
+    /// the reference the hierarchical approximation is tested against. Default `false`.
+    pub force_reference: bool,
+}
+
+/// Generalised winding numbers `w(p)` of `points` w.r.t. the mesh's triangles.
+///
+/// The generalised winding number (Jacobson et al. 2013) of a point `p` w.r.t. a
+/// triangle soup is `w(p) = (1/4π) Σ_f Ω_f(p)`, the sum of the signed solid angles
+/// subtended by the faces; `Ω` of a triangle with corners `a, b, c` relative to `p`
+/// (Van Oosterom & Strackee 1983) is
+/// `2 atan2(a·(b × c), |a||b||c| + (a·b)|c| + (b·c)|a| + (c·a)|b|)`.
+/// For a closed oriented surface `w` is 1 inside and 0 outside; for a surface with small
+/// holes, duplicated or unshared vertices (triangle soups such as `Wuson.ply`) it stays
+/// close to those values away from the defects, so `|w| > ½` is a robust inside test
+/// (taking `|w|` also makes it indifferent to the global orientation).
+///
+/// By default the fast hierarchical approximation runs (Barill et al. 2018, first
+/// order): a binary tree over the triangles; a subtree whose bounding ball is far from
+/// `p` (`‖p − c‖ > 2.5·radius`) contributes its dipole term
 /// `(c − p)·Σ aᵢnᵢ / (4π‖c − p‖³)`, nearer ones are descended, leaves are summed
 /// exactly. Errors are well below the ½ threshold away from the surface;
-/// `O(points × log faces)` in practice. [`winding_numbers_exact`] is the reference.
+/// `O(points × log faces)` in practice. With [`WindingConfig::force_reference`] every
+/// triangle is summed at every point (exact, `O(points × faces)`). Both run in parallel
+/// over points. Host values: not differentiable.
 ///
 /// # Errors
 /// Invalid mesh.
-pub fn winding_numbers(mesh: &Mesh, points: &[[f64; 3]]) -> Result<Vec<f64>> {
+pub fn winding_numbers(
+    mesh: &Mesh,
+    points: &[[f64; 3]],
+    config: &WindingConfig,
+) -> Result<Vec<f64>> {
     mesh.validate()?;
     let tris: Vec<[[f64; 3]; 3]> = mesh
         .faces
         .iter()
         .map(|f| f.map(|k| mesh.vertices[k as usize]))
         .collect();
+    if config.force_reference {
+        return Ok(winding_numbers_exact(&tris, points));
+    }
     let mut order: Vec<usize> = (0..tris.len()).collect();
     let mut nodes = Vec::with_capacity(2 * tris.len() / WN_LEAF + 2);
     wn_build(&tris, &mut order, 0, &mut nodes);
@@ -231,12 +241,13 @@ pub fn winding_numbers(mesh: &Mesh, points: &[[f64; 3]]) -> Result<Vec<f64>> {
     Ok(points.par_iter().map(|&p| eval(p)).collect())
 }
 
-/// Inside test for real meshes: `|w(p)| > ½` (see the module docs).
+/// Inside test for real meshes: `|w(p)| > ½`, with the hierarchical approximation of
+/// [`winding_numbers`].
 ///
 /// # Errors
 /// Invalid mesh.
 pub fn inside_mesh(mesh: &Mesh, points: &[[f64; 3]]) -> Result<Vec<bool>> {
-    Ok(winding_numbers(mesh, points)?
+    Ok(winding_numbers(mesh, points, &WindingConfig::default())?
         .into_iter()
         .map(|w| w.abs() > 0.5)
         .collect())

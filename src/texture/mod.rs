@@ -33,7 +33,12 @@
 //! let normals = Tensor::ones((5, 3), DType::F32, &dev)?;
 //! let dirs = Tensor::ones((5, 3), DType::F32, &dev)?;
 //! let features = Tensor::zeros((5, 8), DType::F32, &dev)?;
-//! let input = TextureInput::new(&points).normals(&normals).view_dirs(&dirs).features(&features);
+//! let input = TextureInput {
+//!     normals: Some(&normals),
+//!     view_dirs: Some(&dirs),
+//!     features: Some(&features),
+//!     ..TextureInput::new(&points)
+//! };
 //! let rgb = net.rgb(&input)?;                                  // [5, 3] in [0, 1]
 //! assert_eq!(rgb.dims(), &[5, 3]);
 //! // A missing input is an error that names it.
@@ -42,15 +47,15 @@
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 
-pub mod losses;
+mod losses;
 
 pub use losses::image_gradient_loss;
 
 use crate::error::{check_points, check_same, check_shape, Dim, Error, Result};
 use candle_core::Tensor;
 
-/// The inputs of a [`TextureField`] at `N` points; build with [`TextureInput::new`] and
-/// add what the field reads.
+/// The inputs of a [`TextureField`] at `N` points; start from [`TextureInput::new`] and
+/// set what the field reads, e.g. `TextureInput { normals: Some(&n), ..TextureInput::new(&p) }`.
 ///
 /// Every tensor shares the points' dtype (f32 or f64) and device and has `N` rows.
 #[derive(Clone, Copy, Debug)]
@@ -83,41 +88,6 @@ impl<'a> TextureInput<'a> {
             shape_code: None,
             image_code: None,
         }
-    }
-
-    /// With normals `[N, 3]`.
-    #[must_use]
-    pub fn normals(mut self, normals: &'a Tensor) -> Self {
-        self.normals = Some(normals);
-        self
-    }
-
-    /// With viewing directions `[N, 3]`.
-    #[must_use]
-    pub fn view_dirs(mut self, view_dirs: &'a Tensor) -> Self {
-        self.view_dirs = Some(view_dirs);
-        self
-    }
-
-    /// With geometry features `[N, F]`.
-    #[must_use]
-    pub fn features(mut self, features: &'a Tensor) -> Self {
-        self.features = Some(features);
-        self
-    }
-
-    /// With shape codes `[N, C]`.
-    #[must_use]
-    pub fn shape_code(mut self, code: &'a Tensor) -> Self {
-        self.shape_code = Some(code);
-        self
-    }
-
-    /// With image codes `[N, Z]`.
-    #[must_use]
-    pub fn image_code(mut self, code: &'a Tensor) -> Self {
-        self.image_code = Some(code);
-        self
     }
 
     /// Checks the points: f32/f64 `[N, 3]`; returns `N`.

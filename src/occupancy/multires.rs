@@ -1,25 +1,6 @@
 //! Multiresolution IsoSurface Extraction (MISE, Mescheder et al. 2019).
-//!
-//! With `r₀ = resolution0` cells per axis and `k = upsampling_steps`, the final grid has
-//! `N = r₀·2ᵏ` cells (`N + 1` points) per axis over the box `[min, max]³`:
-//!
-//! 1. evaluate the field at the `(r₀ + 1)³` points of the coarse grid;
-//! 2. a cell is *active* when its eight corners are not all on the same side of the
-//!    level τ; subdivide each active cell into eight, evaluate only the points that are
-//!    new (edge midpoints, face centres, the centre, shared between neighbours), and keep
-//!    as active the children that straddle τ; repeat `k` times;
-//! 3. every point of the final grid that was never evaluated lies in a cell that was
-//!    inactive at some level (all eight corners on one side); it is filled, level by
-//!    level, with the trilinear interpolation of that cell's corners (the mean of the 2,
-//!    4 or 8 nearest coarser points), which keeps the side of the level set;
-//! 4. run [`marching_cubes`] on the final grid.
-//!
-//! Cost: `(r₀ + 1)³` plus `O(surface area × N²)` evaluations instead of `(N + 1)³`.
-//! Surface parts thinner than a coarse cell can be missed (both corners outside), as in
-//! the original. For occupancy probabilities with threshold `p` (ONet's 0.2 to 0.5), use
-//! the level [`logit_threshold`]`(p)` on the logits.
 
-use super::marching_cubes::{evaluate_points, marching_cubes, Grid};
+use super::isosurface::{evaluate_points, marching_cubes, Grid};
 use crate::error::{check_scalar, Error, Result};
 use crate::field::ImplicitSurface;
 use crate::mesh::Mesh;
@@ -103,7 +84,7 @@ fn dtype_and_level(surface: &dyn ImplicitSurface, dtype: DType, level: Option<f6
     Ok(level)
 }
 
-/// Extracts the level set of `surface` by MISE (see the module docs); the field is
+/// Extracts the level set of `surface` by MISE (below); the field is
 /// evaluated through [`ImplicitSurface::value`] on batches of `config.chunk` points.
 ///
 /// The point where the field is evaluated for grid index `(i, j, k)` is
@@ -111,6 +92,25 @@ fn dtype_and_level(surface: &dyn ImplicitSurface, dtype: DType, level: Option<f6
 /// resolution, so where MISE evaluated it agrees bit for bit with dense extraction.
 ///
 /// Not differentiable (a mesh is an output); the field may be any device and dtype.
+///
+/// With `r₀ = resolution0` cells per axis and `k = upsampling_steps`, the final grid has
+/// `N = r₀·2ᵏ` cells (`N + 1` points) per axis over the box `[min, max]³`:
+///
+/// 1. evaluate the field at the `(r₀ + 1)³` points of the coarse grid;
+/// 2. a cell is *active* when its eight corners are not all on the same side of the
+///    level τ; subdivide each active cell into eight, evaluate only the points that are
+///    new (edge midpoints, face centres, the centre, shared between neighbours), and keep
+///    as active the children that straddle τ; repeat `k` times;
+/// 3. every point of the final grid that was never evaluated lies in a cell that was
+///    inactive at some level (all eight corners on one side); it is filled, level by
+///    level, with the trilinear interpolation of that cell's corners (the mean of the 2,
+///    4 or 8 nearest coarser points), which keeps the side of the level set;
+/// 4. run [`marching_cubes`] on the final grid.
+///
+/// Cost: `(r₀ + 1)³` plus `O(surface area × N²)` evaluations instead of `(N + 1)³`.
+/// Surface parts thinner than a coarse cell can be missed (both corners outside), as in
+/// the original. For occupancy probabilities with threshold `p` (ONet's 0.2 to 0.5), use
+/// the level [`logit_threshold`]`(p)` on the logits.
 ///
 /// # Errors
 /// `resolution0 = 0`, a final resolution above 2048 cells per axis, `chunk = 0`,

@@ -1,23 +1,5 @@
 //! Marching cubes over a dense grid of scalar values, with watertight, consistently
 //! oriented output.
-//!
-//! The 256 cell cases are not copied from the classic table; they are derived once, at
-//! first use, from two rules that make every case consistent with its neighbours:
-//!
-//! 1. On each of a cell's six faces, the crossed edges are joined by segments; when a
-//!    face is ambiguous (two diagonal inside corners, four crossed edges) each inside
-//!    corner is cut off on its own ("inside corners separated"). Two cells sharing a face
-//!    see the same four values and so draw the same segments: the surface has no cracks.
-//! 2. Each segment is directed by `d = n_f × s` (`n_f` the face's outward normal, `s`
-//!    the in-face direction towards the inside corners), which makes the segments of a
-//!    cell form closed loops running counter-clockwise around the outward normal. Each
-//!    loop is fan-triangulated.
-//!
-//! Every crossed grid edge carries exactly one vertex, shared by all cells around it
-//! (an edge-indexed map), placed by linear interpolation `p = p_a + t (p_b − p_a)`,
-//! `t = (τ − v_a)/(v_b − v_a)`. On a closed level set the output is a closed
-//! 2-manifold along edges (every edge in exactly two triangles, traversed in opposite
-//! directions) with outward normals (positive signed volume).
 
 use crate::error::{check_scalar, Error, Result};
 use crate::field::{ImplicitSurface, Inside};
@@ -112,8 +94,7 @@ impl Grid {
     }
 
     /// The grid spacing per axis, `(max − min)/(dims − 1)`.
-    #[must_use]
-    pub fn spacing(&self) -> [f64; 3] {
+    pub(crate) fn spacing(&self) -> [f64; 3] {
         std::array::from_fn(|c| (self.max[c] - self.min[c]) / (self.dims[c] - 1) as f64)
     }
 
@@ -465,6 +446,24 @@ fn cases_needing_fallback() -> usize {
 ///
 /// Returns an empty mesh (no vertices, no faces) when the grid has no crossing;
 /// [`Mesh::validate`] reports that as an error if you need a surface.
+///
+/// The 256 cell cases are not copied from the classic table; they are derived once, at
+/// first use, from two rules that make every case consistent with its neighbours:
+///
+/// 1. On each of a cell's six faces, the crossed edges are joined by segments; when a
+///    face is ambiguous (two diagonal inside corners, four crossed edges) each inside
+///    corner is cut off on its own ("inside corners separated"). Two cells sharing a face
+///    see the same four values and so draw the same segments: the surface has no cracks.
+/// 2. Each segment is directed by `d = n_f × s` (`n_f` the face's outward normal, `s`
+///    the in-face direction towards the inside corners), which makes the segments of a
+///    cell form closed loops running counter-clockwise around the outward normal. Each
+///    loop is fan-triangulated.
+///
+/// Every crossed grid edge carries exactly one vertex, shared by all cells around it
+/// (an edge-indexed map), placed by linear interpolation `p = p_a + t (p_b − p_a)`,
+/// `t = (τ − v_a)/(v_b − v_a)`. On a closed level set the output is a closed
+/// 2-manifold along edges (every edge in exactly two triangles, traversed in opposite
+/// directions) with outward normals (positive signed volume).
 ///
 /// # Errors
 /// Non-finite `level`; naming `dims`, `min`, `max` or `values` when `grid` (whose fields

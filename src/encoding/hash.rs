@@ -1,53 +1,5 @@
-//! Multiresolution hash encoding (Müller et al. 2022, instant-NGP) with a fused CPU op.
-//!
-//! A point `x ∈ ℝᴰ` (D ≤ 4) is mapped into the unit cube of the scene box,
-//! `t = clamp((x − lo) / (hi − lo), 0, 1)`, and looked up at `L` levels of resolution
-//! `N_l = ⌊N_min · b^l⌋` (cells per axis), `b = (N_max / N_min)^{1/(L−1)}`. At level `l`,
-//! `u = t·N_l`, the cell is `i = min(⌊u⌋, N_l − 1)` and the local coordinates
-//! `w = u − i ∈ [0, 1]ᴰ`; the `2ᴰ` corners `i + c` (`c ∈ {0, 1}ᴰ`) index the level's
-//! table of `T_l` rows of `F` features, and the output is the multilinear interpolation
-//!
-//! `y_l = Σ_c (Π_d w_d^{c_d} (1 − w_d)^{1 − c_d}) · θ_l[h_l(i + c)]`,
-//!
-//! concatenated over levels: `[N, L·F]`, level-major. The index `h_l` is dense
-//! (`Σ_d v_d (N_l + 1)^d`) on levels whose `(N_l + 1)ᴰ` vertices fit the table
-//! (`T_l = (N_l + 1)ᴰ` then), and otherwise the spatial hash
-//! `(⊕_d v_d · π_d) mod 2ᵀ` with instant-NGP's primes `π = (1, 2654435761, 805459861,
-//! 3674653429)`, in wrapping 32-bit arithmetic. Distinct vertices may then share a row
-//! (collisions); training resolves them as instant-NGP does, by the gradient of the
-//! finer levels' many samples.
-//!
-//! **Gradients.** The output is linear in the tables: `∂y/∂θ` is the interpolation
-//! weight of each corner. W.r.t. the position it is piecewise smooth: inside a cell
-//! `∂y_l/∂x_d = (N_l / (hi_d − lo_d)) · Σ_c θ_l[h(i + c)] ∂w_c/∂w_d`, continuous across
-//! cell faces in value but not in slope (a kink on every face at every level), and zero
-//! outside the box, where `t` is clamped. Points on a face belong to the cell above
-//! (`⌊u⌋`), except on the box's upper face, which belongs to the last cell.
-//!
-//! **The fused op** (CPU, f32/f64) runs the forward pass over points in parallel. Its
-//! backward pass accumulates the table gradient level by level, each level's points in
-//! order, so that it is the same bit for bit at any thread count; it computes the
-//! position gradient only when the positions are on the autograd graph (a `Var` or the
-//! result of tracked ops), so a NeRF step, whose sample positions are data, does not pay
-//! for it. The reference path ([`HashGrid::forward_reference`], candle ops: the indices
-//! and cells computed on the host, the weights and the gathers on the tensors' device,
-//! `index_select` whose backward is an `index_add`) runs on any device, is used off the
-//! CPU, and is what [`Encoding::forward_jvp`] uses (its tangents stay differentiable
-//! w.r.t. the table, which normals and the eikonal loss need).
-//!
-//! ```
-//! use candle_core::{DType, Device, Tensor};
-//! use candle_nn::{VarBuilder, VarMap};
-//! use neural_fields::encoding::{hash_grid, Encoding, HashGridConfig};
-//!
-//! let varmap = VarMap::new();
-//! let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
-//! let grid = hash_grid(&HashGridConfig::default(), vb.pp("grid"))?;
-//! let x = Tensor::new(&[[0.1f32, -0.2, 0.3], [0.5, 0.5, 0.5]], &Device::Cpu)?;
-//! let y = grid.forward(&x)?;
-//! assert_eq!(y.dims(), &[2, 32]); // 16 levels × 2 features
-//! # Ok::<(), neural_fields::Error>(())
-//! ```
+//! instant-NGP's multiresolution hash encoding ([`HashGrid`]), its reference path and its
+//! fused CPU op.
 
 use super::{check_tangents, Encoding};
 use crate::error::{check_float, check_shape, Dim, Error, Result};
@@ -87,11 +39,17 @@ pub struct HashGridConfig {
     pub hi: Vec<f64>,
     /// The tables start uniform in `[−s, s]` (instant-NGP: 1e-4).
     pub init_scale: f64,
+    /// Run the reference path (candle ops) even where [`Encoding::forward`] would run the
+    /// fused CPU op: for second-order derivatives (the fused backward is first order
+    /// only) and for comparing the two. Two grids built from the same `VarBuilder` map
+    /// share one table, so a grid and its reference twin evaluate the same parameters.
+    /// Default `false`.
+    pub force_reference: bool,
 }
 
 impl Default for HashGridConfig {
     /// 3-D points in `[−1, 1]³`, 16 levels of 2 features, tables of `2¹⁵` rows,
-    /// resolutions 16 to 2048, initialised in `U(−1e-4, 1e-4)`.
+    /// resolutions 16 to 2048, initialised in `U(−1e-4, 1e-4)`, the fused op on the CPU.
     fn default() -> Self {
         Self {
             in_dim: 3,
@@ -103,6 +61,7 @@ impl Default for HashGridConfig {
             lo: vec![-1.0; 3],
             hi: vec![1.0; 3],
             init_scale: 1e-4,
+            force_reference: false,
         }
     }
 }
@@ -128,7 +87,58 @@ struct Plan {
 }
 
 /// A multiresolution hash grid: its configuration and table `[Σ_l T_l, F]`; build it
-/// with [`hash_grid`]. See the [module documentation](self).
+/// with [`hash_grid`].
+///
+/// Multiresolution hash encoding (Müller et al. 2022, instant-NGP) with a fused CPU op.
+///
+/// A point `x ∈ ℝᴰ` (D ≤ 4) is mapped into the unit cube of the scene box,
+/// `t = clamp((x − lo) / (hi − lo), 0, 1)`, and looked up at `L` levels of resolution
+/// `N_l = ⌊N_min · b^l⌋` (cells per axis), `b = (N_max / N_min)^{1/(L−1)}`. At level `l`,
+/// `u = t·N_l`, the cell is `i = min(⌊u⌋, N_l − 1)` and the local coordinates
+/// `w = u − i ∈ [0, 1]ᴰ`; the `2ᴰ` corners `i + c` (`c ∈ {0, 1}ᴰ`) index the level's
+/// table of `T_l` rows of `F` features, and the output is the multilinear interpolation
+///
+/// `y_l = Σ_c (Π_d w_d^{c_d} (1 − w_d)^{1 − c_d}) · θ_l[h_l(i + c)]`,
+///
+/// concatenated over levels: `[N, L·F]`, level-major. The index `h_l` is dense
+/// (`Σ_d v_d (N_l + 1)^d`) on levels whose `(N_l + 1)ᴰ` vertices fit the table
+/// (`T_l = (N_l + 1)ᴰ` then), and otherwise the spatial hash
+/// `(⊕_d v_d · π_d) mod 2ᵀ` with instant-NGP's primes `π = (1, 2654435761, 805459861,
+/// 3674653429)`, in wrapping 32-bit arithmetic. Distinct vertices may then share a row
+/// (collisions); training resolves them as instant-NGP does, by the gradient of the
+/// finer levels' many samples.
+///
+/// **Gradients.** The output is linear in the tables: `∂y/∂θ` is the interpolation
+/// weight of each corner. W.r.t. the position it is piecewise smooth: inside a cell
+/// `∂y_l/∂x_d = (N_l / (hi_d − lo_d)) · Σ_c θ_l[h(i + c)] ∂w_c/∂w_d`, continuous across
+/// cell faces in value but not in slope (a kink on every face at every level), and zero
+/// outside the box, where `t` is clamped. Points on a face belong to the cell above
+/// (`⌊u⌋`), except on the box's upper face, which belongs to the last cell.
+///
+/// **The fused op** (CPU, f32/f64) runs the forward pass over points in parallel. Its
+/// backward pass accumulates the table gradient level by level, each level's points in
+/// order, so that it is the same bit for bit at any thread count; it computes the
+/// position gradient only when the positions are on the autograd graph (a `Var` or the
+/// result of tracked ops), so a NeRF step, whose sample positions are data, does not pay
+/// for it. The reference path ([`HashGridConfig::force_reference`], candle ops: the indices
+/// and cells computed on the host, the weights and the gathers on the tensors' device,
+/// `index_select` whose backward is an `index_add`) runs on any device, is used off the
+/// CPU, and is what [`Encoding::forward_jvp`] uses (its tangents stay differentiable
+/// w.r.t. the table, which normals and the eikonal loss need).
+///
+/// ```
+/// use candle_core::{DType, Device, Tensor};
+/// use candle_nn::{VarBuilder, VarMap};
+/// use neural_fields::encoding::{hash_grid, Encoding, HashGridConfig};
+///
+/// let varmap = VarMap::new();
+/// let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
+/// let grid = hash_grid(&HashGridConfig::default(), vb.pp("grid"))?;
+/// let x = Tensor::new(&[[0.1f32, -0.2, 0.3], [0.5, 0.5, 0.5]], &Device::Cpu)?;
+/// let y = grid.forward(&x)?;
+/// assert_eq!(y.dims(), &[2, 32]); // 16 levels × 2 features
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
 #[derive(Clone, Debug)]
 pub struct HashGrid {
     config: HashGridConfig,
@@ -398,8 +408,8 @@ impl HashGrid {
     }
 
     /// Each level's cells per axis, rows and whether it is dense (`false`: hashed).
-    #[must_use]
-    pub fn levels(&self) -> Vec<(u32, usize, bool)> {
+    #[cfg(test)]
+    fn levels(&self) -> Vec<(u32, usize, bool)> {
         self.plan
             .levels
             .iter()
@@ -408,7 +418,8 @@ impl HashGrid {
     }
 
     fn fused(&self, x: &Tensor) -> bool {
-        x.device().is_cpu()
+        !self.config.force_reference
+            && x.device().is_cpu()
             && self.table.device().is_cpu()
             && x.dtype() == self.table.dtype()
             && matches!(x.dtype(), DType::F32 | DType::F64)
@@ -418,10 +429,7 @@ impl HashGrid {
     /// w.r.t. `x` and the table. The cells and table rows are computed on the host from
     /// `x` (they are piecewise constant: no gradient flows through them), the weights and
     /// the gathers on `x`'s device.
-    ///
-    /// # Errors
-    /// `x` not f32/f64 `[N, D]`, NaN in `x`, a dtype or device other than the table's.
-    pub fn forward_reference(&self, x: &Tensor) -> Result<Tensor> {
+    fn forward_reference(&self, x: &Tensor) -> Result<Tensor> {
         let n = self.check(x)?;
         let p = &self.plan;
         let (d, f, corners) = (p.d, p.f, 1usize << p.d);
@@ -524,8 +532,12 @@ impl Encoding for HashGrid {
         self.plan.width()
     }
 
-    /// `x: [N, D]` → `[N, L·F]`: the fused op on the CPU (f32/f64), the reference path
-    /// elsewhere. Differentiable w.r.t. the table and `x`.
+    /// `x: [N, D]` → `[N, L·F]`: the fused op on the CPU (f32/f64), the reference path of
+    /// candle ops elsewhere or with [`HashGridConfig::force_reference`]. Differentiable
+    /// w.r.t. the table and `x` (to second order on the reference path only).
+    ///
+    /// # Errors
+    /// `x` not f32/f64 `[N, D]`, NaN in `x`, a dtype or device other than the table's.
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         if !self.fused(x) {
             return self.forward_reference(x);
@@ -754,5 +766,33 @@ impl candle_core::CustomOp2 for FusedHashGrid {
             DType::F64 => run!(f64),
             other => candle_core::bail!("hash grid: unsupported dtype {other:?}"),
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{hash_grid, HashGridConfig};
+    use crate::encoding::Encoding;
+    use candle_core::{DType, Device};
+    use candle_nn::{VarBuilder, VarMap};
+
+    #[test]
+    fn levels_are_dense_until_the_table_is_full_then_hashed() {
+        let varmap = VarMap::new();
+        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
+        let g = hash_grid(&HashGridConfig::default(), vb).unwrap();
+        let levels = g.levels();
+        assert_eq!(levels.len(), 16);
+        assert_eq!(levels[0], (16, 17 * 17 * 17, true));
+        assert_eq!(levels[15].0, 2048);
+        assert!(levels.iter().all(|&(n, rows, dense)| dense
+            == ((n as usize + 1).pow(3) <= 1 << 15)
+            && rows <= 1 << 15));
+        assert!(!levels[15].2);
+        assert_eq!(g.out_dim(), 32);
+        assert_eq!(
+            g.table().dims(),
+            &[levels.iter().map(|l| l.1).sum::<usize>(), 2]
+        );
     }
 }

@@ -5,56 +5,9 @@
 //! * [`grid_sample`]: bilinear sampling of `[B, C, H, W]` planes or trilinear sampling of
 //!   `[B, C, D, H, W]` grids at normalised coordinates in `[0, 1]`, differentiable w.r.t.
 //!   the features and the coordinates.
-//! * [`scatter_mean`], [`scatter_max`]: per-cell mean and maximum of point features
-//!   `[B, N, C]` given each point's cell, differentiable w.r.t. the features.
+//! * [`scatter`]: per-cell mean or maximum ([`Pooling`]) of point features `[B, N, C]`
+//!   given each point's cell, differentiable w.r.t. the features.
 //! * [`cell_index`]: the flat cell of each normalised point at a resolution.
-//!
-//! **Convention.** A coordinate `c ∈ [0, 1]` on an axis of `S` samples lies at pixel
-//! position `u = c·(S − 1)`: `c = 0` is the centre of the first sample, `c = 1` that of the
-//! last (PyTorch's `grid_sample(features, 2c − 1, align_corners=True,
-//! padding_mode="border")`, which is what the published decoder calls). `coords[..., 0]`
-//! runs along the last axis (`W`), `coords[..., 1]` along `H`, `coords[..., 2]` along `D`.
-//! Coordinates outside `[0, 1]` are clamped to it (border padding), and ±∞ with them.
-//!
-//! **Formula.** Per axis, `i = min(⌊u⌋, S − 2)` and `w = u − i ∈ [0, 1]` (on an axis of
-//! one sample, `i = 0` and `w = 0`); the result is the multilinear interpolation of the
-//! `2ᵏ` corners (`k = 2` or 3):
-//!
-//! `y[b, n, :] = Σ_{c ∈ {0,1}ᵏ} Π_a w_a^{c_a} (1 − w_a)^{1 − c_a} · F[b, :, i + c]`.
-//!
-//! **Gradients.** `y` is linear in `F`: `∂y/∂F` is the corner weight. W.r.t. the coordinate
-//! on axis `a`, `∂y/∂c_a = (S_a − 1) · Σ_c ±Π_{a' ≠ a}(…) F[i + c]`, continuous in value
-//! across cell borders but not in slope. The derivative returned there is one-sided and
-//! fixed by `i = ⌊u⌋`: on an interior border (`u` an integer in `1 … S − 2`) it is the
-//! **right** derivative (the cell above), at `c = 0` the right derivative, at `c = 1` the
-//! **left** derivative (the last cell; PyTorch's kernel instead reads a corner past the
-//! border there, whose weight is zero, and returns a different value). Outside `[0, 1]` the
-//! coordinate is clamped and its gradient is **zero**; exactly at 0 and at 1 it is the
-//! inward one-sided derivative above (as PyTorch's `clip_coordinates_set_grad`, which
-//! passes the gradient at the limits).
-//!
-//! **Kernels.** On the CPU with f32 or f64 features and coordinates of that dtype, a
-//! fused op ([`candle_core::CustomOp2`]) runs: the forward pass and the coordinate
-//! gradient in parallel over blocks of points; the feature gradient in parallel over
-//! (batch, block of [`CHANNEL_BLOCK`] channels), each work item adding the points of its
-//! batch in order into its own f64 accumulators, so that the result is the same bit for
-//! bit at any thread count. The coordinate gradient is computed only when the coordinates
-//! are on the autograd graph. Elsewhere (other devices and dtypes) a reference path of
-//! candle ops runs: corner indices and clamping decided on the host from the coordinates
-//! (piecewise constant, no gradient), weights from the coordinates on their device, the
-//! corners gathered with `index_select` (whose backward is an `index_add`) and summed.
-//!
-//! ```
-//! use candle_core::{Device, Tensor};
-//! use neural_fields::encoding::grid_sample::grid_sample;
-//!
-//! // One plane of one channel, 2 × 2 samples: f(x, y) = x + 10 y at the corners.
-//! let f = Tensor::new(&[[[[0.0f32, 1.0], [10.0, 11.0]]]], &Device::Cpu)?; // [1, 1, 2, 2]
-//! let p = Tensor::new(&[[[0.5f32, 0.25]]], &Device::Cpu)?;                  // [1, 1, 2]
-//! let y = grid_sample(&f, &p)?;                                             // [1, 1, 1]
-//! assert!((y.flatten_all()?.to_vec1::<f32>()?[0] - 3.0).abs() < 1e-6);
-//! # Ok::<(), neural_fields::Error>(())
-//! ```
 
 use crate::error::{check_float, check_same, check_shape, Dim, Error, Result};
 use crate::narrow::narrow;
@@ -66,7 +19,7 @@ const ROWS: usize = 256;
 
 /// Channels per work item of the fused feature-gradient pass (a fixed split, so the
 /// order of every sum does not depend on the number of threads).
-pub const CHANNEL_BLOCK: usize = 4;
+const CHANNEL_BLOCK: usize = 4;
 
 /// The geometry of a sampling call: spatial sizes per coordinate axis and the strides of
 /// the flattened spatial index.
@@ -224,8 +177,65 @@ fn check_sample(features: &Tensor, coords: &Tensor) -> Result<(usize, usize, usi
     Ok((fd[0], cd[1], fd[1], g))
 }
 
-/// Samples `features` at `coords` (see the [module documentation](self) for the
-/// convention, formula and gradients).
+/// Settings of [`grid_sample`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct GridSampleConfig {
+    /// Run the reference path (candle ops) even on the CPU, where [`grid_sample`] would
+    /// run the fused op: for second-order derivatives (the fused backward is first order
+    /// only) and for comparing the two. Default `false`.
+    pub force_reference: bool,
+}
+
+/// Samples `features` at `coords`: bilinear sampling of `[B, C, H, W]` planes or
+/// trilinear sampling of `[B, C, D, H, W]` grids at normalised coordinates in `[0, 1]`.
+///
+/// **Convention.** A coordinate `c ∈ [0, 1]` on an axis of `S` samples lies at pixel
+/// position `u = c·(S − 1)`: `c = 0` is the centre of the first sample, `c = 1` that of the
+/// last (PyTorch's `grid_sample(features, 2c − 1, align_corners=True,
+/// padding_mode="border")`, which is what the published decoder calls). `coords[..., 0]`
+/// runs along the last axis (`W`), `coords[..., 1]` along `H`, `coords[..., 2]` along `D`.
+/// Coordinates outside `[0, 1]` are clamped to it (border padding), and ±∞ with them.
+///
+/// **Formula.** Per axis, `i = min(⌊u⌋, S − 2)` and `w = u − i ∈ [0, 1]` (on an axis of
+/// one sample, `i = 0` and `w = 0`); the result is the multilinear interpolation of the
+/// `2ᵏ` corners (`k = 2` or 3):
+///
+/// `y[b, n, :] = Σ_{c ∈ {0,1}ᵏ} Π_a w_a^{c_a} (1 − w_a)^{1 − c_a} · F[b, :, i + c]`.
+///
+/// **Gradients.** `y` is linear in `F`: `∂y/∂F` is the corner weight. W.r.t. the coordinate
+/// on axis `a`, `∂y/∂c_a = (S_a − 1) · Σ_c ±Π_{a' ≠ a}(…) F[i + c]`, continuous in value
+/// across cell borders but not in slope. The derivative returned there is one-sided and
+/// fixed by `i = ⌊u⌋`: on an interior border (`u` an integer in `1 … S − 2`) it is the
+/// **right** derivative (the cell above), at `c = 0` the right derivative, at `c = 1` the
+/// **left** derivative (the last cell; PyTorch's kernel instead reads a corner past the
+/// border there, whose weight is zero, and returns a different value). Outside `[0, 1]` the
+/// coordinate is clamped and its gradient is **zero**; exactly at 0 and at 1 it is the
+/// inward one-sided derivative above (as PyTorch's `clip_coordinates_set_grad`, which
+/// passes the gradient at the limits).
+///
+/// **Kernels.** On the CPU with f32 or f64 features and coordinates of that dtype, a
+/// fused op ([`candle_core::CustomOp2`]) runs: the forward pass and the coordinate
+/// gradient in parallel over blocks of points; the feature gradient in parallel over
+/// (batch, block of 4 channels), each work item adding the points of its batch in order
+/// into its own f64 accumulators, so that the result is the same bit for bit at any
+/// thread count. The coordinate gradient is computed only when the coordinates are on
+/// the autograd graph. Elsewhere (other devices and dtypes), or with
+/// [`GridSampleConfig::force_reference`], a reference path of candle ops runs: corner
+/// indices and clamping decided on the host from the coordinates (piecewise constant, no
+/// gradient), weights from the coordinates on their device, the corners gathered with
+/// `index_select` (whose backward is an `index_add`) and summed.
+///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::encoding::{grid_sample, GridSampleConfig};
+///
+/// // One plane of one channel, 2 × 2 samples: f(x, y) = x + 10 y at the corners.
+/// let f = Tensor::new(&[[[[0.0f32, 1.0], [10.0, 11.0]]]], &Device::Cpu)?; // [1, 1, 2, 2]
+/// let p = Tensor::new(&[[[0.5f32, 0.25]]], &Device::Cpu)?;                  // [1, 1, 2]
+/// let y = grid_sample(&f, &p, &GridSampleConfig::default())?;              // [1, 1, 1]
+/// assert!((y.flatten_all()?.to_vec1::<f32>()?[0] - 3.0).abs() < 1e-6);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
 ///
 /// * `features`: `[B, C, H, W]` (bilinear, `coords: [B, N, 2]`) or `[B, C, D, H, W]`
 ///   (trilinear, `coords: [B, N, 3]`), f32 or f64, every spatial axis non-empty;
@@ -234,19 +244,22 @@ fn check_sample(features: &Tensor, coords: &Tensor) -> Result<(usize, usize, usi
 ///
 /// Differentiable w.r.t. `features` and `coords` (zero w.r.t. a clamped coordinate;
 /// one-sided on cell borders as documented). The fused CPU op runs for f32/f64 on the
-/// CPU, the reference path of candle ops elsewhere; [`grid_sample_reference`] forces the
-/// latter.
+/// CPU, the reference path of candle ops elsewhere or with
+/// [`GridSampleConfig::force_reference`]; the two agree to rounding.
 ///
 /// ```
 /// use candle_core::{Device, Tensor};
-/// use neural_fields::encoding::grid_sample::grid_sample;
+/// use neural_fields::encoding::{grid_sample, GridSampleConfig};
 ///
-/// // A 2 × 2 × 2 grid holding its own x coordinate, read at x = 0.3.
+/// // A 2 × 2 × 2 grid holding its own x coordinate, read at x = 0.3, on both paths.
 /// let f = Tensor::new(&[0.0f64, 1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 1.0], &Device::Cpu)?
 ///     .reshape((1, 1, 2, 2, 2))?;
 /// let p = Tensor::new(&[[[0.3f64, 0.9, 0.1]]], &Device::Cpu)?;
-/// let y = grid_sample(&f, &p)?.flatten_all()?.to_vec1::<f64>()?;
-/// assert!((y[0] - 0.3).abs() < 1e-12);
+/// for force_reference in [false, true] {
+///     let config = GridSampleConfig { force_reference };
+///     let y = grid_sample(&f, &p, &config)?.flatten_all()?.to_vec1::<f64>()?;
+///     assert!((y[0] - 0.3).abs() < 1e-12);
+/// }
 /// # Ok::<(), neural_fields::Error>(())
 /// ```
 ///
@@ -254,8 +267,14 @@ fn check_sample(features: &Tensor, coords: &Tensor) -> Result<(usize, usize, usi
 /// `features` not f32/f64 of rank 4 or 5 with non-empty spatial axes, or of 2³² samples
 /// or more over the batch; `coords` not `[B, N, k]` (`k` = spatial rank) of the features'
 /// dtype and device, or holding a NaN (naming `coords`).
-pub fn grid_sample(features: &Tensor, coords: &Tensor) -> Result<Tensor> {
-    let fused = features.device().is_cpu() && matches!(features.dtype(), DType::F32 | DType::F64);
+pub fn grid_sample(
+    features: &Tensor,
+    coords: &Tensor,
+    config: &GridSampleConfig,
+) -> Result<Tensor> {
+    let fused = !config.force_reference
+        && features.device().is_cpu()
+        && matches!(features.dtype(), DType::F32 | DType::F64);
     if !fused {
         return grid_sample_reference(features, coords);
     }
@@ -266,24 +285,8 @@ pub fn grid_sample(features: &Tensor, coords: &Tensor) -> Result<Tensor> {
 }
 
 /// [`grid_sample`] by candle ops, on any device and float dtype (the path used off the
-/// CPU, and the reference the fused op is tested against). Same arguments, result and
-/// gradients.
-///
-/// ```
-/// use candle_core::{Device, Tensor};
-/// use neural_fields::encoding::grid_sample::{grid_sample, grid_sample_reference};
-///
-/// let f = Tensor::arange(0f32, 12.0, &Device::Cpu)?.reshape((1, 1, 3, 4))?;
-/// let p = Tensor::new(&[[[0.2f32, 0.7], [1.5, -1.0]]], &Device::Cpu)?;
-/// let a = grid_sample(&f, &p)?.flatten_all()?.to_vec1::<f32>()?;
-/// let b = grid_sample_reference(&f, &p)?.flatten_all()?.to_vec1::<f32>()?;
-/// assert!(a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-5));
-/// # Ok::<(), neural_fields::Error>(())
-/// ```
-///
-/// # Errors
-/// As [`grid_sample`].
-pub fn grid_sample_reference(features: &Tensor, coords: &Tensor) -> Result<Tensor> {
+/// CPU and with `force_reference`). Same arguments, result and gradients.
+fn grid_sample_reference(features: &Tensor, coords: &Tensor) -> Result<Tensor> {
     let (b, n, c, g) = check_sample(features, coords)?;
     let k = g.k;
     let corners = 1usize << k;
@@ -611,30 +614,98 @@ fn flat_cells(host: &[u32], n: usize, cells: usize, dev: &candle_core::Device) -
     Ok(Tensor::from_vec(flat, host.len(), dev)?)
 }
 
-/// The per-cell mean of point features: `values: [B, N, C]` (f32/f64), `index: [B, N]`
-/// (u32 cell ids below `cells`, same device) → `[B, cells, C]`,
+/// How [`scatter`] pools the points of a cell.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Pooling {
+    /// The mean of the cell's points (as `torch_scatter.scatter_mean`).
+    #[default]
+    Mean,
+    /// The maximum of the cell's points per channel (as `torch_scatter.scatter_max`).
+    Max,
+}
+
+/// Settings of [`scatter`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ScatterConfig {
+    /// The per-cell reduction. Default [`Pooling::Mean`].
+    pub pooling: Pooling,
+    /// Run the reference path (candle ops) even on the CPU, where [`Pooling::Max`] runs a
+    /// fused op (the mean is made of candle ops everywhere): for second-order derivatives
+    /// (the fused backward is first order only) and for comparing the two. Default
+    /// `false`.
+    pub force_reference: bool,
+}
+
+/// Pools point features into cells: `values: [B, N, C]` (f32/f64), `index: [B, N]` (u32
+/// cell ids below `cells`, same device) → `[B, cells, C]`, with `S_bq = {n : index[b, n]
+/// = q}` the points of cell `q`:
 ///
-/// `y[b, q, :] = (1 / |S_bq|) Σ_{n ∈ S_bq} values[b, n, :]`, `S_bq = {n : index[b, n] = q}`,
+/// * [`Pooling::Mean`]: `y[b, q, :] = (1 / |S_bq|) Σ_{n ∈ S_bq} values[b, n, :]`.
+///   Differentiable w.r.t. `values` (`∂y[b, q]/∂values[b, n] = 1/|S_bq|` for
+///   `n ∈ S_bq`). Candle ops on any device: an `index_add` of the values and a division
+///   by the counts (counted on the host).
+/// * [`Pooling::Max`]: `y[b, q, j] = max_{n ∈ S_bq} values[b, n, j]`; a NaN among a
+///   cell's values gives NaN. Differentiable w.r.t. `values`: each `y[b, q, j]` passes
+///   its gradient to one element, the maximising point `n` of that cell and channel;
+///   among equal maxima, to the one with the **lowest point index** (and to the first NaN
+///   if there is one). On the CPU (f32/f64) a fused op runs (one pass over the points per
+///   batch, the backward recomputes the argmax). Elsewhere, or with
+///   [`ScatterConfig::force_reference`], a reference path of candle ops runs in rounds
+///   over ranks, without a `cells × N × C` tensor: the points of each cell are ordered by
+///   index on the host (a counting sort of `index`) and the non-empty cells by decreasing
+///   count, so that round `r` updates the running maxima of exactly the first `K_r` cells
+///   (those with more than `r` points) with their `r`-th point
+///   (`where_cond(candidate > running, candidate, running)`; strict, so ties keep the
+///   earlier point). Memory `O(B·cells·C + N·C)`; the number of rounds is the largest
+///   cell's point count.
 ///
-/// and 0 in empty cells (as `torch_scatter.scatter_mean`). Differentiable w.r.t. `values`
-/// (`∂y[b, q]/∂values[b, n] = 1/|S_bq|` for `n ∈ S_bq`). Candle ops on any device: an
-/// `index_add` of the values and a division by the counts (counted on the host).
+/// Empty cells hold 0 (as `torch_scatter`).
 ///
 /// ```
 /// use candle_core::{Device, Tensor};
-/// use neural_fields::encoding::grid_sample::scatter_mean;
+/// use neural_fields::encoding::{scatter, Pooling, ScatterConfig};
 ///
 /// let v = Tensor::new(&[[[1.0f32], [3.0], [5.0]]], &Device::Cpu)?; // [1, 3, 1]
 /// let i = Tensor::new(&[[2u32, 2, 0]], &Device::Cpu)?;             // [1, 3]
-/// let y = scatter_mean(&v, &i, 3)?.flatten_all()?.to_vec1::<f32>()?;
+/// let mean = ScatterConfig::default();
+/// let y = scatter(&v, &i, 3, &mean)?.flatten_all()?.to_vec1::<f32>()?;
 /// assert_eq!(y, [5.0, 0.0, 2.0]);
+/// for force_reference in [false, true] {
+///     let max = ScatterConfig { pooling: Pooling::Max, force_reference };
+///     let y = scatter(&v, &i, 3, &max)?.flatten_all()?.to_vec1::<f32>()?;
+///     assert_eq!(y, [5.0, 0.0, 3.0]);
+/// }
 /// # Ok::<(), neural_fields::Error>(())
 /// ```
 ///
 /// # Errors
 /// `values` not f32/f64 `[B, N, C]`; `index` not u32 `[B, N]` on the same device, or an
 /// id ≥ `cells` (naming `index`); `B·cells ≥ 2³²` (naming `cells`).
-pub fn scatter_mean(values: &Tensor, index: &Tensor, cells: usize) -> Result<Tensor> {
+pub fn scatter(
+    values: &Tensor,
+    index: &Tensor,
+    cells: usize,
+    config: &ScatterConfig,
+) -> Result<Tensor> {
+    match config.pooling {
+        Pooling::Mean => scatter_mean(values, index, cells),
+        Pooling::Max => {
+            let fused = !config.force_reference
+                && values.device().is_cpu()
+                && matches!(values.dtype(), DType::F32 | DType::F64);
+            if !fused {
+                return scatter_max_reference(values, index, cells);
+            }
+            check_scatter(values, index, cells)?;
+            Ok(values
+                .contiguous()?
+                .apply_op2(&index.contiguous()?, FusedScatterMax(cells))?)
+        }
+    }
+}
+
+/// [`Pooling::Mean`] of [`scatter`].
+fn scatter_mean(values: &Tensor, index: &Tensor, cells: usize) -> Result<Tensor> {
     let ((b, n, c), host) = check_scatter(values, index, cells)?;
     let dev = values.device();
     let mut counts = vec![0.0f64; b * cells];
@@ -653,68 +724,9 @@ pub fn scatter_mean(values: &Tensor, index: &Tensor, cells: usize) -> Result<Ten
     Ok(sums.broadcast_mul(&inv)?.reshape((b, cells, c))?)
 }
 
-/// The per-cell maximum of point features: `values: [B, N, C]` (f32/f64), `index:
-/// [B, N]` (u32 cell ids below `cells`, same device) → `[B, cells, C]`,
-///
-/// `y[b, q, j] = max_{n ∈ S_bq} values[b, n, j]`, and 0 in empty cells (as
-/// `torch_scatter.scatter_max`). A NaN among a cell's values gives NaN.
-///
-/// Differentiable w.r.t. `values`: each `y[b, q, j]` passes its gradient to one element,
-/// the maximising point `n` of that cell and channel; among equal maxima, to the one with
-/// the **lowest point index** (and to the first NaN if there is one).
-///
-/// On the CPU (f32/f64) a fused op runs (one pass over the points per batch, the
-/// backward recomputes the argmax). Elsewhere the reference path of candle ops
-/// ([`scatter_max_reference`]) runs in rounds over ranks, without a `cells × N × C`
-/// tensor: the points of each cell are ordered by index on the host (a counting sort of
-/// `index`) and the non-empty cells by decreasing count, so that round `r` updates the
-/// running maxima of exactly the first `K_r` cells (those with more than `r` points) with
-/// their `r`-th point (`where_cond(candidate > running, candidate, running)`; strict, so
-/// ties keep the earlier point). Memory `O(B·cells·C + N·C)`; the number of rounds is the
-/// largest cell's point count.
-///
-/// ```
-/// use candle_core::{Device, Tensor};
-/// use neural_fields::encoding::grid_sample::scatter_max;
-///
-/// let v = Tensor::new(&[[[1.0f32], [-3.0], [5.0]]], &Device::Cpu)?; // [1, 3, 1]
-/// let i = Tensor::new(&[[1u32, 1, 0]], &Device::Cpu)?;
-/// let y = scatter_max(&v, &i, 3)?.flatten_all()?.to_vec1::<f32>()?;
-/// assert_eq!(y, [5.0, 1.0, 0.0]);
-/// # Ok::<(), neural_fields::Error>(())
-/// ```
-///
-/// # Errors
-/// As [`scatter_mean`].
-pub fn scatter_max(values: &Tensor, index: &Tensor, cells: usize) -> Result<Tensor> {
-    let fused = values.device().is_cpu() && matches!(values.dtype(), DType::F32 | DType::F64);
-    if !fused {
-        return scatter_max_reference(values, index, cells);
-    }
-    check_scatter(values, index, cells)?;
-    Ok(values
-        .contiguous()?
-        .apply_op2(&index.contiguous()?, FusedScatterMax(cells))?)
-}
-
-/// [`scatter_max`] by candle ops on any device (the rounds described there); the path
-/// used off the CPU and the reference of the fused op's tests.
-///
-/// ```
-/// use candle_core::{Device, Tensor};
-/// use neural_fields::encoding::grid_sample::{scatter_max, scatter_max_reference};
-///
-/// let v = Tensor::new(&[[[1.0f64, 2.0], [4.0, -1.0], [0.5, 7.0]]], &Device::Cpu)?;
-/// let i = Tensor::new(&[[3u32, 3, 0]], &Device::Cpu)?;
-/// let a = scatter_max(&v, &i, 4)?.flatten_all()?.to_vec1::<f64>()?;
-/// let b = scatter_max_reference(&v, &i, 4)?.flatten_all()?.to_vec1::<f64>()?;
-/// assert_eq!(a, b);
-/// # Ok::<(), neural_fields::Error>(())
-/// ```
-///
-/// # Errors
-/// As [`scatter_mean`].
-pub fn scatter_max_reference(values: &Tensor, index: &Tensor, cells: usize) -> Result<Tensor> {
+/// [`Pooling::Max`] of [`scatter`] by candle ops on any device (the rounds described
+/// there).
+fn scatter_max_reference(values: &Tensor, index: &Tensor, cells: usize) -> Result<Tensor> {
     let ((b, n, c), host) = check_scatter(values, index, cells)?;
     let dev = values.device();
     let zeros = Tensor::zeros((b * cells, c), values.dtype(), dev)?;
@@ -918,7 +930,7 @@ impl candle_core::CustomOp2 for FusedScatterMax {
 ///
 /// ```
 /// use candle_core::{Device, Tensor};
-/// use neural_fields::encoding::grid_sample::cell_index;
+/// use neural_fields::encoding::cell_index;
 ///
 /// let p = Tensor::new(&[[[0.0f32, 0.0], [0.99, 0.3], [1.0, 1.0], [-2.0, 0.5]]], &Device::Cpu)?;
 /// let ids = cell_index(&p, 4)?.flatten_all()?.to_vec1::<u32>()?;

@@ -1,27 +1,6 @@
 //! Detached root finding along rays: evenly spaced samples + secant refinement
 //! ([`march`]) and IDR-style sphere tracing for SDFs
 //! ([`sphere_trace`]).
-//!
-//! ## Math
-//! Along a ray `r(t) = o + t·w`, `t ∈ [near, far]`, the march looks at
-//! `s(t) = σ·(f(r(t)) − τ)` with `σ = +1` for [`Inside::Positive`] fields (occupancy
-//! logits) and `σ = −1` for [`Inside::Negative`] ones (SDFs), so that "inside" is `s > 0`
-//! for both. It evaluates `s` at `n` evenly spaced parameters
-//! `tⱼ = near + (far − near)·j/(n − 1)`, and the first crossing from outside to inside is
-//! the first `j ≥ 1` with `s(tⱼ) > 0` (all earlier samples satisfy `s ≤ 0`). The bracket
-//! `[t_lo, t_hi] = [tⱼ₋₁, tⱼ]` is refined by `k` secant steps
-//! `t = t_lo − s_lo·(t_hi − t_lo)/(s_hi − s_lo)`, each followed by one evaluation and the
-//! replacement of the bracket end with the same sign, and the returned depth is the
-//! secant point of the final bracket (so a ray costs exactly `n + k` evaluations). The
-//! secant point falls back to the midpoint (bisection) when `s_hi − s_lo` is not a finite
-//! positive number (equal values, overflow, NaN) or the point is not inside the bracket.
-//! With [`SecantRule::Illinois`] (the default), the value kept at a bracket end that
-//! survives twice in a row is halved, which keeps the bracket and makes convergence
-//! superlinear where plain regula falsi ([`SecantRule::RegulaFalsi`], DVR's rule) can get
-//! stuck at one end.
-//!
-//! Everything here is detached: the outputs carry no graph, and nothing from the march is
-//! needed by [`crate::dvr::implicit_surface`], which makes the depth differentiable.
 
 use crate::camera::{Intersection, Rays};
 use crate::error::{check_finite, check_float, check_same, check_shape};
@@ -145,6 +124,16 @@ pub struct StepSchedule {
     milestones: Vec<(usize, usize)>,
 }
 
+impl Default for StepSchedule {
+    /// DVR's schedule: 16 → 32 → 64 → 128 steps, doubling at iterations 50 000, 100 000
+    /// and 200 000.
+    fn default() -> Self {
+        Self {
+            milestones: vec![(0, 16), (50_000, 32), (100_000, 64), (200_000, 128)],
+        }
+    }
+}
+
 impl StepSchedule {
     /// A schedule from `(first_iteration, steps)` pairs: from `first_iteration` on, use
     /// `steps`. The first pair must start at iteration 0.
@@ -172,14 +161,6 @@ impl StepSchedule {
             ));
         }
         Ok(Self { milestones })
-    }
-
-    /// 16 → 32 → 64 → 128 steps, doubling at iterations 50 000, 100 000 and 200 000.
-    #[must_use]
-    pub fn coarse_to_fine() -> Self {
-        Self {
-            milestones: vec![(0, 16), (50_000, 32), (100_000, 64), (200_000, 128)],
-        }
     }
 
     /// The number of steps at training `iteration`.
@@ -230,19 +211,6 @@ impl Hits {
             .map(|(i, _)| i as u32) // invariant: ray counts fit in u32 (candle indices)
             .collect()
     }
-
-    /// `[R]` u8 mask of the rays whose status is one of `statuses`, on `device`.
-    ///
-    /// # Errors
-    /// Only candle's.
-    pub fn mask_of(&self, statuses: &[RayStatus], device: &Device) -> Result<Tensor> {
-        let m: Vec<u8> = self
-            .status
-            .iter()
-            .map(|s| u8::from(statuses.contains(s)))
-            .collect();
-        Ok(Tensor::from_vec(m, self.status.len(), device)?)
-    }
 }
 
 /// The secant point of a bracket, with a bisection fallback.
@@ -251,7 +219,7 @@ impl Hits {
 /// denominator is finite and > 0 and `t ∈ [t_lo, t_hi]`; otherwise the midpoint
 /// `t_lo + (t_hi − t_lo)/2` and `bisected = true`. Never NaN for finite `t_lo ≤ t_hi`.
 #[must_use]
-pub fn secant_point(t_lo: f64, s_lo: f64, t_hi: f64, s_hi: f64) -> (f64, bool) {
+pub(crate) fn secant_point(t_lo: f64, s_lo: f64, t_hi: f64, s_hi: f64) -> (f64, bool) {
     let width = t_hi - t_lo;
     let denom = s_hi - s_lo;
     if denom.is_finite() && denom > 0.0 {
@@ -637,8 +605,8 @@ fn run_march<F: ImplicitSurface + ?Sized>(
 }
 
 /// Finds the first surface crossing on each ray `o + t·w`, `t ∈ [near, far]`, by `n`
-/// evenly spaced samples and `k` secant steps (see the [module docs](self) for the
-/// math). Detached: the outputs carry no graph.
+/// evenly spaced samples and `k` secant steps (the math below). Detached: the outputs
+/// carry no graph.
 ///
 /// * `field`: any [`ImplicitSurface`] (occupancy or SDF; its `level` and `inside` sign
 ///   are respected), evaluated through [`ImplicitSurface::value_on_rays`]: a
@@ -654,6 +622,27 @@ fn run_march<F: ImplicitSurface + ?Sized>(
 ///
 /// Cost: `n` evaluations per searched ray plus `k` per ray with a crossing, in calls of
 /// at most `config.chunk_points` points; memory is O(R + chunk_points).
+///
+/// # Math
+/// Along a ray `r(t) = o + t·w`, `t ∈ [near, far]`, the march looks at
+/// `s(t) = σ·(f(r(t)) − τ)` with `σ = +1` for [`Inside::Positive`] fields (occupancy
+/// logits) and `σ = −1` for [`Inside::Negative`] ones (SDFs), so that "inside" is `s > 0`
+/// for both. It evaluates `s` at `n` evenly spaced parameters
+/// `tⱼ = near + (far − near)·j/(n − 1)`, and the first crossing from outside to inside is
+/// the first `j ≥ 1` with `s(tⱼ) > 0` (all earlier samples satisfy `s ≤ 0`). The bracket
+/// `[t_lo, t_hi] = [tⱼ₋₁, tⱼ]` is refined by `k` secant steps
+/// `t = t_lo − s_lo·(t_hi − t_lo)/(s_hi − s_lo)`, each followed by one evaluation and the
+/// replacement of the bracket end with the same sign, and the returned depth is the
+/// secant point of the final bracket (so a ray costs exactly `n + k` evaluations). The
+/// secant point falls back to the midpoint (bisection) when `s_hi − s_lo` is not a finite
+/// positive number (equal values, overflow, NaN) or the point is not inside the bracket.
+/// With [`SecantRule::Illinois`] (the default), the value kept at a bracket end that
+/// survives twice in a row is halved, which keeps the bracket and makes convergence
+/// superlinear where plain regula falsi ([`SecantRule::RegulaFalsi`], DVR's rule) can get
+/// stuck at one end.
+///
+/// Everything here is detached: the outputs carry no graph, and nothing from the march is
+/// needed by [`crate::dvr::implicit_surface`], which makes the depth differentiable.
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `near` / `far` / `hit` (a shape other than `[R]`, a
@@ -899,4 +888,39 @@ pub fn sphere_trace<F: ImplicitSurface + ?Sized>(
     }
     let count = ev.count;
     finish(&rays, out, count)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::secant_point;
+
+    #[test]
+    fn secant_denominator_zero_falls_back_to_bisection() {
+        // Equal values, overflow and NaN give the midpoint.
+        assert_eq!(secant_point(1.0, 0.0, 3.0, 0.0), (2.0, true));
+        assert_eq!(secant_point(1.0, -f64::MAX, 3.0, f64::MAX), (2.0, true));
+        assert_eq!(secant_point(1.0, f64::NAN, 3.0, 1.0), (2.0, true));
+        assert_eq!(secant_point(1.0, -1.0, 3.0, 1.0), (2.0, false));
+        assert_eq!(secant_point(1.0, 0.0, 3.0, 5.0), (1.0, false));
+    }
+
+    /// The stiff cases: brackets of extreme width and values (overflowing, zero, NaN and
+    /// infinite denominators) give a finite point inside the bracket.
+    #[test]
+    fn secant_point_is_finite_at_extreme_brackets() {
+        let m = f64::MAX;
+        for (lo, slo, hi, shi) in [
+            (0.0, -m, 1.0, m),
+            (0.0, 0.0, 1.0, 0.0),
+            (0.0, f64::NAN, 1.0, 1.0),
+            (-1e300, -1e-300, 1e300, 1e-300),
+            (0.0, -f64::INFINITY, 1.0, f64::INFINITY),
+        ] {
+            let (t, _) = secant_point(lo, slo, hi, shi);
+            assert!(
+                t.is_finite() && (lo..=hi).contains(&t),
+                "[{lo:e}, {hi:e}], s {slo:e}…{shi:e}: {t}"
+            );
+        }
+    }
 }
