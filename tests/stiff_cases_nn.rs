@@ -33,19 +33,6 @@ const MLP: &[&str] = &[
 /// Public items without floating-point input (or only reached through a swept item),
 /// with the reason. Matching is by prefix.
 const EXEMPT: &[(&str, &str)] = &[
-    (
-        "nn::Clock::",
-        "a wall-clock budget of steps or minutes: no tensor input (tests/nn_training.rs)",
-    ),
-    (
-        "nn::FiniteGuard::",
-        "its job is to return Err on a non-finite loss, gradient or weight \
-         (tests/nn_training.rs)",
-    ),
-    (
-        "nn::adam",
-        "builds candle-nn's AdamW over a VarMap; its steps run in tests/nn_training.rs",
-    ),
     ("nn::SeededBackend::", "private"),
     (
         "nn::adam",
