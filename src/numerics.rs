@@ -214,6 +214,7 @@ macro_rules! scalar_softplus {
         relu + (-(beta * x).abs()).exp().ln_1p() / beta
     }};
 }
+#[cfg_attr(not(feature = "volume"), allow(unused_imports))] // used by the fused NeRF loss
 pub(crate) use {scalar_sigmoid, scalar_softplus};
 
 /// CPU kernel of [`softplus`].
