@@ -77,13 +77,14 @@ pub struct FiniteGuard {
 }
 
 impl FiniteGuard {
-    /// A guard over the variables of `varmap` as it is now.
-    ///
-    /// # Panics
-    /// If `varmap`'s lock is poisoned (a thread panicked while holding it).
+    /// A guard over the variables of `varmap` as it is now. A lock poisoned by a thread
+    /// that panicked while holding it still holds whole variables, which are read.
     #[must_use]
     pub fn new(varmap: &VarMap) -> Self {
-        let data = varmap.data().lock().expect("an unpoisoned VarMap");
+        let data = varmap
+            .data()
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
         let mut vars: Vec<_> = data.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
         vars.sort_by(|a, b| a.0.cmp(&b.0));
         Self { vars }
