@@ -19,6 +19,7 @@ fn sphere_mesh() -> Mesh {
     marching_cubes(&g, 0.0, Inside::Negative).unwrap()
 }
 
+#[cfg(feature = "occupancy")]
 fn close(a: &Mesh, b: &Mesh, tol: f64) {
     assert_eq!(a.faces, b.faces);
     assert_eq!(a.vertices.len(), b.vertices.len());
@@ -335,6 +336,7 @@ fn utf16_obj_is_refused_naming_the_encoding() {
 type TestResult = Result<(), Box<dyn std::error::Error>>;
 
 /// The header of PLY bytes, up to and including `end_header`.
+#[cfg(feature = "occupancy")]
 fn ply_header(bytes: &[u8]) -> Result<String, Box<dyn std::error::Error>> {
     let end = bytes
         .windows(b"end_header\n".len())
