@@ -71,15 +71,15 @@ use neural_fields::encoding::{
 use neural_fields::field::{ImplicitSurface, SignedDistance, Sphere};
 use neural_fields::glam::{DAffine3, DMat3, DMat4, DVec3};
 use neural_fields::mesh::Mesh;
-use neural_fields::nn::{
-    adam, build_seeded, joint_decoder, mlp, rendering_net, texture_decoder, Budget, Clock,
-    FiniteGuard, JointDecoder, Mlp, MlpConfig, RenderingNet, RenderingNetConfig, TextureDecoder,
-    TextureDecoderConfig,
-};
+use neural_fields::nn::{adam, build_seeded, mlp, Budget, Clock, FiniteGuard, Mlp, MlpConfig};
 use neural_fields::numerics::bce_with_logits;
 use neural_fields::occupancy::{chamfer_icp, mesh_metrics, mise, MiseConfig};
 use neural_fields::rng::SplitMix64;
 use neural_fields::texture::{image_gradient_loss, vertex_colors, TextureField, TextureInput};
+use neural_fields::texture::{
+    joint_decoder, rendering_net, texture_decoder, JointDecoder, RenderingNet, RenderingNetConfig,
+    TextureDecoder, TextureDecoderConfig,
+};
 use neural_fields::volume::log_linear_schedule;
 use neural_fields::{Error, Result};
 use std::path::{Path, PathBuf};

@@ -4,9 +4,9 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::{Optimizer, VarMap};
 use clap::Parser;
 use neural_fields::data::{load, load_eval, psnr, write_png, LoadConfig, RaySampler};
-use neural_fields::nn::{adam, build_seeded, nerf, NerfConfig};
-use neural_fields::volume::{composite, render_image, CompositeConfig, GridConfig};
-use neural_fields::volume::{GridMarchConfig, ImageConfig, OccupancyGrid};
+use neural_fields::nn::{adam, build_seeded};
+use neural_fields::volume::{composite, nerf, render_image, CompositeConfig, GridConfig};
+use neural_fields::volume::{GridMarchConfig, ImageConfig, NerfConfig, OccupancyGrid};
 
 #[derive(Parser)]
 struct Args {

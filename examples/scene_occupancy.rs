@@ -42,11 +42,11 @@ use clap::{Parser, ValueEnum};
 use neural_fields::field::{Conditioned, Cuboid, Field, ImplicitSurface, Inside, SignedDistance};
 use neural_fields::field::{Sphere, Torus};
 use neural_fields::mesh::{points_from_tensor, points_to_tensor, Mesh};
-use neural_fields::nn::{
-    adam, build_seeded, conv_onet_encoder, local_decoder, onet_decoder, pointnet_encoder, Budget,
-    Clock, ConvOnetConfig, ConvOnetEncoder, FeatureLayout, FiniteGuard, LocalDecoder,
-    LocalDecoderConfig, NormMode, OnetConfig, OnetDecoder, PointNetConfig, PointNetEncoder,
-    UnetConfig,
+use neural_fields::nn::{adam, build_seeded, Budget, Clock, FiniteGuard};
+use neural_fields::occupancy::{
+    conv_onet_encoder, local_decoder, onet_decoder, pointnet_encoder, ConvOnetConfig,
+    ConvOnetEncoder, FeatureLayout, LocalDecoder, LocalDecoderConfig, NormMode, OnetConfig,
+    OnetDecoder, PointNetConfig, PointNetEncoder, UnetConfig,
 };
 use neural_fields::occupancy::{
     iou, logit_threshold, mesh_metrics, mise, reconstruction_loss, uniform_in_padded_cube,

@@ -40,7 +40,8 @@ use neural_fields::data::{
     colorize_depth, comparison_strip, load, psnr, write_png, Bounds, LoadConfig, RaySampler, Split,
 };
 use neural_fields::encoding::{CoarseToFine, PointEncoding};
-use neural_fields::nn::{build_seeded, nerf, Nerf, NerfConfig};
+use neural_fields::nn::build_seeded;
+use neural_fields::volume::{nerf, Nerf, NerfConfig};
 use neural_fields::volume::{
     anneal_near_far, composite, depth_smoothness, log_linear_schedule, render_image, stratified,
     Composite, CompositeConfig, ImageConfig, Intervals, Jitter, ANNEAL_MID_RATIO, ANNEAL_P_START,

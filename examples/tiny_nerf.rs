@@ -44,9 +44,10 @@ use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::Field;
 use neural_fields::glam::DVec3;
 use neural_fields::nn::{build_seeded, mlp, Activation, Mlp, MlpConfig};
+use neural_fields::numerics::trunc_exp;
 use neural_fields::rng::SplitMix64;
 use neural_fields::volume::{
-    composite, render_image, stratified, trunc_exp, Composite, CompositeConfig, GridConfig,
+    composite, render_image, stratified, Composite, CompositeConfig, GridConfig,
     GridMarchConfig, ImageConfig, Jitter, OccupancyGrid,
 };
 use neural_fields::Result;

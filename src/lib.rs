@@ -83,7 +83,8 @@
 //! use candle_core::{DType, Device};
 //! use neural_fields::camera::{ray_aabb, Camera, Convention, Intrinsics};
 //! use neural_fields::glam::DVec3;
-//! use neural_fields::volume::{composite, stratified, trunc_exp, CompositeConfig, Jitter};
+//! use neural_fields::numerics::trunc_exp;
+//! use neural_fields::volume::{composite, stratified, CompositeConfig, Jitter};
 //!
 //! let dev = Device::Cpu;
 //! let k = Intrinsics::from_fov_y(16, 16, 0.8)?;
@@ -124,7 +125,7 @@
 //! **8. Texture fields** (feature `texture`). A [`texture::TextureField`] colours surface
 //! points from whatever it reads of a [`texture::TextureInput`] (normals, view directions,
 //! geometry features, codes): the Texture Fields decoder, IDR's rendering network and
-//! DVR's joint decoder are in [`nn`]. With DVR's surface points the photometric loss
+//! DVR's joint decoder are in [`texture`], built on [`nn`]'s blocks. With DVR's surface points the photometric loss
 //! reaches the shape; `examples/dvr_multiview.rs` reconstructs shape and colour from
 //! masked images.
 //!

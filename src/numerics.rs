@@ -1,5 +1,6 @@
 //! Defended numerics shared by every module: range-reduced sine and cosine, a stable
-//! sigmoid, softplus and BCE-with-logits, a sign-preserving guarded denominator, and
+//! sigmoid, softplus and BCE-with-logits, the trunc-exp density activation with its one
+//! gradient rule, a sign-preserving guarded denominator, and
 //! [`levenberg_marquardt`], the host-side solver of small nonlinear least-squares
 //! problems (camera alignment and registration).
 //!
@@ -269,6 +270,153 @@ impl CustomOp1 for SigmoidOfScaled {
             |x| scalar_sigmoid!(b64 * x),
         )
     }
+}
+
+/// Upper clamp of the trunc-exp argument in f32: e⁸⁸ ≈ 1.65e38 is finite.
+pub const TRUNC_EXP_MAX_F32: f64 = 88.0;
+/// Upper clamp of the trunc-exp argument in f64: e⁷⁰⁹ ≈ 8.2e307 is finite.
+pub const TRUNC_EXP_MAX_F64: f64 = 709.0;
+/// The trunc-exp gradient is `exp(clamp(x, −TRUNC_EXP_GRAD_CLAMP, TRUNC_EXP_GRAD_CLAMP))`.
+pub const TRUNC_EXP_GRAD_CLAMP: f64 = 15.0;
+
+/// The element types of [`trunc_exp`]'s scalar rule, each with its own cap.
+pub(crate) trait TruncExpScalar: Copy + PartialOrd {
+    /// [`TRUNC_EXP_MAX_F32`] or [`TRUNC_EXP_MAX_F64`] in this type.
+    const CAP: Self;
+    /// [`TRUNC_EXP_GRAD_CLAMP`] in this type.
+    const GRAD_CLAMP: Self;
+    fn exp(self) -> Self;
+    fn neg(self) -> Self;
+}
+
+impl TruncExpScalar for f32 {
+    const CAP: f32 = TRUNC_EXP_MAX_F32 as f32;
+    const GRAD_CLAMP: f32 = TRUNC_EXP_GRAD_CLAMP as f32;
+    #[inline(always)]
+    fn exp(self) -> f32 {
+        f32::exp(self)
+    }
+    #[inline(always)]
+    fn neg(self) -> f32 {
+        -self
+    }
+}
+
+impl TruncExpScalar for f64 {
+    const CAP: f64 = TRUNC_EXP_MAX_F64;
+    const GRAD_CLAMP: f64 = TRUNC_EXP_GRAD_CLAMP;
+    #[inline(always)]
+    fn exp(self) -> f64 {
+        f64::exp(self)
+    }
+    #[inline(always)]
+    fn neg(self) -> f64 {
+        -self
+    }
+}
+
+/// [`trunc_exp`]'s value at one element: `exp(min(x, cap))` with the cap of `x`'s type,
+/// computed in that type; NaN stays NaN (unlike `f32::min`).
+#[inline(always)]
+pub(crate) fn trunc_exp_value<T: TruncExpScalar>(x: T) -> T {
+    if x > T::CAP {
+        T::CAP.exp()
+    } else {
+        x.exp()
+    }
+}
+
+/// [`trunc_exp`]'s gradient rule at one element: `exp(clamp(x, −15, 15))`, computed in
+/// `x`'s type; NaN stays NaN.
+#[inline(always)]
+pub(crate) fn trunc_exp_slope<T: TruncExpScalar>(x: T) -> T {
+    let c = if x > T::GRAD_CLAMP {
+        T::GRAD_CLAMP
+    } else if x < T::GRAD_CLAMP.neg() {
+        T::GRAD_CLAMP.neg()
+    } else {
+        x
+    };
+    c.exp()
+}
+
+/// CPU kernel of [`trunc_exp`].
+struct TruncExpOp;
+
+impl CustomOp1 for TruncExpOp {
+    fn name(&self) -> &'static str {
+        "nf-trunc-exp"
+    }
+
+    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
+        map_cpu(
+            self.name(),
+            s,
+            l,
+            trunc_exp_value::<f32>,
+            trunc_exp_value::<f64>,
+        )
+    }
+
+    fn bwd(
+        &self,
+        arg: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<Option<Tensor>> {
+        // The gradient rule (`trunc_exp_slope`) in candle ops, which run on candle's own
+        // CPU pool inside the backward pass.
+        let slope = arg
+            .clamp(-TRUNC_EXP_GRAD_CLAMP, TRUNC_EXP_GRAD_CLAMP)?
+            .exp()?;
+        Ok(Some(grad.mul(&slope)?))
+    }
+}
+
+/// Truncated exponential, the density activation of instant-NGP and nerfacto.
+///
+/// Value: `exp(min(x, m))`, m = [`TRUNC_EXP_MAX_F32`] (f32) or [`TRUNC_EXP_MAX_F64`]
+/// (f64), so the value is finite for every finite x (e⁸⁸ ≈ 1.65e38 < f32::MAX). Gradient,
+/// by definition (nerfstudio's trunc-exp, which removed NaNs that appeared after 50–80k
+/// training steps): `∂/∂x = exp(clamp(x, −15, 15))` ([`TRUNC_EXP_GRAD_CLAMP`]) — not the
+/// derivative of the value: it is bounded by e¹⁵ ≈ 3.3e6, and it is e⁻¹⁵ rather than ≈ 0
+/// for very negative x, so empty space keeps a small gradient. NaN propagates.
+///
+/// This is the one definition of the rule: the NeRF model and its fused colour loss
+/// evaluate the same value and slope.
+///
+/// Shapes: any; f32 or f64, computed in the input's dtype; any device (one fused pass on
+/// the CPU; elsewhere the same value and gradient composed from candle ops, with the
+/// gradient attached by the detach trick `v.detach() + (x·s − (x·s).detach())`).
+/// Differentiable (first order) with respect to `x`.
+///
+/// ```
+/// use candle_core::{Device, Tensor};
+/// use neural_fields::numerics::trunc_exp;
+///
+/// let y = trunc_exp(&Tensor::new(&[0.0f32, 1e3], &Device::Cpu)?)?.to_vec1::<f32>()?;
+/// assert_eq!(y[0], 1.0);
+/// assert!(y[1].is_finite());                                           // e⁸⁸, not ∞
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
+/// # Errors
+/// `x` when not f32/f64.
+pub fn trunc_exp(x: &Tensor) -> Result<Tensor> {
+    check_float(x, "x")?;
+    if x.device().is_cpu() {
+        return Ok(x.contiguous()?.apply_op1(TruncExpOp)?);
+    }
+    let m = if x.dtype() == DType::F32 {
+        TRUNC_EXP_MAX_F32
+    } else {
+        TRUNC_EXP_MAX_F64
+    };
+    let value = x.minimum(m)?.exp()?;
+    let slope = x
+        .clamp(-TRUNC_EXP_GRAD_CLAMP, TRUNC_EXP_GRAD_CLAMP)?
+        .exp()?;
+    with_slope(&value, x, &slope)
 }
 
 /// Binary cross-entropy on logits, elementwise, finite for any finite logit.

@@ -8,8 +8,9 @@ mod common;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;
 use common::v64;
-use neural_fields::nn::{build_seeded, nerf, NerfConfig};
+use neural_fields::nn::build_seeded;
 use neural_fields::rng::SplitMix64;
+use neural_fields::volume::{nerf, NerfConfig};
 
 fn colours(force_reference: bool, dtype: DType) -> (Vec<f64>, Vec<f64>, Option<Tensor>) {
     let config = NerfConfig {

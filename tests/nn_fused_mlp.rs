@@ -6,10 +6,10 @@ mod common;
 
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
-use common::{central_diff, close, reseed, uniform, v64};
+use common::{assert_parts_close, central_diff, close, reseed, sorted_vars, uniform, v64};
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::{ConditionalField, Field};
-use neural_fields::nn::{mlp, nerf, Activation, Mlp, MlpConfig, NerfConfig};
+use neural_fields::nn::{mlp, Activation, Mlp, MlpConfig};
 use neural_fields::rng::SplitMix64;
 use proptest::prelude::*;
 
@@ -98,22 +98,6 @@ fn compare(
     );
 }
 
-/// Each part of `fused` within `tol` of the same part of `reference`, relative to the
-/// part's largest entry (at least 1e-3).
-fn assert_parts_close(fused: &[Vec<f64>], reference: &[Vec<f64>], tol: f64, what: &str) {
-    assert_eq!(fused.len(), reference.len(), "{what}: parts");
-    for (k, (x, y)) in fused.iter().zip(reference).enumerate() {
-        assert_eq!(x.len(), y.len(), "{what}: part {k}");
-        let scale = y.iter().fold(1e-3f64, |m, v| m.max(v.abs()));
-        for (i, (&u, &v)) in x.iter().zip(y).enumerate() {
-            assert!(
-                (u - v).abs() <= tol * scale,
-                "{what}: part {k}[{i}]: fused {u} vs reference {v}"
-            );
-        }
-    }
-}
-
 #[test]
 fn fused_equals_reference_f64() {
     for activation in [Activation::Relu, Activation::Softplus { beta: 10.0 }] {
@@ -173,47 +157,6 @@ fn fused_gradient_is_deterministic() {
     }
 }
 
-#[test]
-fn fused_nerf_equals_reference() {
-    for dtype in [DType::F64, DType::F32] {
-        let varmap = VarMap::new();
-        let vb = VarBuilder::from_varmap(&varmap, dtype, &Device::Cpu);
-        let base = NerfConfig {
-            width: 16,
-            color_width: 8,
-            depth: 3,
-            skips: vec![2],
-            ..NerfConfig::default()
-        };
-        let fused = nerf(&base, vb.clone()).unwrap();
-        let reference = nerf(
-            &NerfConfig {
-                force_reference: true,
-                ..base
-            },
-            vb,
-        )
-        .unwrap();
-        reseed(&varmap, 3, 0.5);
-        let mut rng = SplitMix64::new(2);
-        let points = uniform(&mut rng, 300, 3, -1.0, 1.0, dtype);
-        let dirs = uniform(&mut rng, 300, 3, -1.0, 1.0, dtype);
-        let tol = if dtype == DType::F64 { 1e-10 } else { 1e-5 };
-        let mut outs = Vec::new();
-        for net in [&fused, &reference] {
-            let (sigma, rgb) = net.radiance(&points, &dirs).unwrap();
-            let loss = (sigma.sum_all().unwrap() + rgb.sqr().unwrap().sum_all().unwrap()).unwrap();
-            let grads = loss.backward().unwrap();
-            let mut parts = vec![v64(&sigma), v64(&rgb)];
-            for var in sorted_vars(&varmap) {
-                parts.push(v64(grads.get(var.as_tensor()).unwrap()));
-            }
-            outs.push(parts);
-        }
-        assert_parts_close(&outs[0], &outs[1], tol, &format!("NeRF {dtype:?}"));
-    }
-}
-
 /// The fused gradient w.r.t. a weight, a bias and a code entry equals central finite
 /// differences of the fused forward (f64); stencils that cross a ReLU kink are skipped.
 fn check_fd(
@@ -244,14 +187,6 @@ fn check_fd(
     fd_check(&targets, seed, &grads, 1e-6, &mut || {
         loss(&fused, codes.as_tensor())
     })
-}
-
-/// The variables of `varmap` in name order.
-fn sorted_vars(varmap: &VarMap) -> Vec<Var> {
-    let data = varmap.data().lock().unwrap();
-    let mut names: Vec<&String> = data.keys().collect();
-    names.sort();
-    names.into_iter().map(|k| data[k].clone()).collect()
 }
 
 /// One entry of each variable (chosen from `seed`): its gradient in `grads` against

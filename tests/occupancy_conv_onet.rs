@@ -9,11 +9,11 @@ use candle_nn::{VarBuilder, VarMap};
 use common::v64;
 use neural_fields::field::Field;
 use neural_fields::mesh::PointCloud;
-use neural_fields::nn::{
+use neural_fields::occupancy::reconstruction_loss;
+use neural_fields::occupancy::{
     conv3d, conv_onet_encoder, local_decoder, ConvOnetConfig, ConvOnetEncoder, FeatureLayout,
     LocalDecoder, LocalDecoderConfig, LocalFeatures, UnetConfig,
 };
-use neural_fields::occupancy::reconstruction_loss;
 use neural_fields::rng::SplitMix64;
 
 fn small(layout: FeatureLayout) -> ConvOnetConfig {

@@ -7,7 +7,8 @@ mod common;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;
 use neural_fields::field::ConditionalField;
-use neural_fields::nn::{build_seeded, onet_decoder, NormMode, OnetConfig};
+use neural_fields::nn::build_seeded;
+use neural_fields::occupancy::{onet_decoder, NormMode, OnetConfig};
 use neural_fields::rng::SplitMix64;
 
 fn config() -> OnetConfig {

@@ -1,4 +1,4 @@
-//! `nn::PointNetEncoder`: order invariance, shapes, argument errors, and one variational
+//! `occupancy::PointNetEncoder`: order invariance, shapes, argument errors, and one variational
 //! ONet step (encoder → reparameterise → decoder → BCE + KL) whose gradients reach the
 //! encoder and are finite.
 #![cfg(feature = "occupancy")]
@@ -9,8 +9,9 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;
 use common::v64;
 use neural_fields::field::ConditionalField;
-use neural_fields::nn::{build_seeded, mlp, pointnet_encoder, MlpConfig, PointNetConfig};
+use neural_fields::nn::{build_seeded, mlp, MlpConfig};
 use neural_fields::occupancy::{kl_standard_normal, reconstruction_loss, reparameterize};
+use neural_fields::occupancy::{pointnet_encoder, PointNetConfig};
 use neural_fields::rng::SplitMix64;
 
 fn config() -> PointNetConfig {

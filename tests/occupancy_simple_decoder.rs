@@ -1,4 +1,4 @@
-//! `nn::SimpleDecoder` (ONet's simple decoder): forward-mode spatial gradients against
+//! `occupancy::SimpleDecoder` (ONet's simple decoder): forward-mode spatial gradients against
 //! finite differences, gradients to the code, batch independence, argument errors.
 #![cfg(feature = "occupancy")]
 
@@ -8,7 +8,8 @@ use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarMap;
 use common::{central_diff, reseed, v64};
 use neural_fields::field::{ConditionalField, Conditioned, ImplicitSurface};
-use neural_fields::nn::{build_seeded, simple_decoder, SimpleDecoderConfig};
+use neural_fields::nn::build_seeded;
+use neural_fields::occupancy::{simple_decoder, SimpleDecoderConfig};
 use neural_fields::rng::SplitMix64;
 use proptest::prelude::*;
 

@@ -125,6 +125,11 @@ const EXEMPT: &[(&str, &str)] = &[
         "encoding::FusedFrequency::",
         "CustomOp internals, swept via FrequencyEncoding::forward",
     ),
+    (
+        "encoding::RowEncoder::",
+        "the frequency encoding's rows inside the fused NeRF loss, swept via \
+         Nerf::color_loss in tests/stiff_cases_volume.rs",
+    ),
 ];
 
 fn sweep_encodings(s: &mut Suite) {

@@ -71,36 +71,12 @@ const EXEMPT: &[(&str, &str)] = &[
     ),
     ("nn::MlpConfig::default", "constant"),
     (
-        "nn::FusedMlp::",
-        "CustomOp internals, swept via Mlp::forward",
-    ),
-    (
-        "nn::FusedNerf::",
-        "CustomOp internals, swept via Nerf::radiance",
-    ),
-    (
-        "nn::FusedMlpJvp::",
-        "CustomOp internals, swept via Mlp::forward_with_jacobian",
-    ),
-    (
-        "nn::f32::sigmoid_times_slice",
-        "crate-internal activation slices of the fused ops, swept via the softplus Mlp \
-         (Mlp::value_and_grad) and tested against the standard library in their module",
-    ),
-    (
-        "nn::f32::softplus_slice",
-        "crate-internal activation slices of the fused ops, swept via the softplus Mlp \
-         (Mlp::value_and_grad) and tested against the standard library in their module",
-    ),
-    (
-        "nn::f64::sigmoid_times_slice",
-        "crate-internal activation slices of the fused ops, swept via the softplus Mlp \
-         (Mlp::value_and_grad) and tested against the standard library in their module",
-    ),
-    (
-        "nn::f64::softplus_slice",
-        "crate-internal activation slices of the fused ops, swept via the softplus Mlp \
-         (Mlp::value_and_grad) and tested against the standard library in their module",
+        "kernels::",
+        "crate-private fused CPU kernels (CustomOp internals, their f32/f64 slices and \
+         activation slices, the latter also tested against the standard library in their \
+         module), swept via the public functions that run them: Mlp::forward, \
+         Mlp::forward_with_jacobian and Mlp::value_and_grad here, Nerf::radiance, \
+         Nerf::color_loss and composite in tests/stiff_cases_volume.rs",
     ),
 ];
 

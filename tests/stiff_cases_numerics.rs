@@ -9,6 +9,7 @@ use common::stiff::{magnitudes, var, Expect, Suite, DTYPES};
 
 use neural_fields::numerics::{
     bce_with_logits, guard_denominator, safe_sin_cos, sigmoid, sin_cos_pi, softplus,
+    trunc_exp,
 };
 use neural_fields::rng::SplitMix64;
 
@@ -57,6 +58,7 @@ const NUMERICS: &[&str] = &[
     "numerics::sigmoid",
     "numerics::sin_cos_pi",
     "numerics::softplus",
+    "numerics::trunc_exp",
 ];
 
 /// Items swept by `sweep_levenberg_marquardt`.
@@ -84,6 +86,18 @@ const EXEMPT: &[(&str, &str)] = &[
     (
         "numerics::SigmoidOfScaled::",
         "CustomOp internals (softplus backward), swept via numerics::softplus",
+    ),
+    (
+        "numerics::TruncExpOp::",
+        "CustomOp internals, swept via numerics::trunc_exp",
+    ),
+    (
+        "numerics::f32::",
+        "trunc-exp's scalar rule per element type, swept via numerics::trunc_exp",
+    ),
+    (
+        "numerics::f64::",
+        "trunc-exp's scalar rule per element type, swept via numerics::trunc_exp",
     ),
 ];
 
@@ -123,6 +137,9 @@ fn sweep_numerics(s: &mut Suite) {
         });
         s.case("numerics::sigmoid", &tag, Expect::Finite, &[&x], || {
             Ok(vec![sigmoid(t)?])
+        });
+        s.case("numerics::trunc_exp", &tag, Expect::Finite, &[&x], || {
+            Ok(vec![trunc_exp(t)?])
         });
         for beta in [1e-3, 1.0, 100.0, 1e6] {
             // softplus_β(x) ≈ x for large x: finite as long as x is.

@@ -53,10 +53,10 @@ fn every_public_occupancy_function_is_swept_or_exempt() {
 
 /// The decoders' `ConditionalField` methods, which a macro in src/nn/onet.rs defines.
 const UNSEEN: &[&str] = &[
-    "nn::OnetDecoder::forward_with_code",
-    "nn::OnetDecoder::value_and_grad_with_code",
-    "nn::SimpleDecoder::forward_with_code",
-    "nn::SimpleDecoder::value_and_grad_with_code",
+    "occupancy::OnetDecoder::forward_with_code",
+    "occupancy::OnetDecoder::value_and_grad_with_code",
+    "occupancy::SimpleDecoder::forward_with_code",
+    "occupancy::SimpleDecoder::value_and_grad_with_code",
 ];
 
 /// Items swept by `sweep_occupancy_on_meshes`.
@@ -89,30 +89,30 @@ const OCCUPANCY: &[&str] = &[
 
 /// Items swept by `sweep_onet_networks`.
 const ONET: &[&str] = &[
-    "nn::OnetDecoder::forward_with_code",
-    "nn::OnetDecoder::logits",
-    "nn::OnetDecoder::set_mode",
-    "nn::OnetDecoder::value_and_grad_with_code",
-    "nn::PointNetEncoder::forward",
-    "nn::PointNetEncoder::forward_features",
-    "nn::SimpleDecoder::forward_with_code",
-    "nn::SimpleDecoder::logits",
-    "nn::SimpleDecoder::value_and_grad_with_code",
-    "nn::onet_decoder",
-    "nn::pointnet_encoder",
-    "nn::simple_decoder",
+    "occupancy::OnetDecoder::forward_with_code",
+    "occupancy::OnetDecoder::logits",
+    "occupancy::OnetDecoder::set_mode",
+    "occupancy::OnetDecoder::value_and_grad_with_code",
+    "occupancy::PointNetEncoder::forward",
+    "occupancy::PointNetEncoder::forward_features",
+    "occupancy::SimpleDecoder::forward_with_code",
+    "occupancy::SimpleDecoder::logits",
+    "occupancy::SimpleDecoder::value_and_grad_with_code",
+    "occupancy::onet_decoder",
+    "occupancy::pointnet_encoder",
+    "occupancy::simple_decoder",
 ];
 
 /// Items swept by `sweep_conv_onet`.
 const CONV_ONET: &[&str] = &[
-    "nn::ConvOnetEncoder::encode_cloud",
-    "nn::ConvOnetEncoder::forward",
-    "nn::LocalDecoder::bind",
-    "nn::LocalDecoder::logits",
-    "nn::SceneField::forward",
-    "nn::conv3d",
-    "nn::conv_onet_encoder",
-    "nn::local_decoder",
+    "occupancy::ConvOnetEncoder::encode_cloud",
+    "occupancy::ConvOnetEncoder::forward",
+    "occupancy::LocalDecoder::bind",
+    "occupancy::LocalDecoder::logits",
+    "occupancy::SceneField::forward",
+    "occupancy::conv3d",
+    "occupancy::conv_onet_encoder",
+    "occupancy::local_decoder",
 ];
 
 /// Public items without floating-point input (or only reached through a swept item),
@@ -122,26 +122,20 @@ const EXEMPT: &[(&str, &str)] = &[
         "occupancy::chamfer_icp",
         "mesh_metrics after align_similarity's iterations, both swept",
     ),
-    ("nn::ConvOnetConfig::default", "constant"),
-    ("nn::UnetConfig::default", "constant"),
-    ("nn::LocalDecoderConfig::default", "constant"),
-    ("nn::ConvOnetEncoder::config", "getter"),
-    ("nn::LocalDecoder::config", "getter"),
-    ("nn::LocalFeatures::batch_and_channels", "getter"),
-    ("nn::SceneField::features", "getter"),
-    ("nn::SceneField::out_dim", "constant"),
-    ("nn::SimpleDecoderConfig::default", "constant"),
-    ("nn::SimpleDecoder::code_dim", "getter"),
-    ("nn::SimpleDecoder::config", "getter"),
-    ("nn::SimpleDecoder::inside", "getter"),
-    ("nn::SimpleDecoder::out_dim", "getter"),
-    ("nn::PointNetConfig::default", "constant"),
-    ("nn::PointNetEncoder::config", "getter"),
-    ("nn::OnetConfig::default", "constant"),
-    ("nn::OnetDecoder::code_dim", "getter"),
-    ("nn::OnetDecoder::config", "getter"),
-    ("nn::OnetDecoder::inside", "getter"),
-    ("nn::OnetDecoder::out_dim", "getter"),
+    ("occupancy::ConvOnetConfig::default", "constant"),
+    ("occupancy::UnetConfig::default", "constant"),
+    ("occupancy::LocalDecoderConfig::default", "constant"),
+    ("occupancy::LocalFeatures::batch_and_channels", "getter"),
+    ("occupancy::SceneField::out_dim", "constant"),
+    ("occupancy::SimpleDecoderConfig::default", "constant"),
+    ("occupancy::SimpleDecoder::code_dim", "getter"),
+    ("occupancy::SimpleDecoder::inside", "getter"),
+    ("occupancy::SimpleDecoder::out_dim", "getter"),
+    ("occupancy::PointNetConfig::default", "constant"),
+    ("occupancy::OnetConfig::default", "constant"),
+    ("occupancy::OnetDecoder::code_dim", "getter"),
+    ("occupancy::OnetDecoder::inside", "getter"),
+    ("occupancy::OnetDecoder::out_dim", "getter"),
     ("occupancy::KdTree::nearest", "swept through KdTree::new"),
 ];
 
@@ -516,7 +510,7 @@ fn sweep_occupancy(s: &mut Suite) {
 /// The PointNet encoder and the ONet decoders at extreme points, labels and codes.
 fn sweep_onet_networks(s: &mut Suite) {
     use neural_fields::mesh::Mesh;
-    use neural_fields::nn::{onet_decoder, NormMode, OnetConfig};
+    use neural_fields::occupancy::{onet_decoder, NormMode, OnetConfig};
     let d = Device::Cpu;
     let _flat = |v: Vec<[f64; 3]>| Tensor::from_vec(v.concat(), v.len() * 3, &d);
     let _vt = |v: Vec<f64>| Tensor::from_vec(v.clone(), v.len(), &d);
@@ -536,7 +530,7 @@ fn sweep_onet_networks(s: &mut Suite) {
         let tag = format!("{dtype:?}");
         // PointNet encoder on extreme points and labels.
         {
-            use neural_fields::nn::{pointnet_encoder, PointNetConfig};
+            use neural_fields::occupancy::{pointnet_encoder, PointNetConfig};
             let cfg = PointNetConfig {
                 hidden: 8,
                 layers: 2,
@@ -556,7 +550,7 @@ fn sweep_onet_networks(s: &mut Suite) {
             let o = var(&[0.0, 1.0, 1e-30, 0.5], &[1, 4], dtype);
             let el = format!("{tag}, |p| up to {big:e}");
             s.case(
-                "nn::pointnet_encoder",
+                "occupancy::pointnet_encoder",
                 &el,
                 Expect::Finite,
                 &[&p, &o],
@@ -566,7 +560,7 @@ fn sweep_onet_networks(s: &mut Suite) {
                 },
             );
             s.case(
-                "nn::PointNetEncoder::forward",
+                "occupancy::PointNetEncoder::forward",
                 &el,
                 Expect::Finite,
                 &[&p, &o],
@@ -590,7 +584,7 @@ fn sweep_onet_networks(s: &mut Suite) {
                 dtype,
             );
             s.case(
-                "nn::PointNetEncoder::forward_features",
+                "occupancy::PointNetEncoder::forward_features",
                 &el,
                 Expect::Finite,
                 &[&p, &nrm],
@@ -602,7 +596,7 @@ fn sweep_onet_networks(s: &mut Suite) {
         }
         // ONet's simple decoder on extreme points and codes.
         {
-            use neural_fields::nn::{simple_decoder, SimpleDecoderConfig};
+            use neural_fields::occupancy::{simple_decoder, SimpleDecoderConfig};
             let cfg = SimpleDecoderConfig {
                 hidden: 8,
                 blocks: 2,
@@ -624,18 +618,22 @@ fn sweep_onet_networks(s: &mut Suite) {
                 dtype,
             );
             let sl = format!("{tag}, |p|, |z| up to {big:e}");
-            s.case("nn::simple_decoder", &sl, Expect::Finite, &[&p, &c], || {
-                Ok(vec![dec.logits(p.as_tensor(), c.as_tensor())?])
-            });
             s.case(
-                "nn::SimpleDecoder::logits",
+                "occupancy::simple_decoder",
                 &sl,
                 Expect::Finite,
                 &[&p, &c],
                 || Ok(vec![dec.logits(p.as_tensor(), c.as_tensor())?]),
             );
             s.case(
-                "nn::SimpleDecoder::value_and_grad_with_code",
+                "occupancy::SimpleDecoder::logits",
+                &sl,
+                Expect::Finite,
+                &[&p, &c],
+                || Ok(vec![dec.logits(p.as_tensor(), c.as_tensor())?]),
+            );
+            s.case(
+                "occupancy::SimpleDecoder::value_and_grad_with_code",
                 &sl,
                 Expect::Finite,
                 &[&p, &c],
@@ -649,7 +647,7 @@ fn sweep_onet_networks(s: &mut Suite) {
                 },
             );
             s.case(
-                "nn::SimpleDecoder::forward_with_code",
+                "occupancy::SimpleDecoder::forward_with_code",
                 &sl,
                 Expect::Finite,
                 &[&p, &c],
@@ -690,28 +688,28 @@ fn sweep_onet_networks(s: &mut Suite) {
             let ol = format!("{tag}, |p|, |z| up to {big:e}, {mode:?}");
             net.set_mode(mode);
             s.case(
-                "nn::onet_decoder",
+                "occupancy::onet_decoder",
                 &ol,
                 Expect::Finite,
                 &[&pts, &codes],
                 || Ok(vec![net.logits(pts.as_tensor(), codes.as_tensor())?]),
             );
             s.case(
-                "nn::OnetDecoder::logits",
+                "occupancy::OnetDecoder::logits",
                 &ol,
                 Expect::Finite,
                 &[&pts, &codes],
                 || Ok(vec![net.logits(pts.as_tensor(), codes.as_tensor())?]),
             );
             s.case(
-                "nn::OnetDecoder::set_mode",
+                "occupancy::OnetDecoder::set_mode",
                 &ol,
                 Expect::Finite,
                 &[],
                 || Ok(vec![]),
             );
             s.case(
-                "nn::OnetDecoder::forward_with_code",
+                "occupancy::OnetDecoder::forward_with_code",
                 &ol,
                 Expect::Finite,
                 &[&pts, &codes],
@@ -726,7 +724,7 @@ fn sweep_onet_networks(s: &mut Suite) {
                 },
             );
             s.case(
-                "nn::OnetDecoder::value_and_grad_with_code",
+                "occupancy::OnetDecoder::value_and_grad_with_code",
                 &ol,
                 Expect::Finite,
                 &[&pts, &codes],
@@ -747,7 +745,7 @@ fn sweep_onet_networks(s: &mut Suite) {
 /// both layouts), the decoder at such points, and `conv3d` on extreme inputs.
 fn sweep_conv_onet(s: &mut Suite) {
     use neural_fields::mesh::PointCloud;
-    use neural_fields::nn::{
+    use neural_fields::occupancy::{
         conv3d, conv_onet_encoder, local_decoder, ConvOnetConfig, FeatureLayout,
         LocalDecoderConfig, UnetConfig,
     };
@@ -797,26 +795,26 @@ fn sweep_conv_onet(s: &mut Suite) {
             wrt.push(p.clone());
             let wrt: Vec<&Var> = wrt.iter().collect();
             let label = format!("{dtype:?}, {layout:?}, |p| up to {big:e}");
-            for item in ["nn::conv_onet_encoder", "nn::local_decoder"] {
+            for item in ["occupancy::conv_onet_encoder", "occupancy::local_decoder"] {
                 s.case(item, &label, Expect::Finite, &[], || Ok(vec![]));
             }
             s.case(
-                "nn::ConvOnetEncoder::forward",
+                "occupancy::ConvOnetEncoder::forward",
                 &label,
                 Expect::Finite,
                 &wrt,
                 || {
                     let f = enc.forward(p.as_tensor())?;
                     Ok(match f {
-                        neural_fields::nn::LocalFeatures::Planes { xz, xy, yz } => {
+                        neural_fields::occupancy::LocalFeatures::Planes { xz, xy, yz } => {
                             vec![xz, xy, yz]
                         }
-                        neural_fields::nn::LocalFeatures::Grid(g) => vec![g],
+                        neural_fields::occupancy::LocalFeatures::Grid(g) => vec![g],
                     })
                 },
             );
             s.case(
-                "nn::LocalDecoder::logits",
+                "occupancy::LocalDecoder::logits",
                 &label,
                 Expect::Finite,
                 &wrt,
@@ -827,9 +825,9 @@ fn sweep_conv_onet(s: &mut Suite) {
             );
             let cloud = PointCloud::new(rows.clone(), None, None).unwrap();
             for item in [
-                "nn::ConvOnetEncoder::encode_cloud",
-                "nn::LocalDecoder::bind",
-                "nn::SceneField::forward",
+                "occupancy::ConvOnetEncoder::encode_cloud",
+                "occupancy::LocalDecoder::bind",
+                "occupancy::SceneField::forward",
             ] {
                 s.case(item, &label, Expect::Finite, &wrt, || {
                     let field = dec.bind(enc.encode_cloud(&cloud)?)?;
@@ -845,7 +843,7 @@ fn sweep_conv_onet(s: &mut Suite) {
             let x = var(x, &[1, 2, 3, 3, 3], dtype);
             let w = var(w, &[1, 2, 3, 3, 3], dtype);
             s.case(
-                "nn::conv3d",
+                "occupancy::conv3d",
                 format!("{dtype:?}, extreme {tag}"),
                 Expect::Finite,
                 &[&x, &w],

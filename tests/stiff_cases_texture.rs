@@ -28,15 +28,15 @@ fn every_public_texture_function_is_swept_or_exempt() {
 
 /// Items swept by `sweep_texture`.
 const TEXTURE: &[&str] = &[
-    "nn::JointDecoder::forward",
-    "nn::JointDecoder::rgb",
-    "nn::JointDecoder::value",
-    "nn::JointDecoder::value_and_grad",
-    "nn::RenderingNet::rgb",
-    "nn::TextureDecoder::rgb",
-    "nn::joint_decoder",
-    "nn::rendering_net",
-    "nn::texture_decoder",
+    "texture::JointDecoder::forward",
+    "texture::JointDecoder::rgb",
+    "texture::JointDecoder::value",
+    "texture::JointDecoder::value_and_grad",
+    "texture::RenderingNet::rgb",
+    "texture::TextureDecoder::rgb",
+    "texture::joint_decoder",
+    "texture::rendering_net",
+    "texture::texture_decoder",
     "texture::image_gradient_loss",
     "texture::vertex_colors",
 ];
@@ -48,23 +48,20 @@ const EXEMPT: &[(&str, &str)] = &[
         "texture::TextureInput::",
         "builder: stores references to its tensors, computes nothing",
     ),
-    ("nn::TextureDecoderConfig::default", "constant"),
-    ("nn::RenderingNetConfig::default", "constant"),
-    ("nn::TextureDecoder::config", "getter"),
-    ("nn::RenderingNet::config", "getter"),
-    ("nn::JointDecoder::mlp", "getter"),
-    ("nn::JointDecoder::out_dim", "constant"),
-    ("nn::JointDecoder::inside", "constant"),
+    ("texture::TextureDecoderConfig::default", "constant"),
+    ("texture::RenderingNetConfig::default", "constant"),
+    ("texture::JointDecoder::out_dim", "constant"),
+    ("texture::JointDecoder::inside", "constant"),
 ];
 
 /// The texture networks at extreme points, normals, directions, features and codes (zero
 /// directions and normals included); the image-gradient loss on extreme colours; vertex
 /// colours from a closure that returns extreme or non-finite values.
 fn sweep_texture(s: &mut Suite) {
-    use neural_fields::nn::{
+    use neural_fields::texture::{image_gradient_loss, TextureField, TextureInput};
+    use neural_fields::texture::{
         joint_decoder, rendering_net, texture_decoder, RenderingNetConfig, TextureDecoderConfig,
     };
-    use neural_fields::texture::{image_gradient_loss, TextureField, TextureInput};
     let d = Device::Cpu;
     for dtype in [DType::F32, DType::F64] {
         let big = if dtype == DType::F32 { 1e30 } else { 1e150 };
@@ -99,7 +96,7 @@ fn sweep_texture(s: &mut Suite) {
         };
         let vm = candle_nn::VarMap::new();
         let tex = build_seeded(&vm, dtype, &d, 1, |vb| texture_decoder(&tcfg, vb)).unwrap();
-        for item in ["nn::texture_decoder", "nn::TextureDecoder::rgb"] {
+        for item in ["texture::texture_decoder", "texture::TextureDecoder::rgb"] {
             s.case(item, &tag, Expect::Finite, &[&p, &c, &z], || {
                 let input = TextureInput {
                     shape_code: Some(c.as_tensor()),
@@ -117,7 +114,7 @@ fn sweep_texture(s: &mut Suite) {
         };
         let vm = candle_nn::VarMap::new();
         let render = build_seeded(&vm, dtype, &d, 2, |vb| rendering_net(&rcfg, vb)).unwrap();
-        for item in ["nn::rendering_net", "nn::RenderingNet::rgb"] {
+        for item in ["texture::rendering_net", "texture::RenderingNet::rgb"] {
             s.case(
                 item,
                 &tag,
@@ -141,27 +138,27 @@ fn sweep_texture(s: &mut Suite) {
         };
         let vm = candle_nn::VarMap::new();
         let joint = build_seeded(&vm, dtype, &d, 3, |vb| joint_decoder(&jcfg, vb)).unwrap();
-        for item in ["nn::joint_decoder", "nn::JointDecoder::rgb"] {
+        for item in ["texture::joint_decoder", "texture::JointDecoder::rgb"] {
             s.case(item, &tag, Expect::Finite, &[&p], || {
                 Ok(vec![joint.rgb(&TextureInput::new(p.as_tensor()))?])
             });
         }
         s.case(
-            "nn::JointDecoder::value",
+            "texture::JointDecoder::value",
             &tag,
             Expect::Finite,
             &[&p],
             || Ok(vec![joint.value(p.as_tensor())?]),
         );
         s.case(
-            "nn::JointDecoder::forward",
+            "texture::JointDecoder::forward",
             &tag,
             Expect::Finite,
             &[&p],
             || Ok(vec![Field::forward(&joint, p.as_tensor())?]),
         );
         s.case(
-            "nn::JointDecoder::value_and_grad",
+            "texture::JointDecoder::value_and_grad",
             &tag,
             Expect::Finite,
             &[&p],

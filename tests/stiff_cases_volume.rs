@@ -59,16 +59,15 @@ const VOLUME: &[&str] = &[
     "volume::render_weights",
     "volume::sample_pdf",
     "volume::stratified",
-    "volume::trunc_exp",
     "volume::visible_mask",
 ];
 
 /// Items swept by `sweep_nerf`, `sweep_proposal`.
 const NERF: &[&str] = &[
-    "nn::Nerf::color_loss",
-    "nn::Nerf::density",
-    "nn::Nerf::radiance",
-    "nn::nerf",
+    "volume::Nerf::color_loss",
+    "volume::Nerf::density",
+    "volume::Nerf::radiance",
+    "volume::nerf",
     "volume::Intervals::retain",
     "volume::interlevel_loss",
     "volume::proposal_sample",
@@ -77,15 +76,10 @@ const NERF: &[&str] = &[
 /// Public items without floating-point input (or only reached through a swept item),
 /// with the reason. Matching is by prefix.
 const EXEMPT: &[(&str, &str)] = &[
-    ("nn::Nerf::config", "getter"),
     ("volume::ProposalConfig::default", "constant"),
-    ("nn::Nerf::forward", "swept through Nerf::density"),
-    ("nn::Nerf::out_dim", "constant"),
-    ("nn::NerfConfig::default", "constant"),
-    (
-        "volume::TruncExp::",
-        "CustomOp internals, swept via activations::trunc_exp",
-    ),
+    ("volume::Nerf::forward", "swept through Nerf::density"),
+    ("volume::Nerf::out_dim", "constant"),
+    ("volume::NerfConfig::default", "constant"),
     ("volume::Intervals::n_rays", "getter"),
     (
         "volume::FusedComposite::",
@@ -109,7 +103,7 @@ fn sweep_volume(s: &mut Suite) {
     use neural_fields::volume::{
         accumulate, anneal_near_far, composite, depth_smoothness, distortion_loss,
         log_linear_schedule, merge_sorted, render_image, render_weights, sample_pdf, stratified,
-        trunc_exp, visible_mask, Composite, CompositeConfig, GridConfig, GridMarchConfig,
+        visible_mask, Composite, CompositeConfig, GridConfig, GridMarchConfig,
         ImageConfig, Intervals, Jitter, Layout, OccupancyGrid, Packed,
     };
     let d = Device::Cpu;
@@ -355,14 +349,6 @@ fn sweep_volume(s: &mut Suite) {
             );
         }
         let label = format!("{dtype:?}");
-        {
-            let xs = magnitudes(dtype);
-            let x = var(&xs, &[xs.len()], dtype);
-            let al = format!("{label}, |x| up to max");
-            s.case("volume::trunc_exp", &al, Expect::Finite, &[&x], || {
-                Ok(vec![trunc_exp(x.as_tensor())?])
-            });
-        }
         for eps in [1e-30, 1e-4, 1.0] {
             s.case(
                 "volume::visible_mask",
@@ -719,7 +705,7 @@ fn sweep_volume(s: &mut Suite) {
 }
 
 fn sweep_nerf(s: &mut Suite) {
-    use neural_fields::nn::{nerf, DensityActivation, NerfConfig};
+    use neural_fields::volume::{nerf, DensityActivation, NerfConfig};
     let d = Device::Cpu;
     for dtype in DTYPES {
         let big = if dtype == DType::F32 { 1e8 } else { 1e100 };
@@ -742,7 +728,7 @@ fn sweep_nerf(s: &mut Suite) {
             };
             let varmap = candle_nn::VarMap::new();
             let label = format!("{dtype:?}, {tag}, |x| up to {big:e}");
-            s.case("nn::nerf", &label, Expect::Finite, &[], || {
+            s.case("volume::nerf", &label, Expect::Finite, &[], || {
                 build_seeded(&varmap, dtype, &d, 5, |vb| nerf(&config, vb))?;
                 Ok(vec![])
             });
@@ -751,14 +737,24 @@ fn sweep_nerf(s: &mut Suite) {
             let (x, v) = (var(&pts, &[4, 3], dtype), var(&dirs, &[4, 3], dtype));
             let mut wrt: Vec<&Var> = vars.iter().collect();
             wrt.push(&x);
-            s.case("nn::Nerf::density", &label, Expect::Finite, &wrt, || {
-                Ok(vec![net.density(x.as_tensor())?])
-            });
+            s.case(
+                "volume::Nerf::density",
+                &label,
+                Expect::Finite,
+                &wrt,
+                || Ok(vec![net.density(x.as_tensor())?]),
+            );
             wrt.push(&v);
-            s.case("nn::Nerf::radiance", &label, Expect::Finite, &wrt, || {
-                let (sigma, rgb) = net.radiance(x.as_tensor(), v.as_tensor())?;
-                Ok(vec![sigma, rgb])
-            });
+            s.case(
+                "volume::Nerf::radiance",
+                &label,
+                Expect::Finite,
+                &wrt,
+                || {
+                    let (sigma, rgb) = net.radiance(x.as_tensor(), v.as_tensor())?;
+                    Ok(vec![sigma, rgb])
+                },
+            );
             // The fused training loss: rays from the origin, from ±big and from 1e-30,
             // along tiny, huge and ordinary directions (rays have none of length 0), over [0, 1], [0, big] and
             // [1e-30, 2e-30]; targets in [0, 1].
@@ -783,7 +779,7 @@ fn sweep_nerf(s: &mut Suite) {
                 );
                 let wrt: Vec<&Var> = vars.iter().collect();
                 s.case(
-                    "nn::Nerf::color_loss",
+                    "volume::Nerf::color_loss",
                     &label,
                     Expect::FiniteOrErr,
                     &wrt,

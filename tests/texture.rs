@@ -13,12 +13,12 @@ use candle_nn::{VarBuilder, VarMap};
 use common::{central_diff_bound, close, reseed, uniform, v64};
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::{Field, ImplicitSurface};
-use neural_fields::nn::{
-    build_seeded, joint_decoder, rendering_net, texture_decoder, MlpConfig, RenderingNetConfig,
-    TextureDecoderConfig,
-};
+use neural_fields::nn::{build_seeded, MlpConfig};
 use neural_fields::rng::SplitMix64;
 use neural_fields::texture::{image_gradient_loss, TextureField, TextureInput};
+use neural_fields::texture::{
+    joint_decoder, rendering_net, texture_decoder, RenderingNetConfig, TextureDecoderConfig,
+};
 use proptest::prelude::*;
 
 const DEV: Device = Device::Cpu;
@@ -376,7 +376,8 @@ mod idr {
     use super::*;
     use neural_fields::camera::{Intersection, Rays};
     use neural_fields::dvr::{implicit_surface, march, ImplicitConfig};
-    use neural_fields::nn::{Mlp, RenderingNet};
+    use neural_fields::nn::Mlp;
+    use neural_fields::texture::RenderingNet;
 
     /// Rays from distance 2 through points near the origin, each ending on the geometry.
     fn rays(seed: u64, r: usize) -> (Rays, Intersection) {
@@ -563,7 +564,7 @@ fn image_gradient_loss_closed_form_mask_and_gradient() -> neural_fields::Result<
 #[cfg(feature = "occupancy")]
 #[test]
 fn pointnet_encodes_points_with_normals_order_independently() -> neural_fields::Result<()> {
-    use neural_fields::nn::{pointnet_encoder, PointNetConfig};
+    use neural_fields::occupancy::{pointnet_encoder, PointNetConfig};
     let config = PointNetConfig {
         hidden: 16,
         layers: 2,

@@ -634,7 +634,7 @@ fn fused_rejects_non_contiguous_nothing_and_bad_input_with_names() {
 mod activations {
     use super::*;
     use neural_fields::numerics;
-    use neural_fields::volume::trunc_exp;
+    use neural_fields::numerics::trunc_exp;
 
     /// Softplus with β = 1.
     fn softplus(x: &Tensor) -> neural_fields::Result<Tensor> {

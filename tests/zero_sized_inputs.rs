@@ -12,8 +12,9 @@ use candle_nn::{VarBuilder, VarMap};
 use common::v64;
 use neural_fields::encoding::{Encoding, FrequencyEncoding, PointEncoding};
 use neural_fields::field::Field;
-use neural_fields::nn::{mlp, nerf, Activation, MlpConfig, NerfConfig};
+use neural_fields::nn::{mlp, Activation, MlpConfig};
 use neural_fields::volume::{composite, CompositeConfig, Intervals, Packed};
+use neural_fields::volume::{nerf, NerfConfig};
 use proptest::prelude::*;
 
 fn dtype(f64_: bool) -> DType {
@@ -162,7 +163,7 @@ proptest! {
     #[test]
     fn joint_decoder_colours_zero_points(n in 0usize..3, f64_ in any::<bool>(), reference in any::<bool>()) {
         use neural_fields::field::ImplicitSurface;
-        use neural_fields::nn::joint_decoder;
+        use neural_fields::texture::joint_decoder;
         use neural_fields::texture::{TextureField, TextureInput};
         let dt = dtype(f64_);
         let varmap = VarMap::new();

@@ -4,7 +4,7 @@
 use super::ode::{odeint, Graph, Solver, Trajectory};
 use crate::error::{check_points, check_same, check_same_shape, check_shape, Dim, Error, Result};
 use crate::field::Field;
-use crate::nn::resnet_fc::ResnetFc;
+use crate::nn::ResnetFc;
 use candle_core::{Tensor, D};
 use candle_nn::VarBuilder;
 

@@ -736,7 +736,7 @@ impl CustomOp2 for FusedMlp {
     }
 }
 
-/// NeRF's two networks as one op ([`super::Nerf`]): the trunk on the encoded position
+/// NeRF's two networks as one op ([`crate::volume::Nerf`]): the trunk on the encoded position
 /// `[N, E_p]` gives the raw density and a feature `[N, W]`; the colour head runs on
 /// `[encoded direction, feature]`. Output `[N, 4]`: the raw density and the raw colour
 /// (activations are applied outside). Parameters: the trunk's flat parameters, then the

@@ -406,7 +406,7 @@ impl Mlp {
     /// The parameters as one flat tensor, in the fused op's order (each layer's
     /// row-major weight, then its bias); differentiable, so the op's parameter gradient
     /// reaches every variable.
-    pub(super) fn flat_params(&self) -> Result<Tensor> {
+    pub(crate) fn flat_params(&self) -> Result<Tensor> {
         let mut parts = Vec::with_capacity(2 * self.layers.len());
         for layer in &self.layers {
             parts.push(layer.weight()?.flatten_all()?);
@@ -416,12 +416,12 @@ impl Mlp {
     }
 
     /// The layers' shapes for the fused op.
-    pub(super) fn plan(&self) -> &FusedMlp {
+    pub(crate) fn plan(&self) -> &FusedMlp {
         &self.plan
     }
 
     /// Whether [`Mlp::run`]'s forward pass may run as the fused CPU op on `a0`.
-    pub(super) fn fused(&self, a0: &Tensor) -> bool {
+    pub(crate) fn fused(&self, a0: &Tensor) -> bool {
         !self.config.force_reference
             && a0.device().is_cpu()
             && matches!(a0.dtype(), DType::F32 | DType::F64)

@@ -1,61 +1,28 @@
-//! Reference networks built the candle-nn way: small types constructed by free
-//! functions from a [`candle_nn::VarBuilder`].
+//! Building blocks of neural fields, made the candle-nn way: small types constructed by
+//! free functions from a [`candle_nn::VarBuilder`].
 //!
-//! * [`Mlp`] / [`mlp`]: configurable MLP field with forward-mode spatial gradients.
-//! * [`OnetDecoder`] / [`onet_decoder`] (feature `occupancy`): the ONet decoder with
-//!   conditional normalisation that is batch-independent at inference.
-//! * [`PointNetEncoder`] / [`pointnet_encoder`] (feature `occupancy`): the variational
-//!   ONet's encoder `q_ψ(z | points, occupancies)`.
-//! * [`ConvOnetEncoder`] / [`conv_onet_encoder`], [`LocalDecoder`] / [`local_decoder`]
-//!   (feature `occupancy`): Convolutional Occupancy Networks (local PointNet pooled into
-//!   three feature planes or a grid, a 2-D or 3-D U-Net, a decoder of interpolated local
-//!   features), and [`conv3d`], a 3-D convolution built from candle's 2-D one.
-//! * [`TextureDecoder`] / [`texture_decoder`], [`RenderingNet`] / [`rendering_net`],
-//!   [`JointDecoder`] / [`joint_decoder`] (feature `texture`): the Texture Fields decoder,
-//!   IDR's rendering network and DVR's joint shape-and-colour decoder.
-//! * [`Nerf`] / [`nerf`]: NeRF's radiance field (density trunk, view-dependent colour
-//!   head).
+//! * [`Mlp`] / [`mlp`]: configurable MLP field with forward-mode spatial gradients
+//!   ([`Mlp::forward_with_jacobian`]), a fused CPU op on the CPU and candle ops elsewhere.
 //! * [`build_seeded`]: reproducible initialisation (candle's CPU generator cannot be
 //!   seeded; this draws every variable's initial value from a `u64` seed instead).
 //! * The training loop's companions: [`adam`] (Adam without weight decay over a
 //!   `VarMap`), [`FiniteGuard`] (stops at the first NaN or infinity in the loss, a
 //!   gradient or a weight, naming the step and the tensor) and [`Clock`] (a [`Budget`]
 //!   of steps or minutes, with evaluations kept off the clock).
+//!
+//! The models built from them live beside the feature they serve: NeRF's radiance field
+//! in [`volume`](crate#features) (`volume::Nerf`), the ONet decoder and the PointNet and
+//! Convolutional ONet encoders in `occupancy`, the texture networks in `texture`. The
+//! pointwise ResNet trunk they share and the tangent of a linear layer are crate-private
+//! building blocks here.
 
-#[cfg(feature = "occupancy")]
-mod conv_onet;
-mod fused_mlp;
+pub(crate) mod fused_mlp;
 mod mlp;
-mod nerf;
-#[cfg(feature = "occupancy")]
-mod onet;
-#[cfg(feature = "occupancy")]
-mod pointnet;
-#[cfg(any(feature = "texture", feature = "occupancy", feature = "flow"))]
-pub(crate) mod resnet_fc;
-#[cfg(feature = "texture")]
-mod texture;
+mod resnet_fc;
 mod training;
 
-#[cfg(feature = "occupancy")]
-pub use conv_onet::{
-    conv3d, conv_onet_encoder, local_decoder, ConvOnetConfig, ConvOnetEncoder, FeatureLayout,
-    LocalDecoder, LocalDecoderConfig, LocalFeatures, SceneField, UnetConfig,
-};
 pub use mlp::{mlp, Activation, Mlp, MlpConfig};
-pub use nerf::{nerf, DensityActivation, Nerf, NerfConfig};
-#[cfg(feature = "occupancy")]
-pub use onet::{
-    onet_decoder, simple_decoder, NormMode, OnetConfig, OnetDecoder, SimpleDecoder,
-    SimpleDecoderConfig, ONET_BLOCK,
-};
-#[cfg(feature = "occupancy")]
-pub use pointnet::{pointnet_encoder, PointNetConfig, PointNetEncoder};
-#[cfg(feature = "texture")]
-pub use texture::{
-    joint_decoder, rendering_net, texture_decoder, JointDecoder, RenderingNet, RenderingNetConfig,
-    TextureDecoder, TextureDecoderConfig,
-};
+pub(crate) use resnet_fc::ResnetFc;
 pub use training::{adam, Budget, Clock, FiniteGuard};
 
 use crate::error::{Error, Result};
@@ -68,7 +35,7 @@ use std::sync::{Arc, Mutex};
 
 /// The tangent of a linear layer: `Wȧ` for tangents `ȧ: [A, B, in]` and
 /// `weight: [out, in]` → `[A, B, out]` (the bias drops out). Shared by the forward-mode
-/// passes of every network here.
+/// passes of the networks built on these blocks.
 pub(crate) fn weight_jvp(weight: &Tensor, da: &Tensor) -> Result<Tensor> {
     let (a, b, i) = da.dims3()?;
     Ok(da

@@ -1,12 +1,18 @@
 //! The pointwise ResNet trunk shared by the decoders that add a conditioning code before
-//! every block: the Texture Fields decoder and Occupancy Flow's velocity field.
+//! every block: the Texture Fields decoder, the Conv. ONet decoder and Occupancy Flow's
+//! velocity field. It is built with or without those features; without any of them
+//! nothing uses it.
+#![cfg_attr(
+    not(any(feature = "occupancy", feature = "texture", feature = "flow")),
+    allow(dead_code)
+)]
 
 use crate::error::{Error, Result};
 use candle_core::Tensor;
 use candle_nn::{Init, Linear, Module, VarBuilder};
 
 /// A linear layer `[out, in]` whose weight and bias start at zero.
-pub(crate) fn zero_linear(input: usize, out: usize, vb: VarBuilder) -> Result<Linear> {
+fn zero_linear(input: usize, out: usize, vb: VarBuilder) -> Result<Linear> {
     let w = vb.get_with_hints((out, input), "weight", Init::Const(0.0))?;
     let b = vb.get_with_hints(out, "bias", Init::Const(0.0))?;
     Ok(Linear::new(w, Some(b)))

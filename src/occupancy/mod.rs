@@ -16,6 +16,14 @@
 //! * Samplers: uniform ([`uniform_in_padded_cube`]), near-surface ([`near_surface`]) and
 //!   labelled samples ([`inside_mesh`]: a generalised winding number inside test, robust
 //!   to small holes).
+//! * The models, built on [`crate::nn`]'s blocks: [`OnetDecoder`] / [`onet_decoder`],
+//!   the ONet decoder with conditional normalisation that is batch-independent at
+//!   inference (and the plain [`SimpleDecoder`]); [`PointNetEncoder`] /
+//!   [`pointnet_encoder`], the variational ONet's encoder `q_ψ(z | points, occupancies)`;
+//!   [`ConvOnetEncoder`] / [`conv_onet_encoder`] and [`LocalDecoder`] /
+//!   [`local_decoder`], Convolutional Occupancy Networks (local PointNet pooled into three
+//!   feature planes or a grid, a 2-D or 3-D U-Net, a decoder of interpolated local
+//!   features), and [`conv3d`], a 3-D convolution built from candle's 2-D one.
 //!
 //! ```
 //! use candle_core::{DType, Device};
@@ -35,16 +43,28 @@
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 
+mod conv_onet;
 mod isosurface;
 mod losses;
 mod metrics;
 mod multires;
+mod onet;
+mod pointnet;
 mod sampling;
 
+pub use conv_onet::{
+    conv3d, conv_onet_encoder, local_decoder, ConvOnetConfig, ConvOnetEncoder, FeatureLayout,
+    LocalDecoder, LocalDecoderConfig, LocalFeatures, SceneField, UnetConfig,
+};
 pub use isosurface::{marching_cubes, Grid};
 pub use losses::{kl_standard_normal, reconstruction_loss, reparameterize};
 pub use metrics::{chamfer_icp, iou, mesh_metrics, surface_metrics, KdTree, SurfaceMetrics};
 pub use multires::{logit_threshold, mise, refine_vertices, MiseConfig, MiseOutput, RefineConfig};
+pub use onet::{
+    onet_decoder, simple_decoder, NormMode, OnetConfig, OnetDecoder, SimpleDecoder,
+    SimpleDecoderConfig, ONET_BLOCK,
+};
+pub use pointnet::{pointnet_encoder, PointNetConfig, PointNetEncoder};
 pub use sampling::{
     inside_mesh, near_surface, uniform_in_padded_cube, winding_numbers, WindingConfig,
 };

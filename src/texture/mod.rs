@@ -7,13 +7,13 @@
 //! [`TextureInput`], so a renderer hands the same value to any texture field and each
 //! field takes what it needs (and names what it misses).
 //!
-//! The networks live in [`crate::nn`]:
-//! * [`crate::nn::TextureDecoder`]: the Texture Fields decoder (Oechsle et al. 2019),
-//!   conditioned on a shape code and an image code;
-//! * [`crate::nn::RenderingNet`]: IDR's rendering network (point, encoded view direction,
-//!   normal, geometry feature);
-//! * [`crate::nn::JointDecoder`]: DVR's decoder, one trunk for the occupancy logit and
-//!   the colour (an implicit surface and a texture field at once).
+//! The networks, built on [`crate::nn`]'s blocks:
+//! * [`TextureDecoder`]: the Texture Fields decoder (Oechsle et al. 2019), conditioned on
+//!   a shape code and an image code;
+//! * [`RenderingNet`]: IDR's rendering network (point, encoded view direction, normal,
+//!   geometry feature);
+//! * [`JointDecoder`]: DVR's decoder, one trunk for the occupancy logit and the colour
+//!   (an implicit surface and a texture field at once).
 //!
 //! In a DVR/IDR training step the points are [`crate::dvr::SurfacePoints::points`], so a
 //! photometric loss ([`crate::dvr::photometric_loss`], plus [`image_gradient_loss`] on
@@ -22,8 +22,8 @@
 //! ```
 //! use candle_core::{DType, Device, Tensor};
 //! use candle_nn::VarMap;
-//! use neural_fields::nn::{build_seeded, rendering_net, RenderingNetConfig};
-//! use neural_fields::texture::{TextureField, TextureInput};
+//! use neural_fields::nn::build_seeded;
+//! use neural_fields::texture::{rendering_net, RenderingNetConfig, TextureField, TextureInput};
 //!
 //! let dev = Device::Cpu;
 //! let config = RenderingNetConfig { feature_dim: 8, ..RenderingNetConfig::default() };
@@ -47,103 +47,19 @@
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 
+mod input;
 mod losses;
+mod networks;
 
+pub use input::{TextureField, TextureInput};
 pub use losses::image_gradient_loss;
+pub use networks::{
+    joint_decoder, rendering_net, texture_decoder, JointDecoder, RenderingNet, RenderingNetConfig,
+    TextureDecoder, TextureDecoderConfig,
+};
 
-use crate::error::{check_points, check_same, check_shape, Dim, Error, Result};
+use crate::error::{check_shape, Dim, Error, Result};
 use candle_core::Tensor;
-
-/// The inputs of a [`TextureField`] at `N` points; start from [`TextureInput::new`] and
-/// set what the field reads, e.g. `TextureInput { normals: Some(&n), ..TextureInput::new(&p) }`.
-///
-/// Every tensor shares the points' dtype (f32 or f64) and device and has `N` rows.
-#[derive(Clone, Copy, Debug)]
-pub struct TextureInput<'a> {
-    /// Surface points `[N, 3]`.
-    pub points: &'a Tensor,
-    /// Surface normals `[N, 3]` (any length: fields that read them normalise or not as
-    /// they document), e.g. the spatial gradient of an SDF at the points.
-    pub normals: Option<&'a Tensor>,
-    /// Viewing directions `[N, 3]`: the directions of the rays that reached the points
-    /// (from the camera towards the surface).
-    pub view_dirs: Option<&'a Tensor>,
-    /// Feature vectors `[N, F]` from the geometry network (IDR's global feature).
-    pub features: Option<&'a Tensor>,
-    /// Shape codes `[N, C]` (Texture Fields' `c`).
-    pub shape_code: Option<&'a Tensor>,
-    /// Image codes `[N, Z]` (Texture Fields' `z`).
-    pub image_code: Option<&'a Tensor>,
-}
-
-impl<'a> TextureInput<'a> {
-    /// Inputs with only the points `[N, 3]`.
-    #[must_use]
-    pub fn new(points: &'a Tensor) -> Self {
-        Self {
-            points,
-            normals: None,
-            view_dirs: None,
-            features: None,
-            shape_code: None,
-            image_code: None,
-        }
-    }
-
-    /// Checks the points: f32/f64 `[N, 3]`; returns `N`.
-    ///
-    /// # Errors
-    /// Naming `points`.
-    pub(crate) fn check_points(&self) -> Result<usize> {
-        check_points(self.points, "points")
-    }
-
-    /// The optional input `which` (named `arg`), required with `cols` columns (any
-    /// number for `None`) and `n` rows, in the points' dtype and device.
-    ///
-    /// # Errors
-    /// Naming `arg` when it is missing or of another shape, dtype or device.
-    pub(crate) fn required(
-        &self,
-        which: Option<&'a Tensor>,
-        arg: &'static str,
-        cols: Option<usize>,
-        reader: &str,
-    ) -> Result<&'a Tensor> {
-        let n = self.check_points()?;
-        let t = which.ok_or_else(|| {
-            Error::invalid(
-                arg,
-                format!(
-                    "[N, {}] (read by {reader})",
-                    cols.map_or("K".into(), |c| c.to_string())
-                ),
-                "none",
-            )
-        })?;
-        check_same(t, arg, self.points, "points")?;
-        let col = match cols {
-            Some(c) => Dim::Is(c),
-            None => Dim::Any("K"),
-        };
-        check_shape(t, arg, &[Dim::Is(n), col])?;
-        Ok(t)
-    }
-}
-
-/// A colour field over surface points: [`TextureInput`] → RGB `[N, 3]` in `[0, 1]`.
-///
-/// Implementations document which inputs they read, and return an error naming an input
-/// they read but did not get. The output is differentiable w.r.t. the field's parameters
-/// and every input it reads (so a photometric loss reaches the surface points, normals,
-/// features and codes).
-pub trait TextureField {
-    /// RGB `[N, 3]` in `[0, 1]` at `input.points`, in their dtype and device.
-    ///
-    /// # Errors
-    /// Missing or mis-shaped inputs (naming them); errors of the computation.
-    fn rgb(&self, input: &TextureInput) -> Result<Tensor>;
-}
 
 /// Vertex colours for a mesh: `texture` evaluated at the mesh's vertices in chunks of
 /// `chunk` points, without graph, as `[V][3]` in `[0, 1]` (for

@@ -30,7 +30,7 @@
 //!   α = 1 for the last sample of each ray by selection; it never multiplies by a huge δ.
 //!
 //! Validation: σ must be finite and ≥ 0 (NaN, negative and **+∞ are rejected** with an
-//! error naming `sigmas`: activations such as trunc-exp ([`super::trunc_exp`]) never
+//! error naming `sigmas`: activations such as trunc-exp ([`crate::numerics::trunc_exp`]) never
 //! produce ∞, so an infinite density is an upstream bug; a huge finite density such as
 //! 1e30 is fine and acts as an opaque wall). Every δ must be finite and ≥ 0 (an error
 //! names `intervals`).

@@ -41,25 +41,27 @@
 //!   that are visible and not empty;
 //! - proposal-network sampling (mip-NeRF 360, [`proposal_sample`]) and its
 //!   [`interlevel_loss`];
-//! - regularisers: [`distortion_loss`], [`depth_smoothness`]; the density activation
-//!   [`trunc_exp`];
+//! - regularisers: [`distortion_loss`], [`depth_smoothness`] (the trunc-exp density
+//!   activation is [`crate::numerics::trunc_exp`]);
+//! - [`Nerf`] / [`nerf`]: NeRF's radiance field (density trunk, view-dependent colour
+//!   head, both [`crate::nn::Mlp`]s) with its fused training loss
+//!   [`Nerf::color_loss`];
 //! - [`render_image`]: a whole image from any per-ray renderer, in chunks, supersampled
 //!   through the camera's pixel filter.
 //!
 //! See `docs/math.md`, section "Volume compositing", for the derivations.
 
-mod activations;
 mod compositing;
 mod fused;
 mod grid;
 mod layout;
+mod nerf_model;
 mod proposal;
 mod reference;
 mod regularizers;
 mod render;
 mod sampling;
 
-pub use activations::{trunc_exp, TRUNC_EXP_GRAD_CLAMP, TRUNC_EXP_MAX_F32, TRUNC_EXP_MAX_F64};
 pub(crate) use compositing::background_rows;
 pub use compositing::{
     accumulate, composite, render_weights, visible_mask, Composite, CompositeConfig,
@@ -67,6 +69,7 @@ pub use compositing::{
 };
 pub use grid::{GridConfig, GridMarchConfig, GridSamples, OccupancyGrid};
 pub use layout::{Intervals, Layout, Packed, Weights, X_MAX};
+pub use nerf_model::{nerf, DensityActivation, Nerf, NerfConfig};
 pub use proposal::{interlevel_loss, proposal_sample, ProposalConfig, ProposalSamples};
 pub use regularizers::{depth_smoothness, distortion_loss, log_linear_schedule};
 pub use render::{render_image, ImageConfig};

@@ -12,7 +12,7 @@ pub mod host;
 pub mod intervals;
 pub mod stiff;
 
-use candle_core::{DType, Device, Tensor};
+use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarMap;
 #[allow(unused_imports)] // not every test binary uses it
 pub use host::v64;
@@ -109,6 +109,30 @@ pub fn central_diff_bound(
 /// `|a − b| ≤ tol·max(|a|, |b|, floor)`.
 pub fn close(a: f64, b: f64, tol: f64, floor: f64) -> bool {
     (a - b).abs() <= tol * a.abs().max(b.abs()).max(floor)
+}
+
+/// The variables of `varmap` in name order.
+pub fn sorted_vars(varmap: &VarMap) -> Vec<Var> {
+    let data = varmap.data().lock().unwrap();
+    let mut names: Vec<&String> = data.keys().collect();
+    names.sort();
+    names.into_iter().map(|k| data[k].clone()).collect()
+}
+
+/// Each part of `fused` within `tol` of the same part of `reference`, relative to the
+/// part's largest entry (at least 1e-3).
+pub fn assert_parts_close(fused: &[Vec<f64>], reference: &[Vec<f64>], tol: f64, what: &str) {
+    assert_eq!(fused.len(), reference.len(), "{what}: parts");
+    for (k, (x, y)) in fused.iter().zip(reference).enumerate() {
+        assert_eq!(x.len(), y.len(), "{what}: part {k}");
+        let scale = y.iter().fold(1e-3f64, |m, v| m.max(v.abs()));
+        for (i, (&u, &v)) in x.iter().zip(y).enumerate() {
+            assert!(
+                (u - v).abs() <= tol * scale,
+                "{what}: part {k}[{i}]: fused {u} vs reference {v}"
+            );
+        }
+    }
 }
 
 /// Debian's assimp-testmodels (`apt-get install assimp-testmodels`), or `None` with a

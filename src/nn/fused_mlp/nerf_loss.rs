@@ -1,4 +1,4 @@
-//! NeRF's photometric training loss as one CPU op ([`crate::nn::Nerf::color_loss`]):
+//! NeRF's photometric training loss as one CPU op ([`crate::volume::Nerf::color_loss`]):
 //! for a tile of whole rays, the encodings, both networks, the density and colour
 //! activations, compositing, the squared error and the backward pass of all of them run
 //! while the tile's activations are still in cache, so the backward pass needs no second
@@ -7,7 +7,7 @@
 //!
 //! ## Math
 //! Per ray with samples `i` (raw outputs `ρᵢ`, `ςᵢ ∈ ℝ³`, lengths `δᵢ`), as
-//! [`crate::nn::Nerf::radiance`] and [`crate::volume::composite()`] compute them:
+//! [`crate::volume::Nerf::radiance`] and [`crate::volume::composite()`] compute them:
 //!
 //! ```text
 //! σᵢ = act(ρᵢ + shift),  cᵢ = sigmoid(ςᵢ),  xᵢ = min(σᵢδᵢ, X_MAX),
@@ -37,13 +37,13 @@
 
 use super::{sum_chunks, FusedNerf, NerfScratch, Params, Real, CHUNK, TILE};
 use crate::encoding::RowEncoder;
-use crate::numerics::{scalar_sigmoid, scalar_softplus};
+use crate::numerics::{scalar_sigmoid, scalar_softplus, trunc_exp_slope, trunc_exp_value};
 use crate::parallel::for_each_init;
-use crate::volume::{TRUNC_EXP_GRAD_CLAMP, TRUNC_EXP_MAX_F32, TRUNC_EXP_MAX_F64, X_MAX};
+use crate::volume::X_MAX;
 use candle_core::{CpuStorage, CustomOp3, Layout, Shape, Tensor};
 use std::sync::{Arc, Mutex};
 
-/// The density activation of [`crate::nn::DensityActivation`], with its shift.
+/// The density activation of [`crate::volume::DensityActivation`], with its shift.
 #[derive(Clone, Copy, Debug)]
 pub(crate) enum Density {
     TruncExp(f64),
@@ -351,19 +351,20 @@ impl FusedNerfLoss {
     }
 
     /// `(σ, ∂σ/∂ρ)` at raw output `ρ`, the shifted argument rounded to the storage dtype
-    /// as the composed path rounds it.
+    /// as the composed path rounds it. Trunc-exp's value and slope are
+    /// [`crate::numerics::trunc_exp`]'s scalar rule evaluated in the storage dtype, as the
+    /// composed path evaluates them.
     fn activate(&self, raw: f64, f32_out: bool) -> (f64, f64) {
         let round = |v: f64| if f32_out { f64::from(v as f32) } else { v };
         match self.density {
             Density::TruncExp(shift) => {
                 let z = round(raw + round(shift));
-                let cap = if f32_out {
-                    TRUNC_EXP_MAX_F32
+                if f32_out {
+                    let z = z as f32;
+                    (f64::from(trunc_exp_value(z)), f64::from(trunc_exp_slope(z)))
                 } else {
-                    TRUNC_EXP_MAX_F64
-                };
-                let slope = z.clamp(-TRUNC_EXP_GRAD_CLAMP, TRUNC_EXP_GRAD_CLAMP).exp();
-                (round(z.min(cap).exp()), slope)
+                    (trunc_exp_value(z), trunc_exp_slope(z))
+                }
             }
             Density::Softplus(shift) => {
                 let z = round(raw + round(shift));

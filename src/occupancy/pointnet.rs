@@ -88,12 +88,6 @@ pub fn pointnet_encoder(config: &PointNetConfig, vb: VarBuilder) -> Result<Point
 }
 
 impl PointNetEncoder {
-    /// The configuration.
-    #[must_use]
-    pub fn config(&self) -> &PointNetConfig {
-        &self.config
-    }
-
     /// The posterior parameters `(μ, log σ²)`, each `[B, D]`, of `B` shapes given
     /// `points: [B, K, 3]` and `occupancies: [B, K]` (labels in `[0, 1]`), f32 or f64:
     /// [`forward_features`](Self::forward_features) with the labels as the one feature.

@@ -18,9 +18,9 @@
 //!   one zero-padded), so even the matrix-multiply kernel sees the same shapes; the
 //!   result is bit-identical (tested).
 
-use super::weight_jvp;
 use crate::error::{check_points, check_same, check_shape, Dim, Error, Result};
 use crate::field::{ConditionalField, Inside};
+use crate::nn::weight_jvp;
 use candle_core::{Tensor, D};
 use candle_nn::{Init, VarBuilder};
 use std::sync::{Mutex, PoisonError};
@@ -228,12 +228,6 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 }
 
 impl OnetDecoder {
-    /// The configuration.
-    #[must_use]
-    pub fn config(&self) -> &OnetConfig {
-        &self.config
-    }
-
     /// Switches between batch statistics (training) and running statistics (inference).
     pub fn set_mode(&self, mode: NormMode) {
         *lock(&self.mode) = mode;
@@ -482,12 +476,6 @@ fn relu_jvp(x: &Tensor, dx: Option<&Tensor>) -> Result<(Tensor, Option<Tensor>)>
 }
 
 impl SimpleDecoder {
-    /// The configuration.
-    #[must_use]
-    pub fn config(&self) -> &SimpleDecoderConfig {
-        &self.config
-    }
-
     fn run(
         &self,
         points: &Tensor,

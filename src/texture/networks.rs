@@ -2,13 +2,12 @@
 //! network and DVR's joint shape-and-colour decoder, each a
 //! [`TextureField`](crate::texture::TextureField).
 
-use super::mlp::{mlp, Activation, Mlp, MlpConfig};
-use super::resnet_fc::ResnetFc;
+use super::input::{TextureField, TextureInput};
 use crate::encoding::{Encoding, FrequencyEncoding, PointEncoding};
 use crate::error::{Error, Result};
 use crate::field::{ConditionalField, Field, ImplicitSurface, Inside};
+use crate::nn::{mlp, Activation, Mlp, MlpConfig, ResnetFc};
 use crate::numerics::sigmoid;
-use crate::texture::{TextureField, TextureInput};
 use candle_core::{Tensor, D};
 use candle_nn::VarBuilder;
 
@@ -72,8 +71,8 @@ pub struct TextureDecoder {
 /// ```
 /// use candle_core::{DType, Device, Tensor};
 /// use candle_nn::VarMap;
-/// use neural_fields::nn::{build_seeded, texture_decoder, TextureDecoderConfig};
-/// use neural_fields::texture::{TextureField, TextureInput};
+/// use neural_fields::nn::build_seeded;
+/// use neural_fields::texture::{texture_decoder, TextureDecoderConfig, TextureField, TextureInput};
 ///
 /// let config = TextureDecoderConfig { shape_code_dim: 16, ..TextureDecoderConfig::default() };
 /// let varmap = VarMap::new();
@@ -101,14 +100,6 @@ pub fn texture_decoder(config: &TextureDecoderConfig, vb: VarBuilder) -> Result<
         )?,
         config: config.clone(),
     })
-}
-
-impl TextureDecoder {
-    /// The configuration.
-    #[must_use]
-    pub fn config(&self) -> &TextureDecoderConfig {
-        &self.config
-    }
 }
 
 impl TextureField for TextureDecoder {
@@ -246,14 +237,6 @@ pub fn rendering_net(config: &RenderingNetConfig, vb: VarBuilder) -> Result<Rend
     })
 }
 
-impl RenderingNet {
-    /// The configuration.
-    #[must_use]
-    pub fn config(&self) -> &RenderingNetConfig {
-        &self.config
-    }
-}
-
 impl TextureField for RenderingNet {
     fn rgb(&self, input: &TextureInput) -> Result<Tensor> {
         input.check_points()?;
@@ -315,8 +298,8 @@ pub struct JointDecoder {
 /// use candle_core::{DType, Device, Tensor};
 /// use candle_nn::VarMap;
 /// use neural_fields::field::ImplicitSurface;
-/// use neural_fields::nn::{build_seeded, joint_decoder, MlpConfig};
-/// use neural_fields::texture::{TextureField, TextureInput};
+/// use neural_fields::nn::{build_seeded, MlpConfig};
+/// use neural_fields::texture::{joint_decoder, TextureField, TextureInput};
 ///
 /// let varmap = VarMap::new();
 /// let net = build_seeded(&varmap, DType::F32, &Device::Cpu, 0, |vb| {
@@ -339,14 +322,6 @@ pub fn joint_decoder(config: &MlpConfig, vb: VarBuilder) -> Result<JointDecoder>
     Ok(JointDecoder {
         mlp: mlp(&config, vb)?,
     })
-}
-
-impl JointDecoder {
-    /// The trunk.
-    #[must_use]
-    pub fn mlp(&self) -> &Mlp {
-        &self.mlp
-    }
 }
 
 impl Field for JointDecoder {

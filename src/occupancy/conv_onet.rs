@@ -1,11 +1,11 @@
 //! Convolutional Occupancy Networks (Peng et al., ECCV 2020); documented on
 //! [`ConvOnetEncoder`].
 
-use super::resnet_fc::ResnetFc;
 use crate::encoding::{cell_index, grid_sample, scatter, GridSampleConfig, Pooling, ScatterConfig};
 use crate::error::{check_float, check_points, check_same, check_shape, Dim, Error, Result};
 use crate::field::Field;
 use crate::mesh::{points_to_tensor, PointCloud};
+use crate::nn::ResnetFc;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{Init, Linear, Module, VarBuilder};
 
@@ -253,7 +253,7 @@ impl Conv {
 ///
 /// ```
 /// use candle_core::{Device, Tensor};
-/// use neural_fields::nn::conv3d;
+/// use neural_fields::occupancy::conv3d;
 ///
 /// let x = Tensor::ones((1, 2, 4, 4, 4), candle_core::DType::F64, &Device::Cpu)?;
 /// let w = Tensor::ones((3, 2, 3, 3, 3), candle_core::DType::F64, &Device::Cpu)?;
@@ -449,7 +449,7 @@ impl Unet {
 /// ```
 /// use candle_core::{DType, Device, Tensor};
 /// use candle_nn::{VarBuilder, VarMap};
-/// use neural_fields::nn::{conv_onet_encoder, local_decoder, ConvOnetConfig, FeatureLayout, LocalDecoderConfig, UnetConfig};
+/// use neural_fields::occupancy::{conv_onet_encoder, local_decoder, ConvOnetConfig, FeatureLayout, LocalDecoderConfig, UnetConfig};
 ///
 /// let varmap = VarMap::new();
 /// let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
@@ -485,8 +485,8 @@ pub struct ConvOnetEncoder {
 /// ```
 /// use candle_core::{DType, Device};
 /// use candle_nn::{VarBuilder, VarMap};
-/// use neural_fields::nn::{conv_onet_encoder, ConvOnetConfig, FeatureLayout, LocalFeatures, UnetConfig};
 /// use neural_fields::mesh::PointCloud;
+/// use neural_fields::occupancy::{conv_onet_encoder, ConvOnetConfig, FeatureLayout, LocalFeatures, UnetConfig};
 ///
 /// let varmap = VarMap::new();
 /// let vb = VarBuilder::from_varmap(&varmap, DType::F64, &Device::Cpu);
@@ -568,12 +568,6 @@ pub fn conv_onet_encoder(config: &ConvOnetConfig, vb: VarBuilder) -> Result<Conv
 }
 
 impl ConvOnetEncoder {
-    /// The configuration.
-    #[must_use]
-    pub fn config(&self) -> &ConvOnetConfig {
-        &self.config
-    }
-
     /// Encodes `B` point clouds `points: [B, N, 3]` (the encoder's dtype and device,
     /// `N ≥ 1`, coordinates in the padded box; points outside fall in the border cells).
     /// Differentiable w.r.t. every parameter (and the points through the point network).
@@ -744,7 +738,7 @@ pub struct LocalDecoder {
 /// ```
 /// use candle_core::{DType, Device, Tensor};
 /// use candle_nn::{VarBuilder, VarMap};
-/// use neural_fields::nn::{local_decoder, LocalDecoderConfig, LocalFeatures};
+/// use neural_fields::occupancy::{local_decoder, LocalDecoderConfig, LocalFeatures};
 ///
 /// let varmap = VarMap::new();
 /// let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
@@ -776,12 +770,6 @@ pub fn local_decoder(config: &LocalDecoderConfig, vb: VarBuilder) -> Result<Loca
 }
 
 impl LocalDecoder {
-    /// The configuration.
-    #[must_use]
-    pub fn config(&self) -> &LocalDecoderConfig {
-        &self.config
-    }
-
     /// Occupancy logits `[B, M]` (inside where positive) at query points `points:
     /// [B, M, 3]` of the scenes encoded in `features` (batch `B`, the decoder's
     /// `feature_dim` channels, the points' dtype and device). Differentiable w.r.t. the
@@ -840,14 +828,6 @@ impl LocalDecoder {
 pub struct SceneField<'a> {
     decoder: &'a LocalDecoder,
     features: LocalFeatures,
-}
-
-impl SceneField<'_> {
-    /// The bound features.
-    #[must_use]
-    pub fn features(&self) -> &LocalFeatures {
-        &self.features
-    }
 }
 
 impl Field for SceneField<'_> {

@@ -1,21 +1,24 @@
 //! The NeRF network: density from the position, colour from a feature and the view
 //! direction.
 
-use super::fused_mlp::FusedNerf;
-use super::mlp::{mlp, Activation, Mlp, MlpConfig};
+use super::compositing::{background_rows, composite, CompositeConfig};
+use super::layout::{Intervals, Layout};
+use crate::camera::Rays;
 use crate::encoding::{FrequencyEncoding, PointEncoding};
 use crate::error::{check_points, check_same, check_shape, Dim, Error, Result};
 use crate::field::{ConditionalField, Field};
+use crate::nn::fused_mlp::FusedNerf;
+use crate::nn::{mlp, Activation, Mlp, MlpConfig};
+use crate::numerics::{softplus, trunc_exp};
 use candle_core::Tensor;
 use candle_nn::VarBuilder;
 
 /// How the raw density output `r` becomes `σ ≥ 0`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum DensityActivation {
-    /// `σ = trunc_exp(r + shift)` ([`crate::volume::trunc_exp`]: `exp` forward, its
-    /// gradient's exponent clamped, so that early large densities cannot produce NaN;
-    /// instant-NGP and nerfacto). Needs the `volume` feature for the fused op; without it
-    /// the same function is formed from candle ops.
+    /// `σ = trunc_exp(r + shift)` ([`trunc_exp`]: `exp` forward with the exponent capped
+    /// at 88 in f32 and 709 in f64, its gradient `exp(clamp(r + shift, −15, 15))`, so that
+    /// early large densities cannot produce NaN; instant-NGP and nerfacto).
     TruncExp {
         /// Added to `r` (instant-NGP's −1 starts the density near `e⁻¹`).
         shift: f64,
@@ -95,7 +98,8 @@ pub struct Nerf {
 /// ```
 /// use candle_core::{DType, Device, Tensor};
 /// use candle_nn::VarMap;
-/// use neural_fields::nn::{build_seeded, nerf, NerfConfig};
+/// use neural_fields::nn::build_seeded;
+/// use neural_fields::volume::{nerf, NerfConfig};
 ///
 /// let varmap = VarMap::new();
 /// let net = build_seeded(&varmap, DType::F32, &Device::Cpu, 0, |vb| nerf(&NerfConfig::default(), vb))?;
@@ -155,29 +159,10 @@ pub fn nerf(config: &NerfConfig, vb: VarBuilder) -> Result<Nerf> {
 }
 
 impl Nerf {
-    /// The configuration.
-    #[must_use]
-    pub fn config(&self) -> &NerfConfig {
-        &self.config
-    }
-
     fn activate(&self, raw: &Tensor) -> Result<Tensor> {
         match self.config.density {
-            DensityActivation::TruncExp { shift } => {
-                #[cfg(feature = "volume")]
-                {
-                    crate::volume::trunc_exp(&(raw + shift)?)
-                }
-                #[cfg(not(feature = "volume"))]
-                {
-                    // exp with the exponent capped where f32 overflows; same forward as
-                    // the fused op below the cap.
-                    Ok((raw + shift)?.minimum(88.0)?.exp()?)
-                }
-            }
-            DensityActivation::Softplus { shift } => {
-                crate::numerics::softplus(&(raw + shift)?, 1.0)
-            }
+            DensityActivation::TruncExp { shift } => trunc_exp(&(raw + shift)?),
+            DensityActivation::Softplus { shift } => softplus(&(raw + shift)?, 1.0),
         }
     }
 
@@ -247,10 +232,9 @@ impl Nerf {
     }
 }
 
-#[cfg(feature = "volume")]
 impl Nerf {
     /// NeRF's photometric training loss: the mean over rays and colour channels of
-    /// `(C(r) − C*(r))²`, where `C(r)` is [`crate::volume::composite()`]'s colour of the
+    /// `(C(r) − C*(r))²`, where `C(r)` is [`composite()`]'s colour of the
     /// field sampled at the midpoints of `intervals` along `rays`,
     ///
     /// ```text
@@ -269,7 +253,7 @@ impl Nerf {
     /// encodings are frequencies (`2ᵏπ`) or the identity, it runs as one fused op that
     /// evaluates, composites and differentiates each tile of rays while its activations
     /// are in cache (the `fused_mlp::nerf_loss` module; 1.5× the speed of
-    /// [`Nerf::radiance`], [`crate::volume::composite()`] and the loss from candle ops).
+    /// [`Nerf::radiance`], [`composite()`] and the loss from candle ops).
     /// The gradient is then computed in the forward pass and kept until `backward`, so
     /// for evaluation without training render with [`Nerf::radiance`] instead. Otherwise
     /// (another device, `force_reference`, other encodings, or rays, intervals, target
@@ -280,8 +264,8 @@ impl Nerf {
     /// use candle_core::{DType, Device, Tensor};
     /// use candle_nn::VarMap;
     /// use neural_fields::camera::Rays;
-    /// use neural_fields::nn::{build_seeded, nerf, NerfConfig};
-    /// use neural_fields::volume::{stratified, CompositeConfig, Jitter};
+    /// use neural_fields::nn::build_seeded;
+    /// use neural_fields::volume::{nerf, stratified, CompositeConfig, Jitter, NerfConfig};
     ///
     /// let dev = Device::Cpu;
     /// let varmap = VarMap::new();
@@ -304,16 +288,15 @@ impl Nerf {
     /// [`Error::InvalidArgument`] naming `target` for another shape than `[R, 3]`, no
     /// rays, a dtype or device unlike the rays', or a non-finite value; `rays` when their
     /// count differs from the intervals'; those of [`Nerf::radiance`] and
-    /// [`crate::volume::composite()`] (`config.background`'s shape, a non-finite density
+    /// [`composite()`] (`config.background`'s shape, a non-finite density
     /// or colour: in the fused op, an error naming the network's raw output).
     pub fn color_loss(
         &self,
-        rays: &crate::camera::Rays,
-        intervals: &crate::volume::Intervals,
+        rays: &Rays,
+        intervals: &Intervals,
         target: &Tensor,
-        config: &crate::volume::CompositeConfig,
+        config: &CompositeConfig,
     ) -> Result<Tensor> {
-        use crate::volume::Layout;
         let r = intervals.n_rays();
         if r == 0 {
             return Err(Error::invalid("target", "at least one ray", "0 rays"));
@@ -334,21 +317,20 @@ impl Nerf {
             }
             Layout::Packed(_) => (sigma, rgb),
         };
-        let out = crate::volume::composite(&sigma, &rgb, intervals, Some(rays), config)?;
+        let out = composite(&sigma, &rgb, intervals, Some(rays), config)?;
         Ok((out.color - target)?.sqr()?.mean_all()?)
     }
 
     /// [`Nerf::color_loss`] as the fused op, or `None` where it does not apply.
     fn fused_color_loss(
         &self,
-        rays: &crate::camera::Rays,
-        intervals: &crate::volume::Intervals,
+        rays: &Rays,
+        intervals: &Intervals,
         positions: &Tensor,
         target: &Tensor,
-        config: &crate::volume::CompositeConfig,
+        config: &CompositeConfig,
     ) -> Result<Option<Tensor>> {
-        use super::fused_mlp::nerf_loss::{Density, FusedNerfLoss};
-        use crate::volume::Layout;
+        use crate::nn::fused_mlp::nerf_loss::{Density, FusedNerfLoss};
         // The checks that need no tensor op come first, so that a fallback to the composed
         // path has computed nothing here.
         let constant = [positions, rays.directions(), target]
@@ -386,8 +368,9 @@ impl Nerf {
         }
         let background = match &config.background {
             None => target.zeros_like()?,
-            Some(bg) => crate::volume::background_rows(bg, "config.background", target, "target")?
-                .broadcast_as((r, 3))?,
+            Some(bg) => {
+                background_rows(bg, "config.background", target, "target")?.broadcast_as((r, 3))?
+            }
         };
         let samples = Tensor::cat(&[positions, &deltas.unsqueeze(1)?], 1)?;
         let unit = self.unit_directions(rays.directions())?;
