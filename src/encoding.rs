@@ -344,7 +344,7 @@ impl FusedFrequency {
             .chunks_mut(ENCODE_ROWS * w.max(1))
             .zip(x.chunks(ENCODE_ROWS * d))
             .collect();
-        crate::parallel::for_each_init(
+        crate::kernels::for_each_init(
             items,
             || self.scratch(),
             |t, (out, x)| self.write_rows(x, out, t),
@@ -379,7 +379,7 @@ impl FusedFrequency {
             .zip(x.chunks(ENCODE_ROWS * d))
             .zip(g.chunks(ENCODE_ROWS * w.max(1)))
             .collect();
-        crate::parallel::for_each_init(
+        crate::kernels::for_each_init(
             items,
             || self.scratch(),
             |t, ((gx, x), g)| {
@@ -416,7 +416,7 @@ impl candle_core::CustomOp1 for FusedFrequency {
         l: &candle_core::Layout,
     ) -> candle_core::Result<(candle_core::CpuStorage, candle_core::Shape)> {
         use candle_core::CpuStorage;
-        let [(a, b)] = crate::parallel::contiguous([l], "frequency encoding")?;
+        let [(a, b)] = crate::kernels::contiguous([l], "frequency encoding")?;
         let rows = l.dims().first().copied().unwrap_or(0);
         let out = match s {
             CpuStorage::F32(v) => CpuStorage::F32(self.forward(&v[a..b])),
@@ -433,13 +433,13 @@ impl candle_core::CustomOp1 for FusedFrequency {
         let op = "frequency encoding";
         let gx = match x.dtype() {
             DType::F32 => {
-                let v = crate::parallel::cpu_slice::<f32>(&xs, xl, op, "input")?;
-                let g = crate::parallel::cpu_slice::<f32>(&gs, gl, op, "gradient")?;
+                let v = crate::kernels::cpu_slice::<f32>(&xs, xl, op, "input")?;
+                let g = crate::kernels::cpu_slice::<f32>(&gs, gl, op, "gradient")?;
                 Tensor::from_vec(self.backward(v, g), x.shape(), x.device())?
             }
             DType::F64 => {
-                let v = crate::parallel::cpu_slice::<f64>(&xs, xl, op, "input")?;
-                let g = crate::parallel::cpu_slice::<f64>(&gs, gl, op, "gradient")?;
+                let v = crate::kernels::cpu_slice::<f64>(&xs, xl, op, "input")?;
+                let g = crate::kernels::cpu_slice::<f64>(&gs, gl, op, "gradient")?;
                 Tensor::from_vec(self.backward(v, g), x.shape(), x.device())?
             }
             other => candle_core::bail!("frequency encoding: unsupported dtype {other:?}"),
@@ -698,6 +698,17 @@ impl RowEncoder {
                 }
             }
         }
+    }
+}
+
+#[cfg_attr(not(feature = "volume"), allow(dead_code))]
+impl crate::kernels::RowEncode for RowEncoder {
+    fn out_dim(&self) -> usize {
+        RowEncoder::out_dim(self)
+    }
+
+    fn encode<T: candle_core::WithDType>(&mut self, x: &[T], out: &mut [T]) {
+        RowEncoder::encode(self, x, out);
     }
 }
 

@@ -168,15 +168,13 @@ pub mod error;
 pub mod field;
 #[cfg(feature = "flow")]
 pub mod flow;
+pub(crate) mod kernels;
 pub mod mesh;
 mod narrow;
 pub mod nn;
 pub mod numerics;
 #[cfg(feature = "occupancy")]
 pub mod occupancy;
-// Used by the volume module only so far (the fused kernel, input checks).
-#[cfg_attr(not(feature = "volume"), allow(dead_code))]
-mod parallel;
 pub mod rng;
 #[cfg(feature = "texture")]
 pub mod texture;

@@ -170,7 +170,9 @@ pub(crate) fn map_cpu<F32: Fn(f32) -> f32 + Sync, F64: Fn(f64) -> f64 + Sync>(
     f32op: F32,
     f64op: F64,
 ) -> candle_core::Result<(CpuStorage, Shape)> {
-    let [(a, b)] = crate::parallel::contiguous([l], name)?;
+    let Some((a, b)) = l.contiguous_offsets() else {
+        candle_core::bail!("{name}: inputs must be contiguous")
+    };
     let out = match s {
         CpuStorage::F32(v) => CpuStorage::F32(par_map(&v[a..b], f32op)),
         CpuStorage::F64(v) => CpuStorage::F64(par_map(&v[a..b], f64op)),

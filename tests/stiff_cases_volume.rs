@@ -7,7 +7,7 @@ mod common;
 
 use candle_core::{DType, Device, Tensor, Var};
 
-use common::stiff::{magnitudes, var, Expect, Suite, DTYPES};
+use common::stiff::{var, Expect, Suite, DTYPES};
 
 use neural_fields::camera::{Camera, Convention, Intrinsics, Rays};
 use neural_fields::glam::DVec3;

@@ -10,8 +10,8 @@
 //! * [`cell_index`]: the flat cell of each normalised point at a resolution.
 
 use crate::error::{check_float, check_same, check_shape, Dim, Error, Result};
+use crate::kernels::{cpu_slice, for_each_init};
 use crate::narrow::narrow;
-use crate::parallel::{cpu_slice, for_each_init};
 use candle_core::{CpuStorage, DType, Layout, Shape, Tensor, WithDType};
 
 /// Points per work item of the fused forward and coordinate-gradient passes.
@@ -489,7 +489,7 @@ impl candle_core::CustomOp2 for FusedGridSample {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let [(a, b), (c, e)] = crate::parallel::contiguous([l1, l2], "grid sample")?;
+        let [(a, b), (c, e)] = crate::kernels::contiguous([l1, l2], "grid sample")?;
         let (bs, ch) = (l1.dims()[0], l1.dims()[1]);
         let n = l2.dims()[1];
         let dims = (bs, n, ch);
@@ -874,7 +874,7 @@ impl candle_core::CustomOp2 for FusedScatterMax {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let [(a, e), (c0, c1)] = crate::parallel::contiguous([l1, l2], "scatter max")?;
+        let [(a, e), (c0, c1)] = crate::kernels::contiguous([l1, l2], "scatter max")?;
         let d = l1.dims();
         let dims = (d[0], d[1], d[2]);
         let CpuStorage::U32(idx) = s2 else {

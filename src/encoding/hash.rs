@@ -613,7 +613,7 @@ impl FusedHashGrid {
         let (d, f, w) = (p.d, p.f, p.width());
         let mut out = vec![T::from_f64(0.0); (x.len() / d) * w];
         let items: Vec<_> = out.chunks_mut(ROWS * w).zip(x.chunks(ROWS * d)).collect();
-        crate::parallel::for_each_init(items, empty_corners, |c, (out, x)| {
+        crate::kernels::for_each_init(items, empty_corners, |c, (out, x)| {
             for (o, row) in out.chunks_mut(w).zip(x.chunks(d)) {
                 let (t, dt) = p.unit_of(row);
                 for (l, level) in p.levels.iter().enumerate() {
@@ -646,7 +646,7 @@ impl FusedHashGrid {
             rest = tail;
         }
         let items: Vec<_> = parts.into_iter().zip(p.levels.iter().enumerate()).collect();
-        crate::parallel::for_each_init(items, empty_corners, |c, (part, (l, level))| {
+        crate::kernels::for_each_init(items, empty_corners, |c, (part, (l, level))| {
             let mut acc = vec![0.0f64; level.rows * f];
             for (row, gr) in x.chunks(d).zip(g.chunks(w)) {
                 let (t, dt) = p.unit_of(row);
@@ -678,7 +678,7 @@ impl FusedHashGrid {
             .zip(x.chunks(ROWS * d))
             .zip(g.chunks(ROWS * w))
             .collect();
-        crate::parallel::for_each_init(items, empty_corners, |c, ((gx, x), g)| {
+        crate::kernels::for_each_init(items, empty_corners, |c, ((gx, x), g)| {
             for ((o, row), gr) in gx.chunks_mut(d).zip(x.chunks(d)).zip(g.chunks(w)) {
                 let (t, dt) = p.unit_of(row);
                 let mut acc = [0.0f64; 4];
@@ -716,7 +716,7 @@ impl candle_core::CustomOp2 for FusedHashGrid {
         l2: &candle_core::Layout,
     ) -> candle_core::Result<(candle_core::CpuStorage, candle_core::Shape)> {
         use candle_core::CpuStorage;
-        let [(a, b), (c, e)] = crate::parallel::contiguous([l1, l2], "hash grid")?;
+        let [(a, b), (c, e)] = crate::kernels::contiguous([l1, l2], "hash grid")?;
         let rows = l1.dims().first().copied().unwrap_or(0);
         let out = match (s1, s2) {
             (CpuStorage::F32(x), CpuStorage::F32(t)) => {
@@ -745,9 +745,9 @@ impl candle_core::CustomOp2 for FusedHashGrid {
         let want_x = x.track_op();
         macro_rules! run {
             ($t:ty) => {{
-                let xv = crate::parallel::cpu_slice::<$t>(&xs, xl, op, "positions")?;
-                let tv = crate::parallel::cpu_slice::<$t>(&ts, tl, op, "table")?;
-                let gv = crate::parallel::cpu_slice::<$t>(&gs, gl, op, "gradient")?;
+                let xv = crate::kernels::cpu_slice::<$t>(&xs, xl, op, "positions")?;
+                let tv = crate::kernels::cpu_slice::<$t>(&ts, tl, op, "table")?;
+                let gv = crate::kernels::cpu_slice::<$t>(&gs, gl, op, "gradient")?;
                 let gt = Tensor::from_vec(self.table_grad(xv, gv), table.shape(), table.device())?;
                 let gx = if want_x {
                     Some(Tensor::from_vec(

@@ -39,11 +39,11 @@
 //! # Ok::<(), neural_fields::Error>(())
 //! ```
 
-use super::fused_mlp::{Act, FusedMlp, FusedMlpJvp, LayerPlan};
 use super::weight_jvp;
 use crate::encoding::PointEncoding;
 use crate::error::{check_float, check_points, check_same, check_shape, Dim, Error, Result};
 use crate::field::{ConditionalField, Field, ImplicitSurface, Inside};
+use crate::kernels::{Act, FusedMlp, FusedMlpJvp, LayerPlan};
 use crate::numerics::{sigmoid, softplus};
 use candle_core::{DType, Tensor, D};
 use candle_nn::{Init, VarBuilder};
@@ -416,6 +416,7 @@ impl Mlp {
     }
 
     /// The layers' shapes for the fused op.
+    #[cfg_attr(not(feature = "volume"), allow(dead_code))] // the NeRF model's fused ops
     pub(crate) fn plan(&self) -> &FusedMlp {
         &self.plan
     }
@@ -431,7 +432,7 @@ impl Mlp {
     /// `y = f(points, codes)`: `points: [N, in_dim]`, `codes: [N, code_dim]` or `None`
     /// (only when `code_dim == 0`) → `[N, out_dim]`. Differentiable w.r.t. the weights,
     /// the points and the codes. f32 or f64, any device: on the CPU the layers run as one
-    /// fused op (see the `fused_mlp` module), elsewhere (or with
+    /// fused op (the crate's kernel `FusedMlpJvp`), elsewhere (or with
     /// [`MlpConfig::force_reference`]) as candle ops. Users reach it through
     /// [`Field::forward`] and [`ConditionalField::forward_with_code`].
     fn forward_points(&self, points: &Tensor, codes: Option<&Tensor>) -> Result<Tensor> {

@@ -11,17 +11,16 @@
 //!   of steps or minutes, with evaluations kept off the clock).
 //!
 //! The models built from them live beside the feature they serve: NeRF's radiance field
-//! in [`volume`](crate#features) (`volume::Nerf`), the ONet decoder and the PointNet and
-//! Convolutional ONet encoders in `occupancy`, the texture networks in `texture`. The
-//! pointwise ResNet trunk they share and the tangent of a linear layer are crate-private
-//! building blocks here.
+//! in `volume` (`volume::Nerf`), the ONet decoder and the PointNet and Convolutional ONet
+//! encoders in `occupancy`, the texture networks in `texture`. The pointwise ResNet trunk
+//! they share and the tangent of a linear layer are crate-private blocks here.
 
-pub(crate) mod fused_mlp;
 mod mlp;
 mod resnet_fc;
 mod training;
 
 pub use mlp::{mlp, Activation, Mlp, MlpConfig};
+#[allow(unused_imports)] // for the feature modules' models (occupancy, texture, flow)
 pub(crate) use resnet_fc::ResnetFc;
 pub use training::{adam, Budget, Clock, FiniteGuard};
 

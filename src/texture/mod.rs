@@ -58,9 +58,6 @@ pub use networks::{
     TextureDecoder, TextureDecoderConfig,
 };
 
-use crate::error::{check_shape, Dim, Error, Result};
-use candle_core::Tensor;
-
 /// Vertex colours for a mesh: `texture` evaluated at the mesh's vertices in chunks of
 /// `chunk` points, without graph, as `[V][3]` in `[0, 1]` (for
 /// [`Mesh::colors`](crate::mesh::Mesh::colors), whose PLY writer stores them as `uchar`
@@ -80,8 +77,9 @@ pub fn vertex_colors(
     chunk: usize,
     device: &candle_core::Device,
     dtype: candle_core::DType,
-    mut inputs: impl FnMut(&Tensor) -> Result<Tensor>,
-) -> Result<Vec<[f64; 3]>> {
+    mut inputs: impl FnMut(&candle_core::Tensor) -> crate::Result<candle_core::Tensor>,
+) -> crate::Result<Vec<[f64; 3]>> {
+    use crate::error::{check_shape, Dim, Error};
     if chunk == 0 {
         return Err(Error::invalid("chunk", "at least 1", "0"));
     }

@@ -18,15 +18,10 @@
 
 use crate::camera::Rays;
 use crate::error::{check_float, check_same, check_shape, Dim, Error, Result};
-use crate::parallel::for_each_init;
+use crate::kernels::for_each_init;
 use candle_core::{DType, Device, Storage, Tensor, D};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
-
-/// Optical thickness above which xᵢ = σᵢδᵢ is clamped. `exp(−1000)` is exactly zero in
-/// f32 and f64, so clamping changes no weight or gradient; it only keeps `+∞` (from
-/// overflow of σδ) out of the exclusive sum.
-pub const X_MAX: f64 = 1000.0;
 
 /// Packed layout: `M` samples stored flat, ray by ray, with per-ray counts.
 ///

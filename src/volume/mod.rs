@@ -62,13 +62,14 @@ mod regularizers;
 mod render;
 mod sampling;
 
+pub use crate::kernels::X_MAX;
 pub(crate) use compositing::background_rows;
 pub use compositing::{
     accumulate, composite, render_weights, visible_mask, Composite, CompositeConfig,
     DEFAULT_TERMINATION_EPS,
 };
 pub use grid::{GridConfig, GridMarchConfig, GridSamples, OccupancyGrid};
-pub use layout::{Intervals, Layout, Packed, Weights, X_MAX};
+pub use layout::{Intervals, Layout, Packed, Weights};
 pub use nerf_model::{nerf, DensityActivation, Nerf, NerfConfig};
 pub use proposal::{interlevel_loss, proposal_sample, ProposalConfig, ProposalSamples};
 pub use regularizers::{depth_smoothness, distortion_loss, log_linear_schedule};

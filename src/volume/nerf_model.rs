@@ -4,10 +4,11 @@
 use super::compositing::{background_rows, composite, CompositeConfig};
 use super::layout::{Intervals, Layout};
 use crate::camera::Rays;
+use crate::encoding::RowEncoder;
 use crate::encoding::{FrequencyEncoding, PointEncoding};
 use crate::error::{check_points, check_same, check_shape, Dim, Error, Result};
 use crate::field::{ConditionalField, Field};
-use crate::nn::fused_mlp::FusedNerf;
+use crate::kernels::{Density, FusedNerf, FusedNerfLoss};
 use crate::nn::{mlp, Activation, Mlp, MlpConfig};
 use crate::numerics::{softplus, trunc_exp};
 use candle_core::Tensor;
@@ -252,7 +253,7 @@ impl Nerf {
     /// intervals, target and background are constants (no gradient flows to them) and the
     /// encodings are frequencies (`2ᵏπ`) or the identity, it runs as one fused op that
     /// evaluates, composites and differentiates each tile of rays while its activations
-    /// are in cache (the `fused_mlp::nerf_loss` module; 1.5× the speed of
+    /// are in cache (the crate's kernel `FusedNerfLoss`; 1.5× the speed of
     /// [`Nerf::radiance`], [`composite()`] and the loss from candle ops).
     /// The gradient is then computed in the forward pass and kept until `backward`, so
     /// for evaluation without training render with [`Nerf::radiance`] instead. Otherwise
@@ -330,7 +331,6 @@ impl Nerf {
         target: &Tensor,
         config: &CompositeConfig,
     ) -> Result<Option<Tensor>> {
-        use crate::nn::fused_mlp::nerf_loss::{Density, FusedNerfLoss};
         // The checks that need no tensor op come first, so that a fallback to the composed
         // path has computed nothing here.
         let constant = [positions, rays.directions(), target]
@@ -357,9 +357,20 @@ impl Nerf {
             trunk: self.trunk.plan().clone(),
             head: self.head.plan().clone(),
         };
-        let encodings = (&self.trunk.config().encoding, &self.head.config().encoding);
-        let Some(op) = FusedNerfLoss::new(nets, encodings, density, offsets, config.opaque_last)
-        else {
+        let encoders = (
+            RowEncoder::new(&self.trunk.config().encoding, 3),
+            RowEncoder::new(&self.head.config().encoding, 3),
+        );
+        let (Some(position), Some(direction)) = encoders else {
+            return Ok(None);
+        };
+        let Some(op) = FusedNerfLoss::new(
+            nets,
+            (position, direction),
+            density,
+            offsets,
+            config.opaque_last,
+        ) else {
             return Ok(None);
         };
         let deltas = intervals.deltas(Some(rays))?.flatten_all()?;

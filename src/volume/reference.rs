@@ -2,11 +2,12 @@
 //! differentiable (to any order) with respect to σ, δ, the values and the sample depths.
 //!
 //! Candle's `cumsum` is a matmul with an n×n triangle, so this path costs O(R·S²); the
-//! fused CPU op ([`super::fused`]) is O(R·S). The entry points in [`super::composite`]
+//! fused CPU op (`crate::kernels`' compositing kernel) is O(R·S). The entry points in [`super::composite`]
 //! pick between the two; tests compare them.
 
-use super::layout::{Layout, Weights, X_MAX};
+use super::layout::{Layout, Weights};
 use crate::error::Result;
+use crate::kernels::X_MAX;
 use candle_core::{DType, Tensor};
 
 /// α = −expm1(−x) for x ≥ 0 from candle ops, accurate to a few ulps in f32 and f64.

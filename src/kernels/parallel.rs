@@ -8,41 +8,7 @@
 //! backward of a step therefore run here, on candle's pool. (Work that runs outside the
 //! step, such as mesh extraction, may keep using rayon.)
 
-use candle_core::{Layout, Storage, WithDType};
 use std::sync::Mutex;
-
-/// The contiguous CPU elements of a tensor's storage, for a custom op's backward pass;
-/// errors name the op and the input (`what`).
-pub(crate) fn cpu_slice<'a, T: WithDType>(
-    st: &'a Storage,
-    l: &Layout,
-    op: &str,
-    what: &str,
-) -> candle_core::Result<&'a [T]> {
-    match st {
-        Storage::Cpu(c) => match l.contiguous_offsets() {
-            Some((a, b)) => Ok(&c.as_slice::<T>()?[a..b]),
-            None => candle_core::bail!("{op}: {what} must be contiguous"),
-        },
-        _ => candle_core::bail!("{op}: {what} must be on the CPU"),
-    }
-}
-
-/// The element ranges `(start, end)` of a custom op's contiguous CPU inputs, in the order
-/// of `layouts`; the error names the op (`op`) when one is not contiguous.
-pub(crate) fn contiguous<const N: usize>(
-    layouts: [&Layout; N],
-    op: &str,
-) -> candle_core::Result<[(usize, usize); N]> {
-    let mut out = [(0, 0); N];
-    for (o, l) in out.iter_mut().zip(layouts) {
-        match l.contiguous_offsets() {
-            Some(r) => *o = r,
-            None => candle_core::bail!("{op}: inputs must be contiguous"),
-        }
-    }
-    Ok(out)
-}
 
 /// Runs `f(state, item)` for every item, in parallel on candle's CPU worker pool
 /// ([`candle_core::utils::barrier_pool`]), with one `init()` state per claimed chunk of

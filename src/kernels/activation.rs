@@ -11,7 +11,14 @@
 //! f64 (tested against the standard library); for f32 the same forms with degree 7 and
 //! five series terms, to a few ulps of f32.
 
-use super::{Act, Real};
+use candle_core::WithDType;
+
+/// The hidden activation.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum Act {
+    Relu,
+    Softplus(f64),
+}
 
 /// `e^x` for `x ≤ 0` (0 below −708, where f64 leaves the normal range).
 #[inline(always)]
@@ -218,7 +225,7 @@ pub(super) fn softplus_curvature(h: f64, beta: f64) -> f64 {
 }
 
 #[inline(always)]
-fn activate_body<T: Real>(act: Act, h: &[T], a: &mut [T]) {
+fn activate_body<T: WithDType + Precision>(act: Act, h: &[T], a: &mut [T]) {
     let zero = T::from_f64(0.0);
     match act {
         Act::Relu => {
@@ -232,7 +239,7 @@ fn activate_body<T: Real>(act: Act, h: &[T], a: &mut [T]) {
 }
 
 #[inline(always)]
-fn slope_times_body<T: Real>(act: Act, h: &[T], x: &[T], out: &mut [T]) {
+fn slope_times_body<T: WithDType + Precision>(act: Act, h: &[T], x: &[T], out: &mut [T]) {
     match act {
         Act::Relu => {
             // 𝟙[h ≥ 0], candle's own ReLU derivative, so both paths agree at the kink.
@@ -251,11 +258,11 @@ macro_rules! dispatch {
         #[cfg(target_arch = "x86_64")]
         {
             #[target_feature(enable = "avx512f,avx512dq,avx512vl,fma")]
-            fn avx512<T: Real>(act: Act, h: &[T], x: &[T], out: &mut [T]) {
+            fn avx512<T: WithDType + Precision>(act: Act, h: &[T], x: &[T], out: &mut [T]) {
                 $body(act, h, x, out)
             }
             #[target_feature(enable = "avx2,fma")]
-            fn avx2<T: Real>(act: Act, h: &[T], x: &[T], out: &mut [T]) {
+            fn avx2<T: WithDType + Precision>(act: Act, h: &[T], x: &[T], out: &mut [T]) {
                 $body(act, h, x, out)
             }
             use std::arch::is_x86_feature_detected as has;
@@ -273,17 +280,17 @@ macro_rules! dispatch {
 }
 
 #[inline(always)]
-fn activate_with_unused<T: Real>(act: Act, h: &[T], _x: &[T], a: &mut [T]) {
+fn activate_with_unused<T: WithDType + Precision>(act: Act, h: &[T], _x: &[T], a: &mut [T]) {
     activate_body(act, h, a)
 }
 
 /// `a[i] = φ(h[i])`.
-pub(super) fn activate<T: Real>(act: Act, h: &[T], a: &mut [T]) {
+pub(super) fn activate<T: WithDType + Precision>(act: Act, h: &[T], a: &mut [T]) {
     dispatch!(activate_with_unused, act, h, h, a)
 }
 
 /// `out[i] = φ'(h[i]) · x[i]`.
-pub(super) fn slope_times<T: Real>(act: Act, h: &[T], x: &[T], out: &mut [T]) {
+pub(super) fn slope_times<T: WithDType + Precision>(act: Act, h: &[T], x: &[T], out: &mut [T]) {
     dispatch!(slope_times_body, act, h, x, out)
 }
 

@@ -35,12 +35,13 @@
 //! and into chunks of at most [`CHUNK`] samples with one gradient accumulator each,
 //! summed in chunk order: the result does not depend on the thread count.
 
-use super::{sum_chunks, FusedNerf, NerfScratch, Params, Real, CHUNK, TILE};
-use crate::encoding::RowEncoder;
+use super::composite::X_MAX;
+use super::dispatch::{cpu_fwd, CpuKernel, Real};
+use super::mlp::{sum_chunks, Params, Rows, CHUNK, TILE};
+use super::nerf::{FusedNerf, NerfScratch};
+use super::parallel::for_each_init;
 use crate::numerics::{scalar_sigmoid, scalar_softplus, trunc_exp_slope, trunc_exp_value};
-use crate::parallel::for_each_init;
-use crate::volume::X_MAX;
-use candle_core::{CpuStorage, CustomOp3, Layout, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp3, Layout, Shape, Tensor, WithDType};
 use std::sync::{Arc, Mutex};
 
 /// The density activation of [`crate::volume::DensityActivation`], with its shift.
@@ -55,11 +56,20 @@ pub(crate) const RAY_COLUMNS: usize = 9;
 /// Columns of the op's per-sample input: position, length δ.
 pub(crate) const SAMPLE_COLUMNS: usize = 4;
 
+/// An encoding the op evaluates row by row inside its tiles (implemented by the encoding
+/// module's row encoder: the identity, or frequencies `2ᵏπ`).
+pub(crate) trait RowEncode: Clone + Send + Sync {
+    /// Output columns per row.
+    fn out_dim(&self) -> usize;
+    /// Encodes the rows `x: [rows, in]` into `out: [rows, out_dim]`.
+    fn encode<T: WithDType>(&mut self, x: &[T], out: &mut [T]);
+}
+
 /// The op on `(samples [M, 4], rays [R, 9], params)`; output the loss, shape `[]`.
-pub(crate) struct FusedNerfLoss {
+pub(crate) struct FusedNerfLoss<E> {
     nets: FusedNerf,
-    position: RowEncoder,
-    direction: RowEncoder,
+    position: E,
+    direction: E,
     density: Density,
     /// Ray `r`'s samples are rows `offsets[r]..offsets[r + 1]`.
     offsets: Arc<[usize]>,
@@ -69,10 +79,10 @@ pub(crate) struct FusedNerfLoss {
 }
 
 /// Per-worker scratch.
-struct LossScratch<T> {
+struct LossScratch<T, E> {
     nets: NerfScratch<T>,
-    position: RowEncoder,
-    direction: RowEncoder,
+    position: E,
+    direction: E,
     /// A sub-tile's encoded positions and its rows' encoded directions.
     ep: Vec<T>,
     ed: Vec<T>,
@@ -114,21 +124,16 @@ fn groups(offsets: &[usize], rays: std::ops::Range<usize>, cap: usize) -> Vec<(u
     out
 }
 
-impl FusedNerfLoss {
-    /// The op for `nets` with encoders for its inputs, `None` when an encoding cannot run
-    /// inside the op ([`RowEncoder::new`]).
+impl<E: RowEncode> FusedNerfLoss<E> {
+    /// The op for `nets` with encoders of its positions and unit directions, `None` when
+    /// their widths are not the networks' input widths.
     pub(crate) fn new(
         nets: FusedNerf,
-        (position, direction): (
-            &crate::encoding::PointEncoding,
-            &crate::encoding::PointEncoding,
-        ),
+        (position, direction): (E, E),
         density: Density,
         offsets: Arc<[usize]>,
         opaque_last: bool,
     ) -> Option<Self> {
-        let position = RowEncoder::new(position, 3)?;
-        let direction = RowEncoder::new(direction, 3)?;
         let (dd, _, _) = nets.widths();
         (position.out_dim() == nets.trunk.a0 && direction.out_dim() == dd).then(|| Self {
             nets,
@@ -145,7 +150,7 @@ impl FusedNerfLoss {
         self.offsets.len().saturating_sub(1)
     }
 
-    fn scratch<T: Real>(&self) -> LossScratch<T> {
+    fn scratch<T: Real>(&self) -> LossScratch<T, E> {
         let (dd, _, _) = self.nets.widths();
         let z = T::from_f64(0.0);
         LossScratch {
@@ -171,7 +176,7 @@ impl FusedNerfLoss {
         (g0, base): (usize, usize),
         rows: std::ops::Range<usize>,
         pt: Params<'_, T>,
-        sc: &mut LossScratch<T>,
+        sc: &mut LossScratch<T, E>,
     ) {
         let (dd, _, _) = self.nets.widths();
         let a0p = self.nets.trunk.a0;
@@ -203,7 +208,7 @@ impl FusedNerfLoss {
         ray_data: &[T],
         (pt, ph): (Params<'_, T>, Params<'_, T>),
         rays: std::ops::Range<usize>,
-        sc: &mut LossScratch<T>,
+        sc: &mut LossScratch<T, E>,
         gp: &mut [T],
     ) -> (f64, bool) {
         let (dd, t_out, _) = self.nets.widths();
@@ -231,7 +236,7 @@ impl FusedNerfLoss {
                 self.nets.head.forward_tile(
                     &nets.ha0,
                     ph,
-                    super::Rows::plain(r),
+                    Rows::plain(r),
                     &mut nets.head,
                     &mut nets.yh,
                 );
@@ -419,7 +424,24 @@ impl FusedNerfLoss {
     }
 }
 
-impl CustomOp3 for FusedNerfLoss {
+impl<E: RowEncode> CpuKernel<3> for FusedNerfLoss<E> {
+    const NAME: &'static str = "fused NeRF loss";
+
+    /// Inputs `(samples [M, 4], rays [R, 9], params)`; output the loss `[]`. The
+    /// parameter gradient is kept for [`CustomOp3::bwd`].
+    fn forward<T: Real>(&self, [x, y, p]: [&[T]; 3]) -> candle_core::Result<(Vec<T>, Shape)> {
+        self.check(x.len(), y.len(), p.len())?;
+        let (loss, gp) = self.run(x, y, p)?;
+        let mut slot = self
+            .grad
+            .lock()
+            .map_err(|_| candle_core::Error::Msg("fused NeRF loss: poisoned".into()))?;
+        *slot = Some(T::storage(gp));
+        Ok((vec![loss], Shape::from(())))
+    }
+}
+
+impl<E: RowEncode> CustomOp3 for FusedNerfLoss<E> {
     fn name(&self) -> &'static str {
         "nf-fused-nerf-loss"
     }
@@ -433,27 +455,7 @@ impl CustomOp3 for FusedNerfLoss {
         s3: &CpuStorage,
         l3: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let [(a1, b1), (a2, b2), (a3, b3)] =
-            crate::parallel::contiguous([l1, l2, l3], "fused NeRF loss")?;
-        macro_rules! run {
-            ($x:expr, $y:expr, $p:expr, $variant:ident) => {{
-                let (x, y, p) = (&$x[a1..b1], &$y[a2..b2], &$p[a3..b3]);
-                self.check(x.len(), y.len(), p.len())?;
-                let (loss, gp) = self.run(x, y, p)?;
-                let mut slot = self
-                    .grad
-                    .lock()
-                    .map_err(|_| candle_core::Error::Msg("fused NeRF loss: poisoned".into()))?;
-                *slot = Some(CpuStorage::$variant(gp));
-                CpuStorage::$variant(vec![loss])
-            }};
-        }
-        let out = match (s1, s2, s3) {
-            (CpuStorage::F32(x), CpuStorage::F32(y), CpuStorage::F32(p)) => run!(x, y, p, F32),
-            (CpuStorage::F64(x), CpuStorage::F64(y), CpuStorage::F64(p)) => run!(x, y, p, F64),
-            _ => candle_core::bail!("fused NeRF loss: inputs must all be f32 or all f64"),
-        };
-        Ok((out, Shape::from(())))
+        cpu_fwd(self, [(s1, l1), (s2, l2), (s3, l3)])
     }
 
     fn bwd(

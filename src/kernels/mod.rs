@@ -1,0 +1,80 @@
+//! The crate's fused CPU kernels, one operation per file, below every module that uses
+//! them (kernels import only `numerics` and candle; the modules above pass their own
+//! types in through plain data and the traits defined here):
+//!
+//! * `mlp`: an MLP's every layer on a tile of points in one pass, forward and backward
+//!   (`FusedMlp`, what [`crate::nn::Mlp`] runs on the CPU), and the layer plan it runs;
+//! * `mlp_tangents`: the same MLP with forward-mode tangents (`FusedMlpJvp`, for
+//!   [`crate::nn::Mlp::forward_with_jacobian`]);
+//! * `nerf`: NeRF's density trunk and colour head as one op (`FusedNerf`);
+//! * `nerf_loss`: NeRF's photometric loss, compositing included, as one op that computes
+//!   its parameter gradient in the forward pass (`FusedNerfLoss`, with `RowEncode`, the
+//!   encodings it evaluates inside its tiles);
+//! * `composite`: volume compositing of either sample layout with its O(S)-per-ray
+//!   backward (`FusedComposite`), built for three instruction sets;
+//! * `activation` and `simd`: the vectorised hidden activations (ReLU, softplus with its
+//!   slope and curvature) and the AVX-512 f32 matrix product of the MLP tiles;
+//! * `parallel`: [`for_each_init`], which runs a kernel's items on candle's own CPU pool;
+//! * `dispatch`: the candle side of every op, written once (below).
+//!
+//! Each kernel's reference path, made of candle ops and running on any device, stays
+//! beside the operation in its module (e.g. `volume`'s compositing reference, the
+//! `force_reference` path of [`crate::nn::Mlp`]); the tests compare every kernel with it.
+//!
+//! # Writing a kernel: the dispatch helper
+//! A kernel is a type holding the op's shapes and settings that implements
+//! [`CpuKernel<N>`] for its `N` float inputs (all f32 or all f64, every input handed over
+//! as its contiguous elements):
+//!
+//! ```text
+//! impl CpuKernel<2> for MyOp {
+//!     const NAME: &'static str = "my op";             // names the op in errors
+//!     fn forward<T: Real>(&self, [x, t]: [&[T]; 2])   // check lengths, compute
+//!         -> candle_core::Result<(Vec<T>, Shape)> { … }
+//!     fn backward<T: Real>(&self, [x, t]: [&[T]; 2], g: &[T], want: [bool; 2])
+//!         -> candle_core::Result<[Option<Vec<T>>; 2]> { … }   // None where !want[i]
+//! }
+//! cpu_op!(MyOp, 2, "nf-my-op");                        // impl CustomOp2 for MyOp
+//! ```
+//!
+//! [`cpu_op!`](cpu_op) writes `impl CustomOp1/2/3` whose `cpu_fwd` is [`cpu_fwd`]
+//! (contiguity check, f32/f64 dispatch, the storage's slices, the result's storage) and
+//! whose `bwd` is [`cpu_bwd`] (the inputs' and the contiguous gradient's CPU slices in the
+//! inputs' dtype, `want[i]` = whether input `i` is part of the autograd graph, each
+//! returned gradient as a tensor of its input's shape). An op whose backward pass is not
+//! a function of its inputs (the NeRF loss keeps the gradient its forward pass computed)
+//! implements `forward` only and writes its own `bwd`, still calling [`cpu_fwd`]. An op
+//! with an input that is not f32/f64 (an index) keeps that input in the op's value or
+//! reads it with [`cpu_slice`]; [`contiguous`] gives the element ranges of layouts.
+//! Every kernel's scratch lives in per-worker state of [`for_each_init`], so no kernel
+//! allocates per item.
+
+mod activation;
+#[cfg_attr(not(feature = "volume"), allow(dead_code))]
+mod composite;
+mod dispatch;
+mod mlp;
+mod mlp_tangents;
+#[cfg_attr(not(feature = "volume"), allow(dead_code))]
+mod nerf;
+#[cfg_attr(not(feature = "volume"), allow(dead_code))]
+mod nerf_loss;
+mod parallel;
+#[cfg(target_arch = "x86_64")]
+mod simd;
+
+pub(crate) use activation::Act;
+// The compositing and NeRF kernels serve the `volume` feature.
+#[cfg_attr(not(feature = "volume"), allow(unused_imports))]
+pub use composite::X_MAX;
+#[cfg_attr(not(feature = "volume"), allow(unused_imports))]
+pub(crate) use composite::{FusedComposite, Geometry, KernelBuild, Segments};
+#[allow(unused_imports)] // the dispatch helper's whole interface, for every kernel
+pub(crate) use dispatch::{contiguous, cpu_bwd, cpu_fwd, cpu_op, cpu_slice, CpuKernel, Real};
+pub(crate) use mlp::{FusedMlp, LayerPlan};
+pub(crate) use mlp_tangents::FusedMlpJvp;
+#[cfg_attr(not(feature = "volume"), allow(unused_imports))]
+pub(crate) use nerf::FusedNerf;
+#[cfg_attr(not(feature = "volume"), allow(unused_imports))]
+pub(crate) use nerf_loss::{Density, FusedNerfLoss, RowEncode};
+pub(crate) use parallel::for_each_init;
