@@ -52,17 +52,15 @@ use neural_fields::data::{
 use neural_fields::encoding::{
     hash_grid, CoarseToFine, FrequencyEncoding, HashGridConfig, PointEncoding,
 };
-use neural_fields::nn::{
-    adam, build_seeded, mlp, Budget, Clock, FiniteGuard, Mlp, MlpConfig,
-};
+use neural_fields::nn::{adam, build_seeded, mlp, Budget, Clock, FiniteGuard, Mlp, MlpConfig};
 use neural_fields::numerics::trunc_exp;
-use neural_fields::volume::{nerf, Nerf, NerfConfig};
 use neural_fields::volume::{
     anneal_near_far, composite, depth_smoothness, interlevel_loss, log_linear_schedule,
-    proposal_sample, render_image, render_weights, stratified, Composite,
-    CompositeConfig, GridConfig, GridMarchConfig, ImageConfig, Jitter, Layout, OccupancyGrid,
-    ProposalConfig, ANNEAL_MID_RATIO, ANNEAL_P_START, DEFAULT_TERMINATION_EPS,
+    proposal_sample, render_image, render_weights, stratified, Composite, CompositeConfig,
+    GridConfig, GridMarchConfig, ImageConfig, Jitter, Layout, OccupancyGrid, ProposalConfig,
+    ANNEAL_MID_RATIO, ANNEAL_P_START, DEFAULT_TERMINATION_EPS,
 };
+use neural_fields::volume::{nerf, Nerf, NerfConfig};
 use neural_fields::{Error, Result};
 use std::path::{Path, PathBuf};
 

@@ -41,11 +41,11 @@ use neural_fields::data::{
 };
 use neural_fields::encoding::{CoarseToFine, PointEncoding};
 use neural_fields::nn::build_seeded;
-use neural_fields::volume::{nerf, Nerf, NerfConfig};
 use neural_fields::volume::{
     anneal_near_far, composite, depth_smoothness, log_linear_schedule, render_image, stratified,
     Composite, CompositeConfig, ImageConfig, Intervals, Jitter, ANNEAL_MID_RATIO, ANNEAL_P_START,
 };
+use neural_fields::volume::{nerf, Nerf, NerfConfig};
 use neural_fields::{Error, Result};
 use std::path::{Path, PathBuf};
 use std::time::Instant;

@@ -47,8 +47,8 @@ use neural_fields::nn::{build_seeded, mlp, Activation, Mlp, MlpConfig};
 use neural_fields::numerics::trunc_exp;
 use neural_fields::rng::SplitMix64;
 use neural_fields::volume::{
-    composite, render_image, stratified, Composite, CompositeConfig, GridConfig,
-    GridMarchConfig, ImageConfig, Jitter, OccupancyGrid,
+    composite, render_image, stratified, Composite, CompositeConfig, GridConfig, GridMarchConfig,
+    ImageConfig, Jitter, OccupancyGrid,
 };
 use neural_fields::Result;
 use std::path::PathBuf;

@@ -8,8 +8,7 @@ use candle_core::{DType, Device, Tensor};
 use common::stiff::{magnitudes, var, Expect, Suite, DTYPES};
 
 use neural_fields::numerics::{
-    bce_with_logits, guard_denominator, safe_sin_cos, sigmoid, sin_cos_pi, softplus,
-    trunc_exp,
+    bce_with_logits, guard_denominator, safe_sin_cos, sigmoid, sin_cos_pi, softplus, trunc_exp,
 };
 use neural_fields::rng::SplitMix64;
 

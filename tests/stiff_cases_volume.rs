@@ -103,8 +103,8 @@ fn sweep_volume(s: &mut Suite) {
     use neural_fields::volume::{
         accumulate, anneal_near_far, composite, depth_smoothness, distortion_loss,
         log_linear_schedule, merge_sorted, render_image, render_weights, sample_pdf, stratified,
-        visible_mask, Composite, CompositeConfig, GridConfig, GridMarchConfig,
-        ImageConfig, Intervals, Jitter, Layout, OccupancyGrid, Packed,
+        visible_mask, Composite, CompositeConfig, GridConfig, GridMarchConfig, ImageConfig,
+        Intervals, Jitter, Layout, OccupancyGrid, Packed,
     };
     let d = Device::Cpu;
     let (r, n) = (7usize, 5usize);

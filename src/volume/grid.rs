@@ -3,10 +3,11 @@
 //! few steps, and a ray marcher that emits samples only in occupied cells.
 
 use super::compositing::{visible_mask, DEFAULT_TERMINATION_EPS};
-use super::layout::{host_f64, Intervals, Layout, Packed, X_MAX};
+use super::layout::{host_f64, Intervals, Layout, Packed};
 use super::sampling::{from_host, stream, DensityFn};
 use crate::camera::Rays;
 use crate::error::{check_finite, check_float, check_same, check_scalar, Error, Result};
+use crate::kernels::X_MAX;
 use crate::rng::SplitMix64;
 use candle_core::{DType, Device, Tensor};
 use rayon::prelude::*;

@@ -63,7 +63,6 @@ mod render;
 mod sampling;
 
 pub use crate::kernels::X_MAX;
-pub(crate) use compositing::background_rows;
 pub use compositing::{
     accumulate, composite, render_weights, visible_mask, Composite, CompositeConfig,
     DEFAULT_TERMINATION_EPS,
