@@ -55,12 +55,11 @@ use neural_fields::encoding::{
 use neural_fields::nn::{adam, build_seeded, mlp, Budget, Clock, FiniteGuard, Mlp, MlpConfig};
 use neural_fields::numerics::trunc_exp;
 use neural_fields::volume::{
-    anneal_near_far, composite, depth_smoothness, interlevel_loss, log_linear_schedule,
+    anneal_near_far, composite, depth_smoothness, interlevel_loss, log_linear_schedule, nerf,
     proposal_sample, render_image, render_weights, stratified, Composite, CompositeConfig,
-    GridConfig, GridMarchConfig, ImageConfig, Jitter, Layout, OccupancyGrid, ProposalConfig,
-    ANNEAL_MID_RATIO, ANNEAL_P_START, DEFAULT_TERMINATION_EPS,
+    DensityFn, GridConfig, GridMarchConfig, ImageConfig, Jitter, Layout, Nerf, NerfConfig,
+    OccupancyGrid, ProposalConfig, ANNEAL_MID_RATIO, ANNEAL_P_START,
 };
-use neural_fields::volume::{nerf, Nerf, NerfConfig};
 use neural_fields::{Error, Result};
 use std::path::{Path, PathBuf};
 
@@ -336,37 +335,28 @@ impl Renderer<'_> {
                 let proposal = ProposalConfig {
                     samples: self.args.proposal_samples.to_vec(),
                     final_samples: self.args.samples,
-                    padding: 0.01,
+                    alpha_threshold: self.args.alpha_threshold,
+                    ..ProposalConfig::default()
                 };
+                // With --alpha-threshold > 0 the field's density (no graph) culls the
+                // samples and gives the interlevel loss its target weights.
+                let mut field = |p: &Tensor| self.net.density(p);
+                let cull = (self.args.alpha_threshold > 0.0).then_some(&mut field as _);
+                let mut proposals: [DensityFn; 2] = [&mut coarse, &mut fine];
                 let out = proposal_sample(
                     rays,
                     &hit.near,
                     &hit.far,
-                    &mut [&mut coarse, &mut fine],
+                    &mut proposals,
                     &proposal,
                     seed,
+                    cull,
                 )?;
-                if self.args.alpha_threshold > 0.0 {
-                    // The field's density without a graph gives the interlevel loss its
-                    // target weights; only visible, non-empty samples go on.
-                    let iv = out.intervals;
-                    let positions = iv.positions(rays)?.reshape(((), 3))?;
-                    let sigma = self
-                        .net
-                        .density(&positions)?
-                        .reshape(iv.starts.shape())?
-                        .detach();
-                    let w = render_weights(&sigma, &iv, Some(rays), &config)?;
-                    for level in &out.levels {
-                        interlevel = (interlevel + interlevel_loss(level, &iv, &w.weights)?)?;
-                    }
-                    let visible = w.transmittance.ge(DEFAULT_TERMINATION_EPS)?;
-                    let mask = (visible * w.alphas.ge(self.args.alpha_threshold)?)?;
-                    iv.retain(&mask)?.0
-                } else {
-                    levels = out.levels;
-                    out.intervals
+                match out.interlevel {
+                    Some(loss) => interlevel = loss,
+                    None => levels = out.levels,
                 }
+                out.intervals
             }
             None => {
                 let hit = ray_aabb(rays, [x0, y0, z0], [x1, y1, z1])?;

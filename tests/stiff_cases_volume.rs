@@ -856,8 +856,17 @@ fn sweep_proposal(s: &mut Suite, dtype: DType, top: f64) {
             samples: vec![16],
             final_samples: 8,
             padding: 0.01,
+            ..ProposalConfig::default()
         };
-        let out = proposal_sample(&rays, &near, &far, &mut [&mut field], &config, Some(3));
+        let out = proposal_sample(
+            &rays,
+            &near,
+            &far,
+            &mut [&mut field],
+            &config,
+            Some(3),
+            None,
+        );
         let first = out.as_ref().map(|o| o.clone()).map_err(|e| e.to_string());
         s.case(
             "volume::proposal_sample",
@@ -875,6 +884,38 @@ fn sweep_proposal(s: &mut Suite, dtype: DType, top: f64) {
                     out.intervals.ends,
                     out.levels[0].1.clone(),
                 ])
+            },
+        );
+        // With the field's density (the same density as the proposal): culled, packed
+        // samples and the interlevel loss, finite or refused.
+        let culling = ProposalConfig {
+            alpha_threshold: 1e-2,
+            ..config.clone()
+        };
+        s.case(
+            "volume::proposal_sample",
+            format!("{label}, culled by the field's density"),
+            Expect::FiniteOrErr,
+            &[],
+            || {
+                let mut proposal = |p: &Tensor| -> neural_fields::Result<Tensor> {
+                    Ok((p.narrow(1, 0, 1)?.squeeze(1)?.abs()?.affine(0.0, 1.0)? * density)?)
+                };
+                let mut sigma = |p: &Tensor| -> neural_fields::Result<Tensor> {
+                    Ok((p.narrow(1, 0, 1)?.squeeze(1)?.abs()?.affine(0.0, 1.0)? * density)?)
+                };
+                let mut proposals: [neural_fields::volume::DensityFn; 1] = [&mut proposal];
+                let out = proposal_sample(
+                    &rays,
+                    &near,
+                    &far,
+                    &mut proposals,
+                    &culling,
+                    Some(3),
+                    Some(&mut sigma),
+                )?;
+                let interlevel = out.interlevel.expect("a loss with the field's density");
+                Ok(vec![out.intervals.starts, out.intervals.ends, interlevel])
             },
         );
         if let Ok(out) = out {

@@ -162,8 +162,18 @@ fn proposals_concentrate_the_final_samples_on_the_density() {
         samples: vec![128, 32],
         final_samples: 16,
         padding: 0.0,
+        ..ProposalConfig::default()
     };
-    let out = proposal_sample(&rays(r), &near, &far, &mut [&mut a, &mut b], &config, None).unwrap();
+    let out = proposal_sample(
+        &rays(r),
+        &near,
+        &far,
+        &mut [&mut a, &mut b],
+        &config,
+        None,
+        None,
+    )
+    .unwrap();
     assert_eq!(out.intervals.starts.dims(), &[r, 16]);
     assert_eq!(out.levels.len(), 2);
     assert_eq!(out.levels[0].1.dims(), &[r, 128]);
@@ -172,8 +182,16 @@ fn proposals_concentrate_the_final_samples_on_the_density() {
         assert!((1.4..1.6).contains(&t), "{t}");
     }
     // Deterministic without a seed; seeded draws differ between seeds.
-    let again =
-        proposal_sample(&rays(r), &near, &far, &mut [&mut a, &mut b], &config, None).unwrap();
+    let again = proposal_sample(
+        &rays(r),
+        &near,
+        &far,
+        &mut [&mut a, &mut b],
+        &config,
+        None,
+        None,
+    )
+    .unwrap();
     assert_eq!(v64(&again.intervals.starts), v64(&out.intervals.starts));
     let s1 = proposal_sample(
         &rays(r),
@@ -182,6 +200,7 @@ fn proposals_concentrate_the_final_samples_on_the_density() {
         &mut [&mut a, &mut b],
         &config,
         Some(1),
+        None,
     )
     .unwrap();
     let s2 = proposal_sample(
@@ -191,6 +210,7 @@ fn proposals_concentrate_the_final_samples_on_the_density() {
         &mut [&mut a, &mut b],
         &config,
         Some(2),
+        None,
     )
     .unwrap();
     assert_ne!(v64(&s1.intervals.starts), v64(&s2.intervals.starts));
@@ -217,7 +237,7 @@ fn bad_input_is_an_error_naming_the_argument() {
         ..ProposalConfig::default()
     };
     assert_eq!(
-        arg(proposal_sample(&rays(2), &near, &far, &mut [&mut f], &two, None).unwrap_err()),
+        arg(proposal_sample(&rays(2), &near, &far, &mut [&mut f], &two, None, None).unwrap_err()),
         "proposals"
     );
     let zero = ProposalConfig {
@@ -225,7 +245,7 @@ fn bad_input_is_an_error_naming_the_argument() {
         ..ProposalConfig::default()
     };
     assert_eq!(
-        arg(proposal_sample(&rays(2), &near, &far, &mut [&mut f], &zero, None).unwrap_err()),
+        arg(proposal_sample(&rays(2), &near, &far, &mut [&mut f], &zero, None, None).unwrap_err()),
         "config"
     );
     let coarse = level(2, 4, 0, 1.0);
@@ -242,5 +262,116 @@ fn bad_input_is_an_error_naming_the_argument() {
     assert_eq!(
         arg(interlevel_loss(&coarse, &other_rays.0, &other_rays.1).unwrap_err()),
         "proposal"
+    );
+}
+
+/// Given the field's density, the sampler keeps exactly the final samples that are visible
+/// (T ≥ early_stop_eps) and not faint (α ≥ alpha_threshold), packed, and its interlevel
+/// loss is the sum over levels against the field's weights on all final samples.
+#[test]
+fn the_fields_density_culls_the_samples_and_gives_the_interlevel_target() {
+    use neural_fields::volume::{render_weights, CompositeConfig};
+    let dev = Device::Cpu;
+    let r = 3;
+    let (near, far) = (
+        Tensor::full(0.5f64, r, &dev).unwrap(),
+        Tensor::full(2.5f64, r, &dev).unwrap(),
+    );
+    let proposal = |p: &Tensor| -> neural_fields::Result<Tensor> {
+        Ok((p
+            .narrow(1, 2, 1)?
+            .squeeze(1)?
+            .abs()?
+            .affine(-4.0, 1.0)?
+            .relu()?
+            * 20.0)?)
+    };
+    // The field: an opaque half-space z > 0, empty elsewhere.
+    let field = |p: &Tensor| -> neural_fields::Result<Tensor> {
+        Ok((p
+            .narrow(1, 2, 1)?
+            .squeeze(1)?
+            .gt(0.0)?
+            .to_dtype(DType::F64)?
+            * 50.0)?)
+    };
+    let config = ProposalConfig {
+        samples: vec![32, 16],
+        final_samples: 24,
+        alpha_threshold: 1e-2,
+        ..ProposalConfig::default()
+    };
+    let (mut a, mut b, mut f) = (proposal, proposal, field);
+    let plain = proposal_sample(
+        &rays(r),
+        &near,
+        &far,
+        &mut [&mut a, &mut b],
+        &config,
+        Some(5),
+        None,
+    )
+    .unwrap();
+    assert!(plain.interlevel.is_none());
+    let culled = proposal_sample(
+        &rays(r),
+        &near,
+        &far,
+        &mut [&mut a, &mut b],
+        &config,
+        Some(5),
+        Some(&mut f),
+    )
+    .unwrap();
+    // The same draws; the kept ones are those the weights say are worth evaluating.
+    let iv = &plain.intervals;
+    let (rr, s) = iv.starts.dims2().unwrap();
+    let sigma = field(
+        &iv.positions(&rays(r))
+            .unwrap()
+            .reshape((rr * s, 3))
+            .unwrap(),
+    )
+    .unwrap()
+    .reshape((rr, s))
+    .unwrap();
+    let w = render_weights(&sigma, iv, Some(&rays(r)), &CompositeConfig::default()).unwrap();
+    let keep = (w.transmittance.ge(1e-4).unwrap() * w.alphas.ge(1e-2).unwrap()).unwrap();
+    let (expected, _) = iv.retain(&keep).unwrap();
+    assert_eq!(v64(&culled.intervals.starts), v64(&expected.starts));
+    let kept = culled.intervals.starts.dim(0).unwrap();
+    assert!(kept > 0 && kept < rr * s, "{kept} of {}", rr * s);
+    let mut sum = 0.0;
+    for level in &plain.levels {
+        sum += interlevel_loss(level, iv, &w.weights)
+            .unwrap()
+            .to_scalar::<f64>()
+            .unwrap();
+    }
+    let got = culled.interlevel.unwrap().to_scalar::<f64>().unwrap();
+    assert!(close(got, sum, 1e-12, 1e-12), "{got} vs {sum}");
+    // A density of the wrong shape is refused, naming the closure.
+    let mut wrong = |p: &Tensor| -> neural_fields::Result<Tensor> {
+        Ok(Tensor::zeros(p.dim(0)? + 1, DType::F64, p.device())?)
+    };
+    let e = proposal_sample(
+        &rays(r),
+        &near,
+        &far,
+        &mut [&mut a, &mut b],
+        &config,
+        None,
+        Some(&mut wrong),
+    )
+    .unwrap_err();
+    assert!(
+        matches!(
+            e,
+            Error::InvalidArgument {
+                arg: "sigma_fn",
+                ..
+            }
+        ),
+        "{e}"
     );
 }

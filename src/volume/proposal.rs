@@ -9,12 +9,18 @@
 //! where the proposal has weight (plus `padding`), not all of `[near, far]`. The last draw gives the intervals the radiance field is evaluated on. The
 //! proposals learn only from [`interlevel_loss`] against the final weights (detached), so
 //! the radiance field's photometric loss never reaches them.
+//!
+//! Given the radiance field's density as a closure, [`proposal_sample`] also does what
+//! the occupancy grid's sampling does: it evaluates the density (without a graph) on the
+//! final intervals, computes the interlevel loss against those weights, and returns only
+//! the samples that are visible and not empty, so that the whole network runs on those
+//! alone.
 
-use super::compositing::{render_weights, CompositeConfig};
+use super::compositing::{render_weights, CompositeConfig, DEFAULT_TERMINATION_EPS};
 use super::layout::{Intervals, Layout};
 use super::sampling::{sample_pdf, stratified, DensityFn, Jitter};
 use crate::camera::Rays;
-use crate::error::{check_float, check_scalar, Error, Result};
+use crate::error::{check_finite, check_float, check_same, check_scalar, Error, Result};
 use candle_core::{DType, Tensor};
 
 /// Samples per level of a [`proposal_sample`] and the draw's settings.
@@ -28,6 +34,12 @@ pub struct ProposalConfig {
     /// Weight added to every proposal bin before the draw, so that no bin is starved
     /// (mip-NeRF 360's resampling padding). Default 0.01.
     pub padding: f64,
+    /// With the field's density given: samples behind a transmittance below this are
+    /// dropped. Default 1e-4 ([`DEFAULT_TERMINATION_EPS`], nerfacc's `early_stop_eps`).
+    pub early_stop_eps: f64,
+    /// With the field's density given: samples of opacity `1 − e^{−σδ}` below this are
+    /// dropped (nerfacc's `alpha_thre`). Default 0 (none dropped for being faint).
+    pub alpha_threshold: f64,
 }
 
 impl Default for ProposalConfig {
@@ -36,6 +48,8 @@ impl Default for ProposalConfig {
             samples: vec![64, 32],
             final_samples: 32,
             padding: 0.01,
+            early_stop_eps: DEFAULT_TERMINATION_EPS,
+            alpha_threshold: 0.0,
         }
     }
 }
@@ -44,11 +58,18 @@ impl Default for ProposalConfig {
 #[derive(Clone, Debug)]
 #[non_exhaustive]
 pub struct ProposalSamples {
-    /// `[R, final_samples]` intervals for the radiance field (detached).
+    /// The intervals for the radiance field (detached): `[R, final_samples]` (batched)
+    /// without the field's density; with it, the packed `[M]` subset of those that are
+    /// visible and not empty.
     pub intervals: Intervals,
     /// Per proposal level: its intervals and its weights `[R, S_l]`, the weights
     /// differentiable w.r.t. the proposal network's parameters (for [`interlevel_loss`]).
     pub levels: Vec<(Intervals, Tensor)>,
+    /// With the field's density: the [`interlevel_loss`] of every level, summed, against
+    /// the field's weights on all `[R, final_samples]` intervals (a scalar,
+    /// differentiable w.r.t. the proposals); `None` without (then compute it from
+    /// `levels` and the rendered weights).
+    pub interlevel: Option<Tensor>,
 }
 
 /// Draws samples along `rays` through proposal networks (see the module docs).
@@ -56,7 +77,10 @@ pub struct ProposalSamples {
 /// `near`, `far`: `[R]` (f32 or f64); `proposals[l]` maps positions `[N, 3]` to densities
 /// `[N]` (≥ 0) of level `l` — one per entry of `config.samples`. `seed`: `Some` jitters the
 /// stratified level and draws the resampling at random (training), `None` is
-/// deterministic (evaluation).
+/// deterministic (evaluation). `sigma_fn`: the radiance field's density (positions
+/// `[N, 3]` → `[N]`, read without a graph); with it, the result keeps only the final
+/// samples with transmittance ≥ `config.early_stop_eps` and opacity ≥
+/// `config.alpha_threshold`, in the packed layout, and carries the interlevel loss.
 ///
 /// ```
 /// use candle_core::{Device, Tensor};
@@ -70,18 +94,29 @@ pub struct ProposalSamples {
 /// let mut slab = |p: &Tensor| -> neural_fields::Result<Tensor> {
 ///     Ok((p.narrow(1, 2, 1)?.squeeze(1)?.abs()?.affine(-10.0, 2.0)?.relu()? * 50.0)?)
 /// };
-/// let config = ProposalConfig { samples: vec![64], final_samples: 8, padding: 0.0 };
-/// let out = proposal_sample(&rays, &near, &far, &mut [&mut slab], &config, None)?;
+/// let config = ProposalConfig { samples: vec![64], final_samples: 8, padding: 0.0, ..ProposalConfig::default() };
+/// let out = proposal_sample(&rays, &near, &far, &mut [&mut slab], &config, None, None)?;
 /// let t = out.intervals.midpoints()?.to_vec2::<f64>()?;
 /// assert!(t[0].iter().all(|&t| (2.7..3.3).contains(&t)));     // all samples in the slab
+/// // With the field's density (an opaque wall z ≥ −0.15) and an opacity threshold, only
+/// // the first sample in the wall remains: those in front are empty, those behind hidden.
+/// let mut wall = |p: &Tensor| -> neural_fields::Result<Tensor> {
+///     Ok((p.narrow(1, 2, 1)?.squeeze(1)?.ge(-0.15)?.to_dtype(p.dtype())? * 1e3)?)
+/// };
+/// let culling = ProposalConfig { alpha_threshold: 1e-2, ..config };
+/// let culled = proposal_sample(&rays, &near, &far, &mut [&mut slab], &culling, None, Some(&mut wall))?;
+/// assert_eq!(culled.intervals.starts.dims(), &[1]);                // packed: one sample
+/// assert!(culled.interlevel.is_some());
 /// # Ok::<(), neural_fields::Error>(())
 /// ```
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `proposals` if their number is not
-/// `config.samples.len()` (≥ 1), `config` for a zero sample count or a negative padding;
-/// those of [`stratified`], [`render_weights`] (a proposal returning a wrong shape or
-/// negative density) and [`sample_pdf`].
+/// `config.samples.len()` (≥ 1), `config` for a zero sample count, `config.padding`,
+/// `config.early_stop_eps`, `config.alpha_threshold` unless finite and ≥ 0; `sigma_fn`
+/// for densities of the wrong shape, dtype or device, or not finite; those of
+/// [`stratified`], [`render_weights`] (a proposal returning a wrong shape or negative
+/// density) and [`sample_pdf`].
 pub fn proposal_sample(
     rays: &Rays,
     near: &Tensor,
@@ -89,6 +124,7 @@ pub fn proposal_sample(
     proposals: &mut [DensityFn<'_>],
     config: &ProposalConfig,
     seed: Option<u64>,
+    sigma_fn: Option<DensityFn<'_>>,
 ) -> Result<ProposalSamples> {
     if config.samples.is_empty() || proposals.len() != config.samples.len() {
         return Err(Error::invalid(
@@ -107,13 +143,15 @@ pub fn proposal_sample(
             format!("{:?} then {}", config.samples, config.final_samples),
         ));
     }
-    check_scalar(config.padding, "config.padding", false)?;
-    if config.padding < 0.0 {
-        return Err(Error::invalid(
-            "config.padding",
-            "≥ 0",
-            config.padding.to_string(),
-        ));
+    for (value, name) in [
+        (config.padding, "config.padding"),
+        (config.early_stop_eps, "config.early_stop_eps"),
+        (config.alpha_threshold, "config.alpha_threshold"),
+    ] {
+        check_scalar(value, name, false)?;
+        if value < 0.0 {
+            return Err(Error::invalid(name, "≥ 0", value.to_string()));
+        }
     }
     let jitter = if seed.is_some() {
         Jitter::PerSample
@@ -151,7 +189,44 @@ pub fn proposal_sample(
         levels.push((intervals, weights));
         intervals = next;
     }
-    Ok(ProposalSamples { intervals, levels })
+    let Some(sigma_fn) = sigma_fn else {
+        return Ok(ProposalSamples {
+            intervals,
+            levels,
+            interlevel: None,
+        });
+    };
+    // The field's weights without a graph: the interlevel loss's target, and which
+    // samples are worth the whole network.
+    let (r, s) = intervals.starts.dims2()?;
+    let sigma = sigma_fn(&intervals.positions(rays)?.reshape((r * s, 3))?)?;
+    if sigma.elem_count() != r * s || sigma.rank() > 2 {
+        return Err(Error::invalid(
+            "sigma_fn",
+            format!("densities of shape [{}]", r * s),
+            format!("shape {:?}", sigma.dims()),
+        ));
+    }
+    check_same(&sigma, "sigma_fn", &intervals.starts, "near")?;
+    let sigma = sigma.detach().reshape((r, s))?;
+    check_finite(&sigma, "sigma_fn")?;
+    let w = render_weights(
+        &sigma.relu()?,
+        &intervals,
+        Some(rays),
+        &CompositeConfig::default(),
+    )?;
+    let mut interlevel = Tensor::zeros((), sigma.dtype(), sigma.device())?;
+    for level in &levels {
+        interlevel = (interlevel + interlevel_loss(level, &intervals, &w.weights)?)?;
+    }
+    let visible = w.transmittance.ge(config.early_stop_eps)?;
+    let mask = (visible * w.alphas.ge(config.alpha_threshold)?)?;
+    Ok(ProposalSamples {
+        intervals: intervals.retain(&mask)?.0,
+        levels,
+        interlevel: Some(interlevel),
+    })
 }
 
 /// The pairs `(i, j)` of fine interval `i` and coarse interval `j` of the same ray that
