@@ -10,120 +10,9 @@
 //! * [`cell_index`]: the flat cell of each normalised point at a resolution.
 
 use crate::error::{check_float, check_same, check_shape, Dim, Error, Result};
-use crate::kernels::{cpu_slice, for_each_init};
+use crate::kernels::{FusedGridSample, FusedScatterMax, GridCorners, GridGeometry};
 use crate::narrow::narrow;
-use candle_core::{CpuStorage, DType, Layout, Shape, Tensor, WithDType};
-
-/// Points per work item of the fused forward and coordinate-gradient passes.
-const ROWS: usize = 256;
-
-/// Channels per work item of the fused feature-gradient pass (a fixed split, so the
-/// order of every sum does not depend on the number of threads).
-const CHANNEL_BLOCK: usize = 4;
-
-/// The geometry of a sampling call: spatial sizes per coordinate axis and the strides of
-/// the flattened spatial index.
-#[derive(Clone, Debug, PartialEq, Eq)]
-struct Geometry {
-    /// Coordinate axes `k` (2 or 3).
-    k: usize,
-    /// Samples along coordinate axis `a` (`a = 0`: W, 1: H, 2: D).
-    size: [usize; 3],
-    /// Stride of coordinate axis `a` in the flattened spatial index.
-    stride: [usize; 3],
-    /// Spatial samples in all, `Π size`.
-    cells: usize,
-}
-
-impl Geometry {
-    /// From the spatial dims in the features' order (`[H, W]` or `[D, H, W]`).
-    fn new(spatial: &[usize]) -> Self {
-        let k = spatial.len();
-        let (mut size, mut stride) = ([1usize; 3], [0usize; 3]);
-        let mut s = 1;
-        for a in 0..k {
-            size[a] = spatial[k - 1 - a];
-            stride[a] = s;
-            s *= size[a];
-        }
-        Self {
-            k,
-            size,
-            stride,
-            cells: s,
-        }
-    }
-
-    /// One axis of one point: the lower sample `i`, the local coordinate `w`, the rate
-    /// `∂w/∂c` (zero when clamped) and the clamped coordinate.
-    fn axis(&self, a: usize, c: f64) -> (usize, f64, f64) {
-        let n = self.size[a];
-        if n < 2 {
-            return (0, 0.0, 0.0);
-        }
-        let s = (n - 1) as f64;
-        let inside = (0.0..=1.0).contains(&c);
-        let u = c.clamp(0.0, 1.0) * s;
-        // u ∈ [0, S − 1], so the cast is exact.
-        let i = (u.floor() as usize).min(n - 2);
-        (i, u - i as f64, if inside { s } else { 0.0 })
-    }
-
-    /// The corners of one point: flat spatial offsets, weights and, with `grads`, each
-    /// weight's derivative per coordinate axis. Built axis by axis (corner `q` takes
-    /// `i_a + 1` on axis `a` when bit `a` of `q` is set).
-    fn corners(&self, c: &[f64], grads: bool, out: &mut Corners) {
-        out.n = 1;
-        out.offset[0] = 0;
-        out.weight[0] = 1.0;
-        out.dweight[0] = [1.0; 3];
-        for (a, &ca) in c.iter().enumerate().take(self.k) {
-            let (i, w, dw) = self.axis(a, ca);
-            let step = if self.size[a] > 1 { self.stride[a] } else { 0 };
-            let half = out.n;
-            for q in 0..half {
-                let hi = q + half;
-                out.offset[hi] = out.offset[q] + (i * self.stride[a] + step);
-                out.offset[q] += i * self.stride[a];
-                out.weight[hi] = out.weight[q] * w;
-                out.weight[q] *= 1.0 - w;
-                if grads {
-                    let mut lo = out.dweight[q];
-                    let mut up = lo;
-                    for j in 0..self.k {
-                        if j == a {
-                            up[j] *= dw;
-                            lo[j] *= -dw;
-                        } else {
-                            up[j] *= w;
-                            lo[j] *= 1.0 - w;
-                        }
-                    }
-                    out.dweight[q] = lo;
-                    out.dweight[hi] = up;
-                }
-            }
-            out.n *= 2;
-        }
-    }
-}
-
-/// The corners of one point (at most 8).
-struct Corners {
-    n: usize,
-    offset: [usize; 8],
-    weight: [f64; 8],
-    dweight: [[f64; 3]; 8],
-}
-
-fn empty_corners() -> Corners {
-    Corners {
-        n: 0,
-        offset: [0; 8],
-        weight: [0.0; 8],
-        dweight: [[0.0; 3]; 8],
-    }
-}
+use candle_core::{DType, Tensor};
 
 /// Fails naming `arg` if `t` (float) holds a NaN.
 fn check_no_nan(t: &Tensor, arg: &'static str) -> Result<()> {
@@ -138,7 +27,7 @@ fn check_no_nan(t: &Tensor, arg: &'static str) -> Result<()> {
 }
 
 /// Checks `features` and `coords`; returns `(B, N, C, geometry)`.
-fn check_sample(features: &Tensor, coords: &Tensor) -> Result<(usize, usize, usize, Geometry)> {
+fn check_sample(features: &Tensor, coords: &Tensor) -> Result<(usize, usize, usize, GridGeometry)> {
     check_float(features, "features")?;
     let fd = features.dims().to_vec();
     if !(fd.len() == 4 || fd.len() == 5) {
@@ -163,7 +52,7 @@ fn check_sample(features: &Tensor, coords: &Tensor) -> Result<(usize, usize, usi
         &[Dim::Is(fd[0]), Dim::Any("N"), Dim::Is(k)],
     )?;
     check_no_nan(coords, "coords")?;
-    let g = Geometry::new(&fd[2..]);
+    let g = GridGeometry::new(&fd[2..]);
     if fd[0]
         .checked_mul(g.cells)
         .is_none_or(|v| v > u32::MAX as usize)
@@ -278,10 +167,14 @@ pub fn grid_sample(
     if !fused {
         return grid_sample_reference(features, coords);
     }
-    let (_, _, _, g) = check_sample(features, coords)?;
+    let (b, n, c, geometry) = check_sample(features, coords)?;
+    let op = FusedGridSample {
+        geometry,
+        dims: (b, n, c),
+    };
     Ok(features
         .contiguous()?
-        .apply_op2(&coords.contiguous()?, FusedGridSample(g))?)
+        .apply_op2(&coords.contiguous()?, op)?)
 }
 
 /// [`grid_sample`] by candle ops, on any device and float dtype (the path used off the
@@ -296,7 +189,7 @@ fn grid_sample_reference(features: &Tensor, coords: &Tensor) -> Result<Tensor> {
     let mut origin = Vec::with_capacity(b * n * k);
     let mut clamped = Vec::with_capacity(b * n * k);
     let mut inside = Vec::with_capacity(b * n * k);
-    let mut cs = empty_corners();
+    let mut cs = GridCorners::new();
     for (p, row) in host.chunks(k).enumerate() {
         let base = (p / n.max(1)) * g.cells;
         g.corners(row, false, &mut cs);
@@ -334,224 +227,6 @@ fn grid_sample_reference(features: &Tensor, coords: &Tensor) -> Result<Tensor> {
     let idx = Tensor::from_vec(rows, b * n * corners, dev)?;
     let feats = table.index_select(&idx, 0)?.reshape((b, n, corners, c))?;
     Ok(feats.broadcast_mul(&weights.unsqueeze(3)?)?.sum(2)?)
-}
-
-/// The fused CPU op: `(features [B, C, …], coords [B, N, k]) → [B, N, C]`.
-struct FusedGridSample(Geometry);
-
-/// A point's coordinates as f64.
-fn point<T: WithDType>(row: &[T]) -> [f64; 3] {
-    let mut c = [0.0; 3];
-    for (x, r) in c.iter_mut().zip(row) {
-        *x = r.to_f64();
-    }
-    c
-}
-
-impl FusedGridSample {
-    fn forward<T: WithDType>(&self, f: &[T], x: &[T], dims: (usize, usize, usize)) -> Vec<T> {
-        let g = &self.0;
-        let (_, n, c) = dims;
-        let k = g.k;
-        let p = g.cells;
-        let mut out = vec![T::from_f64(0.0); x.len() / k * c];
-        if out.is_empty() {
-            return out;
-        }
-        let items: Vec<_> = out
-            .chunks_mut(ROWS * c)
-            .zip(x.chunks(ROWS * k))
-            .enumerate()
-            .collect();
-        for_each_init(items, empty_corners, |cs, (item, (out, x))| {
-            for (j, (o, row)) in out.chunks_mut(c).zip(x.chunks(k)).enumerate() {
-                let bi = (item * ROWS + j) / n;
-                g.corners(&point(row), false, cs);
-                let fb = &f[bi * c * p..(bi + 1) * c * p];
-                for (ch, oc) in o.iter_mut().enumerate() {
-                    let plane = &fb[ch * p..(ch + 1) * p];
-                    let mut acc = 0.0;
-                    for q in 0..cs.n {
-                        acc += cs.weight[q] * plane[cs.offset[q]].to_f64();
-                    }
-                    *oc = T::from_f64(acc);
-                }
-            }
-        });
-        out
-    }
-
-    /// `∂L/∂F: [B, C, P]`: one work item per (batch, block of channels), each adding its
-    /// batch's points in order into f64 accumulators (deterministic at any thread count).
-    fn features_grad<T: WithDType>(
-        &self,
-        x: &[T],
-        gr: &[T],
-        dims: (usize, usize, usize),
-    ) -> Vec<T> {
-        let g = &self.0;
-        let (b, n, c) = dims;
-        let (k, p) = (g.k, g.cells);
-        let mut out = vec![T::from_f64(0.0); b * c * p];
-        if out.is_empty() || n == 0 {
-            return out;
-        }
-        let mut items = Vec::new();
-        for (bi, fb) in out.chunks_mut(c * p).enumerate() {
-            for (blk, part) in fb.chunks_mut(CHANNEL_BLOCK * p).enumerate() {
-                items.push((bi, blk * CHANNEL_BLOCK, part));
-            }
-        }
-        for_each_init(items, empty_corners, |cs, (bi, c0, part)| {
-            let width = part.len() / p;
-            let mut acc = vec![0.0f64; part.len()];
-            let xs = &x[bi * n * k..(bi + 1) * n * k];
-            let gs = &gr[bi * n * c..(bi + 1) * n * c];
-            for (row, grow) in xs.chunks(k).zip(gs.chunks(c)) {
-                g.corners(&point(row), false, cs);
-                for j in 0..width {
-                    let gj = grow[c0 + j].to_f64();
-                    if gj == 0.0 {
-                        continue;
-                    }
-                    let a = &mut acc[j * p..(j + 1) * p];
-                    for q in 0..cs.n {
-                        a[cs.offset[q]] += cs.weight[q] * gj;
-                    }
-                }
-            }
-            for (o, a) in part.iter_mut().zip(&acc) {
-                *o = T::from_f64(*a);
-            }
-        });
-        out
-    }
-
-    /// `∂L/∂coords: [B, N, k]`, point by point.
-    fn coords_grad<T: WithDType>(
-        &self,
-        f: &[T],
-        x: &[T],
-        gr: &[T],
-        dims: (usize, usize, usize),
-    ) -> Vec<T> {
-        let g = &self.0;
-        let (_, n, c) = dims;
-        let (k, p) = (g.k, g.cells);
-        let mut out = vec![T::from_f64(0.0); x.len()];
-        if out.is_empty() {
-            return out;
-        }
-        let items: Vec<_> = out
-            .chunks_mut(ROWS * k)
-            .zip(x.chunks(ROWS * k))
-            .zip(gr.chunks(ROWS * c.max(1)))
-            .enumerate()
-            .collect();
-        for_each_init(items, empty_corners, |cs, (item, ((out, x), gr))| {
-            for (j, ((o, row), grow)) in out
-                .chunks_mut(k)
-                .zip(x.chunks(k))
-                .zip(gr.chunks(c.max(1)))
-                .enumerate()
-            {
-                let bi = (item * ROWS + j) / n;
-                g.corners(&point(row), true, cs);
-                let fb = &f[bi * c * p..(bi + 1) * c * p];
-                let mut acc = [0.0f64; 3];
-                for q in 0..cs.n {
-                    let mut s = 0.0;
-                    for ch in 0..c {
-                        s += grow[ch].to_f64() * fb[ch * p + cs.offset[q]].to_f64();
-                    }
-                    for (a, d) in acc.iter_mut().zip(&cs.dweight[q]).take(k) {
-                        *a += s * d;
-                    }
-                }
-                for (oa, a) in o.iter_mut().zip(&acc) {
-                    *oa = T::from_f64(*a);
-                }
-            }
-        });
-        out
-    }
-}
-
-impl candle_core::CustomOp2 for FusedGridSample {
-    fn name(&self) -> &'static str {
-        "nf-grid-sample"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let [(a, b), (c, e)] = crate::kernels::contiguous([l1, l2], "grid sample")?;
-        let (bs, ch) = (l1.dims()[0], l1.dims()[1]);
-        let n = l2.dims()[1];
-        let dims = (bs, n, ch);
-        let out = match (s1, s2) {
-            (CpuStorage::F32(f), CpuStorage::F32(x)) => {
-                CpuStorage::F32(self.forward(&f[a..b], &x[c..e], dims))
-            }
-            (CpuStorage::F64(f), CpuStorage::F64(x)) => {
-                CpuStorage::F64(self.forward(&f[a..b], &x[c..e], dims))
-            }
-            _ => candle_core::bail!("grid sample: f32 or f64 features and coords of one dtype"),
-        };
-        Ok((out, Shape::from((bs, n, ch))))
-    }
-
-    fn bwd(
-        &self,
-        features: &Tensor,
-        coords: &Tensor,
-        _res: &Tensor,
-        grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
-        let grad = grad.contiguous()?;
-        let (bs, ch) = (features.dim(0)?, features.dim(1)?);
-        let dims = (bs, coords.dim(1)?, ch);
-        let (fs, fl) = features.storage_and_layout();
-        let (xs, xl) = coords.storage_and_layout();
-        let (gs, gl) = grad.storage_and_layout();
-        let op = "grid sample";
-        let (want_f, want_x) = (features.track_op(), coords.track_op());
-        macro_rules! run {
-            ($t:ty) => {{
-                let fv = cpu_slice::<$t>(&fs, fl, op, "features")?;
-                let xv = cpu_slice::<$t>(&xs, xl, op, "coords")?;
-                let gv = cpu_slice::<$t>(&gs, gl, op, "gradient")?;
-                let gf = if want_f {
-                    Some(Tensor::from_vec(
-                        self.features_grad(xv, gv, dims),
-                        features.shape(),
-                        features.device(),
-                    )?)
-                } else {
-                    None
-                };
-                let gx = if want_x {
-                    Some(Tensor::from_vec(
-                        self.coords_grad(fv, xv, gv, dims),
-                        coords.shape(),
-                        coords.device(),
-                    )?)
-                } else {
-                    None
-                };
-                (gf, gx)
-            }};
-        }
-        Ok(match features.dtype() {
-            DType::F32 => run!(f32),
-            DType::F64 => run!(f64),
-            other => candle_core::bail!("grid sample: unsupported dtype {other:?}"),
-        })
-    }
 }
 
 /// Checks a scatter call; returns `(B, N, C)` and the cell ids on the host.
@@ -696,10 +371,9 @@ pub fn scatter(
             if !fused {
                 return scatter_max_reference(values, index, cells);
             }
-            check_scatter(values, index, cells)?;
-            Ok(values
-                .contiguous()?
-                .apply_op2(&index.contiguous()?, FusedScatterMax(cells))?)
+            let (dims, index) = check_scatter(values, index, cells)?;
+            let op = FusedScatterMax { cells, dims, index };
+            Ok(values.contiguous()?.apply_op1(op)?)
         }
     }
 }
@@ -781,142 +455,6 @@ fn scatter_max_reference(values: &Tensor, index: &Tensor, cells: usize) -> Resul
     let ids: Vec<u32> = order.iter().map(|&q| q as u32).collect();
     let ids = Tensor::from_vec(ids, k0, dev)?;
     Ok(zeros.index_add(&ids, &running, 0)?.reshape((b, cells, c))?)
-}
-
-/// The fused CPU scatter-max: `(values [B, N, C], index [B, N] u32) → [B, cells, C]`.
-struct FusedScatterMax(usize);
-
-impl FusedScatterMax {
-    /// The argmax point of every (cell, channel) of one batch (`u32::MAX`: empty cell),
-    /// by one pass over the points in order: a later point replaces the running maximum
-    /// only if strictly greater, or NaN over a non-NaN.
-    fn argmax<T: WithDType>(&self, v: &[T], idx: &[u32], c: usize, arg: &mut [u32]) {
-        arg.fill(u32::MAX);
-        for (p, (&q, row)) in idx.iter().zip(v.chunks(c)).enumerate() {
-            let slot = &mut arg[q as usize * c..(q as usize + 1) * c];
-            for (j, (s, x)) in slot.iter_mut().zip(row).enumerate() {
-                if *s == u32::MAX {
-                    *s = p as u32;
-                    continue;
-                }
-                let cur = v[*s as usize * c + j].to_f64();
-                let x = x.to_f64();
-                if x > cur || (x.is_nan() && !cur.is_nan()) {
-                    *s = p as u32;
-                }
-            }
-        }
-    }
-
-    fn run<T: WithDType>(&self, v: &[T], idx: &[u32], dims: (usize, usize, usize)) -> Vec<T> {
-        let (b, n, c) = dims;
-        let cells = self.0;
-        let mut out = vec![T::from_f64(0.0); b * cells * c];
-        if out.is_empty() {
-            return out;
-        }
-        let items: Vec<_> = out.chunks_mut(cells * c).enumerate().collect();
-        for_each_init(items, Vec::new, |arg: &mut Vec<u32>, (bi, o)| {
-            arg.resize(cells * c, 0);
-            let vb = &v[bi * n * c..(bi + 1) * n * c];
-            self.argmax(vb, &idx[bi * n..(bi + 1) * n], c, arg);
-            for (j, (oj, &a)) in o.iter_mut().zip(arg.iter()).enumerate() {
-                if a != u32::MAX {
-                    *oj = vb[a as usize * c + j % c];
-                }
-            }
-        });
-        out
-    }
-
-    fn grad<T: WithDType>(
-        &self,
-        v: &[T],
-        idx: &[u32],
-        g: &[T],
-        dims: (usize, usize, usize),
-    ) -> Vec<T> {
-        let (b, n, c) = dims;
-        let cells = self.0;
-        let mut out = vec![T::from_f64(0.0); b * n * c];
-        if out.is_empty() {
-            return out;
-        }
-        let items: Vec<_> = out.chunks_mut(n * c).enumerate().collect();
-        for_each_init(items, Vec::new, |arg: &mut Vec<u32>, (bi, o)| {
-            arg.resize(cells * c, 0);
-            self.argmax(
-                &v[bi * n * c..(bi + 1) * n * c],
-                &idx[bi * n..(bi + 1) * n],
-                c,
-                arg,
-            );
-            let gb = &g[bi * cells * c..(bi + 1) * cells * c];
-            for (j, &a) in arg.iter().enumerate() {
-                if a != u32::MAX {
-                    o[a as usize * c + j % c] = gb[j];
-                }
-            }
-        });
-        out
-    }
-}
-
-impl candle_core::CustomOp2 for FusedScatterMax {
-    fn name(&self) -> &'static str {
-        "nf-scatter-max"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let [(a, e), (c0, c1)] = crate::kernels::contiguous([l1, l2], "scatter max")?;
-        let d = l1.dims();
-        let dims = (d[0], d[1], d[2]);
-        let CpuStorage::U32(idx) = s2 else {
-            candle_core::bail!("scatter max: index must be u32")
-        };
-        let idx = &idx[c0..c1];
-        let out = match s1 {
-            CpuStorage::F32(v) => CpuStorage::F32(self.run(&v[a..e], idx, dims)),
-            CpuStorage::F64(v) => CpuStorage::F64(self.run(&v[a..e], idx, dims)),
-            _ => candle_core::bail!("scatter max: f32 or f64 values"),
-        };
-        Ok((out, Shape::from((dims.0, self.0, dims.2))))
-    }
-
-    fn bwd(
-        &self,
-        values: &Tensor,
-        index: &Tensor,
-        _res: &Tensor,
-        grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
-        let grad = grad.contiguous()?;
-        let dims = values.dims3()?;
-        let (vs, vl) = values.storage_and_layout();
-        let (is, il) = index.storage_and_layout();
-        let (gs, gl) = grad.storage_and_layout();
-        let op = "scatter max";
-        let iv = cpu_slice::<u32>(&is, il, op, "index")?;
-        macro_rules! run {
-            ($t:ty) => {{
-                let v = cpu_slice::<$t>(&vs, vl, op, "values")?;
-                let g = cpu_slice::<$t>(&gs, gl, op, "gradient")?;
-                Tensor::from_vec(self.grad(v, iv, g, dims), values.shape(), values.device())?
-            }};
-        }
-        let gv = match values.dtype() {
-            DType::F32 => run!(f32),
-            DType::F64 => run!(f64),
-            other => candle_core::bail!("scatter max: unsupported dtype {other:?}"),
-        };
-        Ok((Some(gv), None))
-    }
 }
 
 /// Flat cell ids of normalised points: `coords: [B, N, k]` (f32/f64, `k` = 2 or 3, in

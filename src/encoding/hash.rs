@@ -1,17 +1,13 @@
-//! instant-NGP's multiresolution hash encoding ([`HashGrid`]), its reference path and its
-//! fused CPU op.
+//! instant-NGP's multiresolution hash encoding ([`HashGrid`]) and its reference path; the
+//! fused CPU op is the kernel layer's `FusedHashGrid`, which this module builds from the
+//! grid's level geometry and runs on the CPU.
 
 use super::{check_tangents, Encoding};
 use crate::error::{check_float, check_shape, Dim, Error, Result};
+use crate::kernels::{FusedHashGrid, HashCorners, HashLevel, HashPlan};
 use candle_core::{DType, Tensor};
 use candle_nn::{Init, VarBuilder};
 use std::sync::Arc;
-
-/// instant-NGP's hashing primes, one per input dimension.
-const PRIMES: [u32; 4] = [1, 2_654_435_761, 805_459_861, 3_674_653_429];
-
-/// Points per work item of the fused forward and position-gradient passes.
-const ROWS: usize = 512;
 
 /// Settings of [`hash_grid`].
 #[derive(Clone, Debug, PartialEq)]
@@ -64,26 +60,6 @@ impl Default for HashGridConfig {
             force_reference: false,
         }
     }
-}
-
-/// One level: cells per axis, first row in the concatenated table, rows, dense or hashed.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-struct Level {
-    cells: u32,
-    offset: usize,
-    rows: usize,
-    dense: bool,
-}
-
-/// The level geometry shared by the fused op and the reference path.
-#[derive(Debug)]
-struct Plan {
-    d: usize,
-    f: usize,
-    levels: Vec<Level>,
-    lo: Vec<f64>,
-    hi: Vec<f64>,
-    mask: u32,
 }
 
 /// A multiresolution hash grid: its configuration and table `[Σ_l T_l, F]`; build it
@@ -143,7 +119,7 @@ struct Plan {
 pub struct HashGrid {
     config: HashGridConfig,
     table: Tensor,
-    plan: Arc<Plan>,
+    plan: Arc<HashPlan>,
 }
 
 /// Builds a [`HashGrid`] whose table (`table`, `[Σ_l T_l, F]`) comes from `vb`, uniform in
@@ -170,7 +146,7 @@ pub fn hash_grid(config: &HashGridConfig, vb: VarBuilder) -> Result<HashGrid> {
     })
 }
 
-fn plan(c: &HashGridConfig) -> Result<Plan> {
+fn plan(c: &HashGridConfig) -> Result<HashPlan> {
     let bad =
         |arg: &'static str, expected: &str, got: String| Err(Error::invalid(arg, expected, got));
     if !(1..=4).contains(&c.in_dim) {
@@ -244,7 +220,7 @@ fn plan(c: &HashGridConfig) -> Result<Plan> {
             Some(v) if dense => v as usize,
             _ => cap as usize,
         };
-        levels.push(Level {
+        levels.push(HashLevel {
             cells,
             offset,
             rows,
@@ -259,7 +235,7 @@ fn plan(c: &HashGridConfig) -> Result<Plan> {
             format!("{offset} rows over {} levels", c.levels),
         );
     }
-    Ok(Plan {
+    Ok(HashPlan {
         d,
         f: c.features,
         levels,
@@ -267,115 +243,6 @@ fn plan(c: &HashGridConfig) -> Result<Plan> {
         hi: c.hi.clone(),
         mask: (cap - 1) as u32,
     })
-}
-
-/// The corners of one point at one level: table rows, weights and, per axis, the
-/// derivative of each weight w.r.t. the position (zero outside the box).
-struct Corners {
-    n: usize,
-    rows: [usize; 16],
-    weights: [f64; 16],
-    dweights: [[f64; 4]; 16],
-}
-
-impl Plan {
-    /// The normalised coordinates `t` of a point and `dt/dx` (zero where clamped).
-    fn unit(&self, x: &[f64], t: &mut [f64; 4], dt: &mut [f64; 4]) {
-        for k in 0..self.d {
-            let ext = self.hi[k] - self.lo[k];
-            let v = (x[k] - self.lo[k]) / ext;
-            let inside = (0.0..=1.0).contains(&v);
-            t[k] = v.clamp(0.0, 1.0);
-            dt[k] = if inside { 1.0 / ext } else { 0.0 };
-        }
-    }
-
-    /// [`Plan::unit`] of one row of a tensor's elements: `(t, dt/dx)`.
-    fn unit_of<T: candle_core::WithDType>(&self, row: &[T]) -> ([f64; 4], [f64; 4]) {
-        let mut x = [0.0f64; 4];
-        for (xk, r) in x.iter_mut().zip(row) {
-            *xk = r.to_f64();
-        }
-        let (mut t, mut dt) = ([0.0; 4], [0.0; 4]);
-        self.unit(&x, &mut t, &mut dt);
-        (t, dt)
-    }
-
-    /// The cell, local coordinates and corners of normalised point `t` at `level`, and
-    /// with `grads` the weights' derivatives w.r.t. the position. The corners are built
-    /// axis by axis (corner `c` takes `i_k + 1` on axis `k` when bit `k` of `c` is set):
-    /// `2ᴰ⁺¹` products instead of `D·2ᴰ`.
-    fn corners(&self, level: &Level, t: &[f64; 4], dt: &[f64; 4], grads: bool, out: &mut Corners) {
-        let d = self.d;
-        let n = f64::from(level.cells);
-        let side = u64::from(level.cells) + 1;
-        let mut stride = 1u64;
-        out.n = 1;
-        out.weights[0] = 1.0;
-        let mut index = [0u64; 16];
-        let mut hash = [0u32; 16];
-        if grads {
-            out.dweights[0] = [1.0; 4];
-        }
-        for k in 0..d {
-            let u = t[k] * n;
-            // t ∈ [0, 1], so u ∈ [0, N] and the cast is exact below 2³².
-            let i = (u.floor() as u32).min(level.cells - 1);
-            let w = u - f64::from(i);
-            let dw = n * dt[k];
-            let half = out.n;
-            for c in 0..half {
-                let hi = c + half;
-                out.weights[hi] = out.weights[c] * w;
-                out.weights[c] *= 1.0 - w;
-                index[hi] = index[c] + u64::from(i + 1) * stride;
-                index[c] += u64::from(i) * stride;
-                hash[hi] = hash[c] ^ (i + 1).wrapping_mul(PRIMES[k]);
-                hash[c] ^= i.wrapping_mul(PRIMES[k]);
-                if grads {
-                    let mut g = out.dweights[c];
-                    for (j, (lo, up)) in g
-                        .iter_mut()
-                        .zip(out.dweights[hi].iter_mut())
-                        .enumerate()
-                        .take(d)
-                    {
-                        if j == k {
-                            *up = *lo * dw;
-                            *lo *= -dw;
-                        } else {
-                            *up = *lo * w;
-                            *lo *= 1.0 - w;
-                        }
-                    }
-                    out.dweights[c] = g;
-                }
-            }
-            out.n *= 2;
-            stride *= side;
-        }
-        for c in 0..out.n {
-            let local = if level.dense {
-                index[c] as usize
-            } else {
-                (hash[c] & self.mask) as usize
-            };
-            out.rows[c] = level.offset + local;
-        }
-    }
-
-    fn width(&self) -> usize {
-        self.levels.len() * self.f
-    }
-}
-
-fn empty_corners() -> Corners {
-    Corners {
-        n: 0,
-        rows: [0; 16],
-        weights: [0.0; 16],
-        dweights: [[0.0; 4]; 16],
-    }
 }
 
 /// Checks the positions: f32/f64 `[N, D]` without NaN (an infinite coordinate is
@@ -487,7 +354,7 @@ impl HashGrid {
 
     /// One level's table rows `[N·2ᴰ]`, cell origins `[N·D]` and rates `N_l · dt/dx`
     /// `[N·D]` (zero outside the box), from the host positions.
-    fn level_data(&self, host: &[f64], level: &Level) -> (Vec<u32>, Vec<f64>, Vec<f64>) {
+    fn level_data(&self, host: &[f64], level: &HashLevel) -> (Vec<u32>, Vec<f64>, Vec<f64>) {
         let p = &self.plan;
         let (d, corners) = (p.d, 1usize << p.d);
         let n = host.len() / d;
@@ -495,7 +362,7 @@ impl HashGrid {
         let mut rows = Vec::with_capacity(n * corners);
         let mut origin = Vec::with_capacity(n * d);
         let mut rate = Vec::with_capacity(n * d);
-        let mut c = empty_corners();
+        let mut c = HashCorners::new();
         let (mut t, mut dt) = ([0.0; 4], [0.0; 4]);
         for row in host.chunks(d) {
             p.unit(row, &mut t, &mut dt);
@@ -601,171 +468,6 @@ impl HashGrid {
             per_level.push(dweights.transpose(1, 2)?.contiguous()?.matmul(&feats)?);
         }
         Ok(Tensor::cat(&per_level, 2)?)
-    }
-}
-
-/// The fused CPU op: `(x [N, D], table [R, F]) → [N, L·F]`.
-struct FusedHashGrid(Arc<Plan>);
-
-impl FusedHashGrid {
-    fn forward<T: candle_core::WithDType>(&self, x: &[T], table: &[T]) -> Vec<T> {
-        let p = &*self.0;
-        let (d, f, w) = (p.d, p.f, p.width());
-        let mut out = vec![T::from_f64(0.0); (x.len() / d) * w];
-        let items: Vec<_> = out.chunks_mut(ROWS * w).zip(x.chunks(ROWS * d)).collect();
-        crate::kernels::for_each_init(items, empty_corners, |c, (out, x)| {
-            for (o, row) in out.chunks_mut(w).zip(x.chunks(d)) {
-                let (t, dt) = p.unit_of(row);
-                for (l, level) in p.levels.iter().enumerate() {
-                    p.corners(level, &t, &dt, false, c);
-                    for j in 0..f {
-                        let mut acc = 0.0;
-                        for k in 0..c.n {
-                            acc += c.weights[k] * table[c.rows[k] * f + j].to_f64();
-                        }
-                        o[l * f + j] = T::from_f64(acc);
-                    }
-                }
-            }
-        });
-        out
-    }
-
-    /// The table gradient: level by level, each level's points in order (deterministic
-    /// at any thread count), accumulated in f64.
-    fn table_grad<T: candle_core::WithDType>(&self, x: &[T], g: &[T]) -> Vec<T> {
-        let p = &*self.0;
-        let (d, f, w) = (p.d, p.f, p.width());
-        let total: usize = p.levels.iter().map(|l| l.rows).sum();
-        let mut grads = vec![T::from_f64(0.0); total * f];
-        let mut parts: Vec<&mut [T]> = Vec::with_capacity(p.levels.len());
-        let mut rest = grads.as_mut_slice();
-        for level in &p.levels {
-            let (head, tail) = rest.split_at_mut(level.rows * f);
-            parts.push(head);
-            rest = tail;
-        }
-        let items: Vec<_> = parts.into_iter().zip(p.levels.iter().enumerate()).collect();
-        crate::kernels::for_each_init(items, empty_corners, |c, (part, (l, level))| {
-            let mut acc = vec![0.0f64; level.rows * f];
-            for (row, gr) in x.chunks(d).zip(g.chunks(w)) {
-                let (t, dt) = p.unit_of(row);
-                p.corners(level, &t, &dt, false, c);
-                for j in 0..f {
-                    let gj = gr[l * f + j].to_f64();
-                    if gj == 0.0 {
-                        continue;
-                    }
-                    for k in 0..c.n {
-                        acc[(c.rows[k] - level.offset) * f + j] += c.weights[k] * gj;
-                    }
-                }
-            }
-            for (o, a) in part.iter_mut().zip(&acc) {
-                *o = T::from_f64(*a);
-            }
-        });
-        grads
-    }
-
-    /// The position gradient, point by point.
-    fn position_grad<T: candle_core::WithDType>(&self, x: &[T], table: &[T], g: &[T]) -> Vec<T> {
-        let p = &*self.0;
-        let (d, f, w) = (p.d, p.f, p.width());
-        let mut gx = vec![T::from_f64(0.0); x.len()];
-        let items: Vec<_> = gx
-            .chunks_mut(ROWS * d)
-            .zip(x.chunks(ROWS * d))
-            .zip(g.chunks(ROWS * w))
-            .collect();
-        crate::kernels::for_each_init(items, empty_corners, |c, ((gx, x), g)| {
-            for ((o, row), gr) in gx.chunks_mut(d).zip(x.chunks(d)).zip(g.chunks(w)) {
-                let (t, dt) = p.unit_of(row);
-                let mut acc = [0.0f64; 4];
-                for (l, level) in p.levels.iter().enumerate() {
-                    p.corners(level, &t, &dt, true, c);
-                    for k in 0..c.n {
-                        let mut s = 0.0;
-                        for j in 0..f {
-                            s += gr[l * f + j].to_f64() * table[c.rows[k] * f + j].to_f64();
-                        }
-                        for (a, dw) in acc.iter_mut().zip(&c.dweights[k]).take(d) {
-                            *a += s * dw;
-                        }
-                    }
-                }
-                for k in 0..d {
-                    o[k] = T::from_f64(acc[k]);
-                }
-            }
-        });
-        gx
-    }
-}
-
-impl candle_core::CustomOp2 for FusedHashGrid {
-    fn name(&self) -> &'static str {
-        "nf-hash-grid"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &candle_core::CpuStorage,
-        l1: &candle_core::Layout,
-        s2: &candle_core::CpuStorage,
-        l2: &candle_core::Layout,
-    ) -> candle_core::Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        use candle_core::CpuStorage;
-        let [(a, b), (c, e)] = crate::kernels::contiguous([l1, l2], "hash grid")?;
-        let rows = l1.dims().first().copied().unwrap_or(0);
-        let out = match (s1, s2) {
-            (CpuStorage::F32(x), CpuStorage::F32(t)) => {
-                CpuStorage::F32(self.forward(&x[a..b], &t[c..e]))
-            }
-            (CpuStorage::F64(x), CpuStorage::F64(t)) => {
-                CpuStorage::F64(self.forward(&x[a..b], &t[c..e]))
-            }
-            _ => candle_core::bail!("hash grid: f32 or f64 positions and table of one dtype"),
-        };
-        Ok((out, candle_core::Shape::from((rows, self.0.width()))))
-    }
-
-    fn bwd(
-        &self,
-        x: &Tensor,
-        table: &Tensor,
-        _res: &Tensor,
-        grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
-        let grad = grad.contiguous()?;
-        let (xs, xl) = x.storage_and_layout();
-        let (ts, tl) = table.storage_and_layout();
-        let (gs, gl) = grad.storage_and_layout();
-        let op = "hash grid";
-        let want_x = x.track_op();
-        macro_rules! run {
-            ($t:ty) => {{
-                let xv = crate::kernels::cpu_slice::<$t>(&xs, xl, op, "positions")?;
-                let tv = crate::kernels::cpu_slice::<$t>(&ts, tl, op, "table")?;
-                let gv = crate::kernels::cpu_slice::<$t>(&gs, gl, op, "gradient")?;
-                let gt = Tensor::from_vec(self.table_grad(xv, gv), table.shape(), table.device())?;
-                let gx = if want_x {
-                    Some(Tensor::from_vec(
-                        self.position_grad(xv, tv, gv),
-                        x.shape(),
-                        x.device(),
-                    )?)
-                } else {
-                    None
-                };
-                (gx, Some(gt))
-            }};
-        }
-        Ok(match x.dtype() {
-            DType::F32 => run!(f32),
-            DType::F64 => run!(f64),
-            other => candle_core::bail!("hash grid: unsupported dtype {other:?}"),
-        })
     }
 }
 

@@ -1,6 +1,6 @@
 //! The crate's fused CPU kernels, one operation per file, below every module that uses
-//! them (kernels import only `numerics` and candle; the modules above pass their own
-//! types in through plain data and the traits defined here):
+//! them (kernels import only `numerics`, `error`, `narrow` and candle; the modules above
+//! pass their own types in through plain data and the traits defined here):
 //!
 //! * `mlp`: an MLP's every layer on a tile of points in one pass, forward and backward
 //!   (`FusedMlp`, what [`crate::nn::Mlp`] runs on the CPU), and the layer plan it runs;
@@ -10,6 +10,18 @@
 //! * `nerf_loss`: NeRF's photometric loss, compositing included, as one op that computes
 //!   its parameter gradient in the forward pass (`FusedNerfLoss`, with `RowEncode`, the
 //!   encodings it evaluates inside its tiles);
+//! * `hash_grid`: instant-NGP's multiresolution hash encoding (`FusedHashGrid`, what
+//!   [`crate::encoding::HashGrid`] runs on the CPU), with the level geometry (`HashPlan`)
+//!   its reference path shares;
+//! * `grid_sample`: bilinear/trilinear sampling of feature planes and grids
+//!   (`FusedGridSample`, for [`crate::encoding::grid_sample`]), with the sampling
+//!   geometry (`GridGeometry`) its reference path shares;
+//! * `scatter`: scatter-max pooling of point features into cells (`FusedScatterMax`, for
+//!   [`crate::encoding::scatter`] with [`crate::encoding::Pooling::Max`]), which keeps the
+//!   u32 cell index in the op's value;
+//! * `frequency`: the frequency positional encoding with `2ᵏπ` (`FusedFrequency`, what
+//!   [`crate::encoding::FrequencyEncoding`] runs on the CPU), whose rows the NeRF loss
+//!   also evaluates inside its tiles;
 //! * `composite`: volume compositing of either sample layout with its O(S)-per-ray
 //!   backward (`FusedComposite`), built for three instruction sets;
 //! * `activation` and `simd`: the vectorised hidden activations (ReLU, softplus with its
@@ -19,7 +31,8 @@
 //!
 //! Each kernel's reference path, made of candle ops and running on any device, stays
 //! beside the operation in its module (e.g. `volume`'s compositing reference, the
-//! `force_reference` path of [`crate::nn::Mlp`]); the tests compare every kernel with it.
+//! `force_reference` paths of [`crate::nn::Mlp`] and of the encodings); the tests compare
+//! every kernel with it.
 //!
 //! # Writing a kernel: the dispatch helper
 //! A kernel is a type holding the op's shapes and settings that implements
@@ -53,6 +66,9 @@ mod activation;
 #[cfg_attr(not(feature = "volume"), allow(dead_code))]
 mod composite;
 mod dispatch;
+mod frequency;
+mod grid_sample;
+mod hash_grid;
 mod mlp;
 mod mlp_tangents;
 #[cfg_attr(not(feature = "volume"), allow(dead_code))]
@@ -60,6 +76,7 @@ mod nerf;
 #[cfg_attr(not(feature = "volume"), allow(dead_code))]
 mod nerf_loss;
 mod parallel;
+mod scatter;
 #[cfg(target_arch = "x86_64")]
 mod simd;
 
@@ -71,10 +88,16 @@ pub use composite::X_MAX;
 pub(crate) use composite::{FusedComposite, Geometry, KernelBuild, Segments};
 #[allow(unused_imports)] // the dispatch helper's whole interface, for every kernel
 pub(crate) use dispatch::{contiguous, cpu_bwd, cpu_fwd, cpu_op, cpu_slice, CpuKernel, Real};
+pub(crate) use frequency::{FusedFrequency, Trig};
+pub(crate) use grid_sample::{FusedGridSample, GridCorners, GridGeometry};
+pub(crate) use hash_grid::{FusedHashGrid, HashCorners, HashLevel, HashPlan};
 pub(crate) use mlp::{FusedMlp, LayerPlan};
 pub(crate) use mlp_tangents::FusedMlpJvp;
 #[cfg_attr(not(feature = "volume"), allow(unused_imports))]
 pub(crate) use nerf::FusedNerf;
 #[cfg_attr(not(feature = "volume"), allow(unused_imports))]
 pub(crate) use nerf_loss::{Density, FusedNerfLoss, RowEncode};
+// Outside the kernels, only `volume` runs its own items on the pool.
+#[cfg_attr(not(feature = "volume"), allow(unused_imports))]
 pub(crate) use parallel::for_each_init;
+pub(crate) use scatter::FusedScatterMax;
