@@ -321,7 +321,7 @@ pub fn ray_aabb(rays: &Rays, min: [f64; 3], max: [f64; 3]) -> Result<Intersectio
 /// Range: the sphere must be resolvable in the dtype at the origin's distance
 /// (`r ≫ ulp(|o − c|)`); in f32 keep `|o − c| ≤ 10⁶·r`. Beyond, `|o − c|² − r²` loses `r²`,
 /// and intermediate partials of the backward overflow f32 even where the true gradient
-/// is finite (`tests/stiff_cases.rs` sweeps within this range).
+/// is finite (`tests/stiff_cases_camera.rs` sweeps within this range).
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `center` if not finite; `radius` unless finite and
