@@ -44,7 +44,7 @@
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{Optimizer, VarBuilder, VarMap};
 use clap::{Parser, ValueEnum};
-use neural_fields::camera::{cameras_around, ray_aabb, Camera, PixelFilter, Rays};
+use neural_fields::camera::{cameras_around, patch_rays, ray_aabb, Camera, PixelFilter, Rays};
 use neural_fields::data::{
     colorize_depth, comparison_strip, load, load_eval, psnr, ssim, write_png, Background, Dataset,
     LoadConfig, RaySampler, Split,
@@ -457,22 +457,8 @@ fn regnerf_depth_smoothness(r: &Renderer, cameras: &[Camera], seed: u64) -> Resu
     const PATCHES: usize = 16;
     const K: usize = 8;
     let unseen = cameras_around(cameras, PATCHES, seed)?;
-    let mut rng = neural_fields::rng::SplitMix64::new(seed);
-    let (mut o, mut d) = (Vec::new(), Vec::new());
-    for cam in &unseen {
-        let k = cam.intrinsics();
-        let u0 = rng.below((k.width.saturating_sub(K) + 1) as u64) as f64;
-        let v0 = rng.below((k.height.saturating_sub(K) + 1) as u64) as f64;
-        let pixels: Vec<f64> = (0..K * K)
-            .flat_map(|p| [u0 + (p % K) as f64 + 0.5, v0 + (p / K) as f64 + 0.5])
-            .collect();
-        let pixels = Tensor::from_vec(pixels, (K * K, 2), &Device::Cpu)?.to_dtype(DType::F32)?;
-        let patch = cam.rays_for_pixels(&pixels)?;
-        o.push(patch.origins().clone());
-        d.push(patch.directions().clone());
-    }
+    let rays = patch_rays(&unseen, K, seed, &Device::Cpu, DType::F32)?;
     let n = PATCHES * K * K;
-    let rays = Rays::new(Tensor::cat(&o, 0)?, Tensor::cat(&d, 0)?)?;
     let black = Tensor::zeros((n, 3), DType::F32, &Device::Cpu)?;
     let (out, _, _) = r.render(&rays, &black, Some(seed))?;
     let depth = out.normalized_depth(1e-6)?.reshape((PATCHES, K, K))?;

@@ -35,9 +35,9 @@
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
 use clap::Parser;
-use neural_fields::camera::{cameras_around, ray_aabb, Camera, Rays};
+use neural_fields::camera::{cameras_around, patch_rays, ray_aabb, Camera, Rays};
 use neural_fields::data::{
-    colorize_depth, comparison_strip, load, psnr, write_png, Bounds, LoadConfig, RaySampler, Split,
+    colorize_depth, comparison_strip, load, psnr, write_png, LoadConfig, RaySampler, Split,
 };
 use neural_fields::encoding::{CoarseToFine, PointEncoding};
 use neural_fields::nn::build_seeded;
@@ -146,29 +146,17 @@ struct Run {
     renders: Vec<[Tensor; 4]>,
 }
 
-/// The scene box: the layout's bounds, or the cube of half-side 1.5 (nerfacc's for the
-/// Blender scenes) for layouts that state none.
-fn scene_box(bounds: Option<Bounds>) -> ([f64; 3], [f64; 3]) {
-    match bounds {
-        Some(Bounds::Aabb { min, max }) => (min, max),
-        Some(Bounds::Sphere {
-            center: c,
-            radius: r,
-        }) => (c.map(|x| x - r), c.map(|x| x + r)),
-        _ => ([-1.5; 3], [1.5; 3]),
-    }
-}
-
 /// Stratified intervals across the scene box (jittered with `seed`, annealed to RegNeRF's
 /// range at `anneal = Some(step)`).
 fn intervals(
     rays: &Rays,
-    scene: ([f64; 3], [f64; 3]),
+    scene: [f64; 6],
     n: usize,
     seed: Option<u64>,
     anneal: Option<usize>,
 ) -> Result<Intervals> {
-    let hit = ray_aabb(rays, scene.0, scene.1)?;
+    let [x0, y0, z0, x1, y1, z1] = scene;
+    let hit = ray_aabb(rays, [x0, y0, z0], [x1, y1, z1])?;
     let (near, far) = match anneal {
         Some(step) => anneal_near_far(
             &hit.near,
@@ -211,33 +199,14 @@ fn render(net: &Nerf, rays: &Rays, iv: &Intervals, background: &Tensor) -> Resul
 fn patch_smoothness(
     net: &Nerf,
     cameras: &[Camera],
-    scene: ([f64; 3], [f64; 3]),
+    scene: [f64; 6],
     args: &Args,
     step: usize,
 ) -> Result<Tensor> {
     const K: usize = 8;
     let seed = args.seed ^ step as u64;
     let unseen = cameras_around(cameras, 16, seed)?;
-    let mut rng = neural_fields::rng::SplitMix64::new(seed);
-    let mut pixels = Vec::new();
-    for (c, cam) in unseen.iter().enumerate() {
-        let k = cam.intrinsics();
-        let u0 = rng.below((k.width.saturating_sub(K) + 1) as u64) as f64;
-        let v0 = rng.below((k.height.saturating_sub(K) + 1) as u64) as f64;
-        let grid: Vec<f32> = (0..K * K)
-            .flat_map(|i| {
-                [
-                    (u0 + (i % K) as f64 + 0.5) as f32,
-                    (v0 + (i / K) as f64 + 0.5) as f32,
-                ]
-            })
-            .collect();
-        let rays = cam.rays_for_pixels(&Tensor::from_vec(grid, (K * K, 2), &Device::Cpu)?)?;
-        pixels.push((c, rays));
-    }
-    let origins: Vec<&Tensor> = pixels.iter().map(|(_, r)| r.origins()).collect();
-    let directions: Vec<&Tensor> = pixels.iter().map(|(_, r)| r.directions()).collect();
-    let rays = Rays::new(Tensor::cat(&origins, 0)?, Tensor::cat(&directions, 0)?)?;
+    let rays = patch_rays(&unseen, K, seed, &Device::Cpu, DType::F32)?;
     let iv = intervals(&rays, scene, args.samples, Some(seed), Some(step))?;
     let out = render(
         net,
@@ -281,7 +250,7 @@ fn train(args: &Args, name: &str, regularised: bool) -> Result<Run> {
             },
         )
     })?;
-    let scene = scene_box(train.bounds());
+    let scene = train.scene_box(1.5); // nerfacc's cube for layouts that state none
     let span = regularised.then_some(args.coarse_to_fine.0).flatten();
     let varmap = VarMap::new();
     let windows = std::cell::RefCell::new(Vec::new());

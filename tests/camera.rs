@@ -7,8 +7,8 @@ use candle_core::{DType, Device, Tensor, Var};
 use common::v64;
 use glam::{DAffine3, DMat3, DQuat, DVec3};
 use neural_fields::camera::{
-    ray_aabb, ray_sphere, Camera, Convention, Intersection, Intrinsics, PixelFilter, PoseParam,
-    Rays,
+    patch_rays, ray_aabb, ray_sphere, Camera, Convention, Intersection, Intrinsics, PixelFilter,
+    PoseParam, Rays,
 };
 use neural_fields::Error;
 use proptest::prelude::*;
@@ -1023,4 +1023,72 @@ fn cameras_around_sit_at_the_mean_distance_and_look_at_the_centre() {
         })
         .collect();
     assert_eq!(arg(cameras_around(&parallel, 3, 0)), "cameras");
+}
+
+/// Each patch is a `k × k` block of the camera's own pixel rays, in row-major order, at a
+/// corner reproducible from the seed; a block larger than the image starts at its corner.
+#[test]
+fn patch_rays_are_blocks_of_the_cameras_pixel_rays() {
+    let k = Intrinsics::from_fov_y(12, 9, 0.7).unwrap();
+    let cams: Vec<Camera> = [DVec3::new(0.0, -4.0, 1.0), DVec3::new(3.0, 0.5, -1.0)]
+        .iter()
+        .map(|&e| Camera::look_at(k, e, DVec3::ZERO, DVec3::Z, Convention::OpenCv).unwrap())
+        .collect();
+    for dtype in DTYPES {
+        let rays = patch_rays(&cams, 4, 7, &dev(), dtype).unwrap();
+        assert_eq!(rays.len(), 2 * 16);
+        assert_eq!(rays.directions().dtype(), dtype);
+        let (o, d) = (v2(rays.origins()), v2(rays.directions()));
+        for (c, cam) in cams.iter().enumerate() {
+            let full = cam.rays(&dev(), DType::F64).unwrap();
+            let fd = v2(full.directions());
+            // The block's corner: the full-image ray matching the patch's first ray.
+            let first = &d[c * 16];
+            let corner = fd
+                .iter()
+                .position(|r| r.iter().zip(first).all(|(a, b)| (a - b).abs() < 1e-5))
+                .expect("the first patch ray is a pixel ray");
+            let (u0, v0) = (corner % 12, corner / 12);
+            assert!(u0 <= 12 - 4 && v0 <= 9 - 4, "corner ({u0}, {v0})");
+            for j in 0..4 {
+                for i in 0..4 {
+                    let want = &fd[(v0 + j) * 12 + u0 + i];
+                    let got = &d[c * 16 + j * 4 + i];
+                    for (a, b) in want.iter().zip(got) {
+                        assert!((a - b).abs() < 1e-5, "{want:?} vs {got:?}");
+                    }
+                    let centre = cam.cam_to_world().translation.to_array();
+                    for (a, b) in o[c * 16 + j * 4 + i].iter().zip(centre) {
+                        assert!((a - b).abs() < 1e-5);
+                    }
+                }
+            }
+        }
+        // Reproducible from the seed; another seed moves the blocks.
+        let again = patch_rays(&cams, 4, 7, &dev(), dtype).unwrap();
+        assert_eq!(v2(again.directions()), d);
+        let other = patch_rays(&cams, 4, 8, &dev(), dtype).unwrap();
+        assert_ne!(v2(other.directions()), d);
+    }
+    // A block larger than the image starts at its corner (0, 0).
+    let big = patch_rays(&cams[..1], 16, 3, &dev(), DType::F64).unwrap();
+    let full = cams[0].rays(&dev(), DType::F64).unwrap();
+    assert_eq!(v2(big.directions())[0], v2(full.directions())[0]);
+    // Bad input names the argument.
+    let arg = |e: Error| match e {
+        Error::InvalidArgument { arg, .. } => arg,
+        other => panic!("{other}"),
+    };
+    assert_eq!(
+        arg(patch_rays(&[], 4, 0, &dev(), DType::F32).unwrap_err()),
+        "cameras"
+    );
+    assert_eq!(
+        arg(patch_rays(&cams, 0, 0, &dev(), DType::F32).unwrap_err()),
+        "k"
+    );
+    assert_eq!(
+        arg(patch_rays(&cams, 4, 0, &dev(), DType::U8).unwrap_err()),
+        "dtype"
+    );
 }

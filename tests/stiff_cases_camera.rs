@@ -60,6 +60,7 @@ const POSES: &[&str] = &[
     "camera::align_cameras",
     "camera::align_similarity",
     "camera::cameras_around",
+    "camera::patch_rays",
     "camera::reprojection_error",
     "camera::retract_pose",
     "camera::pose_error",
@@ -488,6 +489,24 @@ fn sweep_camera_host(s: &mut Suite) {
                     .collect()
             },
         );
+        for dtype in [DType::F32, DType::F64] {
+            s.case(
+                "camera::patch_rays",
+                format!("{dtype:?}, cameras at distance {r:e}"),
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let cams: Vec<Camera> = [DVec3::X, -DVec3::Y]
+                        .iter()
+                        .map(|&e| {
+                            Camera::look_at(k, e * r, DVec3::ZERO, DVec3::Z, Convention::OpenCv)
+                        })
+                        .collect::<neural_fields::Result<_>>()?;
+                    let rays = neural_fields::camera::patch_rays(&cams, 4, 2, &Device::Cpu, dtype)?;
+                    Ok(vec![rays.origins().clone(), rays.directions().clone()])
+                },
+            );
+        }
     }
     // Alignment by the views of scenes at every magnitude (cameras 3·x from the scene,
     // points within 0.3·x), onto a copy scaled by up to 1e±150: finite maps, or `Err`

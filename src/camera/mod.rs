@@ -774,3 +774,63 @@ pub fn cameras_around(cameras: &[Camera], count: usize, seed: u64) -> Result<Vec
     }
     Ok(out)
 }
+
+/// Rays through one random `k × k` block of pixel centres of each camera (RegNeRF's
+/// patches, rendered from unobserved viewpoints such as [`cameras_around`]'s): for camera
+/// `c`, the block's corner `(u₀, v₀)` is drawn uniformly from
+/// `0..=width − k` × `0..=height − k` (0 where the image is smaller than the block), and
+/// ray `c·k² + j·k + i` passes through pixel `(u₀ + i + ½, v₀ + j + ½)`. Reproducible from
+/// `seed` (the corners are the draws of [`SplitMix64`](crate::rng::SplitMix64) seeded
+/// with it, `u₀` then `v₀` per camera). Returns `C·k²` rays in `dtype` on `device`,
+/// laid out so that `reshape((C, k, k))` of a per-ray quantity gives each patch as an
+/// image; not differentiable (the pixels are constants).
+///
+/// ```
+/// use candle_core::{DType, Device};
+/// use neural_fields::camera::{patch_rays, Camera, Convention, Intrinsics};
+/// use neural_fields::glam::DVec3;
+///
+/// let k = Intrinsics::from_fov_y(32, 24, 0.7)?;
+/// let cam = Camera::look_at(k, DVec3::new(0.0, -4.0, 1.0), DVec3::ZERO, DVec3::Z, Convention::OpenGl)?;
+/// let rays = patch_rays(&[cam, cam], 8, 0, &Device::Cpu, DType::F32)?;
+/// assert_eq!(rays.len(), 2 * 8 * 8);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `cameras` if empty, `k` unless between 1 and 2¹²,
+/// `dtype` unless f32 or f64.
+pub fn patch_rays(
+    cameras: &[Camera],
+    k: usize,
+    seed: u64,
+    device: &Device,
+    dtype: DType,
+) -> Result<Rays> {
+    if cameras.is_empty() {
+        return Err(Error::invalid("cameras", "at least one camera", "none"));
+    }
+    if !(1..=1 << 12).contains(&k) {
+        return Err(Error::invalid(
+            "k",
+            "a patch side in 1..=4096",
+            k.to_string(),
+        ));
+    }
+    check_dtype(dtype)?;
+    let mut rng = crate::rng::SplitMix64::new(seed);
+    let (mut origins, mut directions) = (Vec::new(), Vec::new());
+    for cam in cameras {
+        let size = &cam.intrinsics;
+        let u0 = rng.below((size.width.saturating_sub(k) + 1) as u64) as f64;
+        let v0 = rng.below((size.height.saturating_sub(k) + 1) as u64) as f64;
+        let pixels: Vec<f64> = (0..k * k)
+            .flat_map(|p| [u0 + (p % k) as f64 + 0.5, v0 + (p / k) as f64 + 0.5])
+            .collect();
+        let pixels = Tensor::from_vec(pixels, (k * k, 2), device)?.to_dtype(dtype)?;
+        let rays = cam.rays_for_pixels(&pixels)?;
+        origins.push(rays.origins().clone());
+        directions.push(rays.directions().clone());
+    }
+    Rays::new(Tensor::cat(&origins, 0)?, Tensor::cat(&directions, 0)?)
+}
