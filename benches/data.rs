@@ -28,7 +28,7 @@ fn bench_data(c: &mut Criterion) {
         b.iter(|| {
             let data = load(dir, &config).expect("load");
             let mut s = RaySampler::new(&data, 0, &Device::Cpu, DType::F32).expect("sampler");
-            s.pixels(4096).expect("batch").len()
+            s.pixels(4096).expect("batch").rays.len()
         })
     });
     g.finish();

@@ -62,12 +62,12 @@ fn bench(c: &mut Criterion) {
         ..MarchConfig::default()
     };
     let hits = march(&net, &rays, &bounds, &cfg).unwrap();
-    let idx = Tensor::from_vec(
-        hits.surface_indices(),
-        hits.surface_indices().len(),
-        &Device::Cpu,
-    )
-    .unwrap();
+    let surface: Vec<u32> = (0u32..)
+        .zip(&hits.status)
+        .filter(|(_, s)| s.has_surface())
+        .map(|(i, _)| i)
+        .collect();
+    let idx = Tensor::from_vec(surface.clone(), surface.len(), &Device::Cpu).unwrap();
     let points = hits.points.index_select(&idx, 0).unwrap();
     let mut g = c.benchmark_group("dvr_implicit_vs_forward");
     g.measurement_time(Duration::from_secs(3)).sample_size(20);

@@ -41,7 +41,12 @@ fn inputs() -> Inputs {
             .contiguous()
             .unwrap()
     };
-    let intervals = Intervals::new(edges(0.0), edges(1.0)).unwrap();
+    let intervals = Intervals::new(
+        edges(0.0),
+        edges(1.0),
+        neural_fields::volume::Layout::Batched,
+    )
+    .unwrap();
     Inputs {
         sigmas: Var::from_tensor(&Tensor::from_vec(sig, (RAYS, SAMPLES), &dev).unwrap()).unwrap(),
         colors: Var::from_tensor(&Tensor::from_vec(col, (RAYS, SAMPLES, 3), &dev).unwrap())

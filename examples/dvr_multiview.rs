@@ -598,7 +598,7 @@ fn check_masks(data: &Dataset) -> Result<()> {
         return Err(Error::InvalidArgument {
             arg: "data",
             expected: "masks that cover the object in some training view".into(),
-            got: format!("{} views whose masks are all empty", data.len()),
+            got: format!("{} views whose masks are all empty", data.views().len()),
         });
     }
     Ok(())
@@ -755,7 +755,11 @@ fn shade_rays(net: &Net, rays: &Rays, aabb: [f64; 6]) -> Result<[Tensor; 4]> {
     let device = rays.origins().device();
     let [x0, y0, z0, x1, y1, z1] = aabb;
     let hits = net.find_surface(rays, &ray_aabb(rays, [x0, y0, z0], [x1, y1, z1])?)?;
-    let hit_rays = hits.surface_indices();
+    let hit_rays: Vec<u32> = (0u32..)
+        .zip(&hits.status)
+        .filter(|(_, s)| s.has_surface())
+        .map(|(i, _)| i)
+        .collect();
     let coverage = hits.mask.to_dtype(dtype)?;
     let mut rgb = Tensor::ones((n, 3), dtype, device)?;
     let mut normals = Tensor::zeros((n, 3), dtype, device)?;
@@ -929,9 +933,13 @@ fn source_mesh(args: &Args) -> Result<Option<Mesh>> {
 fn extract_mesh(net: &Net, aabb: [f64; 6], resolution0: usize) -> Result<Mesh> {
     let (device, dtype) = (Device::Cpu, DType::F32);
     let config = MiseConfig {
+        resolution0,
+        upsampling_steps: 2,
         min: [aabb[0], aabb[1], aabb[2]],
         max: [aabb[3], aabb[4], aabb[5]],
-        ..MiseConfig::new(resolution0, 2, &device, dtype)
+        device: device.clone(),
+        dtype,
+        ..MiseConfig::default()
     };
     let mut mesh = mise(net.surface(), &config)?.mesh;
     if mesh.faces.is_empty() {
@@ -1100,7 +1108,7 @@ fn refine_eval_poses(
     seed: u64,
 ) -> Result<Dataset> {
     let (device, dtype) = (Device::Cpu, DType::F32);
-    let mut refined = Vec::with_capacity(eval.len());
+    let mut refined = Vec::with_capacity(eval.views().len());
     for (v, view) in eval.views().iter().enumerate() {
         let one = Dataset::new(vec![view.clone()], eval.background(), eval.bounds())?;
         let pose = PoseParam::from_affine(&view.camera().cam_to_world(), &device, dtype)?;
@@ -1380,9 +1388,9 @@ pub fn run(args: &Args) -> Result<Summary> {
     );
     println!(
         "{model}: training on {} views of {}, evaluating on {} {eval_split} views",
-        train.len(),
+        train.views().len(),
         args.data.display(),
-        eval.len()
+        eval.views().len()
     );
     let mut curve = String::from("step,train_seconds,mask_iou,psnr_masked\n");
     let (mut step, mut registered_at) = (0usize, None);
@@ -1512,7 +1520,7 @@ pub fn run(args: &Args) -> Result<Summary> {
         .as_ref()
         .or(aligned_eval.as_ref())
         .unwrap_or(&eval);
-    let all = evaluate(&net, final_eval, eval.len(), aabb)?;
+    let all = evaluate(&net, final_eval, eval.views().len(), aabb)?;
     let first = evaluate(&net, final_eval, args.eval_views, aabb)?;
     curve.push_str(&format!(
         "{step},{train_seconds:.3},{:.4},{:.4}\n",
@@ -1563,7 +1571,7 @@ pub fn run(args: &Args) -> Result<Summary> {
         ("encoding", serde_json::json!(name(args.encoding))),
         ("render_inputs", serde_json::json!(name(args.render_inputs))),
         ("eval_split", serde_json::json!(eval_split)),
-        ("eval_views", serde_json::json!(eval.len())),
+        ("eval_views", serde_json::json!(eval.views().len())),
         ("data", serde_json::json!(args.data.display().to_string())),
     ] {
         metrics[key] = value;
@@ -1606,11 +1614,11 @@ pub fn run(args: &Args) -> Result<Summary> {
         metrics["pose_reprojection_px"] = serde_json::json!({"before": before, "after": after});
     }
     if let (Some(aligned), Some(_)) = (&aligned_eval, &registered) {
-        metrics["aligned"] = eval_json(&evaluate(&net, aligned, eval.len(), aabb)?);
+        metrics["aligned"] = eval_json(&evaluate(&net, aligned, eval.views().len(), aabb)?);
         metrics["test_pose_steps"] = serde_json::json!(args.test_pose_steps);
     }
     if let Some(learnt) = &learnt_mesh {
-        let mut unaligned = eval_json(&evaluate(&net, &eval, eval.len(), aabb)?);
+        let mut unaligned = eval_json(&evaluate(&net, &eval, eval.views().len(), aabb)?);
         unaligned["chamfer_l1"] = serde_json::json!(chamfer_of(learnt)?);
         metrics["unaligned"] = unaligned;
         metrics["alignment"] = similarity_json(&frame);
@@ -1626,7 +1634,7 @@ pub fn run(args: &Args) -> Result<Summary> {
         all.iou,
         all.psnr_masked,
         chamfer_l1.map_or("unknown".into(), |c| format!("{c:.5}")),
-        eval.len(),
+        eval.views().len(),
         args.out.display()
     );
     Ok(Summary {
@@ -1822,13 +1830,13 @@ mod tests {
         assert!((scale - 1.0).abs() < 0.1, "{metrics}");
         let poses = read_json(&out.join("poses.json"));
         let views = poses["views"].as_array().unwrap();
-        assert_eq!(views.len(), data.len());
+        assert_eq!(views.len(), data.views().len());
         assert_eq!(views[0]["name"], data.views()[0].name());
         let last_row = serde_json::json!([0.0, 0.0, 0.0, 1.0]);
         assert_eq!(views[0]["cam_to_world_aligned"][3], last_row);
         // The written poses read back.
         let back = read_poses(&out.join("poses.json"), &moved).unwrap();
-        assert_eq!(back.len(), data.len());
+        assert_eq!(back.len(), data.views().len());
         let _ = std::fs::remove_dir_all(&out);
     }
 

@@ -28,7 +28,8 @@ use neural_fields::mesh::{points_from_tensor, points_to_tensor, Mesh};
 use neural_fields::nn::{adam, build_seeded, mlp, Activation, MlpConfig};
 use neural_fields::numerics::bce_with_logits;
 use neural_fields::occupancy::{
-    inside_mesh, iou, mesh_metrics, mise, near_surface, uniform_in_padded_cube, MiseConfig,
+    iou, mesh_metrics, mise, near_surface, uniform_in_padded_cube, winding_numbers, MiseConfig,
+    WindingConfig,
 };
 use neural_fields::rng::SplitMix64;
 use neural_fields::Error;
@@ -72,7 +73,7 @@ fn main() -> neural_fields::Result<()> {
         input.display(),
         gt.vertices.len(),
         gt.faces.len(),
-        gt.is_watertight_and_oriented()
+        !gt.faces.is_empty() && gt.edge_report() == (0, 0, 0)
     );
     let device = Device::Cpu;
     let dtype = DType::F32;
@@ -122,7 +123,13 @@ fn main() -> neural_fields::Result<()> {
     let mut opt = adam(&varmap, 2e-3)?;
     let mut rng = SplitMix64::new(5);
     let batch = 4096;
-    let mise_cfg = MiseConfig::new(32, 2, &device, dtype);
+    let mise_cfg = MiseConfig {
+        resolution0: 32,
+        upsampling_steps: 2,
+        device: device.clone(),
+        dtype,
+        ..MiseConfig::default()
+    };
     let report = |step: usize, loss: f32| -> neural_fields::Result<Mesh> {
         let pred = net.value(&eval_tensor)?.gt(0.0)?.to_vec1::<u8>()?;
         let pred: Vec<bool> = pred.into_iter().map(|b| b != 0).collect();
@@ -193,4 +200,12 @@ fn main() -> neural_fields::Result<()> {
     }
     println!("total wall time {:.1} s", start.elapsed().as_secs_f64());
     Ok(())
+}
+
+/// The inside test for real meshes: `|w(p)| > ½` for the generalised winding number `w`.
+fn inside_mesh(mesh: &Mesh, points: &[[f64; 3]]) -> Result<Vec<bool>, Error> {
+    Ok(winding_numbers(mesh, points, &WindingConfig::default())?
+        .into_iter()
+        .map(|w| w.abs() > 0.5)
+        .collect())
 }

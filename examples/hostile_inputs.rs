@@ -108,17 +108,17 @@ fn read(reader: &str, path: &Path) -> Res<String> {
                 faces as f64 / bytes as f64
             )
         }
-        "cloud" => format!("cloud {} points", PointCloud::load(path)?.len()),
+        "cloud" => format!("cloud {} points", PointCloud::load(path)?.points().len()),
         "blender" => format!(
             "dataset, views: {}",
-            load(path, &LoadConfig::default())?.len()
+            load(path, &LoadConfig::default())?.views().len()
         ),
         "npz" => {
             let config = LoadConfig {
                 split: Split::All,
                 ..LoadConfig::default()
             };
-            format!("dataset, views: {}", load(path, &config)?.len())
+            format!("dataset, views: {}", load(path, &config)?.views().len())
         }
         other => return Err(format!("unknown reader {other:?}").into()),
     })

@@ -472,7 +472,7 @@ fn regnerf_depth_smoothness(r: &Renderer, cameras: &[Camera], seed: u64) -> Resu
 /// `[truth, colour, depth, opacity]`.
 fn evaluate(r: &Renderer, eval: &Dataset, n: usize) -> Result<(f64, f64, Vec<[Tensor; 4]>)> {
     let (mut p, mut s, mut renders) = (0.0, 0.0, Vec::new());
-    let n = n.min(eval.len());
+    let n = n.min(eval.views().len());
     for v in 0..n {
         let truth =
             eval.views()[v].rgb(eval.background().eval_color(), &Device::Cpu, DType::F32)?;
@@ -612,11 +612,11 @@ fn run(args: &Args) -> Result<()> {
     let k0 = train.views()[0].camera().intrinsics();
     println!(
         "training on {} views of {} ({} {}), evaluating on {} {eval_split} views; sampler {:?}",
-        train.len(),
+        train.views().len(),
         args.data.display(),
         k0.width,
         k0.height,
-        eval.len(),
+        eval.views().len(),
         args.sampler
     );
     let mut clock = Clock::start(budget)?;
@@ -672,7 +672,7 @@ fn run(args: &Args) -> Result<()> {
         // With k > 1, each pixel's k² rays averaged (a box filter) against the pixel's
         // colour, which every one of its rays carries.
         let (color, target) = if k > 1 {
-            let px = batch.len() / (k * k);
+            let px = batch.rays.len() / (k * k);
             let target = batch
                 .colors
                 .reshape((px, k * k, 3))?
@@ -708,7 +708,7 @@ fn run(args: &Args) -> Result<()> {
         }
         if step.is_multiple_of(args.eval_every) {
             let seconds = clock.train_seconds();
-            let shown = args.eval_views.min(eval.len());
+            let shown = args.eval_views.min(eval.views().len());
             let p = clock.pause(|| {
                 bar.suspend(|| -> Result<f64> {
                     let (p, _, _) = evaluate(&r, &eval, args.eval_views)?;
@@ -735,7 +735,7 @@ fn run(args: &Args) -> Result<()> {
         grid: grid.as_ref(),
         ..base
     };
-    let (p, s, renders) = evaluate(&r, &eval, eval.len())?;
+    let (p, s, renders) = evaluate(&r, &eval, eval.views().len())?;
     let shown = args.eval_views.min(renders.len());
     let mut first = 0.0;
     for [truth, color, _, _] in &renders[..shown] {
@@ -764,7 +764,7 @@ fn run(args: &Args) -> Result<()> {
         "sampler": format!("{:?}", args.sampler).to_lowercase(),
         "encoding": format!("{:?}", args.encoding).to_lowercase(),
         "eval_split": eval_split,
-        "eval_views": eval.len(),
+        "eval_views": eval.views().len(),
         "eval_supersample": args.eval_supersample,
         "pixel_filter": format!("{:?}", args.pixel_filter).to_lowercase(),
         "jitter": args.jitter,
@@ -782,7 +782,7 @@ fn run(args: &Args) -> Result<()> {
     )?;
     println!(
         "{step} steps in {train_seconds:.1} s: held-out PSNR {p:.2} dB, SSIM {s:.4} over {} {eval_split} views; wrote {}",
-        eval.len(),
+        eval.views().len(),
         args.out.display()
     );
     Ok(())

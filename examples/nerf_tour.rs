@@ -55,6 +55,6 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     std::fs::create_dir_all(&args.out)?; // one picture: every test view, side by side
     write_png(&args.out.join("nerf_tour.png"), &Tensor::cat(&views, 1)?)?;
-    println!("test PSNR {:.2} dB", total / test.len() as f64);
+    println!("test PSNR {:.2} dB", total / test.views().len() as f64);
     Ok(())
 }

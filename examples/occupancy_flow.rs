@@ -374,7 +374,13 @@ fn run(a: &Args) -> Result<()> {
     // Meshes: MISE on the time-0 decoder, its vertices carried to every time.
     let out = mise(
         &model.decoder as &dyn ImplicitSurface,
-        &MiseConfig::new(32, 2, &device, dtype),
+        &MiseConfig {
+            resolution0: 32,
+            upsampling_steps: 2,
+            device: device.clone(),
+            dtype,
+            ..MiseConfig::default()
+        },
     )?;
     let mut mesh = out.mesh;
     if mesh.faces.is_empty() {

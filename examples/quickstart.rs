@@ -152,7 +152,16 @@ fn run(args: &Args) -> neural_fields::Result<()> {
 
     // Extract the learned surface: MISE evaluates the network near the surface only.
     let t = Instant::now();
-    let out = mise(&net, &MiseConfig::new(16, 3, &device, dtype))?;
+    let out = mise(
+        &net,
+        &MiseConfig {
+            resolution0: 16,
+            upsampling_steps: 3,
+            device: device.clone(),
+            dtype,
+            ..MiseConfig::default()
+        },
+    )?;
     let dense_evals = 129usize.pow(3);
     println!(
         "MISE: {} faces from {} network evaluations ({:.0}× fewer than a dense 129³ grid) in {:.2} s",

@@ -353,7 +353,7 @@ fn train(args: &Args, name: &str, regularised: bool) -> Result<Run> {
         }
         renders.push([truth, color, depth, opacity]);
     }
-    let psnr = total / eval.len() as f64;
+    let psnr = total / eval.views().len() as f64;
     let metrics =
         serde_json::json!({ "psnr": psnr, "steps": step, "train_seconds": train_seconds });
     write_json(&out.join("metrics.json"), &metrics)?;

@@ -115,6 +115,29 @@ fn radiance(net: &Mlp, points: &Tensor) -> Result<(Tensor, Tensor)> {
 /// (rays that miss it get the black background): stratified intervals (jittered with
 /// `seed` when given), the density and colour of `field` at the midpoints, batched
 /// compositing.
+/// `n` rays through pixel centres drawn uniformly with replacement from `rng`, and their
+/// linear pixel indices `v · width + u` as a `[n]` u32 tensor.
+fn random_rays(
+    camera: &Camera,
+    n: usize,
+    rng: &mut SplitMix64,
+    device: &Device,
+    dtype: DType,
+) -> Result<(Rays, Tensor)> {
+    let w = camera.intrinsics().width;
+    let total = (w * camera.intrinsics().height) as u64;
+    let idx: Vec<u32> = (0..n).map(|_| rng.below(total) as u32).collect();
+    let pixels: Vec<f64> = idx
+        .iter()
+        .flat_map(|&i| [(i as usize % w) as f64 + 0.5, (i as usize / w) as f64 + 0.5])
+        .collect();
+    let pixels = Tensor::from_vec(pixels, (n, 2), device)?.to_dtype(dtype)?;
+    Ok((
+        camera.rays_for_pixels(&pixels)?,
+        Tensor::from_vec(idx, n, device)?,
+    ))
+}
+
 fn render_stratified(
     rays: &Rays,
     n: usize,
@@ -251,8 +274,7 @@ fn train(
         let (mut os, mut ds, mut targets) = (Vec::new(), Vec::new(), Vec::new());
         for _ in 0..VIEWS_PER_STEP {
             let v = 1 + rng.below((VIEWS - 1) as u64) as usize;
-            let (rays, idx) =
-                cameras[v].random_rays(RAYS_PER_VIEW, rng.next_u64(), device, dtype)?;
+            let (rays, idx) = random_rays(&cameras[v], RAYS_PER_VIEW, &mut rng, device, dtype)?;
             os.push(rays.origins().clone());
             ds.push(rays.directions().clone());
             targets.push(images[v].index_select(&idx, 0)?);

@@ -30,7 +30,7 @@ mod coarse_to_fine;
 mod feature_grid;
 mod hash;
 
-pub use coarse_to_fine::{coarse_to_fine_weights, CoarseToFine};
+pub use coarse_to_fine::CoarseToFine;
 pub use feature_grid::{
     cell_index, grid_sample, scatter, GridSampleConfig, Pooling, ScatterConfig,
 };
@@ -284,12 +284,6 @@ impl FourierFeatures {
         Ok(Self { b })
     }
 
-    /// The projection matrix `B: [F, D]`.
-    #[must_use]
-    pub fn matrix(&self) -> &Tensor {
-        &self.b
-    }
-
     /// `2·Bx` as `[N, F]` (so that `sin(π·2Bx) = sin(2πBx)` can be reduced exactly).
     fn twice_projection(&self, x: &Tensor) -> Result<Tensor> {
         let bt = self.b.to_device(x.device())?.to_dtype(x.dtype())?.t()?;
@@ -353,7 +347,7 @@ pub enum PointEncoding {
 impl PointEncoding {
     /// Output dimension for inputs of dimension `in_dim`.
     #[must_use]
-    pub fn out_dim_for(&self, in_dim: usize) -> usize {
+    pub(crate) fn out_dim_for(&self, in_dim: usize) -> usize {
         match self {
             PointEncoding::Identity => in_dim,
             PointEncoding::Frequency(e) => e.out_dim(),
@@ -366,7 +360,7 @@ impl PointEncoding {
     /// The input dimension the encoding requires (`None` for the identity, which takes
     /// any).
     #[must_use]
-    pub fn in_dim(&self) -> Option<usize> {
+    pub(crate) fn in_dim(&self) -> Option<usize> {
         match self {
             PointEncoding::Identity => None,
             PointEncoding::Frequency(e) => Some(e.in_dim()),

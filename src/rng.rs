@@ -52,7 +52,7 @@ impl SplitMix64 {
     ///
     /// # Errors
     /// Only candle's (e.g. an unsupported dtype on the device).
-    pub fn normal_tensor(
+    pub(crate) fn normal_tensor(
         &mut self,
         shape: &[usize],
         mean: f64,
@@ -106,5 +106,20 @@ mod tests {
             "{mean} {var}"
         );
         assert!((0..1000).all(|_| a.below(5) < 5));
+    }
+
+    /// Normal tensors stay finite for means and deviations from 1e-30 to 1e30, in f32 and
+    /// f64, with the shape, dtype and device asked for.
+    #[test]
+    fn normal_tensors_stay_finite_at_extreme_parameters() -> candle_core::Result<()> {
+        for dtype in [DType::F32, DType::F64] {
+            for (mean, std) in [(0.0f64, 1e-30f64), (-1e30, 1e30), (1e10, 1e10)] {
+                let t = SplitMix64::new(1).normal_tensor(&[64], mean, std, dtype, &Device::Cpu)?;
+                assert_eq!((t.dims(), t.dtype()), (&[64][..], dtype));
+                let v = t.to_dtype(DType::F64)?.to_vec1::<f64>()?;
+                assert!(v.iter().all(|x| x.is_finite()), "{dtype:?}, {mean}, {std}");
+            }
+        }
+        Ok(())
     }
 }

@@ -10,6 +10,7 @@ use neural_fields::camera::{
     patch_rays, ray_aabb, ray_sphere, Camera, Convention, Intersection, Intrinsics, PixelFilter,
     PoseParam, Rays,
 };
+use neural_fields::rng::SplitMix64;
 use neural_fields::Error;
 use proptest::prelude::*;
 
@@ -207,13 +208,32 @@ fn rays_cover_all_pixels_row_major() {
     }
 }
 
+/// Rays through `n` pixel centres drawn uniformly with replacement from `seed`
+/// (`SplitMix64::below` over the `W·H` linear indices `v · width + u`), by
+/// `Camera::rays_for_pixels`; with the indices as a `[n]` u32 tensor.
+fn random_pixel_rays(cam: &Camera, n: usize, seed: u64, dtype: DType) -> (Rays, Tensor) {
+    let (w, h) = (cam.intrinsics().width, cam.intrinsics().height);
+    let mut rng = SplitMix64::new(seed);
+    let idx: Vec<u32> = (0..n).map(|_| rng.below((w * h) as u64) as u32).collect();
+    let px: Vec<f64> = idx
+        .iter()
+        .flat_map(|&i| [(i as usize % w) as f64 + 0.5, (i as usize / w) as f64 + 0.5])
+        .collect();
+    let pixels = Tensor::from_vec(px, (n, 2), &dev())
+        .unwrap()
+        .to_dtype(dtype)
+        .unwrap();
+    let rays = cam.rays_for_pixels(&pixels).unwrap();
+    (rays, Tensor::from_vec(idx, n, &dev()).unwrap())
+}
+
 #[test]
-fn random_rays_are_seeded_uniform_and_match_the_full_image() {
+fn random_pixel_rays_are_seeded_uniform_and_match_the_full_image() {
     let i = Intrinsics::new(5.0, 5.0, 1.0, 1.0, 2, 2).unwrap();
     let cam = Camera::look_at(i, DVec3::ZERO, DVec3::Z, DVec3::Y, Convention::OpenGl).unwrap();
-    let (rays, idx) = cam.random_rays(40_000, 7, &dev(), DType::F64).unwrap();
-    let (_, idx2) = cam.random_rays(40_000, 7, &dev(), DType::F64).unwrap();
-    let (_, idx3) = cam.random_rays(40_000, 8, &dev(), DType::F64).unwrap();
+    let (rays, idx) = random_pixel_rays(&cam, 40_000, 7, DType::F64);
+    let (_, idx2) = random_pixel_rays(&cam, 40_000, 7, DType::F64);
+    let (_, idx3) = random_pixel_rays(&cam, 40_000, 8, DType::F64);
     assert_eq!(idx.dtype(), DType::U32);
     let a = idx.to_vec1::<u32>().unwrap();
     assert_eq!(a, idx2.to_vec1::<u32>().unwrap());
@@ -747,9 +767,11 @@ fn camera_methods_reject_bad_dtype_and_n() {
             arg_of(cam.subpixel_grid(1, PixelFilter::Box, &dev(), dt)),
             "dtype"
         );
-        assert_eq!(arg_of(cam.random_rays(4, 0, &dev(), dt)), "dtype");
+        let pixels = Tensor::zeros((4, 2), dt, &dev()).unwrap();
+        assert_eq!(arg_of(cam.rays_for_pixels(&pixels)), "pixels");
     }
-    assert_eq!(arg_of(cam.random_rays(0, 0, &dev(), DType::F32)), "n");
+    let none = Tensor::zeros((0, 2), DType::F32, &dev()).unwrap();
+    assert!(cam.rays_for_pixels(&none).unwrap().is_empty());
 }
 
 #[test]

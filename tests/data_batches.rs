@@ -75,7 +75,7 @@ fn committed_blender_dataset_rays_pass_through_blender_projected_vertices() {
     ] {
         let data = load(Path::new(WUSON), &of_split(split)).unwrap();
         let frames = points["frames"][name].as_array().unwrap();
-        assert_eq!(frames.len(), data.len());
+        assert_eq!(frames.len(), data.views().len());
         for (view, frame) in data.views().iter().zip(frames) {
             let file = frame["file_path"]
                 .as_str()
@@ -116,11 +116,13 @@ fn committed_dtu_dataset_rays_pass_through_blender_projected_vertices() {
     );
     let data = load(Path::new(WUSON_DTU), &of_split(Split::All)).unwrap();
     let frames = points["frames"].as_array().unwrap();
-    assert_eq!(frames.len(), data.len());
+    assert_eq!(frames.len(), data.views().len());
     let mut worst = 0.0f64;
     for (view, frame) in data.views().iter().zip(frames) {
         assert!(view.name().ends_with(frame["image"].as_str().unwrap()));
-        assert!(view.mask_image().is_some());
+        // A mask file: a mask, and no alpha channel it could come from.
+        assert!(view.mask(&Device::Cpu, DType::F32).unwrap().is_some());
+        assert_eq!(view.image().size().2, 3);
         for (vert, px) in verts.iter().zip(frame["pixels"].as_array().unwrap()) {
             assert!(vert.length() < 1.0, "inside the unit sphere");
             let px = DVec2::new(px[0].as_f64().unwrap(), px[1].as_f64().unwrap());
@@ -135,7 +137,12 @@ fn committed_dtu_dataset_rays_pass_through_blender_projected_vertices() {
 fn committed_dataset_has_the_documented_splits_and_masks() {
     let counts: Vec<usize> = [Split::Train, Split::Val, Split::Test, Split::All]
         .into_iter()
-        .map(|split| load(Path::new(WUSON), &of_split(split)).unwrap().len())
+        .map(|split| {
+            load(Path::new(WUSON), &of_split(split))
+                .unwrap()
+                .views()
+                .len()
+        })
         .collect();
     assert_eq!(counts, [50, 10, 20, 80]);
     let test = load(Path::new(WUSON), &of_split(Split::Test)).unwrap();
@@ -284,7 +291,7 @@ fn patches_are_k_by_k_blocks_of_adjacent_pixels_in_one_view() {
     let mut sampler = RaySampler::new(&data, 3, &Device::Cpu, DType::F64).unwrap();
     let (count, k) = (40, 4);
     let batch = sampler.patches(count, k).unwrap();
-    assert_eq!(batch.len(), count * k * k);
+    assert_eq!(batch.rays.len(), count * k * k);
     let (views, pixels) = (u32s(&batch.views), u32s(&batch.pixels));
     for p in 0..count {
         let base = p * k * k;
@@ -349,51 +356,51 @@ fn random_backgrounds_are_drawn_per_ray_and_composited_into_the_targets() {
             assert!((colors[3 * i + c] - want).abs() < 1e-12);
         }
     }
-    // Evaluation chunks use white.
-    let chunk = data.view_rays(0, 0, 10, &Device::Cpu, DType::F64).unwrap();
-    assert!(v64(&chunk.backgrounds).iter().all(|&b| b == 1.0));
+    // Evaluation uses white.
+    assert_eq!(data.background().eval_color(), [1.0; 3]);
 }
 
+/// A whole view chunk by chunk: its camera's rays (row-major, pixel centres) narrowed to
+/// each chunk, with the view's colours on the evaluation background in the same order.
 #[test]
 fn view_chunks_cover_the_image_in_row_major_order() {
     let data = two_views();
     let (w, h) = (20usize, 12usize);
+    let view = &data.views()[1];
+    let all = view.camera().rays(&Device::Cpu, DType::F32).unwrap();
+    let rgb = view
+        .rgb(data.background().eval_color(), &Device::Cpu, DType::F32)
+        .unwrap()
+        .reshape((w * h, 3))
+        .unwrap();
     let mut colors = Vec::new();
     let mut start = 0;
     while start < w * h {
         let len = 64.min(w * h - start);
-        let chunk = data
-            .view_rays(1, start, len, &Device::Cpu, DType::F32)
+        let chunk = all.narrow(start, len).unwrap();
+        let first = view
+            .camera()
+            .rays_for_pixels(
+                &Tensor::new(
+                    &[[(start % w) as f32 + 0.5, (start / w) as f32 + 0.5]],
+                    &Device::Cpu,
+                )
+                .unwrap(),
+            )
             .unwrap();
-        let px = u32s(&chunk.pixels);
-        assert_eq!((px[0] as usize, px[1] as usize), (start % w, start / w));
-        colors.extend(v64(&chunk.colors));
+        assert_eq!(
+            v64(&chunk.directions().narrow(0, 0, 1).unwrap()),
+            v64(first.directions())
+        );
+        colors.extend(v64(&rgb.narrow(0, start, len).unwrap()));
         start += len;
     }
-    let want = v64(&data.views()[1]
-        .rgb([0.2, 0.4, 0.6], &Device::Cpu, DType::F32)
-        .unwrap());
+    let want = v64(&view.rgb([0.2, 0.4, 0.6], &Device::Cpu, DType::F32).unwrap());
     assert_eq!(colors, want);
-    assert_eq!(
-        arg(data.view_rays(2, 0, 1, &Device::Cpu, DType::F32)),
-        "view"
-    );
-    assert_eq!(
-        arg(data.view_rays(1, 239, 2, &Device::Cpu, DType::F32)),
-        "start"
-    );
-    assert_eq!(
-        arg(data.view_rays(1, usize::MAX, 2, &Device::Cpu, DType::F32)),
-        "start"
-    );
-    assert_eq!(
-        arg(data.view_rays(1, 0, 0, &Device::Cpu, DType::F32)),
-        "len"
-    );
-    assert_eq!(
-        arg(data.view_rays(1, 0, 1, &Device::Cpu, DType::U8)),
-        "dtype"
-    );
+    assert!(data.views().get(2).is_none(), "two views");
+    assert_eq!(arg(all.narrow(239, 2)), "len");
+    assert_eq!(arg(all.narrow(usize::MAX, 2)), "start");
+    assert_eq!(arg(view.camera().rays(&Device::Cpu, DType::U8)), "dtype");
 }
 
 /// A jittering sampler sends each ray through a random point of its own pixel (spread over
@@ -498,7 +505,7 @@ fn pixel_footprints_cover_each_pixel_with_its_subpixel_grid() {
             .unwrap()
             .pixel_footprints(n, k)
             .unwrap();
-        assert_eq!(batch.len(), n * k * k);
+        assert_eq!(batch.rays.len(), n * k * k);
         let px = batch.pixels.to_vec2::<u32>().unwrap();
         let colors = batch.colors.to_vec2::<f64>().unwrap();
         let bgs = batch.backgrounds.to_vec2::<f64>().unwrap();
@@ -537,10 +544,11 @@ fn pixel_footprints_cover_each_pixel_with_its_subpixel_grid() {
 }
 
 /// The argument an `InvalidArgument` error names.
-fn arg(r: neural_fields::Result<neural_fields::data::RayBatch>) -> &'static str {
+fn arg<T>(r: neural_fields::Result<T>) -> &'static str {
     match r {
         Err(Error::InvalidArgument { arg, .. }) => arg,
-        other => panic!("{:?}", other.map(|b| b.len())),
+        Err(e) => panic!("{e}"),
+        Ok(_) => panic!("expected an invalid argument"),
     }
 }
 
@@ -559,68 +567,6 @@ fn blackman_harris_cdf(x: f64, h: f64) -> f64 {
             .sum::<f64>()
     };
     integral(x.clamp(-h, h)) / integral(h)
-}
-
-/// `PixelFilter::quantile` inverts each filter's cumulative distribution: the box's is
-/// `u − ½`; the Blackman–Harris window's (Cycles' default, ±1.5 px) is checked against a
-/// numerical integral of the window, with its symmetry, its ends at ±h, its standard
-/// deviation (0.4155 px at h = 1.5, against the box's 0.2887) and its refusals.
-#[test]
-fn pixel_filter_quantiles_invert_the_filters_distributions() {
-    for u in [0.0, 0.1, 0.25, 0.5, 0.9, 1.0] {
-        assert_eq!(PixelFilter::Box.quantile(u).unwrap(), u - 0.5);
-    }
-    for h in [0.5, 1.5, 4.0] {
-        let f = PixelFilter::BlackmanHarris { half_width: h };
-        assert!((f.quantile(0.0).unwrap() + h).abs() < 1e-12 * h);
-        assert!((f.quantile(1.0).unwrap() - h).abs() < 1e-12 * h);
-        let mut last = -h;
-        for i in 1..100 {
-            let u = i as f64 / 100.0;
-            let x = f.quantile(u).unwrap();
-            assert!(x > last, "quantile not increasing at u = {u}");
-            last = x;
-            assert!(
-                (f.quantile(1.0 - u).unwrap() + x).abs() < 1e-12 * h,
-                "not symmetric at u = {u}"
-            );
-            let back = blackman_harris_cdf(x, h);
-            assert!(
-                (back - u).abs() < 1e-6,
-                "h = {h}, u = {u}: F(q(u)) = {back}"
-            );
-            // And to rounding against the closed form of the distribution.
-            let [a0, a1, a2, a3] = [0.35875, 0.48829, 0.14128, 0.01168];
-            let (t, z) = (std::f64::consts::TAU, (x + h) / (2.0 * h));
-            let closed = z - a1 / (t * a0) * (t * z).sin()
-                + a2 / (2.0 * t * a0) * (2.0 * t * z).sin()
-                - a3 / (3.0 * t * a0) * (3.0 * t * z).sin();
-            assert!(
-                (closed - u).abs() < 1e-14,
-                "h = {h}, u = {u}: closed-form F(q(u)) = {closed}"
-            );
-        }
-    }
-    // The standard deviation of the offsets, by the midpoint rule in u.
-    let sd = |f: PixelFilter| {
-        let n = 20_000;
-        let m2: f64 = (0..n)
-            .map(|i| f.quantile((i as f64 + 0.5) / n as f64).unwrap().powi(2))
-            .sum();
-        (m2 / n as f64).sqrt()
-    };
-    assert!((sd(PixelFilter::CYCLES) - 0.4155).abs() < 1e-3);
-    assert!((sd(PixelFilter::Box) - 12f64.sqrt().recip()).abs() < 1e-4);
-    let arg = |r: neural_fields::Result<f64>| match r {
-        Err(Error::InvalidArgument { arg, .. }) => arg,
-        other => panic!("expected an argument error, got {other:?}"),
-    };
-    assert_eq!(arg(PixelFilter::CYCLES.quantile(1.5)), "u");
-    assert_eq!(arg(PixelFilter::CYCLES.quantile(f64::NAN)), "u");
-    for half_width in [0.0, -1.0, 65.0, f64::NAN, f64::INFINITY] {
-        let f = PixelFilter::BlackmanHarris { half_width };
-        assert_eq!(arg(f.quantile(0.5)), "filter");
-    }
 }
 
 /// With Cycles' filter, a jittering sampler's rays pass through offsets from the pixel
@@ -672,9 +618,17 @@ fn a_sampler_with_cycles_filter_draws_offsets_from_the_filter() {
         .unwrap()
         .pixel_footprints(8, k)
         .unwrap();
+    // The sub-pixel grid of pixel (0, 0): row j of its first k is at the corner plus
+    // ½ + q((j + ½)/k), q the filter's quantile.
+    let grid = data.views()[0]
+        .camera()
+        .subpixel_grid(k, filter, &d, DType::F64)
+        .unwrap()
+        .to_vec2::<f64>()
+        .unwrap();
     for (r, [x, y]) in offsets(&feet).into_iter().enumerate() {
         let (i, j) = ((r % (k * k)) / k, r % k);
-        let want = |m: usize| filter.quantile((m as f64 + 0.5) / k as f64).unwrap();
+        let want = |m: usize| grid[m][0] - 0.5;
         assert!(
             (x - want(j)).abs() < 1e-9 && (y - want(i)).abs() < 1e-9,
             "ray {r}"

@@ -103,7 +103,7 @@ fn blender_sample_parses_to_its_cameras_and_pixels() {
     blender_sample(&dir, "test", 2);
     assert_eq!(detected_layout(&dir), DatasetLayout::Blender);
     let data = load(&dir, &LoadConfig::default()).unwrap();
-    assert_eq!(data.len(), 3);
+    assert_eq!(data.views().len(), 3);
     assert_eq!(data.bounds(), None);
     let f = 0.5 * 4.0 / (0.5f64 * 0.6911112070083618).tan();
     for (i, view) in data.views().iter().enumerate() {
@@ -129,7 +129,7 @@ fn blender_sample_parses_to_its_cameras_and_pixels() {
         other => panic!("{other:?}"),
     }
     let test = load(&dir, &of_split(Split::Test)).unwrap();
-    assert_eq!(test.len(), 2);
+    assert_eq!(test.views().len(), 2);
 }
 
 #[test]
@@ -166,7 +166,7 @@ fn nerfstudio_sample_parses_with_global_and_per_frame_intrinsics() {
     assert_eq!(detected_layout(&dir), DatasetLayout::Nerfstudio);
     let train = load(&dir, &LoadConfig::default()).unwrap();
     // Every 8th frame (0 and 8) is held out.
-    assert_eq!(train.len(), 7);
+    assert_eq!(train.views().len(), 7);
     assert!(train.views()[0].name().ends_with("frame_00002.jpg"));
     let k = train.views()[0].camera().intrinsics();
     assert_eq!(
@@ -288,7 +288,7 @@ fn dtu_sample_decomposes_world_and_scale_matrices() {
     let truth = dtu_sample(&dir, 3, 200.0, DVec3::new(30.0, -20.0, 500.0));
     assert_eq!(detected_layout(&dir), DatasetLayout::Dtu);
     let all = load(&dir, &of_split(Split::All)).unwrap();
-    assert_eq!(all.len(), 3);
+    assert_eq!(all.views().len(), 3);
     assert_eq!(
         all.bounds(),
         Some(Bounds::Sphere {
@@ -306,11 +306,13 @@ fn dtu_sample_decomposes_world_and_scale_matrices() {
         assert!((got.cam_to_world().translation - pose.translation).length() < 1e-9);
         let dm = got.cam_to_world().matrix3 - pose.matrix3;
         assert!(dm.to_cols_array().iter().all(|x| x.abs() < 1e-9));
-        assert!(view.mask_image().is_some());
+        // A mask file: a mask, and no alpha channel it could come from.
+        assert!(view.mask(&Device::Cpu, DType::F32).unwrap().is_some());
+        assert_eq!(view.image().size().2, 3);
     }
     // Hold-out rule: frame 0 is the test split.
     let test = load(&dir, &of_split(Split::Test)).unwrap();
-    assert_eq!(test.len(), 1);
+    assert_eq!(test.views().len(), 1);
 }
 
 fn analytic_dataset(convention: Convention, channels: usize) -> Dataset {
@@ -343,7 +345,7 @@ fn blender_writer_round_trips_poses_and_pixels_exactly() {
             },
         )
         .unwrap();
-        assert_eq!(back.len(), data.len());
+        assert_eq!(back.views().len(), data.views().len());
         for (a, b) in data.views().iter().zip(back.views()) {
             let (ka, kb) = (a.camera().intrinsics(), b.camera().intrinsics());
             assert_eq!(ka, kb);
@@ -677,13 +679,13 @@ fn held_out_split_falls_back_to_val_only_where_the_layout_has_no_test_split() {
     blender_sample(&dir, "val", 1);
     blender_sample(&dir, "test", 3);
     let (eval, split) = load_eval(&dir, &LoadConfig::default()).unwrap();
-    assert_eq!((split, eval.len()), (Split::Test, 3));
+    assert_eq!((split, eval.views().len()), (Split::Test, 3));
     // Without transforms_test.json: the val split.
     let dir = scratch("eval-blender-val");
     blender_sample(&dir, "train", 2);
     blender_sample(&dir, "val", 1);
     let (eval, split) = load_eval(&dir, &LoadConfig::default()).unwrap();
-    assert_eq!((split, eval.len()), (Split::Val, 1));
+    assert_eq!((split, eval.views().len()), (Split::Val, 1));
     // A test split that is there but broken is an error, not a fallback.
     let dir = scratch("eval-blender-broken");
     blender_sample(&dir, "train", 2);
@@ -698,7 +700,7 @@ fn held_out_split_falls_back_to_val_only_where_the_layout_has_no_test_split() {
     let dir = scratch("eval-dtu");
     dtu_sample(&dir, 3, 200.0, DVec3::new(30.0, -20.0, 500.0));
     let (eval, split) = load_eval(&dir, &LoadConfig::default()).unwrap();
-    assert_eq!((split, eval.len()), (Split::Test, 1));
+    assert_eq!((split, eval.views().len()), (Split::Test, 1));
     assert_eq!(eval.scene_box(0.3), [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]);
     // DTU images are 6×5: five cells per pixel of 6, raised to the coarsest level 16.
     assert_eq!(eval.hash_finest(), 30.0);

@@ -244,9 +244,7 @@ fn bumpy_mlp(seed: u64, code_dim: usize) -> (VarMap, Mlp) {
     names.sort();
     for name in names {
         let v = &data[name];
-        let noise = rng
-            .normal_tensor(v.dims(), 0.0, 0.1, DType::F64, &DEV)
-            .unwrap();
+        let noise = common::normal_tensor(&mut rng, v.dims(), 0.0, 0.1, DType::F64, &DEV).unwrap();
         v.set(&(v.as_tensor() + noise).unwrap()).unwrap();
     }
     drop(data);
@@ -321,7 +319,7 @@ proptest! {
         let mut checks = FdChecks::default();
         let (_varmap, net) = bumpy_mlp(seed, 4);
         let mut rng = SplitMix64::new(seed ^ 3);
-        let z = Var::from_tensor(&rng.normal_tensor(&[4], 0.0, 0.5, DType::F64, &DEV).unwrap()).unwrap();
+        let z = Var::from_tensor(&common::normal_tensor(&mut rng, &[4], 0.0, 0.5, DType::F64, &DEV).unwrap()).unwrap();
         let field = Conditioned::new(&net, z.as_tensor().clone()).unwrap();
         let (idx, o, w, n, fa) = hitting_rays(seed, 4, &field);
         prop_assume!(idx.dim(0).unwrap() >= 2);
@@ -350,7 +348,7 @@ proptest! {
         let (_varmap, net) = bumpy_mlp(seed, 4);
         // Codes for 16 candidate rays; the rays that hit cleanly keep their own rows.
         let mut rng = SplitMix64::new(seed ^ 7);
-        let z_all = rng.normal_tensor(&[16, 4], 0.0, 0.5, DType::F64, &DEV).unwrap();
+        let z_all = common::normal_tensor(&mut rng, &[16, 4], 0.0, 0.5, DType::F64, &DEV).unwrap();
         let all_codes = Conditioned::new(&net, z_all.clone()).unwrap();
         let (idx, o, w, n, fa) = hitting_rays(seed, 4, &all_codes);
         let r = idx.dim(0).unwrap();

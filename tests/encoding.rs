@@ -160,7 +160,11 @@ fn layouts_and_dimensions() {
     let ff = FourierFeatures::new(3, 256, 10.0, 1, &Device::Cpu, DType::F32).unwrap();
     assert_eq!(ff.out_dim(), 512);
     let again = FourierFeatures::new(3, 256, 10.0, 1, &Device::Cpu, DType::F32).unwrap();
-    assert_eq!(v64(ff.matrix()), v64(again.matrix()), "seeded");
+    assert_eq!(
+        v64(&ff.forward(&x).unwrap()),
+        v64(&again.forward(&x).unwrap()),
+        "seeded"
+    );
 }
 
 #[test]

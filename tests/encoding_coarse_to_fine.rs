@@ -6,8 +6,8 @@
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
 use neural_fields::encoding::{
-    coarse_to_fine_weights, hash_grid, CoarseToFine, Encoding, FourierFeatures, FrequencyEncoding,
-    HashGridConfig, PointEncoding,
+    hash_grid, CoarseToFine, Encoding, FourierFeatures, FrequencyEncoding, HashGridConfig,
+    PointEncoding,
 };
 use neural_fields::field::ImplicitSurface;
 use neural_fields::nn::{mlp, MlpConfig};
@@ -33,43 +33,25 @@ fn frequency(l: usize) -> CoarseToFine {
     .unwrap()
 }
 
-#[test]
-fn band_weights_have_their_closed_forms() {
-    let w = coarse_to_fine_weights(2.5, 4).unwrap();
-    assert_eq!(w[0], 1.0);
-    assert_eq!(w[1], 1.0);
-    assert!((w[2] - 0.5).abs() < 1e-15);
-    assert_eq!(w[3], 0.0);
-    assert_eq!(coarse_to_fine_weights(0.0, 3).unwrap(), vec![0.0; 3]);
-    assert_eq!(coarse_to_fine_weights(3.0, 3).unwrap(), vec![1.0; 3]);
-    assert_eq!(
-        coarse_to_fine_weights(f64::INFINITY, 2).unwrap(),
-        vec![1.0; 2]
-    );
-    assert_eq!(
-        coarse_to_fine_weights(f64::NEG_INFINITY, 2).unwrap(),
-        vec![0.0; 2]
-    );
-    assert!(coarse_to_fine_weights(0.0, 0).unwrap().is_empty());
-    // Non-decreasing in α and in [0, 1].
-    let mut last = vec![0.0; 5];
-    for i in 0..=600 {
-        let w = coarse_to_fine_weights(i as f64 / 100.0 - 0.5, 5).unwrap();
-        for (a, b) in w.iter().zip(&last) {
-            assert!((0.0..=1.0).contains(a) && a >= b);
-        }
-        last = w;
-    }
+/// BARF's band weight `w_k(α) = (1 − cos(π·clamp(α − k, 0, 1)))/2` (its closed forms are
+/// tested beside the window, in `src/encoding/coarse_to_fine.rs`).
+fn band_weight(alpha: f64, k: usize) -> f64 {
+    let u = (alpha - k as f64).clamp(0.0, 1.0);
+    0.5 * (1.0 - (std::f64::consts::PI * u).cos())
 }
 
 #[test]
-fn nan_alpha_is_refused_naming_alpha() {
-    let e = coarse_to_fine_weights(f64::NAN, 3).unwrap_err();
-    assert!(e.to_string().contains("alpha"), "{e}");
+fn a_refused_alpha_leaves_the_window_where_it_was() {
+    let x = points(5, 7, DType::F64);
     let c = frequency(3);
+    let before = rows(&c.forward(&x).unwrap());
     let e = c.set_alpha(f64::NAN).unwrap_err();
     assert!(e.to_string().contains("alpha"), "{e}");
-    assert_eq!(c.alpha(), 0.0, "a refused α leaves the window where it was");
+    assert_eq!(
+        rows(&c.forward(&x).unwrap()),
+        before,
+        "a refused α leaves the window where it was"
+    );
 }
 
 #[test]
@@ -96,7 +78,7 @@ fn frequency_window_scales_each_band_and_keeps_the_input() {
         let enc = PointEncoding::CoarseToFine(c.clone());
         for alpha in [0.0, 0.3, 1.5, 2.0, 3.99] {
             c.set_alpha(alpha).unwrap();
-            let w = coarse_to_fine_weights(alpha, 4).unwrap();
+            let w: Vec<f64> = (0..4).map(|k| band_weight(alpha, k)).collect();
             let got = rows(&enc.forward(&x).unwrap());
             for (gr, yr) in got.iter().zip(&y) {
                 for (col, (g, v)) in gr.iter().zip(yr).enumerate() {
@@ -154,11 +136,17 @@ fn hash_window_keeps_the_coarsest_level() {
 
 #[test]
 fn clones_share_the_window() {
+    let x = points(6, 5, DType::F64);
     let c = frequency(3);
     let in_config = PointEncoding::CoarseToFine(c.clone());
+    let closed = rows(&c.forward(&x).unwrap());
     c.set_alpha(1.25).unwrap();
+    let opened = rows(&c.forward(&x).unwrap());
+    assert_ne!(opened, closed);
     match in_config {
-        PointEncoding::CoarseToFine(inner) => assert_eq!(inner.alpha(), 1.25),
+        PointEncoding::CoarseToFine(inner) => {
+            assert_eq!(rows(&inner.forward(&x).unwrap()), opened)
+        }
         _ => unreachable!(),
     }
 }

@@ -34,7 +34,7 @@ fn grid(config: &HashGridConfig, dtype: DType, seed: u64) -> (VarMap, HashGrid) 
     let vb = VarBuilder::from_varmap(&varmap, dtype, &Device::Cpu);
     let g = hash_grid(config, vb).unwrap();
     let mut rng = SplitMix64::new(seed);
-    let t = g.table();
+    let t = table_var(&varmap);
     let fresh = rng
         .uniform_tensor(t.dims(), -1.0, 1.0, dtype, &Device::Cpu)
         .unwrap();
@@ -44,14 +44,15 @@ fn grid(config: &HashGridConfig, dtype: DType, seed: u64) -> (VarMap, HashGrid) 
     (varmap, g)
 }
 
-/// `g`'s twin on the reference path (`force_reference`): built from the same map, so it
-/// reads the same table.
-fn reference_twin(g: &HashGrid, varmap: &VarMap) -> HashGrid {
+/// The twin on the reference path (`force_reference`) of the grid built from `config` in
+/// `varmap`: built from the same map, so it reads the same table.
+fn reference_twin(config: &HashGridConfig, varmap: &VarMap) -> HashGrid {
     let config = HashGridConfig {
         force_reference: true,
-        ..g.config().clone()
+        ..config.clone()
     };
-    let vb = VarBuilder::from_varmap(varmap, g.table().dtype(), g.table().device());
+    let table = table_var(varmap);
+    let vb = VarBuilder::from_varmap(varmap, table.dtype(), table.device());
     hash_grid(&config, vb).unwrap()
 }
 
@@ -111,11 +112,20 @@ fn max_diff(a: &[f64], b: &[f64]) -> f64 {
         .fold(0.0, f64::max)
 }
 
-/// Values and gradients (table, positions) of `Σ c ⊙ γ(x)` on one path.
-fn run(g: &HashGrid, varmap: &VarMap, x: &[f64], reference: bool, dtype: DType) -> [Vec<f64>; 3] {
+/// Values and gradients (table, positions) of `Σ c ⊙ γ(x)` on one path: `g`'s, or with
+/// `reference = Some(config)` (`g`'s configuration) its twin on the reference path.
+fn run(
+    g: &HashGrid,
+    varmap: &VarMap,
+    x: &[f64],
+    reference: Option<&HashGridConfig>,
+    dtype: DType,
+) -> [Vec<f64>; 3] {
     let xv = Var::from_tensor(&tensor(x, dtype)).unwrap();
-    let y = if reference {
-        reference_twin(g, varmap).forward(xv.as_tensor()).unwrap()
+    let y = if let Some(config) = reference {
+        reference_twin(config, varmap)
+            .forward(xv.as_tensor())
+            .unwrap()
     } else {
         g.forward(xv.as_tensor()).unwrap()
     };
@@ -138,8 +148,8 @@ proptest! {
     fn fused_equals_reference(seed in 0u64..1000, log2 in prop::sample::select(vec![6u32, 12])) {
         let (varmap, g) = grid(&small(log2), DType::F64, seed);
         let x = points(&mut SplitMix64::new(seed + 1), 37);
-        let fused = run(&g, &varmap, &x, false, DType::F64);
-        let reference = run(&g, &varmap, &x, true, DType::F64);
+        let fused = run(&g, &varmap, &x, None, DType::F64);
+        let reference = run(&g, &varmap, &x, Some(&small(log2)), DType::F64);
         for (k, (a, b)) in fused.iter().zip(&reference).enumerate() {
             let worst = (0..a.len()).max_by(|&i, &j| (a[i] - b[i]).abs().total_cmp(&(a[j] - b[j]).abs())).unwrap_or(0);
             prop_assert!(max_diff(a, b) < 1e-10, "output {k}: {} at {worst}: {} vs {} (x = {:?})", max_diff(a, b), a[worst], b[worst], &x[worst / 3 * 3..worst / 3 * 3 + 3]);
@@ -152,7 +162,7 @@ proptest! {
     fn table_gradient_matches_finite_differences(seed in 0u64..1000) {
         let (varmap, g) = grid(&small(6), DType::F64, seed);
         let x = points(&mut SplitMix64::new(seed + 2), 9);
-        let [_, gt, _] = run(&g, &varmap, &x, false, DType::F64);
+        let [_, gt, _] = run(&g, &varmap, &x, None, DType::F64);
         let table = table_var(&varmap);
         let base = v64(table.as_tensor());
         let xt = tensor(&x, DType::F64);
@@ -182,7 +192,7 @@ proptest! {
     fn position_gradient_matches_finite_differences(seed in 0u64..1000) {
         let (varmap, g) = grid(&small(6), DType::F64, seed);
         let x = points(&mut SplitMix64::new(seed + 3), 11);
-        let [_, _, gx] = run(&g, &varmap, &x, false, DType::F64);
+        let [_, _, gx] = run(&g, &varmap, &x, None, DType::F64);
         let loss = |v: &[f64]| {
             let y = g.forward(&tensor(v, DType::F64)).unwrap();
             let c = weights(y.dims()[0], y.dims()[1], DType::F64);
@@ -209,8 +219,8 @@ proptest! {
 fn fused_equals_reference_in_f32() {
     let (varmap, g) = grid(&small(6), DType::F32, 5);
     let x = points(&mut SplitMix64::new(6), 50);
-    let fused = run(&g, &varmap, &x, false, DType::F32);
-    let reference = run(&g, &varmap, &x, true, DType::F32);
+    let fused = run(&g, &varmap, &x, None, DType::F32);
+    let reference = run(&g, &varmap, &x, Some(&small(6)), DType::F32);
     for (a, b) in fused.iter().zip(&reference) {
         assert!(max_diff(a, b) < 1e-4, "{}", max_diff(a, b));
     }
@@ -241,7 +251,7 @@ fn tangents_match_the_position_gradient_and_reach_the_table() {
         .unwrap()
         .sum(2)
         .unwrap();
-    let [_, _, gx] = run(&g, &varmap, &x, false, DType::F64);
+    let [_, _, gx] = run(&g, &varmap, &x, None, DType::F64);
     assert!(max_diff(&v64(&from_jac), &gx) < 1e-9);
     let grads = jac.sqr().unwrap().sum_all().unwrap().backward().unwrap();
     let gt = v64(grads.get(table_var(&varmap).as_tensor()).unwrap());
@@ -252,9 +262,9 @@ fn tangents_match_the_position_gradient_and_reach_the_table() {
 fn table_gradient_is_the_same_bit_for_bit_every_run() {
     let (varmap, g) = grid(&HashGridConfig::default(), DType::F32, 1);
     let x = points(&mut SplitMix64::new(2), 20_000);
-    let first = run(&g, &varmap, &x, false, DType::F32);
+    let first = run(&g, &varmap, &x, None, DType::F32);
     for _ in 0..3 {
-        let again = run(&g, &varmap, &x, false, DType::F32);
+        let again = run(&g, &varmap, &x, None, DType::F32);
         for (a, b) in first.iter().zip(&again) {
             assert!(a.iter().zip(b).all(|(p, q)| p.to_bits() == q.to_bits()));
         }
@@ -278,7 +288,9 @@ fn points_outside_the_box_are_clamped_and_nan_is_an_error() {
     let nan = tensor(&[f64::NAN, 0.0, 0.0], DType::F64);
     for e in [
         g.forward(&nan).unwrap_err(),
-        reference_twin(&g, &varmap).forward(&nan).unwrap_err(),
+        reference_twin(&small(6), &varmap)
+            .forward(&nan)
+            .unwrap_err(),
     ] {
         assert!(
             e.to_string().starts_with("x:") && e.to_string().contains("NaN"),
@@ -379,7 +391,14 @@ fn mlp_on_a_hash_grid_gives_normals_and_trains_the_table() {
     assert_eq!(jac.dims(), &[10, 3, 1]);
     let loss = (y.sum_all().unwrap() + jac.sqr().unwrap().sum_all().unwrap()).unwrap();
     let grads = loss.backward().unwrap();
-    assert!(grads.get(g.table()).is_some());
+    let table = varmap
+        .data()
+        .lock()
+        .unwrap()
+        .get("grid.table")
+        .expect("the grid's table is a variable of the map")
+        .clone();
+    assert!(grads.get(table.as_tensor()).is_some());
 }
 
 /// A digest of the fused table gradient's bits for a fixed problem (FNV-1a over the f32
@@ -387,7 +406,7 @@ fn mlp_on_a_hash_grid_gives_normals_and_trains_the_table() {
 fn table_gradient_digest() -> u64 {
     let (varmap, g) = grid(&HashGridConfig::default(), DType::F32, 11);
     let x = points(&mut SplitMix64::new(12), 30_000);
-    let [_, gt, _] = run(&g, &varmap, &x, false, DType::F32);
+    let [_, gt, _] = run(&g, &varmap, &x, None, DType::F32);
     gt.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, v| {
         (h ^ u64::from((*v as f32).to_bits())).wrapping_mul(0x0100_0000_01b3)
     })

@@ -212,7 +212,7 @@ fn random_velocity(dtype: DType, code_dim: usize) -> Result<(VarMap, VelocityFie
     named.sort_by(|a, b| a.0.cmp(b.0));
     for (name, var) in named {
         if name.starts_with("fc_out") || name.contains("fc1") {
-            let r = rng.normal_tensor(var.dims(), 0.0, 0.2, dtype, &DEV)?;
+            let r = normal_tensor(&mut rng, var.dims(), 0.0, 0.2, dtype, &DEV)?;
             var.set(&r)?;
         }
     }
@@ -316,8 +316,14 @@ fn occupancy_flow_decodes_points_carried_back_to_time_zero() -> Result<()> {
 fn codes_condition_the_velocity_and_receive_gradients() -> Result<()> {
     let (varmap, v) = random_velocity(DType::F64, 4)?;
     let p = SplitMix64::new(3).uniform_tensor(&[10, 3], -0.5, 0.5, DType::F64, &DEV)?;
-    let code =
-        Var::from_tensor(&SplitMix64::new(4).normal_tensor(&[4], 0.0, 1.0, DType::F64, &DEV)?)?;
+    let code = Var::from_tensor(&normal_tensor(
+        &mut SplitMix64::new(4),
+        &[4],
+        0.0,
+        1.0,
+        DType::F64,
+        &DEV,
+    )?)?;
     let out = v.carry(
         &p,
         &[0.0, 1.0],
@@ -614,4 +620,21 @@ fn deforming_torus_inverts_and_its_velocity_is_its_derivative() -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// A tensor of i.i.d. `N(mean, std²)` numbers drawn from `rng` (`SplitMix64::normal`),
+/// with the given shape, dtype and device.
+fn normal_tensor(
+    rng: &mut SplitMix64,
+    shape: &[usize],
+    mean: f64,
+    std: f64,
+    dtype: DType,
+    device: &Device,
+) -> candle_core::Result<Tensor> {
+    let n = shape.iter().product();
+    let v: Vec<f64> = (0..n).map(|_| mean + std * rng.normal()).collect();
+    Tensor::from_vec(v, shape, &Device::Cpu)?
+        .to_dtype(dtype)?
+        .to_device(device)
 }

@@ -16,6 +16,7 @@ use neural_fields::camera::Rays;
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::nn::build_seeded;
 use neural_fields::rng::SplitMix64;
+use neural_fields::volume::Layout;
 use neural_fields::volume::{nerf, DensityActivation, Nerf, NerfConfig};
 use neural_fields::volume::{stratified, CompositeConfig, Intervals, Jitter, Packed};
 use neural_fields::Error;
@@ -97,7 +98,12 @@ fn packed(counts: &[usize], dtype: DType) -> Intervals {
             .to_dtype(dtype)
             .unwrap()
     };
-    Intervals::new_packed(t(s), t(e), Packed::from_counts(counts, &DEV).unwrap()).unwrap()
+    Intervals::new(
+        t(s),
+        t(e),
+        Layout::Packed(Packed::from_counts(counts, &DEV).unwrap()),
+    )
+    .unwrap()
 }
 
 fn batched(r: usize, s: usize, dtype: DType, seed: u64) -> Intervals {
@@ -309,10 +315,10 @@ proptest! {
         let (r, target) = rays(&mut rng, 3, DType::F64);
         let r = Rays::new(r.origins().affine(scale, 0.0).unwrap(), r.directions().clone()).unwrap();
         let iv = packed(&[5, 9, 140], DType::F64);
-        let iv = Intervals::new_packed(
+        let iv = Intervals::new(
             iv.starts.affine(scale, 0.0).unwrap(),
             iv.ends.affine(scale, 0.0).unwrap(),
-            Packed::from_counts(&[5, 9, 140], &DEV).unwrap(),
+            Layout::Packed(Packed::from_counts(&[5, 9, 140], &DEV).unwrap()),
         ).unwrap();
         let cc = CompositeConfig::default();
         let loss = || net.color_loss(&r, &iv, &target, &cc).unwrap().to_scalar::<f64>().unwrap();

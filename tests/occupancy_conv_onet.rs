@@ -1,18 +1,19 @@
 //! Convolutional Occupancy Networks: shapes of the plane and grid variants, gradients
-//! reaching every parameter, the 3-D convolution against a direct sum (values and
-//! gradients), invariance of the encoder to the order of the input points, and errors.
+//! reaching every parameter, invariance of the encoder to the order of the input points,
+//! and errors. (The crate-private 3-D convolution is tested against a direct sum in
+//! `src/occupancy/conv_onet.rs`.)
 
 mod common;
 
-use candle_core::{DType, Device, Tensor, Var};
+use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use common::v64;
 use neural_fields::field::Field;
-use neural_fields::mesh::PointCloud;
+use neural_fields::mesh::{points_to_tensor, PointCloud};
 use neural_fields::occupancy::reconstruction_loss;
 use neural_fields::occupancy::{
-    conv3d, conv_onet_encoder, local_decoder, ConvOnetConfig, ConvOnetEncoder, FeatureLayout,
-    LocalDecoder, LocalDecoderConfig, LocalFeatures, UnetConfig,
+    conv_onet_encoder, local_decoder, ConvOnetConfig, ConvOnetEncoder, FeatureLayout, LocalDecoder,
+    LocalDecoderConfig, LocalFeatures, UnetConfig,
 };
 use neural_fields::rng::SplitMix64;
 
@@ -70,7 +71,6 @@ fn planes_and_grid_have_the_documented_shapes() {
             }
             LocalFeatures::Grid(g) => assert_eq!(g.dims(), dims.as_slice()),
         }
-        assert_eq!(f.batch_and_channels(), (2, 6));
         let q = cloud(2, 2, 17, DType::F32);
         assert_eq!(dec.logits(&q, &f).unwrap().dims(), &[2, 17]);
         // One scene as a Field; a batch of two cannot be bound.
@@ -80,7 +80,14 @@ fn planes_and_grid_have_the_documented_shapes() {
             None,
         )
         .unwrap();
-        let one = enc.encode_cloud(&pc).unwrap();
+        let one = enc
+            .forward(
+                &points_to_tensor(pc.points(), &Device::Cpu, DType::F32)
+                    .unwrap()
+                    .unsqueeze(0)
+                    .unwrap(),
+            )
+            .unwrap();
         let field = dec.bind(one).unwrap();
         let y = field.forward(&q.get(0).unwrap()).unwrap();
         assert_eq!(y.dims(), &[17, 1]);
@@ -122,111 +129,6 @@ fn gradients_reach_every_parameter() {
                 g.iter().any(|&v| v != 0.0),
                 "{layout:?}: zero gradient for {name}"
             );
-        }
-    }
-}
-
-/// `y[b, o, z, y, x] = Σ w[o, i, a, β, γ] x_pad[b, i, z + a, y + β, x + γ]` by loops,
-/// and its adjoints (the gradients of `Σ G ⊙ y` w.r.t. `x` and `w`).
-#[allow(clippy::type_complexity)]
-fn naive(
-    x: &[f64],
-    xd: [usize; 5],
-    w: &[f64],
-    wd: [usize; 5],
-    pad: usize,
-    g: Option<&[f64]>,
-) -> (Vec<f64>, [usize; 5], Vec<f64>, Vec<f64>) {
-    let [b, ci, d, h, wi] = xd;
-    let [co, _, kd, kh, kw] = wd;
-    let (od, oh, ow) = (
-        d + 2 * pad + 1 - kd,
-        h + 2 * pad + 1 - kh,
-        wi + 2 * pad + 1 - kw,
-    );
-    let od5 = [b, co, od, oh, ow];
-    let mut y = vec![0.0; b * co * od * oh * ow];
-    let mut gx = vec![0.0; x.len()];
-    let mut gw = vec![0.0; w.len()];
-    for n in 0..b {
-        for o in 0..co {
-            for z in 0..od {
-                for yy in 0..oh {
-                    for xx in 0..ow {
-                        let yi = (((n * co + o) * od + z) * oh + yy) * ow + xx;
-                        let gy = g.map_or(0.0, |g| g[yi]);
-                        for i in 0..ci {
-                            for a in 0..kd {
-                                for be in 0..kh {
-                                    for ga in 0..kw {
-                                        let (pz, py, px) = (z + a, yy + be, xx + ga);
-                                        if pz < pad || py < pad || px < pad {
-                                            continue;
-                                        }
-                                        let (sz, sy, sx) = (pz - pad, py - pad, px - pad);
-                                        if sz >= d || sy >= h || sx >= wi {
-                                            continue;
-                                        }
-                                        let xi = (((n * ci + i) * d + sz) * h + sy) * wi + sx;
-                                        let wi_ = (((o * ci + i) * kd + a) * kh + be) * kw + ga;
-                                        y[yi] += w[wi_] * x[xi];
-                                        gx[xi] += w[wi_] * gy;
-                                        gw[wi_] += x[xi] * gy;
-                                    }
-                                }
-                            }
-                        }
-                    }
-                }
-            }
-        }
-    }
-    (y, od5, gx, gw)
-}
-
-#[test]
-fn conv3d_matches_the_direct_sum_in_values_and_gradients() {
-    let mut rng = SplitMix64::new(9);
-    for (xd, wd, pad) in [
-        ([2usize, 3, 4, 5, 3], [4usize, 3, 3, 3, 3], 1usize),
-        ([1, 2, 5, 4, 6], [3, 2, 2, 3, 1], 0),
-        ([1, 2, 3, 3, 3], [2, 2, 1, 1, 1], 0),
-        ([1, 1, 2, 3, 2], [2, 1, 3, 2, 3], 2),
-    ] {
-        let xv: Vec<f64> = (0..xd.iter().product())
-            .map(|_| rng.uniform() - 0.5)
-            .collect();
-        let wv: Vec<f64> = (0..wd.iter().product())
-            .map(|_| rng.uniform() - 0.5)
-            .collect();
-        let x = Var::from_vec(xv.clone(), xd.as_slice(), &Device::Cpu).unwrap();
-        let w = Var::from_vec(wv.clone(), wd.as_slice(), &Device::Cpu).unwrap();
-        let y = conv3d(x.as_tensor(), w.as_tensor(), pad).unwrap();
-        let (want, od, _, _) = naive(&xv, xd, &wv, wd, pad, None);
-        assert_eq!(y.dims(), od.as_slice());
-        let got = v64(&y);
-        let err = got
-            .iter()
-            .zip(&want)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f64::max);
-        assert!(err < 1e-12, "{xd:?} {wd:?} pad {pad}: {err}");
-        let gy: Vec<f64> = (0..want.len())
-            .map(|i| ((i * 31) % 7) as f64 - 3.0)
-            .collect();
-        let gt = Tensor::from_vec(gy.clone(), od.as_slice(), &Device::Cpu).unwrap();
-        let grads = (y * gt).unwrap().sum_all().unwrap().backward().unwrap();
-        let (_, _, gx, gw) = naive(&xv, xd, &wv, wd, pad, Some(&gy));
-        for (name, got, want) in [
-            ("input", v64(grads.get(x.as_tensor()).unwrap()), gx),
-            ("weight", v64(grads.get(w.as_tensor()).unwrap()), gw),
-        ] {
-            let err = got
-                .iter()
-                .zip(&want)
-                .map(|(a, b)| (a - b).abs())
-                .fold(0.0, f64::max);
-            assert!(err < 1e-11, "{name} {xd:?} {wd:?} pad {pad}: {err}");
         }
     }
 }
@@ -346,32 +248,5 @@ fn bad_inputs_and_configurations_are_errors_naming_the_argument() {
             ..base
         }),
         "config.padding"
-    );
-    let x = Tensor::zeros((1, 2, 3, 3, 3), DType::F64, &d).unwrap();
-    assert_eq!(
-        arg_of(
-            conv3d(
-                &x,
-                &Tensor::zeros((1, 3, 3, 3, 3), DType::F64, &d).unwrap(),
-                1
-            )
-            .unwrap_err()
-        ),
-        "weight"
-    );
-    assert_eq!(
-        arg_of(
-            conv3d(
-                &x,
-                &Tensor::zeros((1, 2, 6, 3, 3), DType::F64, &d).unwrap(),
-                1
-            )
-            .unwrap_err()
-        ),
-        "weight"
-    );
-    assert_eq!(
-        arg_of(conv3d(&x.flatten_all().unwrap(), &x, 1).unwrap_err()),
-        "input"
     );
 }

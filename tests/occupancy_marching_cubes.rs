@@ -48,12 +48,19 @@ fn sphere_is_watertight_outward_and_accurate_at_128() {
     );
     // Normals point outwards: (b − a) × (c − a) · a > 0 for most faces of a sphere.
     let outward = m
-        .face_normals()
-        .unwrap()
+        .faces
         .iter()
-        .zip(&m.faces)
-        .filter(|(n, f)| {
-            let a = m.vertices[f[0] as usize];
+        .filter(|f| {
+            let [a, b, c] = f.map(|i| m.vertices[i as usize]);
+            let (u, v) = (
+                [b[0] - a[0], b[1] - a[1], b[2] - a[2]],
+                [c[0] - a[0], c[1] - a[1], c[2] - a[2]],
+            );
+            let n = [
+                u[1] * v[2] - u[2] * v[1],
+                u[2] * v[0] - u[0] * v[2],
+                u[0] * v[1] - u[1] * v[0],
+            ];
             n[0] * a[0] + n[1] * a[1] + n[2] * a[2] > 0.0
         })
         .count();
@@ -135,7 +142,7 @@ fn grid_sampled_from_an_analytic_field_matches_from_fn() {
         .occupancy(5.0);
     let g = Grid::sample(&sphere, [9; 3], [-0.5; 3], [0.5; 3], 7, &dev, DType::F32).unwrap();
     let m = marching_cubes(&g, 0.0, Inside::Positive).unwrap();
-    assert!(m.is_watertight_and_oriented());
+    assert!(!m.faces.is_empty() && m.edge_report() == (0, 0, 0));
 }
 
 #[test]

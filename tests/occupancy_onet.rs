@@ -88,9 +88,8 @@ fn spatial_gradient_matches_finite_differences_and_reaches_the_code() {
     let mut rng = SplitMix64::new(9);
     // Non-trivial fc1 and γ/β: perturb every variable.
     for v in vm.all_vars() {
-        let noise = rng
-            .normal_tensor(v.dims(), 0.0, 0.3, DType::F64, &Device::Cpu)
-            .unwrap();
+        let noise =
+            common::normal_tensor(&mut rng, v.dims(), 0.0, 0.3, DType::F64, &Device::Cpu).unwrap();
         v.set(&(v.as_tensor() + noise).unwrap()).unwrap();
     }
     let p = common::uniform(&mut rng, 20, 3, -0.5, 0.5, DType::F64);

@@ -8,8 +8,7 @@ use candle_core::{DType, Device, Tensor};
 use common::stiff::{magnitudes, var, Expect, Suite, DTYPES};
 
 use neural_fields::encoding::{
-    coarse_to_fine_weights, integrated_pe, CoarseToFine, Encoding, FourierFeatures,
-    FrequencyEncoding, PointEncoding,
+    integrated_pe, CoarseToFine, Encoding, FourierFeatures, FrequencyEncoding, PointEncoding,
 };
 
 #[test]
@@ -46,7 +45,6 @@ fn every_public_encoding_function_is_swept_or_exempt() {
 
 /// Items swept by `sweep_encodings`.
 const POINT_ENCODINGS: &[&str] = &[
-    "encoding::CoarseToFine::column_weights",
     "encoding::CoarseToFine::forward",
     "encoding::CoarseToFine::forward_jvp",
     "encoding::CoarseToFine::new",
@@ -55,7 +53,6 @@ const POINT_ENCODINGS: &[&str] = &[
     "encoding::FourierFeatures::new",
     "encoding::FrequencyEncoding::forward_jvp",
     "encoding::PointEncoding::forward",
-    "encoding::coarse_to_fine_weights",
     "encoding::integrated_pe",
 ];
 
@@ -84,12 +81,9 @@ const EXEMPT: &[(&str, &str)] = &[
         "encoding::FusedScatterMax::",
         "CustomOp internals, swept via scatter",
     ),
-    ("encoding::HashGrid::config", "getter"),
     ("encoding::CoarseToFine::bands", "getter"),
-    ("encoding::CoarseToFine::alpha", "getter"),
     ("encoding::CoarseToFine::in_dim", "getter"),
     ("encoding::CoarseToFine::out_dim", "getter"),
-    ("encoding::HashGrid::table", "getter"),
     ("encoding::HashGrid::in_dim", "getter"),
     ("encoding::HashGrid::out_dim", "getter"),
     ("encoding::HashGridConfig::default", "constant"),
@@ -97,7 +91,6 @@ const EXEMPT: &[(&str, &str)] = &[
         "encoding::FusedHashGrid::",
         "CustomOp internals, swept via HashGrid::forward",
     ),
-    ("encoding::PointEncoding::in_dim", "getter"),
     (
         "encoding::FourierFeatures::forward",
         "swept through PointEncoding::forward_jvp / forward",
@@ -107,7 +100,6 @@ const EXEMPT: &[(&str, &str)] = &[
         "swept through PointEncoding::forward_jvp",
     ),
     ("encoding::FourierFeatures::in_dim", "getter"),
-    ("encoding::FourierFeatures::matrix", "getter"),
     ("encoding::FourierFeatures::out_dim", "getter"),
     (
         "encoding::FrequencyEncoding::forward",
@@ -120,7 +112,6 @@ const EXEMPT: &[(&str, &str)] = &[
         "encoding::PointEncoding::forward_jvp",
         "swept in the FrequencyEncoding / FourierFeatures cases",
     ),
-    ("encoding::PointEncoding::out_dim_for", "integer arithmetic"),
     (
         "encoding::FusedFrequency::",
         "CustomOp internals, swept via FrequencyEncoding::forward",
@@ -205,8 +196,6 @@ fn sweep_encodings(s: &mut Suite) {
                 "encoding::CoarseToFine::forward_jvp",
                 "encoding::CoarseToFine::new",
                 "encoding::CoarseToFine::set_alpha",
-                "encoding::CoarseToFine::column_weights",
-                "encoding::coarse_to_fine_weights",
             ] {
                 s.case(
                     item,
@@ -218,10 +207,8 @@ fn sweep_encodings(s: &mut Suite) {
                         pe.use_pi = false;
                         let c = CoarseToFine::new(PointEncoding::Frequency(pe))?;
                         c.set_alpha(alpha)?;
-                        let w = Tensor::new(c.column_weights(), &d)?;
-                        let weights = Tensor::new(coarse_to_fine_weights(alpha, 4)?, &d)?;
                         let (v, j) = c.forward_jvp(t, &dx)?;
-                        Ok(vec![c.forward(t)?, w, weights, v, j])
+                        Ok(vec![c.forward(t)?, v, j])
                     },
                 );
             }
@@ -278,7 +265,7 @@ fn sweep_hash_grid(s: &mut Suite) {
             format!("{dtype:?}, resolutions 16 to 1e6"),
             Expect::Finite,
             &[],
-            || Ok(vec![grid.table().clone()]),
+            || Ok(vec![table.as_tensor().clone()]),
         );
         s.case(
             "encoding::HashGrid::forward",

@@ -43,7 +43,6 @@ const EXEMPT: &[(&str, &str)] = &[
          along its own velocity in tests/flow.rs",
     ),
     ("flow::Solver::default", "constant"),
-    ("flow::VelocityField::config", "getter"),
     ("flow::VelocityFieldConfig::default", "constant"),
 ];
 

@@ -56,7 +56,6 @@ const EXEMPT: &[(&str, &str)] = &[
         "nn::build_seeded",
         "integer seed; its draws are swept via the Mlp cases",
     ),
-    ("nn::Mlp::config", "getter"),
     (
         "nn::Mlp::forward_with_code",
         "the ConditionalField forward: the Field forward with codes (swept as Mlp::forward)",

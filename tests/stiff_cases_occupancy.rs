@@ -62,7 +62,6 @@ const UNSEEN: &[&str] = &[
 /// Items swept by `sweep_occupancy_on_meshes`.
 const ON_MESHES: &[&str] = &[
     "occupancy::KdTree::new",
-    "occupancy::inside_mesh",
     "occupancy::iou",
     "occupancy::mesh_metrics",
     "occupancy::near_surface",
@@ -75,8 +74,6 @@ const OCCUPANCY: &[&str] = &[
     "occupancy::Grid::from_fn",
     "occupancy::Grid::new",
     "occupancy::Grid::sample",
-    "occupancy::MiseConfig::new",
-    "occupancy::RefineConfig::new",
     "occupancy::kl_standard_normal",
     "occupancy::logit_threshold",
     "occupancy::marching_cubes",
@@ -105,12 +102,10 @@ const ONET: &[&str] = &[
 
 /// Items swept by `sweep_conv_onet`.
 const CONV_ONET: &[&str] = &[
-    "occupancy::ConvOnetEncoder::encode_cloud",
     "occupancy::ConvOnetEncoder::forward",
     "occupancy::LocalDecoder::bind",
     "occupancy::LocalDecoder::logits",
     "occupancy::SceneField::forward",
-    "occupancy::conv3d",
     "occupancy::conv_onet_encoder",
     "occupancy::local_decoder",
 ];
@@ -123,9 +118,10 @@ const EXEMPT: &[(&str, &str)] = &[
         "mesh_metrics after align_similarity's iterations, both swept",
     ),
     ("occupancy::ConvOnetConfig::default", "constant"),
+    ("occupancy::MiseConfig::default", "constant"),
+    ("occupancy::RefineConfig::default", "constant"),
     ("occupancy::UnetConfig::default", "constant"),
     ("occupancy::LocalDecoderConfig::default", "constant"),
-    ("occupancy::LocalFeatures::batch_and_channels", "getter"),
     ("occupancy::SceneField::out_dim", "constant"),
     ("occupancy::SimpleDecoderConfig::default", "constant"),
     ("occupancy::SimpleDecoder::code_dim", "getter"),
@@ -144,8 +140,7 @@ const EXEMPT: &[(&str, &str)] = &[
 fn sweep_occupancy_on_meshes(s: &mut Suite) {
     use neural_fields::mesh::Mesh;
     use neural_fields::occupancy::{
-        inside_mesh, iou, mesh_metrics, near_surface, surface_metrics, winding_numbers, KdTree,
-        WindingConfig,
+        iou, mesh_metrics, near_surface, surface_metrics, winding_numbers, KdTree, WindingConfig,
     };
     let d = Device::Cpu;
     let flat = |v: Vec<[f64; 3]>| Tensor::from_vec(v.concat(), v.len() * 3, &d);
@@ -194,18 +189,6 @@ fn sweep_occupancy_on_meshes(s: &mut Suite) {
                     force_reference: true,
                 };
                 Ok(vec![vt(winding_numbers(&mesh, &q, &exact)?)?])
-            },
-        );
-        s.case(
-            "occupancy::inside_mesh",
-            &label,
-            Expect::Finite,
-            &[],
-            || {
-                Ok(vec![vt(inside_mesh(&mesh, &q)?
-                    .into_iter()
-                    .map(f64::from)
-                    .collect())?])
             },
         );
         for sigma in [0.0, 1e-30, 1e3] {
@@ -437,7 +420,13 @@ fn sweep_occupancy(s: &mut Suite) {
             });
             s.case("occupancy::mise", &gl, Expect::Finite, &[], || {
                 let sphere = Sphere::new([0.0; 3], 0.5 * ext, &d, dtype)?.occupancy(100.0 / ext);
-                let mut cfg = MiseConfig::new(8, 2, &d, dtype);
+                let mut cfg = MiseConfig {
+                    resolution0: 8,
+                    upsampling_steps: 2,
+                    device: d.clone(),
+                    dtype,
+                    ..MiseConfig::default()
+                };
                 cfg.min = [-ext; 3];
                 cfg.max = [ext; 3];
                 let out = mise(&sphere, &cfg)?;
@@ -454,44 +443,30 @@ fn sweep_occupancy(s: &mut Suite) {
                 || {
                     let sphere =
                         Sphere::new([0.0; 3], 0.5 * ext, &d, dtype)?.occupancy(100.0 / ext);
-                    let mut cfg = MiseConfig::new(8, 1, &d, dtype);
+                    let mut cfg = MiseConfig {
+                        resolution0: 8,
+                        upsampling_steps: 1,
+                        device: d.clone(),
+                        dtype,
+                        ..MiseConfig::default()
+                    };
                     cfg.min = [-ext; 3];
                     cfg.max = [ext; 3];
                     let mut mesh = mise(&sphere, &cfg)?.mesh;
                     let (before, after) = refine_vertices(
                         &sphere,
                         &mut mesh,
-                        &RefineConfig::new(0.1 * ext, &d, dtype),
+                        &RefineConfig {
+                            max_shift: 0.1 * ext,
+                            device: d.clone(),
+                            dtype,
+                            ..RefineConfig::default()
+                        },
                     )?;
                     Ok(vec![
                         flat(mesh.vertices)?,
                         Tensor::new(&[before, after], &d)?,
                     ])
-                },
-            );
-            s.case(
-                "occupancy::RefineConfig::new",
-                &gl,
-                Expect::Finite,
-                &[],
-                || {
-                    Ok(vec![Tensor::new(
-                        RefineConfig::new(ext, &d, dtype).max_shift,
-                        &d,
-                    )?])
-                },
-            );
-            s.case(
-                "occupancy::MiseConfig::new",
-                &gl,
-                Expect::Finite,
-                &[],
-                || {
-                    let cfg = MiseConfig::new(4, 1, &d, dtype);
-                    Ok(vec![Tensor::new(
-                        ((cfg.resolution0 << cfg.upsampling_steps) + 1) as f64,
-                        &d,
-                    )?])
                 },
             );
         }
@@ -742,12 +717,12 @@ fn sweep_onet_networks(s: &mut Suite) {
 }
 
 /// Conv. ONet on point clouds with coordinates from 0 to far outside the padded box (in
-/// both layouts), the decoder at such points, and `conv3d` on extreme inputs.
+/// both layouts), and the decoder at such points.
 fn sweep_conv_onet(s: &mut Suite) {
-    use neural_fields::mesh::PointCloud;
+    use neural_fields::mesh::{points_to_tensor, PointCloud};
     use neural_fields::occupancy::{
-        conv3d, conv_onet_encoder, local_decoder, ConvOnetConfig, FeatureLayout,
-        LocalDecoderConfig, UnetConfig,
+        conv_onet_encoder, local_decoder, ConvOnetConfig, FeatureLayout, LocalDecoderConfig,
+        UnetConfig,
     };
     let d = Device::Cpu;
     for dtype in DTYPES {
@@ -825,35 +800,15 @@ fn sweep_conv_onet(s: &mut Suite) {
             );
             let cloud = PointCloud::new(rows.clone(), None, None).unwrap();
             for item in [
-                "occupancy::ConvOnetEncoder::encode_cloud",
                 "occupancy::LocalDecoder::bind",
                 "occupancy::SceneField::forward",
             ] {
                 s.case(item, &label, Expect::Finite, &wrt, || {
-                    let field = dec.bind(enc.encode_cloud(&cloud)?)?;
+                    let one = points_to_tensor(cloud.points(), &d, dtype)?.unsqueeze(0)?;
+                    let field = dec.bind(enc.forward(&one)?)?;
                     Ok(vec![field.forward(&p.as_tensor().squeeze(0)?)?])
                 });
             }
-        }
-        // conv3d: extreme inputs under unit weights, extreme weights under unit inputs.
-        let mags = magnitudes(dtype);
-        let extreme: Vec<f64> = (0..2 * 27).map(|i| mags[(i * 5) % mags.len()]).collect();
-        let unit: Vec<f64> = (0..2 * 27).map(|i| ((i % 7) as f64 - 3.0) / 3.0).collect();
-        for (x, w, tag) in [(&extreme, &unit, "inputs"), (&unit, &extreme, "weights")] {
-            let x = var(x, &[1, 2, 3, 3, 3], dtype);
-            let w = var(w, &[1, 2, 3, 3, 3], dtype);
-            s.case(
-                "occupancy::conv3d",
-                format!("{dtype:?}, extreme {tag}"),
-                Expect::Finite,
-                &[&x, &w],
-                || {
-                    Ok(vec![
-                        conv3d(x.as_tensor(), w.as_tensor(), 1)?,
-                        conv3d(x.as_tensor(), w.as_tensor(), 0)?,
-                    ])
-                },
-            );
         }
     }
 }

@@ -41,7 +41,6 @@ const VOLUME: &[&str] = &[
     "volume::Intervals::from_samples",
     "volume::Intervals::midpoints",
     "volume::Intervals::new",
-    "volume::Intervals::new_packed",
     "volume::Intervals::positions",
     "volume::Intervals::retain",
     "volume::OccupancyGrid::new",
@@ -80,7 +79,6 @@ const EXEMPT: &[(&str, &str)] = &[
     ("volume::Nerf::forward", "swept through Nerf::density"),
     ("volume::Nerf::out_dim", "constant"),
     ("volume::NerfConfig::default", "constant"),
-    ("volume::Intervals::n_rays", "getter"),
     (
         "volume::FusedComposite::",
         "CustomOp internals, swept via composite",
@@ -168,7 +166,12 @@ fn sweep_volume(s: &mut Suite) {
         let (st_h, en_h) = common::intervals::starts_ends(&del, &[n; 7]);
         let starts = var(&st_h, &[r, n], dtype);
         let ends = var(&en_h, &[r, n], dtype);
-        let iv = Intervals::new(starts.as_tensor().clone(), ends.as_tensor().clone()).unwrap();
+        let iv = Intervals::new(
+            starts.as_tensor().clone(),
+            ends.as_tensor().clone(),
+            Layout::Batched,
+        )
+        .unwrap();
         let mut rng = SplitMix64::new(5);
         let colors =
             Var::from_tensor(&rng.uniform_tensor(&[r, n, 3], 0.0, 1.0, dtype, &d).unwrap())
@@ -286,10 +289,10 @@ fn sweep_volume(s: &mut Suite) {
             let (pst_h, pen_h) = common::intervals::starts_ends(&del, &counts);
             let pstarts = var(&pst_h, &[r * n], dtype);
             let pends = var(&pen_h, &[r * n], dtype);
-            let piv = Intervals::new_packed(
+            let piv = Intervals::new(
                 pstarts.as_tensor().clone(),
                 pends.as_tensor().clone(),
-                packed.clone(),
+                Layout::Packed(packed.clone()),
             )
             .unwrap();
             let (ps, pc) = (st.flatten_all().unwrap(), ct.reshape((r * n, 3)).unwrap());
@@ -302,16 +305,16 @@ fn sweep_volume(s: &mut Suite) {
                 &pwrt,
                 || {
                     let p = Packed::from_counts(&counts, &d)?;
-                    let iv = Intervals::new_packed(
+                    let iv = Intervals::new(
                         pstarts.as_tensor().clone(),
                         pends.as_tensor().clone(),
-                        p,
+                        Layout::Packed(p),
                     )?;
                     out(composite(&ps, &pc, &iv, None, &cfg)?)
                 },
             );
             s.case(
-                "volume::Intervals::new_packed",
+                "volume::Intervals::new",
                 &plabel,
                 Expect::Finite,
                 &pwrt,
@@ -429,9 +432,12 @@ fn sweep_volume(s: &mut Suite) {
             || Ok(vec![iv.directions(&sampler_rays)?]),
         );
         s.case("volume::Intervals::new", &il, Expect::Finite, &[], || {
-            Ok(vec![
-                Intervals::new(iv.starts.clone(), iv.ends.clone())?.midpoints()?
-            ])
+            Ok(vec![Intervals::new(
+                iv.starts.clone(),
+                iv.ends.clone(),
+                Layout::Batched,
+            )?
+            .midpoints()?])
         });
         let w_rows = [[0.0; 16], [1e-30; 16], [huge; 16], {
             let mut one_hot = [0.0; 16];
@@ -513,7 +519,7 @@ fn sweep_volume(s: &mut Suite) {
             .unwrap()
             .repeat((4, 1))
             .unwrap();
-        let dl_iv = Intervals::new(st, en).unwrap();
+        let dl_iv = Intervals::new(st, en, Layout::Batched).unwrap();
         s.case(
             "volume::distortion_loss",
             format!("{label}, weights 0…1"),

@@ -361,9 +361,7 @@ fn geometry(seed: u64, features: usize) -> (VarMap, neural_fields::nn::Mlp) {
     .unwrap();
     let mut rng = SplitMix64::new(seed ^ 99);
     for v in varmap.all_vars() {
-        let noise = rng
-            .normal_tensor(v.dims(), 0.0, 0.05, DType::F64, &DEV)
-            .unwrap();
+        let noise = common::normal_tensor(&mut rng, v.dims(), 0.0, 0.05, DType::F64, &DEV).unwrap();
         v.set(&(v.as_tensor() + noise).unwrap()).unwrap();
     }
     let net =

@@ -53,7 +53,7 @@ fn t2(v: Vec<f64>, r: usize, s: usize, dt: DType) -> Tensor {
 
 /// Validated batched intervals from host starts and ends (`[r, s]`, row-major).
 fn iv2(starts: Vec<f64>, ends: Vec<f64>, r: usize, s: usize, dt: DType) -> Intervals {
-    Intervals::new(t2(starts, r, s, dt), t2(ends, r, s, dt)).unwrap()
+    Intervals::new(t2(starts, r, s, dt), t2(ends, r, s, dt), Layout::Batched).unwrap()
 }
 
 /// Intervals built without `Intervals::new`'s validation (the fields are public), to
@@ -256,7 +256,12 @@ fn depth_is_the_weighted_sum_of_interval_midpoints() {
     let colors = Tensor::zeros((r, s, 1), DType::F64, &dev()).unwrap();
     // Shift every ray away from t = 0 so that midpoints and starts differ clearly.
     let base = batched_from_deltas(&del, r, s, DType::F64, &dev());
-    let iv = Intervals::new((&base.starts + 1.5).unwrap(), (&base.ends + 1.5).unwrap()).unwrap();
+    let iv = Intervals::new(
+        (&base.starts + 1.5).unwrap(),
+        (&base.ends + 1.5).unwrap(),
+        Layout::Batched,
+    )
+    .unwrap();
     let rays = Rays::new(
         Tensor::zeros((r, 3), DType::F64, &dev()).unwrap(),
         Tensor::new(
@@ -488,7 +493,7 @@ fn packed_layout_matches_batched_and_handles_empty_rays() {
                     true,
                     &row(&s),
                     &row(&c),
-                    &Intervals::new(row(&iv.starts), row(&iv.ends)).unwrap(),
+                    &Intervals::new(row(&iv.starts), row(&iv.ends), Layout::Batched).unwrap(),
                     None,
                     &opts,
                 )
@@ -564,7 +569,8 @@ fn bad_input_errors_name_the_argument() {
             arg_of(
                 Intervals::new(
                     starts_of(vec![0.0, 1.0, 2.0, 0.0, 1.0, 2.0], DType::F32),
-                    starts_of(vec![1.0, 2.0, 2.0 - 1e-3, 1.0, 2.0, 3.0], DType::F32)
+                    starts_of(vec![1.0, 2.0, 2.0 - 1e-3, 1.0, 2.0, 3.0], DType::F32),
+                    Layout::Batched
                 )
                 .unwrap_err()
             ),
@@ -591,7 +597,8 @@ fn bad_input_errors_name_the_argument() {
                 arg_of(
                     Intervals::new(
                         starts_of(vec![0.0, 1.0, 2.0, 0.0, 1.0, 2.0], DType::F32),
-                        starts_of(vec![1.0, v, 3.0, 1.0, 2.0, 3.0], DType::F32)
+                        starts_of(vec![1.0, v, 3.0, 1.0, 2.0, 3.0], DType::F32),
+                        Layout::Batched
                     )
                     .unwrap_err()
                 ),
@@ -733,6 +740,7 @@ fn visible_mask_matches_transmittance_on_random_rays_in_f32_and_f64() {
         let iv64 = Intervals::new(
             iv.starts.to_dtype(DType::F64).unwrap(),
             iv.ends.to_dtype(DType::F64).unwrap(),
+            Layout::Batched,
         )
         .unwrap();
         let w = render_weights(&s64, &iv64, None, &CompositeConfig::default()).unwrap();
@@ -831,7 +839,7 @@ fn composite_of_zero_rays_returns_readable_empty_tensors() {
             let dev = Device::Cpu;
             // Batched, R = 0.
             let z = Tensor::zeros((0, 4), dtype, &dev).unwrap();
-            let iv = Intervals::new(z.clone(), z.clone()).unwrap();
+            let iv = Intervals::new(z.clone(), z.clone(), Layout::Batched).unwrap();
             let colors = Tensor::zeros((0, 4, 3), dtype, &dev).unwrap();
             let out = composite(&z, &colors, &iv, None, &config).unwrap();
             assert_eq!(out.color.dims(), &[0, 3]);
@@ -841,14 +849,14 @@ fn composite_of_zero_rays_returns_readable_empty_tensors() {
             // Packed, R = 0 and M = 0.
             let packed = Packed::from_counts(&[], &dev).unwrap();
             let e = Tensor::zeros(0, dtype, &dev).unwrap();
-            let piv = Intervals::new_packed(e.clone(), e.clone(), packed).unwrap();
+            let piv = Intervals::new(e.clone(), e.clone(), Layout::Packed(packed)).unwrap();
             let pcol = Tensor::zeros((0, 3), dtype, &dev).unwrap();
             let out = composite(&e, &pcol, &piv, None, &config).unwrap();
             assert_eq!(out.color.dims(), &[0, 3]);
             assert_eq!(v64(&out.depth).len() + v64(&out.opacity).len(), 0);
             // Batched, S = 0: every ray is background (black), opacity 0.
             let z = Tensor::zeros((2, 0), dtype, &dev).unwrap();
-            let iv = Intervals::new(z.clone(), z.clone()).unwrap();
+            let iv = Intervals::new(z.clone(), z.clone(), Layout::Batched).unwrap();
             let colors = Tensor::zeros((2, 0, 3), dtype, &dev).unwrap();
             let out = composite(&z, &colors, &iv, None, &config).unwrap();
             assert_eq!(v64(&out.color), vec![0.0; 6]);

@@ -395,6 +395,7 @@ fn fused_equals_reference_in_f32() {
     let iv = Intervals::new(
         iv.starts.to_dtype(DType::F32).unwrap(),
         iv.ends.to_dtype(DType::F32).unwrap(),
+        Layout::Batched,
     )
     .unwrap();
     let lw = loss_weights(7, 3);
@@ -576,7 +577,7 @@ fn packed_with_only_empty_rays_gives_background() {
     let packed = Packed::from_counts(&[0, 0], &dev()).unwrap();
     let z = Tensor::zeros(0, DType::F32, &dev()).unwrap();
     let zc = Tensor::zeros((0, 3), DType::F32, &dev()).unwrap();
-    let iv = Intervals::new_packed(z.clone(), z.clone(), packed).unwrap();
+    let iv = Intervals::new(z.clone(), z.clone(), Layout::Packed(packed)).unwrap();
     let bg = Tensor::new(&[0.25f32, 0.5, 1.0], &dev()).unwrap();
     let cfg = CompositeConfig {
         opaque_last: false,

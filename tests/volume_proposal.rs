@@ -8,6 +8,7 @@ use candle_core::{DType, Device, Tensor, Var};
 use common::{central_diff, close, v64};
 use neural_fields::camera::Rays;
 use neural_fields::rng::SplitMix64;
+use neural_fields::volume::Layout;
 use neural_fields::volume::{
     interlevel_loss, proposal_sample, stratified, Intervals, Jitter, ProposalConfig,
 };
@@ -84,10 +85,15 @@ fn loss_matches_the_brute_force_bound_and_its_closed_forms() {
     // f32 works and agrees.
     let f32s = |t: &Tensor| t.to_dtype(DType::F32).unwrap();
     let c32 = (
-        Intervals::new(f32s(&coarse.0.starts), f32s(&coarse.0.ends)).unwrap(),
+        Intervals::new(
+            f32s(&coarse.0.starts),
+            f32s(&coarse.0.ends),
+            Layout::Batched,
+        )
+        .unwrap(),
         f32s(&coarse.1),
     );
-    let f32_iv = Intervals::new(f32s(&fine.starts), f32s(&fine.ends)).unwrap();
+    let f32_iv = Intervals::new(f32s(&fine.starts), f32s(&fine.ends), Layout::Batched).unwrap();
     let l32 = interlevel_loss(&c32, &f32_iv, &f32s(&w))
         .unwrap()
         .to_dtype(DType::F64)

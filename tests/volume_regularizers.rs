@@ -15,7 +15,7 @@ fn t2(v: &[f64], r: usize, c: usize) -> Tensor {
 
 /// Validated batched intervals.
 fn iv(starts: &Tensor, ends: &Tensor) -> Intervals {
-    Intervals::new(starts.clone(), ends.clone()).unwrap()
+    Intervals::new(starts.clone(), ends.clone(), Layout::Batched).unwrap()
 }
 
 /// Batched intervals built without `Intervals::new`'s validation, so that
@@ -272,7 +272,7 @@ fn distortion_bad_input_errs_naming_the_argument() {
         "ends"
     );
     assert_eq!(
-        arg_of(Intervals::new(s.clone(), t2(&[0.4], 1, 1)).unwrap_err()),
+        arg_of(Intervals::new(s.clone(), t2(&[0.4], 1, 1), Layout::Batched).unwrap_err()),
         "ends"
     );
     assert_eq!(

@@ -4,6 +4,7 @@
 
 use candle_core::{DType, Device, Tensor, Var};
 use neural_fields::camera::Rays;
+use neural_fields::volume::Layout;
 use neural_fields::volume::{
     anneal_near_far, merge_sorted, sample_pdf, stratified, Intervals, Jitter,
 };
@@ -29,7 +30,12 @@ fn t2(v: &[f64], r: usize, c: usize, dt: DType) -> Tensor {
 /// ends `bins[.., 1..]`.
 fn bins_iv(bins: &Tensor) -> Intervals {
     let s = bins.dim(1).unwrap() - 1;
-    Intervals::new(bins.narrow(1, 0, s).unwrap(), bins.narrow(1, 1, s).unwrap()).unwrap()
+    Intervals::new(
+        bins.narrow(1, 0, s).unwrap(),
+        bins.narrow(1, 1, s).unwrap(),
+        Layout::Batched,
+    )
+    .unwrap()
 }
 
 fn rows(t: &Tensor) -> Vec<Vec<f64>> {
@@ -491,7 +497,8 @@ fn bad_input_errs_naming_the_argument() {
         arg_of(
             Intervals::new(
                 unsorted.narrow(1, 0, 3).unwrap(),
-                unsorted.narrow(1, 1, 3).unwrap()
+                unsorted.narrow(1, 1, 3).unwrap(),
+                Layout::Batched
             )
             .unwrap_err()
         ),
@@ -537,9 +544,17 @@ fn bad_input_errs_naming_the_argument() {
         arg_of(Intervals::from_samples(&outside, &near1, &far1).unwrap_err()),
         "samples"
     );
-    let inverted = Intervals::new(t2(&[0.0, 0.7], 1, 2, dt), t2(&[0.6, 0.65], 1, 2, dt));
+    let inverted = Intervals::new(
+        t2(&[0.0, 0.7], 1, 2, dt),
+        t2(&[0.6, 0.65], 1, 2, dt),
+        Layout::Batched,
+    );
     assert_eq!(arg_of(inverted.unwrap_err()), "ends");
-    let overlapping = Intervals::new(t2(&[0.0, 0.5], 1, 2, dt), t2(&[0.6, 0.7], 1, 2, dt));
+    let overlapping = Intervals::new(
+        t2(&[0.0, 0.5], 1, 2, dt),
+        t2(&[0.6, 0.7], 1, 2, dt),
+        Layout::Batched,
+    );
     assert_eq!(arg_of(overlapping.unwrap_err()), "starts");
 }
 

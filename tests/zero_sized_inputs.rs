@@ -13,6 +13,7 @@ use common::v64;
 use neural_fields::encoding::{Encoding, FrequencyEncoding, PointEncoding};
 use neural_fields::field::Field;
 use neural_fields::nn::{mlp, Activation, MlpConfig};
+use neural_fields::volume::Layout;
 use neural_fields::volume::{composite, CompositeConfig, Intervals, Packed};
 use neural_fields::volume::{nerf, NerfConfig};
 use proptest::prelude::*;
@@ -76,7 +77,7 @@ proptest! {
             .and_then(|t| t.reshape((rays, samples)))
             .unwrap();
         let ends = (&starts + 1.0).unwrap();
-        let iv = Intervals::new(starts, ends).unwrap();
+        let iv = Intervals::new(starts, ends, Layout::Batched).unwrap();
         let out = composite(sigmas.as_tensor(), colors.as_tensor(), &iv, None, &config).unwrap();
         prop_assert_eq!(out.color.dims(), &[rays, 3]);
         prop_assert_eq!(out.depth.dims(), &[rays]);
@@ -96,7 +97,7 @@ proptest! {
             .and_then(|t| t.to_dtype(dt))
             .unwrap();
         let ends = (&starts + 1.0).unwrap();
-        let iv = Intervals::new_packed(starts, ends, packed).unwrap();
+        let iv = Intervals::new(starts, ends, Layout::Packed(packed)).unwrap();
         let sigmas = var(&[m], dt);
         let colors = var(&[m, 3], dt);
         let out = composite(sigmas.as_tensor(), colors.as_tensor(), &iv, None, &config).unwrap();

@@ -9,8 +9,8 @@
 //! column and `y` the row, the origin at the top-left corner of the top-left pixel. The
 //! integer pixel `(u, v)` covers `[u, u + 1) × [v, v + 1)`, so its **centre is
 //! `(u + 0.5, v + 0.5)`**. Functions that take a `pixels: [N, 2]` tensor use these
-//! coordinates as given (no half-pixel offset is added); [`Camera::rays`] and
-//! [`Camera::random_rays`] go through pixel centres.
+//! coordinates as given (no half-pixel offset is added); [`Camera::rays`] goes through
+//! pixel centres, and so do the batches of [`crate::data::RaySampler`] without jitter.
 //!
 //! **Camera axes** ([`Convention`]). With intrinsics `fx, fy, cx, cy`:
 //!
@@ -56,8 +56,10 @@ use rays::row3;
 ///   support is ±1.5 px ([`PixelFilter::CYCLES`]; σ ≈ 0.42 px, against a box's 0.29 px).
 ///   Images rendered so are the mean of radiance samples at offsets drawn from it.
 ///
-/// [`PixelFilter::quantile`] `q(u)` (the inverse of the filter's cumulative distribution)
-/// maps a uniform number to an offset, so that `k` equal-mass strata of the filter have
+/// The filter's quantile `q(u)`, the inverse of its cumulative distribution (box:
+/// `u − ½`; Blackman–Harris: `h(2s − 1)` where `s` solves `F(s) = u` for the window's
+/// cumulative distribution `F(s) = s − (a₁/2πa₀) sin 2πs + (a₂/4πa₀) sin 4πs −
+/// (a₃/6πa₀) sin 6πs`), maps a uniform number to an offset, so that `k` equal-mass strata of the filter have
 /// their medians at `q((j + ½)/k)`: the plain mean of the `k × k` rays through those
 /// points is a quadrature of the filtered pixel ([`Camera::subpixel_grid`]), and rays
 /// through `q(U)` for uniform `U` sample it
@@ -132,7 +134,8 @@ impl PixelFilter {
     /// # Errors
     /// [`Error::InvalidArgument`] naming `u` unless in `[0, 1]`, or `filter` unless a
     /// Blackman–Harris `half_width` is finite and in `(0, 64]`.
-    pub fn quantile(&self, u: f64) -> Result<f64> {
+    #[cfg(test)]
+    fn quantile(&self, u: f64) -> Result<f64> {
         self.validate()?;
         if !(0.0..=1.0).contains(&u) {
             return Err(Error::invalid(
@@ -144,7 +147,7 @@ impl PixelFilter {
         Ok(self.offset_unchecked(u))
     }
 
-    /// [`PixelFilter::quantile`] plus ½: the offset from the pixel's top-left corner, for
+    /// The filter's quantile (see [`PixelFilter`]) plus ½: the offset from the pixel's top-left corner, for
     /// checked inputs. The box returns `u` itself, so box offsets are bit for bit those of
     /// a plain sub-pixel grid.
     pub(crate) fn corner_offset(&self, u: f64) -> f64 {
@@ -475,7 +478,7 @@ impl Camera {
 
     /// `k × k` sub-pixel points in every pixel, pixel-major, that sample `filter`: rows
     /// `(v · width + u) · k² + i · k + j` are `(u + ½ + q((j + ½)/k), v + ½ + q((i + ½)/k))`
-    /// for `i, j < k`, with `q` the filter's [`PixelFilter::quantile`]: the medians of
+    /// for `i, j < k`, with `q` the filter's quantile (see [`PixelFilter`]): the medians of
     /// `k × k` equal-mass strata of the filter. Averaging each run of `k²` consecutive
     /// rows (rendered colours, say) gives the pixel's filtered value by quadrature. With
     /// [`PixelFilter::Box`] the points are the sub-pixel centres
@@ -502,8 +505,8 @@ impl Camera {
     ///
     /// # Errors
     /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64, `k` unless between
-    /// 1 and 64 (and at most 2²⁸ rows in all, naming `k`), or `filter` as
-    /// [`PixelFilter::quantile`].
+    /// 1 and 64 (and at most 2²⁸ rows in all, naming `k`), or `filter` unless a
+    /// Blackman–Harris `half_width` is finite and in `(0, 64]`.
     pub fn subpixel_grid(
         &self,
         k: usize,
@@ -571,41 +574,6 @@ impl Camera {
             .broadcast_as((n, 3))?
             .contiguous()?;
         Rays::new(origins, directions)
-    }
-
-    /// `n` rays through pixel centres drawn uniformly with replacement, reproducibly from
-    /// `seed` by [`SplitMix64::below`](crate::rng::SplitMix64::below): an index is
-    /// `⌊s · W·H / 2⁶⁴⌋` for a 64-bit draw `s`, whose bias is below `W·H / 2⁶⁴`. Returns
-    /// the rays and the linear pixel indices
-    /// `v · width + u` as a `[n]` u32 tensor on `device`.
-    ///
-    /// # Errors
-    /// [`Error::InvalidArgument`] naming `n` if 0 and `dtype` unless f32 or f64.
-    pub fn random_rays(
-        &self,
-        n: usize,
-        seed: u64,
-        device: &Device,
-        dtype: DType,
-    ) -> Result<(Rays, Tensor)> {
-        check_dtype(dtype)?;
-        if n == 0 {
-            return Err(Error::invalid("n", "at least one ray", "0"));
-        }
-        let w = self.intrinsics.width;
-        let total = (self.intrinsics.width * self.intrinsics.height) as u64;
-        let mut rng = crate::rng::SplitMix64::new(seed);
-        let mut idx = Vec::with_capacity(n);
-        let mut pix = Vec::with_capacity(2 * n);
-        for _ in 0..n {
-            let i = rng.below(total) as usize;
-            idx.push(i as u32); // invariant: total ≤ u32::MAX (checked in Intrinsics::new)
-            pix.push((i % w) as f64 + 0.5);
-            pix.push((i / w) as f64 + 0.5);
-        }
-        let pixels = Tensor::from_vec(pix, (n, 2), device)?.to_dtype(dtype)?;
-        let rays = self.rays_for_pixels(&pixels)?;
-        Ok((rays, Tensor::from_vec(idx, n, device)?))
     }
 
     /// The world-space ray of one continuous pixel coordinate `pixel = (x, y)` (column,
@@ -833,4 +801,116 @@ pub fn patch_rays(
         directions.push(rays.directions().clone());
     }
     Rays::new(Tensor::cat(&origins, 0)?, Tensor::cat(&directions, 0)?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The Blackman–Harris window's cumulative distribution by the trapezoid rule on its
+    /// density (independent of the closed form the library inverts), at offset `x` in pixels.
+    fn blackman_harris_cdf(x: f64, h: f64) -> f64 {
+        let density = |t: f64| {
+            let v = std::f64::consts::TAU * (t / (2.0 * h) + 0.5);
+            0.35875 - 0.48829 * v.cos() + 0.14128 * (2.0 * v).cos() - 0.01168 * (3.0 * v).cos()
+        };
+        let steps = 20_000;
+        let integral = |to: f64| {
+            let dt = (to + h) / steps as f64;
+            (0..steps)
+                .map(|i| {
+                    0.5 * (density(-h + i as f64 * dt) + density(-h + (i + 1) as f64 * dt)) * dt
+                })
+                .sum::<f64>()
+        };
+        integral(x.clamp(-h, h)) / integral(h)
+    }
+
+    /// `PixelFilter::quantile` inverts each filter's cumulative distribution: the box's is
+    /// `u − ½`; the Blackman–Harris window's (Cycles' default, ±1.5 px) is checked against a
+    /// numerical integral of the window, with its symmetry, its ends at ±h, its standard
+    /// deviation (0.4155 px at h = 1.5, against the box's 0.2887) and its refusals.
+    #[test]
+    fn pixel_filter_quantiles_invert_the_filters_distributions() {
+        for u in [0.0, 0.1, 0.25, 0.5, 0.9, 1.0] {
+            assert_eq!(PixelFilter::Box.quantile(u).unwrap(), u - 0.5);
+        }
+        for h in [0.5, 1.5, 4.0] {
+            let f = PixelFilter::BlackmanHarris { half_width: h };
+            assert!((f.quantile(0.0).unwrap() + h).abs() < 1e-12 * h);
+            assert!((f.quantile(1.0).unwrap() - h).abs() < 1e-12 * h);
+            let mut last = -h;
+            for i in 1..100 {
+                let u = i as f64 / 100.0;
+                let x = f.quantile(u).unwrap();
+                assert!(x > last, "quantile not increasing at u = {u}");
+                last = x;
+                assert!(
+                    (f.quantile(1.0 - u).unwrap() + x).abs() < 1e-12 * h,
+                    "not symmetric at u = {u}"
+                );
+                let back = blackman_harris_cdf(x, h);
+                assert!(
+                    (back - u).abs() < 1e-6,
+                    "h = {h}, u = {u}: F(q(u)) = {back}"
+                );
+                // And to rounding against the closed form of the distribution.
+                let [a0, a1, a2, a3] = [0.35875, 0.48829, 0.14128, 0.01168];
+                let (t, z) = (std::f64::consts::TAU, (x + h) / (2.0 * h));
+                let closed = z - a1 / (t * a0) * (t * z).sin()
+                    + a2 / (2.0 * t * a0) * (2.0 * t * z).sin()
+                    - a3 / (3.0 * t * a0) * (3.0 * t * z).sin();
+                assert!(
+                    (closed - u).abs() < 1e-14,
+                    "h = {h}, u = {u}: closed-form F(q(u)) = {closed}"
+                );
+            }
+        }
+        // The standard deviation of the offsets, by the midpoint rule in u.
+        let sd = |f: PixelFilter| {
+            let n = 20_000;
+            let m2: f64 = (0..n)
+                .map(|i| f.quantile((i as f64 + 0.5) / n as f64).unwrap().powi(2))
+                .sum();
+            (m2 / n as f64).sqrt()
+        };
+        assert!((sd(PixelFilter::CYCLES) - 0.4155).abs() < 1e-3);
+        assert!((sd(PixelFilter::Box) - 12f64.sqrt().recip()).abs() < 1e-4);
+        let arg = |r: Result<f64>| match r {
+            Err(Error::InvalidArgument { arg, .. }) => arg,
+            other => panic!("expected an argument error, got {other:?}"),
+        };
+        assert_eq!(arg(PixelFilter::CYCLES.quantile(1.5)), "u");
+        assert_eq!(arg(PixelFilter::CYCLES.quantile(f64::NAN)), "u");
+        for half_width in [0.0, -1.0, 65.0, f64::NAN, f64::INFINITY] {
+            let f = PixelFilter::BlackmanHarris { half_width };
+            assert_eq!(arg(f.quantile(0.5)), "filter");
+        }
+    }
+
+    /// At extreme probabilities the quantile is finite (or refused naming `u`/`filter`).
+    #[test]
+    fn quantiles_stay_finite_at_extreme_probabilities() {
+        let filters = [
+            PixelFilter::Box,
+            PixelFilter::CYCLES,
+            PixelFilter::BlackmanHarris { half_width: 64.0 },
+            PixelFilter::BlackmanHarris { half_width: 1e-300 },
+            PixelFilter::BlackmanHarris {
+                half_width: f64::NAN,
+            },
+            PixelFilter::BlackmanHarris { half_width: 0.0 },
+        ];
+        for filter in filters {
+            for u in [0.0, 1e-300, 0.5, 1.0 - f64::EPSILON, 1.0, -1e-300, f64::NAN] {
+                match filter.quantile(u) {
+                    Ok(x) => assert!(x.is_finite(), "{filter:?}, u = {u:e}: {x}"),
+                    Err(e) => assert!(
+                        !((0.0..=1.0).contains(&u) && filter.validate().is_ok()),
+                        "{filter:?}, u = {u:e}: {e}"
+                    ),
+                }
+            }
+        }
+    }
 }

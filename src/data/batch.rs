@@ -36,20 +36,6 @@ pub struct RayBatch {
     pub pixels: Tensor,
 }
 
-impl RayBatch {
-    /// The number of rays.
-    #[must_use]
-    pub fn len(&self) -> usize {
-        self.rays.len()
-    }
-
-    /// Whether the batch has no rays (never, for batches built by this module).
-    #[must_use]
-    pub fn is_empty(&self) -> bool {
-        self.rays.is_empty()
-    }
-}
-
 /// Builds the batch of the pixels `picks = [(view, u, v)]` with per-ray backgrounds; the
 /// rays pass through `(u, v) + offsets[i]` (the pixel centres, `(½, ½)`, without offsets).
 fn gather(
@@ -127,7 +113,7 @@ fn check_count(n: usize, arg: &'static str) -> Result<()> {
 /// let batch = sampler.pixels(1024)?;
 /// assert_eq!(batch.colors.dims(), &[1024, 3]);
 /// let patches = sampler.patches(16, 4)?; // 16 patches of 4 × 4 pixels
-/// assert_eq!(patches.len(), 16 * 16);
+/// assert_eq!(patches.rays.len(), 16 * 16);
 /// # Ok::<(), neural_fields::Error>(())
 /// ```
 #[derive(Clone, Debug)]
@@ -191,7 +177,8 @@ impl<'a> RaySampler<'a> {
     /// backgrounds, so a sampler without jitter draws the same batches as before.
     ///
     /// # Errors
-    /// [`Error::InvalidArgument`] naming `filter` as [`PixelFilter::quantile`].
+    /// [`Error::InvalidArgument`] naming `filter` unless a Blackman–Harris `half_width` is
+    /// finite and in `(0, 64]`.
     pub fn with_pixel_filter(mut self, filter: PixelFilter, jitter: bool) -> Result<Self> {
         filter.validate()?;
         self.filter = filter;
@@ -258,7 +245,7 @@ impl<'a> RaySampler<'a> {
     /// # let data = Dataset::new(vec![View::new(cam, image, None, "grey".into())?], Background::default(), None)?;
     /// let mut sampler = RaySampler::new(&data, 0, &Device::Cpu, DType::F32)?;
     /// let batch = sampler.pixel_footprints(256, 2)?;     // 256 pixels × 4 rays
-    /// assert_eq!(batch.len(), 1024);
+    /// assert_eq!(batch.rays.len(), 1024);
     /// let target = batch.colors.reshape((256, 4, 3))?.mean(1)?; // each pixel's colour
     /// assert_eq!(target.dims(), &[256, 3]);
     /// # Ok::<(), neural_fields::Error>(())
@@ -391,44 +378,5 @@ impl<'a> RaySampler<'a> {
             }
         }
         gather(self.dataset, &picks, None, &bgs, &self.device, self.dtype)
-    }
-}
-
-impl Dataset {
-    /// Rays of view `view` for the pixels `start .. start + len` in row-major order (pixel
-    /// `(u, v)` has index `v · width + u`), to render a whole image chunk by chunk for
-    /// evaluation. Colours are composited on [`Background::eval_color`].
-    ///
-    /// # Errors
-    /// [`Error::InvalidArgument`] naming `view` if out of range, `len` if 0 or above 2²⁸, and
-    /// `start` if the chunk passes the image's end; `dtype` unless f32 or f64.
-    pub fn view_rays(
-        &self,
-        view: usize,
-        start: usize,
-        len: usize,
-        device: &Device,
-        dtype: DType,
-    ) -> Result<RayBatch> {
-        check_dtype(dtype)?;
-        let Some(v) = self.views().get(view) else {
-            return Err(Error::invalid(
-                "view",
-                format!("an index below {}", self.len()),
-                view.to_string(),
-            ));
-        };
-        check_count(len, "len")?;
-        let (w, h, _) = v.image().size();
-        if start.checked_add(len).is_none_or(|end| end > w * h) {
-            return Err(Error::invalid(
-                "start",
-                format!("a chunk inside the image's {} pixels", w * h),
-                format!("{start} + {len}"),
-            ));
-        }
-        let picks: Vec<_> = (start..start + len).map(|i| (view, i % w, i / w)).collect();
-        let bgs = vec![self.background().eval_color(); len];
-        gather(self, &picks, None, &bgs, device, dtype)
     }
 }

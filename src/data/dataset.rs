@@ -77,7 +77,7 @@ impl View {
 
     /// The mask file's image (one channel), if the view has one.
     #[must_use]
-    pub fn mask_image(&self) -> Option<&Image> {
+    pub(crate) fn mask_image(&self) -> Option<&Image> {
         self.mask.as_ref()
     }
 
@@ -163,7 +163,7 @@ pub enum Background {
     Color([f64; 3]),
     /// A uniform random colour per ray in every training batch (so the field cannot
     /// explain transparency by colour; nerfacc's recipe for the Blender scenes), white for
-    /// evaluation ([`Dataset::view_rays`]). Batches carry the colour used, to composite the
+    /// evaluation ([`Background::eval_color`]). Batches carry the colour used, to composite the
     /// prediction on.
     Random,
 }
@@ -258,18 +258,6 @@ impl Dataset {
         &self.views
     }
 
-    /// The number of views (≥ 1).
-    #[must_use]
-    pub fn len(&self) -> usize {
-        self.views.len()
-    }
-
-    /// Always false: a dataset has at least one view.
-    #[must_use]
-    pub fn is_empty(&self) -> bool {
-        self.views.is_empty()
-    }
-
     /// The background rule.
     #[must_use]
     pub fn background(&self) -> Background {
@@ -341,7 +329,7 @@ impl Dataset {
 ///     "examples/data/wuson".as_ref(),
 ///     &LoadConfig { split: Split::Test, ..LoadConfig::default() },
 /// )?;
-/// println!("{} training views, {} test views", train.len(), test.len());
+/// println!("{} training views, {} test views", train.views().len(), test.views().len());
 /// # Ok::<(), neural_fields::Error>(())
 /// ```
 ///

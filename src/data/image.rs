@@ -1,7 +1,7 @@
 //! 8-bit images in memory, their decoding from PNG/JPEG files and integer downscaling.
 
-use crate::error::{check_dtype, Error, Result};
-use candle_core::{DType, Device, Tensor};
+use crate::error::{Error, Result};
+use candle_core::{DType, Tensor};
 use std::path::Path;
 
 /// The largest image this crate decodes, in pixels (2¹⁸ × 2¹⁸ would be 2³⁶): a header that
@@ -13,7 +13,7 @@ pub(crate) const MAX_PIXELS: u64 = 1 << 30;
 ///
 /// Images keep the bytes of the file, so a dataset in memory takes no more than its decoded
 /// image bytes; they become floating-point tensors in `[0, 1]` only batch by batch
-/// ([`crate::data::RaySampler`]) or with [`Image::to_tensor`]. 16-bit files are rounded to
+/// ([`crate::data::RaySampler`]) or view by view ([`crate::data::View::rgb`]). 16-bit files are rounded to
 /// 8 bits when decoded.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Image {
@@ -91,17 +91,6 @@ impl Image {
             data.push((v.clamp(0.0, 1.0) * 255.0).round() as u8);
         }
         Self::new(w, h, c, data)
-    }
-
-    /// The image as a `[H, W, C]` tensor of `byte / 255` in `dtype` (f32 or f64) on
-    /// `device`.
-    ///
-    /// # Errors
-    /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64.
-    pub fn to_tensor(&self, device: &Device, dtype: DType) -> Result<Tensor> {
-        check_dtype(dtype)?;
-        let t = Tensor::from_slice(&self.data, (self.height, self.width, self.channels), device)?;
-        Ok((t.to_dtype(dtype)? / 255.0)?)
     }
 
     /// The size `(width, height, channels)`: pixels per row, rows, and bytes per pixel

@@ -19,8 +19,10 @@
 //!
 //! # Batches
 //! [`RaySampler`] draws seeded batches of random pixels ([`RaySampler::pixels`]) or
-//! `k × k` patches ([`RaySampler::patches`]) across all views; [`Dataset::view_rays`]
-//! gives whole images chunk by chunk. A [`RayBatch`] holds the [`Rays`](crate::camera::Rays)
+//! `k × k` patches ([`RaySampler::patches`]) across all views; whole images are a view's
+//! camera's [`Camera::rays`](crate::camera::Camera::rays) (row-major, chunk by chunk with
+//! [`Rays::narrow`](crate::camera::Rays::narrow)) and its [`View::rgb`] on
+//! [`Background::eval_color`]. A [`RayBatch`] holds the [`Rays`](crate::camera::Rays)
 //! with their target colours, backgrounds, masks, view and pixel indices, on the caller's
 //! device and dtype.
 //!

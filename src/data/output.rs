@@ -262,7 +262,7 @@ pub fn write_blender(dir: &Path, split: Split, dataset: &Dataset) -> Result<()> 
     })?;
     let first = dataset.views()[0].camera().intrinsics();
     let angle_x = 2.0 * (0.5 * first.width as f64 / first.fx).atan();
-    let mut frames = Vec::with_capacity(dataset.len());
+    let mut frames = Vec::with_capacity(dataset.views().len());
     for (i, view) in dataset.views().iter().enumerate() {
         let image = view.image();
         let (w, h, channels) = image.size();

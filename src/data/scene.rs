@@ -16,7 +16,7 @@ use std::path::Path;
 /// use neural_fields::data::{load_eval, LoadConfig, Split};
 /// let (test, split) = load_eval("examples/data/wuson".as_ref(), &LoadConfig::default())?;
 /// assert_eq!(split, Split::Test);
-/// assert!(!test.is_empty());
+/// assert!(!test.views().is_empty());
 /// # Ok::<(), neural_fields::Error>(())
 /// ```
 ///

@@ -82,8 +82,9 @@ pub struct SurfacePoints {
 /// `f(x₀)` w.r.t. `θ`, `o` (via `∂x₀/∂o = I`) and `w` (via `∂x₀/∂w = t₀·I`) divided by
 /// `−D` is exactly the implicit derivative above. The denominator is guarded in a
 /// sign-preserving way on the cosine `c = D/(‖∇f‖‖w‖)`: `D̃ = s·guard(c, ε)` with
-/// `s = max(‖∇f‖, min_gradient)·‖w‖` (see [`crate::numerics::guard_denominator`]), so
-/// `|∂t/∂f| ≤ 1/(ε·s)` and grazing rays keep the sign of their gradient.
+/// `s = max(‖∇f‖, min_gradient)·‖w‖` and `guard(c, ε) = c` where `|c| ≥ ε`, else
+/// `ε·sgn(c)` (`sgn(0) = +1`), so `|∂t/∂f| ≤ 1/(ε·s)` and grazing rays keep the sign of
+/// their gradient.
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `hits` if it has a different number of rays or dtype

@@ -203,7 +203,7 @@ pub struct Hits {
 impl Hits {
     /// Indices of the rays with a surface point, ascending.
     #[must_use]
-    pub fn surface_indices(&self) -> Vec<u32> {
+    pub(crate) fn surface_indices(&self) -> Vec<u32> {
         self.status
             .iter()
             .enumerate()

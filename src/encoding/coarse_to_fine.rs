@@ -14,7 +14,7 @@ use std::sync::Arc;
 /// # Errors
 /// [`Error::InvalidArgument`] naming `alpha` if it is NaN (±∞ are allowed: all bands off
 /// or on).
-pub fn coarse_to_fine_weights(alpha: f64, bands: usize) -> Result<Vec<f64>> {
+pub(crate) fn coarse_to_fine_weights(alpha: f64, bands: usize) -> Result<Vec<f64>> {
     if alpha.is_nan() {
         return Err(Error::invalid("alpha", "a number", "NaN"));
     }
@@ -121,7 +121,7 @@ impl CoarseToFine {
 
     /// The current `α`.
     #[must_use]
-    pub fn alpha(&self) -> f64 {
+    pub(crate) fn alpha(&self) -> f64 {
         f64::from_bits(self.alpha.load(Ordering::Relaxed))
     }
 
@@ -141,7 +141,7 @@ impl CoarseToFine {
     /// The weight of each output column at the current `α`: `[E]` values in `[0, 1]`,
     /// laid out as the wrapped encoding's columns.
     #[must_use]
-    pub fn column_weights(&self) -> Vec<f64> {
+    pub(crate) fn column_weights(&self) -> Vec<f64> {
         let bands = self.bands();
         // invariant: set_alpha refuses NaN, so the weights exist.
         let w = coarse_to_fine_weights(self.alpha(), bands).unwrap_or_else(|_| vec![1.0; bands]);
@@ -217,4 +217,66 @@ fn frequency_columns(e: &FrequencyEncoding, w: &[f64]) -> Vec<f64> {
     std::iter::repeat_n(1.0, head)
         .chain(w.iter().flat_map(|&wk| std::iter::repeat_n(wk, 2 * d)))
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn frequency(l: usize) -> CoarseToFine {
+        CoarseToFine::new(PointEncoding::Frequency(
+            FrequencyEncoding::new(3, l).unwrap(),
+        ))
+        .unwrap()
+    }
+
+    #[test]
+    fn band_weights_have_their_closed_forms() {
+        let w = coarse_to_fine_weights(2.5, 4).unwrap();
+        assert_eq!(w[0], 1.0);
+        assert_eq!(w[1], 1.0);
+        assert!((w[2] - 0.5).abs() < 1e-15);
+        assert_eq!(w[3], 0.0);
+        assert_eq!(coarse_to_fine_weights(0.0, 3).unwrap(), vec![0.0; 3]);
+        assert_eq!(coarse_to_fine_weights(3.0, 3).unwrap(), vec![1.0; 3]);
+        assert_eq!(
+            coarse_to_fine_weights(f64::INFINITY, 2).unwrap(),
+            vec![1.0; 2]
+        );
+        assert_eq!(
+            coarse_to_fine_weights(f64::NEG_INFINITY, 2).unwrap(),
+            vec![0.0; 2]
+        );
+        assert!(coarse_to_fine_weights(0.0, 0).unwrap().is_empty());
+        // Non-decreasing in α and in [0, 1].
+        let mut last = vec![0.0; 5];
+        for i in 0..=600 {
+            let w = coarse_to_fine_weights(i as f64 / 100.0 - 0.5, 5).unwrap();
+            for (a, b) in w.iter().zip(&last) {
+                assert!((0.0..=1.0).contains(a) && a >= b);
+            }
+            last = w;
+        }
+    }
+
+    #[test]
+    fn nan_alpha_is_refused_naming_alpha() {
+        let e = coarse_to_fine_weights(f64::NAN, 3).unwrap_err();
+        assert!(e.to_string().contains("alpha"), "{e}");
+        let c = frequency(3);
+        let e = c.set_alpha(f64::NAN).unwrap_err();
+        assert!(e.to_string().contains("alpha"), "{e}");
+        assert_eq!(c.alpha(), 0.0, "a refused α leaves the window where it was");
+    }
+
+    #[test]
+    fn clones_share_the_window() {
+        let c = frequency(3);
+        let in_config = PointEncoding::CoarseToFine(c.clone());
+        c.set_alpha(1.25).unwrap();
+        match in_config {
+            PointEncoding::CoarseToFine(inner) => assert_eq!(inner.alpha(), 1.25),
+            _ => unreachable!(),
+        }
+    }
 }

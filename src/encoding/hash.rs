@@ -264,13 +264,13 @@ fn check_positions(x: &Tensor, d: usize) -> Result<usize> {
 impl HashGrid {
     /// The configuration.
     #[must_use]
-    pub fn config(&self) -> &HashGridConfig {
+    pub(crate) fn config(&self) -> &HashGridConfig {
         &self.config
     }
 
     /// The table `[Σ_l T_l, F]` (a `Var` of the `VarBuilder`'s map when built from one).
-    #[must_use]
-    pub fn table(&self) -> &Tensor {
+    #[cfg(test)]
+    fn table(&self) -> &Tensor {
         &self.table
     }
 

@@ -95,12 +95,6 @@ fn check_time(t: f64, arg: &'static str) -> Result<()> {
 }
 
 impl VelocityField {
-    /// The configuration.
-    #[must_use]
-    pub fn config(&self) -> &VelocityFieldConfig {
-        &self.config
-    }
-
     /// Velocities `[N, 3]` at `points: [N, 3]` (f32 or f64) and time `t ∈ [0, 1]`, with
     /// `code: [D]` (shared) or `[N, D]` (per point) when `code_dim = D > 0`.
     /// Differentiable w.r.t. the parameters, the points and the code.

@@ -82,18 +82,6 @@ impl PointCloud {
         self.colors.as_deref()
     }
 
-    /// The number of points `N` (at least 1).
-    #[must_use]
-    pub fn len(&self) -> usize {
-        self.points.len()
-    }
-
-    /// Always `false`: a point cloud holds at least one point.
-    #[must_use]
-    pub fn is_empty(&self) -> bool {
-        self.points.is_empty()
-    }
-
     /// `n` points of the cloud with their normals and colours, drawn uniformly: without
     /// replacement when `n ≤ N` (a random subset in random order), with replacement
     /// beyond (ONet feeds its encoder a fixed number of points, 300, per shape). Same

@@ -139,7 +139,7 @@ impl Mesh {
     ///
     /// # Errors
     /// Naming `mesh` for a face index not below the vertex count.
-    pub fn face_areas(&self) -> Result<Vec<f64>> {
+    pub(crate) fn face_areas(&self) -> Result<Vec<f64>> {
         self.check_indices()?;
         Ok(self
             .faces
@@ -152,7 +152,7 @@ impl Mesh {
     ///
     /// # Errors
     /// Naming `mesh` for a face index not below the vertex count.
-    pub fn face_normals(&self) -> Result<Vec<[f64; 3]>> {
+    pub(crate) fn face_normals(&self) -> Result<Vec<[f64; 3]>> {
         self.check_indices()?;
         Ok(self
             .faces
@@ -259,7 +259,8 @@ impl Mesh {
 
     /// Counts `(boundary, non-manifold, misoriented)` edges: undirected edges used by one
     /// face, by more than two faces, and edges whose two faces traverse them in the same
-    /// direction (inconsistent orientation).
+    /// direction (inconsistent orientation). A mesh with faces and `(0, 0, 0)` is
+    /// watertight and consistently oriented (closed, manifold along edges).
     #[must_use]
     pub fn edge_report(&self) -> (usize, usize, usize) {
         let mut uses: HashMap<(u32, u32), (u32, u32)> = HashMap::new(); // (forward, backward)
@@ -289,13 +290,6 @@ impl Mesh {
             }
         }
         (boundary, nonmanifold, misoriented)
-    }
-
-    /// True if every edge is shared by exactly two faces traversing it in opposite
-    /// directions (closed, manifold along edges, consistently oriented).
-    #[must_use]
-    pub fn is_watertight_and_oriented(&self) -> bool {
-        !self.faces.is_empty() && self.edge_report() == (0, 0, 0)
     }
 
     /// `n` points drawn uniformly on the surface (faces chosen with probability
@@ -541,5 +535,41 @@ impl Mesh {
             normals: None,
             colors: None,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A face index past the vertices is an error naming the mesh, not a panic; the
+    /// valid prefix still works.
+    #[test]
+    fn face_areas_and_normals_name_the_mesh_for_an_out_of_range_index() {
+        let mesh = Mesh {
+            vertices: vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
+            faces: vec![[0, 1, 2], [0, 2, 7]],
+            normals: None,
+            colors: None,
+        };
+        let names_mesh = |e: Error| match e {
+            Error::InvalidArgument { arg, expected, got } => {
+                assert_eq!(arg, "mesh");
+                assert!(expected.contains("face indices"), "{expected}");
+                assert!(
+                    got.contains("face 1") && got.contains("vertex 7 of 3"),
+                    "{got}"
+                );
+            }
+            other => panic!("expected an error naming the mesh, got {other:?}"),
+        };
+        names_mesh(mesh.face_areas().unwrap_err());
+        names_mesh(mesh.face_normals().unwrap_err());
+        let ok = Mesh {
+            faces: vec![[0, 1, 2]],
+            ..mesh
+        };
+        assert_eq!(ok.face_areas().unwrap(), vec![0.5]);
+        assert_eq!(ok.face_normals().unwrap(), vec![[0.0, 0.0, 1.0]]);
     }
 }

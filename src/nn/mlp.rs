@@ -324,7 +324,8 @@ pub fn mlp(config: &MlpConfig, vb: VarBuilder) -> Result<Mlp> {
 impl Mlp {
     /// The configuration the network was built with.
     #[must_use]
-    pub fn config(&self) -> &MlpConfig {
+    #[cfg_attr(not(feature = "volume"), allow(dead_code))] // the NeRF model reads its encodings
+    pub(crate) fn config(&self) -> &MlpConfig {
         &self.config
     }
 

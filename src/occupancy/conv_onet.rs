@@ -4,7 +4,6 @@
 use crate::encoding::{cell_index, grid_sample, scatter, GridSampleConfig, Pooling, ScatterConfig};
 use crate::error::{check_float, check_points, check_same, check_shape, Dim, Error, Result};
 use crate::field::Field;
-use crate::mesh::{points_to_tensor, PointCloud};
 use crate::nn::ResnetFc;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{Init, Linear, Module, VarBuilder};
@@ -109,7 +108,7 @@ impl LocalFeatures {
 
     /// Batch size `B` and channels `C`.
     #[must_use]
-    pub fn batch_and_channels(&self) -> (usize, usize) {
+    pub(crate) fn batch_and_channels(&self) -> (usize, usize) {
         let t = self.tensors()[0];
         let d = t.dims();
         (d[0], d[1])
@@ -251,23 +250,10 @@ impl Conv {
 /// `γ` at once. Memory: `K_D` copies of the input. Candle ops only (any device, f32/f64),
 /// differentiable w.r.t. `input` and `weight`.
 ///
-/// ```
-/// use candle_core::{Device, Tensor};
-/// use neural_fields::occupancy::conv3d;
-///
-/// let x = Tensor::ones((1, 2, 4, 4, 4), candle_core::DType::F64, &Device::Cpu)?;
-/// let w = Tensor::ones((3, 2, 3, 3, 3), candle_core::DType::F64, &Device::Cpu)?;
-/// let y = conv3d(&x, &w, 1)?;
-/// assert_eq!(y.dims(), &[1, 3, 4, 4, 4]);
-/// // An interior voxel sees 2 channels × 27 ones.
-/// assert_eq!(y.get(0)?.get(0)?.get(1)?.get(1)?.get(1)?.to_scalar::<f64>()?, 54.0);
-/// # Ok::<(), neural_fields::Error>(())
-/// ```
-///
 /// # Errors
 /// `input` not float rank 5; `weight` not `[Cₒ, Cᵢ, K_D, K_H, K_W]` of the input's dtype
 /// and device with every kernel size ≥ 1 and at most the padded input's; candle's.
-pub fn conv3d(input: &Tensor, weight: &Tensor, padding: usize) -> Result<Tensor> {
+pub(crate) fn conv3d(input: &Tensor, weight: &Tensor, padding: usize) -> Result<Tensor> {
     check_float(input, "input")?;
     let d = check_shape(
         input,
@@ -434,7 +420,8 @@ impl Unet {
 /// published U-Net's `up_mode = "upsample"`), concatenation with the skip, two 3×3
 /// convolutions with ReLU; a final 1×1 convolution back to `C` channels. The three planes
 /// share one U-Net (stacked on the batch axis). Planes use candle's `conv2d`; the grid
-/// uses [`conv3d`], built from it (see there).
+/// uses a 3-D convolution built from it (the padded input's shifted depth windows stacked
+/// on the channel axis, the depth folded into the batch, one `conv2d`).
 ///
 /// **Decoder** ([`LocalDecoder`]): `c(p) = Σ_planes bilinear(plane, u)` (or trilinear in
 /// the grid); then the pointwise ResNet trunk `net = fc_p(p)`,
@@ -485,7 +472,7 @@ pub struct ConvOnetEncoder {
 /// ```
 /// use candle_core::{DType, Device};
 /// use candle_nn::{VarBuilder, VarMap};
-/// use neural_fields::mesh::PointCloud;
+/// use neural_fields::mesh::{points_to_tensor, PointCloud};
 /// use neural_fields::occupancy::{conv_onet_encoder, ConvOnetConfig, FeatureLayout, LocalFeatures, UnetConfig};
 ///
 /// let varmap = VarMap::new();
@@ -497,7 +484,8 @@ pub struct ConvOnetEncoder {
 /// };
 /// let encoder = conv_onet_encoder(&config, vb)?;
 /// let cloud = PointCloud::new(vec![[0.1, 0.2, -0.3], [-0.4, 0.0, 0.25]], None, None)?;
-/// let LocalFeatures::Grid(grid) = encoder.encode_cloud(&cloud)? else { unreachable!() };
+/// let batch = points_to_tensor(cloud.points(), &Device::Cpu, DType::F64)?.unsqueeze(0)?;
+/// let LocalFeatures::Grid(grid) = encoder.forward(&batch)? else { unreachable!() };
 /// assert_eq!(grid.dims(), &[1, 32, 4, 4, 4]);
 /// # Ok::<(), neural_fields::Error>(())
 /// ```
@@ -672,14 +660,6 @@ impl ConvOnetEncoder {
             FeatureLayout::Grid { .. } => LocalFeatures::Grid(out),
         })
     }
-
-    /// Encodes one point cloud (batch of one) in the encoder's dtype and device.
-    ///
-    /// # Errors
-    /// As [`forward`](Self::forward) (a [`PointCloud`] always holds a point).
-    pub fn encode_cloud(&self, cloud: &PointCloud) -> Result<LocalFeatures> {
-        self.forward(&points_to_tensor(cloud.points(), &self.device, self.dtype)?.unsqueeze(0)?)
-    }
 }
 
 /// `cell_index` names its argument `coords`; here it is the encoder's `points`.
@@ -842,5 +822,226 @@ impl Field for SceneField<'_> {
             .decoder
             .logits(&points.unsqueeze(0)?, &self.features)?
             .reshape((n, 1))?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::SplitMix64;
+    use crate::test_host::v64;
+    use candle_core::Var;
+
+    fn arg_of(e: Error) -> String {
+        match e {
+            Error::InvalidArgument { arg, .. } => arg.to_string(),
+            other => panic!("expected an invalid argument, got {other}"),
+        }
+    }
+
+    /// `y[b, o, z, y, x] = Σ w[o, i, a, β, γ] x_pad[b, i, z + a, y + β, x + γ]` by loops,
+    /// and its adjoints (the gradients of `Σ G ⊙ y` w.r.t. `x` and `w`).
+    #[allow(clippy::type_complexity)]
+    fn naive(
+        x: &[f64],
+        xd: [usize; 5],
+        w: &[f64],
+        wd: [usize; 5],
+        pad: usize,
+        g: Option<&[f64]>,
+    ) -> (Vec<f64>, [usize; 5], Vec<f64>, Vec<f64>) {
+        let [b, ci, d, h, wi] = xd;
+        let [co, _, kd, kh, kw] = wd;
+        let (od, oh, ow) = (
+            d + 2 * pad + 1 - kd,
+            h + 2 * pad + 1 - kh,
+            wi + 2 * pad + 1 - kw,
+        );
+        let od5 = [b, co, od, oh, ow];
+        let mut y = vec![0.0; b * co * od * oh * ow];
+        let mut gx = vec![0.0; x.len()];
+        let mut gw = vec![0.0; w.len()];
+        for n in 0..b {
+            for o in 0..co {
+                for z in 0..od {
+                    for yy in 0..oh {
+                        for xx in 0..ow {
+                            let yi = (((n * co + o) * od + z) * oh + yy) * ow + xx;
+                            let gy = g.map_or(0.0, |g| g[yi]);
+                            for i in 0..ci {
+                                for a in 0..kd {
+                                    for be in 0..kh {
+                                        for ga in 0..kw {
+                                            let (pz, py, px) = (z + a, yy + be, xx + ga);
+                                            if pz < pad || py < pad || px < pad {
+                                                continue;
+                                            }
+                                            let (sz, sy, sx) = (pz - pad, py - pad, px - pad);
+                                            if sz >= d || sy >= h || sx >= wi {
+                                                continue;
+                                            }
+                                            let xi = (((n * ci + i) * d + sz) * h + sy) * wi + sx;
+                                            let wi_ = (((o * ci + i) * kd + a) * kh + be) * kw + ga;
+                                            y[yi] += w[wi_] * x[xi];
+                                            gx[xi] += w[wi_] * gy;
+                                            gw[wi_] += x[xi] * gy;
+                                        }
+                                    }
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        (y, od5, gx, gw)
+    }
+
+    #[test]
+    fn conv3d_matches_the_direct_sum_in_values_and_gradients() {
+        let mut rng = SplitMix64::new(9);
+        for (xd, wd, pad) in [
+            ([2usize, 3, 4, 5, 3], [4usize, 3, 3, 3, 3], 1usize),
+            ([1, 2, 5, 4, 6], [3, 2, 2, 3, 1], 0),
+            ([1, 2, 3, 3, 3], [2, 2, 1, 1, 1], 0),
+            ([1, 1, 2, 3, 2], [2, 1, 3, 2, 3], 2),
+        ] {
+            let xv: Vec<f64> = (0..xd.iter().product())
+                .map(|_| rng.uniform() - 0.5)
+                .collect();
+            let wv: Vec<f64> = (0..wd.iter().product())
+                .map(|_| rng.uniform() - 0.5)
+                .collect();
+            let x = Var::from_vec(xv.clone(), xd.as_slice(), &Device::Cpu).unwrap();
+            let w = Var::from_vec(wv.clone(), wd.as_slice(), &Device::Cpu).unwrap();
+            let y = conv3d(x.as_tensor(), w.as_tensor(), pad).unwrap();
+            let (want, od, _, _) = naive(&xv, xd, &wv, wd, pad, None);
+            assert_eq!(y.dims(), od.as_slice());
+            let got = v64(&y);
+            let err = got
+                .iter()
+                .zip(&want)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            assert!(err < 1e-12, "{xd:?} {wd:?} pad {pad}: {err}");
+            let gy: Vec<f64> = (0..want.len())
+                .map(|i| ((i * 31) % 7) as f64 - 3.0)
+                .collect();
+            let gt = Tensor::from_vec(gy.clone(), od.as_slice(), &Device::Cpu).unwrap();
+            let grads = (y * gt).unwrap().sum_all().unwrap().backward().unwrap();
+            let (_, _, gx, gw) = naive(&xv, xd, &wv, wd, pad, Some(&gy));
+            for (name, got, want) in [
+                ("input", v64(grads.get(x.as_tensor()).unwrap()), gx),
+                ("weight", v64(grads.get(w.as_tensor()).unwrap()), gw),
+            ] {
+                let err = got
+                    .iter()
+                    .zip(&want)
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0, f64::max);
+                assert!(err < 1e-11, "{name} {xd:?} {wd:?} pad {pad}: {err}");
+            }
+        }
+    }
+
+    /// Extreme inputs under unit weights and extreme weights under unit inputs (from 0 to
+    /// 1e30 in f32, 1e300 in f64, both signs): finite values and gradients.
+    #[test]
+    fn conv3d_stays_finite_at_extreme_magnitudes() -> Result<()> {
+        for dtype in [DType::F32, DType::F64] {
+            let top = if dtype == DType::F32 { 1e30 } else { 1e300 };
+            let mut mags = vec![
+                0.0, 1e-45, 1e-30, 1e-12, 1e-6, 0.5, 1.0, 88.0, 1e4, 1e10, top,
+            ];
+            if dtype == DType::F64 {
+                mags.extend([1e-300, 1e30]);
+            }
+            let neg: Vec<f64> = mags.iter().map(|x| -x).collect();
+            mags.extend(neg);
+            let extreme: Vec<f64> = (0..2 * 27).map(|i| mags[(i * 5) % mags.len()]).collect();
+            let unit: Vec<f64> = (0..2 * 27).map(|i| ((i % 7) as f64 - 3.0) / 3.0).collect();
+            for (x, w, tag) in [(&extreme, &unit, "inputs"), (&unit, &extreme, "weights")] {
+                let var = |v: &[f64]| -> Result<Var> {
+                    let t = Tensor::from_slice(v, (1, 2, 3, 3, 3), &Device::Cpu)?;
+                    Ok(Var::from_tensor(&t.to_dtype(dtype)?)?)
+                };
+                let (x, w) = (var(x)?, var(w)?);
+                for padding in [1, 0] {
+                    let y = conv3d(x.as_tensor(), w.as_tensor(), padding)?;
+                    let label = format!("{dtype:?}, extreme {tag}, padding {padding}");
+                    assert!(v64(&y).iter().all(|a| a.is_finite()), "{label}");
+                    let grads = y.sum_all()?.backward()?;
+                    for v in [&x, &w] {
+                        let g = grads.get(v.as_tensor()).expect("a gradient");
+                        assert!(v64(g).iter().all(|a| a.is_finite()), "{label}: gradient");
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn features_report_their_batch_and_channels() -> Result<()> {
+        let plane = || Tensor::zeros((2, 6, 8, 8), DType::F32, &Device::Cpu);
+        let planes = LocalFeatures::Planes {
+            xz: plane()?,
+            xy: plane()?,
+            yz: plane()?,
+        };
+        assert_eq!(planes.batch_and_channels(), (2, 6));
+        let grid = LocalFeatures::Grid(Tensor::zeros((2, 6, 4, 4, 4), DType::F32, &Device::Cpu)?);
+        assert_eq!(grid.batch_and_channels(), (2, 6));
+        Ok(())
+    }
+
+    #[test]
+    fn an_interior_voxel_sums_its_window() -> Result<()> {
+        let x = Tensor::ones((1, 2, 4, 4, 4), DType::F64, &Device::Cpu)?;
+        let w = Tensor::ones((3, 2, 3, 3, 3), DType::F64, &Device::Cpu)?;
+        let y = conv3d(&x, &w, 1)?;
+        assert_eq!(y.dims(), &[1, 3, 4, 4, 4]);
+        // An interior voxel sees 2 channels × 27 ones.
+        let v = y
+            .get(0)?
+            .get(0)?
+            .get(1)?
+            .get(1)?
+            .get(1)?
+            .to_scalar::<f64>()?;
+        assert_eq!(v, 54.0);
+        Ok(())
+    }
+
+    #[test]
+    fn bad_conv3d_inputs_are_errors_naming_the_argument() {
+        let d = Device::Cpu;
+        let x = Tensor::zeros((1, 2, 3, 3, 3), DType::F64, &d).unwrap();
+        assert_eq!(
+            arg_of(
+                conv3d(
+                    &x,
+                    &Tensor::zeros((1, 3, 3, 3, 3), DType::F64, &d).unwrap(),
+                    1
+                )
+                .unwrap_err()
+            ),
+            "weight"
+        );
+        assert_eq!(
+            arg_of(
+                conv3d(
+                    &x,
+                    &Tensor::zeros((1, 2, 6, 3, 3), DType::F64, &d).unwrap(),
+                    1
+                )
+                .unwrap_err()
+            ),
+            "weight"
+        );
+        assert_eq!(
+            arg_of(conv3d(&x.flatten_all().unwrap(), &x, 1).unwrap_err()),
+            "input"
+        );
     }
 }

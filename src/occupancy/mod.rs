@@ -14,8 +14,8 @@
 //!   ([`reconstruction_loss`]), KL to `N(0, I)` ([`kl_standard_normal`]) and the
 //!   reparameterised sample ([`reparameterize`]).
 //! * Samplers: uniform ([`uniform_in_padded_cube`]), near-surface ([`near_surface`]) and
-//!   labelled samples ([`inside_mesh`]: a generalised winding number inside test, robust
-//!   to small holes).
+//!   labelled samples ([`winding_numbers`]: `|w| > ½` is an inside test robust to small
+//!   holes).
 //! * The models, built on [`crate::nn`]'s blocks: [`OnetDecoder`] / [`onet_decoder`],
 //!   the ONet decoder with conditional normalisation that is batch-independent at
 //!   inference (and the plain [`SimpleDecoder`]); [`PointNetEncoder`] /
@@ -23,7 +23,7 @@
 //!   [`ConvOnetEncoder`] / [`conv_onet_encoder`] and [`LocalDecoder`] /
 //!   [`local_decoder`], Convolutional Occupancy Networks (local PointNet pooled into three
 //!   feature planes or a grid, a 2-D or 3-D U-Net, a decoder of interpolated local
-//!   features), and [`conv3d`], a 3-D convolution built from candle's 2-D one.
+//!   features; the grid's U-Net convolves in 3-D with candle's 2-D convolution).
 //!
 //! ```
 //! use candle_core::{DType, Device};
@@ -33,8 +33,8 @@
 //!
 //! // Any ImplicitSurface works: an analytic torus here, a trained `Mlp` in practice.
 //! let torus = Torus::new([0.0; 3], 0.3, 0.1, &Device::Cpu, DType::F32)?.occupancy(10.0);
-//! let out = mise(&torus, &MiseConfig::new(16, 2, &Device::Cpu, DType::F32))?; // 64³
-//! assert!(out.mesh.is_watertight_and_oriented());
+//! let out = mise(&torus, &MiseConfig { resolution0: 16, upsampling_steps: 2, ..MiseConfig::default() })?; // 64³
+//! assert!(!out.mesh.faces.is_empty() && out.mesh.edge_report() == (0, 0, 0));
 //! assert!(out.evaluations < 65 * 65 * 65 / 4);
 //! let bytes = out.mesh.to_bytes(MeshFormat::PlyBinary)?;
 //! let back = Mesh::from_bytes(&bytes, MeshFormat::PlyBinary)?;
@@ -53,8 +53,8 @@ mod pointnet;
 mod sampling;
 
 pub use conv_onet::{
-    conv3d, conv_onet_encoder, local_decoder, ConvOnetConfig, ConvOnetEncoder, FeatureLayout,
-    LocalDecoder, LocalDecoderConfig, LocalFeatures, SceneField, UnetConfig,
+    conv_onet_encoder, local_decoder, ConvOnetConfig, ConvOnetEncoder, FeatureLayout, LocalDecoder,
+    LocalDecoderConfig, LocalFeatures, SceneField, UnetConfig,
 };
 pub use isosurface::{marching_cubes, Grid};
 pub use losses::{kl_standard_normal, reconstruction_loss, reparameterize};
@@ -65,6 +65,4 @@ pub use onet::{
     SimpleDecoderConfig, ONET_BLOCK,
 };
 pub use pointnet::{pointnet_encoder, PointNetConfig, PointNetEncoder};
-pub use sampling::{
-    inside_mesh, near_surface, uniform_in_padded_cube, winding_numbers, WindingConfig,
-};
+pub use sampling::{near_surface, uniform_in_padded_cube, winding_numbers, WindingConfig};

@@ -240,15 +240,3 @@ pub fn winding_numbers(
     };
     Ok(points.par_iter().map(|&p| eval(p)).collect())
 }
-
-/// Inside test for real meshes: `|w(p)| > ½`, with the hierarchical approximation of
-/// [`winding_numbers`].
-///
-/// # Errors
-/// Invalid mesh.
-pub fn inside_mesh(mesh: &Mesh, points: &[[f64; 3]]) -> Result<Vec<bool>> {
-    Ok(winding_numbers(mesh, points, &WindingConfig::default())?
-        .into_iter()
-        .map(|w| w.abs() > 0.5)
-        .collect())
-}

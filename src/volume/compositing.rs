@@ -274,10 +274,10 @@ pub(crate) fn composite_with(
 ///
 /// ```
 /// use candle_core::{Device, Tensor};
-/// use neural_fields::volume::{render_weights, CompositeConfig, Intervals};
+/// use neural_fields::volume::{render_weights, CompositeConfig, Intervals, Layout};
 ///
 /// let dev = Device::Cpu;
-/// let iv = Intervals::new(Tensor::new(&[[0.0f64, 1.0]], &dev)?, Tensor::new(&[[1.0f64, 2.0]], &dev)?)?;
+/// let iv = Intervals::new(Tensor::new(&[[0.0f64, 1.0]], &dev)?, Tensor::new(&[[1.0f64, 2.0]], &dev)?, Layout::Batched)?;
 /// let sigmas = Tensor::new(&[[1.0f64, 1.0]], &dev)?;
 /// let w = render_weights(&sigmas, &iv, None, &CompositeConfig::default())?;
 /// let (e1, w) = ((-1.0f64).exp(), w.weights.to_vec2::<f64>()?);

@@ -150,7 +150,7 @@ fn every_channel_count_and_every_kernel_build_match_the_reference() -> Result<()
 fn blocked_scan_stops_in_the_block_where_transmittance_falls_below_1e_300() -> Result<()> {
     let s = 13;
     let ks = Tensor::arange(0.0f64, s as f64, &dev())?.reshape((1, s))?;
-    let intervals = Intervals::new(ks.clone(), (&ks + 1.0)?)?;
+    let intervals = Intervals::new(ks.clone(), (&ks + 1.0)?, Layout::Batched)?;
     for build in BUILDS {
         for drop_at in 0..s {
             // x = σδ = 0.3 before the drop, 700 at it (T falls by e^{-700} ≈ 1e-304),

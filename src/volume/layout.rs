@@ -157,18 +157,19 @@ pub enum Layout {
 /// `startsᵢ ≤ endsᵢ ≤ startsᵢ₊₁` along each ray.
 ///
 /// Built by [`super::stratified`], [`Intervals::from_samples`], the occupancy grid's
-/// [`super::OccupancyGrid::sample`], or from your own tensors with [`Intervals::new`] /
-/// [`Intervals::new_packed`] (which validate them).
+/// [`super::OccupancyGrid::sample`], or from your own tensors with [`Intervals::new`]
+/// (which validates them, in either layout).
 ///
 /// ```
 /// use candle_core::{Device, Tensor};
 /// use neural_fields::camera::Rays;
-/// use neural_fields::volume::Intervals;
+/// use neural_fields::volume::{Intervals, Layout};
 ///
 /// let dev = Device::Cpu;
 /// let iv = Intervals::new(
 ///     Tensor::new(&[[0.0f32, 1.0], [2.0, 3.0]], &dev)?,   // starts [R = 2, S = 2]
 ///     Tensor::new(&[[1.0f32, 2.0], [3.0, 5.0]], &dev)?,   // ends
+///     Layout::Batched,
 /// )?;
 /// let rays = Rays::new(
 ///     Tensor::zeros((2, 3), candle_core::DType::F32, &dev)?,
@@ -226,41 +227,39 @@ fn check_sorted(
 }
 
 impl Intervals {
-    /// Batched intervals from `starts` and `ends` (`[R, S]`, f32 or f64, same device and
-    /// dtype).
+    /// Intervals from `starts` and `ends` in `layout`: `[R, S]` for [`Layout::Batched`],
+    /// `[M]` with `M` the samples of `packed` for [`Layout::Packed`] (ray `r` owning
+    /// `offsets[r]..offsets[r + 1]`); f32 or f64, one dtype and device.
     ///
     /// Reads the values back to check that every interval has `start ≤ end` and that
     /// intervals are sorted along each ray (`endsᵢ ≤ startsᵢ₊₁`).
     ///
     /// # Errors
-    /// Naming `starts` or `ends` on a dtype, shape or device mismatch, on non-finite
-    /// values, or when the intervals are inverted or unsorted.
-    pub fn new(starts: Tensor, ends: Tensor) -> Result<Self> {
+    /// Naming `starts` or `ends` on a dtype, shape (against `packed` when packed) or
+    /// device mismatch, on non-finite values, or when the intervals are inverted or
+    /// unsorted.
+    pub fn new(starts: Tensor, ends: Tensor, layout: Layout) -> Result<Self> {
         check_float(&starts, "starts")?;
-        let dims = check_shape(&starts, "starts", &[Dim::Any("R"), Dim::Any("S")])?;
-        check_same(&ends, "ends", &starts, "starts")?;
-        check_shape(&ends, "ends", &[Dim::Is(dims[0]), Dim::Is(dims[1])])?;
-        let n = dims[1];
-        check_sorted(
-            &host_f64(&starts)?,
-            &host_f64(&ends)?,
-            |i| i / n,
-            |i| i % n + 1 < n,
-        )?;
-        Ok(Intervals {
-            starts,
-            ends,
-            layout: Layout::Batched,
-        })
-    }
-
-    /// Packed intervals: `starts`, `ends`: `[M]` with `M` the samples of `packed`, ray `r`
-    /// owning `offsets[r]..offsets[r + 1]`; validated as [`Intervals::new`] does.
-    ///
-    /// # Errors
-    /// As [`Intervals::new`], with shapes checked against `packed`.
-    pub fn new_packed(starts: Tensor, ends: Tensor, packed: Packed) -> Result<Self> {
-        check_float(&starts, "starts")?;
+        let packed = match layout {
+            Layout::Batched => {
+                let dims = check_shape(&starts, "starts", &[Dim::Any("R"), Dim::Any("S")])?;
+                check_same(&ends, "ends", &starts, "starts")?;
+                check_shape(&ends, "ends", &[Dim::Is(dims[0]), Dim::Is(dims[1])])?;
+                let n = dims[1];
+                check_sorted(
+                    &host_f64(&starts)?,
+                    &host_f64(&ends)?,
+                    |i| i / n,
+                    |i| i % n + 1 < n,
+                )?;
+                return Ok(Intervals {
+                    starts,
+                    ends,
+                    layout: Layout::Batched,
+                });
+            }
+            Layout::Packed(packed) => packed,
+        };
         let m = packed.n_samples();
         check_shape(&starts, "starts", &[Dim::Is(m)])?;
         check_same(&ends, "ends", &starts, "starts")?;
@@ -292,14 +291,15 @@ impl Intervals {
     ///
     /// ```
     /// use candle_core::{Device, Tensor};
-    /// use neural_fields::volume::{stratified, Jitter};
+    /// use neural_fields::volume::{stratified, Jitter, Layout};
     ///
     /// let dev = Device::Cpu;
     /// let iv = stratified(&Tensor::new(&[0.0f32, 0.0], &dev)?, &Tensor::new(&[1.0f32, 1.0], &dev)?, 3, Jitter::None, 0)?;
     /// let mask = Tensor::new(&[[1u8, 1, 0], [0, 0, 0]], &dev)?;
     /// let (kept, idx) = iv.retain(&mask)?;
     /// assert_eq!(idx.to_vec1::<u32>()?, vec![0, 1]);
-    /// assert_eq!(kept.n_rays(), 2);
+    /// assert_eq!(kept.starts.dims(), &[2]); // two samples kept, of the same two rays
+    /// assert!(matches!(&kept.layout, Layout::Packed(p) if p.n_rays == 2));
     /// # Ok::<(), neural_fields::Error>(())
     /// ```
     ///
@@ -346,7 +346,7 @@ impl Intervals {
 
     /// The number of rays `R`.
     #[must_use]
-    pub fn n_rays(&self) -> usize {
+    pub(crate) fn n_rays(&self) -> usize {
         match &self.layout {
             Layout::Batched => self.starts.dims().first().copied().unwrap_or(0),
             Layout::Packed(p) => p.n_rays,

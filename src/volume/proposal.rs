@@ -185,6 +185,7 @@ pub fn proposal_sample(
         let next = Intervals::new(
             t.narrow(1, 0, n)?.contiguous()?,
             crate::narrow::narrow(&t, 1, 1, n)?.contiguous()?,
+            Layout::Batched,
         )?;
         levels.push((intervals, weights));
         intervals = next;

@@ -42,10 +42,10 @@ fn exclusive_cumsum(x: &Tensor) -> Result<Tensor> {
 ///
 /// ```
 /// use candle_core::{Device, Tensor};
-/// use neural_fields::volume::{distortion_loss, Intervals};
+/// use neural_fields::volume::{distortion_loss, Intervals, Layout};
 ///
 /// let dev = Device::Cpu;
-/// let iv = Intervals::new(Tensor::new(&[[0.0f64, 0.5]], &dev)?, Tensor::new(&[[0.5f64, 1.0]], &dev)?)?;
+/// let iv = Intervals::new(Tensor::new(&[[0.0f64, 0.5]], &dev)?, Tensor::new(&[[0.5f64, 1.0]], &dev)?, Layout::Batched)?;
 /// // All weight in the first interval: only its ⅓·w²·δ term remains.
 /// let l = distortion_loss(&Tensor::new(&[[1.0f64, 0.0]], &dev)?, &iv)?;   // [R = 1]
 /// assert!((l.to_vec1::<f64>()?[0] - 0.5 / 3.0).abs() < 1e-15);

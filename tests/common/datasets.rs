@@ -80,9 +80,11 @@ pub fn pixel(image: &neural_fields::data::Image, u: usize, v: usize) -> &[u8] {
     &image.data()[i..i + c]
 }
 
-/// Whether `view` has a mask: a mask file, or an alpha channel.
+/// Whether `view` has a mask: a mask file, or an alpha channel (`View::mask` is `Some`).
 pub fn has_mask(view: &neural_fields::data::View) -> bool {
-    view.mask_image().is_some() || view.image().size().2 == 4
+    view.mask(&candle_core::Device::Cpu, candle_core::DType::F32)
+        .unwrap()
+        .is_some()
 }
 
 /// The layout that `load` detects in `dir`: the only layout that, named in

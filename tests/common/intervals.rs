@@ -3,7 +3,7 @@
 //! directions, t = midpoints).
 
 use candle_core::{DType, Device, Tensor};
-use neural_fields::volume::{Intervals, Packed};
+use neural_fields::volume::{Intervals, Layout, Packed};
 
 /// Contiguous intervals with the given lengths, ray by ray: ray `r` owns the next
 /// `counts[r]` entries of `deltas`, and its intervals start at `t = 0` and follow each
@@ -50,7 +50,7 @@ pub fn batched_from_deltas(
             .to_device(dev)
             .unwrap()
     };
-    Intervals::new(mk(st), mk(en)).unwrap()
+    Intervals::new(mk(st), mk(en), Layout::Batched).unwrap()
 }
 
 /// Packed `[M]` intervals with lengths `deltas` (`M` values, the samples of `packed`), each
@@ -74,5 +74,5 @@ pub fn packed_from_deltas(deltas: &[f64], packed: &Packed, dtype: DType) -> Inte
             .to_device(&dev)
             .unwrap()
     };
-    Intervals::new_packed(mk(st), mk(en), packed.clone()).unwrap()
+    Intervals::new(mk(st), mk(en), Layout::Packed(packed.clone())).unwrap()
 }

@@ -18,6 +18,23 @@ use candle_nn::VarMap;
 pub use host::v64;
 use neural_fields::rng::SplitMix64;
 
+/// A tensor of i.i.d. `N(mean, std²)` numbers drawn from `rng` (`SplitMix64::normal`),
+/// with the given shape, dtype and device.
+pub fn normal_tensor(
+    rng: &mut SplitMix64,
+    shape: &[usize],
+    mean: f64,
+    std: f64,
+    dtype: DType,
+    device: &Device,
+) -> candle_core::Result<Tensor> {
+    let n = shape.iter().product();
+    let v: Vec<f64> = (0..n).map(|_| mean + std * rng.normal()).collect();
+    Tensor::from_vec(v, shape, &Device::Cpu)?
+        .to_dtype(dtype)?
+        .to_device(device)
+}
+
 /// A `[rows, cols]` tensor of uniform numbers in `[lo, hi)`.
 pub fn uniform(
     rng: &mut SplitMix64,
@@ -46,9 +63,7 @@ pub fn reseed(varmap: &VarMap, seed: u64, gain: f64) {
         } else {
             0.3
         };
-        let t = rng
-            .normal_tensor(&dims, 0.0, std, var.dtype(), var.device())
-            .unwrap();
+        let t = normal_tensor(&mut rng, &dims, 0.0, std, var.dtype(), var.device()).unwrap();
         var.set(&t).unwrap();
     }
 }
