@@ -35,19 +35,7 @@ fn bench_mise(c: &mut Criterion) {
     let mut g = c.benchmark_group("mise_torus");
     g.sample_size(10);
     g.bench_function("mise_32x2^3_256^3", |b| {
-        b.iter(|| {
-            mise(
-                &torus,
-                &MiseConfig {
-                    resolution0: 32,
-                    upsampling_steps: 3,
-                    device: dev.clone(),
-                    dtype: DType::F32,
-                    ..MiseConfig::default()
-                },
-            )
-            .expect("mise")
-        })
+        b.iter(|| mise(&torus, &MiseConfig::new(32, 3, &dev, DType::F32)).expect("mise"))
     });
     g.bench_function("dense_257^3_eval_and_mc", |b| {
         b.iter(|| {

@@ -939,7 +939,7 @@ fn extract_mesh(net: &Net, aabb: [f64; 6], resolution0: usize) -> Result<Mesh> {
         max: [aabb[3], aabb[4], aabb[5]],
         device: device.clone(),
         dtype,
-        ..MiseConfig::default()
+        ..MiseConfig::new(32, 2, &Device::Cpu, DType::F32)
     };
     let mut mesh = mise(net.surface(), &config)?.mesh;
     if mesh.faces.is_empty() {

@@ -128,7 +128,7 @@ fn main() -> neural_fields::Result<()> {
         upsampling_steps: 2,
         device: device.clone(),
         dtype,
-        ..MiseConfig::default()
+        ..MiseConfig::new(32, 2, &Device::Cpu, DType::F32)
     };
     let report = |step: usize, loss: f32| -> neural_fields::Result<Mesh> {
         let pred = net.value(&eval_tensor)?.gt(0.0)?.to_vec1::<u8>()?;

@@ -379,7 +379,7 @@ fn run(a: &Args) -> Result<()> {
             upsampling_steps: 2,
             device: device.clone(),
             dtype,
-            ..MiseConfig::default()
+            ..MiseConfig::new(32, 2, &Device::Cpu, DType::F32)
         },
     )?;
     let mut mesh = out.mesh;

@@ -159,7 +159,7 @@ fn run(args: &Args) -> neural_fields::Result<()> {
             upsampling_steps: 3,
             device: device.clone(),
             dtype,
-            ..MiseConfig::default()
+            ..MiseConfig::new(32, 2, &Device::Cpu, DType::F32)
         },
     )?;
     let dense_evals = 129usize.pow(3);

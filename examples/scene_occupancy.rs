@@ -377,17 +377,7 @@ fn prepare(seed: u64, dev: &Device) -> Result<Data> {
     // A layout no training step draws (steps use seed ^ step·φ).
     let mut rng = SplitMix64::new(!seed);
     let scene = Scene::random(&mut rng, dev)?;
-    let gt = mise(
-        &scene,
-        &MiseConfig {
-            resolution0: 32,
-            upsampling_steps: 2,
-            device: dev.clone(),
-            dtype: DType::F64,
-            ..MiseConfig::default()
-        },
-    )?
-    .mesh;
+    let gt = mise(&scene, &MiseConfig::new(32, 2, dev, DType::F64))?.mesh;
     let surface = scene.surface(2 * CLOUD, &mut rng, dev)?;
     let eval = points_from_tensor(&uniform_in_padded_cube(
         100_000,
@@ -442,7 +432,7 @@ fn mise_config(dev: &Device) -> MiseConfig {
         upsampling_steps: 2,
         device: dev.clone(),
         dtype: DType::F32,
-        ..MiseConfig::default()
+        ..MiseConfig::new(32, 2, &Device::Cpu, DType::F32)
     }
 }
 

@@ -927,7 +927,7 @@ fn mesh_case(dev: &Device, dtype: DType) -> Result<Outs> {
             upsampling_steps: 2,
             device: dev.clone(),
             dtype,
-            ..MiseConfig::default()
+            ..MiseConfig::new(32, 2, &Device::Cpu, DType::F32)
         },
     )?;
     mesh_outs(&mut out, "mise.torus", &m.mesh);
@@ -962,7 +962,7 @@ fn mesh_case(dev: &Device, dtype: DType) -> Result<Outs> {
             upsampling_steps: 1,
             device: dev.clone(),
             dtype,
-            ..MiseConfig::default()
+            ..MiseConfig::new(32, 2, &Device::Cpu, DType::F32)
         },
     )?;
     mesh_outs(&mut out, "mise.mlp", &m.mesh);

@@ -28,7 +28,7 @@ fn mise_matches_dense_marching_cubes_with_far_fewer_evaluations() {
             upsampling_steps: 3,
             device: dev.clone(),
             dtype,
-            ..MiseConfig::default()
+            ..MiseConfig::new(32, 2, &Device::Cpu, DType::F32)
         };
         let out = mise(&torus, &cfg).unwrap();
         let np = (cfg.resolution0 << cfg.upsampling_steps) + 1;
@@ -63,25 +63,13 @@ fn mise_without_upsampling_is_dense_and_thresholds_are_logits() {
     let s = Sphere::new([0.0; 3], 0.3, &dev, DType::F32)
         .unwrap()
         .occupancy(20.0);
-    let mut cfg = MiseConfig {
-        resolution0: 20,
-        upsampling_steps: 0,
-        device: dev.clone(),
-        dtype: DType::F32,
-        ..MiseConfig::default()
-    };
+    let mut cfg = MiseConfig::new(20, 0, &dev, DType::F32);
     cfg.chunk = 100;
     let out = mise(&s, &cfg).unwrap();
     assert_eq!(out.evaluations, 21 * 21 * 21);
     // A higher probability threshold gives a smaller sphere: σ(−20(r − 0.3)) = 0.9 at
     // r = 0.3 − ln 9 / 20.
-    let mut cfg = MiseConfig {
-        resolution0: 16,
-        upsampling_steps: 2,
-        device: dev.clone(),
-        dtype: DType::F32,
-        ..MiseConfig::default()
-    };
+    let mut cfg = MiseConfig::new(16, 2, &dev, DType::F32);
     cfg.level = Some(logit_threshold(0.9).unwrap());
     let out = mise(&s, &cfg).unwrap();
     let r = 0.3 - 9f64.ln() / 20.0;
@@ -101,57 +89,15 @@ fn mise_without_upsampling_is_dense_and_thresholds_are_logits() {
 fn mise_rejects_bad_settings_and_handles_empty_fields() {
     let dev = Device::Cpu;
     let s = Sphere::new([5.0; 3], 0.3, &dev, DType::F32).unwrap().sdf();
-    let out = mise(
-        &s,
-        &MiseConfig {
-            resolution0: 8,
-            upsampling_steps: 2,
-            device: dev.clone(),
-            dtype: DType::F32,
-            ..MiseConfig::default()
-        },
-    )
-    .unwrap();
+    let out = mise(&s, &MiseConfig::new(8, 2, &dev, DType::F32)).unwrap();
     assert!(out.mesh.faces.is_empty());
     assert_eq!(out.evaluations, 9 * 9 * 9);
-    assert!(mise(
-        &s,
-        &MiseConfig {
-            resolution0: 0,
-            upsampling_steps: 2,
-            device: dev.clone(),
-            dtype: DType::F32,
-            ..MiseConfig::default()
-        }
-    )
-    .is_err());
-    assert!(mise(
-        &s,
-        &MiseConfig {
-            resolution0: 16,
-            upsampling_steps: 8,
-            device: dev.clone(),
-            dtype: DType::F32,
-            ..MiseConfig::default()
-        }
-    )
-    .is_err());
-    let mut c = MiseConfig {
-        resolution0: 4,
-        upsampling_steps: 1,
-        device: dev.clone(),
-        dtype: DType::F32,
-        ..MiseConfig::default()
-    };
+    assert!(mise(&s, &MiseConfig::new(0, 2, &dev, DType::F32)).is_err());
+    assert!(mise(&s, &MiseConfig::new(16, 8, &dev, DType::F32)).is_err());
+    let mut c = MiseConfig::new(4, 1, &dev, DType::F32);
     c.chunk = 0;
     assert!(mise(&s, &c).unwrap_err().to_string().starts_with("chunk"));
-    let c = MiseConfig {
-        resolution0: 4,
-        upsampling_steps: 1,
-        device: dev.clone(),
-        dtype: DType::U8,
-        ..MiseConfig::default()
-    };
+    let c = MiseConfig::new(4, 1, &dev, DType::U8);
     assert!(mise(&s, &c).is_err());
     let _ = s.level();
 }
@@ -163,13 +109,7 @@ fn mise_256_against_dense_256_on_a_torus() {
     let torus = Torus::new([0.0; 3], 0.3, 0.1, &dev, DType::F32)
         .unwrap()
         .occupancy(10.0);
-    let cfg = MiseConfig {
-        resolution0: 32,
-        upsampling_steps: 3,
-        device: dev.clone(),
-        dtype: DType::F32,
-        ..MiseConfig::default()
-    };
+    let cfg = MiseConfig::new(32, 3, &dev, DType::F32);
     let t = Instant::now();
     let out = mise(&torus, &cfg).unwrap();
     let t_mise = t.elapsed().as_secs_f64();
@@ -242,7 +182,7 @@ fn mise_256_against_dense_256_on_a_trained_mlp() {
         upsampling_steps: 3,
         device: dev.clone(),
         dtype,
-        ..MiseConfig::default()
+        ..MiseConfig::new(32, 2, &Device::Cpu, DType::F32)
     };
     let t = Instant::now();
     let out = mise(&net, &cfg).unwrap();
@@ -291,7 +231,7 @@ fn newton_refinement_moves_vertices_onto_the_level_set() {
                     upsampling_steps: 1,
                     device: dev.clone(),
                     dtype,
-                    ..MiseConfig::default()
+                    ..MiseConfig::new(32, 2, &Device::Cpu, DType::F32)
                 },
             )
             .unwrap()
@@ -307,7 +247,7 @@ fn newton_refinement_moves_vertices_onto_the_level_set() {
                     max_shift: 0.5 * h,
                     device: dev.clone(),
                     dtype,
-                    ..RefineConfig::default()
+                    ..RefineConfig::new(0.005, &Device::Cpu, DType::F32)
                 },
             )
             .unwrap();
@@ -343,18 +283,9 @@ fn newton_refinement_moves_vertices_onto_the_level_set() {
 fn newton_refinement_clamps_the_shift_and_names_bad_settings() {
     let dev = Device::Cpu;
     let sphere = Sphere::new([0.0; 3], 0.3, &dev, DType::F64).unwrap().sdf();
-    let mut mesh = mise(
-        &sphere,
-        &MiseConfig {
-            resolution0: 8,
-            upsampling_steps: 1,
-            device: dev.clone(),
-            dtype: DType::F64,
-            ..MiseConfig::default()
-        },
-    )
-    .unwrap()
-    .mesh;
+    let mut mesh = mise(&sphere, &MiseConfig::new(8, 1, &dev, DType::F64))
+        .unwrap()
+        .mesh;
     let start = mesh.vertices.clone();
     // A field whose level set is a sphere of radius 0.2: every vertex wants to move
     // 0.1, but may move only 0.01.
@@ -363,7 +294,7 @@ fn newton_refinement_clamps_the_shift_and_names_bad_settings() {
         max_shift: 0.01,
         device: dev.clone(),
         dtype: DType::F64,
-        ..RefineConfig::default()
+        ..RefineConfig::new(0.005, &Device::Cpu, DType::F32)
     };
     cfg.steps = 5;
     refine_vertices(&small, &mut mesh, &cfg).unwrap();
@@ -382,7 +313,7 @@ fn newton_refinement_clamps_the_shift_and_names_bad_settings() {
                 max_shift: 0.0,
                 device: dev.clone(),
                 dtype: DType::F64,
-                ..RefineConfig::default()
+                ..RefineConfig::new(0.005, &Device::Cpu, DType::F32)
             },
             "max_shift",
         ),
@@ -391,7 +322,7 @@ fn newton_refinement_clamps_the_shift_and_names_bad_settings() {
                 max_shift: f64::NAN,
                 device: dev.clone(),
                 dtype: DType::F64,
-                ..RefineConfig::default()
+                ..RefineConfig::new(0.005, &Device::Cpu, DType::F32)
             },
             "max_shift",
         ),
@@ -401,7 +332,7 @@ fn newton_refinement_clamps_the_shift_and_names_bad_settings() {
                 max_shift: 0.1,
                 device: dev.clone(),
                 dtype: DType::F64,
-                ..RefineConfig::default()
+                ..RefineConfig::new(0.005, &Device::Cpu, DType::F32)
             },
             "chunk",
         ),
@@ -410,7 +341,7 @@ fn newton_refinement_clamps_the_shift_and_names_bad_settings() {
                 max_shift: 0.1,
                 device: dev.clone(),
                 dtype: DType::U8,
-                ..RefineConfig::default()
+                ..RefineConfig::new(0.005, &Device::Cpu, DType::F32)
             },
             "dtype",
         ),

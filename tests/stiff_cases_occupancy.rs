@@ -425,7 +425,7 @@ fn sweep_occupancy(s: &mut Suite) {
                     upsampling_steps: 2,
                     device: d.clone(),
                     dtype,
-                    ..MiseConfig::default()
+                    ..MiseConfig::new(32, 2, &Device::Cpu, DType::F32)
                 };
                 cfg.min = [-ext; 3];
                 cfg.max = [ext; 3];
@@ -448,7 +448,7 @@ fn sweep_occupancy(s: &mut Suite) {
                         upsampling_steps: 1,
                         device: d.clone(),
                         dtype,
-                        ..MiseConfig::default()
+                        ..MiseConfig::new(32, 2, &Device::Cpu, DType::F32)
                     };
                     cfg.min = [-ext; 3];
                     cfg.max = [ext; 3];
@@ -460,7 +460,7 @@ fn sweep_occupancy(s: &mut Suite) {
                             max_shift: 0.1 * ext,
                             device: d.clone(),
                             dtype,
-                            ..RefineConfig::default()
+                            ..RefineConfig::new(0.005, &Device::Cpu, DType::F32)
                         },
                     )?;
                     Ok(vec![

@@ -105,13 +105,7 @@ pub fn run(quick: bool) -> Vec<Table> {
                 continue;
             }
             let steps = (res / r0).trailing_zeros() as usize;
-            let cfg = MiseConfig {
-                resolution0: r0,
-                upsampling_steps: steps,
-                device: dev.clone(),
-                dtype: DType::F32,
-                ..MiseConfig::default()
-            };
+            let cfg = MiseConfig::new(r0, steps, &dev, DType::F32);
             let mut out = None;
             let seconds = median_seconds(reps, || out = Some(mise(&torus, &cfg).expect("mise")));
             let out = out.expect("ran");

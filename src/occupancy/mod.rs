@@ -33,7 +33,7 @@
 //!
 //! // Any ImplicitSurface works: an analytic torus here, a trained `Mlp` in practice.
 //! let torus = Torus::new([0.0; 3], 0.3, 0.1, &Device::Cpu, DType::F32)?.occupancy(10.0);
-//! let out = mise(&torus, &MiseConfig { resolution0: 16, upsampling_steps: 2, ..MiseConfig::default() })?; // 64³
+//! let out = mise(&torus, &MiseConfig::new(16, 2, &Device::Cpu, DType::F32))?; // 64³
 //! assert!(!out.mesh.faces.is_empty() && out.mesh.edge_report() == (0, 0, 0));
 //! assert!(out.evaluations < 65 * 65 * 65 / 4);
 //! let bytes = out.mesh.to_bytes(MeshFormat::PlyBinary)?;

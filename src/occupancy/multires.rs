@@ -29,20 +29,20 @@ pub struct MiseConfig {
     pub dtype: DType,
 }
 
-impl Default for MiseConfig {
-    /// ONet's default: `r₀ = 32`, `k = 2` (a 128³ grid) on ONet's box `[−0.55, 0.55]³`,
-    /// the field's level, chunks of 65 536 points, f32 on the CPU. Set the fields to
-    /// change them: `MiseConfig { resolution0: 16, device, ..MiseConfig::default() }`.
-    fn default() -> Self {
+impl MiseConfig {
+    /// `r₀`, `k` on ONet's box `[−0.55, 0.55]³`, the field's level, chunks of 65 536
+    /// points, on `device` in `dtype`.
+    #[must_use]
+    pub fn new(resolution0: usize, upsampling_steps: usize, device: &Device, dtype: DType) -> Self {
         Self {
-            resolution0: 32,
-            upsampling_steps: 2,
+            resolution0,
+            upsampling_steps,
             min: [-0.55; 3],
             max: [0.55; 3],
             level: None,
             chunk: 65_536,
-            device: Device::Cpu,
-            dtype: DType::F32,
+            device: device.clone(),
+            dtype,
         }
     }
 }
@@ -311,18 +311,18 @@ pub struct RefineConfig {
     pub dtype: DType,
 }
 
-impl Default for RefineConfig {
-    /// Three steps, at most 0.005 of displacement (about half a cell of MISE's default
-    /// 128³ grid on ONet's box; set `max_shift` for other grids), the field's level,
-    /// chunks of 65 536 points, f32 on the CPU.
-    fn default() -> Self {
+impl RefineConfig {
+    /// Three steps, at most `max_shift` of displacement, the field's level, chunks of
+    /// 65 536 points, on `device` in `dtype`.
+    #[must_use]
+    pub fn new(max_shift: f64, device: &Device, dtype: DType) -> Self {
         Self {
             steps: 3,
-            max_shift: 0.005,
+            max_shift,
             level: None,
             chunk: 65_536,
-            device: Device::Cpu,
-            dtype: DType::F32,
+            device: device.clone(),
+            dtype,
         }
     }
 }
