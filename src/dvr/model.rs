@@ -122,8 +122,10 @@ impl Default for SurfaceModelConfig {
     }
 }
 
-/// The networks of one [`SurfaceKind`].
+/// The networks of one [`SurfaceKind`] (one per model, so the variants' sizes do not
+/// matter).
 #[derive(Clone, Debug)]
+#[allow(clippy::large_enum_variant)]
 enum Net {
     Dvr {
         geometry: Mlp,
@@ -491,7 +493,7 @@ impl SurfaceModel {
         } else {
             1
         };
-        if n == 0 || n % per_patch != 0 {
+        if n == 0 || !n.is_multiple_of(per_patch) {
             return Err(Error::invalid(
                 "rays",
                 format!("a positive multiple of {per_patch} rays (whole patches)"),
