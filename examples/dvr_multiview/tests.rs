@@ -3,6 +3,7 @@
 //! registration and the mask checks.
 
 use super::*;
+use neural_fields::camera::Camera;
 use neural_fields::data::View;
 
 fn read_json(path: &Path) -> serde_json::Value {
