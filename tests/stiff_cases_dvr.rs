@@ -1,5 +1,5 @@
 //! Stiff cases of `dvr`: marching, secant refinement, sphere tracing, implicit surface
-//! points and the DVR/IDR losses at extreme inputs.
+//! points, the DVR/IDR losses and the surface model at extreme inputs.
 
 #![cfg(feature = "dvr")]
 
@@ -39,6 +39,12 @@ const DVR: &[&str] = &[
     "dvr::photometric_loss",
     "dvr::random_points_on_rays",
     "dvr::sphere_trace",
+    "dvr::surface_model",
+    "dvr::SurfaceModel::loss",
+    "dvr::SurfaceModel::shade",
+    "dvr::SurfaceModel::value",
+    "dvr::SurfaceModel::value_and_grad",
+    "dvr::SurfaceModel::rgb",
 ];
 
 /// Public items without floating-point input (or only reached through a swept item),
@@ -52,6 +58,8 @@ const EXEMPT: &[(&str, &str)] = &[
     ("dvr::RayStatus::", "enum"),
     ("dvr::SphereTraceConfig::default", "constants"),
     ("dvr::StepSchedule::", "integer schedule"),
+    ("dvr::SurfaceModel::inside", "a constant of the kind"),
+    ("dvr::SurfaceModelConfig::default", "constants"),
 ];
 
 fn sweep_dvr(s: &mut Suite) {
@@ -64,6 +72,7 @@ fn sweep_dvr(s: &mut Suite) {
     };
     use neural_fields::field::Inside;
     let d = Device::Cpu;
+    sweep_surface_model(s);
     for dtype in DTYPES {
         let big = if dtype == DType::F32 { 1e18 } else { 1e150 };
         // Rays: a plain hit, a tiny direction, a huge direction, a far-away origin, one
@@ -302,5 +311,127 @@ fn sweep_dvr(s: &mut Suite) {
                 )?])
             },
         );
+    }
+}
+
+/// The surface model of each kind: built, evaluated at extreme points, trained a step and
+/// shaded on plain rays and on rays from extreme origins with extreme directions.
+fn sweep_surface_model(s: &mut Suite) {
+    use candle_nn::VarMap;
+    use neural_fields::dvr::{surface_model, SurfaceKind, SurfaceModelConfig};
+    use neural_fields::nn::build_seeded;
+    use neural_fields::texture::{TextureField, TextureInput};
+    let d = Device::Cpu;
+    for dtype in DTYPES {
+        let big = if dtype == DType::F32 { 1e18 } else { 1e150 };
+        // Two 2 × 2 patches: rays into the box, and rays from far away, with tiny and huge
+        // directions, grazing the box and along an axis.
+        let o_rows = [
+            [0.1, 0.0, -2.0],
+            [0.0, 0.1, -2.0],
+            [0.3, 0.3, -2.0],
+            [0.0, 0.0, 0.1],
+            [0.0, 0.0, -big],
+            [1.0, 1.0, -2.0],
+            [-2.0, 0.0, 0.0],
+            [0.0, 0.0, -2.0],
+        ]
+        .concat();
+        let w_rows = [
+            [0.0, 0.0, 1.0],
+            [0.0, 0.0, 1.0],
+            [0.0, 0.0, 1.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 1.0],
+            [0.0, 0.0, 1.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1e-3, 1e3],
+        ]
+        .concat();
+        let origins = var(&o_rows, &[8, 3], dtype);
+        let directions = var(&w_rows, &[8, 3], dtype);
+        let rays = Rays::new(origins.as_tensor().clone(), directions.as_tensor().clone()).unwrap();
+        let colors = Tensor::full(0.25, (8, 3), &d)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap();
+        let mask = Tensor::new(&[1.0, 1.0, 0.0, 1.0, 0.0, 0.0, 1.0, 1.0], &d)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap();
+        let pts = extreme_points(dtype);
+        let dirs = Tensor::ones_like(&pts).unwrap();
+        for kind in [SurfaceKind::Dvr, SurfaceKind::DvrJoint, SurfaceKind::Idr] {
+            let config = SurfaceModelConfig {
+                kind,
+                ..SurfaceModelConfig::default()
+            };
+            let label = format!("{dtype:?}, {kind:?}");
+            let build = || {
+                build_seeded(&VarMap::new(), dtype, &d, 1, |vb| {
+                    surface_model(&config, vb)
+                })
+            };
+            s.case(
+                "dvr::surface_model",
+                label.clone(),
+                Expect::Finite,
+                &[],
+                || Ok(vec![build()?.value(&pts)?]),
+            );
+            let model = build().unwrap();
+            s.case(
+                "dvr::SurfaceModel::value",
+                format!("{label}, extreme points"),
+                Expect::Finite,
+                &[],
+                || Ok(vec![model.value(&pts)?]),
+            );
+            s.case(
+                "dvr::SurfaceModel::value_and_grad",
+                format!("{label}, extreme points"),
+                Expect::Finite,
+                &[],
+                || {
+                    let (v, g) = model.value_and_grad(&pts)?;
+                    Ok(vec![v, g])
+                },
+            );
+            s.case(
+                "dvr::SurfaceModel::rgb",
+                format!("{label}, extreme points"),
+                Expect::Finite,
+                &[],
+                || {
+                    let input = TextureInput {
+                        view_dirs: Some(&dirs),
+                        ..TextureInput::new(&pts)
+                    };
+                    Ok(vec![model.rgb(&input)?])
+                },
+            );
+            for progress in [0.0, 1.0] {
+                s.case(
+                    "dvr::SurfaceModel::loss",
+                    format!("{label}, extreme rays, progress {progress}"),
+                    Expect::Finite,
+                    &[&origins, &directions],
+                    || {
+                        let l = model.loss(&rays, &colors, &mask, progress, 9)?;
+                        Ok(vec![l.total, l.photometric])
+                    },
+                );
+            }
+            s.case(
+                "dvr::SurfaceModel::shade",
+                format!("{label}, extreme rays"),
+                Expect::Finite,
+                &[],
+                || {
+                    let seen = model.shade(&rays)?;
+                    Ok(vec![seen.rgb, seen.depth, seen.coverage, seen.normals])
+                },
+            );
+        }
     }
 }

@@ -12,6 +12,11 @@
 //! surface are `s = σ·(f − τ)`, inside positive for both occupancy logits and SDFs (see
 //! [`march`]).
 //!
+//! [`SurfaceModel`] ([`surface_model`]) puts these pieces together for multi-view
+//! reconstruction from masked images: DVR's or IDR's networks, the loss of one training
+//! step on a batch of rays ([`SurfaceModel::loss`]) and the shading of rays for
+//! evaluation ([`SurfaceModel::shade`]).
+//!
 //! ```
 //! use candle_core::{DType, Device, Tensor, Var};
 //! use neural_fields::camera::{Intersection, Rays};
@@ -42,6 +47,7 @@
 mod implicit;
 mod losses;
 mod marching;
+mod model;
 
 pub use implicit::{implicit_surface, ImplicitConfig, SurfacePoints};
 pub use losses::{
@@ -51,4 +57,8 @@ pub use losses::{
 };
 pub use marching::{
     march, sphere_trace, Hits, MarchConfig, RayStatus, SecantRule, SphereTraceConfig, StepSchedule,
+};
+pub use model::{
+    surface_model, RenderInputs, SurfaceEncoding, SurfaceKind, SurfaceLoss, SurfaceModel,
+    SurfaceModelConfig, SurfaceShading,
 };
