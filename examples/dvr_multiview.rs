@@ -62,7 +62,7 @@ use neural_fields::dvr::{
     surface_model, SurfaceEncoding, SurfaceKind, SurfaceModel, SurfaceModelConfig,
 };
 use neural_fields::encoding::CoarseToFine;
-use neural_fields::field::{ImplicitSurface, SignedDistance, Sphere};
+use neural_fields::field::{ImplicitSurface, Inside, SignedDistance, Sphere};
 use neural_fields::glam::{DAffine3, DVec3};
 use neural_fields::mesh::Mesh;
 use neural_fields::nn::{adam, build_seeded, Budget, Clock, FiniteGuard};
@@ -512,7 +512,11 @@ fn extract_mesh(model: &SurfaceModel, aabb: [f64; 6], resolution0: usize) -> Res
     }
     let colors = vertex_colors(&mesh, 16_384, &device, dtype, |p| {
         // View the surface head-on: along the inward normal.
-        let dirs = (model.value_and_grad(p)?.1.detach() * model.inside().sign())?;
+        let inward = match model.inside() {
+            Inside::Positive => 1.0,
+            Inside::Negative => -1.0,
+        };
+        let dirs = (model.value_and_grad(p)?.1.detach() * inward)?;
         let view_dirs = Some(&dirs);
         Ok(model
             .rgb(&TextureInput {

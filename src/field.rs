@@ -56,7 +56,7 @@ pub enum Inside {
 impl Inside {
     /// `+1` for [`Inside::Positive`], `−1` for [`Inside::Negative`].
     #[must_use]
-    pub fn sign(self) -> f64 {
+    pub(crate) fn sign(self) -> f64 {
         match self {
             Inside::Positive => 1.0,
             Inside::Negative => -1.0,

@@ -35,7 +35,6 @@ const EXEMPT: &[(&str, &str)] = &[
         "field::Conditioned::",
         "forwards to the wrapped field (swept via the Mlp)",
     ),
-    ("field::Inside::sign", "constant"),
     (
         "field::Occupancy::",
         "trait methods, swept via the shapes' cases",

@@ -70,7 +70,7 @@ impl Image {
     /// # Errors
     /// [`Error::InvalidArgument`] naming `image` for another rank or channel count, an
     /// empty image, or a NaN.
-    pub fn from_tensor(image: &Tensor) -> Result<Self> {
+    pub(crate) fn from_tensor(image: &Tensor) -> Result<Self> {
         let (h, w, c) = image_shape(image, "image")?;
         if !matches!(c, 1 | 3 | 4) {
             return Err(Error::invalid(

@@ -61,8 +61,8 @@ pub(crate) fn encode_png(
 }
 
 /// Writes an image tensor as an 8-bit PNG: `image: [H, W]` (grey, e.g. opacity) or
-/// `[H, W, C]` with C = 1, 3 or 4, values in `[0, 1]` (clamped, rounded to 256 levels as
-/// [`Image::from_tensor`]). Any float dtype and device. The file is written to a temporary
+/// `[H, W, C]` with C = 1, 3 or 4, values in `[0, 1]` (clamped, then `round(255·v)`; a NaN is
+/// an error). Any float dtype and device. The file is written to a temporary
 /// name and renamed, never left half-written.
 ///
 /// ```no_run
