@@ -56,6 +56,7 @@ pub enum Inside {
 impl Inside {
     /// `+1` for [`Inside::Positive`], `−1` for [`Inside::Negative`].
     #[must_use]
+    #[cfg_attr(not(any(feature = "dvr", feature = "occupancy")), allow(dead_code))]
     pub(crate) fn sign(self) -> f64 {
         match self {
             Inside::Positive => 1.0,

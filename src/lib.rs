@@ -126,7 +126,7 @@
 //! points from whatever it reads of a [`texture::TextureInput`] (normals, view directions,
 //! geometry features, codes): the Texture Fields decoder, IDR's rendering network and
 //! DVR's joint decoder are in [`texture`], built on [`nn`]'s blocks. With DVR's surface points the photometric loss
-//! reaches the shape; `examples/dvr_multiview.rs` reconstructs shape and colour from
+//! reaches the shape; `examples/dvr_multiview/` reconstructs shape and colour from
 //! masked images.
 //!
 //! **9. Motion** (feature `flow`). [`flow::odeint`] integrates `dy/dt = f(t, y)` with RK4

@@ -14,7 +14,7 @@ use neural_fields::field::ImplicitSurface;
 use neural_fields::nn::{build_seeded, FiniteGuard};
 use neural_fields::texture::{TextureField, TextureInput};
 
-/// Every model of `examples/dvr_multiview.rs` (kind, encoding, IDR's inputs).
+/// Every model of `examples/dvr_multiview/` (kind, encoding, IDR's inputs).
 fn configs() -> Vec<SurfaceModelConfig> {
     let hash = SurfaceEncoding::HashGrid {
         finest_resolution: 64.0,

@@ -11,7 +11,7 @@ axis (z), so that a difference between two groups of runs can be placed on the o
         --group true out/dvr_true out/dvr_true_s1 \\
         --group refined out/lm_fixed15 out/lm_fixed_s2
 
-Each run folder holds the `mesh.ply` that `examples/dvr_multiview.rs` writes (in the
+Each run folder holds the `mesh.ply` that `examples/dvr_multiview/` writes (in the
 dataset's frame). The source mesh and its normalisation come from the dataset's
 `scene.json` (`mesh`, `normalisation.matrix`), as in the example; distances are in the
 source's unit cube (ONet's normalisation: centred on its bounding box, the longest side

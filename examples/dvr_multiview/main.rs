@@ -74,10 +74,8 @@ use neural_fields::volume::{log_linear_schedule, render_image, ImageConfig};
 use neural_fields::{Error, Result};
 use std::path::{Path, PathBuf};
 
-#[path = "dvr_multiview/cameras.rs"]
 mod cameras;
 #[cfg(test)]
-#[path = "dvr_multiview/tests.rs"]
 mod tests;
 
 use cameras::*;
