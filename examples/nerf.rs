@@ -150,8 +150,8 @@ struct Args {
     /// Weights to start from (a previous run's weights.safetensors).
     #[arg(long)]
     resume: Option<PathBuf>,
-    /// Learning rate (default 1e-3, 1e-2 with --encoding hash).
-    #[arg(long)]
+    /// Learning rate, in (0, 0.1] (default 1e-3, 1e-2 with --encoding hash).
+    #[arg(long, value_parser = learning_rate)]
     lr: Option<f64>,
     #[arg(long, value_enum, default_value = "pe")]
     encoding: Encoding,
@@ -185,6 +185,17 @@ impl Default for Args {
     /// The defaults of the command line.
     fn default() -> Self {
         Args::parse_from(["nerf"])
+    }
+}
+
+/// `--lr`: Adam's learning rate, in (0, 0.1]: above it the density collapses to zero
+/// within a few steps (a dead run), at 0 nothing trains.
+fn learning_rate(value: &str) -> std::result::Result<f64, String> {
+    match value.parse::<f64>() {
+        Ok(lr) if lr > 0.0 && lr <= 0.1 => Ok(lr),
+        _ => Err(format!(
+            "a learning rate in (0, 0.1] (Adam; 1e-3 for NeRF, 1e-2 for hash grids), not {value}"
+        )),
     }
 }
 
@@ -529,6 +540,25 @@ fn nerf_config(args: &Args, aabb: [f64; 6], finest: f64, vb: &VarBuilder) -> Res
     Ok(config)
 }
 
+/// Steps in a row with every training ray's opacity below [`DEAD_OPACITY`] that end a
+/// run as dead.
+const DEAD_STEPS: usize = 100;
+const DEAD_OPACITY: f64 = 1e-3;
+
+/// The error of a run whose density collapsed: the steps, and the likely causes.
+fn dead_run(since: usize, step: usize, args: &Args) -> Error {
+    Error::InvalidArgument {
+        arg: "training",
+        expected: format!("some opacity on the training rays within {DEAD_STEPS} steps"),
+        got: format!(
+            "every ray's opacity below {DEAD_OPACITY} from step {since} to {step}: the density \
+             collapsed to zero (a learning rate too high for this scene, --lr {:?}), or the \
+             scene box misses the scene (--aabb {} for layouts that state none)",
+            args.lr, args.aabb
+        ),
+    }
+}
+
 fn run(args: &Args) -> Result<()> {
     let (device, dtype) = (Device::Cpu, DType::F32);
     let budget = args.budget()?;
@@ -544,6 +574,16 @@ fn run(args: &Args) -> Result<()> {
         ..LoadConfig::default()
     };
     let train = load(&args.data, &train_config)?;
+    if train.coverage() == Some(0.0) {
+        return Err(Error::InvalidArgument {
+            arg: "data",
+            expected: "training views with some foreground (alpha or mask ≥ ½)".into(),
+            got: format!(
+                "{} views whose every pixel is transparent",
+                train.views().len()
+            ),
+        });
+    }
     let eval_config = LoadConfig {
         downscale: args.downscale,
         ..LoadConfig::default()
@@ -635,6 +675,7 @@ fn run(args: &Args) -> Result<()> {
     };
     let mut curve = String::from("step,train_seconds,psnr\n");
     let (mut samples_total, mut step) = (0usize, 0usize);
+    let mut dead_since = None;
     loop {
         // --steps 0 evaluates (e.g. resumed weights) without training.
         let progress = clock.progress(step);
@@ -669,6 +710,18 @@ fn run(args: &Args) -> Result<()> {
         let seed = args.seed ^ step as u64;
         let (out, n, interlevel) = r.render(&batch.rays, &batch.backgrounds, Some(seed))?;
         samples_total += n;
+        // A dead run: no training ray has any opacity for DEAD_STEPS steps in a row.
+        let peak = out
+            .opacity
+            .max_all()?
+            .to_dtype(DType::F64)?
+            .to_scalar::<f64>()?;
+        let since = *dead_since.get_or_insert(step);
+        if peak >= DEAD_OPACITY {
+            dead_since = None;
+        } else if step + 1 - since >= DEAD_STEPS {
+            return Err(dead_run(since, step, args));
+        }
         // With k > 1, each pixel's k² rays averaged (a box filter) against the pixel's
         // colour, which every one of its rays carries.
         let (color, target) = if k > 1 {
@@ -914,6 +967,8 @@ mod tests {
             "--steps 1 --minutes 2",
             "--jitter yes",
             "--coarse-to-fine 0.5,0.2",
+            "--lr 10",
+            "--lr 0",
         ] {
             let flags = std::iter::once("nerf").chain(bad.split_whitespace());
             assert!(Args::try_parse_from(flags).is_err(), "{bad}");
@@ -924,5 +979,72 @@ mod tests {
         }
         .budget()
         .is_err());
+    }
+
+    /// Regression (transparent dataset): a training split whose every pixel is
+    /// transparent used to train to an empty scene and report a high PSNR; it is refused
+    /// before training, naming the cause.
+    #[test]
+    fn a_transparent_dataset_is_refused_before_training() {
+        use neural_fields::data::{write_blender, Dataset, Image, View};
+        let out = std::env::temp_dir().join(format!("nerf-transparent-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&out);
+        let data = out.join("data");
+        for split in [Split::Train, Split::Test] {
+            let config = LoadConfig {
+                split,
+                downscale: 4,
+                ..LoadConfig::default()
+            };
+            let source = load(Path::new("examples/data/wuson"), &config).unwrap();
+            let views = source
+                .views()
+                .iter()
+                .map(|v| {
+                    let (w, h, _) = v.image().size();
+                    let clear = Image::new(w, h, 4, vec![0; w * h * 4]).unwrap();
+                    View::new(*v.camera(), clear, None, v.name().into()).unwrap()
+                })
+                .collect();
+            let clear = Dataset::new(views, source.background(), source.bounds()).unwrap();
+            assert_eq!(clear.coverage(), Some(0.0));
+            write_blender(&data, split, &clear).unwrap();
+        }
+        let args = Args {
+            data,
+            steps: Some(2),
+            out: out.join("run"),
+            downscale: 1,
+            rays: 64,
+            samples: 8,
+            ..Args::default()
+        };
+        let e = run(&args).unwrap_err().to_string();
+        assert!(e.contains("transparent"), "{e}");
+        let _ = std::fs::remove_dir_all(&out);
+    }
+
+    /// Regression (collapsed run): a run whose every training ray stays without opacity
+    /// (here a scene box far smaller than the object, so that nothing is inside it) stops
+    /// after `DEAD_STEPS` steps with an error naming the steps and the likely causes,
+    /// instead of finishing with an empty scene.
+    #[test]
+    fn a_run_without_opacity_stops_naming_the_cause() {
+        let out = std::env::temp_dir().join(format!("nerf-dead-{}", std::process::id()));
+        let args = Args {
+            steps: Some(DEAD_STEPS + 20),
+            out: out.clone(),
+            downscale: 4,
+            rays: 64,
+            samples: 8,
+            sampler: Sampler::Stratified,
+            aabb: 1e-4,
+            eval_every: 1000,
+            ..Args::default()
+        };
+        let e = run(&args).unwrap_err().to_string();
+        assert!(e.contains("collapsed") && e.contains("--aabb"), "{e}");
+        assert!(e.contains(&format!("to {}", DEAD_STEPS - 1)), "{e}");
+        let _ = std::fs::remove_dir_all(&out);
     }
 }

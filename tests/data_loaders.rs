@@ -735,3 +735,43 @@ fn scene_box_is_the_stated_bounds_or_the_given_cube() {
     // The hash grid's finest level: five cells per pixel of the 7-pixel side.
     assert_eq!(cube.hash_finest(), 35.0);
 }
+
+/// The committed scene's coverage is its object's share of the pixels (RGBA views); views
+/// without alpha or mask have none; fully transparent views have 0.
+#[test]
+fn coverage_counts_the_foreground_pixels_of_masked_views() {
+    use neural_fields::data::{Background, Dataset, Image, View};
+    let data = load(Path::new("examples/data/wuson"), &of_split(Split::Train)).unwrap();
+    let c = data.coverage().expect("RGBA views have alpha");
+    assert!(c > 0.01 && c < 0.5, "{c}");
+    let cam = Camera::new(
+        Intrinsics::new(2.0, 2.0, 1.0, 1.0, 2, 2).unwrap(),
+        DAffine3::IDENTITY,
+        Convention::OpenCv,
+    )
+    .unwrap();
+    let view = |channels: usize, alpha: u8| {
+        let px: Vec<u8> = (0..4)
+            .flat_map(|_| {
+                let mut p = vec![7u8; channels];
+                if channels == 4 {
+                    p[3] = alpha;
+                }
+                p
+            })
+            .collect();
+        View::new(
+            cam,
+            Image::new(2, 2, channels, px).unwrap(),
+            None,
+            "v".into(),
+        )
+        .unwrap()
+    };
+    let of = |views| Dataset::new(views, Background::Color([1.0; 3]), None).unwrap();
+    assert_eq!(of(vec![view(3, 0)]).coverage(), None);
+    assert_eq!(of(vec![view(4, 0), view(4, 0)]).coverage(), Some(0.0));
+    assert_eq!(of(vec![view(4, 255), view(4, 127)]).coverage(), Some(0.5));
+    // Views without masks do not count towards the share.
+    assert_eq!(of(vec![view(3, 0), view(4, 128)]).coverage(), Some(1.0));
+}

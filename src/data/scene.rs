@@ -60,6 +60,40 @@ impl Dataset {
         }
     }
 
+    /// The fraction of foreground pixels, `#{mask ≥ ½} / #pixels`, over the views that
+    /// have a mask (a mask file or an alpha channel); `None` when no view has one. A
+    /// training split whose coverage is 0 holds nothing to reconstruct: every pixel is
+    /// background, and a field that renders nothing fits it perfectly (check it before
+    /// training).
+    ///
+    /// ```
+    /// use neural_fields::camera::{Camera, Convention, Intrinsics};
+    /// use neural_fields::data::{Background, Dataset, Image, View};
+    /// use neural_fields::glam::DAffine3;
+    ///
+    /// let cam = Camera::new(Intrinsics::new(2.0, 2.0, 1.0, 1.0, 2, 2)?, DAffine3::IDENTITY, Convention::OpenCv)?;
+    /// // RGBA: one opaque pixel of four.
+    /// let rgba = vec![9, 9, 9, 255, 9, 9, 9, 0, 9, 9, 9, 0, 9, 9, 9, 0];
+    /// let view = View::new(cam, Image::new(2, 2, 4, rgba)?, None, "v".into())?;
+    /// let data = Dataset::new(vec![view], Background::Color([1.0; 3]), None)?;
+    /// assert_eq!(data.coverage(), Some(0.25));
+    /// # Ok::<(), neural_fields::Error>(())
+    /// ```
+    #[must_use]
+    pub fn coverage(&self) -> Option<f64> {
+        let (mut inside, mut total) = (0usize, 0usize);
+        for view in self.views().iter().filter(|v| v.has_mask()) {
+            let (w, h, _) = view.image().size();
+            for v in 0..h {
+                for u in 0..w {
+                    inside += usize::from(view.mask_value(u, v).is_some_and(|m| m >= 0.5));
+                }
+            }
+            total += w * h;
+        }
+        (total > 0).then(|| inside as f64 / total as f64)
+    }
+
     /// The finest resolution of a hash grid for these images: five cells per pixel of
     /// the largest image side (100 px → 500; instant-NGP's 2048 is for 800 px), at least
     /// 16 (the coarsest level of the default grid).
