@@ -800,3 +800,39 @@ fn the_surface_reader_sees_methods_and_reexports() {
         ["m struct A", "m fn A::new", "m use x::y::Z", "m use x::W"]
     );
 }
+
+/// The longest an example's source file may be: examples are scripts on the library, and
+/// what grows past this belongs in the library (or in the example's own test file).
+const EXAMPLE_MAX_LINES: usize = 1_000;
+
+#[test]
+fn examples_are_short_scripts_without_included_paths() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples");
+    let mut files = Vec::new();
+    rust_files(&root, &mut files);
+    assert!(
+        !files.is_empty(),
+        "no examples found under {}",
+        root.display()
+    );
+    let mut long = Vec::new();
+    let mut included = Vec::new();
+    for file in &files {
+        let text = std::fs::read_to_string(file).unwrap();
+        let lines = text.lines().count();
+        if lines > EXAMPLE_MAX_LINES {
+            long.push(format!("{} ({lines} lines)", file.display()));
+        }
+        if text.lines().any(|l| l.trim_start().starts_with("#[path")) {
+            included.push(file.display().to_string());
+        }
+    }
+    assert!(
+        long.is_empty(),
+        "example files over {EXAMPLE_MAX_LINES} lines: {long:?}"
+    );
+    assert!(
+        included.is_empty(),
+        "examples including files by #[path]: {included:?}"
+    );
+}

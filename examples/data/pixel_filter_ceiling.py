@@ -5,12 +5,12 @@ the mean of radiance samples whose offsets from the pixel centre are drawn, per 
 a Blackman-Harris window of support +-1.5 px (``filter_width`` 1.5; Cycles' table builder
 doubles the width it is given for this filter), summed in linear light and then encoded
 as sRGB. A field evaluated with one ray through each pixel centre, or with the mean of
-k x k rays on a sub-pixel grid (``examples/nerf.rs --eval-supersample k``), renders a
+k x k rays on a sub-pixel grid (``examples/nerf --eval-supersample k``), renders a
 different quantity. This script measures the gap with the scene itself standing in for a
 perfect field: it reads the same cameras rendered with a point filter (``--filter-width
 0.01``) at ``f`` times the resolution, so that the centres of each pixel's f x f
 sub-pixels are exact ray positions, and scores each protocol against the committed test
-images composited on white (what ``examples/nerf.rs`` compares with).
+images composited on white (what ``examples/nerf`` compares with).
 
     blender -b -P examples/data/render_dataset.py -- --out /tmp/wu_pt300 --seed 0 \\
         --resolution 300 --samples 128 --filter-width 0.01

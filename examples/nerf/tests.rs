@@ -1,0 +1,197 @@
+//! The nerf example's end-to-end tests: shortened runs with every sampler, encoding and
+//! filter, the flags' contract, and the runs that must fail naming their cause.
+
+use super::*;
+
+fn metrics(out: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap()
+}
+
+/// A few steps on the committed dataset at a quarter of its resolution: the whole
+/// pipeline runs, writes every output with the documented keys, and resumes.
+#[test]
+fn a_shortened_run_trains_writes_its_outputs_and_resumes() {
+    let out = std::env::temp_dir().join(format!("nerf-example-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let mut args = Args {
+        steps: Some(4),
+        out: out.clone(),
+        seed: 1,
+        downscale: 4,
+        rays: 128,
+        samples: 16,
+        eval_every: 2,
+        eval_views: 1,
+        pictures: 1,
+        ..Args::default()
+    };
+    run(&args).unwrap();
+    let m = metrics(&out);
+    for key in ["psnr", "ssim", "train_seconds", "steps", "samples_per_ray"] {
+        assert!(m[key].as_f64().is_some_and(f64::is_finite), "{key}: {m}");
+    }
+    assert_eq!(m["steps"], 4);
+    let curve = std::fs::read_to_string(out.join("curve.csv")).unwrap();
+    assert_eq!(curve.lines().next(), Some("step,train_seconds,psnr"));
+    assert_eq!(curve.lines().count(), 1 + 2 + 1); // header, steps 2 and 4, final
+    for file in [
+        "view_0.png",
+        "depth_0.png",
+        "opacity_0.png",
+        "weights.safetensors",
+    ] {
+        assert!(out.join(file).is_file(), "{file}");
+    }
+    // Resuming from the saved weights, with the stratified sampler.
+    args.resume = Some(out.join("weights.safetensors"));
+    args.sampler = Sampler::Stratified;
+    args.steps = Some(2);
+    run(&args).unwrap();
+    // The proposal sampler from scratch (its networks are not in the saved weights),
+    // skipping empty samples (the default) and keeping them all, under a window.
+    args.resume = None;
+    args.sampler = Sampler::Proposal;
+    run(&args).unwrap();
+    args.alpha_threshold = 0.0;
+    args.coarse_to_fine = Some((0.0, 2.0));
+    args.view_dependence = false;
+    run(&args).unwrap();
+    let m = metrics(&out);
+    assert_eq!(m["alpha_threshold"], 0.0);
+    assert_eq!(m["coarse_to_fine"], serde_json::json!([0.0, 2.0]));
+    assert_eq!(m["view_dependence"], false);
+    assert_eq!(m["proposal_samples"], serde_json::json!([16, 8]));
+    args.coarse_to_fine = None;
+    args.view_dependence = true;
+    // The hash-grid encoding, with box-filtered training rays and a jittered march.
+    args.sampler = Sampler::Grid;
+    args.encoding = Encoding::Hash;
+    args.train_supersample = 2;
+    args.march_jitter = true;
+    run(&args).unwrap();
+    let m = metrics(&out);
+    assert_eq!(m["encoding"], "hash");
+    assert_eq!(m["sampler"], "grid");
+    assert_eq!(m["train_supersample"], 2);
+    assert_eq!(m["march_jitter"], true);
+    // Cycles' pixel filter in training (jittered rays) and in a 3 × 3 evaluation.
+    args.train_supersample = 1;
+    args.jitter = true;
+    args.pixel_filter = Filter::Cycles;
+    args.eval_supersample = 3;
+    run(&args).unwrap();
+    let m = metrics(&out);
+    assert_eq!(m["pixel_filter"], "cycles");
+    assert!(m["psnr"].as_f64().is_some_and(f64::is_finite));
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// The command line keeps the flags, spellings and defaults of earlier versions.
+#[test]
+fn flags_parse_as_documented() {
+    let a = Args::default();
+    assert_eq!(a.out, PathBuf::from("target/nerf"));
+    let counts = (a.rays, a.samples, a.eval_every, a.eval_views, a.pictures);
+    assert_eq!(counts, (1024, 64, 250, 4, 8));
+    assert_eq!((a.sampler, a.encoding), (Sampler::Grid, Encoding::Pe));
+    assert_eq!(
+        (a.regnerf_weight, a.proposal_samples),
+        ([400.0, 0.1], [16, 8])
+    );
+    assert!(a.view_dependence && !a.jitter && !a.march_jitter && !a.regnerf);
+    assert_eq!(a.budget().unwrap(), Budget::Minutes(10.0));
+    let flags = "nerf --sampler proposal --frames 0,17,34 --jitter on --coarse-to-fine 0,3.5 \
+        --pixel-filter cycles --background black --proposal-samples 32,16 --steps 7";
+    let b = Args::parse_from(flags.split_whitespace());
+    assert_eq!(
+        (b.frames.clone(), b.proposal_samples),
+        (Some(vec![0, 17, 34]), [32, 16])
+    );
+    assert_eq!(
+        (b.coarse_to_fine, b.budget().unwrap()),
+        (Some((0.0, 3.5)), Budget::Steps(7))
+    );
+    for bad in [
+        "--steps 1 --minutes 2",
+        "--jitter yes",
+        "--coarse-to-fine 0.5,0.2",
+        "--lr 10",
+        "--lr 0",
+    ] {
+        let flags = std::iter::once("nerf").chain(bad.split_whitespace());
+        assert!(Args::try_parse_from(flags).is_err(), "{bad}");
+    }
+    assert!(Args {
+        rays: 0,
+        ..Args::default()
+    }
+    .budget()
+    .is_err());
+}
+
+/// Regression (transparent dataset): a training split whose every pixel is
+/// transparent used to train to an empty scene and report a high PSNR; it is refused
+/// before training, naming the cause.
+#[test]
+fn a_transparent_dataset_is_refused_before_training() {
+    use neural_fields::data::{write_blender, Dataset, Image, View};
+    let out = std::env::temp_dir().join(format!("nerf-transparent-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let data = out.join("data");
+    for split in [Split::Train, Split::Test] {
+        let config = LoadConfig {
+            split,
+            downscale: 4,
+            ..LoadConfig::default()
+        };
+        let source = load(Path::new("examples/data/wuson"), &config).unwrap();
+        let views = source
+            .views()
+            .iter()
+            .map(|v| {
+                let (w, h, _) = v.image().size();
+                let clear = Image::new(w, h, 4, vec![0; w * h * 4]).unwrap();
+                View::new(*v.camera(), clear, None, v.name().into()).unwrap()
+            })
+            .collect();
+        let clear = Dataset::new(views, source.background(), source.bounds()).unwrap();
+        assert_eq!(clear.coverage(), Some(0.0));
+        write_blender(&data, split, &clear).unwrap();
+    }
+    let args = Args {
+        data,
+        steps: Some(2),
+        out: out.join("run"),
+        downscale: 1,
+        rays: 64,
+        samples: 8,
+        ..Args::default()
+    };
+    let e = run(&args).unwrap_err().to_string();
+    assert!(e.contains("transparent"), "{e}");
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// Regression (collapsed run): a run whose every training ray stays without opacity
+/// (here a scene box far smaller than the object, so that nothing is inside it) stops
+/// after `DEAD_STEPS` steps with an error naming the steps and the likely causes,
+/// instead of finishing with an empty scene.
+#[test]
+fn a_run_without_opacity_stops_naming_the_cause() {
+    let out = std::env::temp_dir().join(format!("nerf-dead-{}", std::process::id()));
+    let args = Args {
+        steps: Some(DEAD_STEPS + 20),
+        out: out.clone(),
+        downscale: 4,
+        rays: 64,
+        samples: 8,
+        sampler: Sampler::Stratified,
+        aabb: 1e-4,
+        eval_every: 1000,
+        ..Args::default()
+    };
+    let e = run(&args).unwrap_err().to_string();
+    assert!(e.contains("collapsed") && e.contains("--aabb"), "{e}");
+    assert!(e.contains(&format!("to {}", DEAD_STEPS - 1)), "{e}");
+    let _ = std::fs::remove_dir_all(&out);
+}
