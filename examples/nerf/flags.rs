@@ -1,0 +1,232 @@
+//! The nerf example's command line: its flags, their parsers and the checks clap cannot
+//! state.
+
+use super::*;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub(super) enum Sampler {
+    Grid,
+    Stratified,
+    Proposal,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub(super) enum Encoding {
+    Pe,
+    Hash,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub(super) enum BackgroundFlag {
+    Random,
+    White,
+    Black,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub(super) enum Filter {
+    Box,
+    Cycles,
+}
+
+/// The command line (see the module docs).
+#[derive(Parser, Debug, Clone)]
+#[command(about = "Train a NeRF on a dataset folder and evaluate it on the held-out views")]
+pub(super) struct Args {
+    /// Dataset folder (Blender synthetic, nerfstudio or IDR/DTU layout).
+    #[arg(long, default_value = "examples/data/wuson")]
+    pub(super) data: PathBuf,
+    /// Minutes of training (default 10 unless --steps is given).
+    #[arg(long, conflicts_with = "steps")]
+    pub(super) minutes: Option<f64>,
+    /// Optimiser steps.
+    #[arg(long)]
+    pub(super) steps: Option<usize>,
+    /// Output folder.
+    #[arg(long, default_value = "target/nerf")]
+    pub(super) out: PathBuf,
+    #[arg(long, default_value_t = 0)]
+    pub(super) seed: u64,
+    #[arg(long, value_enum, default_value = "grid")]
+    pub(super) sampler: Sampler,
+    /// Divide the images' resolution by this.
+    #[arg(long, default_value_t = 1)]
+    pub(super) downscale: usize,
+    /// Rays per step.
+    #[arg(long, default_value_t = 1024)]
+    pub(super) rays: usize,
+    /// Samples per ray (stratified and proposal samplers).
+    #[arg(long, default_value_t = 64)]
+    pub(super) samples: usize,
+    /// Half-side of the scene box for layouts that state none.
+    #[arg(long, default_value_t = 1.5)]
+    pub(super) aabb: f64,
+    #[arg(long, default_value_t = 250)]
+    pub(super) eval_every: usize,
+    /// Held-out views evaluated during training.
+    #[arg(long, default_value_t = 4)]
+    pub(super) eval_views: usize,
+    /// Rays per pixel side in evaluation, 1 to 8.
+    #[arg(long, default_value_t = 1)]
+    pub(super) eval_supersample: usize,
+    #[arg(long, value_parser = on_off, action = clap::ArgAction::Set, default_value = "off")]
+    pub(super) jitter: bool,
+    /// Rays per pixel side in training, 1 to 8.
+    #[arg(long, default_value_t = 1)]
+    pub(super) train_supersample: usize,
+    #[arg(long, value_parser = on_off, action = clap::ArgAction::Set, default_value = "off")]
+    pub(super) march_jitter: bool,
+    #[arg(long, value_enum, default_value = "box")]
+    pub(super) pixel_filter: Filter,
+    /// Held-out views written as pictures.
+    #[arg(long, default_value_t = 8)]
+    pub(super) pictures: usize,
+    /// Weights to start from (a previous run's weights.safetensors).
+    #[arg(long)]
+    pub(super) resume: Option<PathBuf>,
+    /// Learning rate, in (0, 0.1] (default 1e-3, 1e-2 with --encoding hash).
+    #[arg(long, value_parser = learning_rate)]
+    pub(super) lr: Option<f64>,
+    #[arg(long, value_enum, default_value = "pe")]
+    pub(super) encoding: Encoding,
+    #[arg(long, default_value_t = HashGridConfig::default().log2_table_size)]
+    pub(super) hash_log2: u32,
+    #[arg(long)]
+    pub(super) hash_finest: Option<f64>,
+    #[arg(long, value_enum, default_value = "random")]
+    pub(super) background: BackgroundFlag,
+    /// Training views, e.g. 0,17,34 (default: all).
+    #[arg(long, value_delimiter = ',')]
+    pub(super) frames: Option<Vec<usize>>,
+    #[arg(long, value_parser = on_off, action = clap::ArgAction::Set, default_value = "off")]
+    pub(super) regnerf: bool,
+    #[arg(long, value_parser = regnerf_weight, default_value = "400,0.1")]
+    pub(super) regnerf_weight: [f64; 2],
+    /// START,END: the fractions of training over which the encoding's window opens.
+    #[arg(long, value_parser = window_span)]
+    pub(super) coarse_to_fine: Option<(f64, f64)>,
+    #[arg(long, value_parser = on_off, action = clap::ArgAction::Set, default_value = "on")]
+    pub(super) view_dependence: bool,
+    /// Proposal sampler: drop samples of lower opacity, in [0, 1).
+    #[arg(long, default_value_t = 1e-2)]
+    pub(super) alpha_threshold: f64,
+    /// Proposal sampler: samples per ray of the two proposal levels.
+    #[arg(long, value_parser = two_counts, default_value = "16,8")]
+    pub(super) proposal_samples: [usize; 2],
+}
+
+impl Default for Args {
+    /// The defaults of the command line.
+    fn default() -> Self {
+        Args::parse_from(["nerf"])
+    }
+}
+
+/// `--lr`: Adam's learning rate, in (0, 0.1]: above it the density collapses to zero
+/// within a few steps (a dead run), at 0 nothing trains.
+pub(super) fn learning_rate(value: &str) -> std::result::Result<f64, String> {
+    match value.parse::<f64>() {
+        Ok(lr) if lr > 0.0 && lr <= 0.1 => Ok(lr),
+        _ => Err(format!(
+            "a learning rate in (0, 0.1] (Adam; 1e-3 for NeRF, 1e-2 for hash grids), not {value}"
+        )),
+    }
+}
+
+pub(super) fn on_off(value: &str) -> std::result::Result<bool, String> {
+    match value {
+        "on" => Ok(true),
+        "off" => Ok(false),
+        other => Err(format!("on or off, not {other}")),
+    }
+}
+
+pub(super) fn numbers<const N: usize>(value: &str) -> std::result::Result<[f64; N], String> {
+    let parts: Vec<f64> = value
+        .split(',')
+        .map(|v| v.trim().parse::<f64>())
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|e| e.to_string())?;
+    match <[f64; N]>::try_from(parts) {
+        Ok(a) if a.iter().all(|x: &f64| x.is_finite()) => Ok(a),
+        _ => Err(format!(
+            "{N} finite numbers separated by commas, not {value}"
+        )),
+    }
+}
+
+/// `--regnerf-weight START,END`: two weights > 0 (the schedule is log-linear).
+pub(super) fn regnerf_weight(value: &str) -> std::result::Result<[f64; 2], String> {
+    match numbers(value)? {
+        [a, b] if a > 0.0 && b > 0.0 => Ok([a, b]),
+        _ => Err(format!("two weights > 0 like 400,0.1, not {value}")),
+    }
+}
+
+/// `--coarse-to-fine START,END` with 0 ≤ START < 1 and START < END.
+pub(super) fn window_span(value: &str) -> std::result::Result<(f64, f64), String> {
+    match numbers(value)? {
+        [s, e] if 0.0 <= s && s < e && s < 1.0 => Ok((s, e)),
+        _ => Err(format!(
+            "START,END with 0 ≤ START < 1 and START < END, not {value}"
+        )),
+    }
+}
+
+pub(super) fn two_counts(value: &str) -> std::result::Result<[usize; 2], String> {
+    let bad = || format!("two positive counts like 16,8, not {value}");
+    let l: Vec<usize> = value
+        .split(',')
+        .map(|v| v.trim().parse())
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|_| bad())?;
+    match l[..] {
+        [a, b] if a > 0 && b > 0 => Ok([a, b]),
+        _ => Err(bad()),
+    }
+}
+
+impl Args {
+    /// The checks clap cannot state; the training budget.
+    pub(super) fn budget(&self) -> Result<Budget> {
+        let bad = |expected: &str, got: String| Error::InvalidArgument {
+            arg: "flags",
+            expected: expected.into(),
+            got,
+        };
+        let ss = |k: usize| (1..=8).contains(&k);
+        if self.rays == 0 || self.samples == 0 || self.eval_every == 0 || self.eval_views == 0 {
+            return Err(bad(
+                "--rays, --samples, --eval-every, --eval-views > 0",
+                format!("{self:?}"),
+            ));
+        }
+        if !ss(self.eval_supersample)
+            || !ss(self.train_supersample)
+            || self.rays < self.train_supersample.pow(2)
+        {
+            return Err(bad(
+                "--eval-supersample and --train-supersample in 1..=8, --rays ≥ the square of the latter",
+                format!("{self:?}"),
+            ));
+        }
+        if !(self.aabb > 0.0 && self.aabb.is_finite() && (0.0..1.0).contains(&self.alpha_threshold))
+        {
+            return Err(bad(
+                "--aabb > 0, --alpha-threshold in [0, 1)",
+                format!("{self:?}"),
+            ));
+        }
+        Ok(match (self.steps, self.minutes) {
+            (Some(n), _) => Budget::Steps(n),
+            (None, m) => Budget::Minutes(m.unwrap_or(10.0)),
+        })
+    }
+
+    pub(super) fn pixel_filter(&self) -> PixelFilter {
+        match self.pixel_filter {
+            Filter::Box => PixelFilter::Box,
+            Filter::Cycles => PixelFilter::CYCLES,
+        }
+    }
+}
