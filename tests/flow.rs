@@ -3,8 +3,11 @@
 //! field and the model, and bad input.
 #![cfg(feature = "flow")]
 
+mod common;
+
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarMap;
+use common::normal_tensor;
 use neural_fields::field::{Field, Occupancy, Sphere};
 use neural_fields::flow::{
     correspondence_loss, odeint, velocity_field, DeformingTorus, Graph, OccupancyFlow, Solver,
@@ -620,21 +623,4 @@ fn deforming_torus_inverts_and_its_velocity_is_its_derivative() -> Result<()> {
         );
     }
     Ok(())
-}
-
-/// A tensor of i.i.d. `N(mean, std²)` numbers drawn from `rng` (`SplitMix64::normal`),
-/// with the given shape, dtype and device.
-fn normal_tensor(
-    rng: &mut SplitMix64,
-    shape: &[usize],
-    mean: f64,
-    std: f64,
-    dtype: DType,
-    device: &Device,
-) -> candle_core::Result<Tensor> {
-    let n = shape.iter().product();
-    let v: Vec<f64> = (0..n).map(|_| mean + std * rng.normal()).collect();
-    Tensor::from_vec(v, shape, &Device::Cpu)?
-        .to_dtype(dtype)?
-        .to_device(device)
 }
