@@ -104,6 +104,10 @@ fn flags_parse_with_their_defaults() {
         .is_err());
     assert!(Args::try_parse_from(["x", "--perturb", "-1,0"]).is_err());
     assert!(Args::parse_from(["x", "--lm-start", "2"]).check().is_err());
+    // Learning rates past 0.1 collapse the networks: refused before training.
+    assert!(Args::parse_from(["x", "--lr", "10"]).check().is_err());
+    assert!(Args::parse_from(["x", "--pose-lr", "0.5"]).check().is_err());
+    assert!(Args::parse_from(["x", "--lr", "0.01"]).check().is_ok());
 }
 
 /// The perturbation moves every camera by exactly the asked rotation and centre shift,
