@@ -26,6 +26,41 @@ pub enum Bounds {
     },
 }
 
+/// The largest magnitude of a camera quantity a layout may state: focal lengths and
+/// principal points in pixels, image sides, `scale`, `offset`, `aabb_scale` and camera
+/// centres in scene units. Real captures stay orders of magnitude below it; beyond it a
+/// value is a typo or a hostile file, and rays built from it lose all precision.
+pub(crate) const MAX_CAMERA_VALUE: f64 = 1e6;
+/// The smallest focal length, in pixels, and the smallest positive scale a layout may
+/// state (`scale`, `aabb_scale`, a DTU `scale_mat`).
+pub(crate) const MIN_FOCAL: f64 = 1e-3;
+pub(crate) const MIN_SCALE: f64 = 1e-6;
+/// Fields of view, in radians, lie in `[MIN_ANGLE, π − MIN_ANGLE]`: outside, the focal
+/// length is above 10³ image widths or the directions at the image edge exceed 10³.
+pub(crate) const MIN_ANGLE: f64 = 1e-3;
+
+/// `x` if it is finite and in `[lo, hi]`, else an [`Error::Format`] naming `path` and
+/// `field`, with `what` the quantity in words (“a focal length in pixels”).
+pub(crate) fn in_range(
+    x: f64,
+    lo: f64,
+    hi: f64,
+    path: &Path,
+    field: &str,
+    what: &str,
+) -> Result<f64> {
+    if x.is_finite() && (lo..=hi).contains(&x) {
+        Ok(x)
+    } else {
+        Err(Error::format(
+            path,
+            field,
+            format!("{what} in [{lo:e}, {hi:e}]"),
+            x.to_string(),
+        ))
+    }
+}
+
 /// Which frames of a dataset to load.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub enum Split {
