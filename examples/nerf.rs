@@ -102,6 +102,10 @@ struct Args {
     /// Dataset folder (Blender synthetic, nerfstudio or IDR/DTU layout).
     #[arg(long, default_value = "examples/data/wuson")]
     data: PathBuf,
+    /// Read image and mask files outside the dataset folder (absolute paths, `../`,
+    /// symlinks to elsewhere), which loading refuses by default.
+    #[arg(long)]
+    allow_outside_paths: bool,
     /// Minutes of training (default 10 unless --steps is given).
     #[arg(long, conflicts_with = "steps")]
     minutes: Option<f64>,
@@ -541,11 +545,13 @@ fn run(args: &Args) -> Result<()> {
         background,
         downscale: args.downscale,
         frames: args.frames.clone(),
+        allow_outside_paths: args.allow_outside_paths,
         ..LoadConfig::default()
     };
     let train = load(&args.data, &train_config)?;
     let eval_config = LoadConfig {
         downscale: args.downscale,
+        allow_outside_paths: args.allow_outside_paths,
         ..LoadConfig::default()
     };
     let (eval, split) = load_eval(&args.data, &eval_config)?;

@@ -1,5 +1,6 @@
-//! Hostile dataset folders, generated here at test time: degenerate cameras in every
-//! layout. Each gives an `Err` naming the file and the field, or a correct `Ok`.
+//! Hostile dataset folders, generated here at test time: paths that leave the folder,
+//! special files, and degenerate cameras in every layout. Each gives an `Err` naming the
+//! file and the field, or a correct `Ok`, in bounded time.
 #![cfg(feature = "data")]
 
 mod common;
@@ -8,6 +9,7 @@ use common::datasets::{flat, npy, npz, pattern, png, scratch};
 use neural_fields::data::{load, LoadConfig, Split};
 use neural_fields::Error;
 use std::path::Path;
+use std::time::{Duration, Instant};
 
 /// A camera-to-world pose at `(0, −4, 0)` looking at the origin (OpenGL axes), 4×4 rows.
 const POSE: [[f64; 4]; 4] = [
@@ -54,6 +56,119 @@ fn format_error<T>(result: neural_fields::Result<T>) -> (String, String, String)
         }) => (path, field, got),
         Err(other) => panic!("expected a format error, got {other}"),
         Ok(_) => panic!("expected a format error, got Ok"),
+    }
+}
+
+fn allowing_outside() -> LoadConfig {
+    LoadConfig {
+        allow_outside_paths: true,
+        ..LoadConfig::default()
+    }
+}
+
+#[test]
+fn outside_path_absolute_is_refused_unless_allowed() {
+    let root = scratch("hostile-absolute");
+    let dir = root.join("set");
+    std::fs::create_dir_all(&dir).unwrap();
+    let outside = root.join("elsewhere.png");
+    png(&outside, 8, 6, 3, &pattern(8, 6, 3, 2));
+    png(&dir.join("a.png"), 8, 6, 3, &pattern(8, 6, 3, 3));
+    blender(
+        &dir,
+        &["a.png", outside.to_str().unwrap()],
+        serde_json::json!({}),
+    );
+    let (path, field, got) = format_error(load(&dir, &LoadConfig::default()));
+    assert!(path.ends_with("transforms_train.json"), "{path}");
+    assert_eq!(field, "frames[1].file_path");
+    assert!(got.contains("elsewhere.png"), "{got}");
+    let data = load(&dir, &allowing_outside()).unwrap();
+    assert_eq!(data.views().len(), 2);
+}
+
+#[test]
+fn outside_path_dotdot_is_refused_unless_allowed() {
+    let root = scratch("hostile-dotdot");
+    let dir = root.join("set");
+    std::fs::create_dir_all(dir.join("train")).unwrap();
+    png(&root.join("secret.png"), 8, 6, 3, &pattern(8, 6, 3, 2));
+    png(&dir.join("train/a.png"), 8, 6, 3, &pattern(8, 6, 3, 3));
+    // `..` that stays inside the folder is fine; one that climbs out is not.
+    blender(
+        &dir,
+        &["./train/../train/a.png", "./train/../../secret"],
+        serde_json::json!({}),
+    );
+    let (_, field, got) = format_error(load(&dir, &LoadConfig::default()));
+    assert_eq!(field, "frames[1].file_path");
+    assert!(got.contains("secret"), "{got}");
+    assert_eq!(load(&dir, &allowing_outside()).unwrap().views().len(), 2);
+}
+
+#[test]
+fn outside_mask_path_is_refused() {
+    let root = scratch("hostile-mask-path");
+    let dir = root.join("set");
+    std::fs::create_dir_all(&dir).unwrap();
+    png(&root.join("m.png"), 8, 6, 1, &pattern(8, 6, 1, 2));
+    nerfstudio(
+        &dir,
+        serde_json::json!({}),
+        serde_json::json!({ "mask_path": "../m.png" }),
+    );
+    let (path, field, _) = format_error(load(&dir, &LoadConfig::default()));
+    assert!(path.ends_with("transforms.json"), "{path}");
+    assert_eq!(field, "frames[1].mask_path");
+}
+
+#[cfg(unix)]
+#[test]
+fn outside_path_through_a_symlink_is_refused() {
+    let root = scratch("hostile-symlink");
+    let dir = root.join("set");
+    std::fs::create_dir_all(&dir).unwrap();
+    png(&root.join("secret.png"), 8, 6, 3, &pattern(8, 6, 3, 2));
+    std::os::unix::fs::symlink(root.join("secret.png"), dir.join("a.png")).unwrap();
+    blender(&dir, &["a.png"], serde_json::json!({}));
+    let (_, field, got) = format_error(load(&dir, &LoadConfig::default()));
+    assert_eq!(field, "frames[0].file_path");
+    assert!(got.contains("secret.png"), "{got}");
+    // A symlink inside the folder to a file inside it is fine.
+    std::fs::remove_file(dir.join("a.png")).unwrap();
+    png(&dir.join("b.png"), 8, 6, 3, &pattern(8, 6, 3, 2));
+    std::os::unix::fs::symlink(dir.join("b.png"), dir.join("a.png")).unwrap();
+    assert_eq!(load(&dir, &LoadConfig::default()).unwrap().views().len(), 1);
+}
+
+#[cfg(unix)]
+#[test]
+fn special_files_are_refused_even_when_outside_paths_are_allowed() {
+    let root = scratch("hostile-special");
+    let mut cases = vec![
+        ("/dev/zero".to_string(), "device"),
+        ("/proc/self/environ".to_string(), "empty"),
+    ];
+    std::fs::create_dir_all(root.join("folder.png")).unwrap();
+    cases.push(("folder.png".to_string(), "directory"));
+    let fifo = root.join("fifo.png");
+    let made_fifo = std::process::Command::new("mkfifo")
+        .arg(&fifo)
+        .status()
+        .is_ok_and(|s| s.success());
+    if made_fifo {
+        cases.push(("fifo.png".to_string(), "FIFO"));
+    }
+    for (file, what) in cases {
+        if file.starts_with('/') && !Path::new(&file).exists() {
+            continue;
+        }
+        blender(&root, &[&file], serde_json::json!({}));
+        let start = Instant::now();
+        let (_, field, got) = format_error(load(&root, &allowing_outside()));
+        assert!(start.elapsed() < Duration::from_secs(5), "{file}");
+        assert_eq!(field, "frames[0].file_path", "{file}");
+        assert!(got.contains(what), "{file}: {got}");
     }
 }
 

@@ -2,7 +2,7 @@
 //! layout and hands the folder to that layout's reader (Blender, nerfstudio, IDR/DTU).
 
 use super::image::Image;
-use super::layout::{Bounds, DatasetLayout, FrameSpec, IntrinsicsSpec, Split};
+use super::layout::{confine, Bounds, DatasetLayout, FrameSpec, IntrinsicsSpec, Split};
 use super::{blender, dtu, nerfstudio};
 use crate::camera::{Camera, Intrinsics};
 use crate::error::check_dtype;
@@ -211,6 +211,14 @@ pub struct LoadConfig {
     /// A subset of the split's frames by index in the split's order (sparse-view training:
     /// "these 3 views"); `None` loads all.
     pub frames: Option<Vec<usize>>,
+    /// Whether image and mask paths may lead outside the dataset folder (default false).
+    /// By default a path that, resolved (symlinks followed), lies outside the folder's
+    /// canonical path — an absolute `file_path`, a `../` that climbs out, a symlink to
+    /// elsewhere — is an [`Error::Format`] naming the file, the frame and the field: a
+    /// downloaded dataset should not read the rest of the disk. Set it for datasets whose
+    /// images are shared between folders by such paths. Either way only regular,
+    /// non-empty files are opened (not directories, devices, FIFOs or `/proc` files).
+    pub allow_outside_paths: bool,
 }
 
 impl Default for LoadConfig {
@@ -221,6 +229,7 @@ impl Default for LoadConfig {
             background: Background::default(),
             downscale: 1,
             frames: None,
+            allow_outside_paths: false,
         }
     }
 }
@@ -318,7 +327,8 @@ impl Dataset {
 
 /// Loads the dataset in `dir` ([`DatasetLayout`]: Blender, nerfstudio or IDR/DTU).
 ///
-/// Images are decoded in parallel and kept as bytes; every camera is validated (finite,
+/// Images are decoded in parallel and kept as bytes. Image and mask paths must lie inside
+/// `dir` unless [`LoadConfig::allow_outside_paths`]. Every camera is validated (finite,
 /// rigid, of the image's size). Poses within 1e-3 of a rotation but not within 1e-6 (the
 /// rounding of some exporters) are orthonormalised; others are errors.
 ///
@@ -337,7 +347,10 @@ impl Dataset {
 /// [`Error::Io`] naming a missing or unreadable file; [`Error::Format`] naming the file and
 /// the field for malformed content (JSON without `frames`, a singular or non-rigid
 /// `transform_matrix`, NaN in a pose, an unsupported camera model or lens distortion, an
-/// image or mask of the wrong size, a truncated PNG, an empty split);
+/// image or mask of the wrong size, a truncated PNG, an empty split), and naming the file
+/// that lists an image or mask, the frame and the field (`frames[3].file_path`) for a path
+/// outside the dataset folder (unless [`LoadConfig::allow_outside_paths`]) or a file that
+/// is not a regular, non-empty file;
 /// [`Error::InvalidArgument`] naming `downscale` if 0 or larger than an image, `frames`
 /// for an index outside the split.
 pub fn load(dir: &Path, config: &LoadConfig) -> Result<Dataset> {
@@ -355,9 +368,25 @@ pub fn load(dir: &Path, config: &LoadConfig) -> Result<Dataset> {
         DatasetLayout::Dtu => dtu::frames(dir, config.split)?,
     };
     let frames = select(frames, config.frames.as_deref())?;
+    let root = dir.canonicalize().map_err(|source| Error::Io {
+        path: dir.display().to_string(),
+        source,
+    })?;
+    let frames = frames
+        .into_iter()
+        .map(|f| {
+            let allow = config.allow_outside_paths;
+            let image = confine(&root, &f.image, &f.listed_in, &f.image_field, allow)?;
+            let mask = match &f.mask {
+                Some(m) => Some(confine(&root, m, &f.listed_in, &f.mask_field, allow)?),
+                None => None,
+            };
+            Ok((f, image, mask))
+        })
+        .collect::<Result<Vec<_>>>()?;
     let views = frames
         .into_par_iter()
-        .map(|f| load_view(f, config.downscale))
+        .map(|(f, image, mask)| load_view(f, &image, mask.as_deref(), config.downscale))
         .collect::<Result<Vec<View>>>()?;
     Dataset::new(views, config.background, bounds)
 }
@@ -385,10 +414,15 @@ fn select(frames: Vec<FrameSpec>, subset: Option<&[usize]>) -> Result<Vec<FrameS
         .collect()
 }
 
-/// The view of one frame: its image (and mask) decoded, checked against the stated size,
-/// downscaled, and its camera built and validated.
-fn load_view(frame: FrameSpec, downscale: usize) -> Result<View> {
-    let image = Image::decode(&frame.image, false)?;
+/// The view of one frame: its image (and mask) decoded from their canonical paths, checked
+/// against the stated size, downscaled, and its camera built and validated.
+fn load_view(
+    frame: FrameSpec,
+    image_path: &Path,
+    mask_path: Option<&Path>,
+    downscale: usize,
+) -> Result<View> {
+    let image = Image::decode(image_path, false)?;
     let (w, h, _) = image.size();
     let intrinsics = match frame.intrinsics {
         IntrinsicsSpec::Fov { angle_x, angle_y } => {
@@ -421,9 +455,9 @@ fn load_view(frame: FrameSpec, downscale: usize) -> Result<View> {
             )
         }
     };
-    let mask = match &frame.mask {
-        Some(path) => {
-            let m = Image::decode(path, true)?;
+    let mask = match (&frame.mask, mask_path) {
+        (Some(path), Some(canonical)) => {
+            let m = Image::decode(canonical, true)?;
             let (mw, mh, _) = m.size();
             if (mw, mh) != (w, h) {
                 return Err(Error::format(
@@ -435,7 +469,7 @@ fn load_view(frame: FrameSpec, downscale: usize) -> Result<View> {
             }
             Some(m)
         }
-        None => None,
+        _ => None,
     };
     if downscale > w.min(h) {
         return Err(Error::invalid(

@@ -105,6 +105,9 @@ pub(crate) fn frames(dir: &Path, split: Split) -> Result<(Vec<FrameSpec>, Option
             convention: Convention::OpenCv,
             source: cameras.clone(),
             field,
+            listed_in: dir.to_path_buf(),
+            image_field: format!("image/ file {i}"),
+            mask_field: format!("mask/ file {i}"),
         });
     }
     if out.is_empty() {

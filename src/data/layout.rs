@@ -184,6 +184,11 @@ pub(crate) struct FrameSpec {
     /// The file the camera came from, and the field, for error messages.
     pub source: PathBuf,
     pub field: String,
+    /// The file that names the image and mask files (the JSON, or the dataset folder for
+    /// IDR/DTU's listings), and the fields that name them, for error messages.
+    pub listed_in: PathBuf,
+    pub image_field: String,
+    pub mask_field: String,
 }
 
 /// A camera-to-world pose from the rows of a 3×4 or 4×4 matrix, checked: finite, last row
@@ -245,4 +250,65 @@ pub(crate) fn read_capped(path: &Path, cap: u64) -> Result<Vec<u8>> {
         ));
     }
     Ok(bytes)
+}
+
+/// The canonical path (symlinks resolved) of the file `path` that the field `field` of
+/// `source` names, checked: a regular, non-empty file (not a directory, device, FIFO or
+/// socket, nor a `/proc` pseudo-file, which reports a size of 0), and, unless
+/// `allow_outside` is set, inside the dataset's canonical `root`. Checked from the
+/// metadata, before the file is opened (opening a FIFO would block).
+///
+/// # Errors
+/// [`Error::Io`] naming `path` if it does not exist or cannot be resolved;
+/// [`Error::Format`] naming `source` and `field` (with `path`) for a path outside `root` or
+/// a file that is not a regular, non-empty file.
+pub(crate) fn confine(
+    root: &Path,
+    path: &Path,
+    source: &Path,
+    field: &str,
+    allow_outside: bool,
+) -> Result<PathBuf> {
+    let canonical = path.canonicalize().map_err(|source| Error::Io {
+        path: path.display().to_string(),
+        source,
+    })?;
+    if !allow_outside && !canonical.starts_with(root) {
+        return Err(Error::format(
+            source,
+            field,
+            format!(
+                "a file inside the dataset folder {} (LoadConfig::allow_outside_paths, \
+                 --allow-outside-paths, to read others)",
+                root.display()
+            ),
+            format!(
+                "{}, which resolves to {}",
+                path.display(),
+                canonical.display()
+            ),
+        ));
+    }
+    let meta = std::fs::metadata(&canonical).map_err(|source| Error::Io {
+        path: canonical.display().to_string(),
+        source,
+    })?;
+    let got = if meta.is_dir() {
+        Some("a directory")
+    } else if !meta.is_file() {
+        Some("a device, FIFO or socket")
+    } else if meta.len() == 0 {
+        Some("an empty file (or a pseudo-file of /proc or /sys)")
+    } else {
+        None
+    };
+    match got {
+        Some(got) => Err(Error::format(
+            source,
+            field,
+            "a regular, non-empty image file",
+            format!("{}: {got}", path.display()),
+        )),
+        None => Ok(canonical),
+    }
 }

@@ -105,6 +105,9 @@ pub(crate) fn read_transforms(
             convention: Convention::OpenGl,
             source: path.to_path_buf(),
             field: format!("{field}.transform_matrix"),
+            listed_in: path.to_path_buf(),
+            image_field: format!("{field}.file_path"),
+            mask_field: format!("{field}.mask_path"),
         });
     }
     if out.is_empty() {
