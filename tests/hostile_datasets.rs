@@ -1,6 +1,8 @@
 //! Hostile dataset folders, generated here at test time: paths that leave the folder,
-//! special files, and degenerate cameras in every layout. Each gives an `Err` naming the
-//! file and the field, or a correct `Ok`, in bounded time.
+//! special files, a file named by many frames, a PNG whose header claims 32768², an image
+//! far above the others, a load over its memory budget, and degenerate cameras in every
+//! layout. Each gives an `Err` naming the file and the field, or a correct `Ok`, in
+//! bounded time and memory (nothing here decodes more than a few hundred kB).
 #![cfg(feature = "data")]
 
 mod common;
@@ -170,6 +172,181 @@ fn special_files_are_refused_even_when_outside_paths_are_allowed() {
         assert_eq!(field, "frames[0].file_path", "{file}");
         assert!(got.contains(what), "{file}: {got}");
     }
+}
+
+#[test]
+fn repeated_frame_is_decoded_once_and_shared() {
+    let dir = scratch("hostile-repeated");
+    png(&dir.join("a.png"), 64, 64, 4, &pattern(64, 64, 4, 1));
+    let files = vec!["a.png"; 1000];
+    blender(&dir, &files, serde_json::json!({}));
+    // A budget of one decoded copy (64 · 64 · 4 bytes) admits the 1000 frames.
+    let config = LoadConfig {
+        max_decoded_bytes: 64 * 64 * 4,
+        ..LoadConfig::default()
+    };
+    let data = load(&dir, &config).unwrap();
+    assert_eq!(data.views().len(), 1000);
+    let first = data.views()[0].image().data().as_ptr();
+    assert!(data
+        .views()
+        .iter()
+        .all(|v| v.image().data().as_ptr() == first));
+    // One byte less is refused, with the figures.
+    let config = LoadConfig {
+        max_decoded_bytes: 64 * 64 * 4 - 1,
+        ..LoadConfig::default()
+    };
+    let (path, field, got) = format_error(load(&dir, &config));
+    assert!(path.ends_with("a.png"), "{path}");
+    assert_eq!(field, "decoded size");
+    assert!(got.contains("16384 bytes"), "{got}");
+}
+
+/// The CRC-32 of PNG chunks (ISO 3309).
+fn crc32(bytes: &[u8]) -> u32 {
+    let mut crc = !0u32;
+    for &b in bytes {
+        crc ^= u32::from(b);
+        for _ in 0..8 {
+            crc = if crc & 1 == 1 {
+                (crc >> 1) ^ 0xEDB8_8320
+            } else {
+                crc >> 1
+            };
+        }
+    }
+    !crc
+}
+
+/// A PNG of a few dozen bytes whose header states `w × h` RGBA pixels: a signature, the
+/// IHDR chunk, an IDAT of an empty zlib stream and IEND, each with a valid CRC.
+fn png_header_only(w: u32, h: u32) -> Vec<u8> {
+    let mut out = b"\x89PNG\r\n\x1a\n".to_vec();
+    let mut chunk = |kind: &[u8], data: &[u8]| {
+        out.extend_from_slice(&(data.len() as u32).to_be_bytes());
+        let mut body = kind.to_vec();
+        body.extend_from_slice(data);
+        out.extend_from_slice(&body);
+        out.extend_from_slice(&crc32(&body).to_be_bytes());
+    };
+    let mut ihdr = Vec::new();
+    ihdr.extend_from_slice(&w.to_be_bytes());
+    ihdr.extend_from_slice(&h.to_be_bytes());
+    ihdr.extend_from_slice(&[8, 6, 0, 0, 0]);
+    chunk(b"IHDR", &ihdr);
+    chunk(b"IDAT", &[0x78, 0x9c, 0x03, 0x00, 0x00, 0x00, 0x00, 0x01]);
+    chunk(b"IEND", &[]);
+    out
+}
+
+#[test]
+fn png_bomb_header_is_refused_before_decoding() {
+    let dir = scratch("hostile-bomb");
+    let bomb = png_header_only(32768, 32768);
+    assert!(bomb.len() < 100, "{}", bomb.len());
+    std::fs::write(dir.join("bomb.png"), &bomb).unwrap();
+    blender(&dir, &["bomb.png"], serde_json::json!({}));
+    let start = Instant::now();
+    let (path, field, got) = format_error(load(&dir, &LoadConfig::default()));
+    assert!(start.elapsed() < Duration::from_secs(2));
+    assert!(path.ends_with("bomb.png"), "{path}");
+    assert_eq!(field, "image size");
+    assert!(got.contains("32768 × 32768"), "{got}");
+    // A bomb as a mask is refused the same way.
+    let dir = scratch("hostile-bomb-mask");
+    std::fs::write(dir.join("m.png"), &bomb).unwrap();
+    nerfstudio(
+        &dir,
+        serde_json::json!({}),
+        serde_json::json!({ "mask_path": "m.png" }),
+    );
+    let (path, field, _) = format_error(load(&dir, &LoadConfig::default()));
+    assert!(
+        path.ends_with("m.png") && field == "image size",
+        "{path}: {field}"
+    );
+}
+
+#[test]
+fn image_far_above_the_median_is_refused() {
+    let dir = scratch("hostile-outsize");
+    for i in 0..3 {
+        png(
+            &dir.join(format!("{i}.png")),
+            16,
+            16,
+            3,
+            &pattern(16, 16, 3, i),
+        );
+    }
+    png(&dir.join("big.png"), 80, 80, 3, &pattern(80, 80, 3, 9));
+    blender(
+        &dir,
+        &["0.png", "1.png", "big.png", "2.png"],
+        serde_json::json!({}),
+    );
+    let (path, field, got) = format_error(load(&dir, &LoadConfig::default()));
+    assert!(path.ends_with("big.png"), "{path}");
+    assert_eq!(field, "image size");
+    assert!(got.contains("6400"), "{got}");
+    // Sizes within 16× of the median load.
+    png(&dir.join("big.png"), 64, 64, 3, &pattern(64, 64, 3, 9));
+    assert_eq!(load(&dir, &LoadConfig::default()).unwrap().views().len(), 4);
+}
+
+#[test]
+fn per_image_pixel_cap_is_configurable() {
+    let dir = scratch("hostile-pixel-cap");
+    png(&dir.join("a.png"), 16, 16, 3, &pattern(16, 16, 3, 1));
+    blender(&dir, &["a.png"], serde_json::json!({}));
+    let config = LoadConfig {
+        max_image_pixels: 255,
+        ..LoadConfig::default()
+    };
+    let (path, field, _) = format_error(load(&dir, &config));
+    assert!(
+        path.ends_with("a.png") && field == "image size",
+        "{path}: {field}"
+    );
+    let config = LoadConfig {
+        max_image_pixels: 256,
+        ..LoadConfig::default()
+    };
+    assert!(load(&dir, &config).is_ok());
+}
+
+#[test]
+fn sixteen_bit_and_grey_images_count_what_they_decode_to() {
+    let dir = scratch("hostile-16bit");
+    let data: Vec<u16> = (0..8 * 6 * 3).map(|i| (i * 997 % 65536) as u16).collect();
+    let bytes: Vec<u8> = data.iter().flat_map(|x| x.to_ne_bytes()).collect();
+    image::save_buffer(
+        dir.join("a.png"),
+        &bytes,
+        8,
+        6,
+        image::ExtendedColorType::Rgb16,
+    )
+    .unwrap();
+    png(&dir.join("g.png"), 8, 6, 1, &pattern(8, 6, 1, 2));
+    blender(&dir, &["a.png", "g.png"], serde_json::json!({}));
+    // The 16-bit file decodes to 8 · 6 · 6 bytes, the grey one is kept as 8 · 6 · 3.
+    let need = 8 * 6 * 6 + 8 * 6 * 3;
+    let exact = LoadConfig {
+        max_decoded_bytes: need,
+        ..LoadConfig::default()
+    };
+    let data = load(&dir, &exact).unwrap();
+    assert_eq!(data.views()[0].image().size(), (8, 6, 3));
+    assert_eq!(data.views()[1].image().size(), (8, 6, 3));
+    let short = LoadConfig {
+        max_decoded_bytes: need - 1,
+        ..LoadConfig::default()
+    };
+    let (_, field, got) = format_error(load(&dir, &short));
+    assert_eq!(field, "decoded size");
+    assert!(got.contains(&format!("{need} bytes")), "{got}");
 }
 
 #[test]
