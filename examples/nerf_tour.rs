@@ -12,6 +12,10 @@ use neural_fields::volume::{GridMarchConfig, ImageConfig, NerfConfig, OccupancyG
 struct Args {
     #[arg(long, default_value = "examples/data/wuson")]
     data: std::path::PathBuf,
+    /// Read image and mask files outside the dataset folder (absolute paths, `../`,
+    /// symlinks to elsewhere), which loading refuses by default.
+    #[arg(long)]
+    allow_outside_paths: bool,
     #[arg(long, default_value_t = 300)]
     steps: usize,
     #[arg(long, default_value = "target/nerf_tour")]
@@ -20,7 +24,10 @@ struct Args {
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (args, dev, dt) = (Args::parse(), Device::Cpu, DType::F32);
-    let data = LoadConfig::default(); // white backgrounds
+    let data = LoadConfig {
+        allow_outside_paths: args.allow_outside_paths,
+        ..LoadConfig::default() // white backgrounds
+    };
     let (train, (test, _)) = (load(&args.data, &data)?, load_eval(&args.data, &data)?);
     let varmap = VarMap::new();
     let net = build_seeded(&varmap, dt, &dev, 0, |vb| nerf(&NerfConfig::default(), vb))?;

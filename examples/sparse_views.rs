@@ -60,6 +60,10 @@ struct Args {
     /// Dataset folder (Blender synthetic, nerfstudio or IDR/DTU layout).
     #[arg(long, default_value = "examples/data/wuson")]
     data: PathBuf,
+    /// Read image and mask files outside the dataset folder (absolute paths, `../`,
+    /// symlinks to elsewhere), which loading refuses by default.
+    #[arg(long)]
+    allow_outside_paths: bool,
     /// Training views.
     #[arg(long, value_delimiter = ',', default_value = "0,17,34")]
     frames: Vec<usize>,
@@ -224,6 +228,7 @@ fn train(args: &Args, name: &str, regularised: bool) -> Result<Run> {
     let (dev, dt) = (Device::Cpu, DType::F32);
     let config = LoadConfig {
         downscale: args.downscale,
+        allow_outside_paths: args.allow_outside_paths,
         ..LoadConfig::default()
     };
     let train = load(

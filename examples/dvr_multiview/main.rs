@@ -161,6 +161,10 @@ pub struct Args {
     /// The dataset's folder.
     #[arg(long, default_value = "examples/data/wuson")]
     pub data: PathBuf,
+    /// Read image and mask files outside the dataset folder (absolute paths, `../`,
+    /// symlinks to elsewhere), which loading refuses by default.
+    #[arg(long)]
+    pub allow_outside_paths: bool,
     /// Training budget in minutes of training (15 when neither this nor --steps is given).
     #[arg(long)]
     pub minutes: Option<f64>,
@@ -571,6 +575,7 @@ pub fn run(args: &Args) -> Result<Summary> {
     let config = LoadConfig {
         background: Background::Color([1.0; 3]),
         downscale: args.downscale,
+        allow_outside_paths: args.allow_outside_paths,
         ..LoadConfig::default()
     };
     let train = load(&args.data, &config)?;

@@ -113,6 +113,10 @@ pub(super) struct Args {
     /// Proposal sampler: samples per ray of the two proposal levels.
     #[arg(long, value_parser = two_counts, default_value = "16,8")]
     pub(super) proposal_samples: [usize; 2],
+    /// Read image and mask files outside the dataset folder (absolute paths, `../`,
+    /// symlinks to elsewhere), which loading refuses by default.
+    #[arg(long)]
+    pub(super) allow_outside_paths: bool,
 }
 
 impl Default for Args {

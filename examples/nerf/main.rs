@@ -149,6 +149,7 @@ fn run(args: &Args) -> Result<()> {
     let train_config = LoadConfig {
         background,
         downscale: args.downscale,
+        allow_outside_paths: args.allow_outside_paths,
         frames: args.frames.clone(),
         ..LoadConfig::default()
     };
@@ -165,6 +166,7 @@ fn run(args: &Args) -> Result<()> {
     }
     let eval_config = LoadConfig {
         downscale: args.downscale,
+        allow_outside_paths: args.allow_outside_paths,
         ..LoadConfig::default()
     };
     let (eval, split) = load_eval(&args.data, &eval_config)?;

@@ -31,6 +31,6 @@ fuzz_target!(|data: &[u8]| {
         ..LoadConfig::default()
     };
     if let Ok(ds) = load(d, &config) {
-        assert!(!ds.is_empty());
+        assert!(!ds.views().is_empty());
     }
 });

@@ -35,6 +35,6 @@ fuzz_target!(|data: &[u8]| {
     let _ = std::fs::remove_file(d.join(other));
     std::fs::write(d.join(name), json).expect("write");
     if let Ok(ds) = load(d, &LoadConfig::default()) {
-        assert!(!ds.is_empty());
+        assert!(!ds.views().is_empty());
     }
 });

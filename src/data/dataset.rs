@@ -1,8 +1,8 @@
 //! Views, datasets, the loading options and the loader entry point, which detects the
 //! layout and hands the folder to that layout's reader (Blender, nerfstudio, IDR/DTU).
 
-use super::image::Image;
-use super::layout::{Bounds, DatasetLayout, FrameSpec, IntrinsicsSpec, Split};
+use super::image::{Header, Image};
+use super::layout::{confine, Bounds, DatasetLayout, FrameSpec, IntrinsicsSpec, Split};
 use super::{blender, dtu, nerfstudio};
 use crate::camera::{Camera, Intrinsics};
 use crate::error::check_dtype;
@@ -10,7 +10,9 @@ use crate::error::{Error, Result};
 use candle_core::{DType, Device, Tensor};
 use glam::DAffine3;
 use rayon::prelude::*;
-use std::path::Path;
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// One calibrated picture: a camera, its image and an optional mask.
 ///
@@ -19,8 +21,9 @@ use std::path::Path;
 #[derive(Clone, Debug)]
 pub struct View {
     camera: Camera,
-    image: Image,
-    mask: Option<Image>,
+    // Shared: frames that name one file hold one decoded copy.
+    image: Arc<Image>,
+    mask: Option<Arc<Image>>,
     name: String,
 }
 
@@ -33,6 +36,16 @@ impl View {
     /// [`Error::InvalidArgument`] naming `image` if it has 1 channel or its size is not the
     /// camera's, and `mask` unless it has 1 channel and the camera's size.
     pub fn new(camera: Camera, image: Image, mask: Option<Image>, name: String) -> Result<Self> {
+        Self::shared(camera, Arc::new(image), mask.map(Arc::new), name)
+    }
+
+    /// [`View::new`] with an image and mask that other views may share.
+    pub(crate) fn shared(
+        camera: Camera,
+        image: Arc<Image>,
+        mask: Option<Arc<Image>>,
+        name: String,
+    ) -> Result<Self> {
         let k = camera.intrinsics();
         let (w, h, c) = image.size();
         if c == 1 || (w, h) != (k.width, k.height) {
@@ -78,7 +91,7 @@ impl View {
     /// The mask file's image (one channel), if the view has one.
     #[must_use]
     pub(crate) fn mask_image(&self) -> Option<&Image> {
-        self.mask.as_ref()
+        self.mask.as_deref()
     }
 
     /// The name: for loaded views, the path of the image file.
@@ -211,7 +224,31 @@ pub struct LoadConfig {
     /// A subset of the split's frames by index in the split's order (sparse-view training:
     /// "these 3 views"); `None` loads all.
     pub frames: Option<Vec<usize>>,
+    /// Whether image and mask paths may lead outside the dataset folder (default false).
+    /// By default a path that, resolved (symlinks followed), lies outside the folder's
+    /// canonical path — an absolute `file_path`, a `../` that climbs out, a symlink to
+    /// elsewhere — is an [`Error::Format`] naming the file, the frame and the field: a
+    /// downloaded dataset should not read the rest of the disk. Set it for datasets whose
+    /// images are shared between folders by such paths. Either way only regular,
+    /// non-empty files are opened (not directories, devices, FIFOs or `/proc` files).
+    pub allow_outside_paths: bool,
+    /// The most bytes of decoded images one load may hold (default 4 GiB, 2³² bytes),
+    /// checked from the image headers before any pixel is decoded: the sum over the
+    /// distinct files of the larger of the decoder's output (16-bit channels take 2 bytes)
+    /// and the 8-bit image kept (3 or 4 bytes per pixel, 1 for a mask). A file that many
+    /// frames name is decoded once and shared, so it counts once. Exceeding it is an
+    /// [`Error::Format`] naming the largest file, with the bytes needed and the budget.
+    pub max_decoded_bytes: u64,
+    /// The most pixels of one image or mask (default 2²⁶, 8192 × 8192), checked from its
+    /// header before decoding: a file whose header claims more (a 74-byte PNG can claim
+    /// 32768 × 32768) is an [`Error::Format`] naming it. Besides, an image of more than
+    /// 16 times the median pixel count of the frames loaded is refused (a stray or hostile
+    /// file among the views).
+    pub max_image_pixels: u64,
 }
+
+/// How many times the median image of a load an image may be, in pixels.
+const MEDIAN_RATIO: u64 = 16;
 
 impl Default for LoadConfig {
     fn default() -> Self {
@@ -221,6 +258,9 @@ impl Default for LoadConfig {
             background: Background::default(),
             downscale: 1,
             frames: None,
+            allow_outside_paths: false,
+            max_decoded_bytes: 4 << 30,
+            max_image_pixels: 1 << 26,
         }
     }
 }
@@ -304,10 +344,10 @@ impl Dataset {
                         other => other,
                     },
                 )?;
-                View::new(
+                View::shared(
                     moved,
-                    v.image().clone(),
-                    v.mask_image().cloned(),
+                    Arc::clone(&v.image),
+                    v.mask.clone(),
                     v.name().to_string(),
                 )
             })
@@ -318,9 +358,15 @@ impl Dataset {
 
 /// Loads the dataset in `dir` ([`DatasetLayout`]: Blender, nerfstudio or IDR/DTU).
 ///
-/// Images are decoded in parallel and kept as bytes; every camera is validated (finite,
-/// rigid, of the image's size). Poses within 1e-3 of a rotation but not within 1e-6 (the
-/// rounding of some exporters) are orthonormalised; others are errors.
+/// Image headers are read first and checked against the memory budget of `config`; then
+/// each distinct file is decoded once, in parallel, kept as bytes and shared by the
+/// frames that name it. Image and mask paths must lie inside `dir` unless
+/// [`LoadConfig::allow_outside_paths`]. Every camera is validated (finite, rigid, of the
+/// image's size; focal lengths in [10⁻³, 10⁶] pixels, fields of view in
+/// [10⁻³, π − 10⁻³] radians, principal points, image sides, `scale`, `offset`,
+/// `aabb_scale` and camera centres of magnitude at most 10⁶). Poses within 1e-3 of a
+/// rotation but not within 1e-6 (the rounding of some exporters) are orthonormalised;
+/// others are errors.
 ///
 /// ```
 /// use neural_fields::data::{load, LoadConfig, Split};
@@ -337,7 +383,13 @@ impl Dataset {
 /// [`Error::Io`] naming a missing or unreadable file; [`Error::Format`] naming the file and
 /// the field for malformed content (JSON without `frames`, a singular or non-rigid
 /// `transform_matrix`, NaN in a pose, an unsupported camera model or lens distortion, an
-/// image or mask of the wrong size, a truncated PNG, an empty split);
+/// image or mask of the wrong size, a truncated PNG, an empty split), and naming the file
+/// that lists an image or mask, the frame and the field (`frames[3].file_path`) for a path
+/// outside the dataset folder (unless [`LoadConfig::allow_outside_paths`]) or a file that
+/// is not a regular, non-empty file; [`Error::Format`] naming an image whose header states
+/// more than [`LoadConfig::max_image_pixels`] pixels or more than 16 times the median
+/// image's, or the largest file when the images would decode to more than
+/// [`LoadConfig::max_decoded_bytes`] (all checked before decoding);
 /// [`Error::InvalidArgument`] naming `downscale` if 0 or larger than an image, `frames`
 /// for an index outside the split.
 pub fn load(dir: &Path, config: &LoadConfig) -> Result<Dataset> {
@@ -355,11 +407,129 @@ pub fn load(dir: &Path, config: &LoadConfig) -> Result<Dataset> {
         DatasetLayout::Dtu => dtu::frames(dir, config.split)?,
     };
     let frames = select(frames, config.frames.as_deref())?;
-    let views = frames
-        .into_par_iter()
-        .map(|f| load_view(f, config.downscale))
-        .collect::<Result<Vec<View>>>()?;
+    let root = dir.canonicalize().map_err(|source| Error::Io {
+        path: dir.display().to_string(),
+        source,
+    })?;
+    let frames = frames
+        .into_iter()
+        .map(|f| {
+            let allow = config.allow_outside_paths;
+            let image = confine(&root, &f.image, &f.listed_in, &f.image_field, allow)?;
+            let mask = match &f.mask {
+                Some(m) => Some(confine(&root, m, &f.listed_in, &f.mask_field, allow)?),
+                None => None,
+            };
+            Ok(Located {
+                frame: f,
+                image: (image, false),
+                mask: mask.map(|m| (m, true)),
+            })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let views = load_views(frames, config)?;
     Dataset::new(views, config.background, bounds)
+}
+
+/// A decoded file: its canonical path and whether it is read as a mask (one channel).
+type FileKey = (PathBuf, bool);
+
+/// A frame with the keys of its image and mask files.
+struct Located {
+    frame: FrameSpec,
+    image: FileKey,
+    mask: Option<FileKey>,
+}
+
+/// The views of `frames`, within `config`'s memory budget: every file's header read
+/// first (each file once), the sizes checked against the budget and against each other,
+/// then each file decoded once (in parallel) and shared by the frames that name it.
+fn load_views(frames: Vec<Located>, config: &LoadConfig) -> Result<Vec<View>> {
+    let mut keys: Vec<FileKey> = Vec::new();
+    let mut seen = std::collections::HashSet::new();
+    for f in &frames {
+        for key in std::iter::once(&f.image).chain(&f.mask) {
+            if seen.insert(key) {
+                keys.push(key.clone());
+            }
+        }
+    }
+    let headers: HashMap<FileKey, Header> = keys
+        .par_iter()
+        .map(|k| {
+            Ok((
+                k.clone(),
+                Image::header(&k.0, k.1, config.max_image_pixels)?,
+            ))
+        })
+        .collect::<Result<_>>()?;
+    let header = |k: &FileKey| headers[k]; // every key was read above
+    for f in &frames {
+        let mask = f.mask.as_ref().map(header);
+        check_sizes(&f.frame, &header(&f.image), mask, config.downscale)?;
+    }
+    // An image far above the others' size is a bomb or a stray file, not a view.
+    let mut pixels: Vec<(u64, &Path)> = frames
+        .iter()
+        .map(|f| {
+            let h = header(&f.image);
+            ((h.width * h.height) as u64, f.frame.image.as_path())
+        })
+        .collect();
+    pixels.sort_unstable();
+    let median = pixels[(pixels.len() - 1) / 2].0;
+    if let Some(&(largest, path)) = pixels.last() {
+        if largest > MEDIAN_RATIO * median {
+            return Err(Error::format(
+                path,
+                "image size",
+                format!("at most {MEDIAN_RATIO} × the median image of the split ({median} pixels)"),
+                format!("{largest} pixels"),
+            ));
+        }
+    }
+    let mut need: u64 = 0;
+    for k in &keys {
+        need = need.saturating_add(header(k).decoded_bytes());
+    }
+    if need > config.max_decoded_bytes {
+        let (big, h) = keys
+            .iter()
+            .map(|k| (k, header(k)))
+            .max_by_key(|(_, h)| h.decoded_bytes())
+            .expect("at least one frame"); // invariant: frames is never empty
+        return Err(Error::format(
+            &big.0,
+            "decoded size",
+            format!(
+                "at most {} bytes of decoded images in one load (LoadConfig::max_decoded_bytes)",
+                config.max_decoded_bytes
+            ),
+            format!(
+                "{need} bytes for {} files, the largest this one ({} × {}, {} bytes)",
+                keys.len(),
+                h.width,
+                h.height,
+                h.decoded_bytes()
+            ),
+        ));
+    }
+    let decoded: HashMap<FileKey, Arc<Image>> = keys
+        .into_par_iter()
+        .map(|k| {
+            let image = Image::decode(&k.0, k.1, &header(&k))?.downscale(config.downscale);
+            Ok((k, Arc::new(image)))
+        })
+        .collect::<Result<_>>()?;
+    frames
+        .into_iter()
+        .map(|f| {
+            let image = Arc::clone(&decoded[&f.image]);
+            let mask = f.mask.as_ref().map(|m| Arc::clone(&decoded[m]));
+            let h = header(&f.image);
+            make_view(f.frame, (h.width, h.height), image, mask, config.downscale)
+        })
+        .collect()
 }
 
 fn select(frames: Vec<FrameSpec>, subset: Option<&[usize]>) -> Result<Vec<FrameSpec>> {
@@ -385,58 +555,39 @@ fn select(frames: Vec<FrameSpec>, subset: Option<&[usize]>) -> Result<Vec<FrameS
         .collect()
 }
 
-/// The view of one frame: its image (and mask) decoded, checked against the stated size,
-/// downscaled, and its camera built and validated.
-fn load_view(frame: FrameSpec, downscale: usize) -> Result<View> {
-    let image = Image::decode(&frame.image, false)?;
-    let (w, h, _) = image.size();
-    let intrinsics = match frame.intrinsics {
-        IntrinsicsSpec::Fov { angle_x, angle_y } => {
-            let fx = 0.5 * w as f64 / (0.5 * angle_x).tan();
-            let fy = angle_y.map_or(fx, |a| 0.5 * h as f64 / (0.5 * a).tan());
-            (fx, fy, 0.5 * w as f64, 0.5 * h as f64)
+/// Checks a frame's sizes from the headers, before decoding: the image's against the
+/// size the layout states, the mask's against the image's, `downscale` against both.
+fn check_sizes(
+    frame: &FrameSpec,
+    image: &Header,
+    mask: Option<Header>,
+    downscale: usize,
+) -> Result<()> {
+    let (w, h) = (image.width, image.height);
+    if let IntrinsicsSpec::Pinhole {
+        size: Some((sw, sh)),
+        ..
+    } = frame.intrinsics
+    {
+        if (sw, sh) != (w, h) {
+            return Err(Error::format(
+                &frame.image,
+                "image size",
+                format!("{sw} × {sh} (w, h in {})", frame.source.display()),
+                format!("{w} × {h}"),
+            ));
         }
-        IntrinsicsSpec::Pinhole {
-            fx,
-            fy,
-            cx,
-            cy,
-            size,
-        } => {
-            if let Some((sw, sh)) = size {
-                if (sw, sh) != (w, h) {
-                    return Err(Error::format(
-                        &frame.image,
-                        "image size",
-                        format!("{sw} × {sh} (w, h in {})", frame.source.display()),
-                        format!("{w} × {h}"),
-                    ));
-                }
-            }
-            (
-                fx,
-                fy,
-                cx.unwrap_or(0.5 * w as f64),
-                cy.unwrap_or(0.5 * h as f64),
-            )
+    }
+    if let (Some(m), Some(path)) = (mask, &frame.mask) {
+        if (m.width, m.height) != (w, h) {
+            return Err(Error::format(
+                path,
+                "mask size",
+                format!("{w} × {h}, the size of {}", frame.image.display()),
+                format!("{} × {}", m.width, m.height),
+            ));
         }
-    };
-    let mask = match &frame.mask {
-        Some(path) => {
-            let m = Image::decode(path, true)?;
-            let (mw, mh, _) = m.size();
-            if (mw, mh) != (w, h) {
-                return Err(Error::format(
-                    path,
-                    "mask size",
-                    format!("{w} × {h}, the size of {}", frame.image.display()),
-                    format!("{mw} × {mh}"),
-                ));
-            }
-            Some(m)
-        }
-        None => None,
-    };
+    }
     if downscale > w.min(h) {
         return Err(Error::invalid(
             "downscale",
@@ -444,13 +595,33 @@ fn load_view(frame: FrameSpec, downscale: usize) -> Result<View> {
             downscale.to_string(),
         ));
     }
-    let (image, mask) = (
-        image.downscale(downscale),
-        mask.map(|m| m.downscale(downscale)),
-    );
+    Ok(())
+}
+
+/// The view of one frame from its decoded (and downscaled) image and mask: the camera
+/// built from the layout's intrinsics at the original size, scaled by `1/downscale`, and
+/// validated.
+fn make_view(
+    frame: FrameSpec,
+    (w0, h0): (usize, usize),
+    image: Arc<Image>,
+    mask: Option<Arc<Image>>,
+    downscale: usize,
+) -> Result<View> {
     let s = downscale as f64;
-    let (fx, fy, cx, cy) = intrinsics;
     let (w, h, _) = image.size();
+    // The intrinsics the layout states are for the size before downscaling.
+    let (w0, h0) = (w0 as f64, h0 as f64);
+    let (fx, fy, cx, cy) = match frame.intrinsics {
+        IntrinsicsSpec::Fov { angle_x, angle_y } => {
+            let fx = 0.5 * w0 / (0.5 * angle_x).tan();
+            let fy = angle_y.map_or(fx, |a| 0.5 * h0 / (0.5 * a).tan());
+            (fx, fy, 0.5 * w0, 0.5 * h0)
+        }
+        IntrinsicsSpec::Pinhole { fx, fy, cx, cy, .. } => {
+            (fx, fy, cx.unwrap_or(0.5 * w0), cy.unwrap_or(0.5 * h0))
+        }
+    };
     let k = Intrinsics::new(fx / s, fy / s, cx / s, cy / s, w, h).map_err(|e| {
         Error::format(
             &frame.source,
@@ -467,5 +638,5 @@ fn load_view(frame: FrameSpec, downscale: usize) -> Result<View> {
             e.to_string(),
         )
     })?;
-    View::new(camera, image, mask, frame.image.display().to_string())
+    View::shared(camera, image, mask, frame.image.display().to_string())
 }

@@ -2,7 +2,8 @@
 //! `scale_mat_i`; a bounded reader of the npz (a zip of `.npy` members).
 
 use super::layout::{
-    cameras_file, pose_from_rows, read_capped, Bounds, FrameSpec, IntrinsicsSpec, Split,
+    cameras_file, in_range, pose_from_rows, read_capped, Bounds, FrameSpec, IntrinsicsSpec, Split,
+    MAX_CAMERA_VALUE, MIN_FOCAL, MIN_SCALE,
 };
 use crate::camera::Convention;
 use crate::error::{Error, Result};
@@ -93,6 +94,7 @@ pub(crate) fn frames(dir: &Path, split: Split) -> Result<(Vec<FrameSpec>, Option
             )
         })?;
         let scale = matrix(&npz, &cameras, &format!("scale_mat_{i}"))?.unwrap_or(DMat4::IDENTITY);
+        check_scale_mat(&scale, &cameras, &format!("scale_mat_{i}"))?;
         let field = format!("world_mat_{i} · scale_mat_{i}");
         let (k, pose) = decompose(&(world * scale), &cameras, &field)?;
         out.push(FrameSpec {
@@ -103,6 +105,9 @@ pub(crate) fn frames(dir: &Path, split: Split) -> Result<(Vec<FrameSpec>, Option
             convention: Convention::OpenCv,
             source: cameras.clone(),
             field,
+            listed_in: dir.to_path_buf(),
+            image_field: format!("image/ file {i}"),
+            mask_field: format!("mask/ file {i}"),
         });
     }
     if out.is_empty() {
@@ -190,6 +195,14 @@ fn decompose(p: &DMat4, path: &Path, field: &str) -> Result<(IntrinsicsSpec, gla
         [row.x, row.y, row.z, center[i]]
     });
     let pose = pose_from_rows(&rows4, path, field)?;
+    let m = MAX_CAMERA_VALUE;
+    in_range(fx, MIN_FOCAL, m, path, field, "a focal length fx in pixels")?;
+    in_range(fy, MIN_FOCAL, m, path, field, "a focal length fy in pixels")?;
+    in_range(cx, -m, m, path, field, "a principal point cx in pixels")?;
+    in_range(cy, -m, m, path, field, "a principal point cy in pixels")?;
+    for x in center.to_array() {
+        in_range(x, -m, m, path, field, "a camera centre with coordinates")?;
+    }
     // The skew moves pixel (x, y) by skew · (y − cy)/fy; bound |y − cy| by 2·cy.
     if (skew * 2.0 * cy.abs() / fy).abs() > 0.05 {
         return Err(Error::format(
@@ -209,6 +222,42 @@ fn decompose(p: &DMat4, path: &Path, field: &str) -> Result<(IntrinsicsSpec, gla
         },
         pose,
     ))
+}
+
+/// A `scale_mat` (IDR: the similarity taking the unit sphere to the object's bounding
+/// sphere): entries of magnitude at most [`MAX_CAMERA_VALUE`], the last row
+/// `[0, 0, 0, 1]`, and a 3×3 part of positive determinant whose scale (its cube root) is
+/// at least [`MIN_SCALE`].
+fn check_scale_mat(s: &DMat4, path: &Path, field: &str) -> Result<()> {
+    let rows = s.transpose().to_cols_array_2d();
+    let worst = rows.iter().flatten().fold(0.0f64, |a, x| a.max(x.abs()));
+    in_range(
+        worst,
+        0.0,
+        MAX_CAMERA_VALUE,
+        path,
+        field,
+        "a similarity with entries of magnitude",
+    )?;
+    if rows[3] != [0.0, 0.0, 0.0, 1.0] {
+        return Err(Error::format(
+            path,
+            field,
+            "a last row [0, 0, 0, 1]",
+            format!("{:?}", rows[3]),
+        ));
+    }
+    let det = DMat3::from_mat4(*s).determinant();
+    let scale = det.signum() * det.abs().cbrt();
+    in_range(
+        scale,
+        MIN_SCALE,
+        MAX_CAMERA_VALUE,
+        path,
+        field,
+        "a scale (cube root of the determinant of the 3×3 part)",
+    )?;
+    Ok(())
 }
 
 /// One `.npy` array, as f64, row-major.

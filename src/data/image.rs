@@ -4,9 +4,50 @@ use crate::error::{Error, Result};
 use candle_core::{DType, Tensor};
 use std::path::Path;
 
-/// The largest image this crate decodes, in pixels (2¹⁸ × 2¹⁸ would be 2³⁶): a header that
-/// claims more is refused before anything is allocated.
-pub(crate) const MAX_PIXELS: u64 = 1 << 30;
+/// What an image file's header says, read before any pixel is decoded: the size, the
+/// bytes of the decoder's output in the file's own pixel format (`native_bytes`: 16-bit
+/// channels take 2 bytes) and the bytes of the 8-bit image kept (`kept_bytes`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Header {
+    pub width: usize,
+    pub height: usize,
+    pub native_bytes: u64,
+    pub kept_bytes: u64,
+}
+
+impl Header {
+    /// The bytes a decode holds at its peak, counted against a load's budget: the larger
+    /// of the decoder's output and the 8-bit image kept.
+    pub(crate) fn decoded_bytes(&self) -> u64 {
+        self.native_bytes.max(self.kept_bytes)
+    }
+}
+
+/// The limits of a decoder opened to read a header: no image buffer is allocated yet,
+/// and the decoder's own allocations (metadata chunks) stay below what `max_pixels`
+/// pixels of 16-bit RGBA would take.
+fn reader_limits(max_pixels: u64) -> image::Limits {
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some(max_pixels.saturating_mul(8).saturating_add(16 << 20));
+    limits
+}
+
+/// A decoder of the file at `path` (format guessed from its bytes) under `limits`; the
+/// header is read, no pixel.
+fn open_decoder(path: &Path, limits: image::Limits) -> Result<impl image::ImageDecoder> {
+    let io = |source| Error::Io {
+        path: path.display().to_string(),
+        source,
+    };
+    let mut reader = image::ImageReader::open(path)
+        .map_err(io)?
+        .with_guessed_format()
+        .map_err(io)?;
+    reader.limits(limits);
+    reader
+        .into_decoder()
+        .map_err(|e| Error::format(path, "image", "a PNG or JPEG file", e.to_string()))
+}
 
 /// An 8-bit image: `height` rows of `width` pixels of `channels` bytes, row-major, with
 /// straight (not premultiplied) alpha when `channels == 4`.
@@ -115,39 +156,74 @@ impl Image {
         Some(&self.data[i..i + self.channels])
     }
 
-    /// Decodes the PNG or JPEG at `path` (format from its bytes), keeping RGBA as 4
-    /// channels and turning grey or grey-alpha into RGB(A) when `mask` is false, or into one
-    /// grey channel (the luma) when it is true.
-    pub(crate) fn decode(path: &Path, mask: bool) -> Result<Self> {
+    /// Reads the header of the PNG or JPEG at `path` (format from its bytes), without
+    /// decoding any pixel: its size and the bytes that decoding it will hold.
+    ///
+    /// # Errors
+    /// [`Error::Io`] naming `path` if it cannot be opened or read; [`Error::Format`] naming
+    /// it for a header that is not a PNG or JPEG one, or that states more than
+    /// `max_pixels` pixels (checked before anything of that size is allocated).
+    pub(crate) fn header(path: &Path, mask: bool, max_pixels: u64) -> Result<Header> {
+        let decoder = open_decoder(path, reader_limits(max_pixels))?;
+        let (w, h) = image::ImageDecoder::dimensions(&decoder);
+        let pixels = u64::from(w) * u64::from(h);
+        if pixels > max_pixels {
+            return Err(Error::format(
+                path,
+                "image size",
+                format!("at most {max_pixels} pixels (LoadConfig::max_image_pixels)"),
+                format!("{w} × {h} = {pixels} pixels, stated by the header"),
+            ));
+        }
+        let native = image::ImageDecoder::total_bytes(&decoder);
+        let alpha = image::ImageDecoder::color_type(&decoder).has_alpha();
+        let channels = if mask {
+            1
+        } else if alpha {
+            4
+        } else {
+            3
+        };
+        Ok(Header {
+            width: w as usize,
+            height: h as usize,
+            native_bytes: native,
+            kept_bytes: pixels * channels,
+        })
+    }
+
+    /// Decodes the PNG or JPEG at `path`, whose header [`Image::header`] read, keeping RGBA
+    /// as 4 channels and turning grey or grey-alpha into RGB(A) when `mask` is false, or
+    /// into one grey channel (the luma) when it is true. The decoder's limits hold it to
+    /// the header's size.
+    pub(crate) fn decode(path: &Path, mask: bool, header: &Header) -> Result<Self> {
         // The file opened, so read errors now mean truncated or corrupt content.
         let bad = |e: image::ImageError| {
             Error::format(path, "image", "a complete PNG or JPEG file", e.to_string())
         };
-        let reader = image::ImageReader::open(path)
-            .map_err(|source| Error::Io {
-                path: path.display().to_string(),
-                source,
-            })?
-            .with_guessed_format()
-            .map_err(|source| Error::Io {
-                path: path.display().to_string(),
-                source,
-            })?;
-        let mut decoder = reader.into_decoder().map_err(bad)?;
-        let (w, h) = image::ImageDecoder::dimensions(&decoder);
-        if u64::from(w) * u64::from(h) > MAX_PIXELS {
+        let mut limits = image::Limits::default();
+        limits.max_image_width = u32::try_from(header.width).ok();
+        limits.max_image_height = u32::try_from(header.height).ok();
+        limits.max_alloc = Some(
+            header
+                .native_bytes
+                .saturating_mul(2)
+                .saturating_add(16 << 20),
+        );
+        let decoder = open_decoder(path, limits)?;
+        let decoded = image::DynamicImage::from_decoder(decoder).map_err(bad)?;
+        let (w, h) = (decoded.width() as usize, decoded.height() as usize);
+        if (w, h) != (header.width, header.height) {
             return Err(Error::format(
                 path,
                 "image size",
-                format!("at most {MAX_PIXELS} pixels"),
-                format!("{w} × {h}"),
+                format!(
+                    "{} × {}, as its header said when first read",
+                    header.width, header.height
+                ),
+                format!("{w} × {h} (the file changed while loading)"),
             ));
         }
-        let mut limits = image::Limits::default();
-        limits.max_alloc = Some(16 * MAX_PIXELS);
-        image::ImageDecoder::set_limits(&mut decoder, limits).map_err(bad)?;
-        let decoded = image::DynamicImage::from_decoder(decoder).map_err(bad)?;
-        let (w, h) = (decoded.width() as usize, decoded.height() as usize);
         let (channels, data) = if mask {
             (1, decoded.into_luma8().into_raw())
         } else if decoded.color().has_alpha() {

@@ -26,6 +26,41 @@ pub enum Bounds {
     },
 }
 
+/// The largest magnitude of a camera quantity a layout may state: focal lengths and
+/// principal points in pixels, image sides, `scale`, `offset`, `aabb_scale` and camera
+/// centres in scene units. Real captures stay orders of magnitude below it; beyond it a
+/// value is a typo or a hostile file, and rays built from it lose all precision.
+pub(crate) const MAX_CAMERA_VALUE: f64 = 1e6;
+/// The smallest focal length, in pixels, and the smallest positive scale a layout may
+/// state (`scale`, `aabb_scale`, a DTU `scale_mat`).
+pub(crate) const MIN_FOCAL: f64 = 1e-3;
+pub(crate) const MIN_SCALE: f64 = 1e-6;
+/// Fields of view, in radians, lie in `[MIN_ANGLE, π − MIN_ANGLE]`: outside, the focal
+/// length is above 10³ image widths or the directions at the image edge exceed 10³.
+pub(crate) const MIN_ANGLE: f64 = 1e-3;
+
+/// `x` if it is finite and in `[lo, hi]`, else an [`Error::Format`] naming `path` and
+/// `field`, with `what` the quantity in words (“a focal length in pixels”).
+pub(crate) fn in_range(
+    x: f64,
+    lo: f64,
+    hi: f64,
+    path: &Path,
+    field: &str,
+    what: &str,
+) -> Result<f64> {
+    if x.is_finite() && (lo..=hi).contains(&x) {
+        Ok(x)
+    } else {
+        Err(Error::format(
+            path,
+            field,
+            format!("{what} in [{lo:e}, {hi:e}]"),
+            x.to_string(),
+        ))
+    }
+}
+
 /// Which frames of a dataset to load.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub enum Split {
@@ -149,6 +184,11 @@ pub(crate) struct FrameSpec {
     /// The file the camera came from, and the field, for error messages.
     pub source: PathBuf,
     pub field: String,
+    /// The file that names the image and mask files (the JSON, or the dataset folder for
+    /// IDR/DTU's listings), and the fields that name them, for error messages.
+    pub listed_in: PathBuf,
+    pub image_field: String,
+    pub mask_field: String,
 }
 
 /// A camera-to-world pose from the rows of a 3×4 or 4×4 matrix, checked: finite, last row
@@ -210,4 +250,65 @@ pub(crate) fn read_capped(path: &Path, cap: u64) -> Result<Vec<u8>> {
         ));
     }
     Ok(bytes)
+}
+
+/// The canonical path (symlinks resolved) of the file `path` that the field `field` of
+/// `source` names, checked: a regular, non-empty file (not a directory, device, FIFO or
+/// socket, nor a `/proc` pseudo-file, which reports a size of 0), and, unless
+/// `allow_outside` is set, inside the dataset's canonical `root`. Checked from the
+/// metadata, before the file is opened (opening a FIFO would block).
+///
+/// # Errors
+/// [`Error::Io`] naming `path` if it does not exist or cannot be resolved;
+/// [`Error::Format`] naming `source` and `field` (with `path`) for a path outside `root` or
+/// a file that is not a regular, non-empty file.
+pub(crate) fn confine(
+    root: &Path,
+    path: &Path,
+    source: &Path,
+    field: &str,
+    allow_outside: bool,
+) -> Result<PathBuf> {
+    let canonical = path.canonicalize().map_err(|source| Error::Io {
+        path: path.display().to_string(),
+        source,
+    })?;
+    if !allow_outside && !canonical.starts_with(root) {
+        return Err(Error::format(
+            source,
+            field,
+            format!(
+                "a file inside the dataset folder {} (LoadConfig::allow_outside_paths, \
+                 --allow-outside-paths, to read others)",
+                root.display()
+            ),
+            format!(
+                "{}, which resolves to {}",
+                path.display(),
+                canonical.display()
+            ),
+        ));
+    }
+    let meta = std::fs::metadata(&canonical).map_err(|source| Error::Io {
+        path: canonical.display().to_string(),
+        source,
+    })?;
+    let got = if meta.is_dir() {
+        Some("a directory")
+    } else if !meta.is_file() {
+        Some("a device, FIFO or socket")
+    } else if meta.len() == 0 {
+        Some("an empty file (or a pseudo-file of /proc or /sys)")
+    } else {
+        None
+    };
+    match got {
+        Some(got) => Err(Error::format(
+            source,
+            field,
+            "a regular, non-empty image file",
+            format!("{}: {got}", path.display()),
+        )),
+        None => Ok(canonical),
+    }
 }

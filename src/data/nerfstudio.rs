@@ -8,7 +8,10 @@
 //! layout's split files: nerfstudio's format extends Blender's (the same frames and
 //! `transform_matrix`, with `camera_angle_x` when no focal length is given).
 
-use super::layout::{pose_from_rows, read_capped, Bounds, FrameSpec, IntrinsicsSpec, Split};
+use super::layout::{
+    in_range, pose_from_rows, read_capped, Bounds, FrameSpec, IntrinsicsSpec, Split,
+    MAX_CAMERA_VALUE, MIN_ANGLE, MIN_FOCAL, MIN_SCALE,
+};
 use crate::camera::Convention;
 use crate::error::{Error, Result};
 use glam::DAffine3;
@@ -80,6 +83,16 @@ pub(crate) fn read_transforms(
         let rows = matrix(obj, path, &format!("{field}.transform_matrix"))?;
         let pose = pose_from_rows(&rows, path, &format!("{field}.transform_matrix"))?;
         let pose = DAffine3::from_mat3_translation(pose.matrix3, pose.translation * scale + offset);
+        for x in pose.translation.to_array() {
+            in_range(
+                x,
+                -MAX_CAMERA_VALUE,
+                MAX_CAMERA_VALUE,
+                path,
+                &format!("{field}.transform_matrix"),
+                "a camera centre (after scale and offset) with coordinates",
+            )?;
+        }
         let file = string(obj, "file_path", path, &field)?.ok_or_else(|| {
             Error::format(path, format!("{field}.file_path"), "an image path", "none")
         })?;
@@ -92,6 +105,9 @@ pub(crate) fn read_transforms(
             convention: Convention::OpenGl,
             source: path.to_path_buf(),
             field: format!("{field}.transform_matrix"),
+            listed_in: path.to_path_buf(),
+            image_field: format!("{field}.file_path"),
+            mask_field: format!("{field}.mask_path"),
         });
     }
     if out.is_empty() {
@@ -104,12 +120,17 @@ pub(crate) fn read_transforms(
     }
     let bounds = match root.get("aabb_scale") {
         Some(v) => {
-            let s = v
-                .as_f64()
-                .filter(|s| s.is_finite() && *s > 0.0)
-                .ok_or_else(|| {
-                    Error::format(path, "aabb_scale", "a positive number", v.to_string())
-                })?;
+            let s = v.as_f64().ok_or_else(|| {
+                Error::format(path, "aabb_scale", "a positive number", v.to_string())
+            })?;
+            let s = in_range(
+                s,
+                MIN_SCALE,
+                MAX_CAMERA_VALUE,
+                path,
+                "aabb_scale",
+                "a positive number",
+            )?;
             // instant-NGP: the scene extends `aabb_scale` unit cubes around the offset.
             let c = offset.to_array();
             Some(Bounds::Aabb {
@@ -125,10 +146,19 @@ pub(crate) fn read_transforms(
 /// `scale` and `offset` (instant-NGP): camera centres become `scale · t + offset`.
 fn scale_offset(root: &Map<String, Value>, path: &Path) -> Result<(f64, glam::DVec3)> {
     let scale = match root.get("scale") {
-        Some(v) => v
-            .as_f64()
-            .filter(|s| s.is_finite() && *s > 0.0)
-            .ok_or_else(|| Error::format(path, "scale", "a positive number", v.to_string()))?,
+        Some(v) => {
+            let s = v
+                .as_f64()
+                .ok_or_else(|| Error::format(path, "scale", "a positive number", v.to_string()))?;
+            in_range(
+                s,
+                MIN_SCALE,
+                MAX_CAMERA_VALUE,
+                path,
+                "scale",
+                "a positive number",
+            )?
+        }
         None => 1.0,
     };
     let offset = match root.get("offset") {
@@ -136,7 +166,7 @@ fn scale_offset(root: &Map<String, Value>, path: &Path) -> Result<(f64, glam::DV
             let o: Option<Vec<f64>> = v.as_array().map(|a| {
                 a.iter()
                     .filter_map(Value::as_f64)
-                    .filter(|x| x.is_finite())
+                    .filter(|x| x.is_finite() && x.abs() <= MAX_CAMERA_VALUE)
                     .collect()
             });
             match o {
@@ -145,7 +175,7 @@ fn scale_offset(root: &Map<String, Value>, path: &Path) -> Result<(f64, glam::DV
                     return Err(Error::format(
                         path,
                         "offset",
-                        "three finite numbers",
+                        format!("three numbers in [-{MAX_CAMERA_VALUE:e}, {MAX_CAMERA_VALUE:e}]"),
                         v.to_string(),
                     ))
                 }
@@ -214,11 +244,11 @@ fn size(
 ) -> Result<Option<usize>> {
     match number(frame, root, key, path, field)? {
         None => Ok(None),
-        Some(x) if x >= 1.0 && x.fract() == 0.0 && x <= f64::from(u32::MAX) => Ok(Some(x as usize)),
+        Some(x) if x >= 1.0 && x.fract() == 0.0 && x <= MAX_CAMERA_VALUE => Ok(Some(x as usize)),
         Some(x) => Err(Error::format(
             path,
             key,
-            "a positive integer",
+            format!("a positive integer up to {MAX_CAMERA_VALUE:e}"),
             x.to_string(),
         )),
     }
@@ -262,35 +292,54 @@ fn intrinsics(
     }
     let fx = number(frame, root, "fl_x", path, field)?;
     let fy = number(frame, root, "fl_y", path, field)?;
-    let positive = |x: f64, key: &str| {
-        if x > 0.0 {
-            Ok(x)
-        } else {
-            Err(Error::format(path, key, "a positive number", x.to_string()))
-        }
+    let focal = |x: f64, key: &str| {
+        in_range(
+            x,
+            MIN_FOCAL,
+            MAX_CAMERA_VALUE,
+            path,
+            key,
+            "a focal length in pixels",
+        )
+    };
+    let principal = |key: &str| -> Result<Option<f64>> {
+        number(frame, root, key, path, field)?
+            .map(|x| {
+                in_range(
+                    x,
+                    -MAX_CAMERA_VALUE,
+                    MAX_CAMERA_VALUE,
+                    path,
+                    key,
+                    "a principal point coordinate in pixels",
+                )
+            })
+            .transpose()
     };
     if let Some(fx) = fx {
-        let fx = positive(fx, "fl_x")?;
-        let fy = positive(fy.unwrap_or(fx), "fl_y")?;
+        let fx = focal(fx, "fl_x")?;
+        let fy = focal(fy.unwrap_or(fx), "fl_y")?;
         let w = size(frame, root, "w", path, field)?;
         let h = size(frame, root, "h", path, field)?;
         return Ok(IntrinsicsSpec::Pinhole {
             fx,
             fy,
-            cx: number(frame, root, "cx", path, field)?,
-            cy: number(frame, root, "cy", path, field)?,
+            cx: principal("cx")?,
+            cy: principal("cy")?,
             size: w.zip(h),
         });
     }
     let angle = |key: &str| -> Result<Option<f64>> {
         match number(frame, root, key, path, field)? {
-            Some(a) if a > 0.0 && a < std::f64::consts::PI => Ok(Some(a)),
-            Some(a) => Err(Error::format(
+            Some(a) => in_range(
+                a,
+                MIN_ANGLE,
+                std::f64::consts::PI - MIN_ANGLE,
                 path,
                 key,
-                "an angle in (0, π) radians",
-                a.to_string(),
-            )),
+                "a field of view in radians",
+            )
+            .map(Some),
             None => Ok(None),
         }
     };
