@@ -1,6 +1,8 @@
 //! Hostile inputs: every file reader of the crate against files that are truncated, lie
 //! about their counts, claim huge counts, amplify a small file into much work, hold NaN or
-//! infinity, are not UTF-8, are directories or are missing; a markdown table of the
+//! infinity, are not UTF-8, are directories or are missing, and dataset folders that name
+//! files outside themselves, repeat one frame, hold an image bomb, unusual images, an
+//! empty split or degenerate cameras; a markdown table of the
 //! outcome, time and peak memory of each case.
 //!
 //! ```text
@@ -36,6 +38,8 @@
 //! group name) must load. Unix only (process groups, `/usr/bin/time`, `uname`).
 
 use clap::Parser;
+use image::codecs::png::PngEncoder;
+use image::{ExtendedColorType, ImageEncoder};
 use neural_fields::data::{load, LoadConfig, Split};
 use neural_fields::mesh::{Mesh, MeshFormat, PointCloud};
 use std::error::Error;
@@ -68,6 +72,7 @@ const NAN: &str = "5 NaN / Inf";
 const UTF8: &str = "6 non-UTF-8";
 const DIRECTORY: &str = "7 directory";
 const MISSING: &str = "8 missing";
+const DATASET: &str = "9 dataset folder";
 
 /// Every file reader of the crate against hostile files: a table of the outcome, time
 /// and peak memory of each case; exits non-zero on an unexpected outcome.
@@ -280,6 +285,30 @@ fn cases() -> Vec<Case> {
         case(MISSING, "off", Fails, "nonexistent `missing.off`", make("missing.off", vec![])),
         case(MISSING, "blender", Fails, "empty directory", make("", vec![])),
         case(MISSING, "npz", Fails, "empty directory", make("", vec![])),
+        // 9. Dataset folders: paths out of the folder, repeated frames, image bombs,
+        // unusual but legitimate images, empty splits, degenerate cameras.
+        case(DATASET, "blender", Fails, "`file_path` `/proc/self/environ` (absolute, outside the folder)",
+            blender("transforms_train.json", || Ok(blender_frames(0.69, &["/proc/self/environ"])))),
+        case(DATASET, "blender", Fails, "`file_path` `../r_0`: an existing PNG beside the folder",
+            make("data", vec![("r_0.png", Src::Copy("wuson/train/r_0.png")),
+                ("data/transforms_train.json", bytes(|| Ok(blender_frames(0.69, &["../r_0"]))))])),
+        case(DATASET, "blender", Loads, "1000 frames naming one PNG (decoded once, shared)",
+            blender("transforms_train.json", || Ok(blender_frames(0.69, &["./train/r_0"; 1000])))),
+        case(DATASET, "blender", Fails, "a 67-byte PNG whose header states 32768 × 32768 RGBA",
+            make("", vec![("train/r_0.png", bytes(|| Ok(png_header_only(32_768, 32_768)))),
+                ("transforms_train.json", bytes(|| Ok(blender_json())))])),
+        case(DATASET, "blender", Loads, "16-bit RGBA PNG, 8 × 8",
+            image_folder(|| png(8, 8, ExtendedColorType::Rgba16))),
+        case(DATASET, "blender", Loads, "greyscale PNG, 8 × 8",
+            image_folder(|| png(8, 8, ExtendedColorType::L8))),
+        case(DATASET, "blender", Loads, "a 1 × 1 frame",
+            image_folder(|| png(1, 1, ExtendedColorType::Rgba8))),
+        case(DATASET, "blender", Fails, "an empty split (`frames: []`)",
+            blender("transforms_train.json", || Ok(blender_frames(0.69, &[])))),
+        case(DATASET, "blender", Fails, "`camera_angle_x` 1e-300 (a focal length of 1e302)",
+            blender("transforms_train.json", || Ok(blender_frames(1e-300, &["./train/r_0"])))),
+        case(DATASET, "blender", Fails, "`camera_angle_x` π − 1e-15 (directions up to 1e15)",
+            blender("transforms_train.json", || Ok(blender_frames(std::f64::consts::PI - 1e-15, &["./train/r_0"])))),
     ];
     // Every PLY case is read as a mesh and as a point cloud.
     list.into_iter()
@@ -503,6 +532,59 @@ const POSE: &str = "[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]";
 fn blender_json() -> Vec<u8> {
     let frame = format!(r#"{{"file_path": "./train/r_0", "transform_matrix": {POSE}}}"#);
     format!(r#"{{"camera_angle_x": 0.69, "frames": [{frame}]}}"#).into_bytes()
+}
+
+/// A Blender `transforms_train.json` with `camera_angle_x` and one frame per file path.
+fn blender_frames(angle: f64, paths: &[&str]) -> Vec<u8> {
+    let frames: Vec<String> = paths
+        .iter()
+        .map(|p| format!(r#"{{"file_path": "{p}", "transform_matrix": {POSE}}}"#))
+        .collect();
+    format!(
+        r#"{{"camera_angle_x": {angle:e}, "frames": [{}]}}"#,
+        frames.join(", ")
+    )
+    .into_bytes()
+}
+
+/// A Blender folder whose one frame is the PNG `image` writes.
+fn image_folder(image: impl Fn() -> Res<Vec<u8>> + 'static) -> Option<Make> {
+    make(
+        "",
+        vec![
+            ("train/r_0.png", bytes(image)),
+            ("transforms_train.json", bytes(|| Ok(blender_json()))),
+        ],
+    )
+}
+
+/// A `w × h` PNG of mid-grey pixels of `color` (8- or 16-bit, grey or RGB(A)).
+fn png(w: u32, h: u32, color: ExtendedColorType) -> Res<Vec<u8>> {
+    let pixels = vec![0x80u8; (w * h) as usize * color.bits_per_pixel() as usize / 8];
+    let mut out = Vec::new();
+    PngEncoder::new(&mut out).write_image(&pixels, w, h, color)?;
+    Ok(out)
+}
+
+/// A PNG of a few dozen bytes whose header states `w × h` RGBA pixels: the signature, an
+/// IHDR chunk, an IDAT of an empty zlib stream and IEND, each with its CRC.
+fn png_header_only(w: u32, h: u32) -> Vec<u8> {
+    let mut out = b"\x89PNG\r\n\x1a\n".to_vec();
+    let mut chunk = |kind: &[u8], data: &[u8]| {
+        out.extend_from_slice(&(data.len() as u32).to_be_bytes());
+        let body = [kind, data].concat();
+        let mut crc = flate2::Crc::new();
+        crc.update(&body);
+        out.extend_from_slice(&body);
+        out.extend_from_slice(&crc.sum().to_be_bytes());
+    };
+    chunk(
+        b"IHDR",
+        &[&w.to_be_bytes()[..], &h.to_be_bytes(), &[8, 6, 0, 0, 0]].concat(),
+    );
+    chunk(b"IDAT", &[0x78, 0x9c, 0x03, 0x00, 0x00, 0x00, 0x00, 0x01]);
+    chunk(b"IEND", &[]);
+    out
 }
 
 /// A nerfstudio `transforms.json` stating the image size `w = h = size`; two frames.

@@ -56,7 +56,7 @@ pub(crate) fn in_range(
             path,
             field,
             format!("{what} in [{lo:e}, {hi:e}]"),
-            x.to_string(),
+            format!("{x:e}"),
         ))
     }
 }
