@@ -239,6 +239,13 @@ fn train(args: &Args, name: &str, regularised: bool) -> Result<Run> {
             ..config.clone()
         },
     )?;
+    if train.coverage() == Some(0.0) {
+        return Err(Error::InvalidArgument {
+            arg: "data",
+            expected: "training views with some foreground (alpha or mask ≥ ½)".into(),
+            got: format!("{} views whose every pixel is transparent", train.views().len()),
+        });
+    }
     let eval = load(
         &args.data,
         &LoadConfig {
