@@ -97,6 +97,8 @@ impl MarchConfig {
         if self.chunk_points == 0 {
             return Err(Error::invalid("config.chunk_points", "at least 1", "0"));
         }
+        // One ray's samples (a point and its ray, 32 bytes each) are held together.
+        crate::limits::check_bytes("config.steps", &[self.steps], 32)?;
         if let Some(c) = self.grazing_threshold {
             if !(c.is_finite() && c >= 0.0) {
                 return Err(Error::invalid(
@@ -455,7 +457,10 @@ pub(crate) fn march_host<F: ImplicitSurface + ?Sized>(
     let n = config.steps;
     let per_chunk = (config.chunk_points / n).max(1);
     let mut brackets: Vec<(usize, Bracket)> = Vec::new();
-    let mut pts = RayPoints::with_capacity(n * per_chunk.min(todo.len()));
+    // A chunk's points (32 bytes each) are held together.
+    let held =
+        crate::limits::check_bytes("config.chunk_points", &[n, per_chunk.min(todo.len())], 32)?;
+    let mut pts = RayPoints::with_capacity(held);
     for chunk in todo.chunks(per_chunk) {
         pts.clear();
         for &i in chunk {
@@ -649,7 +654,10 @@ fn run_march<F: ImplicitSurface + ?Sized>(
 /// dtype or device other than the rays', non-finite bounds), `far` if `far < near` on a
 /// ray with `hit = 1` (which [`crate::camera::ray_aabb`] and
 /// [`crate::camera::ray_sphere`] never produce) or if `o + t·w` overflows the dtype on
-/// `[near, far]`, `config.*` for an invalid configuration; errors of the field.
+/// `[near, far]`, `config.*` for an invalid configuration (`config.steps` or
+/// `config.chunk_points` also when one chunk's points, 32 bytes each, would pass the
+/// allocation limit of 2³³ bytes, 8 GiB, checked before anything is allocated); errors of
+/// the field.
 pub fn march<F: ImplicitSurface + ?Sized>(
     field: &F,
     rays: &Rays,

@@ -297,7 +297,9 @@ impl Mesh {
     /// √u v)`), with the unit normals of their faces. Same `seed`, same points.
     ///
     /// # Errors
-    /// Invalid mesh, or zero total area; naming `n` when `n` points cannot be allocated.
+    /// Invalid mesh (non-finite vertices included), or zero total area; naming `n` when
+    /// `n` samples (48 bytes each) pass the allocation limit of 2³³ bytes (8 GiB), checked
+    /// before anything is allocated.
     pub fn sample_surface(&self, n: usize, seed: u64) -> Result<SurfaceSamples> {
         self.validate()?;
         let areas = self.face_areas()?;
@@ -312,15 +314,10 @@ impl Mesh {
         }
         let normals = self.face_normals()?;
         let mut rng = SplitMix64::new(seed);
-        let (mut pts, mut nrm) = (Vec::new(), Vec::new());
-        // A count that cannot be allocated is an error, not an abort.
-        if pts.try_reserve_exact(n).is_err() || nrm.try_reserve_exact(n).is_err() {
-            return Err(Error::invalid(
-                "n",
-                "a sample count whose points fit in memory",
-                format!("{n}"),
-            ));
-        }
+        // A count past the allocation limit is an error, not an abort: a point and a
+        // normal, 48 bytes a sample.
+        crate::limits::check_bytes("n", &[n], 48)?;
+        let (mut pts, mut nrm) = (Vec::with_capacity(n), Vec::with_capacity(n));
         for _ in 0..n {
             let t = rng.uniform() * acc;
             let fi = cdf.partition_point(|&c| c <= t).min(cdf.len() - 1);
