@@ -577,7 +577,7 @@ const LOWER: &[(&str, &[&str])] = &[
     ),
     ("error", &["error"]),
     ("limits", &["limits", "error"]),
-    ("rng", &["rng", "error", "narrow"]),
+    ("rng", &["rng", "error", "limits", "narrow"]),
 ];
 
 /// Upward imports that are known and allowed to remain (none: every one found is an

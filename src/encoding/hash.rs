@@ -3,7 +3,7 @@
 //! grid's level geometry and runs on the CPU.
 
 use super::{check_tangents, Encoding};
-use crate::error::{check_float, check_shape, Dim, Error, Result};
+use crate::error::{check_finite, check_float, check_shape, Dim, Error, Result};
 use crate::kernels::{FusedHashGrid, HashCorners, HashLevel, HashPlan};
 use crate::limits;
 use candle_core::{DType, Tensor};
@@ -264,18 +264,14 @@ fn plan(c: &HashGridConfig, elem_bytes: usize) -> Result<HashPlan> {
     })
 }
 
-/// Checks the positions: f32/f64 `[N, D]` without NaN (an infinite coordinate is
-/// clamped into the box like any other outside point).
+/// Checks the positions: f32/f64 `[N, D]` with finite coordinates. NaN and ±∞ are both
+/// refused (a finite point outside the box is clamped into it; an infinite one used to be
+/// clamped too, answering the box's face for a point that is nowhere).
 fn check_positions(x: &Tensor, d: usize) -> Result<usize> {
     check_float(x, "x")?;
     let n = check_shape(x, "x", &[Dim::Any("N"), Dim::Is(d)])?[0];
-    let has_nan = n > 0 && x.ne(x)?.max_all()?.to_scalar::<u8>()? > 0;
-    if has_nan {
-        return Err(Error::invalid(
-            "x",
-            "positions without NaN",
-            "a NaN coordinate",
-        ));
+    if n > 0 {
+        check_finite(x, "x")?;
     }
     Ok(n)
 }
@@ -423,7 +419,7 @@ impl Encoding for HashGrid {
     /// w.r.t. the table and `x` (to second order on the reference path only).
     ///
     /// # Errors
-    /// `x` not f32/f64 `[N, D]`, NaN in `x`, a dtype or device other than the table's.
+    /// `x` not f32/f64 `[N, D]`, NaN or ±∞ in `x` (refused, not clamped), a dtype or device other than the table's.
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         if !self.fused(x) {
             return self.forward_reference(x);

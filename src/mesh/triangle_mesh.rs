@@ -229,29 +229,39 @@ impl Mesh {
     /// ONet's normalisation: translate the bounding-box centre to the origin and scale
     /// uniformly so that the longest side of the box is `1`, i.e. the mesh fits in
     /// `[−½, ½]³`. Normals (uniform scale) and colours are unchanged. Returns
-    /// `(centre, scale)` with `p_new = (p − centre)·scale`.
+    /// `(centre, scale)` with `p_new = (p − centre)·scale` (up to rounding).
+    ///
+    /// The centre and the half extent are formed as `lo/2 + hi/2` and `hi/2 − lo/2`, and
+    /// each vertex as `(p − centre)/half · ½`, so that no intermediate overflows: a mesh
+    /// spanning ±1e308 (whose extent `hi − lo` is +∞ in f64) is normalised like any other.
     ///
     /// # Errors
-    /// An invalid mesh, or all vertices at one point.
+    /// An invalid mesh (NaN or ±∞ vertices are refused by [`Mesh::validate`]), all vertices
+    /// at one point, or a box so small (a subnormal extent) that its scale `1/extent` is
+    /// not finite; the mesh is unchanged then.
     pub fn normalize_unit_cube(&mut self) -> Result<([f64; 3], f64)> {
         self.validate()?;
         let (lo, hi) = self.bounds();
-        let centre = [
-            0.5 * (lo[0] + hi[0]),
-            0.5 * (lo[1] + hi[1]),
-            0.5 * (lo[2] + hi[2]),
-        ];
-        let ext = (0..3).map(|c| hi[c] - lo[c]).fold(0.0, f64::max);
-        if ext <= 0.0 {
+        let centre: [f64; 3] = std::array::from_fn(|c| 0.5 * lo[c] + 0.5 * hi[c]);
+        let half = (0..3)
+            .map(|c| 0.5 * hi[c] - 0.5 * lo[c])
+            .fold(0.0, f64::max);
+        if half <= 0.0 {
             return Err(mesh_err(
                 "vertices spanning a box of positive size",
                 "all vertices at one point",
             ));
         }
-        let s = 1.0 / ext;
+        let s = 0.5 / half;
+        if !s.is_finite() {
+            return Err(mesh_err(
+                "a box whose scale 1/extent is finite",
+                format!("an extent of {:e}", 2.0 * half),
+            ));
+        }
         for v in &mut self.vertices {
             for c in 0..3 {
-                v[c] = (v[c] - centre[c]) * s;
+                v[c] = (v[c] - centre[c]) / half * 0.5;
             }
         }
         Ok((centre, s))
