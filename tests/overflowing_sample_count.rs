@@ -5,7 +5,7 @@
 //! `flow` reserved or allocated whatever was asked. Each is now an `Err` naming the count.
 
 use candle_core::{Device, Tensor};
-use neural_fields::camera::{Camera, Convention, Intrinsics, Rays};
+use neural_fields::camera::{patch_rays, Camera, Convention, Intrinsics, Rays};
 use neural_fields::flow::DeformingTorus;
 use neural_fields::glam::DVec3;
 use neural_fields::mesh::{Mesh, PointCloud};
@@ -146,4 +146,7 @@ fn image_sizes_past_the_limit_are_refused_before_the_rays_exist() {
         Ok([r.origins().clone()])
     });
     names(e.unwrap_err(), "camera");
+    // Nine patches of 4096² rays: 9.7 GB of rays from nine cameras.
+    let e = patch_rays(&[cam; 9], 4096, 0, &Device::Cpu, candle_core::DType::F32);
+    names(e.unwrap_err(), "k");
 }

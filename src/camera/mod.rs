@@ -773,8 +773,9 @@ pub fn cameras_around(cameras: &[Camera], count: usize, seed: u64) -> Result<Vec
 /// ```
 ///
 /// # Errors
-/// [`Error::InvalidArgument`] naming `cameras` if empty, `k` unless between 1 and 2¹²,
-/// `dtype` unless f32 or f64.
+/// [`Error::InvalidArgument`] naming `cameras` if empty, `k` unless between 1 and 2¹² and
+/// the `C·k²` rays (8 values of 8 bytes each) within the allocation limit of 2³³ bytes
+/// (8 GiB), checked before anything is allocated; `dtype` unless f32 or f64.
 pub fn patch_rays(
     cameras: &[Camera],
     k: usize,
@@ -793,6 +794,8 @@ pub fn patch_rays(
         ));
     }
     check_dtype(dtype)?;
+    // Per ray: a pixel, an origin and a direction (8 values, counted at 8 bytes).
+    crate::limits::check_bytes("k", &[cameras.len(), k, k, 8], 8)?;
     let mut rng = crate::rng::SplitMix64::new(seed);
     let (mut origins, mut directions) = (Vec::new(), Vec::new());
     for cam in cameras {
