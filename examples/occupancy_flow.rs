@@ -163,7 +163,10 @@ fn labelled(n: usize, t: f64, rng: &mut SplitMix64) -> (Vec<[f64; 3]>, Vec<f32>)
     for _ in 0..n / 2 {
         pts.push([0.0; 3].map(|_| 1.1 * rng.uniform() - 0.55));
     }
-    for s in motion.surface(n - n / 2, rng) {
+    let surface = motion
+        .surface(n - n / 2, rng)
+        .expect("the default torus and a training batch's count are valid"); // invariant
+    for s in surface {
         let jittered = [0, 1, 2].map(|i| s[i] + 0.03 * rng.normal());
         pts.push(motion.carry(jittered, 0.0, t));
     }
@@ -210,7 +213,7 @@ impl Held {
             .iter()
             .map(|&t| uniform.iter().map(|&p| motion.inside(p, t)).collect())
             .collect();
-        let surface = motion.surface(4000, &mut rng);
+        let surface = motion.surface(4000, &mut rng)?;
         let surface_truth = TIMES
             .iter()
             .map(|&t| {
@@ -287,7 +290,7 @@ fn train_step(
     let bce_t = bce_with_logits(&logits_t, &labels(yt)?)?.mean_all()?;
     // Correspondences: time-0 surface points carried to every time.
     let motion = DeformingTorus::default();
-    let surface = motion.surface(256, rng);
+    let surface = motion.surface(256, rng)?;
     let moved = flow.correspondences(&points_to_tensor(&surface, device, dtype)?, &TIMES[1..])?;
     let mut corr = Tensor::zeros((), dtype, device)?;
     for (m, &t) in moved.iter().zip(&TIMES[1..]) {

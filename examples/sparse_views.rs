@@ -243,7 +243,10 @@ fn train(args: &Args, name: &str, regularised: bool) -> Result<Run> {
         return Err(Error::InvalidArgument {
             arg: "data",
             expected: "training views with some foreground (alpha or mask ≥ ½)".into(),
-            got: format!("{} views whose every pixel is transparent", train.views().len()),
+            got: format!(
+                "{} views whose every pixel is transparent",
+                train.views().len()
+            ),
         });
     }
     let eval = load(

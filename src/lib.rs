@@ -169,6 +169,7 @@ pub mod field;
 #[cfg(feature = "flow")]
 pub mod flow;
 pub(crate) mod kernels;
+mod limits;
 pub mod mesh;
 mod narrow;
 pub mod nn;

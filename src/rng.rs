@@ -51,7 +51,8 @@ impl SplitMix64 {
     /// A tensor of i.i.d. `N(mean, std²)` numbers with the given shape, dtype and device.
     ///
     /// # Errors
-    /// Only candle's (e.g. an unsupported dtype on the device).
+    /// A shape whose values (8 bytes each) pass the allocation limit of 2³³ bytes (8 GiB),
+    /// refused before anything is allocated; candle's (e.g. an unsupported dtype).
     pub(crate) fn normal_tensor(
         &mut self,
         shape: &[usize],
@@ -60,7 +61,7 @@ impl SplitMix64 {
         dtype: DType,
         device: &Device,
     ) -> candle_core::Result<Tensor> {
-        let n = shape.iter().product();
+        let n = checked_len(shape)?;
         let v: Vec<f64> = (0..n).map(|_| mean + std * self.normal()).collect();
         Tensor::from_vec(v, shape, &Device::Cpu)?
             .to_dtype(dtype)?
@@ -71,7 +72,8 @@ impl SplitMix64 {
     /// device.
     ///
     /// # Errors
-    /// Only candle's.
+    /// A shape whose values (8 bytes each) pass the allocation limit of 2³³ bytes (8 GiB),
+    /// refused before anything is allocated (a candle error naming `shape`); candle's.
     pub fn uniform_tensor(
         &mut self,
         shape: &[usize],
@@ -80,12 +82,18 @@ impl SplitMix64 {
         dtype: DType,
         device: &Device,
     ) -> candle_core::Result<Tensor> {
-        let n = shape.iter().product();
+        let n = checked_len(shape)?;
         let v: Vec<f64> = (0..n).map(|_| lo + (hi - lo) * self.uniform()).collect();
         Tensor::from_vec(v, shape, &Device::Cpu)?
             .to_dtype(dtype)?
             .to_device(device)
     }
+}
+
+/// The element count of `shape`, checked against the allocation limit (host f64 values).
+fn checked_len(shape: &[usize]) -> candle_core::Result<usize> {
+    crate::limits::check_bytes("shape", shape, 8)
+        .map_err(|e| candle_core::Error::Msg(e.to_string()))
 }
 
 #[cfg(test)]

@@ -597,7 +597,7 @@ fn deforming_torus_inverts_and_its_velocity_is_its_derivative() -> Result<()> {
         minor: torus.minor * 0.99,
         ..torus
     };
-    let surface = torus.surface(200, &mut rng);
+    let surface = torus.surface(200, &mut rng).unwrap();
     for &p in &surface {
         let moved = torus.carry(p, 0.0, 0.7);
         assert!(

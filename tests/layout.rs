@@ -564,13 +564,20 @@ const LOWER: &[(&str, &[&str])] = &[
     (
         "nn",
         &[
-            "nn", "kernels", "numerics", "error", "rng", "narrow", "field", "encoding",
+            "nn", "kernels", "numerics", "error", "limits", "rng", "narrow", "field", "encoding",
         ],
     ),
-    ("kernels", &["kernels", "numerics", "error", "narrow"]),
-    ("numerics", &["numerics", "kernels", "error", "narrow"]),
+    (
+        "kernels",
+        &["kernels", "numerics", "error", "limits", "narrow"],
+    ),
+    (
+        "numerics",
+        &["numerics", "kernels", "error", "limits", "narrow"],
+    ),
     ("error", &["error"]),
-    ("rng", &["rng", "error", "narrow"]),
+    ("limits", &["limits", "error"]),
+    ("rng", &["rng", "error", "limits", "narrow"]),
 ];
 
 /// Upward imports that are known and allowed to remain (none: every one found is an

@@ -215,7 +215,10 @@ fn sweep_occupancy_on_meshes(s: &mut Suite) {
             &[],
             || {
                 let tree = KdTree::new(&mesh.vertices)?;
-                Ok(vec![vt(q.iter().map(|p| tree.nearest(*p).1).collect())?])
+                Ok(vec![vt(q
+                    .iter()
+                    .map(|p| tree.nearest(*p).map_or(f64::NAN, |n| n.1))
+                    .collect())?])
             },
         );
         // 0.1's `nearest_distances(queries, reference)`.
@@ -229,7 +232,7 @@ fn sweep_occupancy_on_meshes(s: &mut Suite) {
                 Ok(vec![vt(q
                     .iter()
                     .map(|&p| tree.nearest(p))
-                    .map(|(_, dist)| dist)
+                    .map(|n| n.map_or(f64::NAN, |(_, dist)| dist))
                     .collect())?])
             },
         );

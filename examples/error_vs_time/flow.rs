@@ -29,7 +29,9 @@ pub fn run(quick: bool) -> Vec<Table> {
     let reps = if quick { 1 } else { 5 };
     let motion = DeformingTorus::default();
     let mut rng = SplitMix64::new(7);
-    let start = motion.surface(n, &mut rng);
+    let start = motion
+        .surface(n, &mut rng)
+        .expect("the default torus and a small count are valid"); // invariant
     let exact: Vec<[f64; 3]> = start.iter().map(|&p| motion.carry(p, 0.0, 1.0)).collect();
     let mut rows = Vec::new();
     let mut solvers: Vec<(String, f64, Solver)> = [1usize, 2, 4, 8, 16, 32, 64]

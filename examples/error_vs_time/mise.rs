@@ -52,7 +52,11 @@ fn uncovered(mesh: &Mesh, exact: &[[f64; 3]], tol: f64) -> f64 {
         return 1.0;
     }
     let tree = KdTree::new(&mesh.vertices).expect("tree");
-    exact.iter().filter(|&&q| tree.nearest(q).1 > tol).count() as f64 / exact.len() as f64
+    exact
+        .iter()
+        .filter(|&&q| tree.nearest(q).is_none_or(|n| n.1 > tol))
+        .count() as f64
+        / exact.len() as f64
 }
 
 pub fn run(quick: bool) -> Vec<Table> {

@@ -550,8 +550,14 @@ impl Camera {
     /// pixel `(u, v)`), `N = width · height`. See [`Camera::rays_for_pixels`].
     ///
     /// # Errors
-    /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64.
+    /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64; naming
+    /// `self.intrinsics` when the `width · height` rays (a pixel, an origin and a direction,
+    /// 8 values of `dtype` each) pass the allocation limit of 2³³ bytes (8 GiB), checked
+    /// before anything is allocated.
     pub fn rays(&self, device: &Device, dtype: DType) -> Result<Rays> {
+        check_dtype(dtype)?;
+        let (w, h) = (self.intrinsics.width, self.intrinsics.height);
+        crate::limits::check_bytes("self.intrinsics", &[w, h, 8], dtype.size_in_bytes())?;
         let pixels = self.subpixel_grid(1, PixelFilter::Box, device, dtype)?;
         self.rays_for_pixels(&pixels)
     }
@@ -652,7 +658,7 @@ impl Camera {
 /// # Errors
 /// [`Error::InvalidArgument`] naming `cameras` if fewer than two are given, their axes
 /// are (nearly) parallel so that no centre is defined, or their up directions cancel;
-/// `count` if 0 or too large to allocate.
+/// `count` if 0 or above 2²⁴ (checked before anything is allocated).
 pub fn cameras_around(cameras: &[Camera], count: usize, seed: u64) -> Result<Vec<Camera>> {
     if cameras.len() < 2 {
         return Err(Error::invalid(
@@ -711,8 +717,9 @@ pub fn cameras_around(cameras: &[Camera], count: usize, seed: u64) -> Result<Vec
             format!("centre {centre:?}, radius {radius}, mean up {up:?}"),
         ));
     }
+    crate::limits::check_bytes("count", &[count], std::mem::size_of::<Camera>())?;
     let mut rng = crate::rng::SplitMix64::new(seed);
-    let mut out = Vec::with_capacity(count.min(1 << 20));
+    let mut out = Vec::with_capacity(count);
     let first = &cameras[0];
     // Draws along `up` are redrawn; a bounded number of tries keeps a degenerate input
     // from looping.
@@ -766,8 +773,9 @@ pub fn cameras_around(cameras: &[Camera], count: usize, seed: u64) -> Result<Vec
 /// ```
 ///
 /// # Errors
-/// [`Error::InvalidArgument`] naming `cameras` if empty, `k` unless between 1 and 2¹²,
-/// `dtype` unless f32 or f64.
+/// [`Error::InvalidArgument`] naming `cameras` if empty, `k` unless between 1 and 2¹² and
+/// the `C·k²` rays (8 values of 8 bytes each) within the allocation limit of 2³³ bytes
+/// (8 GiB), checked before anything is allocated; `dtype` unless f32 or f64.
 pub fn patch_rays(
     cameras: &[Camera],
     k: usize,
@@ -786,6 +794,8 @@ pub fn patch_rays(
         ));
     }
     check_dtype(dtype)?;
+    // Per ray: a pixel, an origin and a direction (8 values, counted at 8 bytes).
+    crate::limits::check_bytes("k", &[cameras.len(), k, k, 8], 8)?;
     let mut rng = crate::rng::SplitMix64::new(seed);
     let (mut origins, mut directions) = (Vec::new(), Vec::new());
     for cam in cameras {

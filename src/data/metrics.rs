@@ -22,8 +22,27 @@ fn host(t: &Tensor, arg: &'static str) -> Result<Host> {
     Ok((h, w, c, v))
 }
 
+/// How far past `[0, 1]` a value may lie and still count as in the data range (the
+/// rounding of an f32 render composited over a background).
+const RANGE_SLACK: f64 = 1e-4;
+
+/// Refuses values outside the data range `[0, 1]` (with [`RANGE_SLACK`]): the metrics
+/// assume a peak of 1, and an image in `[0, 255]` would otherwise score −33 dB silently.
+fn check_range(v: &[f64], arg: &'static str) -> Result<()> {
+    let out = |x: f64| !(-RANGE_SLACK..=1.0 + RANGE_SLACK).contains(&x);
+    match v.iter().position(|&x| out(x)) {
+        None => Ok(()),
+        Some(i) => Err(Error::invalid(
+            arg,
+            "values in the data range [0, 1]",
+            format!("{} at index {i}", v[i]),
+        )),
+    }
+}
+
 fn pair(pred: &Tensor, target: &Tensor) -> Result<(Host, Vec<f64>)> {
     let p = host(pred, "pred")?;
+    check_range(&p.3, "pred")?;
     if pred.dims() != target.dims() {
         return Err(Error::invalid(
             "target",
@@ -32,6 +51,7 @@ fn pair(pred: &Tensor, target: &Tensor) -> Result<(Host, Vec<f64>)> {
         ));
     }
     let t = host(target, "target")?.3;
+    check_range(&t, "target")?;
     Ok((p, t))
 }
 
@@ -68,9 +88,10 @@ fn mask_of(mask: Option<&Tensor>, h: usize, w: usize) -> Result<Option<Vec<bool>
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `pred` / `target` for another rank, an empty image,
-/// another dtype or non-finite values, `pred` if values far outside `[0, 1]` overflow the
-/// squared error, `target` for a shape unlike `pred`'s, `mask` for a shape other than
-/// `[H, W]` or a mask that selects no pixel.
+/// another dtype, non-finite values (NaN and ±∞ are refused) or values outside the data
+/// range `[0, 1]` (beyond a slack of 10⁻⁴ for rounding; an image in `[0, 255]` used to
+/// score −33 dB without a word), `target` for a shape unlike `pred`'s, `mask` for a shape
+/// other than `[H, W]`, non-finite values or a mask that selects no pixel.
 pub fn psnr(pred: &Tensor, target: &Tensor, mask: Option<&Tensor>) -> Result<f64> {
     let ((h, w, c, p), t) = pair(pred, target)?;
     let keep = mask_of(mask, h, w)?;
@@ -168,8 +189,8 @@ fn blur(x: &[f64], h: usize, w: usize, taps: &[f64; 11]) -> Vec<f64> {
 /// (computed on the host in f64). Not differentiable.
 ///
 /// # Errors
-/// Those of [`psnr`], and `pred` if a side is below 11 pixels, or if values far outside
-/// `[0, 1]` overflow f64; `mask` if it leaves no pixel inside the border.
+/// Those of [`psnr`] (values outside `[0, 1]` and NaN or ±∞ included), and `pred` if a
+/// side is below 11 pixels; `mask` if it leaves no pixel inside the border.
 pub fn ssim(pred: &Tensor, target: &Tensor, mask: Option<&Tensor>) -> Result<f64> {
     let ((h, w, c, p), t) = pair(pred, target)?;
     if h < 11 || w < 11 {

@@ -293,7 +293,9 @@ impl AlphaSchedule {
 /// 65 536 points), plus one evaluation with graph per ray.
 ///
 /// # Errors
-/// As [`crate::dvr::march`] for the rays and bounds; `steps` below 1.
+/// As [`crate::dvr::march`] for the rays and bounds; `steps` below 1 or whose samples of
+/// one ray (32 bytes each) pass the allocation limit of 2³³ bytes (8 GiB), checked before
+/// anything is allocated.
 pub fn most_inside_along_rays<F: ImplicitSurface + ?Sized>(
     field: &F,
     rays: &Rays,
@@ -303,6 +305,8 @@ pub fn most_inside_along_rays<F: ImplicitSurface + ?Sized>(
     if steps == 0 {
         return Err(Error::invalid("steps", "at least 1", "0"));
     }
+    // One ray's samples (a point and its ray, 32 bytes each) are held together.
+    crate::limits::check_bytes("steps", &[steps], 32)?;
     let (origins, directions) = (rays.origins(), rays.directions());
     let rays = super::marching::read_problem(rays, range)?;
     let r = rays.o.len();

@@ -97,6 +97,8 @@ impl MarchConfig {
         if self.chunk_points == 0 {
             return Err(Error::invalid("config.chunk_points", "at least 1", "0"));
         }
+        // One ray's samples (a point and its ray, 32 bytes each) are held together.
+        crate::limits::check_bytes("config.steps", &[self.steps], 32)?;
         if let Some(c) = self.grazing_threshold {
             if !(c.is_finite() && c >= 0.0) {
                 return Err(Error::invalid(
@@ -392,8 +394,8 @@ impl<'a, F: ImplicitSurface + ?Sized> Evaluator<'a, F> {
         let mut out = Vec::with_capacity(p.ids.len());
         for chunk in self.upload(p) {
             let (pts, ids) = chunk?;
-            let f = self.field.value_on_rays(&pts, &ids)?;
-            out.extend(vec1(&f)?.into_iter().map(|v| self.sign * (v - self.level)));
+            let f = nan_free(vec1(&self.field.value_on_rays(&pts, &ids)?)?, p, out.len())?;
+            out.extend(f.into_iter().map(|v| self.sign * (v - self.level)));
         }
         self.count += p.ids.len();
         Ok(out)
@@ -406,7 +408,8 @@ impl<'a, F: ImplicitSurface + ?Sized> Evaluator<'a, F> {
         for chunk in self.upload(p) {
             let (pts, ids) = chunk?;
             let (f, g) = self.field.value_and_grad_on_rays(&pts, &ids)?;
-            vals.extend(vec1(&f)?.into_iter().map(|v| self.sign * (v - self.level)));
+            let f = nan_free(vec1(&f)?, p, vals.len())?;
+            vals.extend(f.into_iter().map(|v| self.sign * (v - self.level)));
             let g = g
                 .detach()
                 .to_dtype(DType::F64)?
@@ -416,6 +419,26 @@ impl<'a, F: ImplicitSurface + ?Sized> Evaluator<'a, F> {
         }
         self.count += p.ids.len();
         Ok((vals, grads))
+    }
+}
+
+/// The field's values of a chunk whose first point is `p`'s point `start`, refused if one
+/// is NaN: a field that cannot say where the surface is must not read as a clean miss.
+fn nan_free(f: Vec<f64>, p: &RayPoints, start: usize) -> Result<Vec<f64>> {
+    match f.iter().position(|v| v.is_nan()) {
+        None => Ok(f),
+        Some(i) => {
+            let k = start + i;
+            let at = p.pts.get(3 * k..3 * k + 3).unwrap_or(&[]);
+            Err(Error::invalid(
+                "field",
+                "values that are not NaN along the rays (±∞ is a side of the surface)",
+                format!(
+                    "NaN at {at:?} on ray {}",
+                    p.ids.get(k).map_or(0, |&r| r as usize)
+                ),
+            ))
+        }
     }
 }
 
@@ -455,7 +478,10 @@ pub(crate) fn march_host<F: ImplicitSurface + ?Sized>(
     let n = config.steps;
     let per_chunk = (config.chunk_points / n).max(1);
     let mut brackets: Vec<(usize, Bracket)> = Vec::new();
-    let mut pts = RayPoints::with_capacity(n * per_chunk.min(todo.len()));
+    // A chunk's points (32 bytes each) are held together.
+    let held =
+        crate::limits::check_bytes("config.chunk_points", &[n, per_chunk.min(todo.len())], 32)?;
+    let mut pts = RayPoints::with_capacity(held);
     for chunk in todo.chunks(per_chunk) {
         pts.clear();
         for &i in chunk {
@@ -649,7 +675,11 @@ fn run_march<F: ImplicitSurface + ?Sized>(
 /// dtype or device other than the rays', non-finite bounds), `far` if `far < near` on a
 /// ray with `hit = 1` (which [`crate::camera::ray_aabb`] and
 /// [`crate::camera::ray_sphere`] never produce) or if `o + t·w` overflows the dtype on
-/// `[near, far]`, `config.*` for an invalid configuration; errors of the field.
+/// `[near, far]`, `config.*` for an invalid configuration (`config.steps` or
+/// `config.chunk_points` also when one chunk's points, 32 bytes each, would pass the
+/// allocation limit of 2³³ bytes, 8 GiB, checked before anything is allocated); naming
+/// `field` when it returns NaN at a sample (a field error, not a miss; ±∞ is taken as a
+/// side of the surface); errors of the field.
 pub fn march<F: ImplicitSurface + ?Sized>(
     field: &F,
     rays: &Rays,
@@ -703,7 +733,8 @@ impl Default for SphereTraceConfig {
 /// lower bound of the distance) for the steps to be safe.
 ///
 /// # Errors
-/// As [`march`]; `field` if its inside is not [`Inside::Negative`]; `config.max_iters`
+/// As [`march`] (a NaN value of the field is an error naming `field`, not a miss);
+/// `field` if its inside is not [`Inside::Negative`]; `config.max_iters`
 /// if 0, `config.threshold` unless > 0, `config.step_back` unless in (0, 1).
 pub fn sphere_trace<F: ImplicitSurface + ?Sized>(
     field: &F,

@@ -257,17 +257,16 @@ fn check_scatter(
         ));
     }
     check_shape(index, "index", &[Dim::Is(b), Dim::Is(n)])?;
-    let total = b
-        .checked_mul(cells)
-        .filter(|&v| v <= u32::MAX as usize)
-        .and_then(|v| v.checked_mul(c.max(1)));
-    if total.is_none_or(|v| v > isize::MAX as usize / 8) {
+    if b.checked_mul(cells).is_none_or(|v| v > u32::MAX as usize) {
         return Err(Error::invalid(
             "cells",
-            "B·cells below 2³² and a result that fits in memory",
-            format!("{cells} cells for a batch of {b} with {c} channels"),
+            "B·cells below 2³²",
+            format!("{cells} cells for a batch of {b}"),
         ));
     }
+    // The result (C values a cell) and the per-cell counts and offsets (3 more), counted
+    // at 8 bytes each, before anything is allocated.
+    crate::limits::check_bytes("cells", &[b, cells, c.saturating_add(3)], 8)?;
     let host: Vec<u32> = index.flatten_all()?.to_vec1()?;
     if let Some(p) = host.iter().position(|&i| i as usize >= cells) {
         return Err(Error::invalid(
@@ -355,7 +354,9 @@ pub struct ScatterConfig {
 ///
 /// # Errors
 /// `values` not f32/f64 `[B, N, C]`; `index` not u32 `[B, N]` on the same device, or an
-/// id ≥ `cells` (naming `index`); `B·cells ≥ 2³²` (naming `cells`).
+/// id ≥ `cells` (naming `index`); `B·cells ≥ 2³²`, or a result and its per-cell counts
+/// (`B·cells·(C + 3)` values at 8 bytes) past the allocation limit of 2³³ bytes (8 GiB),
+/// checked before anything is allocated (naming `cells`).
 pub fn scatter(
     values: &Tensor,
     index: &Tensor,

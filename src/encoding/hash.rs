@@ -3,8 +3,9 @@
 //! grid's level geometry and runs on the CPU.
 
 use super::{check_tangents, Encoding};
-use crate::error::{check_float, check_shape, Dim, Error, Result};
+use crate::error::{check_finite, check_float, check_shape, Dim, Error, Result};
 use crate::kernels::{FusedHashGrid, HashCorners, HashLevel, HashPlan};
+use crate::limits;
 use candle_core::{DType, Tensor};
 use candle_nn::{Init, VarBuilder};
 use std::sync::Arc;
@@ -129,9 +130,11 @@ pub struct HashGrid {
 /// `config.in_dim` outside 1..=4; zero `levels` or `features`; `log2_table_size`
 /// outside 1..=24; resolutions that are not finite, below 1, decreasing, or whose vertex
 /// coordinates would not fit in 32 bits (`finest_resolution` ≥ 2³² − 1); `lo`/`hi` not
-/// `in_dim` finite values with `lo < hi`; errors of `vb`.
+/// `in_dim` finite values with `lo < hi`; a table (`Σ_l T_l × features` values of `vb`'s
+/// dtype) past the allocation limit of 2³³ bytes (8 GiB), refused before anything is
+/// allocated and named `config.levels × config.features × table rows`; errors of `vb`.
 pub fn hash_grid(config: &HashGridConfig, vb: VarBuilder) -> Result<HashGrid> {
-    let plan = Arc::new(plan(config)?);
+    let plan = Arc::new(plan(config, vb.dtype().size_in_bytes())?);
     let rows = plan.levels.iter().map(|l| l.rows).sum::<usize>();
     let s = config.init_scale;
     let table = vb.get_with_hints(
@@ -146,7 +149,7 @@ pub fn hash_grid(config: &HashGridConfig, vb: VarBuilder) -> Result<HashGrid> {
     })
 }
 
-fn plan(c: &HashGridConfig) -> Result<HashPlan> {
+fn plan(c: &HashGridConfig, elem_bytes: usize) -> Result<HashPlan> {
     let bad =
         |arg: &'static str, expected: &str, got: String| Err(Error::invalid(arg, expected, got));
     if !(1..=4).contains(&c.in_dim) {
@@ -205,9 +208,12 @@ fn plan(c: &HashGridConfig) -> Result<HashPlan> {
         0.0
     };
     let cap = 1u64 << c.log2_table_size;
-    let mut levels = Vec::with_capacity(c.levels);
-    let mut offset = 0usize;
-    for l in 0..c.levels {
+    // Every level holds at least min(2^D, T) rows: a first bound on the table before the
+    // levels are even counted, then the exact table and the level list.
+    let min_rows = (1usize << d).min(cap as usize);
+    let what = "config.levels × config.features × table rows";
+    limits::check_bytes(what, &[c.levels, c.features, min_rows], elem_bytes)?;
+    let level = |l: usize| {
         // The product can round a hair past finest; clamp to the stated bounds.
         let n = (base * (growth * l as f64).exp())
             .floor()
@@ -220,6 +226,19 @@ fn plan(c: &HashGridConfig) -> Result<HashPlan> {
             Some(v) if dense => v as usize,
             _ => cap as usize,
         };
+        (cells, rows, dense)
+    };
+    let total: usize = (0..c.levels).map(|l| level(l).1).sum();
+    limits::check_bytes(what, &[total, c.features], elem_bytes)?;
+    limits::check_bytes(
+        "config.levels",
+        &[c.levels],
+        std::mem::size_of::<HashLevel>(),
+    )?;
+    let mut levels = Vec::with_capacity(c.levels);
+    let mut offset = 0usize;
+    for l in 0..c.levels {
+        let (cells, rows, dense) = level(l);
         levels.push(HashLevel {
             cells,
             offset,
@@ -245,18 +264,14 @@ fn plan(c: &HashGridConfig) -> Result<HashPlan> {
     })
 }
 
-/// Checks the positions: f32/f64 `[N, D]` without NaN (an infinite coordinate is
-/// clamped into the box like any other outside point).
+/// Checks the positions: f32/f64 `[N, D]` with finite coordinates. NaN and ±∞ are both
+/// refused (a finite point outside the box is clamped into it; an infinite one used to be
+/// clamped too, answering the box's face for a point that is nowhere).
 fn check_positions(x: &Tensor, d: usize) -> Result<usize> {
     check_float(x, "x")?;
     let n = check_shape(x, "x", &[Dim::Any("N"), Dim::Is(d)])?[0];
-    let has_nan = n > 0 && x.ne(x)?.max_all()?.to_scalar::<u8>()? > 0;
-    if has_nan {
-        return Err(Error::invalid(
-            "x",
-            "positions without NaN",
-            "a NaN coordinate",
-        ));
+    if n > 0 {
+        check_finite(x, "x")?;
     }
     Ok(n)
 }
@@ -404,7 +419,7 @@ impl Encoding for HashGrid {
     /// w.r.t. the table and `x` (to second order on the reference path only).
     ///
     /// # Errors
-    /// `x` not f32/f64 `[N, D]`, NaN in `x`, a dtype or device other than the table's.
+    /// `x` not f32/f64 `[N, D]`, NaN or ±∞ in `x` (refused, not clamped), a dtype or device other than the table's.
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         if !self.fused(x) {
             return self.forward_reference(x);

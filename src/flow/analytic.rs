@@ -2,7 +2,7 @@
 //! form at every time: ground truth for Occupancy Flow's training, and the reference
 //! against which the ODE solvers' error is measured.
 
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::rng::SplitMix64;
 use candle_core::{Tensor, D};
 
@@ -74,10 +74,24 @@ impl DeformingTorus {
     }
 
     /// `n` points on the torus surface at time 0, uniform by area (rejection sampling by
-    /// the area element `∝ major + minor·cos v`), drawn from `rng`; needs
-    /// `0 < minor ≤ major`.
-    pub fn surface(&self, n: usize, rng: &mut SplitMix64) -> Vec<[f64; 3]> {
+    /// the area element `∝ major + minor·cos v`, which accepts at least half of the draws
+    /// when `0 < minor ≤ major`), drawn from `rng`.
+    ///
+    /// # Errors
+    /// Naming `self` unless `major` and `minor` are finite with `0 < minor ≤ major` (NaN
+    /// or ±∞ radii are refused, so the rejection loop always ends); naming `n` when `n`
+    /// points (24 bytes each) pass the allocation limit of 2³³ bytes (8 GiB), checked
+    /// before anything is allocated.
+    pub fn surface(&self, n: usize, rng: &mut SplitMix64) -> Result<Vec<[f64; 3]>> {
         let (big, small) = (self.major, self.minor);
+        if !(big.is_finite() && small.is_finite() && 0.0 < small && small <= big) {
+            return Err(Error::invalid(
+                "self",
+                "finite radii with 0 < minor ≤ major",
+                format!("major {big}, minor {small}"),
+            ));
+        }
+        crate::limits::check_bytes("n", &[n], 24)?;
         let mut out = Vec::with_capacity(n);
         while out.len() < n {
             let u = std::f64::consts::TAU * rng.uniform();
@@ -88,7 +102,7 @@ impl DeformingTorus {
             let ring = big + small * v.cos();
             out.push([ring * u.cos(), ring * u.sin(), small * v.sin()]);
         }
-        out
+        Ok(out)
     }
 
     /// The Eulerian velocity `v(p, t) = ∂Φ/∂t` at `Φ⁻¹(p, t)`, for `p: [N, 3]` of any

@@ -88,15 +88,15 @@ impl PointCloud {
     /// `seed`, same points.
     ///
     /// # Errors
-    /// `n = 0`, or more points than can be allocated (naming `n`).
+    /// `n = 0`, or `n` samples (80 bytes each) past the allocation limit of 2³³ bytes
+    /// (8 GiB), checked before anything is allocated (naming `n`).
     pub fn sample(&self, n: usize, seed: u64) -> Result<PointCloud> {
         if n == 0 {
             return Err(Error::invalid("n", "at least one point", "0"));
         }
-        let mut idx: Vec<usize> = Vec::new();
-        idx.try_reserve_exact(n).map_err(|_| {
-            Error::invalid("n", "a number of points that fits in memory", n.to_string())
-        })?;
+        // An index, a point, a normal and a colour: 80 bytes a sample at most.
+        crate::limits::check_bytes("n", &[n], 80)?;
+        let mut idx: Vec<usize> = Vec::with_capacity(n);
         let mut rng = SplitMix64::new(seed);
         let len = self.points.len();
         if n <= len {

@@ -229,29 +229,39 @@ impl Mesh {
     /// ONet's normalisation: translate the bounding-box centre to the origin and scale
     /// uniformly so that the longest side of the box is `1`, i.e. the mesh fits in
     /// `[−½, ½]³`. Normals (uniform scale) and colours are unchanged. Returns
-    /// `(centre, scale)` with `p_new = (p − centre)·scale`.
+    /// `(centre, scale)` with `p_new = (p − centre)·scale` (up to rounding).
+    ///
+    /// The centre and the half extent are formed as `lo/2 + hi/2` and `hi/2 − lo/2`, and
+    /// each vertex as `(p − centre)/half · ½`, so that no intermediate overflows: a mesh
+    /// spanning ±1e308 (whose extent `hi − lo` is +∞ in f64) is normalised like any other.
     ///
     /// # Errors
-    /// An invalid mesh, or all vertices at one point.
+    /// An invalid mesh (NaN or ±∞ vertices are refused by [`Mesh::validate`]), all vertices
+    /// at one point, or a box so small (a subnormal extent) that its scale `1/extent` is
+    /// not finite; the mesh is unchanged then.
     pub fn normalize_unit_cube(&mut self) -> Result<([f64; 3], f64)> {
         self.validate()?;
         let (lo, hi) = self.bounds();
-        let centre = [
-            0.5 * (lo[0] + hi[0]),
-            0.5 * (lo[1] + hi[1]),
-            0.5 * (lo[2] + hi[2]),
-        ];
-        let ext = (0..3).map(|c| hi[c] - lo[c]).fold(0.0, f64::max);
-        if ext <= 0.0 {
+        let centre: [f64; 3] = std::array::from_fn(|c| 0.5 * lo[c] + 0.5 * hi[c]);
+        let half = (0..3)
+            .map(|c| 0.5 * hi[c] - 0.5 * lo[c])
+            .fold(0.0, f64::max);
+        if half <= 0.0 {
             return Err(mesh_err(
                 "vertices spanning a box of positive size",
                 "all vertices at one point",
             ));
         }
-        let s = 1.0 / ext;
+        let s = 0.5 / half;
+        if !s.is_finite() {
+            return Err(mesh_err(
+                "a box whose scale 1/extent is finite",
+                format!("an extent of {:e}", 2.0 * half),
+            ));
+        }
         for v in &mut self.vertices {
             for c in 0..3 {
-                v[c] = (v[c] - centre[c]) * s;
+                v[c] = (v[c] - centre[c]) / half * 0.5;
             }
         }
         Ok((centre, s))
@@ -297,7 +307,9 @@ impl Mesh {
     /// √u v)`), with the unit normals of their faces. Same `seed`, same points.
     ///
     /// # Errors
-    /// Invalid mesh, or zero total area; naming `n` when `n` points cannot be allocated.
+    /// Invalid mesh (non-finite vertices included), or zero total area; naming `n` when
+    /// `n` samples (48 bytes each) pass the allocation limit of 2³³ bytes (8 GiB), checked
+    /// before anything is allocated.
     pub fn sample_surface(&self, n: usize, seed: u64) -> Result<SurfaceSamples> {
         self.validate()?;
         let areas = self.face_areas()?;
@@ -312,15 +324,10 @@ impl Mesh {
         }
         let normals = self.face_normals()?;
         let mut rng = SplitMix64::new(seed);
-        let (mut pts, mut nrm) = (Vec::new(), Vec::new());
-        // A count that cannot be allocated is an error, not an abort.
-        if pts.try_reserve_exact(n).is_err() || nrm.try_reserve_exact(n).is_err() {
-            return Err(Error::invalid(
-                "n",
-                "a sample count whose points fit in memory",
-                format!("{n}"),
-            ));
-        }
+        // A count past the allocation limit is an error, not an abort: a point and a
+        // normal, 48 bytes a sample.
+        crate::limits::check_bytes("n", &[n], 48)?;
+        let (mut pts, mut nrm) = (Vec::with_capacity(n), Vec::with_capacity(n));
         for _ in 0..n {
             let t = rng.uniform() * acc;
             let fi = cdf.partition_point(|&c| c <= t).min(cdf.len() - 1);

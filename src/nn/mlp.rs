@@ -182,6 +182,8 @@ fn blocked_weight(
 /// candle-nn's `linear`; IDR's geometric initialisation with `geometric_init`.
 ///
 /// # Errors
+/// Naming `config.depth` when the layers' weights (about `hidden²` values each) pass the
+/// allocation limit of 2³³ bytes (8 GiB), checked before any layer is built. Also:
 /// `depth == 0`, `hidden == 0`, `in_dim == 0`, `out_dim == 0`, a skip index outside
 /// `1..depth`, a softplus β that is not finite and positive (`config.activation`), an
 /// encoding whose input dimension is not `in_dim`, geometric
@@ -243,6 +245,13 @@ pub fn mlp(config: &MlpConfig, vb: VarBuilder) -> Result<Mlp> {
         g => g,
     };
 
+    let elem = vb.dtype().size_in_bytes();
+    crate::limits::check_layers(
+        "config.depth",
+        config.depth.saturating_add(1),
+        h.saturating_mul(h),
+        elem,
+    )?;
     let mut layers = Vec::with_capacity(config.depth + 1);
     let mut plan = Vec::with_capacity(config.depth + 1);
     for l in 0..=config.depth {

@@ -54,6 +54,8 @@ impl ResnetFc {
                 return Err(Error::invalid(name, "at least 1", "0"));
             }
         }
+        let params = hidden.saturating_mul(hidden).saturating_mul(2);
+        crate::limits::check_layers("config.blocks", blocks, params, vb.dtype().size_in_bytes())?;
         let mut trunk = Vec::with_capacity(blocks);
         let mut fc_code = Vec::new();
         for i in 0..blocks {

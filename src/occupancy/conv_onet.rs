@@ -491,6 +491,8 @@ pub struct ConvOnetEncoder {
 /// ```
 ///
 /// # Errors
+/// Naming `config.blocks` when the layers' weights (about `hidden²` values each) pass the
+/// allocation limit of 2³³ bytes (8 GiB), checked before any layer is built. Also:
 /// A zero `hidden`, `blocks`, `feature_dim`, resolution, `unet.depth` or
 /// `unet.start_filters`; a resolution not divisible by `2^(depth − 1)` or whose cells do
 /// not fit 32-bit ids; a negative or non-finite `padding` (each naming `config.*`); errors
@@ -540,6 +542,13 @@ pub fn conv_onet_encoder(config: &ConvOnetConfig, vb: VarBuilder) -> Result<Conv
         ));
     }
     let h = config.hidden;
+    let params = h.saturating_mul(h).saturating_mul(2);
+    crate::limits::check_layers(
+        "config.blocks",
+        config.blocks,
+        params,
+        vb.dtype().size_in_bytes(),
+    )?;
     let mut blocks = Vec::with_capacity(config.blocks);
     for i in 0..config.blocks {
         blocks.push(ResnetBlock::new(2 * h, h, vb.pp(format!("block{i}")))?);
@@ -730,6 +739,8 @@ pub struct LocalDecoder {
 /// ```
 ///
 /// # Errors
+/// Naming `config.blocks` when the layers' weights (about `hidden²` values each) pass the
+/// allocation limit of 2³³ bytes (8 GiB), checked before any layer is built. Also:
 /// A zero `hidden`, `blocks` or `feature_dim`, a negative or non-finite `padding`
 /// (naming `config.*`); errors of `vb`.
 pub fn local_decoder(config: &LocalDecoderConfig, vb: VarBuilder) -> Result<LocalDecoder> {

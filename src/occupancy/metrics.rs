@@ -71,12 +71,17 @@ impl KdTree {
         self.build(mid + 1, hi);
     }
 
-    /// The index of the nearest point to `q` and its Euclidean distance.
+    /// The index of the nearest point to `q` and its Euclidean distance; `None` when `q`
+    /// has a NaN or ±∞ coordinate (no point is nearest to it: the search used to answer
+    /// `(0, ∞)` as if point 0 were). The tree's own points are finite ([`KdTree::new`]).
     #[must_use]
-    pub fn nearest(&self, q: [f64; 3]) -> (usize, f64) {
+    pub fn nearest(&self, q: [f64; 3]) -> Option<(usize, f64)> {
+        if !q.iter().all(|x| x.is_finite()) {
+            return None;
+        }
         let mut best = (0usize, f64::INFINITY);
         self.search(q, 0, self.points.len(), &mut best);
-        (best.0, best.1.sqrt())
+        Some((best.0, best.1.sqrt()))
     }
 
     fn search(&self, q: [f64; 3], lo: usize, hi: usize, best: &mut (usize, f64)) {
@@ -115,10 +120,16 @@ impl KdTree {
 /// with the index of the neighbour.
 ///
 /// # Errors
-/// As [`KdTree::new`] on `reference`.
+/// As [`KdTree::new`] on `reference`; naming `queries` for a NaN or ±∞ coordinate.
 fn nearest_distances(queries: &[[f64; 3]], reference: &[[f64; 3]]) -> Result<Vec<(usize, f64)>> {
     let tree = KdTree::new(reference)?;
-    Ok(queries.par_iter().map(|&q| tree.nearest(q)).collect())
+    queries
+        .par_iter()
+        .map(|&q| {
+            tree.nearest(q)
+                .ok_or_else(|| Error::invalid("queries", "finite coordinates", format!("{q:?}")))
+        })
+        .collect()
 }
 
 /// Surface-to-surface metrics between a prediction and a ground truth.
@@ -284,10 +295,20 @@ pub fn chamfer_icp(pred: &Mesh, gt: &Mesh, n: usize, seed: u64) -> Result<f64> {
     let from: Vec<DVec3> = from.iter().map(|&p| DVec3::from_array(p)).collect();
     let mut frame = Similarity::IDENTITY;
     for _ in 0..30 {
-        let targets: Vec<DVec3> = from
+        let targets = from
             .iter()
-            .map(|&p| DVec3::from_array(to[tree.nearest(frame.apply(p).to_array()).0]))
-            .collect();
+            .map(|&p| {
+                let q = frame.apply(p).to_array();
+                let (i, _) = tree.nearest(q).ok_or_else(|| {
+                    Error::invalid(
+                        "pred",
+                        "an alignment to gt that stays finite",
+                        format!("{q:?}"),
+                    )
+                })?;
+                Ok(DVec3::from_array(to[i]))
+            })
+            .collect::<Result<Vec<DVec3>>>()?;
         frame = align_similarity(&from, &targets)?;
     }
     let mut gt = gt.clone();

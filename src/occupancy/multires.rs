@@ -113,7 +113,9 @@ fn dtype_and_level(surface: &dyn ImplicitSurface, dtype: DType, level: Option<f6
 /// the level [`logit_threshold`]`(p)` on the logits.
 ///
 /// # Errors
-/// `resolution0 = 0`, a final resolution above 2048 cells per axis, `chunk = 0`,
+/// `resolution0 = 0`, a final resolution above 2048 cells per axis or whose `(N + 1)³`
+/// vertices (5 bytes each) pass the allocation limit of 2³³ bytes (8 GiB; N ≤ 1197),
+/// checked before anything is allocated (naming `upsampling_steps`), `chunk = 0`,
 /// a bad box or level, dtype not f32/f64, errors or NaN values of the field.
 pub fn mise(surface: &dyn ImplicitSurface, config: &MiseConfig) -> Result<MiseOutput> {
     let r0 = config.resolution0;
@@ -121,7 +123,7 @@ pub fn mise(surface: &dyn ImplicitSurface, config: &MiseConfig) -> Result<MiseOu
     if r0 == 0 {
         return Err(Error::invalid("resolution0", "at least 1 cell", "0"));
     }
-    if steps > 11 || (r0 << steps) > 2048 {
+    if steps > 11 || r0.saturating_mul(1 << steps) > 2048 {
         return Err(Error::invalid(
             "upsampling_steps",
             "a final resolution r₀·2ᵏ ≤ 2048",
@@ -132,6 +134,8 @@ pub fn mise(surface: &dyn ImplicitSurface, config: &MiseConfig) -> Result<MiseOu
     let sign = surface.inside().sign() as f32;
     let tau = level as f32;
     let n = r0 << steps; // cells per axis
+                         // A value (f32) and a state byte per vertex of the finest grid.
+    crate::limits::check_bytes("upsampling_steps", &[n + 1, n + 1, n + 1], 5)?;
     let np = n + 1;
     let (min, max) = (config.min, config.max);
     // Validates the box.

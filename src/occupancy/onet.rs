@@ -158,6 +158,8 @@ pub struct OnetDecoder {
 /// [`NormMode::Eval`].
 ///
 /// # Errors
+/// Naming `config.blocks` when the layers' weights (about `hidden²` values each) pass the
+/// allocation limit of 2³³ bytes (8 GiB), checked before any layer is built. Also:
 /// A zero `hidden`, `blocks` or `code_dim`; `momentum ∉ [0, 1]`; `eps ≤ 0`; errors of
 /// the `VarBuilder`.
 pub fn onet_decoder(config: &OnetConfig, vb: VarBuilder) -> Result<OnetDecoder> {
@@ -194,6 +196,16 @@ pub fn onet_decoder(config: &OnetConfig, vb: VarBuilder) -> Result<OnetDecoder> 
             running_var: Mutex::new(Tensor::ones(h, vb.dtype(), vb.device())?),
         })
     };
+    let params = config
+        .hidden
+        .saturating_mul(config.hidden)
+        .saturating_mul(2);
+    crate::limits::check_layers(
+        "config.blocks",
+        config.blocks,
+        params,
+        vb.dtype().size_in_bytes(),
+    )?;
     let mut blocks = Vec::with_capacity(config.blocks);
     for b in 0..config.blocks {
         let bvb = vb.pp(format!("block{b}"));
@@ -432,6 +444,8 @@ pub struct SimpleDecoder {
 /// `fc_out`).
 ///
 /// # Errors
+/// Naming `config.blocks` when the layers' weights (about `hidden²` values each) pass the
+/// allocation limit of 2³³ bytes (8 GiB), checked before any layer is built. Also:
 /// A zero `hidden`, `blocks` or `code_dim` (naming `config.*`); errors of `vb`.
 pub fn simple_decoder(config: &SimpleDecoderConfig, vb: VarBuilder) -> Result<SimpleDecoder> {
     for (name, v) in [
@@ -449,6 +463,16 @@ pub fn simple_decoder(config: &SimpleDecoderConfig, vb: VarBuilder) -> Result<Si
         let b = vb.get_with_hints(h, "bias", Init::Const(0.0))?;
         Ok(candle_nn::Linear::new(w, Some(b)))
     };
+    let params = config
+        .hidden
+        .saturating_mul(config.hidden)
+        .saturating_mul(2);
+    crate::limits::check_layers(
+        "config.blocks",
+        config.blocks,
+        params,
+        vb.dtype().size_in_bytes(),
+    )?;
     let mut blocks = Vec::with_capacity(config.blocks);
     for i in 0..config.blocks {
         let bvb = vb.pp(format!("block{i}"));

@@ -57,6 +57,8 @@ pub struct PointNetEncoder {
 /// candle-nn's default initialisation).
 ///
 /// # Errors
+/// Naming `config.layers` when the layers' weights (about `hidden²` values each) pass the
+/// allocation limit of 2³³ bytes (8 GiB), checked before any layer is built. Also:
 /// A zero `hidden`, `layers`, `latent_dim` or `point_features` (naming `config.*`);
 /// errors of `vb`.
 pub fn pointnet_encoder(config: &PointNetConfig, vb: VarBuilder) -> Result<PointNetEncoder> {
@@ -70,6 +72,16 @@ pub fn pointnet_encoder(config: &PointNetConfig, vb: VarBuilder) -> Result<Point
             return Err(Error::invalid(name, "at least 1", "0"));
         }
     }
+    let params = config
+        .hidden
+        .saturating_mul(config.hidden)
+        .saturating_mul(2);
+    crate::limits::check_layers(
+        "config.layers",
+        config.layers,
+        params,
+        vb.dtype().size_in_bytes(),
+    )?;
     let mut layers = Vec::with_capacity(config.layers);
     for l in 0..config.layers {
         let input = if l == 0 {

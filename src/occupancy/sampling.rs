@@ -12,7 +12,9 @@ use rayon::prelude::*;
 /// 0.1, the box `[−0.55, 0.55]³`), as a `[n, 3]` tensor of `dtype` on `device`.
 ///
 /// # Errors
-/// `n = 0`, a negative or non-finite padding.
+/// `n = 0`, a negative or non-finite padding; naming `n` when its `3n` values (8 bytes
+/// each) pass the allocation limit of 2³³ bytes (8 GiB), checked before anything is
+/// allocated.
 pub fn uniform_in_padded_cube(
     n: usize,
     padding: f64,
@@ -28,6 +30,7 @@ pub fn uniform_in_padded_cube(
             format!("n = {n}, padding = {padding}"),
         ));
     }
+    crate::limits::check_bytes("n", &[n, 3], 8)?;
     let h = 0.5 * (1.0 + padding);
     Ok(SplitMix64::new(seed).uniform_tensor(&[n, 3], -h, h, dtype, device)?)
 }
@@ -194,13 +197,21 @@ pub struct WindingConfig {
 /// over points. Host values: not differentiable.
 ///
 /// # Errors
-/// Invalid mesh.
+/// Invalid mesh; naming `points` when one is NaN or ±∞ (its winding number would be NaN,
+/// or meaningless), before anything is summed.
 pub fn winding_numbers(
     mesh: &Mesh,
     points: &[[f64; 3]],
     config: &WindingConfig,
 ) -> Result<Vec<f64>> {
     mesh.validate()?;
+    if let Some(i) = points.iter().position(|p| !p.iter().all(|x| x.is_finite())) {
+        return Err(Error::invalid(
+            "points",
+            "finite coordinates",
+            format!("{:?} at index {i}", points[i]),
+        ));
+    }
     let tris: Vec<[[f64; 3]; 3]> = mesh
         .faces
         .iter()

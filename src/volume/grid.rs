@@ -249,8 +249,10 @@ impl OccupancyGrid {
     ///
     /// # Errors
     /// Naming `config.aabb` when it is not finite with `x₀ < x₁`, `y₀ < y₁`, `z₀ < z₁`;
-    /// `config.resolution` or `config.levels` when 0 or when the grid would exceed 2³¹
-    /// cells; `config` when `threshold` or `floor` is not finite and ≥ 0, `decay` is not in
+    /// `config.resolution` or `config.levels` when 0, when the grid would exceed 2³¹
+    /// cells, or when its 5 bytes a cell (`levels · resolution³ · 5`) pass the allocation
+    /// limit of 2³³ bytes (8 GiB; resolution 1200 at one level is refused), checked before
+    /// anything is allocated; `config` when `threshold` or `floor` is not finite and ≥ 0, `decay` is not in
     /// `[0, 1]`, or `chunk_size` is 0.
     pub fn new(config: GridConfig) -> Result<Self> {
         let (aabb, resolution, levels) = (config.aabb, config.resolution, config.levels);
@@ -283,6 +285,8 @@ impl OccupancyGrid {
                     format!("{levels} levels of {resolution}^3"),
                 )
             })?;
+        // A density (f32) and an occupancy flag per cell.
+        crate::limits::check_bytes("config.resolution", &[cells], 5)?;
         let bad = |x: f64| !(x.is_finite() && x >= 0.0);
         if bad(config.threshold)
             || bad(config.floor)

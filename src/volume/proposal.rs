@@ -112,7 +112,10 @@ pub struct ProposalSamples {
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming `proposals` if their number is not
-/// `config.samples.len()` (≥ 1), `config` for a zero sample count, `config.padding`,
+/// `config.samples.len()` (≥ 1), `config` for a zero sample count, `config.samples` or
+/// `config.final_samples` for a level whose `R·(n + 1)` positions pass the allocation limit
+/// of 2³³ bytes (8 GiB, counted at 8 bytes a coordinate), before anything is sampled,
+/// `config.padding`,
 /// `config.early_stop_eps`, `config.alpha_threshold` unless finite and ≥ 0; `sigma_fn`
 /// for densities of the wrong shape, dtype or device, or not finite; those of
 /// [`stratified`], [`render_weights`] (a proposal returning a wrong shape or negative
@@ -142,6 +145,17 @@ pub fn proposal_sample(
             "at least one sample per level",
             format!("{:?} then {}", config.samples, config.final_samples),
         ));
+    }
+    // Each level's positions ([R, n + 1, 3] at most) against the allocation limit, before
+    // the first level is sampled.
+    let rays_n = near.dims().first().copied().unwrap_or(0);
+    for (&n, name) in config
+        .samples
+        .iter()
+        .zip(std::iter::repeat("config.samples"))
+        .chain([(&config.final_samples, "config.final_samples")])
+    {
+        crate::limits::check_bytes(name, &[rays_n, n.saturating_add(1), 3], 8)?;
     }
     for (value, name) in [
         (config.padding, "config.padding"),

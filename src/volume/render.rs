@@ -73,7 +73,9 @@ impl Default for ImageConfig {
 /// # Errors
 /// [`Error::InvalidArgument`] naming `config.supersample` unless in `1..=64`,
 /// `config.chunk` when 0, `dtype` unless f32 or f64, `filter` for a Blackman–Harris
-/// half width outside `(0, 64]`; naming `render` when an output is not float, or not `[n]`
+/// half width outside `(0, 64]`; naming `camera` when its `width · height · supersample²`
+/// rays (8 values of `dtype` each) pass the allocation limit of 2³³ bytes (8 GiB), checked
+/// before anything is allocated; naming `render` when an output is not float, or not `[n]`
 /// or `[n, C]` for its chunk of `n` rays; whatever `render` returns.
 pub fn render_image<const N: usize, F>(
     camera: &Camera,
@@ -99,6 +101,8 @@ where
     config.filter.validate()?;
     let (w, h) = (camera.intrinsics().width, camera.intrinsics().height);
     let per_pixel = k * k;
+    // Per ray: its sub-pixel position, origin and direction (8 values of `dtype`).
+    crate::limits::check_bytes("camera", &[w, h, per_pixel, 8], dtype.size_in_bytes())?;
     let pixels = camera.subpixel_grid(k, config.filter, device, dtype)?;
     let n = pixels.dim(0)?;
     let chunk = (config.chunk / per_pixel).max(1) * per_pixel;

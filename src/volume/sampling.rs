@@ -228,8 +228,10 @@ pub(crate) fn check_near_far(near: &Tensor, far: &Tensor) -> Result<usize> {
 /// ```
 ///
 /// # Errors
-/// Naming `near`/`far` for wrong shapes or dtypes, non-finite values or `near > far`;
-/// naming `n` for `n = 0`.
+/// Naming `near`/`far` for wrong shapes or dtypes, non-finite values (NaN or ±∞ are
+/// refused, not propagated) or `near > far`; naming `n` for `n = 0` or for `R·(n + 1)`
+/// edges past the allocation limit of 2³³ bytes (8 GiB, counted at 8 bytes a value),
+/// before anything is allocated.
 pub fn stratified(
     near: &Tensor,
     far: &Tensor,
@@ -241,6 +243,7 @@ pub fn stratified(
     if n == 0 {
         return Err(Error::invalid("n", "at least one sample per ray", "0"));
     }
+    crate::limits::check_bytes("n", &[r, n.saturating_add(1)], 8)?;
     let near_c = near.unsqueeze(1)?;
     let far_c = far.unsqueeze(1)?;
     let edges = if n == 1 {
@@ -369,7 +372,9 @@ fn check_weights(weights: &Tensor, padding: f64) -> Result<(Vec<f64>, usize, usi
 /// # Errors
 /// Naming `weights` for a wrong shape or dtype, negative or non-finite values; `intervals`
 /// for a shape other than `[R, S + 1]`, a different dtype or device, non-finite or
-/// unsorted edges; `n` for `n = 0`; `padding` for a negative or non-finite value.
+/// unsorted edges; `n` for `n = 0` or for `R·n` samples past the allocation limit of 2³³
+/// bytes (8 GiB, counted at 8 bytes a value), before anything is allocated; `padding` for
+/// a negative or non-finite value. NaN or ±∞ in `weights` or the edges are refused.
 pub fn sample_pdf(
     intervals: &Intervals,
     weights: &Tensor,
@@ -385,6 +390,7 @@ pub fn sample_pdf(
     if n == 0 {
         return Err(Error::invalid("n", "at least one sample per ray", "0"));
     }
+    crate::limits::check_bytes("n", &[r, n], 8)?;
     let b = host_f64(bins)?;
     for ray in 0..r {
         let row = &b[ray * (s + 1)..(ray + 1) * (s + 1)];
