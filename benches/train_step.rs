@@ -126,7 +126,9 @@ fn main() -> neural_fields::Result<()> {
             Box::new(move |step| {
                 let iv = stratified(&near, &far, 64, Jitter::PerSample, step as u64)?;
                 if !composed {
-                    return net.color_loss(&rays, &iv, &target, &CompositeConfig::default());
+                    return Ok(net
+                        .color_loss(&rays, &iv, &target, &CompositeConfig::default())?
+                        .loss);
                 }
                 let pos = iv.positions(&rays)?.reshape((rays_n * 64, 3))?;
                 let d = rays

@@ -12,10 +12,6 @@ use neural_fields::volume::{GridMarchConfig, ImageConfig, NerfConfig, OccupancyG
 struct Args {
     #[arg(long, default_value = "examples/data/wuson")]
     data: std::path::PathBuf,
-    /// Read image and mask files outside the dataset folder (absolute paths, `../`,
-    /// symlinks to elsewhere), which loading refuses by default.
-    #[arg(long)]
-    allow_outside_paths: bool,
     #[arg(long, default_value_t = 300)]
     steps: usize,
     #[arg(long, default_value = "target/nerf_tour")]
@@ -24,10 +20,7 @@ struct Args {
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (args, dev, dt) = (Args::parse(), Device::Cpu, DType::F32);
-    let data = LoadConfig {
-        allow_outside_paths: args.allow_outside_paths,
-        ..LoadConfig::default() // white backgrounds
-    };
+    let data = LoadConfig::default(); // white backgrounds; paths inside the dataset folder
     let (train, (test, _)) = (load(&args.data, &data)?, load_eval(&args.data, &data)?);
     let varmap = VarMap::new();
     let net = build_seeded(&varmap, dt, &dev, 0, |vb| nerf(&NerfConfig::default(), vb))?;
@@ -46,8 +39,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         march.jitter = Some(step as u64);
         let kept = grid.sample(&batch.rays, &march, Some(&mut density))?;
         config.background = Some(batch.backgrounds);
-        let loss = net.color_loss(&batch.rays, &kept.intervals, &batch.colors, &config)?;
-        adam.backward_step(&loss)?;
+        let out = net.color_loss(&batch.rays, &kept.intervals, &batch.colors, &config)?;
+        adam.backward_step(&out.loss)?;
     }
     (march.jitter, config.background) = (None, Some(Tensor::ones(3, dt, &dev)?));
     let (mut total, mut views, image) = (0.0, Vec::new(), ImageConfig::default());

@@ -294,6 +294,7 @@ fn train(args: &Args, name: &str, regularised: bool) -> Result<Run> {
     let seconds = args.minutes.unwrap_or(3.0) * 60.0;
     let start = Instant::now();
     let mut step = 0;
+    let mut dead_since = None;
     loop {
         let progress = match args.steps {
             Some(n) => step as f64 / n.max(1) as f64 + f64::from(u8::from(n == 0)),
@@ -325,7 +326,22 @@ fn train(args: &Args, name: &str, regularised: bool) -> Result<Run> {
             background: Some(batch.backgrounds.clone()),
             ..CompositeConfig::default()
         };
-        let mut loss = net.color_loss(&batch.rays, &iv, &batch.colors, &background)?;
+        let out = net.color_loss(&batch.rays, &iv, &batch.colors, &background)?;
+        // A dead run: no training ray with any opacity for 100 steps in a row.
+        let since = *dead_since.get_or_insert(step);
+        if out.opacity_max >= 1e-3 {
+            dead_since = None;
+        } else if step + 1 - since >= 100 {
+            return Err(Error::InvalidArgument {
+                arg: "training",
+                expected: "some opacity on the training rays within 100 steps".into(),
+                got: format!(
+                    "every ray's opacity below 1e-3 from step {since} to {step} ({name} run): the \
+                     density collapsed to zero, or the scene box misses the scene"
+                ),
+            });
+        }
+        let mut loss = out.loss;
         if regnerf {
             let [w0, w1] = args.regnerf_weight;
             let smooth = patch_smoothness(&net, &cameras, scene, args, step)?;

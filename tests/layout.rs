@@ -838,6 +838,10 @@ fn examples_are_short_scripts_without_included_paths() {
         long.is_empty(),
         "example files over {EXAMPLE_MAX_LINES} lines: {long:?}"
     );
+    // The crate tour's NeRF step: a whole trainer on the public API in at most 60 lines.
+    let tour = std::fs::read_to_string(root.join("nerf_tour.rs")).unwrap();
+    let tour_lines = tour.lines().count();
+    assert!(tour_lines <= 60, "nerf_tour.rs: {tour_lines} lines");
     assert!(
         included.is_empty(),
         "examples including files by #[path]: {included:?}"

@@ -128,10 +128,23 @@ fn assert_paths_agree(
     tol: f64,
     case: &str,
 ) -> f64 {
-    let a = fused.color_loss(rays, intervals, target, config).unwrap();
-    let b = reference
-        .color_loss(rays, intervals, target, config)
-        .unwrap();
+    let (a_out, b_out) = (
+        fused.color_loss(rays, intervals, target, config).unwrap(),
+        reference
+            .color_loss(rays, intervals, target, config)
+            .unwrap(),
+    );
+    // Both paths report the same opacity (the composed one from `composite`).
+    assert!(
+        close(a_out.opacity_mean, b_out.opacity_mean, tol.max(1e-12), 0.0)
+            && close(a_out.opacity_max, b_out.opacity_max, tol.max(1e-12), 0.0),
+        "{case}: opacity {} / {} vs {} / {}",
+        a_out.opacity_mean,
+        a_out.opacity_max,
+        b_out.opacity_mean,
+        b_out.opacity_max
+    );
+    let (a, b) = (a_out.loss, b_out.loss);
     assert_eq!(a.dims(), &[] as &[usize], "{case}: a scalar loss");
     let (la, lb) = (v64(&a)[0], v64(&b)[0]);
     assert!(
@@ -280,7 +293,8 @@ fn rays_or_targets_that_carry_gradients_take_the_composed_path() {
     let loss = nets
         .1
         .color_loss(&r, &iv, tv.as_tensor(), &CompositeConfig::default())
-        .unwrap();
+        .unwrap()
+        .loss;
     let g = v64(loss
         .backward()
         .unwrap()
@@ -289,7 +303,8 @@ fn rays_or_targets_that_carry_gradients_take_the_composed_path() {
     let reference = nets
         .2
         .color_loss(&r, &iv, &target, &CompositeConfig::default())
-        .unwrap();
+        .unwrap()
+        .loss;
     assert_eq!(v64(&loss), v64(&reference));
     assert!(max_abs(&g) > 0.0);
 }
@@ -321,8 +336,8 @@ proptest! {
             Layout::Packed(Packed::from_counts(&[5, 9, 140], &DEV).unwrap()),
         ).unwrap();
         let cc = CompositeConfig::default();
-        let loss = || net.color_loss(&r, &iv, &target, &cc).unwrap().to_scalar::<f64>().unwrap();
-        let grads = net.color_loss(&r, &iv, &target, &cc).unwrap().backward().unwrap();
+        let loss = || net.color_loss(&r, &iv, &target, &cc).unwrap().loss.to_scalar::<f64>().unwrap();
+        let grads = net.color_loss(&r, &iv, &target, &cc).unwrap().loss.backward().unwrap();
         let (mut checked, mut total) = (0, 0);
         for v in varmap.all_vars() {
             let g = v64(grads.get(&v).unwrap());
@@ -357,7 +372,7 @@ fn bad_input_names_the_argument() {
     let (r, target) = rays(&mut rng, 4, DType::F32);
     let iv = batched(4, 8, DType::F32, 0);
     let cc = CompositeConfig::default();
-    let arg = |e: neural_fields::Result<Tensor>| match e {
+    let arg = |e: neural_fields::Result<neural_fields::volume::ColorLoss>| match e {
         Err(Error::InvalidArgument { arg, .. }) => arg,
         other => panic!("expected InvalidArgument, got {other:?}"),
     };

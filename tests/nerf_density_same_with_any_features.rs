@@ -191,7 +191,10 @@ fn fused_colour_loss_uses_the_same_rule_as_the_composed_loss() {
             let cfg = CompositeConfig::default();
             let mut parts = Vec::new();
             for net in [&fused, &reference] {
-                let loss = net.color_loss(&rays, &intervals, &target, &cfg).unwrap();
+                let loss = net
+                    .color_loss(&rays, &intervals, &target, &cfg)
+                    .unwrap()
+                    .loss;
                 let grads = loss.backward().unwrap();
                 let mut p = vec![v64(&loss)];
                 for var in sorted_vars(&varmap) {

@@ -791,12 +791,10 @@ fn sweep_nerf(s: &mut Suite) {
                     &wrt,
                     || {
                         let iv = stratified(&near, &far, 150, Jitter::PerSample, 0)?;
-                        Ok(vec![net.color_loss(
-                            &rays,
-                            &iv,
-                            &target,
-                            &CompositeConfig::default(),
-                        )?])
+                        Ok(vec![
+                            net.color_loss(&rays, &iv, &target, &CompositeConfig::default())?
+                                .loss,
+                        ])
                     },
                 );
             }

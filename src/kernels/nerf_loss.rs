@@ -76,6 +76,30 @@ pub(crate) struct FusedNerfLoss<E> {
     opaque_last: bool,
     /// The parameter gradient the forward pass computed, for the backward pass.
     grad: Mutex<Option<CpuStorage>>,
+    /// The rays' mean and largest opacity `Σᵢ wᵢ` in the last forward pass, for the
+    /// caller (shared: the op itself moves into candle's graph).
+    opacity: Arc<Mutex<Option<[f64; 2]>>>,
+}
+
+/// What one chunk of rays contributes: its loss (not yet divided by 3R), whether every
+/// raw output was finite, and the sum and the largest of its rays' opacities.
+#[derive(Clone, Copy)]
+struct ChunkLoss {
+    loss: f64,
+    finite: bool,
+    opacity_sum: f64,
+    opacity_max: f64,
+}
+
+impl Default for ChunkLoss {
+    fn default() -> Self {
+        Self {
+            loss: 0.0,
+            finite: true,
+            opacity_sum: 0.0,
+            opacity_max: 0.0,
+        }
+    }
 }
 
 /// Per-worker scratch.
@@ -143,7 +167,13 @@ impl<E: RowEncode> FusedNerfLoss<E> {
             offsets,
             opaque_last,
             grad: Mutex::new(None),
+            opacity: Arc::default(),
         })
+    }
+
+    /// Where the forward pass leaves the rays' mean and largest opacity.
+    pub(crate) fn opacity_slot(&self) -> Arc<Mutex<Option<[f64; 2]>>> {
+        Arc::clone(&self.opacity)
     }
 
     fn n_rays(&self) -> usize {
@@ -201,7 +231,7 @@ impl<E: RowEncode> FusedNerfLoss<E> {
 
     /// The loss (not yet divided by 3R) and the parameter gradient of the rays `rays`,
     /// accumulated into `gp`; `false` in the second place when some raw output was not
-    /// finite.
+    /// finite; the sum and the largest of the rays' opacities.
     fn chunk<T: Real>(
         &self,
         samples: &[T],
@@ -210,11 +240,11 @@ impl<E: RowEncode> FusedNerfLoss<E> {
         rays: std::ops::Range<usize>,
         sc: &mut LossScratch<T, E>,
         gp: &mut [T],
-    ) -> (f64, bool) {
+    ) -> ChunkLoss {
         let (dd, t_out, _) = self.nets.widths();
         let inv = 1.0 / (3 * self.n_rays()) as f64;
         let (gpt, gph) = gp.split_at_mut(self.nets.trunk.n_params);
-        let (mut loss, mut finite) = (0.0, true);
+        let mut out = ChunkLoss::default();
         for (g0, g1) in groups(&self.offsets, rays, TILE) {
             let base = self.offsets[g0];
             let rows = self.offsets[g1] - base;
@@ -248,7 +278,7 @@ impl<E: RowEncode> FusedNerfLoss<E> {
                     }
                 }
             }
-            finite &= sc.raw.iter().all(|v| v.is_finite());
+            out.finite &= sc.raw.iter().all(|v| v.is_finite());
             // Compositing, the loss and the raw outputs' gradients, ray by ray.
             for ray in g0..g1 {
                 let (a, b) = (self.offsets[ray] - base, self.offsets[ray + 1] - base);
@@ -257,13 +287,16 @@ impl<E: RowEncode> FusedNerfLoss<E> {
                 sc.ray
                     .delta
                     .extend((a..b).map(|i| samples[(base + i) * SAMPLE_COLUMNS + 3].to_f64()));
-                loss += self.ray_loss(
+                let (loss, opacity) = self.ray_loss(
                     &sc.raw[4 * a..4 * b],
                     data,
                     inv,
                     &mut sc.ray,
                     &mut sc.gy[4 * a..4 * b],
                 );
+                out.loss += loss;
+                out.opacity_sum += opacity;
+                out.opacity_max = out.opacity_max.max(opacity);
             }
             // Backward, sub-tile by sub-tile (a single sub-tile's forward pass is still in
             // the scratch).
@@ -285,11 +318,12 @@ impl<E: RowEncode> FusedNerfLoss<E> {
                 );
             }
         }
-        (loss, finite)
+        out
     }
 
-    /// One ray's squared error `‖C − C*‖²` and the gradient of `inv·‖C − C*‖²` w.r.t.
-    /// its raw outputs `raw: [S, 4]`, written to `gy` (module docs).
+    /// One ray's squared error `‖C − C*‖²` and its opacity `Σᵢ wᵢ`, and the gradient of
+    /// `inv·‖C − C*‖²` w.r.t. its raw outputs `raw: [S, 4]`, written to `gy` (module
+    /// docs).
     fn ray_loss<T: Real>(
         &self,
         raw: &[f64],
@@ -297,7 +331,7 @@ impl<E: RowEncode> FusedNerfLoss<E> {
         inv: f64,
         sc: &mut RayScratch,
         gy: &mut [T],
-    ) -> f64 {
+    ) -> (f64, f64) {
         let n = sc.delta.len();
         let f32_out = std::mem::size_of::<T>() == 4;
         let target: [f64; 3] = std::array::from_fn(|k| data[3 + k].to_f64());
@@ -352,7 +386,7 @@ impl<E: RowEncode> FusedNerfLoss<E> {
                 g[1 + k] = T::from_f64(sc.w[j] * g_colour[k] * c[k] * (1.0 - c[k]));
             }
         }
-        loss
+        (loss, opacity)
     }
 
     /// `(σ, ∂σ/∂ρ)` at raw output `ρ`, the shifted argument rounded to the storage dtype
@@ -384,13 +418,13 @@ impl<E: RowEncode> FusedNerfLoss<E> {
         samples: &[T],
         ray_data: &[T],
         params: &[T],
-    ) -> candle_core::Result<(T, Vec<T>)> {
+    ) -> candle_core::Result<(T, Vec<T>, [f64; 2])> {
         let wt = self.nets.transposed(params);
         let (pt, ph) = self.nets.split(params, &wt);
         let np = params.len();
         let chunks = groups(&self.offsets, 0..self.n_rays(), CHUNK);
         let mut gp = vec![T::from_f64(0.0); chunks.len().max(1) * np];
-        let mut partial = vec![(0.0, true); chunks.len()];
+        let mut partial = vec![ChunkLoss::default(); chunks.len()];
         let items: Vec<_> = gp.chunks_mut(np).zip(&mut partial).zip(chunks).collect();
         for_each_init(
             items,
@@ -399,14 +433,21 @@ impl<E: RowEncode> FusedNerfLoss<E> {
                 *out = self.chunk(samples, ray_data, (pt, ph), a..b, sc, gp);
             },
         );
-        if partial.iter().any(|p| !p.1) {
+        if partial.iter().any(|p| !p.finite) {
             candle_core::bail!(
                 "fused NeRF loss: the network's raw output is not finite (NaN or infinite parameters?)"
             )
         }
         sum_chunks(&mut gp, np);
-        let loss: f64 = partial.iter().map(|p| p.0).sum();
-        Ok((T::from_f64(loss / (3 * self.n_rays()).max(1) as f64), gp))
+        let loss: f64 = partial.iter().map(|p| p.loss).sum();
+        let opacity_sum: f64 = partial.iter().map(|p| p.opacity_sum).sum();
+        let opacity_max = partial.iter().map(|p| p.opacity_max).fold(0.0, f64::max);
+        let opacity = [opacity_sum / self.n_rays().max(1) as f64, opacity_max];
+        Ok((
+            T::from_f64(loss / (3 * self.n_rays()).max(1) as f64),
+            gp,
+            opacity,
+        ))
     }
 
     fn check(&self, n_samples: usize, n_rays: usize, n_params: usize) -> candle_core::Result<()> {
@@ -431,7 +472,12 @@ impl<E: RowEncode> CpuKernel<3> for FusedNerfLoss<E> {
     /// parameter gradient is kept for [`CustomOp3::bwd`].
     fn forward<T: Real>(&self, [x, y, p]: [&[T]; 3]) -> candle_core::Result<(Vec<T>, Shape)> {
         self.check(x.len(), y.len(), p.len())?;
-        let (loss, gp) = self.run(x, y, p)?;
+        let (loss, gp, opacity) = self.run(x, y, p)?;
+        *self
+            .opacity
+            .lock()
+            .map_err(|_| candle_core::Error::Msg("fused NeRF loss: poisoned".into()))? =
+            Some(opacity);
         let mut slot = self
             .grad
             .lock()

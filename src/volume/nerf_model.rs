@@ -11,7 +11,7 @@ use crate::field::{ConditionalField, Field};
 use crate::kernels::{Density, FusedNerf, FusedNerfLoss};
 use crate::nn::{mlp, Activation, Mlp, MlpConfig};
 use crate::numerics::{softplus, trunc_exp};
-use candle_core::Tensor;
+use candle_core::{DType, Tensor};
 use candle_nn::VarBuilder;
 
 /// How the raw density output `r` becomes `σ ≥ 0`.
@@ -159,6 +159,21 @@ pub fn nerf(config: &NerfConfig, vb: VarBuilder) -> Result<Nerf> {
     })
 }
 
+/// What [`Nerf::color_loss`] returns: the loss, and the opacity the rendering reached,
+/// which a training loop watches for a dead model (a density collapsed to zero renders
+/// every ray transparent, whatever the loss says).
+#[derive(Clone, Debug)]
+#[non_exhaustive]
+pub struct ColorLoss {
+    /// `mean ‖C − C*‖² / 3`, a scalar in the rays' dtype; differentiable as
+    /// [`Nerf::color_loss`] says.
+    pub loss: Tensor,
+    /// The rays' mean opacity `Σᵢ wᵢ` (no graph).
+    pub opacity_mean: f64,
+    /// The largest opacity of a ray (no graph).
+    pub opacity_max: f64,
+}
+
 impl Nerf {
     fn activate(&self, raw: &Tensor) -> Result<Tensor> {
         match self.config.density {
@@ -247,7 +262,8 @@ impl Nerf {
     /// and `config`'s `opaque_last` and background.
     ///
     /// Shapes: `rays` of `R` rays, `intervals` batched `[R, S]` or packed, `target: [R, 3]`;
-    /// f32 or f64, all one dtype and device. Returns a scalar `[]`.
+    /// f32 or f64, all one dtype and device. Returns the loss, a scalar `[]`, with the
+    /// rays' mean and largest opacity ([`ColorLoss`]), which both paths compute anyway.
     ///
     /// Differentiable w.r.t. the network's parameters. On the CPU, when the rays,
     /// intervals, target and background are constants (no gradient flows to them) and the
@@ -279,8 +295,9 @@ impl Nerf {
     /// let far = Tensor::full(6f32, 2, &dev)?;
     /// let intervals = stratified(&near, &far, 32, Jitter::PerSample, 0)?;
     /// let target = Tensor::new(&[[1f32, 0., 0.], [0., 1., 0.]], &dev)?;
-    /// let loss = net.color_loss(&rays, &intervals, &target, &CompositeConfig::default())?;
-    /// let grads = loss.backward()?;
+    /// let out = net.color_loss(&rays, &intervals, &target, &CompositeConfig::default())?;
+    /// let grads = out.loss.backward()?;
+    /// assert!((0.0..=1.0).contains(&out.opacity_mean) && out.opacity_max <= 1.0);
     /// assert!(varmap.all_vars().iter().all(|v| grads.get(v).is_some()));
     /// # Ok::<(), neural_fields::Error>(())
     /// ```
@@ -297,7 +314,7 @@ impl Nerf {
         intervals: &Intervals,
         target: &Tensor,
         config: &CompositeConfig,
-    ) -> Result<Tensor> {
+    ) -> Result<ColorLoss> {
         let r = intervals.n_rays();
         if r == 0 {
             return Err(Error::invalid("target", "at least one ray", "0 rays"));
@@ -319,7 +336,12 @@ impl Nerf {
             Layout::Packed(_) => (sigma, rgb),
         };
         let out = composite(&sigma, &rgb, intervals, Some(rays), config)?;
-        Ok((out.color - target)?.sqr()?.mean_all()?)
+        let opacity = out.opacity.detach().to_dtype(DType::F64)?;
+        Ok(ColorLoss {
+            loss: (out.color - target)?.sqr()?.mean_all()?,
+            opacity_mean: opacity.mean_all()?.to_scalar::<f64>()?,
+            opacity_max: opacity.max_all()?.to_scalar::<f64>()?,
+        })
     }
 
     /// [`Nerf::color_loss`] as the fused op, or `None` where it does not apply.
@@ -330,7 +352,7 @@ impl Nerf {
         positions: &Tensor,
         target: &Tensor,
         config: &CompositeConfig,
-    ) -> Result<Option<Tensor>> {
+    ) -> Result<Option<ColorLoss>> {
         // The checks that need no tensor op come first, so that a fallback to the composed
         // path has computed nothing here.
         let constant = [positions, rays.directions(), target]
@@ -387,7 +409,17 @@ impl Nerf {
         let unit = self.unit_directions(rays.directions())?;
         let per_ray = Tensor::cat(&[&unit, target, &background], 1)?;
         let params = Tensor::cat(&[self.trunk.flat_params()?, self.head.flat_params()?], 0)?;
-        Ok(Some(samples.apply_op3(&per_ray, &params, op)?))
+        let slot = op.opacity_slot();
+        let loss = samples.apply_op3(&per_ray, &params, op)?;
+        let [opacity_mean, opacity_max] =
+            slot.lock().ok().and_then(|o| *o).ok_or_else(|| {
+                Error::invalid("rays", "a forward pass of the fused loss", "none")
+            })?;
+        Ok(Some(ColorLoss {
+            loss,
+            opacity_mean,
+            opacity_max,
+        }))
     }
 }
 
