@@ -14,7 +14,7 @@
 //! (`$TMPDIR/nf-hostile-<pid>/NN`, removed at the end) and read in a child process: this
 //! executable with `--read READER PATH`, under `/usr/bin/time -v` when it exists (its
 //! maximum resident set size is the peak RSS column; without it the column reads n/a),
-//! killed after 60 s (a hang is a finding: `TIMEOUT`). The child calls one reader and
+//! killed after 2 s (a hang is a finding: `TIMEOUT`). The child calls one reader and
 //! prints exactly one line, `ok: <summary>` or `err: <the error's Display>`, exiting 0
 //! either way, so that a panic or an abort shows as `PANIC`. The readers:
 //!
@@ -32,12 +32,13 @@
 //! The table goes to `OUT/hostile_inputs.md` (`--out`, default `target/hostile_inputs`) and
 //! to stdout, below the command, the date (UTC), the machine
 //! and the git commit. The command is a check: it exits non-zero when a case panics or
-//! aborts, runs past 60 s, peaks above 256 MiB, or ends otherwise than expected: hostile
+//! aborts, runs past 2 s, peaks above 256 MiB, or ends otherwise than expected: hostile
 //! cases must be errors; the controls and the cases that are legitimate files (a
 //! property-less PLY element with a huge count, convex 255-gons, a stray byte in an OBJ
 //! group name) must load. Unix only (process groups, `/usr/bin/time`, `uname`).
 
 use clap::Parser;
+use image::codecs::jpeg::JpegEncoder;
 use image::codecs::png::PngEncoder;
 use image::{ExtendedColorType, ImageEncoder};
 use neural_fields::data::{load, LoadConfig, Split};
@@ -57,7 +58,7 @@ type Bytes = Rc<dyn Fn() -> Res<Vec<u8>>>;
 /// Writes a case's input into its scratch directory and returns the path to read.
 type Make = Rc<dyn Fn(&Path) -> Res<PathBuf>>;
 
-const LIMIT: Duration = Duration::from_secs(60);
+const LIMIT: Duration = Duration::from_secs(2);
 const MAX_RSS_MIB: f64 = 256.0;
 const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/examples/data");
 /// The length of an outcome in the table.
@@ -303,6 +304,14 @@ fn cases() -> Vec<Case> {
             image_folder(|| png(8, 8, ExtendedColorType::L8))),
         case(DATASET, "blender", Loads, "a 1 × 1 frame",
             image_folder(|| png(1, 1, ExtendedColorType::Rgba8))),
+        case(DATASET, "blender", Loads, "a JPEG frame (nerfstudio `train/r_0.jpg`), 8 × 8",
+            make("", vec![("train/r_0.jpg", bytes(|| jpeg(8, 8))),
+                ("transforms.json", bytes(|| Ok(nerfstudio_frame("train/r_0.jpg", 8, 8.0))))])),
+        case(DATASET, "blender", Fails, "nerfstudio `fl_x` = `fl_y` = 1e300",
+            make("", vec![("train/r_0.jpg", bytes(|| jpeg(8, 8))),
+                ("transforms.json", bytes(|| Ok(nerfstudio_frame("train/r_0.jpg", 8, 1e300))))])),
+        case(DATASET, "npz", Fails, "`world_mat_0` with a focal length of 1e300",
+            dtu(|| npz_world(npy("(4, 4)", &huge_focal_world())))),
         case(DATASET, "blender", Fails, "an empty split (`frames: []`)",
             blender("transforms_train.json", || Ok(blender_frames(0.69, &[])))),
         case(DATASET, "blender", Fails, "`camera_angle_x` 1e-300 (a focal length of 1e302)",
@@ -564,6 +573,32 @@ fn png(w: u32, h: u32, color: ExtendedColorType) -> Res<Vec<u8>> {
     let mut out = Vec::new();
     PngEncoder::new(&mut out).write_image(&pixels, w, h, color)?;
     Ok(out)
+}
+
+/// A `w × h` mid-grey RGB JPEG.
+fn jpeg(w: u32, h: u32) -> Res<Vec<u8>> {
+    let pixels = vec![0x80u8; (3 * w * h) as usize];
+    let mut out = Vec::new();
+    JpegEncoder::new(&mut out).write_image(&pixels, w, h, ExtendedColorType::Rgb8)?;
+    Ok(out)
+}
+
+/// A nerfstudio `transforms.json` of two `size × size` frames naming `file`, focal length
+/// `f`.
+fn nerfstudio_frame(file: &str, size: u32, f: f64) -> Vec<u8> {
+    let c = f64::from(size) / 2.0;
+    let frame = format!(r#"{{"file_path": "{file}", "transform_matrix": {POSE}}}"#);
+    format!(
+        r#"{{"fl_x": {f:e}, "fl_y": {f:e}, "cx": {c}, "cy": {c}, "w": {size}, "h": {size}, "frames": [{frame}, {frame}]}}"#
+    )
+    .into_bytes()
+}
+
+/// [`WORLD`] with the focal length 1e300 instead of 100.
+fn huge_focal_world() -> [f64; 16] {
+    let mut w = WORLD;
+    (w[0], w[5]) = (1e300, 1e300);
+    w
 }
 
 /// A PNG of a few dozen bytes whose header states `w × h` RGBA pixels: the signature, an
