@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Seeds a target's corpus and fuzzes it with libFuzzer (cargo fuzz), one job.
 #
-#   fuzz/run.sh TARGET SECONDS        # targets: ply obj stl off transforms_json cameras_npz
+#   fuzz/run.sh TARGET SECONDS        # targets: ply obj stl off transforms_json cameras_npz dataset_image
 #
 # Needs cargo-fuzz (`cargo install cargo-fuzz`); RUSTC_BOOTSTRAP=1 lets the stable
 # toolchain take the -Z flags cargo-fuzz passes. The readers are safe Rust, so the
@@ -35,6 +35,7 @@ case "$target" in
     printf '\1{"fl_x":50,"fl_y":50,"cx":50,"cy":50,"w":100,"h":100,"frames":[{"file_path":"img.png","transform_matrix":[[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]}]}' \
       >"$corpus/seed-nerfstudio.json" ;;
   cameras_npz) seed ../examples/data/wuson_dtu/cameras.npz ;;
+  dataset_image) seed ../examples/data/wuson/train/r_0.png ../examples/data/wuson_dtu/image/000000.png ;;
   *) echo "unknown target $target" >&2; exit 2 ;;
 esac
 RUSTC_BOOTSTRAP=1 cargo fuzz build -s none --fuzz-dir . "$target" >/dev/null 2>&1 \
