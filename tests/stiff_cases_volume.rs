@@ -18,6 +18,7 @@ use neural_fields::rng::SplitMix64;
 fn volume_rendering_stays_finite() {
     let mut s = Suite::default();
     sweep_volume(&mut s);
+    sweep_cone(&mut s);
     s.finish("volume rendering", VOLUME);
 }
 
@@ -50,6 +51,7 @@ const VOLUME: &[&str] = &[
     "volume::accumulate",
     "volume::anneal_near_far",
     "volume::composite",
+    "volume::conical_frustums",
     "volume::depth_smoothness",
     "volume::distortion_loss",
     "volume::log_linear_schedule",
@@ -96,6 +98,67 @@ const EXEMPT: &[(&str, &str)] = &[
     ),
     ("volume::OccupancyGrid::occupied", "getter"),
 ];
+
+/// Cone casting: far-away thin intervals (t ≈ 1e6, where t₁ − t₀ cancels), intervals at
+/// and near t = 0, tiny to huge radii, tiny and huge directions; both covariances, both
+/// layouts.
+fn sweep_cone(s: &mut Suite) {
+    use neural_fields::volume::{conical_frustums, Covariance, Intervals, Layout, Packed};
+    let d = Device::Cpu;
+    for dtype in DTYPES {
+        let (tiny, huge) = if dtype == DType::F32 {
+            (1e-30, 1e10)
+        } else {
+            (1e-300, 1e100)
+        };
+        // The smallest step at 1e6 (one ulp) and a few more.
+        let ulp = if dtype == DType::F32 { 0.0625 } else { 1.2e-10 };
+        let rows: [(f64, f64, f64, [f64; 3]); 9] = [
+            (1e6, 1e6 + ulp, 1e-3, [0.0, 0.0, 1.0]),
+            (1e6, 1e6 + ulp, tiny, [0.3, -0.2, 1.0]),
+            (1e6, 1e6 + 4.0 * ulp, 0.0, [1e-3, 0.0, 1.0]),
+            (1e6, 1e6, 1e-6, [0.0, 1.0, 1.0]),
+            (0.0, 0.0, 1.0, [0.0, 0.0, 1.0]),
+            (0.0, tiny, 1.0, [1.0, 1.0, 1.0]),
+            (tiny, 2.0 * tiny, huge, [0.0, 0.0, 1.0]),
+            (0.0, 1e6, 1e-3, [tiny, tiny, tiny]),
+            (1.0, 2.0, 1e-3, [1e3, -1e3, 1e3]),
+        ];
+        let r = rows.len();
+        let starts = var(&rows.map(|x| x.0), &[r, 1], dtype);
+        let ends = var(&rows.map(|x| x.1), &[r, 1], dtype);
+        let radii = var(&rows.map(|x| x.2), &[r], dtype);
+        let dirs = var(&rows.map(|x| x.3).concat(), &[r, 3], dtype);
+        let origins = var(&[1e6, -1.0, 0.5].repeat(r), &[r, 3], dtype);
+        let rays = Rays::new(origins.as_tensor().clone(), dirs.as_tensor().clone()).unwrap();
+        let wrt = [&starts, &ends, &radii, &dirs, &origins];
+        for covariance in [Covariance::Diagonal, Covariance::Full] {
+            for packed in [false, true] {
+                s.case(
+                    "volume::conical_frustums",
+                    format!("{dtype:?}, {covariance:?}, packed = {packed}, t ≈ 1e6 thin, t ≈ 0"),
+                    Expect::Finite,
+                    &wrt,
+                    || {
+                        let layout = if packed {
+                            Layout::Packed(Packed::from_counts(&vec![1; r], &d)?)
+                        } else {
+                            Layout::Batched
+                        };
+                        let (st, en) = if packed {
+                            (starts.flatten_all()?, ends.flatten_all()?)
+                        } else {
+                            (starts.as_tensor().clone(), ends.as_tensor().clone())
+                        };
+                        let iv = Intervals::new(st, en, layout)?;
+                        let g = conical_frustums(&rays, radii.as_tensor(), &iv, covariance)?;
+                        Ok(vec![g.means, g.covariances])
+                    },
+                );
+            }
+        }
+    }
+}
 
 fn sweep_volume(s: &mut Suite) {
     use neural_fields::volume::{

@@ -32,6 +32,8 @@
 //! - samplers: [`stratified`] intervals, importance samples from the coarse weights
 //!   ([`sample_pdf`]), [`merge_sorted`], RegNeRF's annealed near/far
 //!   ([`anneal_near_far`]);
+//! - cone casting (mip-NeRF): [`conical_frustums`], the Gaussian of each interval's
+//!   conical frustum, for [`crate::encoding::integrated_pe`];
 //! - [`Intervals`] in the batched `[R, S]` or packed `[M]` [`Layout`] ([`Packed`]),
 //!   their midpoints, lengths and positions;
 //! - compositing: [`composite()`], [`render_weights`], [`accumulate`] — one function per
@@ -52,6 +54,7 @@
 //! See `docs/math.md`, section "Volume compositing", for the derivations.
 
 mod compositing;
+mod cone;
 mod fused;
 mod grid;
 mod layout;
@@ -67,6 +70,7 @@ pub use compositing::{
     accumulate, composite, render_weights, visible_mask, Composite, CompositeConfig,
     DEFAULT_TERMINATION_EPS,
 };
+pub use cone::{conical_frustums, Covariance, Gaussians};
 pub use grid::{GridConfig, GridMarchConfig, GridSamples, OccupancyGrid};
 pub use layout::{Intervals, Layout, Packed, Weights};
 pub use nerf_model::{nerf, ColorLoss, DensityActivation, Nerf, NerfConfig};
