@@ -52,6 +52,7 @@
 //! See `docs/math.md`, section "Volume compositing", for the derivations.
 
 mod compositing;
+mod contraction;
 mod fused;
 mod grid;
 mod layout;
@@ -67,6 +68,7 @@ pub use compositing::{
     accumulate, composite, render_weights, visible_mask, Composite, CompositeConfig,
     DEFAULT_TERMINATION_EPS,
 };
+pub use contraction::{contract, contract_gaussians};
 pub use grid::{GridConfig, GridMarchConfig, GridSamples, OccupancyGrid};
 pub use layout::{Intervals, Layout, Packed, Weights};
 pub use nerf_model::{nerf, ColorLoss, DensityActivation, Nerf, NerfConfig};
