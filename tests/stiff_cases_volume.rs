@@ -31,7 +31,13 @@ fn nerf_and_proposal_sampler_stay_finite() {
 
 #[test]
 fn every_public_volume_function_is_swept_or_exempt() {
-    common::stiff::check_coverage("stiff_cases_volume", &[VOLUME, NERF], EXEMPT, &[], &[]);
+    common::stiff::check_coverage(
+        "stiff_cases_volume",
+        &[VOLUME, NERF, CONTRACTION],
+        EXEMPT,
+        &[],
+        &[],
+    );
 }
 
 /// Items swept by `sweep_volume`.
@@ -1000,6 +1006,80 @@ fn sweep_proposal(s: &mut Suite, dtype: DType, top: f64) {
                 || {
                     let level = (out.levels[0].0.clone(), w_hat.as_tensor().clone());
                     Ok(vec![interlevel_loss(&level, &out.intervals, &w)?])
+                },
+            );
+        }
+    }
+}
+
+#[test]
+fn scene_contraction_stays_finite() {
+    let mut s = Suite::default();
+    sweep_contraction(&mut s);
+    s.finish("scene contraction", CONTRACTION);
+}
+
+/// Items swept by `sweep_contraction`.
+const CONTRACTION: &[&str] = &["volume::contract", "volume::contract_gaussians"];
+
+fn sweep_contraction(s: &mut Suite) {
+    use neural_fields::volume::{contract, contract_gaussians};
+    for dtype in DTYPES {
+        let (tiny, huge) = if dtype == DType::F32 {
+            (1e-38, 1e30)
+        } else {
+            (1e-300, 1e300)
+        };
+        // The origin, the tiny, both sides of the unit sphere (1 ± 1e-12 rounds to 1 in
+        // f32) and the huge, on an axis and on a diagonal.
+        for r in [0.0, tiny, 1.0 - 1e-12, 1.0, 1.0 + 1e-12, 2.0, huge] {
+            let c = r / 3f64.sqrt();
+            let label = format!("{dtype:?}, |x| = {r:e}");
+            let points = var(&[r, 0.0, 0.0, c, -c, c], &[2, 3], dtype);
+            s.case(
+                "volume::contract",
+                &label,
+                Expect::Finite,
+                &[&points],
+                || Ok(vec![contract(points.as_tensor())?]),
+            );
+            for sigma in [tiny, 1.0, huge] {
+                let diag = var(&[sigma; 6], &[2, 3], dtype);
+                let eye = [sigma, 0.0, 0.0, 0.0, sigma, 0.0, 0.0, 0.0, sigma];
+                let full = var(&[eye, eye].concat(), &[2, 3, 3], dtype);
+                for cov in [&diag, &full] {
+                    s.case(
+                        "volume::contract_gaussians",
+                        format!("{label}, Σ = {sigma:e}·I, {:?}", cov.dims()),
+                        Expect::Finite,
+                        &[&points, cov],
+                        || {
+                            let (m, v) = contract_gaussians(points.as_tensor(), cov.as_tensor())?;
+                            Ok(vec![m, v])
+                        },
+                    );
+                }
+            }
+        }
+        // ±∞ and NaN are refused (naming `points` / `means`, tests/volume_contraction.rs).
+        for bad in [f64::INFINITY, f64::NEG_INFINITY, f64::NAN] {
+            let points = var(&[bad, 0.0, 0.0], &[1, 3], dtype);
+            let cov = var(&[1.0; 3], &[1, 3], dtype);
+            s.case(
+                "volume::contract",
+                format!("{dtype:?}, x = {bad}"),
+                Expect::FiniteOrErr,
+                &[],
+                || Ok(vec![contract(points.as_tensor())?]),
+            );
+            s.case(
+                "volume::contract_gaussians",
+                format!("{dtype:?}, mean = {bad}"),
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let (m, v) = contract_gaussians(points.as_tensor(), cov.as_tensor())?;
+                    Ok(vec![m, v])
                 },
             );
         }
