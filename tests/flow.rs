@@ -7,7 +7,7 @@ mod common;
 
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarMap;
-use common::normal_tensor;
+use common::{central_diff_bound, normal_tensor};
 use neural_fields::field::{Field, Occupancy, Sphere};
 use neural_fields::flow::{
     correspondence_loss, odeint, velocity_field, DeformingTorus, Graph, OccupancyFlow, Solver,
@@ -155,19 +155,29 @@ proptest! {
         let solver = Solver::Rk4 { steps: 6 };
         let (_, grads) = loss_and_grads(&w, &b, &y0, &times, &solver).unwrap();
         let inputs = [w.clone(), b.clone(), y0.clone()];
+        // Richardson-extrapolated central differences with their own error bar: with
+        // weights of 30 and saturated states a plain difference at h = 1e-6 is off by
+        // 4e-5 relative (the CI failure kept in tests/flow.proptest-regressions).
+        let (mut resolved, mut total) = (0usize, 0usize);
         for (k, g) in grads.iter().enumerate() {
             for i in 0..g.len() {
-                let eps = 1e-6 * inputs[k][i].abs().max(1.0);
-                let mut plus = inputs.clone();
-                plus[k][i] += eps;
-                let mut minus = inputs.clone();
-                minus[k][i] -= eps;
-                let f = |v: &[Vec<f64>; 3]| loss_and_grads(&v[0], &v[1], &v[2], &times, &solver).unwrap().0;
-                let fd = (f(&plus) - f(&minus)) / (2.0 * eps);
-                prop_assert!((g[i] - fd).abs() <= 1e-6 * fd.abs().max(1.0),
-                    "input {} element {}: backprop {} fd {}", k, i, g[i], fd);
+                total += 1;
+                let x = inputs[k][i];
+                let mut f = |v: f64| {
+                    let mut at = inputs.clone();
+                    at[k][i] = v;
+                    loss_and_grads(&at[0], &at[1], &at[2], &times, &solver).unwrap().0
+                };
+                let Some((fd, bar)) = central_diff_bound(&mut f, x, 1e-4 * x.abs().max(1.0), 1.0)
+                else {
+                    continue;
+                };
+                resolved += 1;
+                prop_assert!((g[i] - fd).abs() <= 1e-6 * fd.abs().max(1.0) + 2.0 * bar,
+                    "input {} element {}: backprop {} fd {} ± {}", k, i, g[i], fd, bar);
             }
         }
+        prop_assert!(2 * resolved >= total, "only {} of {} differences resolved", resolved, total);
     }
 }
 
