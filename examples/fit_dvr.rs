@@ -36,8 +36,8 @@ use candle_nn::{Optimizer, VarMap};
 use clap::Parser;
 use neural_fields::camera::{ray_aabb, Camera, Convention, Intersection, Intrinsics, Rays};
 use neural_fields::dvr::{
-    depth_loss, freespace_loss, implicit_surface, march, missed_foreground_loss,
-    random_points_on_rays, ImplicitConfig, MarchConfig,
+    depth_loss, implicit_surface, march, occupancy_bce, random_points_on_rays, ImplicitConfig,
+    MarchConfig,
 };
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::{ImplicitSurface, SignedDistance, Sphere, Torus};
@@ -272,11 +272,11 @@ fn main() -> Result<()> {
             free.push(random_points(&off_free, 2 * step as u64)?);
         }
         if !free.is_empty() {
-            loss = (loss + freespace_loss(&net, &Tensor::cat(&free, 0)?)?)?;
+            loss = (loss + occupancy_bce(&net, &Tensor::cat(&free, 0)?, false)?)?;
         }
         if !missed.is_empty() {
             let points = random_points(&missed, 2 * step as u64 + 1)?;
-            loss = (loss + missed_foreground_loss(&net, &points)?)?;
+            loss = (loss + occupancy_bce(&net, &points, true)?)?;
         }
         opt.backward_step(&loss)?;
         if step % 50 == 0 || step == steps {

@@ -9,9 +9,8 @@ use candle_nn::{VarBuilder, VarMap};
 use common::{central_diff, close, v64};
 use neural_fields::camera::{Intersection, Rays};
 use neural_fields::dvr::{
-    depth_loss, eikonal_loss, freespace_loss, idr_mask_loss, missed_foreground_loss,
-    most_inside_along_rays, normal_smoothness_loss, photometric_loss, random_points_on_rays,
-    AlphaSchedule, Photometric,
+    depth_loss, eikonal_loss, idr_mask_loss, most_inside_along_rays, normal_smoothness_loss,
+    occupancy_bce, photometric_loss, random_points_on_rays, AlphaSchedule, Photometric,
 };
 use neural_fields::field::{ImplicitSurface, Inside, Plane, SignedDistance, Sphere};
 use neural_fields::nn::{build_seeded, mlp, Activation, MlpConfig};
@@ -90,15 +89,15 @@ fn freespace_and_missed_foreground_losses_are_inside_positive_bce_finite_at_extr
     let p = Tensor::new(&[[0.0f64, 0.0, 0.2], [0.0, 0.9, 0.0]], &DEV).unwrap();
     // SDF: s = −d = (0.3, −0.4).
     let sdf = sphere.clone().sdf();
-    let fs = scalar(&freespace_loss(&sdf, &p).unwrap());
+    let fs = scalar(&occupancy_bce(&sdf, &p, false).unwrap());
     let bce = |x: f64, y: f64| x.max(0.0) - x * y + (1.0 + (-x.abs()).exp()).ln();
     assert!((fs - 0.5 * (bce(0.3, 0.0) + bce(-0.4, 0.0))).abs() < 1e-12);
-    let oc = scalar(&missed_foreground_loss(&sdf, &p).unwrap());
+    let oc = scalar(&occupancy_bce(&sdf, &p, true).unwrap());
     assert!((oc - 0.5 * (bce(0.3, 1.0) + bce(-0.4, 1.0))).abs() < 1e-12);
     // Freespace at an inside point pushes the surface away: ∂L/∂r > 0.
     let inside = Tensor::new(&[[0.0f64, 0.0, 0.2]], &DEV).unwrap();
     let g = scalar(
-        freespace_loss(&sdf, &inside)
+        occupancy_bce(&sdf, &inside, false)
             .unwrap()
             .backward()
             .unwrap()
@@ -109,15 +108,15 @@ fn freespace_and_missed_foreground_losses_are_inside_positive_bce_finite_at_extr
     // Occupancy logits of ±1e6: finite values and gradients.
     let sharp = sphere.occupancy(1e7);
     for l in [
-        freespace_loss(&sharp, &p).unwrap(),
-        missed_foreground_loss(&sharp, &p).unwrap(),
+        occupancy_bce(&sharp, &p, false).unwrap(),
+        occupancy_bce(&sharp, &p, true).unwrap(),
     ] {
         assert!(scalar(&l).is_finite());
         let g = scalar(l.backward().unwrap().get(&r).unwrap());
         assert!(g.is_finite());
     }
     let empty = Tensor::zeros((0, 3), DType::F64, &DEV).unwrap();
-    assert_eq!(scalar(&freespace_loss(&sdf, &empty).unwrap()), 0.0);
+    assert_eq!(scalar(&occupancy_bce(&sdf, &empty, false).unwrap()), 0.0);
 }
 
 #[test]

@@ -513,10 +513,11 @@ fn the_checker_sees_imports_and_circles() {
 
 /// The public-function budget: lines declaring a `pub fn` in `src/`. DESIGN.md's target
 /// of 230 was reached by 0.3.0; this is a ratchet at today's count, lowered with every
-/// cut and raised only with the issue that justifies it: 231 `Dataset::coverage` (the
+/// cut and raised only with the issue that justifies it (232 after `dvr::occupancy_bce`
+/// folded the freespace and missed-foreground losses): 231 `Dataset::coverage` (the
 /// coverage check of a training loop), 232 `volume::conical_frustums` (cone casting),
-/// 233–234 `volume::contract`, `volume::contract_gaussians` (scene contraction).
-const PUB_FN_BUDGET: usize = 234;
+/// 233 `volume::contract` (scene contraction of points and Gaussians).
+const PUB_FN_BUDGET: usize = 232;
 
 /// The public items of one file, one line each: `module item`, where item is
 /// `fn Type::name`, `struct Name`, `use path`, … (`pub(crate)` and test modules left out).

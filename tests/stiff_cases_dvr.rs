@@ -29,11 +29,10 @@ const DVR: &[&str] = &[
     "dvr::AlphaSchedule::alpha_at",
     "dvr::depth_loss",
     "dvr::eikonal_loss",
-    "dvr::freespace_loss",
     "dvr::idr_mask_loss",
     "dvr::implicit_surface",
     "dvr::march",
-    "dvr::missed_foreground_loss",
+    "dvr::occupancy_bce",
     "dvr::most_inside_along_rays",
     "dvr::normal_smoothness_loss",
     "dvr::photometric_loss",
@@ -65,10 +64,9 @@ const EXEMPT: &[(&str, &str)] = &[
 fn sweep_dvr(s: &mut Suite) {
     use neural_fields::camera::Intersection;
     use neural_fields::dvr::{
-        depth_loss, eikonal_loss, freespace_loss, idr_mask_loss, implicit_surface, march,
-        missed_foreground_loss, most_inside_along_rays, normal_smoothness_loss, photometric_loss,
-        random_points_on_rays, sphere_trace, AlphaSchedule, ImplicitConfig, MarchConfig,
-        Photometric, SphereTraceConfig,
+        depth_loss, eikonal_loss, idr_mask_loss, implicit_surface, march, most_inside_along_rays,
+        normal_smoothness_loss, occupancy_bce, photometric_loss, random_points_on_rays,
+        sphere_trace, AlphaSchedule, ImplicitConfig, MarchConfig, Photometric, SphereTraceConfig,
     };
     use neural_fields::field::Inside;
     let d = Device::Cpu;
@@ -181,18 +179,18 @@ fn sweep_dvr(s: &mut Suite) {
             );
             let pts = extreme_points(dtype);
             s.case(
-                "dvr::freespace_loss",
-                format!("{dtype:?}, {name}"),
+                "dvr::occupancy_bce",
+                format!("{dtype:?}, {name}, towards outside"),
                 Expect::Finite,
                 &[&radius],
-                || Ok(vec![freespace_loss(field, &pts)?]),
+                || Ok(vec![occupancy_bce(field, &pts, false)?]),
             );
             s.case(
-                "dvr::missed_foreground_loss",
-                format!("{dtype:?}, {name}"),
+                "dvr::occupancy_bce",
+                format!("{dtype:?}, {name}, towards inside"),
                 Expect::Finite,
                 &[&radius],
-                || Ok(vec![missed_foreground_loss(field, &pts)?]),
+                || Ok(vec![occupancy_bce(field, &pts, true)?]),
             );
             s.case(
                 "dvr::normal_smoothness_loss",

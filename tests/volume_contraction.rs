@@ -8,7 +8,6 @@ mod common;
 
 use candle_core::{DType, Device, Tensor, Var};
 use common::{central_diff_bound, close, v64};
-use neural_fields::volume::{contract, contract_gaussians};
 use neural_fields::Error;
 use proptest::prelude::*;
 
@@ -24,7 +23,7 @@ fn pts(p: &[[f64; 3]], dtype: DType) -> Tensor {
 
 /// `contract` of one f64 point, on the host.
 fn c1(p: [f64; 3]) -> [f64; 3] {
-    let v = v64(&contract(&pts(&[p], DType::F64)).unwrap());
+    let v = v64(&contract_points(&pts(&[p], DType::F64)).unwrap());
     [v[0], v[1], v[2]]
 }
 
@@ -46,7 +45,7 @@ fn jac_autograd(p: [f64; 3], dtype: DType) -> M3 {
     let mut j = [[0.0; 3]; 3];
     for (i, row) in j.iter_mut().enumerate() {
         let x = Var::from_tensor(&pts(&[p], dtype)).unwrap();
-        let out = contract(x.as_tensor()).unwrap();
+        let out = contract_points(x.as_tensor()).unwrap();
         let g = out
             .narrow(1, i, 1)
             .unwrap()
@@ -118,9 +117,9 @@ fn identity_inside_the_unit_ball_exactly() {
     ];
     for dtype in [DType::F32, DType::F64] {
         let x = pts(&inside, dtype);
-        let y = contract(&x).unwrap();
+        let y = contract_points(&x).unwrap();
         assert_eq!(v64(&y), v64(&x), "{dtype:?}");
-        let (m, v) = contract_gaussians(&x, &x.abs().unwrap()).unwrap();
+        let (m, v) = contract_both(&x, &x.abs().unwrap()).unwrap();
         assert_eq!(v64(&m), v64(&x), "{dtype:?}");
         assert_eq!(v64(&v), v64(&x.abs().unwrap()), "{dtype:?}");
         for p in inside {
@@ -205,7 +204,7 @@ fn far_points_approach_radius_two_from_inside() {
         let r = 10f64.powi(k);
         let x = pts(&[scaled(dir, r)], DType::F32);
         let rc = norm({
-            let v = v64(&contract(&x).unwrap());
+            let v = v64(&contract_points(&x).unwrap());
             [v[0], v[1], v[2]]
         });
         assert!(rc <= 2.0 * (1.0 + 4.0 * f64::from(f32::EPSILON)), "{rc}");
@@ -250,7 +249,7 @@ fn gradient_at_the_origin_is_the_identity_and_finite_everywhere_stiff() {
             } else {
                 p
             };
-            let c = v64(&contract(&pts(&[p], dtype)).unwrap());
+            let c = v64(&contract_points(&pts(&[p], dtype)).unwrap());
             assert!(c.iter().all(|v| v.is_finite()), "{dtype:?} {p:?}: {c:?}");
             for row in jac_autograd(p, dtype) {
                 assert!(row.iter().all(|v| v.is_finite()), "{dtype:?} {p:?}");
@@ -267,15 +266,14 @@ fn f32_agrees_with_f64() {
         [-30.0, 4.0, 7.0],
         [1e6, 2e6, -3e6],
     ];
-    let a = v64(&contract(&pts(&p, DType::F32)).unwrap());
-    let b = v64(&contract(&pts(&p, DType::F64)).unwrap());
+    let a = v64(&contract_points(&pts(&p, DType::F32)).unwrap());
+    let b = v64(&contract_points(&pts(&p, DType::F64)).unwrap());
     for (a, b) in a.iter().zip(&b) {
         assert!(close(*a, *b, 1e-6, 1e-6), "{a} vs {b}");
     }
     let cov = Tensor::ones((4, 3), DType::F64, &Device::Cpu).unwrap();
-    let (_, va) =
-        contract_gaussians(&pts(&p, DType::F32), &cov.to_dtype(DType::F32).unwrap()).unwrap();
-    let (_, vb) = contract_gaussians(&pts(&p, DType::F64), &cov).unwrap();
+    let (_, va) = contract_both(&pts(&p, DType::F32), &cov.to_dtype(DType::F32).unwrap()).unwrap();
+    let (_, vb) = contract_both(&pts(&p, DType::F64), &cov).unwrap();
     for (a, b) in v64(&va).iter().zip(&v64(&vb)) {
         assert!(close(*a, *b, 1e-5, 1e-30), "{a} vs {b}");
     }
@@ -313,9 +311,9 @@ fn gaussians_means_are_contracted_and_covariances_are_j_sigma_jt() {
             .unwrap();
         let diag_in: Vec<[f64; 3]> = covs.iter().map(|s| [s[0][0], s[1][1], s[2][2]]).collect();
         let diag = pts(&diag_in, dtype);
-        let (cm, cf) = contract_gaussians(&m, &full).unwrap();
-        let (cm2, cd) = contract_gaussians(&m, &diag).unwrap();
-        assert_eq!(v64(&cm), v64(&contract(&m).unwrap()));
+        let (cm, cf) = contract_both(&m, &full).unwrap();
+        let (cm2, cd) = contract_both(&m, &diag).unwrap();
+        assert_eq!(v64(&cm), v64(&contract_points(&m).unwrap()));
         assert_eq!(v64(&cm2), v64(&cm));
         assert_eq!(cf.dims(), &[6, 3, 3]);
         assert_eq!(cd.dims(), &[6, 3]);
@@ -354,25 +352,19 @@ fn bad_inputs_name_the_argument() {
     let ok = pts(&[[0.5, 2.0, 0.0], [1.0, 1.0, 1.0]], DType::F64);
     for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
         let x = pts(&[[0.5, 2.0, 0.0], [1.0, bad, 1.0]], DType::F64);
-        assert_eq!(arg_of(contract(&x).unwrap_err()), "points", "{bad}");
+        assert_eq!(arg_of(contract_points(&x).unwrap_err()), "points", "{bad}");
         assert_eq!(
-            arg_of(contract(&x.to_dtype(DType::F32).unwrap()).unwrap_err()),
+            arg_of(contract_points(&x.to_dtype(DType::F32).unwrap()).unwrap_err()),
             "points"
         );
-        assert_eq!(arg_of(contract_gaussians(&x, &ok).unwrap_err()), "means");
-        assert_eq!(
-            arg_of(contract_gaussians(&ok, &x).unwrap_err()),
-            "covariances"
-        );
+        assert_eq!(arg_of(contract_both(&x, &ok).unwrap_err()), "points");
+        assert_eq!(arg_of(contract_both(&ok, &x).unwrap_err()), "covariances");
     }
     let two_cols = Tensor::zeros((4, 2), DType::F64, &d).unwrap();
-    assert_eq!(arg_of(contract(&two_cols).unwrap_err()), "points");
+    assert_eq!(arg_of(contract_points(&two_cols).unwrap_err()), "points");
     let ints = Tensor::zeros((4, 3), DType::U32, &d).unwrap();
-    assert_eq!(arg_of(contract(&ints).unwrap_err()), "points");
-    assert_eq!(
-        arg_of(contract_gaussians(&two_cols, &ok).unwrap_err()),
-        "means"
-    );
+    assert_eq!(arg_of(contract_points(&ints).unwrap_err()), "points");
+    assert_eq!(arg_of(contract_both(&two_cols, &ok).unwrap_err()), "points");
     for cov in [
         Tensor::zeros((2, 2, 2), DType::F64, &d).unwrap(),
         Tensor::zeros((3, 3, 3), DType::F64, &d).unwrap(),
@@ -381,16 +373,15 @@ fn bad_inputs_name_the_argument() {
         Tensor::zeros((2, 3), DType::F32, &d).unwrap(),
     ] {
         assert_eq!(
-            arg_of(contract_gaussians(&ok, &cov).unwrap_err()),
+            arg_of(contract_both(&ok, &cov).unwrap_err()),
             "covariances",
             "{cov:?}"
         );
     }
     // Empty batches pass through.
     let empty = Tensor::zeros((0, 3), DType::F32, &d).unwrap();
-    assert_eq!(contract(&empty).unwrap().dims(), &[0, 3]);
-    let (m, v) =
-        contract_gaussians(&empty, &Tensor::zeros((0, 3, 3), DType::F32, &d).unwrap()).unwrap();
+    assert_eq!(contract_points(&empty).unwrap().dims(), &[0, 3]);
+    let (m, v) = contract_both(&empty, &Tensor::zeros((0, 3, 3), DType::F32, &d).unwrap()).unwrap();
     assert_eq!(
         (m.dims(), v.dims()),
         (&[0usize, 3][..], &[0usize, 3, 3][..])
@@ -454,9 +445,9 @@ proptest! {
         let hx = 1e-4 * r.max(1e-3);
         let wt = Tensor::new(&[w], &d).unwrap();
 
-        // contract: L = Σ w · contract(x).
+        // contract: L = Σ w · contract_points(x).
         let x = Var::from_tensor(&pts(&[p], DType::F64)).unwrap();
-        let loss = (contract(x.as_tensor()).unwrap() * &wt).unwrap().sum_all().unwrap();
+        let loss = (contract_points(x.as_tensor()).unwrap() * &wt).unwrap().sum_all().unwrap();
         let g = v64(loss.backward().unwrap().get(x.as_tensor()).unwrap());
         let mut f = |y: &[f64]| {
             let c = c1([y[0], y[1], y[2]]);
@@ -466,7 +457,7 @@ proptest! {
         // Only a stencil across the unit sphere may have no clean difference.
         prop_assert!(compared == 3 || (r - 1.0).abs() < 1e-3, "{compared} compared at r {r}");
 
-        // contract_gaussians: L = Σ W ⊙ cov′ (+ Σ w · mean′), full Σ = A Aᵀ or its diagonal.
+        // contract of Gaussians: L = Σ W ⊙ cov′ (+ Σ w · mean′), full Σ = A Aᵀ or its diagonal.
         let sigma: Vec<f64> = if full {
             (0..9)
                 .map(|ik| (0..3).map(|j| a[ik / 3 * 3 + j] * a[ik % 3 * 3 + j]).sum::<f64>())
@@ -478,7 +469,7 @@ proptest! {
         let wc_vals: Vec<f64> = cov_w[..sigma.len()].to_vec();
         let wc = Tensor::from_vec(wc_vals.clone(), shape.clone(), &d).unwrap();
         let gaussian_loss = |m: &Tensor, s: &Tensor| {
-            let (cm, cs) = contract_gaussians(m, s).unwrap();
+            let (cm, cs) = contract_both(m, s).unwrap();
             ((cs * &wc).unwrap().sum_all().unwrap() + (cm * &wt).unwrap().sum_all().unwrap())
                 .unwrap()
         };
@@ -498,7 +489,7 @@ proptest! {
         // The covariance term alone, for the gradient w.r.t. Σ (the means' term would
         // swamp its differences far away).
         let cov_only = |y: &[f64], s: &[f64]| {
-            let (_, cs) = contract_gaussians(
+            let (_, cs) = contract_both(
                 &pts(&[[y[0], y[1], y[2]]], DType::F64),
                 &Tensor::from_vec(s.to_vec(), shape.clone(), &d).unwrap(),
             )
@@ -509,7 +500,7 @@ proptest! {
         check_grad("covariances", &mut |s| cov_only(&p, s), &sigma, &gs, &|_| 1e-3)?;
         // The means' gradient of the covariance term alone (1/r³ far away).
         let m2 = Var::from_tensor(&pts(&[p], DType::F64)).unwrap();
-        let (_, cs) = contract_gaussians(m2.as_tensor(), s.as_tensor()).unwrap();
+        let (_, cs) = contract_both(m2.as_tensor(), s.as_tensor()).unwrap();
         let gm2 = v64(
             (cs * &wc).unwrap().sum_all().unwrap().backward().unwrap()
                 .get(m2.as_tensor()).unwrap(),
@@ -517,4 +508,15 @@ proptest! {
         check_grad("means (covariance term)", &mut |y| cov_only(y, &sigma), &p, &gm2, &|_| hx)?;
         prop_assert!(gm.iter().chain(&gs).chain(&gm2).all(|v| v.is_finite()));
     }
+}
+
+/// [`contract`](neural_fields::volume::contract) of points.
+fn contract_points(points: &Tensor) -> neural_fields::Result<Tensor> {
+    Ok(neural_fields::volume::contract(points, None)?.0)
+}
+
+/// [`contract`](neural_fields::volume::contract) of Gaussians.
+fn contract_both(means: &Tensor, cov: &Tensor) -> neural_fields::Result<(Tensor, Tensor)> {
+    let (m, c) = neural_fields::volume::contract(means, Some(cov))?;
+    Ok((m, c.expect("covariances in, covariances out")))
 }

@@ -110,41 +110,30 @@ fn logits<F: ImplicitSurface + ?Sized>(field: &F, points: &Tensor) -> Result<Ten
     )?)
 }
 
-fn bce_mean<F: ImplicitSurface + ?Sized>(
+/// DVR's occupancy losses: the mean BCE of the logits `s = σ(f − τ)` at
+/// `points: [M, 3]` towards a label, `mean BCE(s(p), y)` with `y = 1` when `inside`,
+/// else `0`:
+/// - the **freespace loss** (`inside = false`), at the predicted surface points of rays
+///   outside the object mask, or at [`random_points_on_rays`] of rays without a hit;
+/// - the **occupancy loss** of foreground rays that found no surface (`inside = true`),
+///   e.g. at [`random_points_on_rays`] or [`most_inside_along_rays`] of those rays.
+///
+/// Differentiable w.r.t. the field (and `points`). 0 for `M = 0`.
+///
+/// # Errors
+/// `points` not float `[M, 3]`; field errors.
+pub fn occupancy_bce<F: ImplicitSurface + ?Sized>(
     field: &F,
     points: &Tensor,
-    target: f64,
+    inside: bool,
 ) -> Result<Tensor> {
     if check_points(points, "points")? == 0 {
         return Ok(Tensor::zeros((), points.dtype(), points.device())?);
     }
     let s = logits(field, points)?;
+    let target = if inside { 1.0 } else { 0.0 };
     let y = Tensor::full(target, s.shape(), s.device())?.to_dtype(s.dtype())?;
     Ok(bce_with_logits(&s, &y)?.mean_all()?)
-}
-
-/// Freespace loss (DVR): mean BCE of the logits `s = σ(f − τ)` towards *outside*,
-/// `mean BCE(s(p), 0)`, at `points: [M, 3]` — the predicted surface points of rays
-/// outside the object mask, or [`random_points_on_rays`] of rays without a hit.
-/// Differentiable w.r.t. the field (and `points`). 0 for `M = 0`.
-///
-/// # Errors
-/// `points` not float `[M, 3]`; field errors.
-pub fn freespace_loss<F: ImplicitSurface + ?Sized>(field: &F, points: &Tensor) -> Result<Tensor> {
-    bce_mean(field, points, 0.0)
-}
-
-/// Occupancy loss (DVR): mean BCE towards *inside*, `mean BCE(s(p), 1)`, at
-/// `points: [M, 3]` on foreground rays (inside the object mask) that found no surface,
-/// e.g. [`random_points_on_rays`]. Differentiable w.r.t. the field. 0 for `M = 0`.
-///
-/// # Errors
-/// `points` not float `[M, 3]`; field errors.
-pub fn missed_foreground_loss<F: ImplicitSurface + ?Sized>(
-    field: &F,
-    points: &Tensor,
-) -> Result<Tensor> {
-    bce_mean(field, points, 1.0)
 }
 
 /// One uniformly random point per ray, `o + u·w` with `u ~ U(near, far)` drawn from

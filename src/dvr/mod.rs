@@ -51,9 +51,8 @@ mod model;
 
 pub use implicit::{implicit_surface, ImplicitConfig, SurfacePoints};
 pub use losses::{
-    depth_loss, eikonal_loss, freespace_loss, idr_mask_loss, missed_foreground_loss,
-    most_inside_along_rays, normal_smoothness_loss, photometric_loss, random_points_on_rays,
-    AlphaSchedule, Photometric,
+    depth_loss, eikonal_loss, idr_mask_loss, most_inside_along_rays, normal_smoothness_loss,
+    occupancy_bce, photometric_loss, random_points_on_rays, AlphaSchedule, Photometric,
 };
 pub use marching::{
     march, sphere_trace, Hits, MarchConfig, RayStatus, SecantRule, SphereTraceConfig, StepSchedule,

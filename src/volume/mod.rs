@@ -41,8 +41,8 @@
 //! - the [`OccupancyGrid`] estimator, whose [`OccupancyGrid::sample`] emits samples only
 //!   in occupied cells, in the packed layout, and given a density function only those
 //!   that are visible and not empty;
-//! - scene contraction (mip-NeRF 360): [`contract`] for points and
-//!   [`contract_gaussians`] for Gaussians (linearised), for unbounded scenes;
+//! - scene contraction (mip-NeRF 360): [`contract`] of points or (linearised) of
+//!   Gaussians, for unbounded scenes;
 //! - proposal-network sampling (mip-NeRF 360, [`proposal_sample`]) and its
 //!   [`interlevel_loss`];
 //! - regularisers: [`distortion_loss`], [`depth_smoothness`] (the trunc-exp density
@@ -74,7 +74,7 @@ pub use compositing::{
     DEFAULT_TERMINATION_EPS,
 };
 pub use cone::{conical_frustums, Covariance, Gaussians};
-pub use contraction::{contract, contract_gaussians};
+pub use contraction::contract;
 pub use grid::{GridConfig, GridMarchConfig, GridSamples, OccupancyGrid};
 pub use layout::{Intervals, Layout, Packed, Weights};
 pub use nerf_model::{nerf, ColorLoss, DensityActivation, Nerf, NerfConfig};
