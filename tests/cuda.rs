@@ -27,7 +27,8 @@ use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarMap;
 use common::v64;
 use neural_fields::camera::{
-    ray_aabb, ray_sphere, Camera, Convention, Intersection, Intrinsics, Rays,
+    pose_rays, ray_aabb, ray_sphere, Camera, Convention, Intersection, Intrinsics, PixelFilter,
+    PoseParam, Rays,
 };
 use neural_fields::dvr::{
     implicit_surface, march, sphere_trace, ImplicitConfig, MarchConfig, SphereTraceConfig,
@@ -41,7 +42,7 @@ use neural_fields::occupancy::{marching_cubes, mise, Grid, MiseConfig};
 use neural_fields::rng::SplitMix64;
 use neural_fields::volume::{
     anneal_near_far, composite, distortion_loss, merge_sorted, render_weights, sample_pdf,
-    stratified, visible_mask, CompositeConfig, Intervals, Jitter, Layout, Packed, ANNEAL_MID_RATIO,
+    stratified, visible_mask, CompositeConfig, Intervals, Jitter, Layout, ANNEAL_MID_RATIO,
     ANNEAL_P_START, PDF_PADDING,
 };
 use neural_fields::Result;
@@ -634,9 +635,10 @@ fn camera_case(dev: &Device, dtype: DType) -> Result<Outs> {
         ("random_rays.pixels".into(), Out::T(idx)),
     ];
     // A learnable pose: gradients of the ray directions reach the quaternion.
-    let pose = cv.pose_param(dev, dtype)?;
-    let pixels = cv.pixel_grid(dev, dtype)?;
-    let pr = pose.rays(cv.intrinsics(), cv.convention(), &pixels)?;
+    let pose = PoseParam::from_affine(&cv.cam_to_world(), dev, dtype)?;
+    let pixels = cv.subpixel_grid(1, PixelFilter::Box, dev, dtype)?;
+    let views = Tensor::zeros(pixels.dim(0)?, DType::U32, dev)?;
+    let pr = pose_rays(std::slice::from_ref(&pose), &[cv], &views, &pixels)?;
     let mut up = SplitMix64::new(4);
     let g = probe(pr.directions(), &mut up)?.backward()?;
     out.push(("pose.directions".into(), Out::T(pr.directions().clone())));
