@@ -410,7 +410,10 @@ fn check_grad(
     h: &dyn Fn(usize) -> f64,
 ) -> Result<usize, TestCaseError> {
     let mut compared = 0;
-    let mag = got.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    // The stencil's scale: the gradient's size, and at least the loss's own (a gradient
+    // of 4e-4 on a loss of 1.75 at r = 42 has differences only a few hundred ulps of the
+    // loss wide, which the bound's 1e-8 agreement check must not read as a kink).
+    let mag = got.iter().fold(f(x).abs(), |m, v| m.max(v.abs()));
     for k in 0..x.len() {
         let mut g = |t: f64| {
             let mut y = x.to_vec();
@@ -422,7 +425,9 @@ fn check_grad(
         };
         compared += 1;
         prop_assert!(
-            (got[k] - fd).abs() <= 1e-6 * got[k].abs().max(fd.abs()).max(1e-3 * mag) + bar,
+            // + 1e-300: far out, J's entries (1/r, 1/r²) multiply into the subnormal
+            // range, where a product keeps only a few digits.
+            (got[k] - fd).abs() <= 1e-6 * got[k].abs().max(fd.abs()).max(1e-3 * mag) + bar + 1e-300,
             "{what} [{k}] at {x:?}: autograd {} vs fd {fd} (±{bar})",
             got[k]
         );
