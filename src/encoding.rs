@@ -342,6 +342,20 @@ pub enum PointEncoding {
     /// A frequency encoding or hash grid under BARF's coarse-to-fine window
     /// ([`CoarseToFine`]).
     CoarseToFine(CoarseToFine),
+    /// mip-NeRF's integrated positional encoding ([`integrated_pe`]) of Gaussians in
+    /// `dim` dimensions, each input row the mean and the diagonal variance side by side,
+    /// `x = [μ, σ²]: [N, 2·dim]` (from [`crate::volume::conical_frustums`]); output
+    /// `[N, 2·dim·(max_deg − min_deg)]`. Zero variances give the frequency encoding
+    /// `sin(2ᵏμ), cos(2ᵏμ)` (without π) of the means. `min_deg ≤ max_deg ≤ 60`, checked
+    /// where it encodes.
+    Integrated {
+        /// The Gaussians' dimension (3 for points in space).
+        dim: usize,
+        /// The lowest octave `k` (mip-NeRF: 0).
+        min_deg: usize,
+        /// One past the highest octave (mip-NeRF: 16 for positions).
+        max_deg: usize,
+    },
 }
 
 impl PointEncoding {
@@ -354,6 +368,11 @@ impl PointEncoding {
             PointEncoding::Fourier(e) => e.out_dim(),
             PointEncoding::HashGrid(e) => e.out_dim(),
             PointEncoding::CoarseToFine(e) => e.out_dim(),
+            PointEncoding::Integrated {
+                dim,
+                min_deg,
+                max_deg,
+            } => 2 * dim * max_deg.saturating_sub(*min_deg),
         }
     }
 
@@ -367,6 +386,7 @@ impl PointEncoding {
             PointEncoding::Fourier(e) => Some(e.in_dim()),
             PointEncoding::HashGrid(e) => Some(e.in_dim()),
             PointEncoding::CoarseToFine(e) => Some(e.in_dim()),
+            PointEncoding::Integrated { dim, .. } => Some(2 * dim),
         }
     }
 
@@ -376,7 +396,9 @@ impl PointEncoding {
         match self {
             PointEncoding::Identity => true,
             PointEncoding::Frequency(e) => e.include_input,
-            PointEncoding::Fourier(_) | PointEncoding::HashGrid(_) => false,
+            PointEncoding::Fourier(_)
+            | PointEncoding::HashGrid(_)
+            | PointEncoding::Integrated { .. } => false,
             PointEncoding::CoarseToFine(e) => e.inner().leads_with_input(),
         }
     }
@@ -398,6 +420,19 @@ impl PointEncoding {
             PointEncoding::Fourier(e) => e.forward(x),
             PointEncoding::HashGrid(e) => e.forward(x),
             PointEncoding::CoarseToFine(e) => e.forward(x),
+            PointEncoding::Integrated {
+                dim,
+                min_deg,
+                max_deg,
+            } => {
+                check_input(x, 2 * dim)?;
+                integrated_pe(
+                    &x.narrow(1, 0, *dim)?,
+                    &x.narrow(1, *dim, *dim)?,
+                    *min_deg,
+                    *max_deg,
+                )
+            }
         }
     }
 
@@ -419,6 +454,15 @@ impl PointEncoding {
             PointEncoding::Fourier(e) => e.forward_jvp(x, dx),
             PointEncoding::HashGrid(e) => e.forward_jvp(x, dx),
             PointEncoding::CoarseToFine(e) => e.forward_jvp(x, dx),
+            PointEncoding::Integrated {
+                dim,
+                min_deg,
+                max_deg,
+            } => {
+                let n = check_input(x, 2 * dim)?;
+                check_tangents(x, dx, n, 2 * dim)?;
+                integrated_pe_jvp(x, dx, *dim, *min_deg, *max_deg)
+            }
         }
     }
 }
@@ -479,6 +523,49 @@ impl crate::kernels::RowEncode for RowEncoder {
     fn encode<T: candle_core::WithDType>(&mut self, x: &[T], out: &mut [T]) {
         RowEncoder::encode(self, x, out);
     }
+}
+
+/// [`integrated_pe`] of `x = [μ, σ²]: [N, 2D]` and its JVPs along `dx: [N, K, 2D]`:
+/// with `a = 2ᵏμ`, `b = 4ᵏσ²/2`, `∂(sin a·e⁻ᵇ) = (cos a·2ᵏdμ − sin a·4ᵏdσ²/2)·e⁻ᵇ` and
+/// `∂(cos a·e⁻ᵇ) = (−sin a·2ᵏdμ − cos a·4ᵏdσ²/2)·e⁻ᵇ`.
+fn integrated_pe_jvp(
+    x: &Tensor,
+    dx: &Tensor,
+    d: usize,
+    min_deg: usize,
+    max_deg: usize,
+) -> Result<(Tensor, Tensor)> {
+    let out = integrated_pe(&x.narrow(1, 0, d)?, &x.narrow(1, d, d)?, min_deg, max_deg)?;
+    let (n, k) = (dx.dim(0)?, dx.dim(1)?);
+    let l = max_deg - min_deg;
+    let powers = |p: f64| -> Result<Tensor> {
+        let v: Vec<f64> = (min_deg..max_deg).map(|j| (p * j as f64).exp2()).collect();
+        Ok(Tensor::from_vec(v, (1, 1, l, 1), x.device())?.to_dtype(x.dtype())?)
+    };
+    let (s, s2) = (powers(1.0)?, powers(2.0)?);
+    // [N, 1, L, D] arguments and damping; [N, K, L, D] tangents.
+    let a = x
+        .narrow(1, 0, d)?
+        .reshape((n, 1, 1, d))?
+        .broadcast_mul(&s)?;
+    let damp = x
+        .narrow(1, d, d)?
+        .reshape((n, 1, 1, d))?
+        .broadcast_mul(&s2)?
+        .affine(-0.5, 0.0)?
+        .exp()?;
+    let (sin, cos) = safe_sin_cos(&a)?;
+    let (sin, cos) = ((sin * &damp)?, (cos * &damp)?);
+    let dmu = dx.narrow(2, 0, d)?.unsqueeze(2)?.broadcast_mul(&s)?;
+    let dvar = dx
+        .narrow(2, d, d)?
+        .unsqueeze(2)?
+        .broadcast_mul(&s2)?
+        .affine(0.5, 0.0)?;
+    let ds = (dmu.broadcast_mul(&cos)? - dvar.broadcast_mul(&sin)?)?;
+    let dc = (dmu.broadcast_mul(&sin)?.neg()? - dvar.broadcast_mul(&cos)?)?;
+    let jvp = Tensor::cat(&[ds, dc], 3)?.reshape((n, k, 2 * l * d))?;
+    Ok((out, jvp))
 }
 
 /// Integrated positional encoding (mip-NeRF) of Gaussians with means `μ: [N, D]` and

@@ -48,6 +48,8 @@ const CAMERAS: &[&str] = &[
     "camera::Rays::narrow",
     "camera::Rays::new",
     "camera::Rays::normalized",
+    "camera::Rays::radii",
+    "camera::Rays::with_radii",
     "camera::ray_aabb",
     "camera::ray_sphere",
 ];
@@ -276,6 +278,17 @@ fn sweep_camera(s: &mut Suite) {
                 .clone()])
             },
         );
+        // Cone radii 0, tiny, huge and ordinary through normalisation (divided by |d|,
+        // which reaches `short`).
+        let radii = var(&[0.0, 1e-30, 1e10, 1e-3], &[4], dtype);
+        for item in ["camera::Rays::with_radii", "camera::Rays::radii"] {
+            s.case(item, &label, Expect::FiniteOrErr, &[&w, &radii], || {
+                let r = Rays::new(o.as_tensor().clone(), w.as_tensor().clone())?
+                    .with_radii(radii.as_tensor().clone())?
+                    .normalized()?;
+                Ok(vec![r.radii().expect("radii kept").clone()])
+            });
+        }
         s.case(
             "camera::Rays::narrow",
             &label,

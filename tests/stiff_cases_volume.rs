@@ -74,6 +74,7 @@ const NERF: &[&str] = &[
     "volume::Nerf::color_loss",
     "volume::Nerf::density",
     "volume::Nerf::radiance",
+    "volume::Nerf::sample_inputs",
     "volume::nerf",
     "volume::Intervals::retain",
     "volume::interlevel_loss",
@@ -157,7 +158,8 @@ fn sweep_cone(s: &mut Suite) {
                             (starts.as_tensor().clone(), ends.as_tensor().clone())
                         };
                         let iv = Intervals::new(st, en, layout)?;
-                        let g = conical_frustums(&rays, radii.as_tensor(), &iv, covariance)?;
+                        let rays = rays.clone().with_radii(radii.as_tensor().clone())?;
+                        let g = conical_frustums(&rays, &iv, covariance)?;
                         Ok(vec![g.means, g.covariances])
                     },
                 );
@@ -868,6 +870,82 @@ fn sweep_nerf(s: &mut Suite) {
                 );
             }
         }
+    }
+    // mip-NeRF: the integrated encoding on conical frustums of radii 0, 1e-30, huge and
+    // ordinary, from rays at the origin, at ±big and along tiny directions.
+    #[cfg(feature = "volume")]
+    for dtype in DTYPES {
+        use neural_fields::camera::Rays;
+        use neural_fields::encoding::PointEncoding;
+        use neural_fields::volume::{stratified, CompositeConfig, Jitter};
+        let big = if dtype == DType::F32 { 1e8 } else { 1e100 };
+        let config = NerfConfig {
+            position_encoding: PointEncoding::Integrated {
+                dim: 3,
+                min_deg: 0,
+                max_deg: 16,
+            },
+            width: 16,
+            color_width: 8,
+            ..NerfConfig::default()
+        };
+        let varmap = candle_nn::VarMap::new();
+        let net = build_seeded(&varmap, dtype, &d, 5, |vb| nerf(&config, vb)).unwrap();
+        let vars = varmap.all_vars();
+        let o = var(
+            &[
+                0.0, 0.0, 0.0, big, -big, big, 1e-30, 0.0, 0.0, 0.3, 0.2, -4.0,
+            ],
+            &[4, 3],
+            dtype,
+        );
+        let w = var(
+            &[
+                0.0, 0.0, 1.0, 1e-30, 0.0, 1.0, 0.0, big, 0.0, 0.1, -0.2, 1.0,
+            ],
+            &[4, 3],
+            dtype,
+        );
+        let radii = var(&[0.0, 1e-30, big, 2e-3], &[4], dtype);
+        let t = |v: &[f64]| {
+            Tensor::from_slice(v, 4, &d)
+                .unwrap()
+                .to_dtype(dtype)
+                .unwrap()
+        };
+        let (near, far) = (t(&[0.0, 0.0, 1e-30, 2.0]), t(&[1.0, big, 2e-30, 6.0]));
+        let target = Tensor::full(0.5, (4, 3), &d)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap();
+        let label = format!("{dtype:?}, integrated encoding, radii 0…{big:e}");
+        let rays = || -> neural_fields::Result<Rays> {
+            Rays::new(o.as_tensor().clone(), w.as_tensor().clone())?
+                .with_radii(radii.as_tensor().clone())
+        };
+        s.case(
+            "volume::Nerf::sample_inputs",
+            &label,
+            Expect::Finite,
+            &[&o, &w, &radii],
+            || {
+                let iv = stratified(&near, &far, 32, Jitter::None, 0)?;
+                Ok(vec![net.sample_inputs(&rays()?, &iv)?])
+            },
+        );
+        let mut wrt: Vec<&Var> = vars.iter().collect();
+        wrt.push(&radii);
+        s.case(
+            "volume::Nerf::color_loss",
+            &label,
+            Expect::FiniteOrErr,
+            &wrt,
+            || {
+                let iv = stratified(&near, &far, 32, Jitter::PerSample, 0)?;
+                let out = net.color_loss(&rays()?, &iv, &target, &CompositeConfig::default())?;
+                Ok(vec![out.loss])
+            },
+        );
     }
     #[cfg(feature = "volume")]
     for dtype in DTYPES {

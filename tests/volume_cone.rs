@@ -132,7 +132,12 @@ fn moments_match_a_numerical_integral_over_the_frustum() {
         let ry = rays(&[o], &[d], DType::F64);
         let iv = batched(&[t0], &[t1], 1, DType::F64);
         let radii = t(&[r], &[1], DType::F64);
-        let g = conical_frustums(&ry, &radii, &iv, Covariance::Full).unwrap();
+        let g = conical_frustums(
+            &ry.clone().with_radii(radii.clone()).unwrap(),
+            &iv,
+            Covariance::Full,
+        )
+        .unwrap();
         let (mean, cov) = frustum_moments(o, d, r, t0, t1);
         let got_mean = v64(&g.means);
         let got_cov = v64(&g.covariances);
@@ -185,7 +190,12 @@ fn a_thin_interval_is_a_disc() {
     let (tm, r) = (3.0, 0.01);
     let ry = rays(&[o], &[d], DType::F64);
     let iv = batched(&[tm - 1e-7], &[tm + 1e-7], 1, DType::F64);
-    let g = conical_frustums(&ry, &t(&[r], &[1], DType::F64), &iv, Covariance::Full).unwrap();
+    let g = conical_frustums(
+        &ry.clone().with_radii(t(&[r], &[1], DType::F64)).unwrap(),
+        &iv,
+        Covariance::Full,
+    )
+    .unwrap();
     let mean = v64(&g.means);
     for q in 0..3 {
         assert!(close(mean[q], o[q] + tm * d[q], 1e-12, 1.0), "{mean:?}");
@@ -221,10 +231,30 @@ fn diagonal_is_the_diagonal_of_full_in_both_layouts_and_dtypes() {
         let rad = t(&radii, &[3], dtype);
         let b = batched(&starts, &ends, 3, dtype);
         let p = packed(&starts, &ends, &[3, 3, 3], dtype);
-        let gb = conical_frustums(&ry, &rad, &b, Covariance::Diagonal).unwrap();
-        let gf = conical_frustums(&ry, &rad, &b, Covariance::Full).unwrap();
-        let pd = conical_frustums(&ry, &rad, &p, Covariance::Diagonal).unwrap();
-        let pf = conical_frustums(&ry, &rad, &p, Covariance::Full).unwrap();
+        let gb = conical_frustums(
+            &ry.clone().with_radii(rad.clone()).unwrap(),
+            &b,
+            Covariance::Diagonal,
+        )
+        .unwrap();
+        let gf = conical_frustums(
+            &ry.clone().with_radii(rad.clone()).unwrap(),
+            &b,
+            Covariance::Full,
+        )
+        .unwrap();
+        let pd = conical_frustums(
+            &ry.clone().with_radii(rad.clone()).unwrap(),
+            &p,
+            Covariance::Diagonal,
+        )
+        .unwrap();
+        let pf = conical_frustums(
+            &ry.clone().with_radii(rad.clone()).unwrap(),
+            &p,
+            Covariance::Full,
+        )
+        .unwrap();
         assert_eq!(gb.means.dims(), &[3, 3, 3]);
         assert_eq!(gb.covariances.dims(), &[3, 3, 3]);
         assert_eq!(gf.covariances.dims(), &[3, 3, 3, 3]);
@@ -269,11 +299,26 @@ fn packed_rays_may_have_no_samples() {
     let rad = t(&radii, &[3], DType::F64);
     let b = batched(&starts, &ends, 3, DType::F64);
     let p = packed(&starts[..3], &ends[..3], &[3, 0, 0], DType::F64);
-    let gb = conical_frustums(&ry, &rad, &b, Covariance::Full).unwrap();
-    let gp = conical_frustums(&ry, &rad, &p, Covariance::Full).unwrap();
+    let gb = conical_frustums(
+        &ry.clone().with_radii(rad.clone()).unwrap(),
+        &b,
+        Covariance::Full,
+    )
+    .unwrap();
+    let gp = conical_frustums(
+        &ry.clone().with_radii(rad.clone()).unwrap(),
+        &p,
+        Covariance::Full,
+    )
+    .unwrap();
     assert_eq!(v64(&gp.covariances), v64(&gb.covariances)[..27].to_vec());
     let empty = packed(&[], &[], &[0, 0, 0], DType::F64);
-    let ge = conical_frustums(&ry, &rad, &empty, Covariance::Diagonal).unwrap();
+    let ge = conical_frustums(
+        &ry.clone().with_radii(rad.clone()).unwrap(),
+        &empty,
+        Covariance::Diagonal,
+    )
+    .unwrap();
     assert_eq!(ge.means.dims(), &[0, 3]);
 }
 
@@ -283,7 +328,9 @@ fn bad_input_names_the_argument() {
     let ry = rays(&o, &d, DType::F32);
     let iv = batched(&starts, &ends, 3, DType::F32);
     let err = |radii: &Tensor, iv: &Intervals, ry: &Rays| {
-        conical_frustums(ry, radii, iv, Covariance::Diagonal)
+        ry.clone()
+            .with_radii(radii.clone())
+            .and_then(|ry| conical_frustums(&ry, iv, Covariance::Diagonal))
             .unwrap_err()
             .to_string()
     };
@@ -302,6 +349,11 @@ fn bad_input_names_the_argument() {
     let two = rays(&o[..2], &d[..2], DType::F32);
     let e = err(&t(&radii[..2], &[2], DType::F32), &iv, &two);
     assert!(e.starts_with("rays"), "{e}");
+    // Rays without cone radii cannot be cast.
+    let e = conical_frustums(&ry, &iv, Covariance::Diagonal)
+        .unwrap_err()
+        .to_string();
+    assert!(e.starts_with("rays") && e.contains("radii"), "{e}");
     let iv64 = batched(&starts, &ends, 3, DType::F64);
     let e = err(&t(&radii, &[3], DType::F32), &iv64, &ry);
     assert!(e.starts_with("rays"), "{e}");
@@ -337,7 +389,10 @@ fn loss(
             t(&x.ends, &[r, 2], DType::F64),
         ],
     };
-    let ry = Rays::new(tensors[0].clone(), tensors[1].clone()).unwrap();
+    let ry = Rays::new(tensors[0].clone(), tensors[1].clone())
+        .unwrap()
+        .with_radii(tensors[2].clone())
+        .unwrap();
     let iv = if packed_layout {
         let p = Packed::from_counts(&vec![2; r], &DEV).unwrap();
         Intervals::new(
@@ -349,7 +404,7 @@ fn loss(
     } else {
         Intervals::new(tensors[3].clone(), tensors[4].clone(), Layout::Batched).unwrap()
     };
-    let g = conical_frustums(&ry, &tensors[2], &iv, cov).unwrap();
+    let g = conical_frustums(&ry, &iv, cov).unwrap();
     let weights = |n: usize, seed: f64| -> Tensor {
         let w: Vec<f64> = (0..n).map(|i| ((i as f64 + 1.0) * seed).sin()).collect();
         t(&w, &[n], DType::F64)

@@ -14,6 +14,8 @@ pub(super) enum Sampler {
 pub(super) enum Encoding {
     Pe,
     Hash,
+    /// mip-NeRF: the integrated encoding of each interval's conical frustum.
+    Ipe,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]

@@ -11,7 +11,10 @@
 //! IDR/DTU); training on the `train` split with a random background per ray, evaluation on
 //! `test` (or `val`) on white. **Model**: [`Nerf`] with its defaults, Adam with a learning
 //! rate decaying log-linearly to a tenth of `--lr`; `--encoding hash` puts instant-NGP's
-//! hash grid over the scene box on a 1 × 64 trunk.
+//! hash grid over the scene box on a 1 × 64 trunk; `--encoding ipe` is mip-NeRF: each
+//! interval is the conical frustum of its ray's pixel footprint, encoded by the integrated
+//! positional encoding ([`Nerf::sample_inputs`]), so one model serves every resolution
+//! (train it on `examples/multiscale.rs`'s data).
 //!
 //! **Samplers** (`--sampler`): `grid` (default), an [`OccupancyGrid`] (64³ cells) updated
 //! every 16 steps, marched at the box diagonal / 64 while more than a quarter of it is
@@ -34,7 +37,8 @@
 //! `train_seconds` without evaluations, `steps`, `samples_per_ray`, `sampler`, `encoding`,
 //! `eval_split`, `eval_views`, `eval_supersample`, `pixel_filter`, `jitter`,
 //! `train_supersample`, `march_jitter`, `coarse_to_fine`, `view_dependence`,
-//! `alpha_threshold`, `proposal_samples`, `data`); `curve.csv` (`step,train_seconds,psnr`
+//! `alpha_threshold`, `proposal_samples`, `data`, and `psnr_per_scale`: per image size,
+//! largest first, `width`, `height`, `views`, `psnr`, `ssim`); `curve.csv` (`step,train_seconds,psnr`
 //! every `--eval-every` steps on `--eval-views` views, and at the end); `view_{i}.png`
 //! (truth | prediction | error), `depth_{i}.png`, `opacity_{i}.png` for `--pictures`
 //! views; `weights.safetensors`, which `--resume` loads. A NaN or infinity in the loss, a
@@ -85,6 +89,36 @@ fn open_windows(windows: &[CoarseToFine], progress: f64, span: Option<(f64, f64)
     Ok(())
 }
 
+/// The mean PSNR and SSIM of the renders `[truth, colour, …]` per image size, largest
+/// first: a multiscale dataset's scales.
+fn per_scale(renders: &[[Tensor; 4]]) -> Result<Vec<serde_json::Value>> {
+    let mut sizes: Vec<(usize, usize)> = Vec::new();
+    for [truth, ..] in renders {
+        let (h, w, _) = truth.dims3()?;
+        if !sizes.contains(&(w, h)) {
+            sizes.push((w, h));
+        }
+    }
+    sizes.sort_by_key(|&(w, h)| std::cmp::Reverse(w * h));
+    sizes
+        .into_iter()
+        .map(|(w, h)| {
+            let (mut p, mut s, mut n) = (0.0, 0.0, 0usize);
+            for [truth, color, _, _] in renders {
+                if truth.dims()[..2] == [h, w] {
+                    p += psnr(color, truth, None)?;
+                    s += ssim(color, truth, None)?;
+                    n += 1;
+                }
+            }
+            let n_f = n as f64;
+            Ok(serde_json::json!({
+                "width": w, "height": h, "views": n, "psnr": p / n_f, "ssim": s / n_f,
+            }))
+        })
+        .collect()
+}
+
 fn write(path: &Path, text: &str) -> Result<()> {
     std::fs::write(path, text).map_err(|source| Error::Io {
         path: path.display().to_string(),
@@ -97,6 +131,16 @@ fn write(path: &Path, text: &str) -> Result<()> {
 fn nerf_config(args: &Args, aabb: [f64; 6], finest: f64, vb: &VarBuilder) -> Result<NerfConfig> {
     let mut config = match args.encoding {
         Encoding::Pe => NerfConfig::default(),
+        // Octaves 2⁰ … 2¹¹ (no π): the frequency encoding's band (2⁹π ≈ 2¹⁰·⁶) and one
+        // more octave, which the cones' variances damp where a pixel is wider.
+        Encoding::Ipe => NerfConfig {
+            position_encoding: PointEncoding::Integrated {
+                dim: 3,
+                min_deg: 0,
+                max_deg: 12,
+            },
+            ..NerfConfig::default()
+        },
         Encoding::Hash => {
             let hash = HashGridConfig {
                 lo: aabb[..3].to_vec(),
@@ -208,7 +252,7 @@ fn run(args: &Args) -> Result<()> {
         varmap.load(path)?;
     }
     let lr0 = args.lr.unwrap_or(match args.encoding {
-        Encoding::Pe => 1e-3,
+        Encoding::Pe | Encoding::Ipe => 1e-3,
         Encoding::Hash => 1e-2,
     });
     let mut opt = adam(&varmap, lr0)?;
@@ -387,6 +431,7 @@ fn run(args: &Args) -> Result<()> {
         )?;
         write_png(&args.out.join(format!("opacity_{i}.png")), opacity)?;
     }
+    let per_scale = per_scale(&renders)?;
     varmap.save(args.out.join("weights.safetensors"))?;
     write(&args.out.join("curve.csv"), &curve)?;
     let metrics = serde_json::json!({
@@ -409,6 +454,7 @@ fn run(args: &Args) -> Result<()> {
         "alpha_threshold": args.alpha_threshold,
         "proposal_samples": args.proposal_samples,
         "data": args.data.display().to_string(),
+        "psnr_per_scale": per_scale,
     });
     write(
         &args.out.join("metrics.json"),
@@ -419,6 +465,18 @@ fn run(args: &Args) -> Result<()> {
         eval.views().len(),
         args.out.display()
     );
+    if per_scale.len() > 1 {
+        for scale in &per_scale {
+            println!(
+                "  {} × {}: PSNR {:.2} dB, SSIM {:.4} over {} views",
+                scale["width"],
+                scale["height"],
+                scale["psnr"].as_f64().unwrap_or(f64::NAN),
+                scale["ssim"].as_f64().unwrap_or(f64::NAN),
+                scale["views"]
+            );
+        }
+    }
     Ok(())
 }
 

@@ -97,7 +97,8 @@ impl Renderer<'_> {
                 stratified(&near, &far, self.args.samples, jitter, seed.unwrap_or(0))?
             }
         };
-        let positions = intervals.positions(rays)?.reshape(((), 3))?;
+        // Midpoints, or (--encoding ipe) the intervals' conical frustums.
+        let positions = self.net.sample_inputs(rays, &intervals)?;
         let dirs = intervals.directions(rays)?.reshape(((), 3))?;
         let n = positions.dim(0)?;
         let (sigma, rgb) = self.net.radiance(&positions, &dirs)?;

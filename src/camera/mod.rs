@@ -236,6 +236,11 @@ pub struct Intrinsics {
 }
 
 impl Intrinsics {
+    /// mip-NeRF's cone radius of one pixel per unit depth, `2 / (√12·√(fx·fy))`.
+    pub(crate) fn cone_radius(&self) -> f64 {
+        2.0 / (12f64.sqrt() * (self.fx * self.fy).sqrt())
+    }
+
     /// Pinhole intrinsics from focal lengths `fx, fy` and principal point `cx, cy` (all in
     /// pixels) and the image size.
     ///
@@ -569,6 +574,11 @@ impl Camera {
     /// normalised; no half-pixel offset is added to `pixels`).
     /// Dtype and device follow `pixels`; directions are differentiable w.r.t. `pixels`.
     ///
+    /// The rays carry mip-NeRF's cone radius ([`Rays::with_radii`]) of a whole pixel,
+    /// `2 / (√12·√(fx·fy))` per unit depth: the disc whose variance is the pixel's (a
+    /// pixel is `1/fx × 1/fy` at depth 1). Rays through a `k × k` sub-pixel grid cover
+    /// `1/k` of that: scale the radii by `1/k` ([`crate::volume::render_image`] does).
+    ///
     /// # Errors
     /// [`Error::InvalidArgument`] naming `pixels` for a wrong shape or dtype, or
     /// non-finite values.
@@ -579,7 +589,9 @@ impl Camera {
         let origins = row3(self.cam_to_world.translation.to_array(), pixels)?
             .broadcast_as((n, 3))?
             .contiguous()?;
-        Rays::new(origins, directions)
+        let radii = Tensor::full(self.intrinsics.cone_radius(), n, pixels.device())?
+            .to_dtype(pixels.dtype())?;
+        Rays::new(origins, directions)?.with_radii(radii)
     }
 
     /// The world-space ray of one continuous pixel coordinate `pixel = (x, y)` (column,

@@ -30,10 +30,16 @@ fn full_like(like: &Tensor, v: f64) -> Result<Tensor> {
 /// and device, validated once when built ([`Rays::new`]): every function that takes
 /// `&Rays` relies on that and checks nothing more of them. Directions are whatever the
 /// producer made them (camera rays have unit camera-space z, see the module docs).
+///
+/// Rays may also carry a cone radius each ([`Rays::with_radii`]): the radius, per unit of
+/// the ray parameter `t`, of the cone that the ray's pixel footprint sweeps (mip-NeRF's
+/// `radii`), which cone casting ([`crate::volume::conical_frustums`]) reads. Camera rays
+/// carry it ([`crate::camera::Camera::rays_for_pixels`]).
 #[derive(Clone, Debug)]
 pub struct Rays {
     origins: Tensor,
     directions: Tensor,
+    radii: Option<Tensor>,
 }
 
 impl Rays {
@@ -73,6 +79,7 @@ impl Rays {
         let rays = Self {
             origins,
             directions,
+            radii: None,
         };
         if n > 0 {
             let m = direction_scale(&rays)?;
@@ -85,6 +92,55 @@ impl Rays {
             }
         }
         Ok(rays)
+    }
+
+    /// The same rays carrying cone radii `radii: [N]`: ray `i`'s cone has radius
+    /// `radii[i]·t` at parameter `t` (world units, measured perpendicular to the direction,
+    /// so for a pinhole camera whose directions have unit depth it is the pixel's footprint
+    /// at depth 1 times `2/√12`, mip-NeRF's disc of the pixel's variance). `radii` must
+    /// have the rays' dtype and device, be finite and `≥ 0` (one read-back); it may carry a
+    /// graph.
+    ///
+    /// ```
+    /// use candle_core::{Device, Tensor};
+    /// use neural_fields::camera::Rays;
+    ///
+    /// let rays = Rays::new(
+    ///     Tensor::new(&[[0.0f32, 0.0, 0.0]], &Device::Cpu)?,
+    ///     Tensor::new(&[[0.0f32, 0.0, 2.0]], &Device::Cpu)?,
+    /// )?
+    /// .with_radii(Tensor::new(&[0.01f32], &Device::Cpu)?)?;
+    /// // Unit directions halve t, so the radius per unit t doubles.
+    /// let unit = rays.normalized()?;
+    /// assert_eq!(unit.radii().unwrap().to_vec1::<f32>()?, vec![0.005]);
+    /// # Ok::<(), neural_fields::Error>(())
+    /// ```
+    ///
+    /// # Errors
+    /// [`Error::InvalidArgument`] naming `radii` unless it is `[N]` with the rays' dtype and
+    /// device, finite and non-negative.
+    pub fn with_radii(self, radii: Tensor) -> Result<Rays> {
+        check_float(&radii, "radii")?;
+        check_shape(&radii, "radii", &[Dim::Is(self.len())])?;
+        check_same(&radii, "radii", &self.origins, "rays")?;
+        check_finite(&radii, "radii")?;
+        if !self.is_empty() && scalar_f64(&radii.detach().min_all()?)? < 0.0 {
+            return Err(Error::invalid(
+                "radii",
+                "non-negative cone radii",
+                "a negative radius",
+            ));
+        }
+        Ok(Rays {
+            radii: Some(radii),
+            ..self
+        })
+    }
+
+    /// The cone radii `[N]` ([`Rays::with_radii`]), if the rays carry them.
+    #[must_use]
+    pub fn radii(&self) -> Option<&Tensor> {
+        self.radii.as_ref()
     }
 
     /// Ray origins, `[N, 3]`.
@@ -111,10 +167,11 @@ impl Rays {
         self.len() == 0
     }
 
-    /// The same rays with unit directions `d / |d|` (origins shared). Computed as
+    /// The same rays with unit directions `d / |d|` (origins shared; cone radii, if any,
+    /// divided by `|d|`, since the parameter `t` is now distance). Computed as
     /// `d' / |d'|` with `d' = d / max|dᵢ|` (a detached per-ray scale, exact because
     /// `d/|d|` is scale-invariant), so tiny directions do not underflow. Differentiable
-    /// w.r.t. the directions.
+    /// w.r.t. the directions (and the radii).
     ///
     /// # Errors
     /// Only candle errors (the rays were checked when built: no direction is zero).
@@ -123,11 +180,18 @@ impl Rays {
             return Ok(self.clone());
         }
         // m > 0 on every row: `Rays::new` rejects zero directions.
-        let dn = self.directions.broadcast_div(&direction_scale(self)?)?;
+        let m = direction_scale(self)?;
+        let dn = self.directions.broadcast_div(&m)?;
         let norm = dn.sqr()?.sum_keepdim(1)?.sqrt()?;
+        let radii = match &self.radii {
+            None => None,
+            // |d| = m·|d'|.
+            Some(r) => Some(r.div(&(norm.squeeze(1)? * m.squeeze(1)?)?)?),
+        };
         Ok(Rays {
             origins: self.origins.clone(),
             directions: dn.broadcast_div(&norm)?,
+            radii,
         })
     }
 
@@ -155,6 +219,10 @@ impl Rays {
         Ok(Rays {
             origins: self.origins.narrow(0, start, len)?,
             directions: self.directions.narrow(0, start, len)?,
+            radii: match &self.radii {
+                None => None,
+                Some(r) => Some(r.narrow(0, start, len)?),
+            },
         })
     }
 }

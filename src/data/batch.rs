@@ -42,11 +42,13 @@ fn gather(
     dataset: &Dataset,
     picks: &[(usize, usize, usize)],
     offsets: Option<&[[f64; 2]]>,
+    side: usize,
     backgrounds: &[[f64; 3]],
     device: &Device,
     dtype: DType,
 ) -> Result<RayBatch> {
     let n = picks.len();
+    let mut radii = Vec::with_capacity(n);
     let masked = dataset.views().iter().all(|v| v.has_mask());
     let (mut o, mut d, mut c) = (
         Vec::with_capacity(3 * n),
@@ -61,6 +63,7 @@ fn gather(
         let (origin, dir) = vw.camera().ray(DVec2::new(u as f64 + du, v as f64 + dv));
         o.extend_from_slice(&origin.to_array());
         d.extend_from_slice(&dir.to_array());
+        radii.push(vw.camera().intrinsics().cone_radius() / side as f64);
         c.extend_from_slice(&vw.color(u, v, *bg));
         if masked {
             m.push(vw.mask_value(u, v).unwrap_or(1.0));
@@ -73,13 +76,32 @@ fn gather(
     };
     let bgs: Vec<f64> = backgrounds.iter().flatten().copied().collect();
     Ok(RayBatch {
-        rays: Rays::new(float(o, &[n, 3])?, float(d, &[n, 3])?)?,
+        rays: Rays::new(float(o, &[n, 3])?, float(d, &[n, 3])?)?.with_radii(float(radii, &[n])?)?,
         colors: float(c, &[n, 3])?,
         backgrounds: float(bgs, &[n, 3])?,
         masks: if masked { Some(float(m, &[n])?) } else { None },
         views: Tensor::from_vec(vi, n, device)?,
         pixels: Tensor::from_vec(px, (n, 2), device)?,
     })
+}
+
+/// Each view's pixel area `1/(fx·fy)` in units of the finest view's, rounded to the
+/// nearest whole number in `1..=2²⁰` (all 1 when the views share their focal lengths).
+fn pixel_weights(dataset: &Dataset) -> Vec<u64> {
+    let area = |v: &super::dataset::View| {
+        let k = v.camera().intrinsics();
+        1.0 / (k.fx * k.fy)
+    };
+    let finest = dataset
+        .views()
+        .iter()
+        .map(area)
+        .fold(f64::INFINITY, f64::min);
+    dataset
+        .views()
+        .iter()
+        .map(|v| (area(v) / finest).round().clamp(1.0, f64::from(1u32 << 20)) as u64)
+        .collect()
 }
 
 fn check_count(n: usize, arg: &'static str) -> Result<()> {
@@ -122,8 +144,10 @@ pub struct RaySampler<'a> {
     rng: SplitMix64,
     device: Device,
     dtype: DType,
-    /// `ends[i]`: the number of pixels in views `0..=i`.
+    /// `ends[i]`: `Σ_{j ≤ i} pixels_j · weights[j]`, the cumulative drawing mass.
     ends: Vec<u64>,
+    /// Each view's pixel area in units of the finest view's ([`pixel_weights`]).
+    weights: Vec<u64>,
     /// Whether [`RaySampler::pixels`] jitters each ray inside its pixel.
     jitter: bool,
     /// The distribution of jittered offsets and footprint strata.
@@ -137,13 +161,15 @@ impl<'a> RaySampler<'a> {
     /// [`Error::InvalidArgument`] naming `dtype` unless f32 or f64.
     pub fn new(dataset: &'a Dataset, seed: u64, device: &Device, dtype: DType) -> Result<Self> {
         check_dtype(dtype)?;
+        let weights = pixel_weights(dataset);
         let mut total = 0u64;
         let ends = dataset
             .views()
             .iter()
-            .map(|v| {
+            .zip(&weights)
+            .map(|(v, &m)| {
                 let (w, h, _) = v.image().size();
-                total += (w * h) as u64;
+                total += (w * h) as u64 * m;
                 total
             })
             .collect();
@@ -153,6 +179,7 @@ impl<'a> RaySampler<'a> {
             device: device.clone(),
             dtype,
             ends,
+            weights,
             jitter: false,
             filter: PixelFilter::Box,
         })
@@ -196,7 +223,13 @@ impl<'a> RaySampler<'a> {
     }
 
     /// `n` rays through pixel centres (or, jittered ([`RaySampler::with_pixel_filter`]), random
-    /// points of the pixels) drawn uniformly over all pixels of all views.
+    /// points of the pixels) drawn over all pixels of all views, each pixel with probability
+    /// proportional to its area: its solid angle at unit depth `1/(fx·fy)` in units of the
+    /// finest view's, rounded to a whole number (at least 1). Where every view has the
+    /// same focal lengths that is uniform over all pixels; in a multiscale dataset (each
+    /// view also at ½, ¼, ⅛ resolution) a pixel at ½ resolution is drawn 4× as often as a
+    /// full-resolution one, so every image weighs the same: mip-NeRF's loss weighting by
+    /// pixel area, as importance sampling instead of a weighted mean.
     ///
     /// # Errors
     /// [`Error::InvalidArgument`] naming `n` if 0 or above 2²⁸.
@@ -217,6 +250,7 @@ impl<'a> RaySampler<'a> {
             self.dataset,
             &picks,
             offsets.as_deref(),
+            1,
             &bgs,
             &self.device,
             self.dtype,
@@ -296,13 +330,15 @@ impl<'a> RaySampler<'a> {
             self.dataset,
             &picks,
             Some(&offsets),
+            k,
             &bgs,
             &self.device,
             self.dtype,
         )
     }
 
-    /// `n` pixels `(view, u, v)` drawn uniformly over all pixels of all views.
+    /// `n` pixels `(view, u, v)` drawn over all pixels of all views in proportion to
+    /// their area ([`RaySampler::pixels`]).
     fn draw_pixels(&mut self, n: usize) -> Vec<(usize, usize, usize)> {
         // invariant: a Dataset holds at least one view (Dataset::new), so `ends` is non-empty.
         let total = self.ends.last().copied().unwrap_or(0);
@@ -312,7 +348,7 @@ impl<'a> RaySampler<'a> {
                 let view = self.ends.partition_point(|&e| e <= i);
                 let start = if view == 0 { 0 } else { self.ends[view - 1] };
                 let w = self.dataset.views()[view].image().size().0 as u64;
-                let local = i - start;
+                let local = (i - start) / self.weights[view];
                 (view, (local % w) as usize, (local / w) as usize)
             })
             .collect()
@@ -377,6 +413,14 @@ impl<'a> RaySampler<'a> {
                 }
             }
         }
-        gather(self.dataset, &picks, None, &bgs, &self.device, self.dtype)
+        gather(
+            self.dataset,
+            &picks,
+            None,
+            1,
+            &bgs,
+            &self.device,
+            self.dtype,
+        )
     }
 }

@@ -445,7 +445,7 @@ impl Mlp {
     /// fused op (the crate's kernel `FusedMlpJvp`), elsewhere (or with
     /// [`MlpConfig::force_reference`]) as candle ops. Users reach it through
     /// [`Field::forward`] and [`ConditionalField::forward_with_code`].
-    fn forward_points(&self, points: &Tensor, codes: Option<&Tensor>) -> Result<Tensor> {
+    pub(crate) fn forward_points(&self, points: &Tensor, codes: Option<&Tensor>) -> Result<Tensor> {
         self.check_inputs(points, codes)?;
         let a0 = self.first_input(self.config.encoding.forward(points)?, codes)?;
         if self.fused(&a0) {

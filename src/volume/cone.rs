@@ -1,8 +1,8 @@
 //! Cone casting (mip-NeRF): the Gaussian moments of each interval's conical frustum.
 
-use super::layout::{check_nonneg_finite, Intervals, Layout};
+use super::layout::{Intervals, Layout};
 use crate::camera::Rays;
-use crate::error::{check_float, check_same, check_shape, Dim, Result};
+use crate::error::{Error, Result};
 use candle_core::{Tensor, D};
 
 /// Which covariance [`conical_frustums`] returns.
@@ -30,9 +30,10 @@ pub struct Gaussians {
 /// [`crate::encoding::integrated_pe`] encodes.
 ///
 /// Ray `r` (origin `o`, direction `d`, not necessarily unit: `t` is the ray parameter)
-/// casts a cone whose cross-section at parameter `t` is a disc of radius `radii[r]·t`
-/// (world units) perpendicular to `d`, as mip-NeRF's `radii`: for a pinhole camera with
-/// directions of unit depth, the pixel footprint at depth 1 times `2/√12`. Each interval's
+/// casts a cone whose cross-section at parameter `t` is a disc of radius `ρ_r·t`
+/// (world units) perpendicular to `d`, with `ρ` the rays' cone radii
+/// ([`Rays::with_radii`], mip-NeRF's `radii`: camera rays carry the pixel footprint at
+/// depth 1 times `2/√12`). Each interval's
 /// frustum is filled uniformly (density ∝ `t²` along the ray). With mip-NeRF's stable
 /// parametrisation `t_μ = (t₀ + t₁)/2`, `t_δ = (t₁ − t₀)/2`:
 ///
@@ -49,11 +50,11 @@ pub struct Gaussians {
 /// to `0/0`, and
 /// `d/‖d‖` comes from [`Rays::normalized`]; an interval at `t₀ = t₁ = 0` gives a point.
 ///
-/// Shapes: `radii` `[R]`; batched intervals `[R, S]` give means `[R, S, 3]` and
+/// Shapes: `R` rays; batched intervals `[R, S]` give means `[R, S, 3]` and
 /// covariances `[R, S, 3]` or `[R, S, 3, 3]`; packed ones `[M]` give `[M, 3]` and
 /// `[M, 3]` or `[M, 3, 3]`. f32 or f64: the rays' dtype and device, which the intervals
-/// and `radii` must share. Differentiable w.r.t. the interval starts and ends, the
-/// origins, the directions and the radii.
+/// must share. Differentiable w.r.t. the interval starts and ends, the origins, the
+/// directions and the radii.
 ///
 /// IPE end to end:
 ///
@@ -67,11 +68,11 @@ pub struct Gaussians {
 /// let rays = Rays::new(
 ///     Tensor::new(&[[0.0f32, 0.0, -2.0], [0.3, 0.0, -2.0]], &dev)?,
 ///     Tensor::new(&[[0.0f32, 0.0, 1.0], [0.1, 0.0, 1.0]], &dev)?,
-/// )?;
-/// let radii = Tensor::new(&[1e-3f32, 1e-3], &dev)?;
+/// )?
+/// .with_radii(Tensor::new(&[1e-3f32, 1e-3], &dev)?)?;
 /// let (near, far) = (Tensor::new(&[1.0f32, 1.0], &dev)?, Tensor::new(&[3.0f32, 3.0], &dev)?);
 /// let intervals = stratified(&near, &far, 8, Jitter::None, 0)?;           // [2, 8]
-/// let g = conical_frustums(&rays, &radii, &intervals, Covariance::Diagonal)?;
+/// let g = conical_frustums(&rays, &intervals, Covariance::Diagonal)?;
 /// assert_eq!(g.means.dims(), &[2, 8, 3]);
 /// assert_eq!(g.covariances.dims(), &[2, 8, 3]);
 /// let features = integrated_pe(
@@ -85,20 +86,21 @@ pub struct Gaussians {
 /// ```
 ///
 /// # Errors
-/// Naming `rays` when their count, dtype or device differs from the intervals', and
-/// `radii` when it is not `[R]`, not of the rays' dtype and device, or holds a negative
-/// or non-finite value.
+/// Naming `rays` when they carry no cone radii ([`Rays::with_radii`]), or when their
+/// count, dtype or device differs from the intervals'.
 pub fn conical_frustums(
     rays: &Rays,
-    radii: &Tensor,
     intervals: &Intervals,
     covariance: Covariance,
 ) -> Result<Gaussians> {
     intervals.check_rays(rays)?;
-    check_float(radii, "radii")?;
-    check_shape(radii, "radii", &[Dim::Is(rays.len())])?;
-    check_same(radii, "radii", rays.origins(), "rays")?;
-    check_nonneg_finite(radii, "radii")?;
+    let radii = rays.radii().ok_or_else(|| {
+        Error::invalid(
+            "rays",
+            "rays carrying cone radii (Rays::with_radii)",
+            "rays without radii",
+        )
+    })?;
 
     // The moments along the ray, per sample.
     let mu = ((&intervals.starts + &intervals.ends)? * 0.5)?;

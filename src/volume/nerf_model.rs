@@ -6,7 +6,7 @@ use super::layout::{Intervals, Layout};
 use crate::camera::Rays;
 use crate::encoding::RowEncoder;
 use crate::encoding::{FrequencyEncoding, PointEncoding};
-use crate::error::{check_points, check_same, check_shape, Dim, Error, Result};
+use crate::error::{check_same, check_shape, Dim, Error, Result};
 use crate::field::{ConditionalField, Field};
 use crate::kernels::{Density, FusedNerf, FusedNerfLoss};
 use crate::nn::{mlp, Activation, Mlp, MlpConfig};
@@ -125,6 +125,8 @@ pub fn nerf(config: &NerfConfig, vb: VarBuilder) -> Result<Nerf> {
     }
     let trunk = mlp(
         &MlpConfig {
+            // 3-D points, or Gaussians [μ, σ²] for an integrated encoding.
+            in_dim: config.position_encoding.in_dim().unwrap_or(3),
             out_dim: 1 + config.width,
             hidden: config.width,
             depth: config.depth,
@@ -197,32 +199,57 @@ impl Nerf {
         })
     }
 
-    /// The density `σ: [N]` and the feature `[N, width]` at `points: [N, 3]`.
+    /// The trunk's input rows for `points`: `[N, 3]` points, or for an integrated
+    /// position encoding `[N, 6]` Gaussians `[μ, σ²]`, to which `[N, 3]` points are
+    /// widened with zero variances.
+    fn trunk_input(&self, points: &Tensor) -> Result<Tensor> {
+        let width = self.trunk.config().in_dim;
+        crate::error::check_float(points, "points")?;
+        let dims = check_shape(points, "points", &[Dim::Any("N"), Dim::Any("D")])?;
+        match dims[1] {
+            d if d == width => Ok(points.clone()),
+            3 if width == 6 => Ok(Tensor::cat(&[points, &points.zeros_like()?], 1)?),
+            d => Err(Error::invalid(
+                "points",
+                format!("[N, 3] points or [N, {width}] rows of the position encoding"),
+                format!("[N, {d}]"),
+            )),
+        }
+    }
+
+    /// The density `σ: [N]` and the feature `[N, width]` at the trunk's input rows
+    /// ([`Nerf::trunk_input`]).
     fn trunk(&self, points: &Tensor) -> Result<(Tensor, Tensor)> {
-        let out = Field::forward(&self.trunk, points)?;
+        let out = self
+            .trunk
+            .forward_points(&self.trunk_input(points)?, None)?;
         let sigma = self.activate(&out.narrow(1, 0, 1)?.squeeze(1)?)?;
         Ok((sigma, crate::narrow::narrow(&out, 1, 1, self.config.width)?))
     }
 
     /// The density `σ: [N]` (≥ 0) at `points: [N, 3]`, without the colour head: for
-    /// occupancy-grid updates, proposal targets and meshes. Differentiable w.r.t. the
-    /// trunk's parameters and the points.
+    /// occupancy-grid updates, proposal targets and meshes. With an integrated position
+    /// encoding ([`PointEncoding::Integrated`]) `points` may also be Gaussians
+    /// `[μ, σ²]: [N, 6]`; `[N, 3]` points are Gaussians of zero variance. Differentiable
+    /// w.r.t. the trunk's parameters and the points.
     ///
     /// # Errors
     /// [`Error::InvalidArgument`] naming `points` for a wrong shape or dtype.
     pub fn density(&self, points: &Tensor) -> Result<Tensor> {
-        check_points(points, "points")?;
         Ok(self.trunk(points)?.0)
     }
 
     /// Density `σ: [N]` and colour `[N, 3]` at `points: [N, 3]` seen along `directions:
-    /// [N, 3]` (normalised here; a zero direction gives the encoding of 0).
+    /// [N, 3]` (normalised here; a zero direction gives the encoding of 0). With an
+    /// integrated position encoding, `points` may be Gaussians `[μ, σ²]: [N, 6]`
+    /// (as [`Nerf::density`]).
     ///
     /// # Errors
     /// [`Error::InvalidArgument`] naming `points` or `directions` for wrong shapes or
     /// dtypes, `directions` for another count than `points`.
     pub fn radiance(&self, points: &Tensor, directions: &Tensor) -> Result<(Tensor, Tensor)> {
-        let n = check_points(points, "points")?;
+        let points = &self.trunk_input(points)?;
+        let n = points.dim(0)?;
         check_shape(directions, "directions", &[Dim::Is(n), Dim::Is(3)])?;
         check_same(directions, "directions", points, "points")?;
         let unit = self.unit_directions(directions)?;
@@ -259,7 +286,10 @@ impl Nerf {
     /// ```
     ///
     /// with `wᵢ` the compositing weights of `σᵢ` over the lengths `δᵢ = (endᵢ − startᵢ)·‖d‖`
-    /// and `config`'s `opaque_last` and background.
+    /// and `config`'s `opaque_last` and background. With an integrated position encoding
+    /// ([`PointEncoding::Integrated`], mip-NeRF) and rays that carry cone radii
+    /// ([`Rays::with_radii`]), the field sees each interval's conical frustum
+    /// ([`super::conical_frustums`], diagonal covariances) instead of its midpoint.
     ///
     /// Shapes: `rays` of `R` rays, `intervals` batched `[R, S]` or packed, `target: [R, 3]`;
     /// f32 or f64, all one dtype and device. Returns the loss, a scalar `[]`, with the
@@ -322,7 +352,7 @@ impl Nerf {
         check_shape(target, "target", &[Dim::Is(r), Dim::Is(3)])?;
         check_same(target, "target", rays.origins(), "rays")?;
         crate::error::check_finite(target, "target")?;
-        let positions = intervals.positions(rays)?.reshape(((), 3))?;
+        let positions = self.sample_inputs(rays, intervals)?;
         if let Some(loss) = self.fused_color_loss(rays, intervals, &positions, target, config)? {
             return Ok(loss);
         }
@@ -342,6 +372,59 @@ impl Nerf {
             opacity_mean: opacity.mean_all()?.to_scalar::<f64>()?,
             opacity_max: opacity.max_all()?.to_scalar::<f64>()?,
         })
+    }
+
+    /// What the network evaluates for each interval along `rays`, the `points` of
+    /// [`Nerf::radiance`]: the midpoints `o + t̄ᵢd`, `[M, 3]`; or, for an integrated
+    /// position encoding ([`PointEncoding::Integrated`]) and rays that carry cone radii
+    /// ([`Rays::with_radii`]), the Gaussians of the intervals' conical frustums
+    /// ([`super::conical_frustums`]) as rows `[μ, diag Σ]`, `[M, 6]` (mip-NeRF). `M` is
+    /// `R·S` for batched intervals `[R, S]` (row-major) or the packed count. Differentiable
+    /// as [`super::conical_frustums`] and [`Intervals::positions`] are.
+    ///
+    /// ```
+    /// use candle_core::{DType, Device, Tensor};
+    /// use candle_nn::VarMap;
+    /// use neural_fields::camera::Rays;
+    /// use neural_fields::encoding::PointEncoding;
+    /// use neural_fields::nn::build_seeded;
+    /// use neural_fields::volume::{nerf, stratified, Jitter, NerfConfig};
+    ///
+    /// let dev = Device::Cpu;
+    /// let config = NerfConfig {
+    ///     position_encoding: PointEncoding::Integrated { dim: 3, min_deg: 0, max_deg: 12 },
+    ///     ..NerfConfig::default()
+    /// };
+    /// let net = build_seeded(&VarMap::new(), DType::F32, &dev, 0, |vb| nerf(&config, vb))?;
+    /// let rays = Rays::new(
+    ///     Tensor::new(&[[0f32, 0., -4.]], &dev)?,
+    ///     Tensor::new(&[[0f32, 0., 1.]], &dev)?,
+    /// )?
+    /// .with_radii(Tensor::new(&[2e-3f32], &dev)?)?;
+    /// let (near, far) = (Tensor::new(&[2f32], &dev)?, Tensor::new(&[6f32], &dev)?);
+    /// let intervals = stratified(&near, &far, 16, Jitter::None, 0)?;
+    /// let inputs = net.sample_inputs(&rays, &intervals)?; // [16, 6]: means, variances
+    /// let dirs = intervals.directions(&rays)?.reshape(((), 3))?;
+    /// let (sigma, rgb) = net.radiance(&inputs, &dirs)?;
+    /// assert_eq!((sigma.dims(), rgb.dims()), (&[16][..], &[16, 3][..]));
+    /// # Ok::<(), neural_fields::Error>(())
+    /// ```
+    ///
+    /// # Errors
+    /// Naming `rays` when their count, dtype or device differs from the intervals'.
+    pub fn sample_inputs(&self, rays: &Rays, intervals: &Intervals) -> Result<Tensor> {
+        let integrated = matches!(
+            self.config.position_encoding,
+            PointEncoding::Integrated { .. }
+        );
+        if integrated && rays.radii().is_some() {
+            let g = super::conical_frustums(rays, intervals, super::Covariance::Diagonal)?;
+            return Ok(Tensor::cat(
+                &[g.means.reshape(((), 3))?, g.covariances.reshape(((), 3))?],
+                1,
+            )?);
+        }
+        Ok(intervals.positions(rays)?.reshape(((), 3))?)
     }
 
     /// [`Nerf::color_loss`] as the fused op, or `None` where it does not apply.

@@ -34,7 +34,8 @@ impl Default for ImageConfig {
 /// The rays are those of [`Camera::subpixel_grid`]`(k, config.filter, device, dtype)`
 /// through [`Camera::rays_for_pixels`] (`k = config.supersample`), pixel-major, in
 /// chunks of at most `config.chunk` rays that hold whole pixels (`⌊chunk / k²⌋·k²`,
-/// at least `k²`). `render` maps each chunk of `n` rays to `N` per-ray outputs, each
+/// at least `k²`), each ray carrying the cone radius of its sub-pixel (the pixel's
+/// divided by `k`). `render` maps each chunk of `n` rays to `N` per-ray outputs, each
 /// `[n]` or `[n, C]` (float, any `C`): colour, depth, opacity, normals, masks. Output
 /// `j` of pixel `(u, v)` is the mean of `render`'s output `j` over that pixel's `k²`
 /// rays (the filter's quadrature, [`Camera::subpixel_grid`]):
@@ -109,7 +110,12 @@ where
     let mut parts: Vec<Vec<Tensor>> = vec![Vec::new(); N];
     for start in (0..n).step_by(chunk) {
         let len = chunk.min(n - start);
-        let rays = camera.rays_for_pixels(&pixels.narrow(0, start, len)?)?;
+        let mut rays = camera.rays_for_pixels(&pixels.narrow(0, start, len)?)?;
+        if let (true, Some(r)) = (k > 1, rays.radii()) {
+            // Each sub-pixel ray's cone covers 1/k of the pixel's width.
+            let r = (r / k as f64)?;
+            rays = rays.with_radii(r)?;
+        }
         let outputs = render(&rays)?;
         for (j, out) in outputs.into_iter().enumerate() {
             parts[j].push(pixel_means(&out.detach(), len, per_pixel, j)?);
