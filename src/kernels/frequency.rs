@@ -75,7 +75,7 @@ fn sin_cos_pi_slices_body(y: &[f64], s: &mut [f64], c: &mut [f64]) {
 /// and negates them. Rounding to an integer is [`crate::numerics::round_to_integer`], so
 /// the loop has no calls and no branches; it runs compiled for AVX-512 or AVX2 where
 /// the CPU has them.
-fn sin_cos_pi_slices(y: &[f64], s: &mut [f64], c: &mut [f64]) {
+pub(super) fn sin_cos_pi_slices(y: &[f64], s: &mut [f64], c: &mut [f64]) {
     #[cfg(target_arch = "x86_64")]
     {
         #[target_feature(enable = "avx512f,avx512dq,avx512vl,fma")]

@@ -22,6 +22,9 @@
 //! * `frequency`: the frequency positional encoding with `2ᵏπ` (`FusedFrequency`, what
 //!   [`crate::encoding::FrequencyEncoding`] runs on the CPU), whose rows the NeRF loss
 //!   also evaluates inside its tiles;
+//! * `integrated`: mip-NeRF's integrated positional encoding of rows `[μ, σ²]`
+//!   (`FusedIntegrated`, what [`crate::encoding::integrated_pe`] runs on the CPU), on the
+//!   frequency kernel's vectorised sines;
 //! * `composite`: volume compositing of either sample layout with its O(S)-per-ray
 //!   backward (`FusedComposite`), built for three instruction sets;
 //! * `activation` and `simd`: the vectorised hidden activations (ReLU, softplus with its
@@ -69,6 +72,7 @@ mod dispatch;
 mod frequency;
 mod grid_sample;
 mod hash_grid;
+mod integrated;
 mod mlp;
 mod mlp_tangents;
 #[cfg_attr(not(feature = "volume"), allow(dead_code))]
@@ -91,6 +95,7 @@ pub(crate) use dispatch::{contiguous, cpu_bwd, cpu_fwd, cpu_op, cpu_slice, CpuKe
 pub(crate) use frequency::{FusedFrequency, Trig};
 pub(crate) use grid_sample::{FusedGridSample, GridCorners, GridGeometry};
 pub(crate) use hash_grid::{FusedHashGrid, HashCorners, HashLevel, HashPlan};
+pub(crate) use integrated::FusedIntegrated;
 pub(crate) use mlp::{FusedMlp, LayerPlan};
 pub(crate) use mlp_tangents::FusedMlpJvp;
 #[cfg_attr(not(feature = "volume"), allow(unused_imports))]
