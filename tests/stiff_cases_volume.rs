@@ -75,6 +75,7 @@ const NERF: &[&str] = &[
     "volume::Nerf::density",
     "volume::Nerf::radiance",
     "volume::Nerf::sample_inputs",
+    "volume::Spacing::normalize",
     "volume::nerf",
     "volume::Intervals::retain",
     "volume::interlevel_loss",
@@ -877,7 +878,7 @@ fn sweep_nerf(s: &mut Suite) {
     for dtype in DTYPES {
         use neural_fields::camera::Rays;
         use neural_fields::encoding::PointEncoding;
-        use neural_fields::volume::{stratified, CompositeConfig, Jitter};
+        use neural_fields::volume::{stratified, CompositeConfig, Jitter, Spacing};
         let big = if dtype == DType::F32 { 1e8 } else { 1e100 };
         let config = NerfConfig {
             position_encoding: PointEncoding::Integrated {
@@ -933,6 +934,22 @@ fn sweep_nerf(s: &mut Suite) {
                 Ok(vec![net.sample_inputs(&rays()?, &iv)?])
             },
         );
+        // The spacings' normalised coordinate at t = 0, 1e-30, 1 (the disparity piece's
+        // joint) and far out, for near 0 and far up to `big`.
+        let ts = var(&[0.0, 1e-30, 1.0, big], &[1, 4], dtype);
+        let (n0, f0) = (
+            t(&[0.0; 4]).narrow(0, 0, 1).unwrap(),
+            t(&[big; 4]).narrow(0, 0, 1).unwrap(),
+        );
+        for spacing in [Spacing::Linear, Spacing::LinearDisparity] {
+            s.case(
+                "volume::Spacing::normalize",
+                format!("{label}, {spacing:?}"),
+                Expect::Finite,
+                &[&ts],
+                || Ok(vec![spacing.normalize(ts.as_tensor(), &n0, &f0)?]),
+            );
+        }
         let mut wrt: Vec<&Var> = vars.iter().collect();
         wrt.push(&radii);
         s.case(

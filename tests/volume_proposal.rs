@@ -381,3 +381,139 @@ fn the_fields_density_culls_the_samples_and_gives_the_interlevel_target() {
         "{e}"
     );
 }
+
+fn rays_as(r: usize, dtype: DType) -> Rays {
+    let base = rays(r);
+    Rays::new(
+        base.origins().to_dtype(dtype).unwrap(),
+        base.directions().to_dtype(dtype).unwrap(),
+    )
+    .unwrap()
+}
+
+/// The linear-then-disparity spacing: level 0 is uniform in s (edges k/n without jitter),
+/// linear to t = 1 and in disparity beyond, reaching a far plane at 1e10 with finite
+/// intervals, in f32 and f64.
+#[test]
+fn linear_disparity_spacing_is_uniform_in_s_out_to_a_far_plane() {
+    use neural_fields::volume::Spacing;
+    let dev = Device::Cpu;
+    for dtype in [DType::F32, DType::F64] {
+        let r = 3;
+        let near = Tensor::new(&[0.0f64, 0.05, 0.5], &dev)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap();
+        let far = Tensor::new(&[1e10f64, 1e3, 2.0], &dev)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap();
+        let mut flat = |p: &Tensor| -> neural_fields::Result<Tensor> {
+            Ok(Tensor::ones(p.dim(0)?, p.dtype(), p.device())?)
+        };
+        let config = ProposalConfig {
+            spacing: Spacing::LinearDisparity,
+            samples: vec![16],
+            final_samples: 8,
+            ..ProposalConfig::default()
+        };
+        let out = proposal_sample(
+            &rays_as(r, dtype),
+            &near,
+            &far,
+            &mut [&mut flat],
+            &config,
+            None,
+            None,
+        )
+        .unwrap();
+        let level0 = &out.levels[0].0;
+        let s = Spacing::LinearDisparity
+            .normalize(&level0.starts, &near, &far)
+            .unwrap();
+        let s = v64(&s);
+        let tol = if dtype == DType::F32 { 1e-5 } else { 1e-12 };
+        for ray in 0..r {
+            for k in 0..16 {
+                let got = s[ray * 16 + k];
+                assert!(
+                    (got - k as f64 / 16.0).abs() < tol,
+                    "{dtype:?} ray {ray}: s = {got}"
+                );
+            }
+        }
+        // Linear below t = 1: on ray 0 (near 0), the first half of the edges are 2s.
+        let t = v64(&level0.starts);
+        for (k, &tk) in t.iter().enumerate().take(8) {
+            assert!(close(tk, 2.0 * k as f64 / 16.0, 1e-5, 1e-6), "t = {tk}");
+        }
+        // Disparity beyond: the edge at s = ¾ is t = 2.
+        assert!(close(t[12], 2.0, 1e-5, 0.0), "{}", t[12]);
+        for x in v64(&out.intervals.ends)
+            .iter()
+            .chain(&v64(&out.intervals.starts))
+        {
+            assert!(x.is_finite());
+        }
+        // Linear spacing normalises by (t − near)/(far − near).
+        let lin = Spacing::Linear
+            .normalize(&level0.starts, &near, &far)
+            .unwrap();
+        assert!(v64(&lin).iter().all(|s| (0.0..=1.0).contains(s)));
+        // A negative near is refused for the disparity spacing, naming it.
+        let neg = Tensor::new(&[-1.0f64, 0.05, 0.5], &dev)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap();
+        let e = proposal_sample(
+            &rays_as(r, dtype),
+            &neg,
+            &far,
+            &mut [&mut flat],
+            &config,
+            None,
+            None,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.starts_with("near"), "{e}");
+        // normalize names t for a wrong shape.
+        let e = Spacing::Linear
+            .normalize(&near, &near, &far)
+            .unwrap_err()
+            .to_string();
+        assert!(e.starts_with('t'), "{e}");
+    }
+}
+
+/// `Spacing::normalize`'s gradient w.r.t. t against central differences (f64), across
+/// the linear and disparity pieces.
+#[test]
+fn spacing_normalize_gradient_matches_finite_differences() {
+    use neural_fields::volume::Spacing;
+    let dev = Device::Cpu;
+    let near = Tensor::new(&[0.05f64], &dev).unwrap();
+    let far = Tensor::new(&[1e4f64], &dev).unwrap();
+    let ts = [0.1, 0.7, 1.5, 30.0, 900.0];
+    let t = Var::from_tensor(&Tensor::new(&[ts], &dev).unwrap()).unwrap();
+    let s = Spacing::LinearDisparity
+        .normalize(t.as_tensor(), &near, &far)
+        .unwrap();
+    let g = v64(s
+        .sum_all()
+        .unwrap()
+        .backward()
+        .unwrap()
+        .get(t.as_tensor())
+        .unwrap());
+    for (k, &t0) in ts.iter().enumerate() {
+        let mut f = |x: f64| {
+            let mut v = ts;
+            v[k] = x;
+            let t = Tensor::new(&[v], &dev).unwrap();
+            v64(&Spacing::LinearDisparity.normalize(&t, &near, &far).unwrap())[k]
+        };
+        let fd = central_diff(&mut f, t0, 1e-4 * t0, 1.0).expect("smooth away from t = 1");
+        assert!(close(g[k], fd, 1e-6, 1e-12), "t = {t0}: {} vs {fd}", g[k]);
+    }
+}

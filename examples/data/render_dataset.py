@@ -561,11 +561,12 @@ def pick_points(obj):
     for sx in (-1, 1):
         for sy in (-1, 1):
             for sz in (-1, 1):
-                best = max(range(len(verts)),
+                # The most extreme vertex not chosen yet (a mesh with few extreme vertices
+                # can be most extreme along two diagonals).
+                candidates = [i for i in range(len(verts)) if i not in chosen]
+                best = max(candidates,
                            key=lambda i: (sx * verts[i].co.x + sy * verts[i].co.y
                                           + sz * verts[i].co.z, -i))
-                if best in chosen:
-                    raise SystemExit("duplicate extreme vertex %d" % best)
                 chosen.append(best)
     return chosen
 

@@ -14,6 +14,8 @@
 //! studies of features that are not enabled are left out. `cargo test` runs every study
 //! in quick mode (`tests.rs`).
 
+#[cfg(feature = "volume")]
+mod cone;
 #[cfg(feature = "dvr")]
 mod dvr;
 mod encoding;
@@ -58,6 +60,8 @@ fn studies(quick: bool) -> Vec<Table> {
     tables.extend(mise::run(quick));
     #[cfg(feature = "volume")]
     tables.extend(volume::run(quick));
+    #[cfg(feature = "volume")]
+    tables.extend(cone::run(quick));
     #[cfg(all(feature = "flow", feature = "occupancy"))]
     tables.extend(flow::run(quick));
     #[cfg(all(feature = "occupancy", feature = "dvr"))]

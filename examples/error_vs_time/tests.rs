@@ -1,6 +1,8 @@
 //! Runs every study in quick mode, so the report command never rots: each table has
 //! rows, finite non-negative errors and positive times, and renders to Markdown and SVG.
 
+#[cfg(feature = "volume")]
+use crate::cone;
 #[cfg(feature = "dvr")]
 use crate::dvr;
 use crate::encoding;
@@ -126,5 +128,25 @@ fn flow_study_runs_quick() {
         err("RK4", 1.0)
     );
     assert!(err("Dormand", 1e-8) < 1e-6, "{}", err("Dormand", 1e-8));
+    check(tables);
+}
+
+#[cfg(feature = "volume")]
+#[test]
+fn cone_study_runs_quick() {
+    let tables = cone::run(true);
+    // The closed form agrees with the finest quadrature, and the quadrature converges.
+    let rows = &tables[0].rows;
+    let f64_row = rows
+        .iter()
+        .find(|r| r.series == "closed form, f64")
+        .unwrap();
+    assert!(f64_row.error < 1e-3, "{}", f64_row.error);
+    let quad: Vec<f64> = rows
+        .iter()
+        .filter(|r| r.series.starts_with("midpoint"))
+        .map(|r| r.error)
+        .collect();
+    assert!(quad.windows(2).all(|w| w[1] < w[0]), "{quad:?}");
     check(tables);
 }

@@ -19,6 +19,15 @@ pub(super) enum Encoding {
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub(super) enum Scene {
+    /// An object inside the scene box.
+    Object,
+    /// Content at every distance (a 360° capture): contraction, proposal sampler,
+    /// disparity spacing, distortion loss.
+    Unbounded,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub(super) enum BackgroundFlag {
     Random,
     White,
@@ -49,8 +58,12 @@ pub(super) struct Args {
     pub(super) out: PathBuf,
     #[arg(long, default_value_t = 0)]
     pub(super) seed: u64,
+    /// The sampler (`--scene unbounded` always uses proposal).
     #[arg(long, value_enum, default_value = "grid")]
     pub(super) sampler: Sampler,
+    /// `object` (in the scene box) or `unbounded` (contracted space).
+    #[arg(long, value_enum, default_value = "object")]
+    pub(super) scene: Scene,
     /// Divide the images' resolution by this.
     #[arg(long, default_value_t = 1)]
     pub(super) downscale: usize,

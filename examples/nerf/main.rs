@@ -56,13 +56,15 @@ use neural_fields::data::{
 use neural_fields::encoding::{
     hash_grid, CoarseToFine, FrequencyEncoding, HashGridConfig, PointEncoding,
 };
+use neural_fields::glam;
 use neural_fields::nn::{adam, build_seeded, mlp, Budget, Clock, FiniteGuard, Mlp, MlpConfig};
 use neural_fields::numerics::trunc_exp;
 use neural_fields::volume::{
-    anneal_near_far, composite, depth_smoothness, interlevel_loss, log_linear_schedule, nerf,
-    proposal_sample, render_image, render_weights, stratified, Composite, CompositeConfig,
-    DensityFn, GridConfig, GridMarchConfig, ImageConfig, Jitter, Layout, Nerf, NerfConfig,
-    OccupancyGrid, ProposalConfig, ANNEAL_MID_RATIO, ANNEAL_P_START,
+    anneal_near_far, composite, contract, depth_smoothness, distortion_loss, interlevel_loss,
+    log_linear_schedule, nerf, proposal_sample, render_image, render_weights, stratified,
+    Composite, CompositeConfig, DensityFn, GridConfig, GridMarchConfig, ImageConfig, Intervals,
+    Jitter, Layout, Nerf, NerfConfig, OccupancyGrid, ProposalConfig, Spacing, ANNEAL_MID_RATIO,
+    ANNEAL_P_START,
 };
 use neural_fields::{Error, Result};
 use std::path::{Path, PathBuf};
@@ -219,7 +221,21 @@ fn run(args: &Args) -> Result<()> {
         path: args.out.display().to_string(),
         source,
     })?;
-    let aabb = train.scene_box(args.aabb);
+    // An unbounded scene: the networks live in the contracted frame of the training
+    // cameras (radius < 2), the proposal sampler spaces samples to far away.
+    let unbounded = (args.scene == Scene::Unbounded).then(|| {
+        let cameras: Vec<Camera> = train.views().iter().map(|v| *v.camera()).collect();
+        SceneFrame::from_cameras(&cameras)
+    });
+    let sampler_kind = if unbounded.is_some() {
+        Sampler::Proposal
+    } else {
+        args.sampler
+    };
+    let aabb = match unbounded {
+        Some(_) => [-2.0, -2.0, -2.0, 2.0, 2.0, 2.0],
+        None => train.scene_box(args.aabb),
+    };
     let diag = (0..3)
         .map(|a| (aabb[a + 3] - aabb[a]).powi(2))
         .sum::<f64>()
@@ -238,7 +254,7 @@ fn run(args: &Args) -> Result<()> {
         nerf(&config, vb)
     })?;
     let windows = windows.into_inner();
-    let proposals = match args.sampler {
+    let proposals = match sampler_kind {
         Sampler::Proposal => (0..2)
             .map(|l| {
                 build_seeded(&varmap, dtype, &device, args.seed + 1 + l, |vb| {
@@ -257,10 +273,10 @@ fn run(args: &Args) -> Result<()> {
     });
     let mut opt = adam(&varmap, lr0)?;
     let guard = FiniteGuard::new(&varmap);
-    let mut grid = match args.sampler {
+    let mut grid = match sampler_kind {
         Sampler::Grid => Some(OccupancyGrid::new(GridConfig {
             aabb,
-            resolution: 64,
+            resolution: GRID_RESOLUTION,
             decay: 0.7,
             warmup_steps: 128,
             seed: args.seed,
@@ -282,7 +298,7 @@ fn run(args: &Args) -> Result<()> {
         k0.width,
         k0.height,
         eval.views().len(),
-        args.sampler
+        sampler_kind
     );
     let mut clock = Clock::start(budget)?;
     let bar = indicatif::ProgressBar::new(match budget {
@@ -296,6 +312,7 @@ fn run(args: &Args) -> Result<()> {
         anneal: None,
         aabb,
         step_size: diag / 256.0,
+        unbounded,
         args,
     };
     let mut curve = String::from("step,train_seconds,psnr\n");
@@ -312,7 +329,7 @@ fn run(args: &Args) -> Result<()> {
         open_windows(&windows, progress, args.coarse_to_fine)?;
         if let Some(grid) = grid.as_mut() {
             grid.update(step, 16, &device, dtype, |p: &Tensor| {
-                Ok(net.density(p)?.detach())
+                Ok(grid_density(&net, &aabb, args.encoding == Encoding::Ipe, p)?.detach())
             })?;
         }
         let step_size = match &grid {
@@ -440,7 +457,8 @@ fn run(args: &Args) -> Result<()> {
         "train_seconds": train_seconds,
         "steps": step,
         "samples_per_ray": samples_total as f64 / (step.max(1) * args.rays) as f64,
-        "sampler": format!("{:?}", args.sampler).to_lowercase(),
+        "sampler": format!("{:?}", sampler_kind).to_lowercase(),
+        "scene": format!("{:?}", args.scene).to_lowercase(),
         "encoding": format!("{:?}", args.encoding).to_lowercase(),
         "eval_split": eval_split,
         "eval_views": eval.views().len(),

@@ -14,13 +14,98 @@ pub(super) struct Renderer<'a> {
     pub(super) anneal: Option<usize>,
     pub(super) aabb: [f64; 6],
     pub(super) step_size: f64,
+    /// `--scene unbounded`: the frame in which the field sees contracted space.
+    pub(super) unbounded: Option<SceneFrame>,
     pub(super) args: &'a Args,
+}
+
+/// Near and far of an unbounded scene's rays, in [`SceneFrame`] units (the cameras lie
+/// in the unit ball): sampled linearly to 1, then in disparity ([`Spacing`]).
+const UNBOUNDED_NEAR: f64 = 0.05;
+const UNBOUNDED_FAR: f64 = 1e6;
+/// mip-NeRF 360's weight of the distortion loss.
+const DISTORTION_WEIGHT: f64 = 0.01;
+
+/// An unbounded scene's frame: `x ↦ (x − centre)·scale` puts every training camera in the
+/// unit ball, and the networks see [`contract`] of that (radius < 2).
+#[derive(Clone, Copy, Debug)]
+pub(super) struct SceneFrame {
+    centre: [f64; 3],
+    scale: f64,
+}
+
+impl SceneFrame {
+    /// Centred on the cameras' mean position, scaled so that the farthest is at 1.
+    pub(super) fn from_cameras(cameras: &[Camera]) -> Self {
+        let n = cameras.len().max(1) as f64;
+        let centres: Vec<_> = cameras
+            .iter()
+            .map(|c| c.cam_to_world().translation)
+            .collect();
+        let mean = centres.iter().fold(glam::DVec3::ZERO, |a, &c| a + c) / n;
+        let radius = centres
+            .iter()
+            .map(|&c| (c - mean).length())
+            .fold(0.0, f64::max);
+        SceneFrame {
+            centre: mean.to_array(),
+            scale: if radius > 0.0 { 1.0 / radius } else { 1.0 },
+        }
+    }
+
+    /// The rays in the frame: origins `(o − centre)·scale`, directions and cone radii as
+    /// they are (the parameter `t` is then in frame units, and so is each cone's radius
+    /// per unit `t`).
+    fn rays(&self, rays: &Rays) -> Result<Rays> {
+        let c = Tensor::new(&[self.centre], rays.origins().device())?
+            .to_dtype(rays.origins().dtype())?;
+        let o = (rays.origins().broadcast_sub(&c)? * self.scale)?;
+        let framed = Rays::new(o, rays.directions().clone())?;
+        match rays.radii() {
+            Some(r) => framed.with_radii(r.clone()),
+            None => Ok(framed),
+        }
+    }
+}
+
+/// What the networks see of frame-space rows `[N, 3]` points or `[N, 6]` Gaussians
+/// `[μ, σ²]`: their contraction (mip-NeRF 360), the Gaussians' diagonal covariances
+/// pushed through its Jacobian.
+fn contracted(rows: &Tensor) -> Result<Tensor> {
+    if rows.dim(1)? == 6 {
+        let (mean, var) = (rows.narrow(1, 0, 3)?, rows.narrow(1, 3, 3)?);
+        let (m, v) = contract(&mean, Some(&var))?;
+        let v = v.expect("covariances in, covariances out"); // invariant
+        return Ok(Tensor::cat(&[m, v], 1)?);
+    }
+    Ok(contract(rows, None)?.0)
+}
+
+/// The occupancy grid's cells per side.
+pub(super) const GRID_RESOLUTION: usize = 64;
+
+/// The field's density at points `[N, 3]` as the occupancy grid sees it: with the
+/// integrated encoding (`--encoding ipe`), of Gaussians the size of a grid cell (variance
+/// `cell²/12` per axis), since a point reads octaves no cone trained.
+pub(super) fn grid_density(net: &Nerf, aabb: &[f64; 6], ipe: bool, p: &Tensor) -> Result<Tensor> {
+    if !ipe {
+        return net.density(p);
+    }
+    let var: Vec<f64> = (0..3)
+        .map(|a| ((aabb[a + 3] - aabb[a]) / GRID_RESOLUTION as f64).powi(2) / 12.0)
+        .collect();
+    let var = Tensor::new(var.as_slice(), p.device())?
+        .to_dtype(p.dtype())?
+        .unsqueeze(0)?
+        .broadcast_as(p.shape())?;
+    net.density(&Tensor::cat(&[p, &var], 1)?)
 }
 
 impl Renderer<'_> {
     /// Renders `rays` composited on `background: [R, 3]`; also returns the number of
-    /// samples that went through the full network and the interlevel loss. `seed`:
-    /// jitter (training) or none.
+    /// samples that went through the full network and the auxiliary loss (interlevel,
+    /// and in an unbounded scene the weighted distortion loss). `seed`: jitter (training)
+    /// or none.
     pub(super) fn render(
         &self,
         rays: &Rays,
@@ -34,6 +119,22 @@ impl Renderer<'_> {
         let mut levels = Vec::new();
         let mut interlevel = Tensor::zeros((), rays.origins().dtype(), rays.origins().device())?;
         let [x0, y0, z0, x1, y1, z1] = self.aabb;
+        let framed;
+        let rays = match &self.unbounded {
+            Some(frame) => {
+                framed = frame.rays(rays)?;
+                &framed
+            }
+            None => rays,
+        };
+        // The networks' input: the positions, contracted in an unbounded scene.
+        let space = |p: &Tensor| -> Result<Tensor> {
+            match self.unbounded {
+                Some(_) => contracted(p),
+                None => Ok(p.clone()),
+            }
+        };
+        let mut near_far = None;
         let intervals = match self.grid {
             Some(grid) => {
                 // Only the samples in occupied cells that are still visible (T ≥ 1e-4)
@@ -43,37 +144,52 @@ impl Renderer<'_> {
                     jitter: seed.filter(|_| self.args.march_jitter),
                     ..GridMarchConfig::default()
                 };
-                let mut density = |p: &Tensor| self.net.density(p);
+                let mut density = |p: &Tensor| {
+                    grid_density(self.net, &self.aabb, self.args.encoding == Encoding::Ipe, p)
+                };
                 grid.sample(rays, &march, Some(&mut density))?.intervals
             }
             None if !self.proposals.is_empty() => {
-                let hit = ray_aabb(rays, [x0, y0, z0], [x1, y1, z1])?;
-                let mut coarse = |p: &Tensor| proposal_density(&self.proposals[0], p);
-                let mut fine = |p: &Tensor| proposal_density(&self.proposals[1], p);
+                let (near, far, spacing) = match self.unbounded {
+                    Some(_) => {
+                        let full = |v: f64| -> Result<Tensor> {
+                            Ok(Tensor::full(v, rays.len(), rays.origins().device())?
+                                .to_dtype(rays.origins().dtype())?)
+                        };
+                        (
+                            full(UNBOUNDED_NEAR)?,
+                            full(UNBOUNDED_FAR)?,
+                            Spacing::LinearDisparity,
+                        )
+                    }
+                    None => {
+                        let hit = ray_aabb(rays, [x0, y0, z0], [x1, y1, z1])?;
+                        (hit.near, hit.far, Spacing::Linear)
+                    }
+                };
+                let mut coarse = |p: &Tensor| proposal_density(&self.proposals[0], &space(p)?);
+                let mut fine = |p: &Tensor| proposal_density(&self.proposals[1], &space(p)?);
                 let proposal = ProposalConfig {
+                    spacing,
                     samples: self.args.proposal_samples.to_vec(),
                     final_samples: self.args.samples,
                     alpha_threshold: self.args.alpha_threshold,
                     ..ProposalConfig::default()
                 };
                 // With --alpha-threshold > 0 the field's density (no graph) culls the
-                // samples and gives the interlevel loss its target weights.
-                let mut field = |p: &Tensor| self.net.density(p);
-                let cull = (self.args.alpha_threshold > 0.0).then_some(&mut field as _);
+                // samples and gives the interlevel loss its target weights. An unbounded
+                // scene keeps every sample: its distortion loss needs whole rays.
+                let mut field = |p: &Tensor| self.net.density(&space(p)?);
+                let cull = (self.args.alpha_threshold > 0.0 && self.unbounded.is_none())
+                    .then_some(&mut field as _);
                 let mut proposals: [DensityFn; 2] = [&mut coarse, &mut fine];
-                let out = proposal_sample(
-                    rays,
-                    &hit.near,
-                    &hit.far,
-                    &mut proposals,
-                    &proposal,
-                    seed,
-                    cull,
-                )?;
+                let out =
+                    proposal_sample(rays, &near, &far, &mut proposals, &proposal, seed, cull)?;
                 match out.interlevel {
                     Some(loss) => interlevel = loss,
                     None => levels = out.levels,
                 }
+                near_far = Some((near, far, spacing));
                 out.intervals
             }
             None => {
@@ -98,7 +214,7 @@ impl Renderer<'_> {
             }
         };
         // Midpoints, or (--encoding ipe) the intervals' conical frustums.
-        let positions = self.net.sample_inputs(rays, &intervals)?;
+        let positions = space(&self.net.sample_inputs(rays, &intervals)?)?;
         let dirs = intervals.directions(rays)?.reshape(((), 3))?;
         let n = positions.dim(0)?;
         let (sigma, rgb) = self.net.radiance(&positions, &dirs)?;
@@ -114,6 +230,16 @@ impl Renderer<'_> {
             let weights = render_weights(&sigma, &intervals, Some(rays), &config)?.weights;
             for level in &levels {
                 interlevel = (interlevel + interlevel_loss(level, &intervals, &weights)?)?;
+            }
+            // Unbounded: mip-NeRF 360's distortion loss on the intervals in s-space.
+            if let (Some(_), Some((near, far, spacing))) = (&self.unbounded, &near_far) {
+                let s = Intervals::new(
+                    spacing.normalize(&intervals.starts, near, far)?,
+                    spacing.normalize(&intervals.ends, near, far)?,
+                    Layout::Batched,
+                )?;
+                let distortion = distortion_loss(&weights, &s)?.mean_all()?;
+                interlevel = (interlevel + (distortion * DISTORTION_WEIGHT)?)?;
             }
         }
         let out = composite(&sigma, &rgb, &intervals, Some(rays), &config)?;

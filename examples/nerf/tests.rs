@@ -83,6 +83,30 @@ fn a_shortened_run_trains_writes_its_outputs_and_resumes() {
     let m = metrics(&out);
     assert_eq!(m["pixel_filter"], "cycles");
     assert!(m["psnr"].as_f64().is_some_and(f64::is_finite));
+    // mip-NeRF: cone casting with the integrated encoding, jittered sub-pixel rays and
+    // 2 × 2 evaluation (rays with a half-pixel radius).
+    args.encoding = Encoding::Ipe;
+    args.eval_supersample = 2;
+    run(&args).unwrap();
+    let m = metrics(&out);
+    assert_eq!(m["encoding"], "ipe");
+    let scales = m["psnr_per_scale"].as_array().unwrap();
+    assert_eq!(scales.len(), 1);
+    assert_eq!(scales[0]["width"], 25);
+    assert!(scales[0]["psnr"].as_f64().is_some_and(f64::is_finite));
+    // An unbounded scene: contracted space and the proposal sampler, whatever --sampler
+    // says, with each encoding.
+    args.scene = Scene::Unbounded;
+    for encoding in [Encoding::Ipe, Encoding::Pe, Encoding::Hash] {
+        args.encoding = encoding;
+        run(&args).unwrap();
+        let m = metrics(&out);
+        assert_eq!(
+            (m["scene"].as_str(), m["sampler"].as_str()),
+            (Some("unbounded"), Some("proposal"))
+        );
+        assert!(m["psnr"].as_f64().is_some_and(f64::is_finite));
+    }
     let _ = std::fs::remove_dir_all(&out);
 }
 
@@ -94,6 +118,9 @@ fn flags_parse_as_documented() {
     let counts = (a.rays, a.samples, a.eval_every, a.eval_views, a.pictures);
     assert_eq!(counts, (1024, 64, 250, 4, 8));
     assert_eq!((a.sampler, a.encoding), (Sampler::Grid, Encoding::Pe));
+    assert_eq!(a.scene, Scene::Object);
+    let c = Args::parse_from("nerf --scene unbounded --encoding ipe".split_whitespace());
+    assert_eq!((c.scene, c.encoding), (Scene::Unbounded, Encoding::Ipe));
     assert_eq!(
         (a.regnerf_weight, a.proposal_samples),
         ([400.0, 0.1], [16, 8])

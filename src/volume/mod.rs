@@ -78,7 +78,7 @@ pub use contraction::contract;
 pub use grid::{GridConfig, GridMarchConfig, GridSamples, OccupancyGrid};
 pub use layout::{Intervals, Layout, Packed, Weights};
 pub use nerf_model::{nerf, ColorLoss, DensityActivation, Nerf, NerfConfig};
-pub use proposal::{interlevel_loss, proposal_sample, ProposalConfig, ProposalSamples};
+pub use proposal::{interlevel_loss, proposal_sample, ProposalConfig, ProposalSamples, Spacing};
 pub use regularizers::{depth_smoothness, distortion_loss, log_linear_schedule};
 pub use render::{render_image, ImageConfig};
 pub use sampling::{

@@ -230,8 +230,11 @@ impl Nerf {
     /// The density `σ: [N]` (≥ 0) at `points: [N, 3]`, without the colour head: for
     /// occupancy-grid updates, proposal targets and meshes. With an integrated position
     /// encoding ([`PointEncoding::Integrated`]) `points` may also be Gaussians
-    /// `[μ, σ²]: [N, 6]`; `[N, 3]` points are Gaussians of zero variance. Differentiable
-    /// w.r.t. the trunk's parameters and the points.
+    /// `[μ, σ²]: [N, 6]`; `[N, 3]` points are Gaussians of zero variance, which read
+    /// every octave undamped, including those no training cone resolved: query such a
+    /// model at the footprint of the query instead (an occupancy grid's cell, variance
+    /// `cell²/12` per axis, as `examples/nerf` does). Differentiable w.r.t. the trunk's
+    /// parameters and the points.
     ///
     /// # Errors
     /// [`Error::InvalidArgument`] naming `points` for a wrong shape or dtype.

@@ -23,9 +23,133 @@ use crate::camera::Rays;
 use crate::error::{check_finite, check_float, check_same, check_scalar, Error, Result};
 use candle_core::{DType, Tensor};
 
+/// How [`proposal_sample`]'s first level spaces its samples along each ray.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Spacing {
+    /// Uniform in `t` over `[near, far]` (a bounded scene).
+    #[default]
+    Linear,
+    /// Uniform in `s = (g(t) − g(near)) / (g(far) − g(near))` with
+    /// `g(t) = t/2` for `t < 1` and `1 − 1/(2t)` beyond (nerfacto's piecewise
+    /// linear-then-disparity spacing, the unbounded-scene sampler of mip-NeRF 360 in
+    /// nerfstudio): linear up to `t = 1`, then uniform in disparity `1/t` to `far`, which
+    /// may be huge (1e10). Scale the scene so that the foreground lies within `t ≤ 1` of
+    /// the cameras (and within the unit ball of [`super::contract`]). `near ≥ 0`.
+    LinearDisparity,
+}
+
+/// `g` of [`Spacing::LinearDisparity`] on a tensor: `t/2` below 1, `1 − 1/(2t)` from 1.
+fn lin_disp(t: &Tensor) -> Result<Tensor> {
+    let below = (t * 0.5)?;
+    let above = (t.maximum(1.0)?.recip()? * -0.5)?.affine(1.0, 1.0)?;
+    Ok(t.lt(1.0)?.where_cond(&below, &above)?)
+}
+
+/// `g⁻¹` of [`Spacing::LinearDisparity`]: `2s` below ½, `1/(2 − 2s)` from ½.
+fn lin_disp_inv(s: &Tensor) -> Result<Tensor> {
+    let below = (s * 2.0)?;
+    // s < 1 for any finite far (g < 1), so 2 − 2s > 0.
+    let above = s.minimum(1.0 - 1e-15)?.affine(-2.0, 2.0)?.recip()?;
+    Ok(s.lt(0.5)?.where_cond(&below, &above)?)
+}
+
+impl Spacing {
+    /// The normalised coordinate `s ∈ [0, 1]` of ray parameters `t` between `near` and
+    /// `far` (`[R]`, broadcast over the trailing axis of `t: [R, S]`): `(t − near)/(far −
+    /// near)` for [`Spacing::Linear`], `(g(t) − g(near))/(g(far) − g(near))` for
+    /// [`Spacing::LinearDisparity`]. The space in which this spacing is uniform, where
+    /// mip-NeRF 360 computes its [`super::distortion_loss`] (so that the loss does not
+    /// depend on the scene's units). Differentiable w.r.t. `t`; a ray with `near = far`
+    /// gives `s = 0`.
+    ///
+    /// ```
+    /// use candle_core::{Device, Tensor};
+    /// use neural_fields::volume::Spacing;
+    ///
+    /// let dev = Device::Cpu;
+    /// let (near, far) = (Tensor::new(&[0.0f64], &dev)?, Tensor::new(&[1e10f64], &dev)?);
+    /// let t = Tensor::new(&[[0.0f64, 0.5, 1.0, 2.0, 1e10]], &dev)?;
+    /// let s = Spacing::LinearDisparity.normalize(&t, &near, &far)?.to_vec2::<f64>()?;
+    /// // Linear to t = 1 (s = ½), then in disparity: t = 2 is halfway to infinity.
+    /// for (a, b) in s[0].iter().zip([0.0, 0.25, 0.5, 0.75, 1.0]) {
+    ///     assert!((a - b).abs() < 1e-9);
+    /// }
+    /// # Ok::<(), neural_fields::Error>(())
+    /// ```
+    ///
+    /// # Errors
+    /// Naming `t` unless it is `[R, S]` with `near`'s dtype and device and `R` rows, and
+    /// `near`/`far` unless `[R]`.
+    pub fn normalize(&self, t: &Tensor, near: &Tensor, far: &Tensor) -> Result<Tensor> {
+        let r = super::sampling::check_near_far(near, far)?;
+        check_float(t, "t")?;
+        check_same(t, "t", near, "near")?;
+        if t.rank() != 2 || t.dim(0)? != r {
+            return Err(Error::invalid(
+                "t",
+                format!("[{r}, S] (a row per ray)"),
+                format!("shape {:?}", t.dims()),
+            ));
+        }
+        let (lo, hi, t) = match self {
+            Spacing::Linear => (near.clone(), far.clone(), t.clone()),
+            Spacing::LinearDisparity => (lin_disp(near)?, lin_disp(far)?, lin_disp(t)?),
+        };
+        let span = (&hi - &lo)?;
+        // Rays with near = far: s = 0 (span 1 instead of 0).
+        let span = (&span + span.eq(0.0)?.to_dtype(span.dtype())?)?;
+        Ok(t.broadcast_sub(&lo.unsqueeze(1)?)?
+            .broadcast_div(&span.unsqueeze(1)?)?)
+    }
+
+    /// Stratified intervals of `n` samples between `near` and `far`, uniform in this
+    /// spacing's `s`.
+    fn stratified(
+        &self,
+        near: &Tensor,
+        far: &Tensor,
+        n: usize,
+        jitter: Jitter,
+        seed: u64,
+    ) -> Result<Intervals> {
+        match self {
+            Spacing::Linear => stratified(near, far, n, jitter, seed),
+            Spacing::LinearDisparity => {
+                if scalar_min(near)? < 0.0 {
+                    return Err(Error::invalid(
+                        "near",
+                        "≥ 0 for the linear-then-disparity spacing",
+                        "a negative near",
+                    ));
+                }
+                let (lo, hi) = (lin_disp(near)?, lin_disp(far)?);
+                let s = stratified(&lo, &hi, n, jitter, seed)?;
+                // Back to t, pinned to [near, far] against the round trip's rounding.
+                let to_t = |x: &Tensor| -> Result<Tensor> {
+                    Ok(lin_disp_inv(x)?
+                        .broadcast_maximum(&near.unsqueeze(1)?)?
+                        .broadcast_minimum(&far.unsqueeze(1)?)?)
+                };
+                Intervals::new(to_t(&s.starts)?, to_t(&s.ends)?, Layout::Batched)
+            }
+        }
+    }
+}
+
+/// The smallest value of `t` (0 for an empty tensor).
+fn scalar_min(t: &Tensor) -> Result<f64> {
+    if t.elem_count() == 0 {
+        return Ok(0.0);
+    }
+    Ok(t.min_all()?.to_dtype(DType::F64)?.to_scalar::<f64>()?)
+}
+
 /// Samples per level of a [`proposal_sample`] and the draw's settings.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ProposalConfig {
+    /// How the first level spaces its samples (default [`Spacing::Linear`];
+    /// [`Spacing::LinearDisparity`] for unbounded scenes).
+    pub spacing: Spacing,
     /// Samples per ray at each proposal level, coarse first (one entry per proposal
     /// network). Default `[64, 32]` (nerfacc's Blender recipe uses `[256, 96]` on a GPU).
     pub samples: Vec<usize>,
@@ -45,6 +169,7 @@ pub struct ProposalConfig {
 impl Default for ProposalConfig {
     fn default() -> Self {
         Self {
+            spacing: Spacing::Linear,
             samples: vec![64, 32],
             final_samples: 32,
             padding: 0.01,
@@ -173,7 +298,10 @@ pub fn proposal_sample(
         Jitter::None
     };
     let seed_of = |l: usize| seed.unwrap_or(0).wrapping_add(0x9E37_79B9 * (l as u64 + 1));
-    let mut intervals = stratified(near, far, config.samples[0], jitter, seed_of(0))?;
+    let mut intervals =
+        config
+            .spacing
+            .stratified(near, far, config.samples[0], jitter, seed_of(0))?;
     let mut levels = Vec::with_capacity(proposals.len());
     for (l, proposal) in proposals.iter_mut().enumerate() {
         let (r, s) = intervals.starts.dims2()?;
