@@ -580,7 +580,9 @@ fn integrated_pe_jvp(
 /// # Errors
 /// [`Error::InvalidArgument`] naming `means` when it is not an f32/f64 `[N, D]` tensor,
 /// `variances` when its shape, dtype or device differs from `means`', and
-/// `min_deg, max_deg` unless `min_deg ≤ max_deg ≤ 60`. The values of `variances` are
+/// `min_deg, max_deg` unless `min_deg ≤ max_deg ≤ 60`; `means` when the output's
+/// `N·2D·(max_deg − min_deg)` values pass the allocation limit of 2³³ bytes (checked
+/// before anything is allocated). The values of `variances` are
 /// data and not checked (negative or NaN variances give non-finite or growing outputs).
 pub fn integrated_pe(
     means: &Tensor,
@@ -615,6 +617,13 @@ fn integrated_rows(x: &Tensor, d: usize, min_deg: usize, max_deg: usize) -> Resu
             format!("{min_deg}, {max_deg}"),
         ));
     }
+    // The output, [N, 2·D·L], up to 60 times the input's size.
+    let rows = x.dims().first().copied().unwrap_or(0);
+    crate::limits::check_bytes(
+        "means",
+        &[rows, 2 * d, max_deg - min_deg],
+        x.dtype().size_in_bytes(),
+    )?;
     if x.device().is_cpu() && matches!(x.dtype(), DType::F32 | DType::F64) {
         let op = FusedIntegrated {
             dim: d,

@@ -420,6 +420,21 @@ const ALLOWED: &[(&str, &str, &str)] = &[
         "data: the output or gradient of a fused op, rows of the input tensor held times a width of the weights held",
     ),
     (
+        "kernels/integrated.rs",
+        "vec![_; m]",
+        "fixed: 256 rows of scratch times the encoding's octaves and dimension",
+    ),
+    (
+        "kernels/integrated.rs",
+        "vec![_; rows * w]",
+        "checked: integrated_pe checks the output's [N, 2·D·L] with limits::check_bytes first",
+    ),
+    (
+        "kernels/integrated.rs",
+        "vec![_; x.len()]",
+        "data: the gradient of a fused op, the size of the input tensor held",
+    ),
+    (
         "kernels/grid_sample.rs",
         "vec![_; b * c * p]",
         "data: the output or gradient of a fused op, rows of the input tensor held times a width of the weights held",

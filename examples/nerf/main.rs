@@ -24,6 +24,12 @@
 //! `--samples` intervals ([`proposal_sample`], [`interlevel_loss`]), of which only the
 //! visible ones with opacity ≥ `--alpha-threshold` (nerfacc's `alpha_thre`) go on.
 //!
+//! **Scenes** (`--scene`): `object` (default), inside the scene box; `unbounded`, content
+//! at every distance (mip-NeRF 360): the training cameras' frame scaled into the unit
+//! ball, every network on [`contract`] of it, the proposal sampler (whatever `--sampler`
+//! says) spacing samples linearly to 1 and then in disparity to 1e6 ([`Spacing`]), and
+//! the distortion loss in that spacing's `s`.
+//!
 //! **Rays**: `--eval-supersample K` renders `K × K` rays per held-out pixel
 //! ([`render_image`]); `--jitter on` trains on random points of the pixels,
 //! `--train-supersample K` on the mean of `K × K` rays per pixel, `--march-jitter on` on
@@ -34,7 +40,7 @@
 //! adds RegNeRF's depth smoothness on patches from unseen cameras and its annealed range.
 //!
 //! **Output** in `--out` (default `target/nerf`): `metrics.json` (`psnr`, `ssim`,
-//! `train_seconds` without evaluations, `steps`, `samples_per_ray`, `sampler`, `encoding`,
+//! `train_seconds` without evaluations, `steps`, `samples_per_ray`, `sampler`, `scene`, `encoding`,
 //! `eval_split`, `eval_views`, `eval_supersample`, `pixel_filter`, `jitter`,
 //! `train_supersample`, `march_jitter`, `coarse_to_fine`, `view_dependence`,
 //! `alpha_threshold`, `proposal_samples`, `data`, and `psnr_per_scale`: per image size,
