@@ -42,6 +42,13 @@ impl FusedIntegrated {
         2 * self.dim * self.octaves()
     }
 
+    /// The octaves' frequencies `2ᵏ`, `min_deg ≤ k < max_deg`.
+    fn scales(&self) -> Vec<f64> {
+        (self.min_deg..self.max_deg)
+            .map(|k| (k as f64).exp2())
+            .collect()
+    }
+
     fn scratch(&self) -> Scratch {
         let m = ROWS * self.dim * self.octaves();
         std::array::from_fn(|_| vec![0.0; m])
@@ -49,14 +56,13 @@ impl FusedIntegrated {
 
     /// Sines, cosines and dampings of the rows `x: [rows, 2D]` into `t[1..4]`, laid out
     /// `[row][k][d]`; returns their count.
-    fn trig<T: WithDType>(&self, x: &[T], t: &mut Scratch) -> usize {
+    fn trig<T: WithDType>(&self, x: &[T], scales: &[f64], t: &mut Scratch) -> usize {
         let (d, l) = (self.dim, self.octaves());
         let rows = x.len() / (2 * d).max(1);
         let m = rows * l * d;
         let [args, sin, cos, damp] = t;
         for (r, row) in x.chunks(2 * d).enumerate() {
-            for k in 0..l {
-                let scale = ((self.min_deg + k) as f64).exp2();
+            for (k, &scale) in scales.iter().enumerate() {
                 let at = (r * l + k) * d;
                 for j in 0..d {
                     args[at + j] = row[j].to_f64() * scale * std::f64::consts::FRAC_1_PI;
@@ -75,13 +81,14 @@ impl FusedIntegrated {
         if w == 0 {
             return out;
         }
+        let scales = self.scales();
         let items: Vec<_> = out.chunks_mut(ROWS * w).zip(x.chunks(ROWS * d2)).collect();
         for_each_init(
             items,
             || self.scratch(),
             |t, (out, x)| {
                 let (d, l) = (self.dim, self.octaves());
-                self.trig(x, t);
+                self.trig(x, &scales, t);
                 for (r, o) in out.chunks_mut(w).enumerate() {
                     for k in 0..l {
                         let src = (r * l + k) * d;
@@ -104,6 +111,7 @@ impl FusedIntegrated {
         if w == 0 {
             return gx;
         }
+        let scales = self.scales();
         let items: Vec<_> = gx
             .chunks_mut(ROWS * d2)
             .zip(x.chunks(ROWS * d2))
@@ -113,12 +121,11 @@ impl FusedIntegrated {
             items,
             || self.scratch(),
             |t, ((gx, x), g)| {
-                self.trig(x, t);
+                self.trig(x, &scales, t);
                 for (r, (gr, gi)) in gx.chunks_mut(2 * d).zip(g.chunks(w)).enumerate() {
                     for j in 0..d {
                         let (mut gm, mut gv) = (0.0, 0.0);
-                        for k in 0..l {
-                            let scale = ((self.min_deg + k) as f64).exp2();
+                        for (k, &scale) in scales.iter().enumerate() {
                             let src = (r * l + k) * d + j;
                             let (s, c, e) = (t[1][src], t[2][src], t[3][src]);
                             let (gs, gc) =
