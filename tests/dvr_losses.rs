@@ -6,7 +6,7 @@ mod common;
 
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
-use common::{central_diff, close, v64};
+use common::{central_diff, central_diff_bound, close, v64};
 use neural_fields::camera::{Intersection, Rays};
 use neural_fields::dvr::{
     depth_loss, eikonal_loss, idr_mask_loss, most_inside_along_rays, normal_smoothness_loss,
@@ -242,8 +242,14 @@ proptest! {
                     let t = Tensor::from_vec(d, (5, 3), &DEV).unwrap();
                     scalar(&photometric_loss(&t, &target, Some(&mask), norm).unwrap())
                 };
-                if let Some(n) = central_diff(&mut f, base[i], 1e-6, 1.0) {
-                    prop_assert!(close(g[i], n, 1e-6, 1e-6), "{norm:?} {i}: {} vs {n}", g[i]);
+                // The stencil's own error bar (round-off of an O(1) loss at h = 1e-6 is
+                // ~2e-10) is allowed on top: the failing seed below had a gradient of
+                // −7.69e-5 off by 2.0e-10.
+                if let Some((n, bar)) = central_diff_bound(&mut f, base[i], 1e-6, 1.0) {
+                    prop_assert!(
+                        close(g[i], n, 1e-6, 1e-6) || (g[i] - n).abs() <= 2.0 * bar,
+                        "{norm:?} {i}: {} vs {n} ± {bar}", g[i]
+                    );
                 }
             }
         }
