@@ -3,7 +3,7 @@
 //! on the same cores (`benches/compare_torch.sh`).
 //!
 //! ```text
-//! cargo bench --bench train_step -- --model nerf --steps 20 [--reference] [--composed] [--phases]
+//! cargo bench --bench train_step -- --model nerf --steps 20 [--reference] [--composed] [--phases] [--device cuda]
 //! ```
 //!
 //! * `nerf`: 1024 rays × 64 jittered stratified samples in [2, 6], NeRF's frequency
@@ -26,7 +26,10 @@
 //!   gathers) instead of the fused op.
 //!
 //! `--reference` runs the MLPs through candle's ops instead of the fused MLP op;
-//! `--phases` reports forward, backward and optimiser medians separately. The output is
+//! `--phases` reports forward, backward and optimiser medians separately. `--device cuda`
+//! (built with the `cuda` feature) runs on the first GPU, waiting for the device at the
+//! end of every timed phase; there `NEURAL_FIELDS_CUDA_KERNELS=0` measures the candle-op
+//! fallback instead of the crate's CUDA kernels. The output is
 //! one JSON line per run. The global allocator is the system's (glibc's malloc on Linux),
 //! as a user's program has by default.
 
@@ -51,6 +54,7 @@ struct Args {
     reference: bool,
     phases: bool,
     composed: bool,
+    device: String,
 }
 
 fn parse() -> Args {
@@ -61,6 +65,7 @@ fn parse() -> Args {
         reference: false,
         phases: false,
         composed: false,
+        device: "cpu".into(),
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -71,6 +76,7 @@ fn parse() -> Args {
             "--reference" => a.reference = true,
             "--composed" => a.composed = true,
             "--phases" => a.phases = true,
+            "--device" => a.device = it.next().expect("--device cpu|cuda"),
             "--bench" => {}
             other => panic!("unknown flag {other}"),
         }
@@ -78,8 +84,8 @@ fn parse() -> Args {
     a
 }
 
-/// A deterministic pseudo-random tensor in [lo, hi).
-fn uniform(shape: &[usize], lo: f32, hi: f32, seed: u64) -> Tensor {
+/// A deterministic pseudo-random tensor in [lo, hi), on `dev`.
+fn uniform(shape: &[usize], lo: f32, hi: f32, seed: u64, dev: &Device) -> Tensor {
     let n: usize = shape.iter().product();
     let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
     let v: Vec<f32> = (0..n)
@@ -90,7 +96,9 @@ fn uniform(shape: &[usize], lo: f32, hi: f32, seed: u64) -> Tensor {
             lo + (hi - lo) * ((s >> 40) as f32 / (1u64 << 24) as f32)
         })
         .collect();
-    Tensor::from_vec(v, shape, &Device::Cpu).expect("shape matches")
+    Tensor::from_vec(v, shape, &Device::Cpu)
+        .and_then(|t| t.to_device(dev))
+        .expect("shape matches, device open")
 }
 
 fn median(v: &mut [f64]) -> f64 {
@@ -102,7 +110,11 @@ type Step<'a> = Box<dyn FnMut(usize) -> neural_fields::Result<Tensor> + 'a>;
 
 fn main() -> neural_fields::Result<()> {
     let args = parse();
-    let dev = Device::Cpu;
+    let dev = match args.device.as_str() {
+        "cpu" => Device::Cpu,
+        "cuda" => Device::new_cuda(0)?,
+        other => panic!("unknown device {other}"),
+    };
     let varmap = VarMap::new();
     let mut forward: Step = match args.model.as_str() {
         "nerf" => {
@@ -112,9 +124,9 @@ fn main() -> neural_fields::Result<()> {
             };
             let net = build_seeded(&varmap, DType::F32, &dev, 0, |vb| nerf(&config, vb))?;
             let rays_n = 1024;
-            let target = uniform(&[rays_n, 3], 0.0, 1.0, 1);
-            let aim = uniform(&[rays_n, 3], -0.5, 0.5, 2);
-            let origins = uniform(&[rays_n, 3], -1.0, 1.0, 3);
+            let target = uniform(&[rays_n, 3], 0.0, 1.0, 1, &dev);
+            let aim = uniform(&[rays_n, 3], -0.5, 0.5, 2, &dev);
+            let origins = uniform(&[rays_n, 3], -1.0, 1.0, 3, &dev);
             let norm = origins.sqr()?.sum_keepdim(1)?.sqrt()?;
             let origins = origins.broadcast_div(&norm)?.affine(4.0, 0.0)?;
             let dirs = (aim - &origins)?;
@@ -154,7 +166,7 @@ fn main() -> neural_fields::Result<()> {
             };
             let net = build_seeded(&varmap, DType::F32, &dev, 0, |vb| mlp(&config, vb))?;
             let n = 1 << 16;
-            let points = uniform(&[n, 3], -0.55, 0.55, 4);
+            let points = uniform(&[n, 3], -0.55, 0.55, 4, &dev);
             let labels = points.sqr()?.sum(1)?.le(0.16)?.to_dtype(DType::F32)?;
             Box::new(move |_| {
                 let logits = net.forward(&points)?.squeeze(1)?;
@@ -171,10 +183,10 @@ fn main() -> neural_fields::Result<()> {
             };
             let net = build_seeded(&varmap, DType::F32, &dev, 0, |vb| mlp(&config, vb))?;
             let rays_n = 2048;
-            let origins = uniform(&[rays_n, 3], -1.0, 1.0, 5);
+            let origins = uniform(&[rays_n, 3], -1.0, 1.0, 5, &dev);
             let norm = origins.sqr()?.sum_keepdim(1)?.sqrt()?;
             let origins = origins.broadcast_div(&norm)?.affine(1.5, 0.0)?;
-            let aim = uniform(&[rays_n, 3], -0.15, 0.15, 6);
+            let aim = uniform(&[rays_n, 3], -0.15, 0.15, 6, &dev);
             let dirs = (aim - &origins)?;
             let dirs = dirs.broadcast_div(&dirs.sqr()?.sum_keepdim(1)?.sqrt()?)?;
             let rays = Rays::new(origins, dirs)?;
@@ -199,8 +211,8 @@ fn main() -> neural_fields::Result<()> {
                 ..HashGridConfig::default()
             };
             let grid = build_seeded(&varmap, DType::F32, &dev, 0, |vb| hash_grid(&config, vb))?;
-            let points = uniform(&[1 << 18, 3], -1.0, 1.0, 7);
-            let c = uniform(&[grid.out_dim(), 1], -1.0, 1.0, 8);
+            let points = uniform(&[1 << 18, 3], -1.0, 1.0, 7, &dev);
+            let c = uniform(&[grid.out_dim(), 1], -1.0, 1.0, 8, &dev);
             Box::new(move |_| {
                 let y = grid.forward(&points)?;
                 Ok(y.matmul(&c)?.sqr()?.mean_all()?)
@@ -222,13 +234,17 @@ fn main() -> neural_fields::Result<()> {
         let t0 = Instant::now();
         let loss = forward(step)?;
         if args.phases {
-            // Force the forward (candle is eager; this only waits for nothing).
+            // Force the forward (on the CPU candle is eager; a GPU runs asynchronously).
             last = loss.to_scalar::<f32>()?;
         }
         let t1 = Instant::now();
         let grads = loss.backward()?;
+        if args.phases {
+            dev.synchronize()?;
+        }
         let t2 = Instant::now();
         opt.step(&grads)?;
+        dev.synchronize()?;
         let t3 = Instant::now();
         if !args.phases {
             last = loss.to_scalar::<f32>()?;
@@ -241,13 +257,20 @@ fn main() -> neural_fields::Result<()> {
         }
     }
     println!(
-        "{{\"impl\": \"candle-{}\", \"model\": \"{}\", \"steps\": {}, \"median_s\": {:.5}, \"forward_s\": {:.5}, \"backward_s\": {:.5}, \"update_s\": {:.5}, \"final_loss\": {:.6}}}",
+        "{{\"impl\": \"candle-{}{}\", \"model\": \"{}\", \"steps\": {}, \"median_s\": {:.5}, \"forward_s\": {:.5}, \"backward_s\": {:.5}, \"update_s\": {:.5}, \"final_loss\": {:.6}}}",
         if args.reference {
             "reference"
         } else if args.composed {
             "composed"
         } else {
             "fused"
+        },
+        if args.device == "cpu" {
+            String::new()
+        } else if std::env::var("NEURAL_FIELDS_CUDA_KERNELS").is_ok_and(|v| v == "0") {
+            format!("-{}-fallback", args.device)
+        } else {
+            format!("-{}", args.device)
         },
         args.model,
         args.steps,

@@ -198,7 +198,10 @@ impl Encoding for FrequencyEncoding {
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         check_input(x, self.in_dim)?;
-        if self.use_pi && x.device().is_cpu() && matches!(x.dtype(), DType::F32 | DType::F64) {
+        if self.use_pi
+            && crate::kernels::fused_on(x.device())
+            && matches!(x.dtype(), DType::F32 | DType::F64)
+        {
             return Ok(x.contiguous()?.apply_op1(self.kernel())?);
         }
         self.forward_reference(x)
@@ -518,6 +521,12 @@ impl crate::kernels::RowEncode for RowEncoder {
     fn encode<T: candle_core::WithDType>(&mut self, x: &[T], out: &mut [T]) {
         RowEncoder::encode(self, x, out);
     }
+
+    fn frequency_spec(&self) -> (usize, bool) {
+        self.frequency
+            .as_ref()
+            .map_or((0, true), |f| (f.n_freqs, f.include_input))
+    }
 }
 
 /// [`integrated_pe`] of `x = [μ, σ²]: [N, 2D]` and its JVPs along `dx: [N, K, 2D]`:
@@ -624,7 +633,7 @@ fn integrated_rows(x: &Tensor, d: usize, min_deg: usize, max_deg: usize) -> Resu
         &[rows, 2 * d, max_deg - min_deg],
         x.dtype().size_in_bytes(),
     )?;
-    if x.device().is_cpu() && matches!(x.dtype(), DType::F32 | DType::F64) {
+    if crate::kernels::fused_on(x.device()) && matches!(x.dtype(), DType::F32 | DType::F64) {
         let op = FusedIntegrated {
             dim: d,
             min_deg,

@@ -125,7 +125,7 @@ fn log1p_exp_neg_abs(x: &Tensor) -> Result<Tensor> {
 pub fn softplus(x: &Tensor, beta: f64) -> Result<Tensor> {
     check_float(x, "x")?;
     check_scalar(beta, "beta", true)?;
-    if x.device().is_cpu() {
+    if crate::kernels::fused_on(x.device()) {
         return Ok(x.contiguous()?.apply_op1(SoftplusOp { beta })?);
     }
     softplus_reference(x, beta)
@@ -241,6 +241,15 @@ impl CustomOp1 for SoftplusOp {
         )
     }
 
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s: &candle_core::CudaStorage,
+        l: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        crate::kernels::cuda::map("nf_softplus", s, l, Some(self.beta))
+    }
+
     fn bwd(
         &self,
         arg: &Tensor,
@@ -271,6 +280,15 @@ impl CustomOp1 for SigmoidOfScaled {
             |x| scalar_sigmoid!(b32 * x),
             |x| scalar_sigmoid!(b64 * x),
         )
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s: &candle_core::CudaStorage,
+        l: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        crate::kernels::cuda::map("nf_sigmoid_scaled", s, l, Some(self.beta))
     }
 }
 
@@ -360,6 +378,15 @@ impl CustomOp1 for TruncExpOp {
         )
     }
 
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s: &candle_core::CudaStorage,
+        l: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        crate::kernels::cuda::map("nf_trunc_exp", s, l, None)
+    }
+
     fn bwd(
         &self,
         arg: &Tensor,
@@ -406,7 +433,7 @@ impl CustomOp1 for TruncExpOp {
 /// `x` when not f32/f64.
 pub fn trunc_exp(x: &Tensor) -> Result<Tensor> {
     check_float(x, "x")?;
-    if x.device().is_cpu() {
+    if crate::kernels::fused_on(x.device()) {
         return Ok(x.contiguous()?.apply_op1(TruncExpOp)?);
     }
     let m = if x.dtype() == DType::F32 {

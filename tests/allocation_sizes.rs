@@ -390,6 +390,26 @@ const ALLOWED: &[(&str, &str, &str)] = &[
         "checked: check_bytes on n just above",
     ),
     (
+        "kernels/cuda/hash_grid.rs",
+        "with_capacity(3 * p.levels.len().max(1))",
+        "fixed: the widths or layers of a network or encoding already built",
+    ),
+    (
+        "kernels/cuda/nerf_loss.rs",
+        "with_capacity(last)",
+        "fixed: the widths or layers of a network or encoding already built",
+    ),
+    (
+        "kernels/cuda/nerf_loss.rs",
+        "with_capacity(net.layers.len())",
+        "fixed: the widths or layers of a network or encoding already built",
+    ),
+    (
+        "kernels/dispatch.rs",
+        "with_capacity(N)",
+        "fixed: the input count of an op, a compile-time constant",
+    ),
+    (
         "kernels/composite.rs",
         "vec![_; r * width]",
         "data: the output or gradient of a fused op, rows of the input tensor held times a width of the weights held",

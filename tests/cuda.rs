@@ -975,6 +975,373 @@ fn mesh_case(dev: &Device, dtype: DType) -> Result<Outs> {
     Ok(out)
 }
 
+// --- fused kernels ----------------------------------------------------------------------
+//
+// The crate's CUDA kernels against its CPU kernels on the same inputs, at a relative
+// 1e-5 (f32) / 1e-10 (f64); the stiff inputs are the ones the CPU kernels' own tests
+// sweep. (Run the binary a second time with `NEURAL_FIELDS_CUDA_KERNELS=0` and the same
+// cases compare the candle-op reference paths on CUDA with the CPU kernels.)
+
+/// Whether the CUDA kernels run (`NEURAL_FIELDS_CUDA_KERNELS` is not `0`); else the
+/// CUDA side of every case is the candle-op reference path.
+fn kernels_on() -> bool {
+    std::env::var("NEURAL_FIELDS_CUDA_KERNELS").map_or(true, |v| v != "0")
+}
+
+/// A kernel output: relative 1e-5 (f32) / 1e-10 (f64); the reference paths' 1e-4 in f32
+/// when the kernels are off.
+fn k(t: Tensor) -> Out {
+    Out::Rel(t, if kernels_on() { 1e-5 } else { 1e-4 }, 1e-10)
+}
+
+/// Whether a call failed, as a comparable output.
+fn failed<T>(r: Result<T>) -> Out {
+    Out::Eq(if r.is_err() { "Err" } else { "Ok" }.into())
+}
+
+fn kernels_case(dev: &Device, dtype: DType) -> Result<Outs> {
+    let mut rng = SplitMix64::new(71);
+    let cpu = Device::Cpu;
+    let mut out: Outs = Vec::new();
+
+    // Activations over ordinary and extreme arguments (both sides of every clamp).
+    let mut xs: Vec<f64> = (0..200).map(|i| -10.0 + 0.1 * i as f64).collect();
+    xs.extend([
+        -1e4, -800.0, -100.0, -15.5, -15.0, 15.0, 15.5, 80.0, 87.9, 88.0, 88.5, 700.0, 708.9,
+        709.0, 709.5, 1e4, 0.0, -0.0, 1e-30, -1e-30,
+    ]);
+    let x = Var::from_tensor(
+        &Tensor::new(xs.as_slice(), &cpu)?
+            .to_dtype(dtype)?
+            .to_device(dev)?,
+    )?;
+    for (label, y) in [
+        ("softplus_b1", neural_fields::numerics::softplus(&x, 1.0)?),
+        (
+            "softplus_b100",
+            neural_fields::numerics::softplus(&x, 100.0)?,
+        ),
+        ("trunc_exp", neural_fields::numerics::trunc_exp(&x)?),
+    ] {
+        let mut up = SplitMix64::new(3);
+        let g = probe(&y, &mut up)?.backward()?;
+        out.push((label.to_string(), k(y)));
+        out.push((format!("{label}.d/dx"), grad(&g, &x, "x")?));
+    }
+    let empty = Tensor::zeros(0, dtype, dev)?;
+    out.push((
+        "trunc_exp.empty".into(),
+        Out::Eq(format!(
+            "{:?}",
+            neural_fields::numerics::trunc_exp(&empty)?.dims()
+        )),
+    ));
+
+    // Encodings on large arguments (|2ᵏπx| up to 2⁹·π·300) and an empty batch.
+    let xe = Var::from_tensor(&uniform(&mut rng, &[64, 3], -300.0, 300.0, dtype, dev)?)?;
+    let freq = FrequencyEncoding::new(3, 10)?;
+    let y = freq.forward(&xe)?;
+    let g = probe(&y, &mut SplitMix64::new(4))?.backward()?;
+    out.push(("frequency.large".into(), k(y)));
+    out.push(("frequency.large.d/dx".into(), grad(&g, &xe, "x")?));
+    let none = Tensor::zeros((0, 3), dtype, dev)?;
+    out.push((
+        "frequency.empty".into(),
+        Out::Eq(format!("{:?}", freq.forward(&none)?.dims())),
+    ));
+    let var = Var::from_tensor(&uniform(&mut rng, &[64, 3], 0.0, 4.0, dtype, dev)?)?;
+    let ipe = integrated_pe(&xe, &var, 0, 16)?;
+    let g = probe(&ipe, &mut SplitMix64::new(5))?.backward()?;
+    out.push(("integrated_pe.large".into(), k(ipe)));
+    out.push(("integrated_pe.d/dmeans".into(), grad(&g, &xe, "means")?));
+    out.push((
+        "integrated_pe.d/dvariances".into(),
+        grad(&g, &var, "variances")?,
+    ));
+
+    // Compositing with constant intervals (the op forms δ and t per ray), with and
+    // without non-unit directions, batched and packed, opaque last or not; densities
+    // from 0 to 1e30 and zero-length intervals.
+    let (r, s) = (33, 37);
+    let mut sig_h = v64(&rng
+        .uniform_tensor(&[r, s], -2.0, 8.0, DType::F64, &cpu)?
+        .relu()?);
+    for (i, v) in [1e30, 1e-30, 5e3, 0.0, 1e6].iter().enumerate() {
+        sig_h[i * 7 + 3] = *v;
+    }
+    let sig = Var::from_tensor(
+        &Tensor::from_vec(sig_h, (r, s), &cpu)?
+            .to_dtype(dtype)?
+            .to_device(dev)?,
+    )?;
+    let mut del_h = v64(&rng.uniform_tensor(&[r, s], 0.0, 0.1, DType::F64, &cpu)?);
+    del_h[5] = 0.0;
+    del_h[s + 2] = 0.0;
+    let (st_h, en_h) = common::intervals::starts_ends(&del_h, &vec![s; r]);
+    let host = |v: Vec<f64>| -> Result<Tensor> {
+        Ok(Tensor::from_vec(v, (r, s), &cpu)?
+            .affine(1.0, 2.0)?
+            .to_dtype(dtype)?
+            .to_device(dev)?)
+    };
+    let iv = Intervals::new(host(st_h)?, host(en_h)?, Layout::Batched)?;
+    let col = Var::from_tensor(&uniform(&mut rng, &[r, s, 3], 0.0, 1.0, dtype, dev)?)?;
+    let dirs_h = uniform(&mut rng, &[r, 3], 0.3, 1.1, dtype, dev)?;
+    let rays = Rays::new(Tensor::zeros((r, 3), dtype, dev)?, dirs_h.clone())?;
+    let dirs = Var::from_tensor(&dirs_h)?;
+    let rays_var = Rays::new(Tensor::zeros((r, 3), dtype, dev)?, dirs.as_tensor().clone())?;
+    for opaque_last in [false, true] {
+        let cfg = CompositeConfig {
+            opaque_last,
+            ..CompositeConfig::default()
+        };
+        for (label, rays) in [
+            ("unit", None),
+            ("norms", Some(&rays)),
+            ("direction_graph", Some(&rays_var)),
+        ] {
+            let label = format!("composite.constant.{label}.opaque_last={opaque_last}");
+            let res = composite(&sig, &col, &iv, rays, &cfg)?;
+            let mut up = SplitMix64::new(8);
+            let loss = ((probe(&res.color, &mut up)? + probe(&res.opacity, &mut up)?)?
+                + probe(&res.depth, &mut up)?)?;
+            let g = loss.backward()?;
+            out.push((format!("{label}.color"), k(res.color)));
+            out.push((format!("{label}.opacity"), k(res.opacity)));
+            out.push((format!("{label}.depth"), k(res.depth)));
+            out.push((format!("{label}.d/dsigmas"), grad(&g, &sig, "sigmas")?));
+            out.push((format!("{label}.d/dcolors"), grad(&g, &col, "colors")?));
+            if rays.is_some_and(|r| r.directions().track_op()) {
+                out.push((
+                    format!("{label}.d/ddirections"),
+                    grad(&g, &dirs, "directions")?,
+                ));
+            }
+        }
+    }
+    // Packed with empty rays: every third ray keeps no sample.
+    let keep: Vec<u8> = (0..r * s)
+        .map(|i| u8::from((i / s) % 3 != 0 && i % 2 == 0))
+        .collect();
+    let mask = Tensor::from_vec(keep, (r, s), &cpu)?.to_device(dev)?;
+    let (kept, idx) = iv.retain(&mask)?;
+    let ps = Var::from_tensor(&sig.as_tensor().flatten_all()?.index_select(&idx, 0)?)?;
+    let pc = Var::from_tensor(&col.as_tensor().reshape((r * s, 3))?.index_select(&idx, 0)?)?;
+    let res = composite(
+        &ps,
+        &pc,
+        &kept,
+        None,
+        &CompositeConfig {
+            opaque_last: true,
+            ..CompositeConfig::default()
+        },
+    )?;
+    let mut up = SplitMix64::new(9);
+    let g = ((probe(&res.color, &mut up)? + probe(&res.opacity, &mut up)?)?
+        + probe(&res.depth, &mut up)?)?
+    .backward()?;
+    out.push(("composite.packed.color".into(), k(res.color)));
+    out.push(("composite.packed.opacity".into(), k(res.opacity)));
+    out.push(("composite.packed.depth".into(), k(res.depth)));
+    out.push((
+        "composite.packed.d/dsigmas".into(),
+        grad(&g, &ps, "sigmas")?,
+    ));
+    out.push((
+        "composite.packed.d/dcolors".into(),
+        grad(&g, &pc, "colors")?,
+    ));
+    // A NaN or negative density is refused on both devices.
+    for (label, bad) in [
+        ("nan", f64::NAN),
+        ("negative", -1.0),
+        ("inf", f64::INFINITY),
+    ] {
+        let mut h = v64(sig.as_tensor());
+        h[17] = bad;
+        let b = Tensor::from_vec(h, (r, s), &cpu)?
+            .to_dtype(dtype)?
+            .to_device(dev)?;
+        out.push((
+            format!("composite.refuses_{label}_density"),
+            failed(composite(
+                &b,
+                col.as_tensor(),
+                &iv,
+                None,
+                &CompositeConfig::default(),
+            )),
+        ));
+    }
+    Ok(out)
+}
+
+/// NeRF's colour loss: the fused loss op on both devices (on CUDA its kernels and cuBLAS
+/// products), at the defaults and with a skip connection, a softplus density, no view
+/// dependence and an opaque last interval on packed samples; and the composed path
+/// (`force_reference`) on both. The loss, the mean opacity and every parameter gradient.
+fn nerf_loss_case(dev: &Device, dtype: DType) -> Result<Outs> {
+    use neural_fields::volume::{nerf, DensityActivation, NerfConfig};
+    let mut rng = SplitMix64::new(81);
+    let r = 64;
+    let shift = |t: Tensor, z: f64| -> Result<Tensor> {
+        let o = Tensor::new(&[0.0, 0.0, z], &Device::Cpu)?
+            .to_dtype(dtype)?
+            .to_device(dev)?;
+        Ok(t.broadcast_add(&o.unsqueeze(0)?)?)
+    };
+    let origins = shift(uniform(&mut rng, &[r, 3], -0.2, 0.2, dtype, dev)?, -3.0)?;
+    let dirs = shift(uniform(&mut rng, &[r, 3], -0.3, 0.3, dtype, dev)?, 1.0)?;
+    let rays = Rays::new(origins, dirs)?;
+    let full = |v: f64| -> Result<Tensor> {
+        Ok(Tensor::full(v, r, &Device::Cpu)?
+            .to_dtype(dtype)?
+            .to_device(dev)?)
+    };
+    let iv = stratified(&full(2.0)?, &full(4.5)?, 48, Jitter::None, 0)?;
+    // Packed: a ray-dependent number of the batched samples (some rays keep none).
+    let keep: Vec<u8> = (0..r * 48)
+        .map(|i| u8::from((i % 48) < (i / 48) % 7 * 7))
+        .collect();
+    let mask = Tensor::from_vec(keep, (r, 48), &Device::Cpu)?.to_device(dev)?;
+    let (packed, _) = iv.retain(&mask)?;
+    let target = uniform(&mut rng, &[r, 3], 0.0, 1.0, dtype, dev)?;
+    let variant = NerfConfig {
+        skips: vec![2],
+        density: DensityActivation::Softplus { shift: -0.5 },
+        direction_encoding: None,
+        ..NerfConfig::default()
+    };
+    let reference = NerfConfig {
+        force_reference: true,
+        ..NerfConfig::default()
+    };
+    let mut out: Outs = Vec::new();
+    for (label, config, intervals, opaque_last) in [
+        ("default", NerfConfig::default(), &iv, false),
+        ("skip_softplus_packed", variant, &packed, true),
+        ("composed", reference, &iv, false),
+    ] {
+        let vm = VarMap::new();
+        let net = build_seeded(&vm, dtype, dev, 5, |vb| nerf(&config, vb))?;
+        let cfg = CompositeConfig {
+            opaque_last,
+            ..CompositeConfig::default()
+        };
+        let res = net.color_loss(&rays, intervals, &target, &cfg)?;
+        let g = res.loss.backward()?;
+        out.push((
+            format!("{label}.loss"),
+            Out::Rel(res.loss.clone(), 1e-5, 1e-10),
+        ));
+        out.push((
+            format!("{label}.opacity_mean"),
+            Out::Host(vec![res.opacity_mean]),
+        ));
+        for (name, var) in sorted_vars(&vm) {
+            out.push((
+                format!("{label}.d/d{name}"),
+                Out::Rel(grad_t(&g, &var, &name)?, 1e-4, 1e-9),
+            ));
+        }
+    }
+    Ok(out)
+}
+
+/// The hash grid, `grid_sample` and scatter-max: values and the gradients of every
+/// differentiable input, on points that include the box's faces and points outside it.
+fn grid_kernels_case(dev: &Device, dtype: DType) -> Result<Outs> {
+    use neural_fields::encoding::{
+        cell_index, grid_sample, hash_grid, scatter, GridSampleConfig, HashGridConfig, Pooling,
+        ScatterConfig,
+    };
+    let mut rng = SplitMix64::new(91);
+    let cpu = Device::Cpu;
+    let mut out: Outs = Vec::new();
+
+    // Hash grid: dense coarse levels and hashed fine ones (tables of 2¹² rows).
+    let config = HashGridConfig {
+        levels: 8,
+        log2_table_size: 12,
+        finest_resolution: 256.0,
+        init_scale: 0.5,
+        ..HashGridConfig::default()
+    };
+    let vm = VarMap::new();
+    let grid = build_seeded(&vm, dtype, dev, 3, |vb| hash_grid(&config, vb))?;
+    let mut ph = v64(&rng.uniform_tensor(&[500, 3], -1.2, 1.2, DType::F64, &cpu)?);
+    ph[..9].copy_from_slice(&[-1.0, -1.0, -1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0]);
+    let p = Var::from_tensor(
+        &Tensor::from_vec(ph, (500, 3), &cpu)?
+            .to_dtype(dtype)?
+            .to_device(dev)?,
+    )?;
+    let y = grid.forward(&p)?;
+    let g = probe(&y, &mut SplitMix64::new(10))?.backward()?;
+    out.push(("hash_grid".into(), k(y)));
+    for (name, var) in sorted_vars(&vm) {
+        out.push((format!("hash_grid.d/d{name}"), k(grad_t(&g, &var, &name)?)));
+    }
+    if let Some(gp) = g.get(&p) {
+        // The reference path forms the weights u − ⌊u⌋ from u = t·N in f32 (N up to 256:
+        // 8 bits fewer), and the position gradient scales them by N: 5e-3 in f32 there.
+        let tol = if kernels_on() { 1e-4 } else { 5e-3 };
+        out.push((
+            "hash_grid.d/dpoints".into(),
+            Out::Rel(gp.clone(), tol, 1e-9),
+        ));
+    }
+
+    // grid_sample on planes and volumes, coordinates inside, on and outside [0, 1].
+    for (label, shape, k_dim) in [
+        ("planes", vec![2usize, 5, 9, 7], 2usize),
+        ("volume", vec![2, 4, 6, 5, 7], 3),
+    ] {
+        let f = Var::from_tensor(&uniform(&mut rng, &shape, -1.0, 1.0, dtype, dev)?)?;
+        let c = Var::from_tensor(&uniform(&mut rng, &[2, 300, k_dim], -0.1, 1.1, dtype, dev)?)?;
+        let y = grid_sample(&f, &c, &GridSampleConfig::default())?;
+        let g = probe(&y, &mut SplitMix64::new(11))?.backward()?;
+        out.push((format!("grid_sample.{label}"), k(y)));
+        out.push((
+            format!("grid_sample.{label}.d/dfeatures"),
+            k(grad_t(&g, &f, "features")?),
+        ));
+        if let Some(gc) = g.get(&c) {
+            out.push((
+                format!("grid_sample.{label}.d/dcoords"),
+                Out::Rel(gc.clone(), 1e-4, 1e-9),
+            ));
+        }
+    }
+
+    // Scatter-max of point features into a 4³ grid (empty cells included).
+    let coords = uniform(&mut rng, &[2, 200, 3], 0.0, 1.0, dtype, dev)?;
+    let index = cell_index(&coords, 4)?;
+    // Multiples of 1/4 in [−1, 1]: many ties within a cell (the lowest point wins).
+    let values = (uniform(&mut rng, &[2, 200, 6], -1.0, 1.0, dtype, dev)? * 4.0)?.round()?;
+    let values = Var::from_tensor(&(values / 4.0)?)?;
+    let max = ScatterConfig {
+        pooling: Pooling::Max,
+        force_reference: false,
+    };
+    let y = scatter(&values, &index, 64, &max)?;
+    let g = probe(&y, &mut SplitMix64::new(12))?.backward()?;
+    out.push(("scatter_max".into(), k(y)));
+    out.push((
+        "scatter_max.d/dvalues".into(),
+        k(grad_t(&g, &values, "values")?),
+    ));
+    Ok(out)
+}
+
+/// The gradient tensor of `var` in `grads`.
+fn grad_t(grads: &candle_core::backprop::GradStore, var: &Var, what: &str) -> Result<Tensor> {
+    grads.get(var).cloned().ok_or_else(|| {
+        candle_core::Error::Msg(format!("grads: expected a gradient for {what}, got none")).into()
+    })
+}
+
 #[test]
 fn cuda_volume_composite_and_render_weights() {
     check("composite", composite_case);
@@ -1013,4 +1380,19 @@ fn cuda_dvr_march_and_implicit_surface() {
 #[test]
 fn cuda_mise_and_marching_cubes() {
     check("mesh", mesh_case);
+}
+
+#[test]
+fn cuda_fused_kernels_match_the_cpu_kernels() {
+    check("kernels", kernels_case);
+}
+
+#[test]
+fn cuda_nerf_color_loss_and_parameter_gradients() {
+    check("nerf_loss", nerf_loss_case);
+}
+
+#[test]
+fn cuda_hash_grid_grid_sample_and_scatter_kernels() {
+    check("grid_kernels", grid_kernels_case);
 }

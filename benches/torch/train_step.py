@@ -1,10 +1,14 @@
 """PyTorch twin of benches/train_step.rs: the same models, batches, losses and optimiser.
 
     python3 -m venv venv && venv/bin/pip install torch numpy
-    venv/bin/python benches/torch/train_step.py --model nerf --steps 20 [--phases]
+    venv/bin/python benches/torch/train_step.py --model nerf --steps 20 [--phases] \
+        [--device cuda] [--compile]
 
 Threads: torch.set_num_threads(N) with N = --threads (default: the machine's cores, as
-candle's CPU pool). Prints one JSON line in the format of the Rust bench.
+candle's CPU pool). `--device cuda` builds every tensor on the first GPU and waits for it
+at the end of every timed phase; `--compile` runs the loss through `torch.compile`
+(compiled during the warm-up steps). Prints one JSON line in the format of the Rust
+bench.
 """
 import argparse
 import json
@@ -18,7 +22,7 @@ import torch
 def freq_encode(x, n_freqs):
     # [x, sin(2^k pi x), cos(2^k pi x)] for k < n_freqs, grouped as the crate's
     # FrequencyEncoding (input, then all sines, then all cosines).
-    scales = (2.0 ** torch.arange(n_freqs, dtype=x.dtype)) * math.pi
+    scales = (2.0 ** torch.arange(n_freqs, dtype=x.dtype, device=x.device)) * math.pi
     y = (x[:, None, :] * scales[None, :, None]).reshape(x.shape[0], -1)
     return torch.cat([x, torch.sin(y), torch.cos(y)], dim=1)
 
@@ -181,8 +185,12 @@ def main():
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--threads", type=int, default=os.cpu_count())
     p.add_argument("--phases", action="store_true")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--compile", action="store_true")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
+    torch.set_default_device(a.device)
+    sync = torch.cuda.synchronize if a.device == "cuda" else (lambda: None)
     torch.manual_seed(0)
     if a.model == "nerf":
         net = Nerf()
@@ -197,10 +205,12 @@ def main():
 
         def forward(step):
             # jittered stratified edges: interior edge j in stratum j, as the crate's
-            u = torch.rand(r, s - 1)
-            inner = (torch.arange(1, s, dtype=torch.float32)[None] + u - 0.5) / s
+            # (every tensor with its device: torch.compile does not apply the default one)
+            dev = target.device
+            u = torch.rand(r, s - 1, device=dev)
+            inner = (torch.arange(1, s, dtype=torch.float32, device=dev)[None] + u - 0.5) / s
             edges = near + (far - near) * torch.cat(
-                [torch.zeros(r, 1), inner, torch.ones(r, 1)], 1)
+                [torch.zeros(r, 1, device=dev), inner, torch.ones(r, 1, device=dev)], 1)
             starts, ends = edges[:, :-1], edges[:, 1:]
             t = 0.5 * (starts + ends)
             pos = (origins[:, None] + t[..., None] * dirs[:, None]).reshape(-1, 3)
@@ -251,16 +261,23 @@ def main():
             logits = net(points)[:, 0]
             return torch.nn.functional.binary_cross_entropy_with_logits(logits, labels)
 
+    if a.compile:
+        forward = torch.compile(forward)
     opt = torch.optim.Adam(net.parameters(), lr=1e-3)
     total, fwd, bwd, upd = [], [], [], []
     for step in range(a.warmup + a.steps):
         t0 = time.perf_counter()
         opt.zero_grad(set_to_none=True)
         loss = forward(step)
+        if a.phases:
+            sync()
         t1 = time.perf_counter()
         loss.backward()
+        if a.phases:
+            sync()
         t2 = time.perf_counter()
         opt.step()
+        sync()
         t3 = time.perf_counter()
         last = loss.item()
         if step >= a.warmup:
@@ -270,7 +287,8 @@ def main():
             upd.append(t3 - t2)
     med = lambda v: sorted(v)[len(v) // 2]
     print(json.dumps({
-        "impl": "pytorch-" + torch.__version__, "model": a.model, "steps": a.steps,
+        "impl": "pytorch-" + torch.__version__ + ("-" + a.device if a.device != "cpu" else "")
+        + ("-compile" if a.compile else ""), "model": a.model, "steps": a.steps,
         "median_s": round(med(total), 5), "forward_s": round(med(fwd), 5),
         "backward_s": round(med(bwd), 5), "update_s": round(med(upd), 5),
         "final_loss": round(last, 6), "threads": a.threads,

@@ -35,6 +35,12 @@ pub(super) enum BackgroundFlag {
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub(super) enum DeviceFlag {
+    Cpu,
+    Cuda,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub(super) enum Filter {
     Box,
     Cycles,
@@ -58,6 +64,9 @@ pub(super) struct Args {
     pub(super) out: PathBuf,
     #[arg(long, default_value_t = 0)]
     pub(super) seed: u64,
+    /// Where to train and evaluate: `cpu`, or `cuda` (the first GPU; build with `--features cuda`).
+    #[arg(long, value_enum, default_value = "cpu")]
+    pub(super) device: DeviceFlag,
     /// The sampler (`--scene unbounded` always uses proposal).
     #[arg(long, value_enum, default_value = "grid")]
     pub(super) sampler: Sampler,
@@ -240,6 +249,25 @@ impl Args {
             (Some(n), _) => Budget::Steps(n),
             (None, m) => Budget::Minutes(m.unwrap_or(10.0)),
         })
+    }
+
+    /// The device of `--device`: the CPU, or the first GPU (`Device::new_cuda(0)`), whose
+    /// error says what is missing (a build with `--features cuda`, or a GPU).
+    pub(super) fn device(&self) -> Result<Device> {
+        match self.device {
+            DeviceFlag::Cpu => Ok(Device::Cpu),
+            DeviceFlag::Cuda => Device::new_cuda(0).map_err(|e| Error::InvalidArgument {
+                arg: "device",
+                expected: if candle_core::utils::cuda_is_available() {
+                    "a CUDA GPU (the first, Device::new_cuda(0))".into()
+                } else {
+                    "a build with CUDA support: build with `--features cuda` (cargo run \
+                     --release --features cuda --example nerf -- --device cuda)"
+                        .into()
+                },
+                got: e.to_string(),
+            }),
+        }
     }
 
     pub(super) fn pixel_filter(&self) -> PixelFilter {

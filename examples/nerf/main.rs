@@ -39,9 +39,11 @@
 //! ([`CoarseToFine`]), `--view-dependence off` drops the view direction, `--regnerf on`
 //! adds RegNeRF's depth smoothness on patches from unseen cameras and its annealed range.
 //!
+//! **Device**: `--device cuda` trains and evaluates on the first GPU (build with `--features cuda`).
+//!
 //! **Output** in `--out` (default `target/nerf`): `metrics.json` (`psnr`, `ssim`,
 //! `train_seconds` without evaluations, `steps`, `samples_per_ray`, `sampler`, `scene`, `encoding`,
-//! `eval_split`, `eval_views`, `eval_supersample`, `pixel_filter`, `jitter`,
+//! `device`, `eval_split`, `eval_views`, `eval_supersample`, `pixel_filter`, `jitter`,
 //! `train_supersample`, `march_jitter`, `coarse_to_fine`, `view_dependence`,
 //! `alpha_threshold`, `proposal_samples`, `data`, and `psnr_per_scale`: per image size,
 //! largest first, `width`, `height`, `views`, `psnr`, `ssim`); `curve.csv` (`step,train_seconds,psnr`
@@ -191,8 +193,8 @@ fn dead_run(since: usize, step: usize, args: &Args) -> Error {
 }
 
 fn run(args: &Args) -> Result<()> {
-    let (device, dtype) = (Device::Cpu, DType::F32);
     let budget = args.budget()?;
+    let (device, dtype) = (args.device()?, DType::F32);
     let background = match args.background {
         BackgroundFlag::Random => Background::Random,
         BackgroundFlag::White => Background::Color([1.0; 3]),
@@ -320,6 +322,7 @@ fn run(args: &Args) -> Result<()> {
         step_size: diag / 256.0,
         unbounded,
         args,
+        device: &device,
     };
     let mut curve = String::from("step,train_seconds,psnr\n");
     let (mut samples_total, mut step) = (0usize, 0usize);
@@ -466,6 +469,7 @@ fn run(args: &Args) -> Result<()> {
         "sampler": format!("{:?}", sampler_kind).to_lowercase(),
         "scene": format!("{:?}", args.scene).to_lowercase(),
         "encoding": format!("{:?}", args.encoding).to_lowercase(),
+        "device": format!("{:?}", args.device).to_lowercase(),
         "eval_split": eval_split,
         "eval_views": eval.views().len(),
         "eval_supersample": args.eval_supersample,

@@ -17,6 +17,8 @@ pub(super) struct Renderer<'a> {
     /// `--scene unbounded`: the frame in which the field sees contracted space.
     pub(super) unbounded: Option<SceneFrame>,
     pub(super) args: &'a Args,
+    /// `--device`: where the networks, rays and renders live.
+    pub(super) device: &'a Device,
 }
 
 /// Near and far of an unbounded scene's rays, in [`SceneFrame`] units (the cameras lie
@@ -246,8 +248,9 @@ impl Renderer<'_> {
         Ok((out, n, interlevel))
     }
 
-    /// View `v` of `data`, `k × k` rays per pixel through `filter`: colour `[H, W, 3]`,
-    /// depth `[H, W]` (NaN where the opacity is below 0.5), opacity `[H, W]`.
+    /// View `v` of `data`, `k × k` rays per pixel through `filter`, rendered on the
+    /// renderer's device and returned on the CPU: colour `[H, W, 3]`, depth `[H, W]` (NaN
+    /// where the opacity is below 0.5), opacity `[H, W]`.
     pub(super) fn render_view(
         &self,
         data: &Dataset,
@@ -256,7 +259,7 @@ impl Renderer<'_> {
         filter: PixelFilter,
     ) -> Result<[Tensor; 3]> {
         let bg = data.background().eval_color().map(|c| c as f32);
-        let bg = Tensor::new(&bg, &Device::Cpu)?.unsqueeze(0)?;
+        let bg = Tensor::new(&bg, self.device)?.unsqueeze(0)?;
         let config = ImageConfig {
             supersample: k,
             filter,
@@ -264,14 +267,17 @@ impl Renderer<'_> {
         };
         let cam = data.views()[v].camera();
         let [color, depth, opacity] =
-            render_image(cam, &config, &Device::Cpu, DType::F32, |rays| {
+            render_image(cam, &config, self.device, DType::F32, |rays| {
                 let background = bg.broadcast_as((rays.len(), 3))?.contiguous()?;
                 let (out, _, _) = self.render(rays, &background, None)?;
                 let depth = out.normalized_depth(1e-6)?;
                 Ok([out.color, depth, out.opacity])
             })?;
         let nan = Tensor::full(f32::NAN, depth.shape(), depth.device())?;
-        Ok([color, opacity.ge(0.5)?.where_cond(&depth, &nan)?, opacity])
+        let depth = opacity.ge(0.5)?.where_cond(&depth, &nan)?;
+        // Metrics and pictures are computed on the host.
+        let host = |t: Tensor| t.to_device(&Device::Cpu);
+        Ok([host(color)?, host(depth)?, host(opacity)?])
     }
 }
 
@@ -306,9 +312,9 @@ pub(super) fn regnerf_depth_smoothness(
     const PATCHES: usize = 16;
     const K: usize = 8;
     let unseen = cameras_around(cameras, PATCHES, seed)?;
-    let rays = patch_rays(&unseen, K, seed, &Device::Cpu, DType::F32)?;
+    let rays = patch_rays(&unseen, K, seed, r.device, DType::F32)?;
     let n = PATCHES * K * K;
-    let black = Tensor::zeros((n, 3), DType::F32, &Device::Cpu)?;
+    let black = Tensor::zeros((n, 3), DType::F32, r.device)?;
     let (out, _, _) = r.render(&rays, &black, Some(seed))?;
     let depth = out.normalized_depth(1e-6)?.reshape((PATCHES, K, K))?;
     // Each pixel weighted by its own opacity, detached: pixels of empty space (whose
@@ -327,6 +333,7 @@ pub(super) fn evaluate(
     let (mut p, mut s, mut renders) = (0.0, 0.0, Vec::new());
     let n = n.min(eval.views().len());
     for v in 0..n {
+        // The truth on the host, where `render_view` returns its renders.
         let truth =
             eval.views()[v].rgb(eval.background().eval_color(), &Device::Cpu, DType::F32)?;
         let [color, depth, opacity] =

@@ -69,8 +69,8 @@ fn check_sample(features: &Tensor, coords: &Tensor) -> Result<(usize, usize, usi
 /// Settings of [`grid_sample`].
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct GridSampleConfig {
-    /// Run the reference path (candle ops) even on the CPU, where [`grid_sample`] would
-    /// run the fused op: for second-order derivatives (the fused backward is first order
+    /// Run the reference path (candle ops) even where [`grid_sample`] would run the fused
+    /// op (CPU, or CUDA with the `cuda` feature): for second-order derivatives (the fused backward is first order
     /// only) and for comparing the two. Default `false`.
     pub force_reference: bool,
 }
@@ -102,13 +102,17 @@ pub struct GridSampleConfig {
 /// inward one-sided derivative above (as PyTorch's `clip_coordinates_set_grad`, which
 /// passes the gradient at the limits).
 ///
-/// **Kernels.** On the CPU with f32 or f64 features and coordinates of that dtype, a
-/// fused op ([`candle_core::CustomOp2`]) runs: the forward pass and the coordinate
-/// gradient in parallel over blocks of points; the feature gradient in parallel over
-/// (batch, block of 4 channels), each work item adding the points of its batch in order
-/// into its own f64 accumulators, so that the result is the same bit for bit at any
-/// thread count. The coordinate gradient is computed only when the coordinates are on
-/// the autograd graph. Elsewhere (other devices and dtypes), or with
+/// **Kernels.** With f32 or f64 features and coordinates of that dtype, on the CPU and
+/// (feature `cuda`) on CUDA, a fused op ([`candle_core::CustomOp2`]) runs. On the CPU: the
+/// forward pass and the coordinate gradient in parallel over blocks of points; the
+/// feature gradient in parallel over (batch, block of 4 channels), each work item adding
+/// the points of its batch in order into its own f64 accumulators, so that the result is
+/// the same bit for bit at any thread count. On CUDA: the forward pass one thread per
+/// (point, channel), the coordinate gradient one thread per point, both in f64 in the CPU
+/// kernel's order; the feature gradient by atomic f64 additions (one thread per point
+/// and channel), whose order, and so the last bits of the sums, varies from run to run.
+/// The coordinate gradient is computed only when the coordinates are on the autograd
+/// graph. Elsewhere (other devices and dtypes), or with
 /// [`GridSampleConfig::force_reference`], a reference path of candle ops runs: corner
 /// indices and clamping decided on the host from the coordinates (piecewise constant, no
 /// gradient), weights from the coordinates on their device, the corners gathered with
@@ -132,8 +136,8 @@ pub struct GridSampleConfig {
 /// * returns `[B, N, C]`.
 ///
 /// Differentiable w.r.t. `features` and `coords` (zero w.r.t. a clamped coordinate;
-/// one-sided on cell borders as documented). The fused CPU op runs for f32/f64 on the
-/// CPU, the reference path of candle ops elsewhere or with
+/// one-sided on cell borders as documented). The fused op runs for f32/f64 on the CPU
+/// and (feature `cuda`) on CUDA, the reference path of candle ops elsewhere or with
 /// [`GridSampleConfig::force_reference`]; the two agree to rounding.
 ///
 /// ```
@@ -162,7 +166,7 @@ pub fn grid_sample(
     config: &GridSampleConfig,
 ) -> Result<Tensor> {
     let fused = !config.force_reference
-        && features.device().is_cpu()
+        && crate::kernels::fused_on(features.device())
         && matches!(features.dtype(), DType::F32 | DType::F64);
     if !fused {
         return grid_sample_reference(features, coords);
@@ -177,8 +181,8 @@ pub fn grid_sample(
         .apply_op2(&coords.contiguous()?, op)?)
 }
 
-/// [`grid_sample`] by candle ops, on any device and float dtype (the path used off the
-/// CPU and with `force_reference`). Same arguments, result and gradients.
+/// [`grid_sample`] by candle ops, on any device and float dtype (the path used where the
+/// fused op does not run and with `force_reference`). Same arguments, result and gradients.
 fn grid_sample_reference(features: &Tensor, coords: &Tensor) -> Result<Tensor> {
     let (b, n, c, g) = check_sample(features, coords)?;
     let k = g.k;
@@ -303,10 +307,10 @@ pub enum Pooling {
 pub struct ScatterConfig {
     /// The per-cell reduction. Default [`Pooling::Mean`].
     pub pooling: Pooling,
-    /// Run the reference path (candle ops) even on the CPU, where [`Pooling::Max`] runs a
-    /// fused op (the mean is made of candle ops everywhere): for second-order derivatives
-    /// (the fused backward is first order only) and for comparing the two. Default
-    /// `false`.
+    /// Run the reference path (candle ops) even where [`Pooling::Max`] runs a fused op
+    /// (CPU, or CUDA with the `cuda` feature; the mean is made of candle ops everywhere):
+    /// for second-order derivatives (the fused backward is first order only) and for
+    /// comparing the two. Default `false`.
     pub force_reference: bool,
 }
 
@@ -323,7 +327,10 @@ pub struct ScatterConfig {
 ///   its gradient to one element, the maximising point `n` of that cell and channel;
 ///   among equal maxima, to the one with the **lowest point index** (and to the first NaN
 ///   if there is one). On the CPU (f32/f64) a fused op runs (one pass over the points per
-///   batch, the backward recomputes the argmax). Elsewhere, or with
+///   batch, the backward recomputes the argmax); on CUDA (feature `cuda`, f32/f64) the
+///   same op finds the argmax by two atomic passes (the maximum per cell and channel,
+///   then the lowest point index holding it), with the same result and tie rule.
+///   Elsewhere, or with
 ///   [`ScatterConfig::force_reference`], a reference path of candle ops runs in rounds
 ///   over ranks, without a `cells × N × C` tensor: the points of each cell are ordered by
 ///   index on the host (a counting sort of `index`) and the non-empty cells by decreasing
@@ -367,7 +374,7 @@ pub fn scatter(
         Pooling::Mean => scatter_mean(values, index, cells),
         Pooling::Max => {
             let fused = !config.force_reference
-                && values.device().is_cpu()
+                && crate::kernels::fused_on(values.device())
                 && matches!(values.dtype(), DType::F32 | DType::F64);
             if !fused {
                 return scatter_max_reference(values, index, cells);

@@ -1,6 +1,6 @@
 //! instant-NGP's multiresolution hash encoding ([`HashGrid`]) and its reference path; the
-//! fused CPU op is the kernel layer's `FusedHashGrid`, which this module builds from the
-//! grid's level geometry and runs on the CPU.
+//! fused op is the kernel layer's `FusedHashGrid`, which this module builds from the
+//! grid's level geometry and runs on the CPU and, with the `cuda` feature, on CUDA.
 
 use super::{check_tangents, Encoding};
 use crate::error::{check_finite, check_float, check_shape, Dim, Error, Result};
@@ -37,7 +37,7 @@ pub struct HashGridConfig {
     /// The tables start uniform in `[−s, s]` (instant-NGP: 1e-4).
     pub init_scale: f64,
     /// Run the reference path (candle ops) even where [`Encoding::forward`] would run the
-    /// fused CPU op: for second-order derivatives (the fused backward is first order
+    /// fused op (CPU, or CUDA with the `cuda` feature): for second-order derivatives (the fused backward is first order
     /// only) and for comparing the two. Two grids built from the same `VarBuilder` map
     /// share one table, so a grid and its reference twin evaluate the same parameters.
     /// Default `false`.
@@ -46,7 +46,7 @@ pub struct HashGridConfig {
 
 impl Default for HashGridConfig {
     /// 3-D points in `[−1, 1]³`, 16 levels of 2 features, tables of `2¹⁵` rows,
-    /// resolutions 16 to 2048, initialised in `U(−1e-4, 1e-4)`, the fused op on the CPU.
+    /// resolutions 16 to 2048, initialised in `U(−1e-4, 1e-4)`, the fused op where it runs.
     fn default() -> Self {
         Self {
             in_dim: 3,
@@ -66,7 +66,8 @@ impl Default for HashGridConfig {
 /// A multiresolution hash grid: its configuration and table `[Σ_l T_l, F]`; build it
 /// with [`hash_grid`].
 ///
-/// Multiresolution hash encoding (Müller et al. 2022, instant-NGP) with a fused CPU op.
+/// Multiresolution hash encoding (Müller et al. 2022, instant-NGP) with a fused op (CPU, and
+/// CUDA with the `cuda` feature).
 ///
 /// A point `x ∈ ℝᴰ` (D ≤ 4) is mapped into the unit cube of the scene box,
 /// `t = clamp((x − lo) / (hi − lo), 0, 1)`, and looked up at `L` levels of resolution
@@ -92,16 +93,20 @@ impl Default for HashGridConfig {
 /// outside the box, where `t` is clamped. Points on a face belong to the cell above
 /// (`⌊u⌋`), except on the box's upper face, which belongs to the last cell.
 ///
-/// **The fused op** (CPU, f32/f64) runs the forward pass over points in parallel. Its
-/// backward pass accumulates the table gradient level by level, each level's points in
-/// order, so that it is the same bit for bit at any thread count; it computes the
-/// position gradient only when the positions are on the autograd graph (a `Var` or the
-/// result of tracked ops), so a NeRF step, whose sample positions are data, does not pay
-/// for it. The reference path ([`HashGridConfig::force_reference`], candle ops: the indices
-/// and cells computed on the host, the weights and the gathers on the tensors' device,
-/// `index_select` whose backward is an `index_add`) runs on any device, is used off the
-/// CPU, and is what [`Encoding::forward_jvp`] uses (its tangents stay differentiable
-/// w.r.t. the table, which normals and the eikonal loss need).
+/// **The fused op** (f32/f64; on the CPU, and on CUDA with the `cuda` feature) runs the
+/// forward pass over points in parallel. Its backward pass computes the position gradient
+/// only when the positions are on the autograd graph (a `Var` or the result of tracked
+/// ops), so a NeRF step, whose sample positions are data, does not pay for it. On the CPU
+/// it accumulates the table gradient level by level, each level's points in order, so
+/// that it is the same bit for bit at any thread count; on CUDA (one thread per level and
+/// point) by atomic f64 additions, whose order, and so the last bits of the sums, varies
+/// from run to run; the forward pass and the position gradient are computed in f64 in
+/// the CPU kernel's order on either device. The reference path ([`HashGridConfig::force_reference`], candle ops:
+/// the indices and cells computed on the host, the weights and the gathers on the
+/// tensors' device, `index_select` whose backward is an `index_add`) runs on any device,
+/// is used where the fused op does not run, and is what [`Encoding::forward_jvp`] uses
+/// (its tangents stay differentiable w.r.t. the table, which normals and the eikonal loss
+/// need).
 ///
 /// ```
 /// use candle_core::{DType, Device, Tensor};
@@ -301,8 +306,8 @@ impl HashGrid {
 
     fn fused(&self, x: &Tensor) -> bool {
         !self.config.force_reference
-            && x.device().is_cpu()
-            && self.table.device().is_cpu()
+            && crate::kernels::fused_on(x.device())
+            && crate::kernels::fused_on(self.table.device())
             && x.dtype() == self.table.dtype()
             && matches!(x.dtype(), DType::F32 | DType::F64)
     }
@@ -414,8 +419,9 @@ impl Encoding for HashGrid {
         self.plan.width()
     }
 
-    /// `x: [N, D]` → `[N, L·F]`: the fused op on the CPU (f32/f64), the reference path of
-    /// candle ops elsewhere or with [`HashGridConfig::force_reference`]. Differentiable
+    /// `x: [N, D]` → `[N, L·F]`: the fused op on the CPU and (feature `cuda`) on CUDA
+    /// (f32/f64), the reference path of candle ops elsewhere or with
+    /// [`HashGridConfig::force_reference`]. Differentiable
     /// w.r.t. the table and `x` (to second order on the reference path only).
     ///
     /// # Errors

@@ -1090,4 +1090,8 @@ impl CpuKernel<3> for FusedComposite {
         Ok([keep(need[0], a), keep(need[1], b), keep(need[2], c)])
     }
 }
-cpu_op!(FusedComposite, 3, "nf-fused-composite");
+cpu_op!(FusedComposite, 3, "nf-fused-composite", cuda);
+
+#[cfg(feature = "cuda")]
+#[path = "cuda/composite.rs"]
+mod cuda;

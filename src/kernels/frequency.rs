@@ -230,4 +230,8 @@ impl CpuKernel<1> for FusedFrequency {
     }
 }
 
-cpu_op!(FusedFrequency, 1, "nf-frequency-encoding");
+cpu_op!(FusedFrequency, 1, "nf-frequency-encoding", cuda);
+
+#[cfg(feature = "cuda")]
+#[path = "cuda/frequency.rs"]
+mod cuda;

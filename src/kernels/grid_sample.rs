@@ -3,6 +3,9 @@
 //! sampling geometry it shares with the encoding's reference path ([`GridGeometry`]),
 //! the corners of a point, and the forward pass, the feature gradient and the coordinate
 //! gradient.
+//!
+//! With the `cuda` feature, the same op runs its CUDA kernels (`cuda/grid_sample.cu`)
+//! for CUDA tensors.
 
 use super::dispatch::{cpu_op, CpuKernel, Real};
 use super::parallel::for_each_init;
@@ -284,4 +287,8 @@ impl CpuKernel<2> for FusedGridSample {
     }
 }
 
-cpu_op!(FusedGridSample, 2, "nf-grid-sample");
+cpu_op!(FusedGridSample, 2, "nf-grid-sample", cuda);
+
+#[cfg(feature = "cuda")]
+#[path = "cuda/grid_sample.rs"]
+mod cuda;

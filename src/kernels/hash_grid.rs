@@ -3,6 +3,9 @@
 //! encoding's reference path ([`HashPlan`], built by the encoding from its
 //! configuration), the corners of a point at a level, and the forward pass, the table
 //! gradient and the position gradient over points.
+//!
+//! With the `cuda` feature, the same op runs its CUDA kernels (`cuda/hash_grid.cu`) for
+//! CUDA tensors.
 
 use super::dispatch::{cpu_op, CpuKernel, Real};
 use super::parallel::for_each_init;
@@ -292,4 +295,8 @@ impl CpuKernel<2> for FusedHashGrid {
     }
 }
 
-cpu_op!(FusedHashGrid, 2, "nf-hash-grid");
+cpu_op!(FusedHashGrid, 2, "nf-hash-grid", cuda);
+
+#[cfg(feature = "cuda")]
+#[path = "cuda/hash_grid.rs"]
+mod cuda;

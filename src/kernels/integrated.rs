@@ -161,4 +161,8 @@ impl CpuKernel<1> for FusedIntegrated {
     }
 }
 
-cpu_op!(FusedIntegrated, 1, "nf-integrated-encoding");
+cpu_op!(FusedIntegrated, 1, "nf-integrated-encoding", cuda);
+
+#[cfg(feature = "cuda")]
+#[path = "cuda/integrated.rs"]
+mod cuda;

@@ -68,6 +68,8 @@
 mod activation;
 #[cfg_attr(not(feature = "volume"), allow(dead_code))]
 mod composite;
+#[cfg(feature = "cuda")]
+pub(crate) mod cuda;
 mod dispatch;
 mod frequency;
 mod grid_sample;
@@ -92,6 +94,8 @@ pub use composite::X_MAX;
 pub(crate) use composite::{FusedComposite, Geometry, KernelBuild, Segments};
 #[allow(unused_imports)] // the dispatch helper's whole interface, for every kernel
 pub(crate) use dispatch::{contiguous, cpu_bwd, cpu_fwd, cpu_op, cpu_slice, CpuKernel, Real};
+#[cfg(feature = "cuda")]
+pub(crate) use dispatch::{cuda_bwd, cuda_fwd, CudaKernel};
 pub(crate) use frequency::{FusedFrequency, Trig};
 pub(crate) use grid_sample::{FusedGridSample, GridCorners, GridGeometry};
 pub(crate) use hash_grid::{FusedHashGrid, HashCorners, HashLevel, HashPlan};
@@ -106,3 +110,13 @@ pub(crate) use nerf_loss::{Density, FusedNerfLoss, RowEncode};
 #[cfg_attr(not(feature = "volume"), allow(unused_imports))]
 pub(crate) use parallel::for_each_init;
 pub(crate) use scatter::FusedScatterMax;
+
+/// Whether the fused kernels run on `device`: always on the CPU; on CUDA when the crate
+/// is built with the `cuda` feature (unless `NEURAL_FIELDS_CUDA_KERNELS=0`).
+pub(crate) fn fused_on(device: &candle_core::Device) -> bool {
+    #[cfg(feature = "cuda")]
+    if device.is_cuda() {
+        return cuda::enabled();
+    }
+    device.is_cpu()
+}

@@ -63,6 +63,10 @@ pub(crate) trait RowEncode: Clone + Send + Sync {
     fn out_dim(&self) -> usize;
     /// Encodes the rows `x: [rows, in]` into `out: [rows, out_dim]`.
     fn encode<T: WithDType>(&mut self, x: &[T], out: &mut [T]);
+    /// The encoding as the CUDA kernels evaluate it: `(L, include_input)` of the
+    /// frequencies `2ᵏπ`, `k < L`; the identity is `(0, true)`.
+    #[cfg_attr(not(feature = "cuda"), allow(dead_code))]
+    fn frequency_spec(&self) -> (usize, bool);
 }
 
 /// The op on `(samples [M, 4], rays [R, 9], params)`; output the loss, shape `[]`.
@@ -76,6 +80,9 @@ pub(crate) struct FusedNerfLoss<E> {
     opaque_last: bool,
     /// The parameter gradient the forward pass computed, for the backward pass.
     grad: Mutex<Option<CpuStorage>>,
+    /// The same, computed by the CUDA path.
+    #[cfg(feature = "cuda")]
+    grad_cuda: Mutex<Option<candle_core::CudaStorage>>,
     /// The rays' mean and largest opacity `Σᵢ wᵢ` in the last forward pass, for the
     /// caller (shared: the op itself moves into candle's graph).
     opacity: Arc<Mutex<Option<[f64; 2]>>>,
@@ -167,6 +174,8 @@ impl<E: RowEncode> FusedNerfLoss<E> {
             offsets,
             opaque_last,
             grad: Mutex::new(None),
+            #[cfg(feature = "cuda")]
+            grad_cuda: Mutex::new(None),
             opacity: Arc::default(),
         })
     }
@@ -504,6 +513,19 @@ impl<E: RowEncode> CustomOp3 for FusedNerfLoss<E> {
         cpu_fwd(self, [(s1, l1), (s2, l2), (s3, l3)])
     }
 
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s1: &candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+        s3: &candle_core::CudaStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        self.cuda_loss([(s1, l1), (s2, l2), (s3, l3)])
+    }
+
     fn bwd(
         &self,
         _samples: &Tensor,
@@ -512,6 +534,27 @@ impl<E: RowEncode> CustomOp3 for FusedNerfLoss<E> {
         _res: &Tensor,
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        #[cfg(feature = "cuda")]
+        if params.device().is_cuda() {
+            let gp = self
+                .grad_cuda
+                .lock()
+                .map_err(|_| candle_core::Error::Msg("fused NeRF loss: poisoned".into()))?
+                .take()
+                .ok_or_else(|| {
+                    candle_core::Error::Msg(
+                        "fused NeRF loss: backward pass before the forward pass".into(),
+                    )
+                })?;
+            let gp = Tensor::from_storage(
+                candle_core::Storage::Cuda(gp),
+                params.shape().clone(),
+                candle_core::op::BackpropOp::none(),
+                false,
+            );
+            let gp = gp.broadcast_mul(&grad.to_dtype(params.dtype())?)?;
+            return Ok((None, None, Some(gp)));
+        }
         let slot = self
             .grad
             .lock()
@@ -525,3 +568,7 @@ impl<E: RowEncode> CustomOp3 for FusedNerfLoss<E> {
         Ok((None, None, Some(gp)))
     }
 }
+
+#[cfg(feature = "cuda")]
+#[path = "cuda/nerf_loss.rs"]
+mod cuda;

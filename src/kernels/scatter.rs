@@ -2,6 +2,9 @@
 //! what [`crate::encoding::scatter`] runs on the CPU for the maximum): one pass over the
 //! points per batch, and a backward pass that recomputes the argmax and passes each
 //! cell's gradient to its maximising point.
+//!
+//! With the `cuda` feature, the same op runs its CUDA kernels (`cuda/scatter.cu`) for
+//! CUDA tensors.
 
 use super::dispatch::{cpu_op, CpuKernel, Real};
 use super::parallel::for_each_init;
@@ -108,4 +111,8 @@ impl CpuKernel<1> for FusedScatterMax {
     }
 }
 
-cpu_op!(FusedScatterMax, 1, "nf-scatter-max");
+cpu_op!(FusedScatterMax, 1, "nf-scatter-max", cuda);
+
+#[cfg(feature = "cuda")]
+#[path = "cuda/scatter.rs"]
+mod cuda;

@@ -433,8 +433,13 @@ impl Mlp {
 
     /// Whether [`Mlp::run`]'s forward pass may run as the fused CPU op on `a0`.
     pub(crate) fn fused(&self, a0: &Tensor) -> bool {
+        self.plan_applies(a0) && a0.device().is_cpu()
+    }
+
+    /// Whether a fused op may run this network's layer plan on inputs like `a0` (on a
+    /// device that has the op): not forced to the reference path, f32 or f64 throughout.
+    pub(crate) fn plan_applies(&self, a0: &Tensor) -> bool {
         !self.config.force_reference
-            && a0.device().is_cpu()
             && matches!(a0.dtype(), DType::F32 | DType::F64)
             && self.layers.iter().all(|l| l.bias.dtype() == a0.dtype())
     }

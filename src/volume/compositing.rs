@@ -236,7 +236,7 @@ pub(crate) fn composite_with(
     let constant = !intervals.starts.track_op()
         && !intervals.ends.track_op()
         && norms.as_ref().is_none_or(|n| !n.track_op());
-    let reference = !sigmas.device().is_cpu() || config.force_reference;
+    let reference = !crate::kernels::fused_on(sigmas.device()) || config.force_reference;
     if constant && !reference {
         let geometry = FusedGeometry::Intervals {
             starts: &intervals.starts,

@@ -43,10 +43,10 @@ pub(crate) fn composite(
     opaque_last: bool,
     build: KernelBuild,
 ) -> Result<(Tensor, Tensor, Tensor)> {
-    if !sigmas.device().is_cpu() {
+    if !crate::kernels::fused_on(sigmas.device()) {
         return Err(Error::invalid(
             "sigmas",
-            "a CPU tensor (the fused op has only a CPU kernel)",
+            "a tensor on a device with the fused kernel (the CPU, or CUDA with the `cuda` feature)",
             format!("{:?}", sigmas.device()),
         ));
     }

@@ -446,7 +446,13 @@ impl Nerf {
             .copied()
             .chain(config.background.as_ref())
             .all(|t| !t.track_op());
-        if !constant || !self.trunk.fused(positions) || !self.head.fused(positions) {
+        // The fused loss runs on the CPU and (feature `cuda`) on CUDA.
+        let device = crate::kernels::fused_on(positions.device());
+        if !constant
+            || !device
+            || !self.trunk.plan_applies(positions)
+            || !self.head.plan_applies(positions)
+        {
             return Ok(None);
         }
         let r = intervals.n_rays();

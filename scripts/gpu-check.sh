@@ -1,0 +1,92 @@
+#!/usr/bin/env bash
+# Every GPU check and benchmark of the `cuda` feature in one run, from binaries built
+# beforehand on any machine (scripts/cuda-toolchain.sh, then scripts/gpu-build.sh), so
+# that a short lease of a GPU machine builds nothing:
+#
+#     scripts/gpu-check.sh [BIN_DIR] [OUT_DIR]     # defaults: .gpu, ${OUT:-gpu-out}
+#
+# Writes to OUT_DIR (eight files): summary.txt (nvidia-smi, timings, medians), tests.log (tests/cuda.rs with the CUDA
+# kernels), tests_reference.log (the same with NEURAL_FIELDS_CUDA_KERNELS=0: the
+# candle-op reference paths on CUDA against the CPU kernels), bench.jsonl (training steps:
+# the crate with its CUDA kernels, the crate's candle-op fallback, PyTorch CUDA eager and
+# torch.compile, alternated; bench.err), nerf.log, nerf_metrics.json and nerf_curve.csv (the NeRF
+# example's time-to-PSNR run on the GPU). Needs python3 with torch for the PyTorch rows.
+set -u
+BIN=${1:-.gpu}
+OUT=${2:-${OUT:-gpu-out}}
+PAIRS=${PAIRS:-3}
+NERF_SECONDS=${NERF_SECONDS:-90}
+mkdir -p "$OUT"
+cd "$(dirname "$0")/.."
+# Unpack the binaries that scripts/gpu-build.sh compressed.
+if ls "$BIN"/*.xz > /dev/null 2>&1; then
+  python3 - "$BIN" /tmp/nf-gpu-bin <<'PY'
+import lzma, os, shutil, sys
+src, dst = sys.argv[1], sys.argv[2]
+os.makedirs(dst, exist_ok=True)
+for f in os.listdir(src):
+    if f.endswith(".xz"):
+        with lzma.open(os.path.join(src, f)) as i, open(os.path.join(dst, f[:-3]), "wb") as o:
+            shutil.copyfileobj(i, o)
+        os.chmod(os.path.join(dst, f[:-3]), 0o755)
+PY
+  BIN=/tmp/nf-gpu-bin
+fi
+
+# The driver's libcuda.so.1 and CUDA 13's cuBLAS, cuRAND and NVRTC, wherever installed.
+libs=$(find /usr/local /usr/lib /usr/lib64 /opt -xdev \( -name 'libcuda.so.1' -o \
+  -name 'libcublas.so.13' -o -name 'libcublasLt.so.13' -o -name 'libcurand.so.10' -o \
+  -name 'libnvrtc.so.13' -o -name 'libcudart.so.13' \) 2>/dev/null | xargs -r -n1 dirname | sort -u | tr '\n' ':')
+export LD_LIBRARY_PATH="${libs}${LD_LIBRARY_PATH:-}"
+{ nvidia-smi -L; nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv; \
+  echo "LD_LIBRARY_PATH=$LD_LIBRARY_PATH"; nproc; } > "$OUT/summary.txt" 2>&1
+
+start=$(date +%s)
+stamp() { echo "[$(( $(date +%s) - start )) s] $*" | tee -a "$OUT/summary.txt"; }
+
+stamp "tests with the CUDA kernels"
+timeout 240 "$BIN/cuda" --test-threads 1 --nocapture > "$OUT/tests.log" 2>&1
+stamp "rc=$? $(grep -E '^test result' "$OUT/tests.log" | tail -1)"
+stamp "tests with the reference paths on CUDA"
+NEURAL_FIELDS_CUDA_KERNELS=0 timeout 180 "$BIN/cuda" --test-threads 1 --nocapture \
+  > "$OUT/tests_reference.log" 2>&1
+stamp "rc=$? $(grep -E '^test result' "$OUT/tests_reference.log" | tail -1)"
+
+stamp "training steps, alternated"
+for model in nerf hash_grid; do
+  for _ in $(seq "$PAIRS"); do
+    timeout 60 "$BIN/train_step" --model "$model" --steps 20 --device cuda --phases
+    # The hash grid's candle-op fallback takes seconds per step: 2 steps after 1.
+    fallback_steps=20; [ "$model" = hash_grid ] && fallback_steps="2 --warmup 1"
+    NEURAL_FIELDS_CUDA_KERNELS=0 timeout 60 "$BIN/train_step" --model "$model" \
+      --steps $fallback_steps --device cuda --phases
+    timeout 60 python3 benches/torch/train_step.py --model "$model" --steps 20 --device cuda --phases
+  done
+  timeout 150 python3 benches/torch/train_step.py --model "$model" --steps 20 --device cuda --compile --phases
+done >> "$OUT/bench.jsonl" 2> "$OUT/bench.err"
+python3 - "$OUT/bench.jsonl" >> "$OUT/summary.txt" <<'PY'
+import json, statistics, sys
+rows = []
+for line in open(sys.argv[1]):
+    try:
+        rows.append(json.loads(line))
+    except ValueError:
+        pass
+for model in sorted({r["model"] for r in rows}):
+    impls = sorted({r["impl"] for r in rows if r["model"] == model})
+    for impl in impls:
+        v = [r["median_s"] for r in rows if r["model"] == model and r["impl"] == impl]
+        print(f"{model:10s} {impl:40s} runs {len(v)} median {1e3 * statistics.median(v):8.3f} ms/step")
+PY
+stamp "benches done"
+
+if [ -x "$BIN/nerf" ]; then
+  stamp "nerf example on the GPU, $NERF_SECONDS s"
+  minutes=$(python3 -c "print($NERF_SECONDS / 60)")
+  timeout $(( NERF_SECONDS + 120 )) "$BIN/nerf" --data examples/data/wuson --device cuda \
+    --minutes "$minutes" --out /tmp/nerf-gpu > "$OUT/nerf.log" 2>&1
+  stamp "rc=$? $(tail -2 "$OUT/nerf.log" | tr '\n' ' ')"
+  cp /tmp/nerf-gpu/metrics.json "$OUT/nerf_metrics.json" 2>/dev/null
+  cp /tmp/nerf-gpu/curve.csv "$OUT/nerf_curve.csv" 2>/dev/null
+fi
+stamp "done"
