@@ -410,6 +410,11 @@ const ALLOWED: &[(&str, &str, &str)] = &[
         "fixed: the input count of an op, a compile-time constant",
     ),
     (
+        "data/hull.rs",
+        "vec![_; (w + 1) * (h + 1)]",
+        "data: one entry per pixel of an image the dataset holds",
+    ),
+    (
         "kernels/composite.rs",
         "vec![_; r * width]",
         "data: the output or gradient of a fused op, rows of the input tensor held times a width of the weights held",

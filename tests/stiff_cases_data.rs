@@ -27,6 +27,7 @@ fn every_public_data_function_is_swept_or_exempt() {
 /// Items swept by `sweep_data`.
 const DATA: &[&str] = &[
     "data::Dataset::new",
+    "data::Dataset::visual_hull",
     "data::RaySampler::new",
     "data::RaySampler::patches",
     "data::RaySampler::pixel_footprints",
@@ -141,6 +142,33 @@ fn sweep_data(s: &mut Suite) {
                 write_png(&dir.join("stiff.png"), &full(&[2, 3, 3])?)?;
                 Ok(vec![])
             });
+            s.case(
+                "data::Dataset::visual_hull",
+                &tag,
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    // Two views of a centred blob (an 8 × 8 RGBA image, a 2 × 2 foreground),
+                    // margin x.
+                    let k = Intrinsics::new(8.0, 8.0, 4.0, 4.0, 8, 8)?;
+                    let mut px = vec![0u8; 8 * 8 * 4];
+                    for (u, v) in [(3, 3), (3, 4), (4, 3), (4, 4)] {
+                        px[(v * 8 + u) * 4 + 3] = 255;
+                    }
+                    let views = [DVec3::new(0.0, 0.0, -3.0), DVec3::new(3.0, 0.0, 0.0)]
+                        .into_iter()
+                        .enumerate()
+                        .map(|(i, eye)| {
+                            let cam =
+                                Camera::look_at(k, eye, DVec3::ZERO, DVec3::Y, Convention::OpenCv)?;
+                            View::new(cam, Image::new(8, 8, 4, px.clone())?, None, format!("v{i}"))
+                        })
+                        .collect::<neural_fields::Result<Vec<_>>>()?;
+                    let data = Dataset::new(views, Background::Color([1.0; 3]), None)?;
+                    let b = data.visual_hull(x)?.expect("a foreground in every view");
+                    Ok(vec![Tensor::new(&b[..], &d)?])
+                },
+            );
             s.case("data::Dataset::new", &tag, Expect::FiniteOrErr, &[], || {
                 let k = Intrinsics::new(3.0, 3.0, 1.0, 1.0, 2, 2)?;
                 let cam = Camera::new(k, DAffine3::IDENTITY, Convention::OpenCv)?;

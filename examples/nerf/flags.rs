@@ -82,9 +82,11 @@ pub(super) struct Args {
     /// Samples per ray (stratified and proposal samplers).
     #[arg(long, default_value_t = 64)]
     pub(super) samples: usize,
-    /// Half-side of the scene box for layouts that state none.
-    #[arg(long, default_value_t = 1.5)]
-    pub(super) aabb: f64,
+    /// Half-side of the scene cube. Without it: the box the layout states, else the
+    /// visual hull of the training silhouettes grown by 5 % (`Dataset::visual_hull`),
+    /// else ±1.5.
+    #[arg(long)]
+    pub(super) aabb: Option<f64>,
     #[arg(long, default_value_t = 250)]
     pub(super) eval_every: usize,
     /// Held-out views evaluated during training.
@@ -238,7 +240,8 @@ impl Args {
                 format!("{self:?}"),
             ));
         }
-        if !(self.aabb > 0.0 && self.aabb.is_finite() && (0.0..1.0).contains(&self.alpha_threshold))
+        if !(self.aabb.is_none_or(|a| a > 0.0 && a.is_finite())
+            && (0.0..1.0).contains(&self.alpha_threshold))
         {
             return Err(bad(
                 "--aabb > 0, --alpha-threshold in [0, 1)",

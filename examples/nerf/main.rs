@@ -24,7 +24,9 @@
 //! `--samples` intervals ([`proposal_sample`], [`interlevel_loss`]), of which only the
 //! visible ones with opacity ≥ `--alpha-threshold` (nerfacc's `alpha_thre`) go on.
 //!
-//! **Scenes** (`--scene`): `object` (default), inside the scene box; `unbounded`, content
+//! **Scenes** (`--scene`): `object` (default), inside the scene box (`--aabb H` for the
+//! cube ±H; else the box the layout states, else the visual hull of the training
+//! silhouettes grown by 5 % ([`Dataset::visual_hull`]), else ±1.5); `unbounded`, content
 //! at every distance (mip-NeRF 360): the training cameras' frame scaled into the unit
 //! ball, every network on [`contract`] of it, the proposal sampler (whatever `--sampler`
 //! says) spacing samples linearly to 1 and then in disparity to 1e6 ([`Spacing`]), and
@@ -43,7 +45,7 @@
 //!
 //! **Output** in `--out` (default `target/nerf`): `metrics.json` (`psnr`, `ssim`,
 //! `train_seconds` without evaluations, `steps`, `samples_per_ray`, `sampler`, `scene`, `encoding`,
-//! `device`, `eval_split`, `eval_views`, `eval_supersample`, `pixel_filter`, `jitter`,
+//! `device`, `scene_box`, `eval_split`, `eval_views`, `eval_supersample`, `pixel_filter`, `jitter`,
 //! `train_supersample`, `march_jitter`, `coarse_to_fine`, `view_dependence`,
 //! `alpha_threshold`, `proposal_samples`, `data`, and `psnr_per_scale`: per image size,
 //! largest first, `width`, `height`, `views`, `psnr`, `ssim`); `curve.csv` (`step,train_seconds,psnr`
@@ -186,10 +188,19 @@ fn dead_run(since: usize, step: usize, args: &Args) -> Error {
         got: format!(
             "every ray's opacity below {DEAD_OPACITY} from step {since} to {step}: the density \
              collapsed to zero (a learning rate too high for this scene, --lr {:?}), or the \
-             scene box misses the scene (--aabb {} for layouts that state none)",
+             scene box misses the scene (--aabb {:?})",
             args.lr, args.aabb
         ),
     }
+}
+
+/// The scene box when `--aabb` is not given: the layout's own bounds, else the visual
+/// hull of the training silhouettes grown by 5 % of its largest side, else ±1.5.
+fn scene_box(train: &Dataset) -> Result<[f64; 6]> {
+    if train.bounds().is_some() {
+        return Ok(train.scene_box(1.5));
+    }
+    Ok(train.visual_hull(0.05)?.unwrap_or(train.scene_box(1.5)))
 }
 
 fn run(args: &Args) -> Result<()> {
@@ -240,9 +251,10 @@ fn run(args: &Args) -> Result<()> {
     } else {
         args.sampler
     };
-    let aabb = match unbounded {
-        Some(_) => [-2.0, -2.0, -2.0, 2.0, 2.0, 2.0],
-        None => train.scene_box(args.aabb),
+    let aabb = match (unbounded, args.aabb) {
+        (Some(_), _) => [-2.0, -2.0, -2.0, 2.0, 2.0, 2.0],
+        (None, Some(half)) => [-half, -half, -half, half, half, half],
+        (None, None) => scene_box(&train)?,
     };
     let diag = (0..3)
         .map(|a| (aabb[a + 3] - aabb[a]).powi(2))
@@ -470,6 +482,7 @@ fn run(args: &Args) -> Result<()> {
         "scene": format!("{:?}", args.scene).to_lowercase(),
         "encoding": format!("{:?}", args.encoding).to_lowercase(),
         "device": format!("{:?}", args.device).to_lowercase(),
+        "scene_box": aabb,
         "eval_split": eval_split,
         "eval_views": eval.views().len(),
         "eval_supersample": args.eval_supersample,

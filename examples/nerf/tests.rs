@@ -31,6 +31,20 @@ fn a_shortened_run_trains_writes_its_outputs_and_resumes() {
         assert!(m[key].as_f64().is_some_and(f64::is_finite), "{key}: {m}");
     }
     assert_eq!(m["steps"], 4);
+    // The Blender layout states no bounds: the box is the silhouettes' visual hull (the
+    // mesh lies in the unit ball), not the ±1.5 cube.
+    let scene_box: Vec<f64> = serde_json::from_value(m["scene_box"].clone()).unwrap();
+    let train = load(
+        &args.data,
+        &LoadConfig {
+            downscale: 4,
+            ..LoadConfig::default()
+        },
+    )
+    .unwrap();
+    let hull = train.visual_hull(0.05).unwrap().unwrap();
+    assert_eq!(scene_box, hull);
+    assert!(hull.iter().all(|v| v.abs() < 1.2), "{hull:?}");
     let curve = std::fs::read_to_string(out.join("curve.csv")).unwrap();
     assert_eq!(curve.lines().next(), Some("step,train_seconds,psnr"));
     assert_eq!(curve.lines().count(), 1 + 2 + 1); // header, steps 2 and 4, final
@@ -213,7 +227,7 @@ fn a_run_without_opacity_stops_naming_the_cause() {
         rays: 64,
         samples: 8,
         sampler: Sampler::Stratified,
-        aabb: 1e-4,
+        aabb: Some(1e-4),
         eval_every: 1000,
         ..Args::default()
     };

@@ -48,6 +48,7 @@ mod batch;
 mod blender;
 mod dataset;
 mod dtu;
+mod hull;
 mod image;
 mod layout;
 mod metrics;

@@ -22,7 +22,12 @@ pub struct GridConfig {
     /// Number of levels; level `l` covers the box scaled by `2^l` about its centre.
     /// Default 1.
     pub levels: usize,
-    /// Density above which a cell is occupied (before the mean clamp). Default 0.01.
+    /// Value of the update's `sigma_fn` above which a cell is occupied (before the mean
+    /// clamp). Default 0.01, nerfacc's `occ_thre`, which nerfacc compares with what its
+    /// `occ_eval_fn` returns: σ·Δt, the opacity of one march step. For a `sigma_fn` that
+    /// returns the density σ itself, 0.01 keeps a cell occupied down to a density 1/Δt
+    /// times lower (74× at Δt = 0.0135), and a grid may then stay occupied for thousands
+    /// of steps: return σ·Δt from the closure, or set `threshold` to 0.01/Δt.
     pub threshold: f64,
     /// Lower bound of the effective threshold τ. Default 1e-4.
     pub floor: f64,

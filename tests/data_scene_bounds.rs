@@ -1,0 +1,111 @@
+//! Scene bounds from the data (`Dataset::visual_hull`): the box of the silhouettes'
+//! visual hull contains the object's box and is within a few cells of it.
+#![cfg(feature = "data")]
+
+use neural_fields::camera::{Camera, Convention, Intrinsics};
+use neural_fields::data::{Background, Dataset, Image, View};
+use neural_fields::glam::DVec3;
+
+/// `n` cameras on a ring of radius 2.2 at heights alternating ±0.6 around the origin,
+/// each with an RGBA image of `size`² whose alpha is the silhouette of the ball
+/// (`centre`, `radius`) — or no alpha at all when `alpha` is false.
+fn ball_dataset(n: usize, size: usize, centre: DVec3, radius: f64, alpha: bool) -> Dataset {
+    let k = Intrinsics::from_fov_y(size, size, 0.7).expect("intrinsics");
+    let views = (0..n)
+        .map(|i| {
+            let a = i as f64 * std::f64::consts::TAU / n as f64;
+            let eye = DVec3::new(
+                2.2 * a.cos(),
+                2.2 * a.sin(),
+                if i % 2 == 0 { 0.6 } else { -0.6 },
+            );
+            let cam =
+                Camera::look_at(k, eye, DVec3::ZERO, DVec3::Z, Convention::OpenCv).expect("camera");
+            let pose = cam.cam_to_world();
+            let (to_c, dist) = ((centre - eye).normalize(), (centre - eye).length());
+            let cos_max = (1.0 - (radius / dist).powi(2)).sqrt();
+            let channels = if alpha { 4 } else { 3 };
+            let mut px = Vec::with_capacity(size * size * channels);
+            for v in 0..size {
+                for u in 0..size {
+                    let d = DVec3::new(
+                        (u as f64 + 0.5 - k.cx) / k.fx,
+                        (v as f64 + 0.5 - k.cy) / k.fy,
+                        1.0,
+                    );
+                    let d = (pose.matrix3 * d).normalize();
+                    let inside = d.dot(to_c) >= cos_max;
+                    px.extend_from_slice(&[128, 128, 128]);
+                    if alpha {
+                        px.push(if inside { 255 } else { 0 });
+                    }
+                }
+            }
+            let image = Image::new(size, size, channels, px).expect("image");
+            View::new(cam, image, None, format!("v{i}")).expect("view")
+        })
+        .collect();
+    Dataset::new(views, Background::Color([1.0; 3]), None).expect("dataset")
+}
+
+#[test]
+fn the_hull_box_of_a_ball_contains_it_and_is_within_three_cells_of_it() {
+    let (centre, radius) = (DVec3::new(0.12, -0.05, 0.2), 0.3);
+    let data = ball_dataset(24, 80, centre, radius, true);
+    let b = data.visual_hull(0.0).expect("valid margin").expect("masks");
+    let (lo, hi) = (centre - radius, centre + radius);
+    // The second pass cuts a box about 0.7 wide into 48 cells of about 0.015.
+    for a in 0..3 {
+        assert!(
+            b[a] <= lo[a] + 1e-9 && b[a + 3] >= hi[a] - 1e-9,
+            "{b:?} must contain the ball"
+        );
+        assert!(
+            lo[a] - b[a] < 0.06 && b[a + 3] - hi[a] < 0.06,
+            "{b:?} too loose around the ball"
+        );
+    }
+    // The margin grows every side by margin × the largest side.
+    let m = data.visual_hull(0.1).expect("valid").expect("masks");
+    let side = (0..3).map(|a| b[a + 3] - b[a]).fold(0.0, f64::max);
+    for a in 0..3 {
+        assert!((b[a] - m[a] - 0.1 * side).abs() < 1e-12);
+        assert!((m[a + 3] - b[a + 3] - 0.1 * side).abs() < 1e-12);
+    }
+}
+
+#[test]
+fn no_masks_no_hull_and_a_bad_margin_is_refused() {
+    let data = ball_dataset(6, 32, DVec3::ZERO, 0.3, false);
+    assert_eq!(data.visual_hull(0.05).expect("valid margin"), None);
+    let masked = ball_dataset(6, 32, DVec3::ZERO, 0.3, true);
+    for bad in [f64::NAN, -0.1, f64::INFINITY] {
+        let e = masked.visual_hull(bad).expect_err("bad margin").to_string();
+        assert!(e.contains("margin"), "{e}");
+    }
+}
+
+#[test]
+fn silhouettes_that_are_all_background_carve_everything() {
+    // A ball far outside every view: no foreground pixel anywhere.
+    let data = ball_dataset(8, 32, DVec3::new(40.0, 0.0, 0.0), 0.3, true);
+    assert_eq!(data.visual_hull(0.05).expect("valid margin"), None);
+}
+
+#[test]
+fn the_committed_scene_hull_is_inside_its_unit_ball() {
+    let train = neural_fields::data::load(
+        "examples/data/wuson".as_ref(),
+        &neural_fields::data::LoadConfig::default(),
+    )
+    .expect("committed dataset");
+    let b = train.visual_hull(0.0).expect("valid").expect("alpha");
+    // render_dataset.py scales the mesh into the unit ball (largest vertex distance 1).
+    for a in 0..3 {
+        assert!(b[a] > -1.06 && b[a + 3] < 1.06, "{b:?}");
+        assert!(
+            b[a + 3] - b[a] > 0.3,
+            "{b:?}: the object has extent on every axis"
+        );
+    }
+}
