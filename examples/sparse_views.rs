@@ -9,7 +9,9 @@
 //! Both runs train [`Nerf`] (NeRF's defaults) with Adam (learning rate 1e-3 decaying
 //! log-linearly to 1e-4) on `--rays` random pixels of the training views per step, each
 //! ray composited over a random background, with `--samples` (32) jittered stratified
-//! samples across the scene box and the fused [`Nerf::color_loss`]; the same seed. The
+//! samples across the scene box (`--aabb H`: the cube ±H; else the box the layout states,
+//! else the visual hull of the training silhouettes grown by 5 %, else ±1.5) and the
+//! fused [`Nerf::color_loss`]; the same seed. The
 //! regularised run adds, by default:
 //! - a **frequency window** (FreeNeRF, Yang et al. 2023: BARF's coarse-to-fine window used
 //!   as a regulariser) that opens the position encoding's octaves linearly over training
@@ -86,6 +88,10 @@ struct Args {
     /// Stratified samples per ray.
     #[arg(long, default_value_t = 32)]
     samples: usize,
+    /// Half-side of the scene cube. Without it: the box the layout states, else the
+    /// visual hull of the training silhouettes grown by 5 %, else ±1.5.
+    #[arg(long)]
+    aabb: Option<f64>,
     /// Held-out views written as pictures.
     #[arg(long, default_value_t = 4)]
     pictures: usize,
@@ -265,7 +271,12 @@ fn train(args: &Args, name: &str, regularised: bool) -> Result<Run> {
             },
         )
     })?;
-    let scene = train.scene_box(1.5); // nerfacc's cube for layouts that state none
+    let scene = match args.aabb {
+        Some(h) => [-h, -h, -h, h, h, h],
+        None if train.bounds().is_some() => train.scene_box(1.5),
+        // The training silhouettes' hull, else nerfacc's cube.
+        None => train.visual_hull(0.05)?.unwrap_or(train.scene_box(1.5)),
+    };
     let span = regularised.then_some(args.coarse_to_fine.0).flatten();
     let varmap = VarMap::new();
     let windows = std::cell::RefCell::new(Vec::new());

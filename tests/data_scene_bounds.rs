@@ -109,3 +109,24 @@ fn the_committed_scene_hull_is_inside_its_unit_ball() {
         );
     }
 }
+
+/// Three views from one side, all above the object: the camera centres' own box misses
+/// the object entirely (the first carving region was once that box, and the hull of the
+/// committed scene's three sparse views landed 5 units above it).
+#[test]
+fn three_views_from_one_side_still_bound_the_object() {
+    let (centre, radius) = (DVec3::new(0.05, 0.1, -0.1), 0.3);
+    let all = ball_dataset(24, 80, centre, radius, true);
+    let views: Vec<View> = [0, 2, 4].iter().map(|&i| all.views()[i].clone()).collect();
+    let data = Dataset::new(views, Background::Color([1.0; 3]), None).expect("dataset");
+    let b = data.visual_hull(0.0).expect("valid").expect("masks");
+    let (lo, hi) = (centre - radius, centre + radius);
+    for a in 0..3 {
+        assert!(
+            b[a] <= lo[a] + 1e-9 && b[a + 3] >= hi[a] - 1e-9,
+            "{b:?} must contain the ball"
+        );
+        // A narrow baseline (60°) leaves the hull long along the views, not unbounded.
+        assert!(b[a + 3] - b[a] < 4.4, "{b:?}: within the cameras' reach");
+    }
+}

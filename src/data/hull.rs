@@ -112,8 +112,9 @@ impl Dataset {
     /// (mask or alpha ≥ ½), grown by `margin` times its largest side on every side; `None`
     /// when no view has a mask or every cell is carved (no foreground anywhere).
     ///
-    /// Space carving, twice: the cube around the cameras' centres (a 360° capture
-    /// surrounds its object), then the box the first pass kept, each cut into 48³ cells. A
+    /// Space carving, twice: the cube the cameras look into (centred on the point closest
+    /// to every optical axis, as far out as the farthest camera), then the box the first
+    /// pass kept, each cut into 48³ cells. A
     /// cell is carved when some view sees the ball around it whole (in front of the camera
     /// and inside the image) and no foreground pixel in the ball's projected square; a
     /// cell no view sees whole is kept. The test is conservative (a cell that holds any of
@@ -150,13 +151,7 @@ impl Dataset {
         if masked.iter().all(|s| s.count() == 0) {
             return Ok(None);
         }
-        // The cube around the cameras' centres.
-        let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
-        for v in self.views() {
-            let c = v.camera().cam_to_world().translation;
-            (lo, hi) = (lo.min(c), hi.max(c));
-        }
-        let (centre, half) = ((lo + hi) / 2.0, ((hi - lo) / 2.0).max_element().max(1e-9));
+        let (centre, half) = look_at_region(self.views());
         let mut region = Some((centre - half, centre + half));
         for _ in 0..2 {
             let Some((lo, hi)) = region else {
@@ -170,6 +165,45 @@ impl Dataset {
             [lo.x, lo.y, lo.z, hi.x, hi.y, hi.z]
         }))
     }
+}
+
+/// The cube the cameras look into: centred on the point closest, in least squares, to
+/// every optical axis (the centroid of the camera centres when the axes are parallel),
+/// with the largest distance of a camera from it as its half-side.
+fn look_at_region(views: &[View]) -> (DVec3, f64) {
+    let mut a = crate::glam::DMat3::ZERO;
+    let mut b = DVec3::ZERO;
+    let mut mean = DVec3::ZERO;
+    for v in views {
+        let pose = v.camera().cam_to_world();
+        let axis = match v.camera().convention() {
+            crate::camera::Convention::OpenCv => pose.matrix3.z_axis,
+            crate::camera::Convention::OpenGl => -pose.matrix3.z_axis,
+        }
+        .normalize_or_zero();
+        // (I − f fᵀ) projects out the axis direction.
+        let p = crate::glam::DMat3::IDENTITY
+            - crate::glam::DMat3::from_cols(axis * axis.x, axis * axis.y, axis * axis.z);
+        a += p;
+        b += p * pose.translation;
+        mean += pose.translation;
+    }
+    mean /= views.len().max(1) as f64;
+    let centre = if a.determinant().abs() > 1e-9 * (views.len() as f64).powi(3) {
+        let c = a.inverse() * b;
+        if c.is_finite() {
+            c
+        } else {
+            mean
+        }
+    } else {
+        mean
+    };
+    let half = views
+        .iter()
+        .map(|v| (v.camera().cam_to_world().translation - centre).length())
+        .fold(1e-9, f64::max);
+    (centre, half)
 }
 
 /// The box of the cells of `[lo, hi]` (48³) that no silhouette carves, `None` if all are.
