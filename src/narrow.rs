@@ -18,3 +18,20 @@ pub(crate) fn narrow<D: Dim>(t: &Tensor, dim: D, start: usize, len: usize) -> Re
         t.narrow(dim, start, len)
     }
 }
+
+/// `Tensor::from_vec(v, shape, device)` that also holds for an empty `v` on a GPU: a
+/// copy of zero bytes from the host is not a valid CUDA copy, so an empty result is made
+/// with `Tensor::zeros` instead (the same empty tensor on the CPU). Every per-sample
+/// result built on the host (packed layouts, sampler outputs) goes through it, since a
+/// batch whose rays all miss the scene or are skipped holds no sample.
+pub(crate) fn from_vec<T: candle_core::WithDType, S: Into<candle_core::Shape>>(
+    v: Vec<T>,
+    shape: S,
+    device: &candle_core::Device,
+) -> Result<Tensor> {
+    let shape = shape.into();
+    if v.is_empty() {
+        return Tensor::zeros(shape, T::DTYPE, device);
+    }
+    Tensor::from_vec(v, shape, device)
+}

@@ -1152,6 +1152,24 @@ fn kernels_case(dev: &Device, dtype: DType) -> Result<Outs> {
         "composite.packed.d/dcolors".into(),
         grad(&g, &pc, "colors")?,
     ));
+    // A batch whose every sample was dropped: the packed layout and its compositing hold
+    // no sample (a host copy of zero bytes is not a valid CUDA copy; the NeRF example on
+    // a tight box once stopped there with CUDA_ERROR_INVALID_VALUE).
+    let nothing = Tensor::zeros((r, s), DType::U8, dev)?;
+    let (empty, idx) = iv.retain(&nothing)?;
+    out.push((
+        "empty_batch.kept".into(),
+        Out::Eq(format!("{:?}", idx.dims())),
+    ));
+    let res = composite(
+        &Tensor::zeros(0, dtype, dev)?,
+        &Tensor::zeros((0, 3), dtype, dev)?,
+        &empty,
+        None,
+        &CompositeConfig::default(),
+    )?;
+    out.push(("empty_batch.color".into(), k(res.color)));
+    out.push(("empty_batch.opacity".into(), k(res.opacity)));
     // A NaN or negative density is refused on both devices.
     for (label, bad) in [
         ("nan", f64::NAN),

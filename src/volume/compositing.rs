@@ -405,5 +405,9 @@ pub fn visible_mask(
             }
         }
     }
-    Ok(Tensor::from_vec(mask, sigmas.shape(), sigmas.device())?)
+    Ok(crate::narrow::from_vec(
+        mask,
+        sigmas.shape(),
+        sigmas.device(),
+    )?)
 }

@@ -76,7 +76,7 @@ impl Packed {
         }
         let off_u32: Vec<u32> = offsets_host.iter().map(|&o| o as u32).collect();
         Ok(Self {
-            ray_indices: Tensor::from_vec(ray_idx, acc, device)?,
+            ray_indices: crate::narrow::from_vec(ray_idx, acc, device)?,
             offsets: Tensor::from_vec(off_u32, counts.len() + 1, device)?,
             n_rays: counts.len(),
             offsets_host: offsets_host.into(),
@@ -111,7 +111,7 @@ impl Packed {
         }
         let n = keep.len();
         let packed = Self::from_counts(&counts, mask.device())?;
-        Ok((packed, Tensor::from_vec(keep, n, mask.device())?))
+        Ok((packed, crate::narrow::from_vec(keep, n, mask.device())?))
     }
 
     /// Total number of samples `M`.
@@ -331,7 +331,7 @@ impl Intervals {
                 let n = keep.len();
                 (
                     Packed::from_counts(&counts, mask.device())?,
-                    Tensor::from_vec(keep, n, mask.device())?,
+                    crate::narrow::from_vec(keep, n, mask.device())?,
                 )
             }
         };

@@ -424,8 +424,8 @@ fn overlap_pairs(fine: &Intervals, coarse: &Intervals) -> Result<(Tensor, Tensor
     let dev = fine.starts.device();
     let p = fine_idx.len();
     Ok((
-        Tensor::from_vec(fine_idx, p, dev)?,
-        Tensor::from_vec(coarse_idx, p, dev)?,
+        crate::narrow::from_vec(fine_idx, p, dev)?,
+        crate::narrow::from_vec(coarse_idx, p, dev)?,
     ))
 }
 

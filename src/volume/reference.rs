@@ -101,10 +101,10 @@ pub(crate) fn weights(
                     last[b - 1] = 1;
                 }
             }
-            let gather = Tensor::from_vec(gather, r * smax, dev)?;
-            let scatter = Tensor::from_vec(scatter, m, dev)?;
+            let gather = crate::narrow::from_vec(gather, r * smax, dev)?;
+            let scatter = crate::narrow::from_vec(scatter, m, dev)?;
             if opaque_last {
-                let last = Tensor::from_vec(last, m, dev)?;
+                let last = crate::narrow::from_vec(last, m, dev)?;
                 alpha = last.where_cond(&alpha.ones_like()?, &alpha)?;
             }
             let x_ext = Tensor::cat(&[&x, &Tensor::zeros(1, x.dtype(), dev)?], 0)?;
