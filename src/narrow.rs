@@ -24,6 +24,7 @@ pub(crate) fn narrow<D: Dim>(t: &Tensor, dim: D, start: usize, len: usize) -> Re
 /// with `Tensor::zeros` instead (the same empty tensor on the CPU). Every per-sample
 /// result built on the host (packed layouts, sampler outputs) goes through it, since a
 /// batch whose rays all miss the scene or are skipped holds no sample.
+#[cfg_attr(not(feature = "volume"), allow(dead_code))] // the volume module's samplers
 pub(crate) fn from_vec<T: candle_core::WithDType, S: Into<candle_core::Shape>>(
     v: Vec<T>,
     shape: S,
