@@ -384,6 +384,17 @@ pub struct Camera {
 }
 
 impl Camera {
+    /// The unit viewing (optical) axis in world space: `+z` of the camera frame (OpenCV)
+    /// or `−z` (OpenGL).
+    pub(crate) fn forward(&self) -> DVec3 {
+        let m = self.cam_to_world.matrix3;
+        match self.convention {
+            Convention::OpenCv => m.z_axis,
+            Convention::OpenGl => -m.z_axis,
+        }
+        .normalize()
+    }
+
     /// A camera from intrinsics and a camera-to-world pose `x_world = R x_cam + t`.
     ///
     /// # Errors
@@ -644,6 +655,25 @@ impl Camera {
     }
 }
 
+/// The point closest, in least squares, to every camera's optical axis:
+/// `Σ (I − f fᵀ)(c − o) = 0` over the cameras' centres `o` and unit viewing axes `f`.
+/// `Err(det)` with the system's determinant when the axes are (nearly) all parallel
+/// (`|det| ≤ 1e-9·n³`, or NaN).
+pub(crate) fn axes_centre(cameras: &[Camera]) -> std::result::Result<DVec3, f64> {
+    let (mut a, mut b) = (DMat3::ZERO, DVec3::ZERO);
+    for cam in cameras {
+        let f = cam.forward();
+        let p = DMat3::IDENTITY - DMat3::from_cols(f * f.x, f * f.y, f * f.z);
+        a += p;
+        b += p * cam.cam_to_world.translation;
+    }
+    let det = a.determinant();
+    if det.is_nan() || det.abs() <= 1e-9 * cameras.len().pow(3) as f64 {
+        return Err(det);
+    }
+    Ok(a.inverse() * b)
+}
+
 /// Random cameras around a set of cameras, for regularising unobserved viewpoints
 /// (RegNeRF's sampled poses): the scene centre `c` is the point closest, in least squares,
 /// to every camera's optical axis; each new camera sits at the mean distance `r` of the
@@ -686,32 +716,21 @@ pub fn cameras_around(cameras: &[Camera], count: usize, seed: u64) -> Result<Vec
             count.to_string(),
         ));
     }
-    // Forward (viewing) axis and up axis of a camera in world space.
-    let axes = |c: &Camera| {
+    // Up axis of a camera in world space.
+    let up_of = |c: &Camera| {
         let m = c.cam_to_world.matrix3;
         match c.convention {
-            Convention::OpenCv => (m.z_axis, -m.y_axis),
-            Convention::OpenGl => (-m.z_axis, m.y_axis),
+            Convention::OpenCv => -m.y_axis,
+            Convention::OpenGl => m.y_axis,
         }
     };
-    // Least squares: Σ (I − f fᵀ) (c − o) = 0.
-    let (mut a, mut b) = (DMat3::ZERO, DVec3::ZERO);
-    for cam in cameras {
-        let (f, _) = axes(cam);
-        let f = f.normalize();
-        let p = DMat3::IDENTITY - DMat3::from_cols(f * f.x, f * f.y, f * f.z);
-        a += p;
-        b += p * cam.cam_to_world.translation;
-    }
-    let det = a.determinant();
-    if det.is_nan() || det.abs() <= 1e-9 * cameras.len().pow(3) as f64 {
-        return Err(Error::invalid(
+    let centre = axes_centre(cameras).map_err(|det| {
+        Error::invalid(
             "cameras",
             "cameras whose optical axes are not all parallel",
             format!("det = {det:e}"),
-        ));
-    }
-    let centre = a.inverse() * b;
+        )
+    })?;
     let radius = cameras
         .iter()
         .map(|c| (c.cam_to_world.translation - centre).length())
@@ -719,7 +738,7 @@ pub fn cameras_around(cameras: &[Camera], count: usize, seed: u64) -> Result<Vec
         / cameras.len() as f64;
     let up = cameras
         .iter()
-        .map(|c| axes(c).1)
+        .map(up_of)
         .fold(DVec3::ZERO, |s, u| s + u)
         .normalize_or_zero();
     if up == DVec3::ZERO || !centre.is_finite() || !(radius > 0.0 && radius.is_finite()) {

@@ -1,6 +1,7 @@
 //! Scene bounds from the data: the box of the visual hull of the training silhouettes.
 
 use super::dataset::{Dataset, View};
+use crate::camera::{axes_centre, Camera};
 use crate::error::{Error, Result};
 use crate::glam::DVec3;
 
@@ -97,13 +98,8 @@ impl<'a> Silhouette<'a> {
 
     /// Whether the whole ball about `p` lies behind the camera's image plane.
     fn behind(&self, p: DVec3, radius: f64) -> bool {
-        let pose = self.view.camera().cam_to_world();
-        let forward = match self.view.camera().convention() {
-            crate::camera::Convention::OpenCv => pose.matrix3.z_axis,
-            crate::camera::Convention::OpenGl => -pose.matrix3.z_axis,
-        };
-        let depth = (p - pose.translation).dot(forward) / forward.length();
-        depth < -radius
+        let cam = self.view.camera();
+        (p - cam.cam_to_world().translation).dot(cam.forward()) < -radius
     }
 }
 
@@ -171,38 +167,14 @@ impl Dataset {
 /// every optical axis (the centroid of the camera centres when the axes are parallel),
 /// with the largest distance of a camera from it as its half-side.
 fn look_at_region(views: &[View]) -> (DVec3, f64) {
-    let mut a = crate::glam::DMat3::ZERO;
-    let mut b = DVec3::ZERO;
-    let mut mean = DVec3::ZERO;
-    for v in views {
-        let pose = v.camera().cam_to_world();
-        let axis = match v.camera().convention() {
-            crate::camera::Convention::OpenCv => pose.matrix3.z_axis,
-            crate::camera::Convention::OpenGl => -pose.matrix3.z_axis,
-        }
-        .normalize_or_zero();
-        // (I − f fᵀ) projects out the axis direction.
-        let p = crate::glam::DMat3::IDENTITY
-            - crate::glam::DMat3::from_cols(axis * axis.x, axis * axis.y, axis * axis.z);
-        a += p;
-        b += p * pose.translation;
-        mean += pose.translation;
-    }
-    mean /= views.len().max(1) as f64;
-    let centre = if a.determinant().abs() > 1e-9 * (views.len() as f64).powi(3) {
-        let c = a.inverse() * b;
-        if c.is_finite() {
-            c
-        } else {
-            mean
-        }
-    } else {
-        mean
-    };
-    let half = views
-        .iter()
-        .map(|v| (v.camera().cam_to_world().translation - centre).length())
-        .fold(1e-9, f64::max);
+    let cameras: Vec<Camera> = views.iter().map(|v| *v.camera()).collect();
+    let centres = cameras.iter().map(|c| c.cam_to_world().translation);
+    let mean = centres.clone().sum::<DVec3>() / cameras.len().max(1) as f64;
+    let centre = axes_centre(&cameras)
+        .ok()
+        .filter(|c| c.is_finite())
+        .unwrap_or(mean);
+    let half = centres.map(|c| (c - centre).length()).fold(1e-9, f64::max);
     (centre, half)
 }
 

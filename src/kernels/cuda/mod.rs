@@ -70,6 +70,21 @@ impl Kernel {
     }
 }
 
+/// The device's compute capability, asked of the driver once per device and process
+/// (every launch needs it for its module's key).
+fn compute_capability(dev: &CudaDevice) -> candle_core::Result<(i32, i32)> {
+    static ARCH: OnceLock<Mutex<HashMap<candle_core::cuda::DeviceId, (i32, i32)>>> =
+        OnceLock::new();
+    let poisoned = || candle_core::Error::Msg("CUDA architecture cache poisoned".into());
+    let cache = ARCH.get_or_init(|| Mutex::new(HashMap::new()));
+    if let Some(cc) = cache.lock().map_err(|_| poisoned())?.get(&dev.id()) {
+        return Ok(*cc);
+    }
+    let cc = dev.cuda_stream().context().compute_capability().w()?;
+    cache.lock().map_err(|_| poisoned())?.insert(dev.id(), cc);
+    Ok(cc)
+}
+
 /// A kernel function of a source module: `source` is compiled for `T` and the device's
 /// architecture at the first call.
 pub(crate) fn function<T: GpuReal>(
@@ -78,7 +93,7 @@ pub(crate) fn function<T: GpuReal>(
     source: &'static str,
     name: &str,
 ) -> candle_core::Result<Kernel> {
-    let (major, minor) = dev.cuda_stream().context().compute_capability().w()?;
+    let (major, minor) = compute_capability(dev)?;
     let key = format!("nf_{module}_{}_sm{major}{minor}", T::C_TYPE);
     let ptx = {
         let mut cache = ptx_cache()
