@@ -10,10 +10,12 @@
 //!   rendering, DVR's implicit gradients).
 //! * [`ConditionalField`] and [`Conditioned`]: a field `f(p, z)` of a latent code `z`, and
 //!   the adapter that binds a code so that `f(·, z)` is a plain field.
-//! * Analytic shapes ([`Sphere`], [`Cuboid`], [`Torus`], [`Plane`]) implementing
-//!   [`SignedDistance`], usable as SDFs ([`Sdf`]) or occupancy logits ([`Occupancy`]),
-//!   with exact gradients and parameters held as tensors (wrap them in `Var`s to learn
-//!   a radius or a centre). They are the fixtures of every test in this crate.
+//! * Analytic shapes ([`Sphere`], [`Cuboid`], [`RoundedBox`], [`Torus`], [`Plane`],
+//!   [`Capsule`], [`Cylinder`]) implementing [`SignedDistance`], usable as SDFs
+//!   ([`Sdf`]) or occupancy logits ([`Occupancy`]), with exact gradients and parameters
+//!   held as tensors (wrap them in `Var`s to learn a radius or a centre). They are the
+//!   fixtures of every test in this crate. [`Csg`] combines two of them (union,
+//!   intersection, difference, smooth union) into another [`SignedDistance`].
 //!
 //! ```
 //! use candle_core::{Device, DType, Tensor};
@@ -367,6 +369,11 @@ impl<S: SignedDistance> Field for Occupancy<S> {
 /// gradients of `u/s = x/‖x‖` and `m·s = ‖x‖` are the exact ones (both are functions of
 /// `x` alone for any fixed `m`). Double where: no division ever sees a zero.
 fn unit_and_norm(x: &Tensor) -> Result<(Tensor, Tensor)> {
+    let n = x.dim(0)?;
+    if x.elem_count() == 0 {
+        // candle refuses to take the maximum of nothing.
+        return Ok((x.clone(), Tensor::zeros((n, 1), x.dtype(), x.device())?));
+    }
     let m = x.detach().abs()?.max_keepdim(1)?;
     let pos = m.gt(0.0)?;
     let m_safe = pos.where_cond(&m, &m.ones_like()?)?;
@@ -467,24 +474,131 @@ impl Cuboid {
     }
 }
 
+/// `+1` where `x ≥ 0`, `−1` elsewhere (the side of a medial plane; `+1` on it).
+fn side(x: &Tensor) -> Result<Tensor> {
+    let ones = x.ones_like()?;
+    Ok(x.ge(0.0)?.where_cond(&ones, &ones.neg()?)?)
+}
+
+/// The exact SDF of the box `{q ≤ 0}` in `K` dimensions, given each point's face
+/// coordinates `q: [N, K]` (`qᵢ = |xᵢ| − hᵢ`): `d = ‖max(q, 0)‖ + min(maxᵢ qᵢ, 0)` as
+/// `[N]`, and `∂d/∂q: [N, K]`: outside `max(q, 0)/‖max(q, 0)‖`, inside the one-hot of the
+/// largest `qⱼ` (ties averaged). Shared by the boxes (`K = 3`) and the capped cylinder
+/// (`K = 2`: radial and axial).
+///
+/// Inside (and on the surface, `max q = 0`) the value is computed as `Σⱼ wⱼqⱼ` with the
+/// detached weights `w` of the gradient, so that its backward (to the shape's parameters)
+/// is that same `w`: candle's `max` would give every tied `qⱼ` the full gradient, and a
+/// `min(·, 0)` at `max q = 0` half of it.
+fn box_distance(q: &Tensor) -> Result<(Tensor, Tensor)> {
+    let n = q.dim(0)?;
+    if q.elem_count() == 0 {
+        return Ok((Tensor::zeros(n, q.dtype(), q.device())?, q.clone()));
+    }
+    let (q_unit, outside_norm) = unit_and_norm(&q.relu()?)?;
+    let q_max = q.detach().max_keepdim(1)?;
+    let onehot = q.detach().broadcast_eq(&q_max)?.to_dtype(q.dtype())?;
+    let w_in = onehot.broadcast_div(&onehot.sum_keepdim(1)?)?;
+    let inside = (q * &w_in)?.sum_keepdim(1)?;
+    let is_out = outside_norm.gt(0.0)?;
+    let dist = is_out.where_cond(&outside_norm, &inside)?.squeeze(1)?;
+    let is_out = is_out.broadcast_as(q.shape())?;
+    Ok((dist, is_out.where_cond(&q_unit, &w_in)?))
+}
+
+/// The box SDF with centre `center` and half-extents `half: [3]` at `points`, and its
+/// spatial gradient `sgn(p − c) ⊙ ∂d/∂q`.
+fn box_sdf(points: &Tensor, center: &Tensor, half: &Tensor) -> Result<(Tensor, Tensor)> {
+    let d = offset(points, center)?;
+    let q = d.abs()?.broadcast_sub(&half.unsqueeze(0)?)?;
+    let (dist, w) = box_distance(&q)?;
+    Ok((dist, (w * side(&d)?)?))
+}
+
 impl SignedDistance for Cuboid {
     fn distance_and_grad(&self, points: &Tensor) -> Result<(Tensor, Tensor)> {
-        let d = offset(points, &self.center)?;
-        let sign = d
-            .ge(0.0)?
-            .where_cond(&d.ones_like()?, &d.ones_like()?.neg()?)?;
-        let q = d.abs()?.broadcast_sub(&self.half_extents.unsqueeze(0)?)?;
-        let q_pos = q.relu()?;
-        let (q_unit, outside_norm) = unit_and_norm(&q_pos)?;
-        let q_max = q.max_keepdim(1)?;
-        let inside_part = q_max.clamp(f64::NEG_INFINITY, 0.0)?;
-        let dist = (&outside_norm + inside_part)?.squeeze(1)?;
+        box_sdf(points, &self.center, &self.half_extents)
+    }
+}
 
-        let grad_out = (q_unit * &sign)?;
-        let onehot = q.broadcast_eq(&q_max)?.to_dtype(q.dtype())?;
-        let grad_in = (onehot.broadcast_div(&onehot.sum_keepdim(1)?)? * &sign)?;
-        let is_out = outside_norm.gt(0.0)?.broadcast_as(q.shape())?;
-        Ok((dist, is_out.where_cond(&grad_out, &grad_in)?))
+/// A box with rounded edges and corners: the axis-aligned box with centre `c` and
+/// half-extents `h` whose edges are rounded with radius `r` (`0 < r ≤ minᵢ hᵢ`), i.e. the
+/// points within `r` of the inner box with half-extents `h − r`:
+/// `d(p) = d_box(p; c, h − r) − r` (exact SDF, inside and out; [`Cuboid`]'s formula).
+///
+/// Gradient: that of the inner box, `sgn(p − c) ⊙ max(q, 0)/‖max(q, 0)‖` with
+/// `q = |p − c| − (h − r)` outside the inner box (continuous across the rounded edges and
+/// corners), and `sgn(pⱼ − cⱼ)·eⱼ` for the axis `j` of the largest `qⱼ` inside it (ties
+/// averaged on its medial planes, where the distance has a crease). With `r = hⱼ` the
+/// inner box is flat along axis `j` and its medial plane is its own face; with `r = h`
+/// on every axis the shape is a sphere, whose centre gets the average `(1, 1, 1)/3`.
+/// All finite; `d` and `∇d` are differentiable w.r.t. `center`, `half_extents` and
+/// `radius`.
+///
+/// ```
+/// use candle_core::{Device, DType, Tensor};
+/// use neural_fields::field::{RoundedBox, SignedDistance};
+///
+/// let b = RoundedBox::new([0.0; 3], [1.0, 0.5, 0.5], 0.25, &Device::Cpu, DType::F64)?;
+/// // Off a face, off the rounded edge along z at x = 1, y = 0.5, and the centre.
+/// let p = Tensor::new(&[[1.5f64, 0.0, 0.0], [1.35, 1.05, 0.0], [0.0, 0.0, 0.0]], &Device::Cpu)?;
+/// let (d, grad) = b.distance_and_grad(&p)?;
+/// let d = d.to_vec1::<f64>()?;
+/// // Off the edge, the nearest surface point is on the quarter circle of radius 0.25
+/// // around the inner box's edge (0.75, 0.25, ·), 1 away: distance 1 − 0.25.
+/// assert!((d[0] - 0.5).abs() < 1e-12 && (d[1] - 0.75).abs() < 1e-12);
+/// assert!((d[2] + 0.5).abs() < 1e-12);
+/// let g = &grad.to_vec2::<f64>()?[1];
+/// assert!((g[0] - 0.6).abs() < 1e-12 && (g[1] - 0.8).abs() < 1e-12 && g[2] == 0.0);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+#[derive(Clone, Debug)]
+pub struct RoundedBox {
+    /// Centre `c: [3]`.
+    pub center: Tensor,
+    /// Half-extents `h: [3]` of the whole box (rounding included), all positive.
+    pub half_extents: Tensor,
+    /// Rounding radius `r` (scalar tensor), `0 < r ≤ minᵢ hᵢ`.
+    pub radius: Tensor,
+}
+
+impl RoundedBox {
+    /// A rounded box with constant parameters.
+    ///
+    /// # Errors
+    /// Non-finite parameters, a half-extent ≤ 0, or `radius` not in `(0, minᵢ hᵢ]`.
+    pub fn new(
+        center: [f64; 3],
+        half_extents: [f64; 3],
+        radius: f64,
+        device: &Device,
+        dtype: DType,
+    ) -> Result<Self> {
+        for h in half_extents {
+            check_scalar(h, "half_extents", true)?;
+        }
+        check_scalar(radius, "radius", true)?;
+        let smallest = half_extents.iter().copied().fold(f64::INFINITY, f64::min);
+        if radius > smallest {
+            return Err(Error::invalid(
+                "radius",
+                format!("a rounding radius ≤ the smallest half-extent {smallest}"),
+                format!("{radius}"),
+            ));
+        }
+        Ok(Self {
+            center: param("center", &center, &[3], device, dtype)?,
+            half_extents: param("half_extents", &half_extents, &[3], device, dtype)?,
+            radius: param("radius", &[radius], &[], device, dtype)?,
+        })
+    }
+}
+
+impl SignedDistance for RoundedBox {
+    fn distance_and_grad(&self, points: &Tensor) -> Result<(Tensor, Tensor)> {
+        let inner = self.half_extents.broadcast_sub(&self.radius)?;
+        let (dist, grad) = box_sdf(points, &self.center, &inner)?;
+        Ok((dist.broadcast_sub(&self.radius)?, grad))
     }
 }
 
@@ -586,5 +700,328 @@ impl SignedDistance for Plane {
             .broadcast_sub(&self.offset)?;
         let grad = unit.unsqueeze(0)?.broadcast_as((n, 3))?.contiguous()?;
         Ok((dist, grad))
+    }
+}
+
+/// Refuses end points `a`, `b` whose difference `b − a` overflows (the error names `b`);
+/// with `distinct`, also coinciding ones. The points themselves are checked by `param`.
+fn check_segment(a: [f64; 3], b: [f64; 3], distinct: bool) -> Result<()> {
+    let ba: Vec<f64> = b.iter().zip(a).map(|(b, a)| b - a).collect();
+    if ba.iter().all(|v| v.is_finite()) && !(distinct && ba.iter().all(|&v| v == 0.0)) {
+        return Ok(());
+    }
+    let expected = if distinct {
+        "an end centre other than a, with b − a finite"
+    } else {
+        "an end point with b − a finite"
+    };
+    Err(Error::invalid("b", expected, format!("{b:?} (a = {a:?})")))
+}
+
+/// The unit axis `(b − a)/‖b − a‖` (`[1, 3]`, 0 where `a = b`) and the length
+/// `‖b − a‖` (`[1, 1]`) of a segment, after checking `points` against both ends.
+fn axis(points: &Tensor, a: &Tensor, b: &Tensor) -> Result<(Tensor, Tensor)> {
+    check_points(points, "points")?;
+    check_same(points, "points", a, "the shape's parameters")?;
+    check_same(points, "points", b, "the shape's parameters")?;
+    unit_and_norm(&(b - a)?.unsqueeze(0)?)
+}
+
+/// A capsule: the points within `r` of the segment from `a` to `b`:
+/// `d(p) = ‖p − a − t·(b − a)‖ − r` with `t = clamp((p − a)·(b − a)/‖b − a‖², 0, 1)` the
+/// parameter of the nearest point of the segment (exact SDF).
+///
+/// The projection is computed as `clamp((p − a)·û, 0, L)·û` with `L = ‖b − a‖` and
+/// `û = (b − a)/L` (no squared lengths, so huge shapes and points do not overflow).
+/// Gradient: `v/‖v‖` with `v = p − a − t(b − a)` (the change of `t` is along `b − a`,
+/// orthogonal to `v`, or zero where `t` is clamped): exact everywhere but on the segment
+/// itself, where the distance has its crease and the gradient is 0 (as at a
+/// [`Sphere`]'s centre). `a = b` is allowed and is the sphere of radius `r` around `a`
+/// (`û = 0`, `t = 0`). All finite; `d` and `∇d` are differentiable w.r.t. `a`, `b` and
+/// `radius`.
+///
+/// ```
+/// use candle_core::{Device, DType, Tensor};
+/// use neural_fields::field::{Capsule, SignedDistance};
+///
+/// let c = Capsule::new([0.0, 0.0, -1.0], [0.0, 0.0, 1.0], 0.5, &Device::Cpu, DType::F64)?;
+/// // Beside the segment, beyond its end b, and on it.
+/// let p = Tensor::new(&[[2.0f64, 0.0, 0.3], [0.0, 0.0, 3.0], [0.0, 0.0, 0.5]], &Device::Cpu)?;
+/// let (d, grad) = c.distance_and_grad(&p)?;
+/// assert_eq!(d.to_vec1::<f64>()?, vec![1.5, 1.5, -0.5]);
+/// assert_eq!(grad.to_vec2::<f64>()?, vec![[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]]);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+#[derive(Clone, Debug)]
+pub struct Capsule {
+    /// One end `a: [3]` of the segment.
+    pub a: Tensor,
+    /// The other end `b: [3]` (may equal `a`).
+    pub b: Tensor,
+    /// Radius `r` (scalar tensor).
+    pub radius: Tensor,
+}
+
+impl Capsule {
+    /// A capsule with constant parameters.
+    ///
+    /// # Errors
+    /// Non-finite parameters, `b − a` not finite (named `b`), or `radius ≤ 0`.
+    pub fn new(
+        a: [f64; 3],
+        b: [f64; 3],
+        radius: f64,
+        device: &Device,
+        dtype: DType,
+    ) -> Result<Self> {
+        check_scalar(radius, "radius", true)?;
+        let a_t = param("a", &a, &[3], device, dtype)?;
+        let b_t = param("b", &b, &[3], device, dtype)?;
+        check_segment(a, b, false)?;
+        Ok(Self {
+            a: a_t,
+            b: b_t,
+            radius: param("radius", &[radius], &[], device, dtype)?,
+        })
+    }
+}
+
+impl SignedDistance for Capsule {
+    fn distance_and_grad(&self, points: &Tensor) -> Result<(Tensor, Tensor)> {
+        let (u, len) = axis(points, &self.a, &self.b)?;
+        let pa = offset(points, &self.a)?;
+        let along = pa.broadcast_mul(&u)?.sum_keepdim(1)?; // (p − a)·û: [N, 1]
+        let t = along.maximum(0.0)?.broadcast_minimum(&len)?;
+        let v = (pa - t.broadcast_mul(&u)?)?;
+        let (unit, n) = unit_and_norm(&v)?;
+        Ok((n.squeeze(1)?.broadcast_sub(&self.radius)?, unit))
+    }
+}
+
+/// A capped cylinder of radius `r` whose axis runs from the centre `a` of one flat cap to
+/// the centre `b` of the other. With `m = (a + b)/2`, `û = (b − a)/L`, `L = ‖b − a‖`, the
+/// axial coordinate `y = (p − m)·û` and the distance from the axis
+/// `ρ = ‖p − m − y·û‖`, it is the 2-D box `q = (ρ − r, |y| − L/2)`:
+/// `d(p) = ‖max(q, 0)‖ + min(max(q₀, q₁), 0)` (exact SDF: outside, the distance to the
+/// side (`q₀ > 0 ≥ q₁`), a cap (`q₁ > 0 ≥ q₀`) or the rim circle (both `> 0`); inside,
+/// the nearer of side and caps).
+///
+/// Gradient, with `ê = (p − m − y·û)/ρ` (radial) and `s = sgn y`: outside
+/// `(max(q₀, 0)·ê + max(q₁, 0)·s·û)/‖max(q, 0)‖`, exact up to the rim circle, where it
+/// turns continuously from `ê` to `s·û`; inside `ê` where the side is nearer, `s·û` where
+/// a cap is, and their average on the crease where both are equally near (the rim
+/// circle itself included). On the axis `ê` is 0, so where the side is nearest (a long
+/// thin cylinder's core) the gradient is 0; on the mid-plane `y = 0`, `s = +1`. All
+/// finite; `d` and `∇d` are differentiable w.r.t. `a`, `b` and `radius`. [`Cylinder::new`]
+/// refuses `a = b`; a cylinder whose ends are made to coincide through the fields is a
+/// flat disk of undefined orientation and evaluates to finite values.
+///
+/// ```
+/// use candle_core::{Device, DType, Tensor};
+/// use neural_fields::field::{Cylinder, SignedDistance};
+///
+/// let c = Cylinder::new([0.0, 0.0, -1.0], [0.0, 0.0, 1.0], 0.5, &Device::Cpu, DType::F64)?;
+/// // Beside the side, above a cap, off the rim, and inside nearer the side.
+/// let p = Tensor::new(
+///     &[[2.0f64, 0.0, 0.3], [0.0, 0.1, 3.0], [0.0, 3.5, 5.0], [0.0, 0.25, 0.0]],
+///     &Device::Cpu,
+/// )?;
+/// let (d, grad) = c.distance_and_grad(&p)?;
+/// assert_eq!(d.to_vec1::<f64>()?, vec![1.5, 2.0, 5.0, -0.25]);
+/// let g = grad.to_vec2::<f64>()?;
+/// assert_eq!((g[0][0], g[1][2], g[3][1]), (1.0, 1.0, 1.0));
+/// assert!((g[2][1] - 0.6).abs() < 1e-12 && (g[2][2] - 0.8).abs() < 1e-12);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+#[derive(Clone, Debug)]
+pub struct Cylinder {
+    /// The centre `a: [3]` of one cap.
+    pub a: Tensor,
+    /// The centre `b: [3]` of the other cap (`≠ a`).
+    pub b: Tensor,
+    /// Radius `r` (scalar tensor).
+    pub radius: Tensor,
+}
+
+impl Cylinder {
+    /// A capped cylinder with constant parameters.
+    ///
+    /// # Errors
+    /// Non-finite parameters, `b = a` or `b − a` not finite (named `b`), or
+    /// `radius ≤ 0`.
+    pub fn new(
+        a: [f64; 3],
+        b: [f64; 3],
+        radius: f64,
+        device: &Device,
+        dtype: DType,
+    ) -> Result<Self> {
+        check_scalar(radius, "radius", true)?;
+        let a_t = param("a", &a, &[3], device, dtype)?;
+        let b_t = param("b", &b, &[3], device, dtype)?;
+        check_segment(a, b, true)?;
+        Ok(Self {
+            a: a_t,
+            b: b_t,
+            radius: param("radius", &[radius], &[], device, dtype)?,
+        })
+    }
+}
+
+impl SignedDistance for Cylinder {
+    fn distance_and_grad(&self, points: &Tensor) -> Result<(Tensor, Tensor)> {
+        let (u, len) = axis(points, &self.a, &self.b)?;
+        let mid = (self.a.affine(0.5, 0.0)? + self.b.affine(0.5, 0.0)?)?;
+        let pm = offset(points, &mid)?;
+        let y = pm.broadcast_mul(&u)?.sum_keepdim(1)?; // [N, 1]
+        let (radial, rho) = unit_and_norm(&(&pm - y.broadcast_mul(&u)?)?)?;
+        let q = Tensor::cat(
+            &[
+                &rho.broadcast_sub(&self.radius)?,
+                &y.abs()?.broadcast_sub(&len.affine(0.5, 0.0)?)?,
+            ],
+            1,
+        )?;
+        let (dist, w) = box_distance(&q)?;
+        let w_side = crate::narrow::narrow(&w, 1, 0, 1)?;
+        let w_cap = (crate::narrow::narrow(&w, 1, 1, 1)? * side(&y)?)?;
+        let grad = (radial.broadcast_mul(&w_side)? + w_cap.broadcast_mul(&u)?)?;
+        Ok((dist, grad))
+    }
+}
+
+/// How [`Csg`] combines its two operands' distances `a` and `b`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum CsgOp {
+    /// `min(a, b)`: either shape. Gradient of the nearer operand (the average of both
+    /// where they tie).
+    Union,
+    /// `max(a, b)`: both shapes. Gradient of the farther operand (ties averaged).
+    Intersection,
+    /// `max(a, −b)`: the first shape with the second cut away. Gradient `∇a` or `−∇b`
+    /// (ties averaged).
+    Difference,
+    /// The polynomial smooth minimum (Inigo Quilez's quadratic `smin`) with blend width
+    /// `k > 0`: `h = clamp(½ + ½(b − a)/k, 0, 1)`, `d = h·a + (1 − h)·b − k·h(1 − h)`.
+    /// Equal to `min(a, b)` where `|a − b| ≥ k`, below it (by at most `k/4`, at
+    /// `a = b`) in between, and continuously differentiable everywhere:
+    /// `∂d/∂a = h`, `∂d/∂b = 1 − h` (the `h'` terms cancel), so `∇d = h·∇a + (1 − h)·∇b`,
+    /// defined where the plain union has its crease.
+    SmoothUnion {
+        /// Blend width `k` (in units of distance), finite and `> 0` in the points' dtype;
+        /// checked when the combination is evaluated.
+        k: f64,
+    },
+}
+
+/// Constructive solid geometry: two [`SignedDistance`] shapes combined by a [`CsgOp`],
+/// itself a [`SignedDistance`] (so combinations nest, and [`SignedDistance::sdf`] and
+/// [`SignedDistance::occupancy`] apply).
+///
+/// The result has the right sign for the combined shape, but it is a *bound*, not the
+/// exact distance: `|d|` never exceeds the distance to the combined surface for
+/// [`CsgOp::Union`], [`CsgOp::Intersection`] and [`CsgOp::Difference`] (exact outside
+/// a union and inside an intersection, smaller elsewhere, e.g. inside a union where the
+/// operands overlap), and `‖∇d‖ ≤ 1` everywhere when the operands' are (so sphere
+/// tracing stays safe), with
+/// `‖∇d‖ < 1` in a [`CsgOp::SmoothUnion`]'s blend region `|a − b| < k`, whose surface
+/// is the blended one. Min and max have a crease where `a = b`: there the gradient is the
+/// average of the operands' (not a unit vector); use the smooth union where a gradient
+/// must stay defined. `d` and `∇d` are differentiable w.r.t. both operands' parameters.
+///
+/// ```
+/// use std::sync::Arc;
+/// use candle_core::{Device, DType, Tensor};
+/// use neural_fields::field::{Csg, CsgOp, SignedDistance, Sphere};
+///
+/// let dev = Device::Cpu;
+/// let left = Sphere::new([-0.5, 0.0, 0.0], 0.75, &dev, DType::F64)?;
+/// let right = Sphere::new([0.5, 0.0, 0.0], 0.75, &dev, DType::F64)?;
+/// let blend = Csg { op: CsgOp::SmoothUnion { k: 0.2 }, a: Arc::new(left), b: Arc::new(right) };
+/// let cut = Csg { op: CsgOp::Difference, a: Arc::new(blend.clone()), b: blend.b.clone() };
+/// let p = Tensor::new(&[[0.0f64, 0.0, 0.0], [-2.0, 0.0, 0.0]], &dev)?;
+/// let (d, grad) = blend.distance_and_grad(&p)?;
+/// let d = d.to_vec1::<f64>()?;
+/// // Midway both spheres are 0.25 deep: h = ½, d = −0.25 − 0.2/4; far left, the left one.
+/// assert!((d[0] + 0.3).abs() < 1e-12 && (d[1] - 0.75).abs() < 1e-12);
+/// assert_eq!(grad.to_vec2::<f64>()?[0], vec![0.0, 0.0, 0.0]); // ½(1, 0, 0) + ½(−1, 0, 0)
+/// let (d, _) = cut.distance_and_grad(&p)?; // the origin lies inside the cut-away sphere
+/// assert!((d.to_vec1::<f64>()?[0] - 0.25).abs() < 1e-12);
+/// # Ok::<(), neural_fields::Error>(())
+/// ```
+#[derive(Clone)]
+pub struct Csg {
+    /// How the operands combine.
+    pub op: CsgOp,
+    /// The first operand.
+    pub a: std::sync::Arc<dyn SignedDistance + Send + Sync>,
+    /// The second operand (the one cut away by [`CsgOp::Difference`]).
+    pub b: std::sync::Arc<dyn SignedDistance + Send + Sync>,
+}
+
+impl std::fmt::Debug for Csg {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Csg")
+            .field("op", &self.op)
+            .finish_non_exhaustive()
+    }
+}
+
+/// `max(a, b)` (`larger`) or `min(a, b)` with the chosen operand's gradient, ties
+/// averaged (as candle's backward of `maximum`/`minimum` averages them).
+fn pick(
+    larger: bool,
+    (da, ga): (Tensor, Tensor),
+    (db, gb): (Tensor, Tensor),
+) -> Result<(Tensor, Tensor)> {
+    let (d, wa, wb) = if larger {
+        (da.maximum(&db)?, da.ge(&db)?, db.ge(&da)?)
+    } else {
+        (da.minimum(&db)?, da.le(&db)?, db.le(&da)?)
+    };
+    let (wa, wb) = (wa.to_dtype(da.dtype())?, wb.to_dtype(da.dtype())?);
+    let total = (&wa + &wb)?;
+    let wa = (wa / &total)?.unsqueeze(1)?;
+    let wb = (wb / &total)?.unsqueeze(1)?;
+    let g = (ga.broadcast_mul(&wa)? + gb.broadcast_mul(&wb)?)?;
+    Ok((d, g))
+}
+
+impl SignedDistance for Csg {
+    fn distance_and_grad(&self, points: &Tensor) -> Result<(Tensor, Tensor)> {
+        check_points(points, "points")?;
+        if let CsgOp::SmoothUnion { k } = self.op {
+            check_scalar(k, "k", true)?;
+            // k must stay finite and non-zero in the points' dtype (f32 or f64).
+            let k32 = k as f32;
+            if points.dtype() != DType::F64 && !(k32.is_finite() && k32 > 0.0) {
+                return Err(Error::invalid(
+                    "k",
+                    format!("a blend width representable in {:?}", points.dtype()),
+                    format!("{k}"),
+                ));
+            }
+        }
+        let a = self.a.distance_and_grad(points)?;
+        let b = self.b.distance_and_grad(points)?;
+        match self.op {
+            CsgOp::Union => pick(false, a, b),
+            CsgOp::Intersection => pick(true, a, b),
+            CsgOp::Difference => pick(true, a, (b.0.neg()?, b.1.neg()?)),
+            CsgOp::SmoothUnion { k } => {
+                let ((da, ga), (db, gb)) = (a, b);
+                let kt = param("k", &[k], &[], points.device(), points.dtype())?;
+                let h = (&db - &da)?
+                    .broadcast_div(&kt)?
+                    .affine(0.5, 0.5)?
+                    .clamp(0.0, 1.0)?;
+                let rest = h.affine(-1.0, 1.0)?; // 1 − h
+                let bump = (&h * &rest)?.broadcast_mul(&kt)?;
+                let d = ((&h * &da)? + (&rest * &db)? - bump)?;
+                let g = (ga.broadcast_mul(&h.unsqueeze(1)?)?
+                    + gb.broadcast_mul(&rest.unsqueeze(1)?)?)?;
+                Ok((d, g))
+            }
+        }
     }
 }
