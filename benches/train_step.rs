@@ -25,7 +25,10 @@
 //!   `c`, Adam (lr 1e-3) on the table. `--reference` runs the reference path (candle's
 //!   gathers) instead of the fused op.
 //!
-//! `--reference` runs the MLPs through candle's ops instead of the fused MLP op;
+//! The optimiser is the crate's [`neural_fields::nn::Adam`] (weight decay 0), whose
+//! update runs as two fused passes per variable wherever the kernels run (the twin uses
+//! `torch.optim.Adam` at its defaults). `--reference` runs the MLPs through candle's ops
+//! instead of the fused MLP op;
 //! `--phases` reports forward, backward and optimiser medians separately. `--device cuda`
 //! (built with the `cuda` feature) runs on the first GPU, waiting for the device at the
 //! end of every timed phase; there `NEURAL_FIELDS_CUDA_KERNELS=0` measures the candle-op
@@ -34,7 +37,7 @@
 //! as a user's program has by default.
 
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
+use candle_nn::{Optimizer, ParamsAdamW, VarMap};
 use neural_fields::camera::Rays;
 use neural_fields::camera::{ray_aabb, ray_sphere};
 use neural_fields::dvr::{depth_loss, implicit_surface, march, ImplicitConfig, MarchConfig};
@@ -220,7 +223,7 @@ fn main() -> neural_fields::Result<()> {
         }
         other => panic!("unknown model {other}"),
     };
-    let mut opt = AdamW::new(
+    let mut opt = neural_fields::nn::Adam::new(
         varmap.all_vars(),
         ParamsAdamW {
             lr: 1e-3,

@@ -27,7 +27,7 @@
 //! error naming the step if a loss, a gradient or a weight becomes NaN or infinite.
 
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{AdamW, Optimizer, VarMap};
+use candle_nn::{Optimizer, VarMap};
 use clap::Parser;
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::ImplicitSurface;
@@ -269,7 +269,7 @@ fn evaluate(model: &Model, held: &Held) -> Result<Evaluation> {
 
 fn train_step(
     model: &Model,
-    opt: &mut AdamW,
+    opt: &mut neural_fields::nn::Adam,
     solver: Solver,
     rng: &mut SplitMix64,
     device: &Device,

@@ -5,17 +5,22 @@
 #
 #     scripts/gpu-check.sh [BIN_DIR] [OUT_DIR]     # defaults: .gpu, ${OUT:-gpu-out}
 #
-# Writes to OUT_DIR (eight files): summary.txt (nvidia-smi, timings, medians), tests.log (tests/cuda.rs with the CUDA
+# Writes to OUT_DIR (eight files, three more for the 400 × 400 run): summary.txt (nvidia-smi, timings, medians), tests.log (tests/cuda.rs with the CUDA
 # kernels), tests_reference.log (the same with NEURAL_FIELDS_CUDA_KERNELS=0: the
 # candle-op reference paths on CUDA against the CPU kernels), bench.jsonl (training steps:
 # the crate with its CUDA kernels, the crate's candle-op fallback, PyTorch CUDA eager and
 # torch.compile, alternated; bench.err), nerf.log, nerf_metrics.json and nerf_curve.csv (the NeRF
-# example's time-to-PSNR run on the GPU). Needs python3 with torch for the PyTorch rows.
+# example's time-to-PSNR run on the GPU; nerf400.* the same at 400 × 400). Needs python3 with torch for the PyTorch rows.
 set -u
 BIN=${1:-.gpu}
 OUT=${2:-${OUT:-gpu-out}}
 PAIRS=${PAIRS:-3}
 NERF_SECONDS=${NERF_SECONDS:-90}
+# PHASES=0 times whole steps without the synchronisations between forward, backward and
+# update that --phases adds (as a training loop runs); MODELS picks the benched steps.
+PHASES=${PHASES:-1}
+MODELS=${MODELS:-nerf hash_grid}
+phases=--phases; [ "$PHASES" = 0 ] && phases=
 mkdir -p "$OUT"
 cd "$(dirname "$0")/.."
 # Unpack the binaries that scripts/gpu-build.sh compressed.
@@ -53,16 +58,16 @@ NEURAL_FIELDS_CUDA_KERNELS=0 timeout 180 "$BIN/cuda" --test-threads 1 --nocaptur
 stamp "rc=$? $(grep -E '^test result' "$OUT/tests_reference.log" | tail -1)"
 
 stamp "training steps, alternated"
-for model in nerf hash_grid; do
+for model in $MODELS; do
   for _ in $(seq "$PAIRS"); do
-    timeout 60 "$BIN/train_step" --model "$model" --steps 20 --device cuda --phases
+    timeout 60 "$BIN/train_step" --model "$model" --steps 20 --device cuda $phases
     # The hash grid's candle-op fallback takes seconds per step: 2 steps after 1.
     fallback_steps=20; [ "$model" = hash_grid ] && fallback_steps="2 --warmup 1"
     NEURAL_FIELDS_CUDA_KERNELS=0 timeout 60 "$BIN/train_step" --model "$model" \
-      --steps $fallback_steps --device cuda --phases
-    timeout 60 python3 benches/torch/train_step.py --model "$model" --steps 20 --device cuda --phases
+      --steps $fallback_steps --device cuda $phases
+    timeout 60 python3 benches/torch/train_step.py --model "$model" --steps 20 --device cuda $phases
   done
-  timeout 150 python3 benches/torch/train_step.py --model "$model" --steps 20 --device cuda --compile --phases
+  timeout 150 python3 benches/torch/train_step.py --model "$model" --steps 20 --device cuda --compile $phases
 done >> "$OUT/bench.jsonl" 2> "$OUT/bench.err"
 python3 - "$OUT/bench.jsonl" >> "$OUT/summary.txt" <<'PY'
 import json, statistics, sys
@@ -80,13 +85,22 @@ for model in sorted({r["model"] for r in rows}):
 PY
 stamp "benches done"
 
+# The NeRF example's time-to-PSNR runs: the committed dataset (its default scene box,
+# the visual hull's), then, if present, its 400 × 400 rendering (NERF400, default
+# .gpu/wuson400: `blender -b -P examples/data/render_dataset.py -- --out .gpu/wuson400
+# --resolution 400`).
+NERF400=${NERF400:-.gpu/wuson400}
 if [ -x "$BIN/nerf" ]; then
-  stamp "nerf example on the GPU, $NERF_SECONDS s"
   minutes=$(python3 -c "print($NERF_SECONDS / 60)")
-  timeout $(( NERF_SECONDS + 120 )) "$BIN/nerf" --data examples/data/wuson --device cuda \
-    --minutes "$minutes" --out /tmp/nerf-gpu > "$OUT/nerf.log" 2>&1
-  stamp "rc=$? $(tail -2 "$OUT/nerf.log" | tr '\n' ' ')"
-  cp /tmp/nerf-gpu/metrics.json "$OUT/nerf_metrics.json" 2>/dev/null
-  cp /tmp/nerf-gpu/curve.csv "$OUT/nerf_curve.csv" 2>/dev/null
+  for run in nerf nerf400; do
+    data=examples/data/wuson; [ "$run" = nerf400 ] && data=$NERF400
+    [ -d "$data" ] || continue
+    stamp "$run: the NeRF example on $data, $NERF_SECONDS s"
+    timeout $(( NERF_SECONDS + 150 )) "$BIN/nerf" --data "$data" --device cuda \
+      --minutes "$minutes" --out "/tmp/$run-gpu" > "$OUT/$run.log" 2>&1
+    stamp "rc=$? $(tail -2 "$OUT/$run.log" | tr '\n' ' ')"
+    cp "/tmp/$run-gpu/metrics.json" "$OUT/${run}_metrics.json" 2>/dev/null
+    cp "/tmp/$run-gpu/curve.csv" "$OUT/${run}_curve.csv" 2>/dev/null
+  done
 fi
 stamp "done"

@@ -19,11 +19,10 @@ pub(crate) fn narrow<D: Dim>(t: &Tensor, dim: D, start: usize, len: usize) -> Re
     }
 }
 
-/// `Tensor::from_vec(v, shape, device)` that also holds for an empty `v` on a GPU: a
-/// copy of zero bytes from the host is not a valid CUDA copy, so an empty result is made
-/// with `Tensor::zeros` instead (the same empty tensor on the CPU). Every per-sample
-/// result built on the host (packed layouts, sampler outputs) goes through it, since a
-/// batch whose rays all miss the scene or are skipped holds no sample.
+/// `Tensor::from_vec(v, shape, device)` that also holds for an empty `v` on a GPU (see
+/// [`empty`]). Every per-sample result built on the host (packed layouts, sampler
+/// outputs) goes through it, since a batch whose rays all miss the scene or are skipped
+/// holds no sample.
 #[cfg_attr(not(feature = "volume"), allow(dead_code))] // the volume module's samplers
 pub(crate) fn from_vec<T: candle_core::WithDType, S: Into<candle_core::Shape>>(
     v: Vec<T>,
@@ -32,7 +31,30 @@ pub(crate) fn from_vec<T: candle_core::WithDType, S: Into<candle_core::Shape>>(
 ) -> Result<Tensor> {
     let shape = shape.into();
     if v.is_empty() {
-        return Tensor::zeros(shape, T::DTYPE, device);
+        return empty(shape, T::DTYPE, device);
     }
     Tensor::from_vec(v, shape, device)
+}
+
+/// A tensor of `shape` holding no element, on any device. candle allocates an empty
+/// result's storage with zero bytes, which CUDA refuses (`CUDA_ERROR_INVALID_VALUE`, for a
+/// copy from the host and for `Tensor::zeros` alike); off the CPU the empty tensor is
+/// therefore a view of no rows into a one-row allocation. (candle ops whose result is
+/// empty still fail there: the samplers keep their outputs non-empty off the CPU.)
+#[cfg_attr(not(feature = "volume"), allow(dead_code))]
+pub(crate) fn empty<S: Into<candle_core::Shape>>(
+    shape: S,
+    dtype: candle_core::DType,
+    device: &candle_core::Device,
+) -> Result<Tensor> {
+    let shape = shape.into();
+    let dims = shape.dims();
+    match dims.iter().position(|&d| d == 0) {
+        Some(axis) if !device.is_cpu() => {
+            let mut one = dims.to_vec();
+            one[axis] = 1;
+            Tensor::zeros(one, dtype, device)?.narrow(axis, 0, 0)
+        }
+        _ => Tensor::zeros(shape, dtype, device),
+    }
 }

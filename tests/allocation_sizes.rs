@@ -412,12 +412,27 @@ const ALLOWED: &[(&str, &str, &str)] = &[
     (
         "narrow.rs",
         "Tensor::zeros(shape)",
-        "data: an empty tensor (the vector it stands for has no element)",
+        "data: an empty tensor (the shape holds a zero extent: no element)",
     ),
     (
-        "volume/sampling.rs",
-        "Tensor::zeros(shape)",
-        "data: an empty tensor (the vector it stands for has no element)",
+        "narrow.rs",
+        "Tensor::zeros(one)",
+        "data: one row of an empty shape's other extents, which the caller's tensors hold",
+    ),
+    (
+        "field.rs",
+        "Tensor::zeros((n, 1))",
+        "data: an empty batch of points (n = 0)",
+    ),
+    (
+        "field.rs",
+        "Tensor::zeros(n)",
+        "data: an empty batch of points (n = 0)",
+    ),
+    (
+        "nn/training.rs",
+        "Tensor::zeros((2, v.elem_count()))",
+        "data: Adam's two moments per element of a variable the caller holds",
     ),
     (
         "data/hull.rs",

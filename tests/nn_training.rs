@@ -1,9 +1,11 @@
 //! The training loop's companions: Adam without weight decay, the NaN/Inf guard that
 //! names the step and the tensor, and the budget clock.
 
+use candle_core::Var;
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{Init, Optimizer, VarMap};
-use neural_fields::nn::{adam, Budget, Clock, FiniteGuard};
+use candle_nn::{AdamW, Init, Optimizer, ParamsAdamW, VarMap};
+use neural_fields::nn::{adam, Adam, Budget, Clock, FiniteGuard};
+use neural_fields::rng::SplitMix64;
 use neural_fields::{Error, Result};
 use std::time::Duration;
 
@@ -44,6 +46,84 @@ fn adam_descends_and_does_not_decay_weights() -> Result<()> {
             ),
             "{lr}"
         );
+    }
+    Ok(())
+}
+
+/// Gradients for step `k` of variable `i`: ordinary values, then stiff ones (zeros,
+/// 1e-30, 1e30 in f64 / 1e18 in f32, alternating signs) in later steps.
+fn stiff_grad(rng: &mut SplitMix64, n: usize, k: usize, dtype: DType) -> Result<Tensor> {
+    let big = if dtype == DType::F32 { 1e18 } else { 1e30 };
+    let v: Vec<f64> = (0..n)
+        .map(|j| {
+            let u = 2.0 * rng.uniform() - 1.0;
+            match (k + j) % 5 {
+                0 if k >= 3 => 0.0,
+                1 if k >= 3 => u * 1e-30,
+                2 if k >= 6 => u * big,
+                _ => u,
+            }
+        })
+        .collect();
+    Ok(Tensor::from_vec(v, n, &DEV)?.to_dtype(dtype)?)
+}
+
+#[test]
+fn adam_fused_passes_match_candle_nn_adamw() -> Result<()> {
+    for dtype in [DType::F32, DType::F64] {
+        for (lr, weight_decay) in [(1e-3, 0.0), (0.05, 0.01), (1.0, 0.0)] {
+            let params = ParamsAdamW {
+                lr,
+                weight_decay,
+                ..ParamsAdamW::default()
+            };
+            let init = |i: usize| -> Result<Var> {
+                let mut rng = SplitMix64::new(i as u64);
+                Ok(Var::from_tensor(&rng.uniform_tensor(
+                    &[3 + 5 * i, 2],
+                    -1.0,
+                    1.0,
+                    dtype,
+                    &DEV,
+                )?)?)
+            };
+            let ours: Vec<Var> = (0..3).map(init).collect::<Result<_>>()?;
+            let theirs: Vec<Var> = (0..3).map(init).collect::<Result<_>>()?;
+            let mut a = Adam::new(ours.clone(), params.clone())?;
+            let mut b = AdamW::new(theirs.clone(), params.clone())?;
+            let mut rng = SplitMix64::new(7);
+            for k in 0..12 {
+                if k == 8 {
+                    a.set_learning_rate(lr / 2.0);
+                    b.set_learning_rate(lr / 2.0);
+                }
+                // Variable 2 has no gradient at odd steps: left as it is by both.
+                let (mut ga, mut gb) = (Vec::new(), Vec::new());
+                for (i, (x, y)) in ours.iter().zip(&theirs).enumerate() {
+                    if i == 2 && k % 2 == 1 {
+                        continue;
+                    }
+                    let g = stiff_grad(&mut rng, x.elem_count(), k, dtype)?.reshape(x.shape())?;
+                    ga.push((x.as_tensor() * &g)?.sum_all()?);
+                    gb.push((y.as_tensor() * &g)?.sum_all()?);
+                }
+                a.step(&Tensor::stack(&ga, 0)?.sum_all()?.backward()?)?;
+                b.step(&Tensor::stack(&gb, 0)?.sum_all()?.backward()?)?;
+                for (x, y) in ours.iter().zip(&theirs) {
+                    let x = x.flatten_all()?.to_dtype(DType::F64)?.to_vec1::<f64>()?;
+                    let y = y.flatten_all()?.to_dtype(DType::F64)?.to_vec1::<f64>()?;
+                    let tol = if dtype == DType::F32 { 1e-6 } else { 1e-13 };
+                    for (p, q) in x.iter().zip(&y) {
+                        assert!(p.is_finite(), "{dtype:?} lr {lr} step {k}: {p}");
+                        assert!(
+                            (p - q).abs() <= tol * (1.0 + q.abs()),
+                            "{dtype:?} lr {lr} decay {weight_decay} step {k}: {p} vs candle-nn {q}"
+                        );
+                    }
+                }
+            }
+            assert_eq!(a.learning_rate(), lr / 2.0);
+        }
     }
     Ok(())
 }

@@ -39,6 +39,12 @@ const EXEMPT: &[(&str, &str)] = &[
         "one scalar, refused unless positive and finite (tests/nn_training.rs)",
     ),
     (
+        "nn::Adam::",
+        "swept in tests/nn_training.rs (adam_fused_passes_match_candle_nn_adamw): zero, \
+         1e-30 and 1e18 (f32) / 1e30 (f64) gradients of both signs, weight decay and a \
+         learning-rate change, every value asserted finite and equal to candle-nn's AdamW",
+    ),
+    (
         "nn::Clock::",
         "wall time and step counts; a budget of minutes is refused unless positive and \
          finite (tests/nn_training.rs)",

@@ -42,6 +42,17 @@ pub struct HashGridConfig {
     /// share one table, so a grid and its reference twin evaluate the same parameters.
     /// Default `false`.
     pub force_reference: bool,
+    /// Make the table gradient's bits independent of thread scheduling on CUDA. The CUDA
+    /// kernel adds every point's contribution to a table entry with atomics; in f64 by
+    /// default (`false`: the order of the additions, hence the last bits, varies from run to
+    /// run), or with `true` in 64-bit fixed point with a power-of-two scale
+    /// `S = 2^⌊62 − log₂(N·max|g|)⌋` (`N` points, `g` the upstream gradient), whose
+    /// integer sums do not depend on the order: the same inputs give the same gradient bit
+    /// for bit, within `K·N·max|g|·2⁻⁶³` of the exact sum for an entry that `K` points
+    /// touch (and the f64 atomics where `max|g|` is not finite). Costs one read-back of
+    /// `max|g|` per backward pass. The CPU kernel is deterministic either way (it sums in
+    /// a fixed order) and ignores this. Default `false`.
+    pub deterministic: bool,
 }
 
 impl Default for HashGridConfig {
@@ -59,6 +70,7 @@ impl Default for HashGridConfig {
             hi: vec![1.0; 3],
             init_scale: 1e-4,
             force_reference: false,
+            deterministic: false,
         }
     }
 }
@@ -266,6 +278,7 @@ fn plan(c: &HashGridConfig, elem_bytes: usize) -> Result<HashPlan> {
         lo: c.lo.clone(),
         hi: c.hi.clone(),
         mask: (cap - 1) as u32,
+        deterministic: c.deterministic,
     })
 }
 

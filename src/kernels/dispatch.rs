@@ -20,12 +20,22 @@ use candle_core::{CpuStorage, Layout, Shape, Storage, Tensor, WithDType};
 pub(crate) trait Real: WithDType + Precision {
     /// The slice of a CPU storage of this type, `None` for another dtype.
     fn slice(s: &CpuStorage) -> Option<&[Self]>;
+    /// The mutable slice of a CPU storage of this type (in-place ops), `None` for
+    /// another dtype.
+    fn slice_mut(s: &mut CpuStorage) -> Option<&mut [Self]>;
     /// A CPU storage holding `v`.
     fn storage(v: Vec<Self>) -> CpuStorage;
 }
 
 impl Real for f32 {
     fn slice(s: &CpuStorage) -> Option<&[f32]> {
+        match s {
+            CpuStorage::F32(v) => Some(v),
+            _ => None,
+        }
+    }
+
+    fn slice_mut(s: &mut CpuStorage) -> Option<&mut [f32]> {
         match s {
             CpuStorage::F32(v) => Some(v),
             _ => None,
@@ -39,6 +49,13 @@ impl Real for f32 {
 
 impl Real for f64 {
     fn slice(s: &CpuStorage) -> Option<&[f64]> {
+        match s {
+            CpuStorage::F64(v) => Some(v),
+            _ => None,
+        }
+    }
+
+    fn slice_mut(s: &mut CpuStorage) -> Option<&mut [f64]> {
         match s {
             CpuStorage::F64(v) => Some(v),
             _ => None,

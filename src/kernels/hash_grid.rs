@@ -46,6 +46,10 @@ pub(crate) struct HashPlan {
     pub(crate) hi: Vec<f64>,
     /// `2ᵀ − 1`, the mask of a hashed level's rows.
     pub(crate) mask: u32,
+    /// CUDA: the table gradient in fixed point (order-independent bits) instead of f64
+    /// atomics. The CPU kernel sums in a fixed order either way.
+    #[cfg_attr(not(feature = "cuda"), allow(dead_code))]
+    pub(crate) deterministic: bool,
 }
 
 /// The corners of one point at one level: table rows, weights and, per axis, the

@@ -27,6 +27,8 @@
 //!   frequency kernel's vectorised sines;
 //! * `composite`: volume compositing of either sample layout with its O(S)-per-ray
 //!   backward (`FusedComposite`), built for three instruction sets;
+//! * `adam`: Adam's update as two in-place passes per variable (`AdamMoments`,
+//!   `AdamUpdate`, what [`crate::nn::Adam`] runs);
 //! * `activation` and `simd`: the vectorised hidden activations (ReLU, softplus with its
 //!   slope and curvature) and the AVX-512 f32 matrix product of the MLP tiles;
 //! * `parallel`: [`for_each_init`], which runs a kernel's items on candle's own CPU pool;
@@ -66,6 +68,7 @@
 //! allocates per item.
 
 mod activation;
+mod adam;
 #[cfg_attr(not(feature = "volume"), allow(dead_code))]
 mod composite;
 #[cfg(feature = "cuda")]
@@ -87,6 +90,7 @@ mod scatter;
 mod simd;
 
 pub(crate) use activation::Act;
+pub(crate) use adam::{AdamMoments, AdamUpdate};
 // The compositing and NeRF kernels serve the `volume` feature.
 #[cfg_attr(not(feature = "volume"), allow(unused_imports))]
 pub use composite::X_MAX;

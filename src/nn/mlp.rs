@@ -417,12 +417,19 @@ impl Mlp {
     /// row-major weight, then its bias); differentiable, so the op's parameter gradient
     /// reaches every variable.
     pub(crate) fn flat_params(&self) -> Result<Tensor> {
+        Ok(Tensor::cat(&self.flat_parts()?, 0)?)
+    }
+
+    /// The pieces of [`Mlp::flat_params`] (each layer's flattened weight, then its bias),
+    /// for one concatenation over several networks: one level of concatenation on the
+    /// graph, so the backward pass splits the parameter gradient once.
+    pub(crate) fn flat_parts(&self) -> Result<Vec<Tensor>> {
         let mut parts = Vec::with_capacity(2 * self.layers.len());
         for layer in &self.layers {
             parts.push(layer.weight()?.flatten_all()?);
             parts.push(layer.bias.clone());
         }
-        Ok(Tensor::cat(&parts, 0)?)
+        Ok(parts)
     }
 
     /// The layers' shapes for the fused op.

@@ -6,7 +6,7 @@
 //! * [`build_seeded`]: reproducible initialisation (candle's CPU generator cannot be
 //!   seeded; this draws every variable's initial value from a `u64` seed instead).
 //! * The training loop's companions: [`adam`] (Adam without weight decay over a
-//!   `VarMap`), [`FiniteGuard`] (stops at the first NaN or infinity in the loss, a
+//!   `VarMap`, an [`Adam`]: candle-nn's `AdamW` step as two fused passes per variable), [`FiniteGuard`] (stops at the first NaN or infinity in the loss, a
 //!   gradient or a weight, naming the step and the tensor) and [`Clock`] (a [`Budget`]
 //!   of steps or minutes, with evaluations kept off the clock).
 //!
@@ -22,7 +22,7 @@ mod training;
 pub use mlp::{mlp, Activation, Mlp, MlpConfig};
 #[allow(unused_imports)] // for the feature modules' models (occupancy, texture, flow)
 pub(crate) use resnet_fc::ResnetFc;
-pub use training::{adam, Budget, Clock, FiniteGuard};
+pub use training::{adam, Adam, Budget, Clock, FiniteGuard};
 
 use crate::error::{Error, Result};
 use crate::rng::SplitMix64;

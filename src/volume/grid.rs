@@ -616,7 +616,11 @@ impl OccupancyGrid {
     ///
     /// Returns [`GridSamples`]: packed intervals `[M']` in the rays' dtype and device,
     /// sorted along each ray; without a density function the last interval of a ray
-    /// ends at its exit point. Detached: the intervals carry no gradient (get one to
+    /// ends at its exit point. Off the CPU (CUDA, where candle cannot hold an empty
+    /// result) a batch of rays that keeps no interval holds one zero-length interval
+    /// `[0, 0]` on ray 0 instead: its opacity `1 − e^{−σ·0} = 0` gives it weight 0 and no
+    /// gradient, so every composite, loss and gradient is that of the empty batch.
+    /// Detached: the intervals carry no gradient (get one to
     /// origins and directions through [`Intervals::positions`]); kept intervals are
     /// exactly those of the march without `sigma_fn`, bit for bit.
     ///
@@ -818,8 +822,9 @@ impl OccupancyGrid {
                 ends.push(b);
             }
         }
-        let m = starts.len();
         let (dtype, device) = (origins.dtype(), origins.device());
+        null_interval_if_empty(&mut starts, &mut ends, &mut counts, device);
+        let m = starts.len();
         let marched = Intervals {
             starts: from_host(starts.clone(), &[m], dtype, device)?,
             ends: from_host(ends.clone(), &[m], dtype, device)?,
@@ -851,6 +856,7 @@ impl OccupancyGrid {
                 i += 1;
             }
         }
+        null_interval_if_empty(&mut kept_starts, &mut kept_ends, &mut kept_counts, device);
         let k = kept_starts.len();
         Ok(GridSamples {
             intervals: Intervals {
@@ -860,6 +866,24 @@ impl OccupancyGrid {
             },
             n_marched,
         })
+    }
+}
+
+/// Off the CPU, gives a batch of rays with no interval one zero-length interval `[0, 0]`
+/// on ray 0 (weight 0; see [`OccupancyGrid::sample`]): candle allocates an empty
+/// tensor's results with zero bytes, which CUDA refuses.
+fn null_interval_if_empty(
+    starts: &mut Vec<f64>,
+    ends: &mut Vec<f64>,
+    counts: &mut [usize],
+    device: &Device,
+) {
+    if starts.is_empty() && !device.is_cpu() {
+        if let Some(first) = counts.first_mut() {
+            *first = 1;
+            starts.push(0.0);
+            ends.push(0.0);
+        }
     }
 }
 

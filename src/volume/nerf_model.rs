@@ -260,7 +260,7 @@ impl Nerf {
             // Both networks in one CPU op: [N, 4] = raw density, raw colour.
             let ep = self.trunk.config().encoding.forward(points)?.contiguous()?;
             let ed = self.head.config().encoding.forward(&unit)?.contiguous()?;
-            let params = Tensor::cat(&[self.trunk.flat_params()?, self.head.flat_params()?], 0)?;
+            let params = self.flat_params()?;
             let op = FusedNerf {
                 trunk: self.trunk.plan().clone(),
                 head: self.head.plan().clone(),
@@ -430,6 +430,14 @@ impl Nerf {
         Ok(intervals.positions(rays)?.reshape(((), 3))?)
     }
 
+    /// Both networks' parameters as one flat tensor `[P]` (trunk, then head; the fused
+    /// ops' order), concatenated in one step.
+    fn flat_params(&self) -> Result<Tensor> {
+        let mut parts = self.trunk.flat_parts()?;
+        parts.extend(self.head.flat_parts()?);
+        Ok(Tensor::cat(&parts, 0)?)
+    }
+
     /// [`Nerf::color_loss`] as the fused op, or `None` where it does not apply.
     fn fused_color_loss(
         &self,
@@ -500,7 +508,7 @@ impl Nerf {
         let samples = Tensor::cat(&[positions, &deltas.unsqueeze(1)?], 1)?;
         let unit = self.unit_directions(rays.directions())?;
         let per_ray = Tensor::cat(&[&unit, target, &background], 1)?;
-        let params = Tensor::cat(&[self.trunk.flat_params()?, self.head.flat_params()?], 0)?;
+        let params = self.flat_params()?;
         let slot = op.opacity_slot();
         let loss = samples.apply_op3(&per_ray, &params, op)?;
         let [opacity_mean, opacity_max] =

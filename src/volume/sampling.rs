@@ -36,8 +36,8 @@ pub(crate) fn from_host(
     device: &Device,
 ) -> Result<Tensor> {
     if values.is_empty() {
-        // No copy of zero bytes to a GPU (see `crate::narrow::from_vec`).
-        return Ok(Tensor::zeros(shape, dtype, device)?);
+        // No allocation of zero bytes on a GPU (see `crate::narrow::empty`).
+        return Ok(crate::narrow::empty(shape, dtype, device)?);
     }
     let t = match dtype {
         DType::F32 => {

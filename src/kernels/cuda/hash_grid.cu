@@ -151,6 +151,51 @@ extern "C" __global__ void nf_hash_bwd_table(const real* x, const u64* lv, const
     }
 }
 
+// The largest |g| over all m gradient values, as the bits of a non-negative double
+// (atomicMax on the bits orders non-negative doubles; NaN, whose bits exceed +inf's,
+// makes the result NaN). `mx` is zeroed by the caller.
+extern "C" __global__ void nf_hash_grad_max(const real* g, u64 m, unsigned long long* mx) {
+    NF_GRID_STRIDE(i, m) {
+        double v = fabs((double)g[i]);
+        if (v != 0.0 || v != v) atomicMax(mx, (unsigned long long)__double_as_longlong(v));
+    }
+}
+
+// Table gradient in fixed point: as nf_hash_bwd_table, each contribution rounded to an
+// integer multiple of 1/scale and added as a 64-bit two's-complement integer (wrapping
+// addition is associative, and the final sums lie within +-2^62, so the result does not
+// depend on the order of the additions).
+extern "C" __global__ void nf_hash_bwd_table_fixed(const real* x, const u64* lv, const double* bnd, u64 n,
+                                                   int d, u64 f, u64 levels, unsigned int mask,
+                                                   u64 table_rows, const real* grad, double scale,
+                                                   unsigned long long* acc) {
+    if (d < 1 || d > 4) return;
+    NF_GRID_STRIDE(i, n * levels) {
+        u64 l = i / n, p = i % n;
+        double t[4], dt[4];
+        nf_unit(x + p * d, bnd, d, t, dt);
+        u64 rows[16];
+        double wts[16];
+        int nc = nf_level_corners(t, dt, d, lv, l, mask, rows, wts);
+        const real* g = grad + p * (levels * f) + l * f;
+        for (u64 j = 0; j < f; j++) {
+            double gj = (double)g[j];
+            if (gj == 0.0) continue;
+            for (int c = 0; c < nc; c++) {
+                if (rows[c] < table_rows) {
+                    long long q = llrint(__dmul_rn(__dmul_rn(wts[c], gj), scale));
+                    atomicAdd(&acc[rows[c] * f + j], (unsigned long long)q);
+                }
+            }
+        }
+    }
+}
+
+// o = (real)(a / scale) for the fixed-point sums a, elementwise over m values.
+extern "C" __global__ void nf_hash_cast_fixed(const unsigned long long* a, double scale, real* o, u64 m) {
+    NF_GRID_STRIDE(i, m) o[i] = (real)((double)(long long)a[i] / scale);
+}
+
 // Position gradient: one thread per point, the levels, corners and features in the CPU's
 // order.
 extern "C" __global__ void nf_hash_bwd_x(const real* x, const real* table, const u64* lv, const double* bnd,

@@ -60,6 +60,42 @@ impl FusedHashGrid {
     }
 }
 
+/// The fixed-point scale `S = 2^⌊62 − log₂(N·max|g|)⌋` of the deterministic table
+/// gradient (`HashPlan::deterministic`), or `None` for the f64 atomics: when the plan
+/// does not ask for it, or `max|g|` is not finite (the sums must then carry NaN or ∞).
+/// With `max|g| = 0` the scale is 1 and every sum 0. An entry's sum is bounded by
+/// `N·max|g|` (each point adds weights summing to at most 1 per level), so every sum
+/// lies within `±2⁶²`.
+fn fixed_point_scale<T: GpuReal>(
+    plan: &HashPlan,
+    dev: &CudaDevice,
+    grad: &CudaView<'_, T>,
+    n: usize,
+) -> candle_core::Result<Option<f64>> {
+    if !plan.deterministic {
+        return Ok(None);
+    }
+    let mut mx = dev.alloc_zeros::<u64>(1)?;
+    let m64 = grad.len() as u64;
+    let f = function::<T>(dev, "hash_grid", sources::HASH_GRID, "nf_hash_grad_max")?;
+    let mut b = f.builder();
+    b.arg(grad).arg(&m64).arg(&mut mx);
+    launch(b, launch_1d(grad.len()))?;
+    let bits = dev.clone_dtoh(&mx)?.first().copied().unwrap_or(0);
+    let max = f64::from_bits(bits);
+    if !max.is_finite() {
+        return Ok(None);
+    }
+    if max == 0.0 {
+        return Ok(Some(1.0));
+    }
+    let bound = (n.max(1) as f64) * max;
+    // Clamped so that S stays finite for subnormal bounds (every term is then below 2⁶²
+    // anyway).
+    let e = (62.0 - bound.log2()).floor().clamp(-1000.0, 1000.0) as i32;
+    Ok(Some(2f64.powi(e)))
+}
+
 impl CudaKernel<2> for FusedHashGrid {
     fn cuda_forward<T: GpuReal>(
         &self,
@@ -108,27 +144,62 @@ impl CudaKernel<2> for FusedHashGrid {
         let dp = device_plan(&self.0, dev)?;
         let n64 = n as u64;
         let m = table.len();
-        let mut acc = dev.alloc_zeros::<f64>(m.max(1))?;
-        let ft = function::<T>(dev, "hash_grid", sources::HASH_GRID, "nf_hash_bwd_table")?;
-        let mut b = ft.builder();
-        b.arg(&x)
-            .arg(&dp.levels)
-            .arg(&dp.bounds)
-            .arg(&n64)
-            .arg(&dp.d)
-            .arg(&dp.f);
-        b.arg(&dp.l)
-            .arg(&dp.mask)
-            .arg(&dp.rows)
-            .arg(&grad)
-            .arg(&mut acc);
-        launch(b, launch_1d(n * self.0.levels.len()))?;
-        let mut gt = zeros::<T>(dev, m)?;
-        let m64 = m as u64;
-        let fc = function::<T>(dev, "hash_grid", sources::HASH_GRID, "nf_hash_cast")?;
-        let mut b = fc.builder();
-        b.arg(&acc).arg(&mut gt).arg(&m64);
-        launch(b, launch_1d(m))?;
+        let gt = match fixed_point_scale::<T>(&self.0, dev, &grad, n)? {
+            Some(scale) => {
+                let mut acc = dev.alloc_zeros::<u64>(m.max(1))?;
+                let ft = function::<T>(
+                    dev,
+                    "hash_grid",
+                    sources::HASH_GRID,
+                    "nf_hash_bwd_table_fixed",
+                )?;
+                let mut b = ft.builder();
+                b.arg(&x)
+                    .arg(&dp.levels)
+                    .arg(&dp.bounds)
+                    .arg(&n64)
+                    .arg(&dp.d)
+                    .arg(&dp.f);
+                b.arg(&dp.l)
+                    .arg(&dp.mask)
+                    .arg(&dp.rows)
+                    .arg(&grad)
+                    .arg(&scale)
+                    .arg(&mut acc);
+                launch(b, launch_1d(n * self.0.levels.len()))?;
+                let mut gt = zeros::<T>(dev, m)?;
+                let m64 = m as u64;
+                let fc = function::<T>(dev, "hash_grid", sources::HASH_GRID, "nf_hash_cast_fixed")?;
+                let mut b = fc.builder();
+                b.arg(&acc).arg(&scale).arg(&mut gt).arg(&m64);
+                launch(b, launch_1d(m))?;
+                gt
+            }
+            None => {
+                let mut acc = dev.alloc_zeros::<f64>(m.max(1))?;
+                let ft = function::<T>(dev, "hash_grid", sources::HASH_GRID, "nf_hash_bwd_table")?;
+                let mut b = ft.builder();
+                b.arg(&x)
+                    .arg(&dp.levels)
+                    .arg(&dp.bounds)
+                    .arg(&n64)
+                    .arg(&dp.d)
+                    .arg(&dp.f);
+                b.arg(&dp.l)
+                    .arg(&dp.mask)
+                    .arg(&dp.rows)
+                    .arg(&grad)
+                    .arg(&mut acc);
+                launch(b, launch_1d(n * self.0.levels.len()))?;
+                let mut gt = zeros::<T>(dev, m)?;
+                let m64 = m as u64;
+                let fc = function::<T>(dev, "hash_grid", sources::HASH_GRID, "nf_hash_cast")?;
+                let mut b = fc.builder();
+                b.arg(&acc).arg(&mut gt).arg(&m64);
+                launch(b, launch_1d(m))?;
+                gt
+            }
+        };
         let gx = if want_x {
             let mut gx = zeros::<T>(dev, x.len())?;
             let fx = function::<T>(dev, "hash_grid", sources::HASH_GRID, "nf_hash_bwd_x")?;

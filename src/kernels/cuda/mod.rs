@@ -57,6 +57,7 @@ fn ptx_cache() -> &'static Mutex<HashMap<String, String>> {
 }
 
 /// A loaded kernel function and the stream of the device it runs on.
+#[derive(Clone)]
 pub(crate) struct Kernel {
     func: CudaFunction,
     stream: Arc<CudaStream>,
@@ -71,7 +72,7 @@ impl Kernel {
 }
 
 /// The device's compute capability, asked of the driver once per device and process
-/// (every launch needs it for its module's key).
+/// (every kernel load needs it for its module's key).
 fn compute_capability(dev: &CudaDevice) -> candle_core::Result<(i32, i32)> {
     static ARCH: OnceLock<Mutex<HashMap<candle_core::cuda::DeviceId, (i32, i32)>>> =
         OnceLock::new();
@@ -85,9 +86,46 @@ fn compute_capability(dev: &CudaDevice) -> candle_core::Result<(i32, i32)> {
     Ok(cc)
 }
 
+/// The kernel functions loaded so far, by device, module, dtype and function name: a
+/// launch after the first looks its function up here without touching the PTX.
+type FunctionCache =
+    HashMap<(candle_core::cuda::DeviceId, &'static str, &'static str), HashMap<String, Kernel>>;
+
+fn function_cache() -> &'static Mutex<FunctionCache> {
+    static CACHE: OnceLock<Mutex<FunctionCache>> = OnceLock::new();
+    CACHE.get_or_init(|| Mutex::new(HashMap::new()))
+}
+
 /// A kernel function of a source module: `source` is compiled for `T` and the device's
-/// architecture at the first call.
+/// architecture at the first call; later calls take the loaded function from a cache.
 pub(crate) fn function<T: GpuReal>(
+    dev: &CudaDevice,
+    module: &'static str,
+    source: &'static str,
+    name: &str,
+) -> candle_core::Result<Kernel> {
+    let poisoned = || candle_core::Error::Msg("CUDA function cache poisoned".into());
+    let slot = (dev.id(), module, T::C_TYPE);
+    if let Some(k) = function_cache()
+        .lock()
+        .map_err(|_| poisoned())?
+        .get(&slot)
+        .and_then(|m| m.get(name))
+    {
+        return Ok(k.clone());
+    }
+    let k = load::<T>(dev, module, source, name)?;
+    function_cache()
+        .lock()
+        .map_err(|_| poisoned())?
+        .entry(slot)
+        .or_default()
+        .insert(name.to_owned(), k.clone());
+    Ok(k)
+}
+
+/// Compiles (once per module, dtype and architecture) and loads a kernel function.
+fn load<T: GpuReal>(
     dev: &CudaDevice,
     module: &'static str,
     source: &'static str,
@@ -170,6 +208,15 @@ pub(crate) fn upload<T: DeviceRepr + 'static>(
 /// A zeroed device buffer of `n` elements.
 pub(crate) fn zeros<T: GpuReal>(dev: &CudaDevice, n: usize) -> candle_core::Result<CudaSlice<T>> {
     dev.alloc_zeros::<T>(n.max(1))
+}
+
+/// A device buffer of `n` elements (at least one) whose values are not set: for outputs
+/// that a kernel or a product with `β = 0` writes in full before anything reads them
+/// (skips the memset of [`zeros`]).
+pub(crate) fn uninit<T: GpuReal>(dev: &CudaDevice, n: usize) -> candle_core::Result<CudaSlice<T>> {
+    // SAFETY: `T` is f32 or f64, for which every bit pattern is a value; the callers
+    // write every element before reading it (see each call).
+    unsafe { dev.alloc::<T>(n.max(1)) }
 }
 
 /// Whether the CUDA kernels run for CUDA tensors: yes unless the environment variable

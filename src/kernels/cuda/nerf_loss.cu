@@ -117,12 +117,12 @@ __device__ __forceinline__ void nf_nl_density(double raw, int density, double sh
 // compositing in double, C = sum w c + (1 - sum w) c_bg, the ray's squared error
 // (atomically added to stats[0]), its opacity (stats[1] += , stats[2] = max via the bits
 // of a non-negative double), and the gradients of inv * |C - C*|^2 w.r.t. the raw
-// outputs: gyt[:, 0] and gyh [M, 3]. bad = 1 when a raw output is not finite.
+// outputs: gyt[:, 0] and gyh [M, 3]. stats[3] = 1 when a raw output is not finite.
 extern "C" __global__ void nf_nl_rays(const real* yt, u64 t_out, const real* yh,
                                       const real* samples, const real* rays,
                                       const u64* offsets, u64 n_rays, int density,
                                       double shift, int opaque_last, double inv, real* gyt,
-                                      real* gyh, double* stats, int* bad) {
+                                      real* gyh, double* stats) {
     u64 r = (u64)blockIdx.x * blockDim.x + threadIdx.x;
     if (r >= n_rays) return;
     u64 a = offsets[r], b = offsets[r + 1];
@@ -197,7 +197,7 @@ extern "C" __global__ void nf_nl_rays(const real* yt, u64 t_out, const real* yh,
     atomicAdd(&stats[0], loss);
     atomicAdd(&stats[1], opacity);
     atomicMax((unsigned long long*)&stats[2], (unsigned long long)__double_as_longlong(opacity));
-    if (!finite) atomicExch(bad, 1);
+    if (!finite) stats[3] = 1.0;  // every writer stores the same value
 }
 
 // A column of ones [n] (the right-hand side of the bias gradients' products).

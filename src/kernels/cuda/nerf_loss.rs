@@ -7,7 +7,9 @@
 
 use super::{FusedNerfLoss, RowEncode};
 use crate::kernels::activation::Act;
-use crate::kernels::cuda::{function, launch, launch_1d, sources, upload, view, zeros, GpuReal};
+use crate::kernels::cuda::{
+    function, launch, launch_1d, sources, uninit, upload, view, zeros, GpuReal,
+};
 use crate::kernels::mlp::FusedMlp;
 use crate::kernels::nerf_loss::Density;
 use candle_core::backend::BackendStorage;
@@ -105,7 +107,8 @@ where
     let f = function::<T>(cx.dev, "nerf_loss", sources::NERF_LOSS, "nf_nl_bias_act")?;
     for (l, layer) in net.layers.iter().enumerate() {
         let (w, b) = net.offsets[l];
-        let mut z = zeros::<T>(cx.dev, m * layer.out)?;
+        // Written in full by the product (β = 0).
+        let mut z = uninit::<T>(cx.dev, m * layer.out)?;
         let op = (true, false);
         if l == 0 {
             let wv = params.slice(w..);
@@ -152,7 +155,8 @@ where
             }
         }
         let hidden = l < last;
-        let mut a = zeros::<T>(cx.dev, if hidden { m * layer.out } else { 1 })?;
+        // Written in full by the bias pass (not read after the last layer).
+        let mut a = uninit::<T>(cx.dev, if hidden { m * layer.out } else { 1 })?;
         let bias = params.slice(b..b + layer.out);
         let (m64, out64, is_last) = (m as u64, layer.out as u64, i32::from(!hidden));
         let mut bld = f.builder();
@@ -287,7 +291,8 @@ where
             }
             break;
         }
-        let mut da = zeros::<T>(cx.dev, m * p_w)?;
+        // Written in full by the product (β = 0).
+        let mut da = uninit::<T>(cx.dev, m * p_w)?;
         gemm::<T, _, _, _>(
             cx.blas,
             (false, false),
@@ -359,7 +364,8 @@ impl<E: RowEncode> FusedNerfLoss<E> {
         let (m64, r64) = (m as u64, r as u64);
 
         // Encodings.
-        let mut ep = zeros::<T>(&dev, m * trunk.a0)?;
+        // Every encoding buffer is written in full by its kernel.
+        let mut ep = uninit::<T>(&dev, m * trunk.a0)?;
         let (pl64, pinc32, wp64) = (pl as u64, i32::from(pinc), trunk.a0 as u64);
         let f = kernel("nf_nl_encode_positions")?;
         let mut b = f.builder();
@@ -370,7 +376,7 @@ impl<E: RowEncode> FusedNerfLoss<E> {
             .arg(&pinc32)
             .arg(&wp64);
         launch(b, launch_1d(3 * m))?;
-        let mut ed = zeros::<T>(&dev, r * wd)?;
+        let mut ed = uninit::<T>(&dev, r * wd)?;
         let (dl64, dinc32, wd64) = (dl as u64, i32::from(dinc), wd as u64);
         let f = kernel("nf_nl_encode_directions")?;
         let mut b = f.builder();
@@ -391,7 +397,8 @@ impl<E: RowEncode> FusedNerfLoss<E> {
         let yt =
             at.z.last()
                 .ok_or_else(|| candle_core::Error::Msg("empty trunk".into()))?;
-        let mut ha0 = zeros::<T>(&dev, m * h_in)?;
+        // Every row of every ray's segment is written by the kernel.
+        let mut ha0 = uninit::<T>(&dev, m * h_in)?;
         let f64_ = (t_out - 1) as u64;
         let f = kernel("nf_nl_head_input")?;
         let mut b = f.builder();
@@ -417,8 +424,8 @@ impl<E: RowEncode> FusedNerfLoss<E> {
         // Compositing, the loss, the raw outputs' gradients.
         let mut gyt = zeros::<T>(&dev, m * t_out)?;
         let mut gyh = zeros::<T>(&dev, m * 3)?;
-        let mut stats = dev.alloc_zeros::<f64>(3)?;
-        let mut bad = dev.alloc_zeros::<i32>(1)?;
+        // The loss sum, the opacity sum and maximum, and a non-finite flag.
+        let mut stats = dev.alloc_zeros::<f64>(4)?;
         let (density, shift) = match self.density {
             Density::TruncExp(s) => (0i32, s),
             Density::Softplus(s) => (1i32, s),
@@ -434,7 +441,7 @@ impl<E: RowEncode> FusedNerfLoss<E> {
             .arg(&rays)
             .arg(&offsets);
         b.arg(&r64).arg(&density).arg(&shift).arg(&opaque).arg(&inv);
-        b.arg(&mut gyt).arg(&mut gyh).arg(&mut stats).arg(&mut bad);
+        b.arg(&mut gyt).arg(&mut gyh).arg(&mut stats);
         launch(
             b,
             LaunchConfig {
@@ -445,11 +452,12 @@ impl<E: RowEncode> FusedNerfLoss<E> {
         )?;
 
         // Both networks backward, head first (its input's feature columns feed the trunk).
-        let mut ones = zeros::<T>(&dev, m)?;
+        let mut ones = uninit::<T>(&dev, m)?;
         let f = kernel("nf_nl_ones")?;
         let mut b = f.builder();
         b.arg(&mut ones).arg(&m64);
         launch(b, launch_1d(m))?;
+        // Zeroed: with no samples (m = 0) no product writes it.
         let mut gp = zeros::<T>(&dev, params.len())?;
         let mut gha0 = zeros::<T>(&dev, m * h_in)?;
         let gp_head = trunk.n_params;
@@ -473,7 +481,7 @@ impl<E: RowEncode> FusedNerfLoss<E> {
 
         // Read back the loss and the statistics (one synchronisation).
         let st = dev.clone_dtoh(&stats)?;
-        if dev.clone_dtoh(&bad)?.first().copied().unwrap_or(0) != 0 {
+        if st.len() != 4 || st[3] != 0.0 {
             candle_core::bail!(
                 "fused NeRF loss: the network's raw output is not finite (NaN or infinite parameters?)"
             )

@@ -30,3 +30,6 @@ pub(crate) const SCATTER: &str = include_str!("scatter.cu");
 /// NeRF's photometric loss: encodings, bias and activation passes, per-ray compositing
 /// and loss with their backward pass (kernels/nerf_loss.rs).
 pub(crate) const NERF_LOSS: &str = include_str!("nerf_loss.cu");
+
+/// Adam's moment and parameter passes, in place (kernels/adam.rs).
+pub(crate) const ADAM: &str = include_str!("adam.cu");
