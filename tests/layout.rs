@@ -525,8 +525,9 @@ fn the_checker_sees_imports_and_circles() {
 /// `Dataset::visual_hull` (scene bounds from the data where a layout states none); 240:
 /// `RoundedBox::new`, `Capsule::new` and `Cylinder::new` (issue 39's analytic shapes, each
 /// validating its parameters like the other shapes' constructors; `Csg` is built from
-/// public fields and adds no function).
-const PUB_FN_BUDGET: usize = 240;
+/// public fields and adds no function); 242: `occupancy::resnet_encoder` and
+/// `ResnetEncoder::forward` (issue 39's image encoder, configured by public fields).
+const PUB_FN_BUDGET: usize = 242;
 
 /// The public items of one file, one line each: `module item`, where item is
 /// `fn Type::name`, `struct Name`, `use path`, … (`pub(crate)` and test modules left out).

@@ -1,5 +1,5 @@
 //! Stiff cases of `occupancy`: inside tests, samplers, metrics, losses, marching cubes
-//! and MISE at extreme inputs; the ONet, PointNet and Conv. ONet networks.
+//! and MISE at extreme inputs; the ONet, PointNet, ResNet and Conv. ONet networks.
 
 #![cfg(feature = "occupancy")]
 
@@ -41,10 +41,17 @@ fn conv_onet_stays_finite() {
 }
 
 #[test]
+fn resnet_encoder_stays_finite() {
+    let mut s = Suite::default();
+    sweep_resnet(&mut s);
+    s.finish("resnet encoder", RESNET);
+}
+
+#[test]
 fn every_public_occupancy_function_is_swept_or_exempt() {
     common::stiff::check_coverage(
         "stiff_cases_occupancy",
-        &[ON_MESHES, OCCUPANCY, ONET, CONV_ONET],
+        &[ON_MESHES, OCCUPANCY, ONET, RESNET, CONV_ONET],
         EXEMPT,
         &[],
         UNSEEN,
@@ -100,6 +107,12 @@ const ONET: &[&str] = &[
     "occupancy::simple_decoder",
 ];
 
+/// Items swept by `sweep_resnet`.
+const RESNET: &[&str] = &[
+    "occupancy::ResnetEncoder::forward",
+    "occupancy::resnet_encoder",
+];
+
 /// Items swept by `sweep_conv_onet`.
 const CONV_ONET: &[&str] = &[
     "occupancy::ConvOnetEncoder::forward",
@@ -136,6 +149,7 @@ const EXEMPT: &[(&str, &str)] = &[
     ("occupancy::SimpleDecoder::inside", "getter"),
     ("occupancy::SimpleDecoder::out_dim", "getter"),
     ("occupancy::PointNetConfig::default", "constant"),
+    ("occupancy::ResnetEncoderConfig::default", "constant"),
     ("occupancy::OnetConfig::default", "constant"),
     ("occupancy::OnetDecoder::code_dim", "getter"),
     ("occupancy::OnetDecoder::inside", "getter"),
@@ -728,6 +742,66 @@ fn sweep_onet_networks(s: &mut Suite) {
 }
 
 /// Conv. ONet on point clouds with coordinates from 0 to far outside the padded box (in
+/// The ResNet image encoder on images of extreme pixel values (zero, tiny, huge, one
+/// huge pixel among ordinary ones), in training (batch statistics) and inference
+/// (running statistics), with gradients w.r.t. the pixels.
+fn sweep_resnet(s: &mut Suite) {
+    use neural_fields::occupancy::{resnet_encoder, ResnetEncoderConfig};
+    let d = Device::Cpu;
+    let cfg = ResnetEncoderConfig {
+        width: 4,
+        blocks: [1, 1, 1, 1],
+        c_dim: 3,
+        ..ResnetEncoderConfig::default()
+    };
+    for dtype in DTYPES {
+        let vm = candle_nn::VarMap::new();
+        let enc = build_seeded(&vm, dtype, &d, 4, |vb| resnet_encoder(&cfg, vb)).unwrap();
+        let big = if dtype == DType::F32 { 1e15 } else { 1e100 };
+        let n = 2 * 3 * 32 * 32;
+        let ramp = |scale: f64| -> Vec<f64> {
+            (0..n)
+                .map(|i| scale * (((i * 37) % 101) as f64 / 50.0 - 1.0))
+                .collect()
+        };
+        let mut spike = ramp(1.0);
+        spike[n / 2] = big;
+        let cases: Vec<(String, Vec<f64>)> = vec![
+            ("zero images".into(), vec![0.0; n]),
+            ("constant images".into(), vec![0.5; n]),
+            ("pixels ~1e-30".into(), ramp(1e-30)),
+            ("pixels ~1".into(), ramp(1.0)),
+            (format!("pixels ~{big:e}"), ramp(big)),
+            (format!("one pixel {big:e}"), spike),
+        ];
+        for (label, values) in cases {
+            let x = var(&values, &[2, 3, 32, 32], dtype);
+            for train in [true, false] {
+                let el = format!("{dtype:?}, {label}, train {train}");
+                s.case(
+                    "occupancy::ResnetEncoder::forward",
+                    &el,
+                    Expect::Finite,
+                    &[&x],
+                    || Ok(vec![enc.forward(x.as_tensor(), train)?]),
+                );
+            }
+        }
+        s.case(
+            "occupancy::resnet_encoder",
+            format!("{dtype:?}, a fresh network on pixels ~{big:e}"),
+            Expect::Finite,
+            &[],
+            || {
+                let vm = candle_nn::VarMap::new();
+                let enc = build_seeded(&vm, dtype, &d, 5, |vb| resnet_encoder(&cfg, vb))?;
+                let x = var(&ramp(big), &[2, 3, 32, 32], dtype);
+                Ok(vec![enc.forward(x.as_tensor(), false)?])
+            },
+        );
+    }
+}
+
 /// both layouts), and the decoder at such points.
 fn sweep_conv_onet(s: &mut Suite) {
     use neural_fields::mesh::{points_to_tensor, PointCloud};

@@ -23,7 +23,9 @@
 //!   [`ConvOnetEncoder`] / [`conv_onet_encoder`] and [`LocalDecoder`] /
 //!   [`local_decoder`], Convolutional Occupancy Networks (local PointNet pooled into three
 //!   feature planes or a grid, a 2-D or 3-D U-Net, a decoder of interpolated local
-//!   features; the grid's U-Net convolves in 3-D with candle's 2-D convolution).
+//!   features; the grid's U-Net convolves in 3-D with candle's 2-D convolution);
+//!   [`ResnetEncoder`] / [`resnet_encoder`], the single-view ONet's image encoder
+//!   (ResNet-18's layout at a reduced width, images to the code `c`).
 //!
 //! ```
 //! use candle_core::{DType, Device};
@@ -50,6 +52,7 @@ mod metrics;
 mod multires;
 mod onet;
 mod pointnet;
+mod resnet;
 mod sampling;
 
 pub use conv_onet::{
@@ -65,4 +68,5 @@ pub use onet::{
     SimpleDecoderConfig, ONET_BLOCK,
 };
 pub use pointnet::{pointnet_encoder, PointNetConfig, PointNetEncoder};
+pub use resnet::{resnet_encoder, ResnetEncoder, ResnetEncoderConfig};
 pub use sampling::{near_surface, uniform_in_padded_cube, winding_numbers, WindingConfig};
