@@ -235,6 +235,11 @@ const ALLOWED: &[(&str, &str, &str)] = &[
         "data: one frame per view of the dataset held",
     ),
     (
+        "data/shapes.rs",
+        "vec![_; n]",
+        "checked: one split per shape of a category; ShapeCollectionConfig::validate refuses more than 2^20 shapes first",
+    ),
+    (
         "dvr/losses.rs",
         "vec![_; r]",
         "data: one value per ray held",

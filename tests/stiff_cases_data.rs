@@ -38,11 +38,15 @@ const DATA: &[&str] = &[
     "data::View::rgb",
     "data::colorize_depth",
     "data::comparison_strip",
+    "data::generate_shape",
     "data::load",
+    "data::load_shape_collection",
     "data::psnr",
     "data::ssim",
     "data::write_blender",
     "data::write_png",
+    "data::write_shape_collection",
+    "data::write_shape_views",
 ];
 
 /// Public items without floating-point input (or only reached through a swept item),
@@ -79,6 +83,9 @@ const EXEMPT: &[(&str, &str)] = &[
     ("data::Image::data", "getter"),
     ("data::Image::new", "bytes, no floats"),
     ("data::Image::size", "getter"),
+    ("data::ShapeCategory::fmt", "the category's name"),
+    ("data::ShapeCollectionConfig::default", "constant"),
+    ("data::ShapeLoadConfig::default", "constant"),
 ];
 
 fn sweep_data(s: &mut Suite) {
@@ -329,7 +336,107 @@ fn sweep_data(s: &mut Suite) {
             },
         );
     }
+    sweep_shapes(s, &dir);
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The procedural shape collection: every category's tree evaluated at extreme points,
+/// collections written with extreme padding and noise, and views of extreme values.
+fn sweep_shapes(s: &mut Suite, dir: &std::path::Path) {
+    use neural_fields::data::{
+        generate_shape, load_shape_collection, write_shape_collection, write_shape_views,
+        ShapeCategory, ShapeCollectionConfig, ShapeLoadConfig,
+    };
+    use neural_fields::field::SignedDistance;
+    let d = Device::Cpu;
+    for dtype in DTYPES {
+        for &x in &magnitudes(dtype) {
+            for category in ShapeCategory::ALL {
+                s.case(
+                    "data::generate_shape",
+                    format!("{dtype:?}, {category} at ({x}, −{x}, {x})"),
+                    Expect::Finite,
+                    &[],
+                    || {
+                        let shape = generate_shape(category, 7, &d, dtype)?;
+                        let p = Tensor::new(&[[x, -x, x], [x, 0.0, 0.0]], &d)?.to_dtype(dtype)?;
+                        let (dist, grad) = shape.distance_and_grad(&p)?;
+                        Ok(vec![dist, grad])
+                    },
+                );
+            }
+        }
+    }
+    let collection = dir.join("shapes");
+    for &x in &magnitudes(DType::F64) {
+        let config = ShapeCollectionConfig {
+            seed: x.to_bits(),
+            categories: vec![ShapeCategory::ALL[x.to_bits() as usize % 5]],
+            shapes_per_category: 1,
+            uniform_points: 32,
+            near_points: 16,
+            near_sigmas: vec![x.abs().clamp(1e-300, 1.0)],
+            surface_points: 16,
+            voxel_resolution: 4,
+            padding: x,
+            ..ShapeCollectionConfig::default()
+        };
+        let points =
+            |shape: &neural_fields::data::ShapeSample| -> neural_fields::Result<Vec<Tensor>> {
+                Ok(vec![
+                    Tensor::new(&shape.uniform_points[..], &d)?,
+                    Tensor::new(&shape.near_points[..], &d)?,
+                    Tensor::new(&shape.surface_points[..], &d)?,
+                    Tensor::new(&shape.surface_normals[..], &d)?,
+                ])
+            };
+        s.case(
+            "data::write_shape_collection",
+            format!("padding and σ from {x}"),
+            Expect::FiniteOrErr,
+            &[],
+            || {
+                write_shape_collection(&collection, &config)?;
+                let loaded = load_shape_collection(&collection, &ShapeLoadConfig::default())?;
+                points(&loaded.shapes[0])
+            },
+        );
+        s.case(
+            "data::load_shape_collection",
+            format!("padding and σ from {x}"),
+            Expect::FiniteOrErr,
+            &[],
+            || {
+                let loaded = load_shape_collection(&collection, &ShapeLoadConfig::default())?;
+                points(&loaded.shapes[0])
+            },
+        );
+    }
+    for dtype in DTYPES {
+        for &x in &magnitudes(dtype) {
+            s.case(
+                "data::write_shape_views",
+                format!("{dtype:?}, pixels {x}"),
+                Expect::FiniteOrErr,
+                &[],
+                || {
+                    let k = Intrinsics::new(4.0, 4.0, 1.5, 1.5, 3, 3)?;
+                    let cam = Camera::look_at(
+                        k,
+                        DVec3::new(0.0, 0.0, 2.0),
+                        DVec3::ZERO,
+                        DVec3::Y,
+                        Convention::OpenCv,
+                    )?;
+                    let image = Tensor::full(x, (3, 3, 3), &d)?.to_dtype(dtype)?;
+                    write_shape_views(&collection, 0, &[(cam, image)])?;
+                    let loaded = load_shape_collection(&collection, &ShapeLoadConfig::default())?;
+                    let bytes = loaded.shapes[0].views[0].image.data().to_vec();
+                    Ok(vec![Tensor::new(&bytes[..], &d)?.to_dtype(dtype)?])
+                },
+            );
+        }
+    }
 }
 
 /// An image's bytes as a `[H, W, C]` tensor of `byte / 255` in `dtype` on `device`.
