@@ -820,6 +820,11 @@ const ALLOWED: &[(&str, &str, &str)] = &[
         "data: the nodes of a tree over the triangles held",
     ),
     (
+        "occupancy/voxel.rs",
+        "Tensor::zeros((b, 1, ci))",
+        "data: one zero row per grid of the activations held",
+    ),
+    (
         "texture/mod.rs",
         "with_capacity(mesh.vertices.len())",
         "data: one colour per vertex of the mesh held",

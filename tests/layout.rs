@@ -529,8 +529,10 @@ fn the_checker_sees_imports_and_circles() {
 /// `ResnetEncoder::forward` (issue 39's image encoder, configured by public fields); 246:
 /// `data::generate_shape`, `write_shape_collection`, `load_shape_collection` and
 /// `write_shape_views` (issue 39's procedural shape collection: one generator of a shape,
-/// one writer, one loader and the writer of rendered views; configured by public fields).
-const PUB_FN_BUDGET: usize = 246;
+/// one writer, one loader and the writer of rendered views; configured by public fields);
+/// 248: `occupancy::voxel_encoder` and `VoxelEncoder::forward` (issue 39's voxel encoder,
+/// configured by public fields).
+const PUB_FN_BUDGET: usize = 248;
 
 /// The public items of one file, one line each: `module item`, where item is
 /// `fn Type::name`, `struct Name`, `use path`, … (`pub(crate)` and test modules left out).

@@ -1,5 +1,5 @@
 //! Stiff cases of `occupancy`: inside tests, samplers, metrics, losses, marching cubes
-//! and MISE at extreme inputs; the ONet, PointNet, ResNet and Conv. ONet networks.
+//! and MISE at extreme inputs; the ONet, PointNet, ResNet, voxel and Conv. ONet networks.
 
 #![cfg(feature = "occupancy")]
 
@@ -48,10 +48,17 @@ fn resnet_encoder_stays_finite() {
 }
 
 #[test]
+fn voxel_encoder_stays_finite() {
+    let mut s = Suite::default();
+    sweep_voxel(&mut s);
+    s.finish("voxel encoder", VOXEL);
+}
+
+#[test]
 fn every_public_occupancy_function_is_swept_or_exempt() {
     common::stiff::check_coverage(
         "stiff_cases_occupancy",
-        &[ON_MESHES, OCCUPANCY, ONET, RESNET, CONV_ONET],
+        &[ON_MESHES, OCCUPANCY, ONET, RESNET, VOXEL, CONV_ONET],
         EXEMPT,
         &[],
         UNSEEN,
@@ -113,6 +120,12 @@ const RESNET: &[&str] = &[
     "occupancy::resnet_encoder",
 ];
 
+/// Items swept by `sweep_voxel`.
+const VOXEL: &[&str] = &[
+    "occupancy::VoxelEncoder::forward",
+    "occupancy::voxel_encoder",
+];
+
 /// Items swept by `sweep_conv_onet`.
 const CONV_ONET: &[&str] = &[
     "occupancy::ConvOnetEncoder::forward",
@@ -150,6 +163,7 @@ const EXEMPT: &[(&str, &str)] = &[
     ("occupancy::SimpleDecoder::out_dim", "getter"),
     ("occupancy::PointNetConfig::default", "constant"),
     ("occupancy::ResnetEncoderConfig::default", "constant"),
+    ("occupancy::VoxelEncoderConfig::default", "constant"),
     ("occupancy::OnetConfig::default", "constant"),
     ("occupancy::OnetDecoder::code_dim", "getter"),
     ("occupancy::OnetDecoder::inside", "getter"),
@@ -741,7 +755,6 @@ fn sweep_onet_networks(s: &mut Suite) {
     }
 }
 
-/// Conv. ONet on point clouds with coordinates from 0 to far outside the padded box (in
 /// The ResNet image encoder on images of extreme pixel values (zero, tiny, huge, one
 /// huge pixel among ordinary ones), in training (batch statistics) and inference
 /// (running statistics), with gradients w.r.t. the pixels.
@@ -802,6 +815,74 @@ fn sweep_resnet(s: &mut Suite) {
     }
 }
 
+/// The voxel encoder on grids at the ends of its input range and just inside them (empty,
+/// full, occupancies ~1e-30 and the dtype's smallest subnormal, one voxel, a
+/// checkerboard, a full grid but one voxel), with gradients w.r.t. the voxels; and a fresh
+/// network whose weights are scaled to ~1e10 (f32) or ~1e100 (f64) on a full grid.
+fn sweep_voxel(s: &mut Suite) {
+    use neural_fields::occupancy::{voxel_encoder, VoxelEncoderConfig};
+    let d = Device::Cpu;
+    let cfg = VoxelEncoderConfig {
+        base_channels: 4,
+        stages: 3,
+        c_dim: 3,
+        resolution: 8,
+    };
+    let n = 2 * 512;
+    for dtype in DTYPES {
+        let vm = candle_nn::VarMap::new();
+        let enc = build_seeded(&vm, dtype, &d, 6, |vb| voxel_encoder(&cfg, vb)).unwrap();
+        let tiny = if dtype == DType::F32 { 1e-45 } else { 5e-324 };
+        let mut one = vec![0.0; n];
+        one[3 * 64 + 4 * 8 + 5] = 1.0;
+        let mut all_but_one = vec![1.0; n];
+        all_but_one[512 + 7 * 64] = 0.0;
+        let cases: Vec<(&str, Vec<f64>)> = vec![
+            ("empty grids", vec![0.0; n]),
+            ("full grids", vec![1.0; n]),
+            ("occupancies 1e-30", vec![1e-30; n]),
+            ("smallest subnormal occupancies", vec![tiny; n]),
+            ("one voxel", one),
+            (
+                "checkerboard",
+                (0..n).map(|i| ((i / 64 + i / 8 + i) % 2) as f64).collect(),
+            ),
+            ("full but one voxel", all_but_one),
+        ];
+        for (label, values) in cases {
+            let x = var(&values, &[2, 8, 8, 8], dtype);
+            s.case(
+                "occupancy::VoxelEncoder::forward",
+                format!("{dtype:?}, {label}"),
+                Expect::Finite,
+                &[&x],
+                || Ok(vec![enc.forward(x.as_tensor())?]),
+            );
+        }
+        let big = if dtype == DType::F32 { 1e10 } else { 1e100 };
+        s.case(
+            "occupancy::voxel_encoder",
+            format!("{dtype:?}, a fresh network with weights ~{big:e} on full grids"),
+            Expect::Finite,
+            &[],
+            || {
+                let vm = candle_nn::VarMap::new();
+                let enc = build_seeded(&vm, dtype, &d, 7, |vb| voxel_encoder(&cfg, vb))?;
+                for v in vm.all_vars() {
+                    // Only the first layer large: the product over four layers stays
+                    // within range while every activation is huge.
+                    if v.dims().len() == 5 && v.dims()[1] == 1 {
+                        v.set(&v.as_tensor().affine(big, 0.0)?)?;
+                    }
+                }
+                let x = var(&vec![1.0; n], &[2, 8, 8, 8], dtype);
+                Ok(vec![enc.forward(x.as_tensor())?])
+            },
+        );
+    }
+}
+
+/// Conv. ONet on point clouds with coordinates from 0 to far outside the padded box (in
 /// both layouts), and the decoder at such points.
 fn sweep_conv_onet(s: &mut Suite) {
     use neural_fields::mesh::{points_to_tensor, PointCloud};

@@ -25,7 +25,9 @@
 //!   feature planes or a grid, a 2-D or 3-D U-Net, a decoder of interpolated local
 //!   features; the grid's U-Net convolves in 3-D with candle's 2-D convolution);
 //!   [`ResnetEncoder`] / [`resnet_encoder`], the single-view ONet's image encoder
-//!   (ResNet-18's layout at a reduced width, images to the code `c`).
+//!   (ResNet-18's layout at a reduced width, images to the code `c`);
+//!   [`VoxelEncoder`] / [`voxel_encoder`], the voxel super-resolution ONet's 3-D CNN
+//!   (a stride-1 and four stride-2 convolutions, 32³ occupancy grids to the code `c`).
 //!
 //! ```
 //! use candle_core::{DType, Device};
@@ -54,6 +56,7 @@ mod onet;
 mod pointnet;
 mod resnet;
 mod sampling;
+mod voxel;
 
 pub use conv_onet::{
     conv_onet_encoder, local_decoder, ConvOnetConfig, ConvOnetEncoder, FeatureLayout, LocalDecoder,
@@ -70,3 +73,4 @@ pub use onet::{
 pub use pointnet::{pointnet_encoder, PointNetConfig, PointNetEncoder};
 pub use resnet::{resnet_encoder, ResnetEncoder, ResnetEncoderConfig};
 pub use sampling::{near_surface, uniform_in_padded_cube, winding_numbers, WindingConfig};
+pub use voxel::{voxel_encoder, VoxelEncoder, VoxelEncoderConfig};
