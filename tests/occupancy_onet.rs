@@ -139,3 +139,74 @@ fn spatial_gradient_matches_finite_differences_and_reaches_the_code() {
         .to_string();
     assert!(e.starts_with("codes"), "{e}");
 }
+
+/// One code per shape (`logits_grouped`) is `logits` with the code repeated per point:
+/// values, parameter, code and point gradients, in both normalisation modes (f64).
+#[test]
+fn grouped_codes_match_codes_repeated_per_point() {
+    let vm = VarMap::new();
+    let net = build_seeded(&vm, DType::F64, &Device::Cpu, 2, |vb| {
+        onet_decoder(&config(), vb)
+    })
+    .unwrap();
+    let mut rng = SplitMix64::new(5);
+    let (b, q) = (3, 7);
+    let pts = candle_core::Var::from_tensor(
+        &rng.uniform_tensor(&[b, q, 3], -0.5, 0.5, DType::F64, &Device::Cpu)
+            .unwrap(),
+    )
+    .unwrap();
+    let codes = candle_core::Var::from_tensor(
+        &rng.uniform_tensor(&[b, 8], -1.0, 1.0, DType::F64, &Device::Cpu)
+            .unwrap(),
+    )
+    .unwrap();
+    let w = rng
+        .uniform_tensor(&[b, q], -1.0, 1.0, DType::F64, &Device::Cpu)
+        .unwrap();
+    for mode in [NormMode::Train, NormMode::Eval] {
+        net.set_mode(mode);
+        let grouped = net.logits_grouped(&pts, &codes).unwrap();
+        let repeated = codes
+            .unsqueeze(1)
+            .unwrap()
+            .broadcast_as((b, q, 8))
+            .unwrap()
+            .reshape((b * q, 8))
+            .unwrap();
+        let flat = net
+            .logits(&pts.reshape((b * q, 3)).unwrap(), &repeated)
+            .unwrap()
+            .reshape((b, q))
+            .unwrap();
+        let diff = |a: &Tensor, c: &Tensor| -> f64 {
+            (a - c)
+                .unwrap()
+                .abs()
+                .unwrap()
+                .max_all()
+                .unwrap()
+                .to_scalar::<f64>()
+                .unwrap()
+        };
+        assert!(diff(&grouped, &flat) < 1e-12, "{mode:?}: values differ");
+        let ga = (&grouped * &w)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap();
+        let gb = (&flat * &w).unwrap().sum_all().unwrap().backward().unwrap();
+        let vars: Vec<candle_core::Var> = vm.all_vars();
+        for v in vars.iter().chain([&pts, &codes]) {
+            let (a, c) = (ga.get(v).unwrap(), gb.get(v).unwrap());
+            assert!(diff(a, c) < 1e-10, "{mode:?}: gradients differ");
+        }
+    }
+    // A batch that does not split into the codes' shapes is refused naming it.
+    let bad = Tensor::zeros((2, 0, 3), DType::F64, &Device::Cpu).unwrap();
+    assert!(net.logits_grouped(&bad, &codes).is_err());
+    assert!(net
+        .logits_grouped(&pts, &codes.narrow(0, 0, 2).unwrap())
+        .is_err());
+}

@@ -102,6 +102,7 @@ const OCCUPANCY: &[&str] = &[
 const ONET: &[&str] = &[
     "occupancy::OnetDecoder::forward_with_code",
     "occupancy::OnetDecoder::logits",
+    "occupancy::OnetDecoder::logits_grouped",
     "occupancy::OnetDecoder::set_mode",
     "occupancy::OnetDecoder::value_and_grad_with_code",
     "occupancy::PointNetEncoder::forward",
@@ -714,6 +715,17 @@ fn sweep_onet_networks(s: &mut Suite) {
                 Expect::Finite,
                 &[&pts, &codes],
                 || Ok(vec![net.logits(pts.as_tensor(), codes.as_tensor())?]),
+            );
+            s.case(
+                "occupancy::OnetDecoder::logits_grouped",
+                &ol,
+                Expect::Finite,
+                &[&pts, &codes],
+                || {
+                    let p = pts.as_tensor().unsqueeze(0)?;
+                    let c = codes.as_tensor().narrow(0, 0, 1)?;
+                    Ok(vec![net.logits_grouped(&p, &c)?])
+                },
             );
             s.case(
                 "occupancy::OnetDecoder::set_mode",

@@ -282,13 +282,23 @@ impl OnetDecoder {
         n: &CondNorm,
         x: &Tensor,
         dx: Option<&Tensor>,
-        codes: &Tensor,
+        (codes, group): (&Tensor, usize),
         mode: NormMode,
         blocked: bool,
     ) -> Result<(Tensor, Option<Tensor>)> {
         let (xh, inv) = self.normalize(n, x, mode)?;
-        let gamma = n.gamma.forward(codes, blocked)?;
-        let beta = n.beta.forward(codes, blocked)?;
+        // γ(c) and β(c) once per code, then repeated over its `group` points.
+        let per_point = |t: Tensor| -> Result<Tensor> {
+            if group == 1 {
+                return Ok(t);
+            }
+            let (g, h) = t.dims2()?;
+            Ok(t.unsqueeze(1)?
+                .broadcast_as((g, group, h))?
+                .reshape((g * group, h))?)
+        };
+        let gamma = per_point(n.gamma.forward(codes, blocked)?)?;
+        let beta = per_point(n.beta.forward(codes, blocked)?)?;
         let y = ((xh * &gamma)? + beta)?;
         let mask = y.gt(0.0)?.to_dtype(y.dtype())?;
         let out = y.relu()?;
@@ -308,9 +318,32 @@ impl OnetDecoder {
         codes: &Tensor,
         tangents: bool,
     ) -> Result<(Tensor, Option<Tensor>)> {
+        self.run_grouped(points, codes, 1, tangents)
+    }
+
+    /// [`OnetDecoder::run`] with one code per `group` consecutive points: `codes`
+    /// `[N / group, D]`.
+    fn run_grouped(
+        &self,
+        points: &Tensor,
+        codes: &Tensor,
+        group: usize,
+        tangents: bool,
+    ) -> Result<(Tensor, Option<Tensor>)> {
         let n = check_points(points, "points")?;
         check_same(codes, "codes", points, "points")?;
-        check_shape(codes, "codes", &[Dim::Is(n), Dim::Is(self.config.code_dim)])?;
+        if group == 0 || !n.is_multiple_of(group) {
+            return Err(Error::invalid(
+                "points",
+                format!("a multiple of {group} points (one code per {group})"),
+                n.to_string(),
+            ));
+        }
+        check_shape(
+            codes,
+            "codes",
+            &[Dim::Is(n / group), Dim::Is(self.config.code_dim)],
+        )?;
         let mode = self.mode();
         let blocked = mode == NormMode::Eval;
         let lin_t = |l: &Linear, d: &Tensor| weight_jvp(&l.weight, d);
@@ -327,20 +360,29 @@ impl OnetDecoder {
             None
         };
         for b in &self.blocks {
-            let (a, da) = self.cn_relu(&b.norm0, &net, dnet.as_ref(), codes, mode, blocked)?;
+            let (a, da) =
+                self.cn_relu(&b.norm0, &net, dnet.as_ref(), (codes, group), mode, blocked)?;
             let hmid = b.fc0.forward(&a, blocked)?;
             let dh = match &da {
                 Some(d) => Some(lin_t(&b.fc0, d)?),
                 None => None,
             };
-            let (a2, da2) = self.cn_relu(&b.norm1, &hmid, dh.as_ref(), codes, mode, blocked)?;
+            let (a2, da2) =
+                self.cn_relu(&b.norm1, &hmid, dh.as_ref(), (codes, group), mode, blocked)?;
             net = (net + b.fc1.forward(&a2, blocked)?)?;
             dnet = match (dnet, &da2) {
                 (Some(dn), Some(d)) => Some((dn + lin_t(&b.fc1, d)?)?),
                 _ => None,
             };
         }
-        let (a, da) = self.cn_relu(&self.norm_out, &net, dnet.as_ref(), codes, mode, blocked)?;
+        let (a, da) = self.cn_relu(
+            &self.norm_out,
+            &net,
+            dnet.as_ref(),
+            (codes, group),
+            mode,
+            blocked,
+        )?;
         let logit = self.fc_out.forward(&a, blocked)?.squeeze(D::Minus1)?;
         let grad = match da {
             Some(d) => Some(lin_t(&self.fc_out, &d)?.squeeze(2)?.t()?.contiguous()?),
@@ -357,6 +399,53 @@ impl OnetDecoder {
     /// Wrong shapes, dtypes or devices.
     pub fn logits(&self, points: &Tensor, codes: &Tensor) -> Result<Tensor> {
         Ok(self.run(points, codes, false)?.0)
+    }
+
+    /// Occupancy logits `[B, Q]` at `points: [B, Q, 3]` with one code per shape, `codes:
+    /// [B, D]`: [`OnetDecoder::logits`] of the points with each shape's code repeated, but
+    /// the conditional normalisation's `γ(c)`, `β(c)` computed once per shape (ONet's
+    /// batches: `2·(2·blocks + 1)` products of `[B, D]·[D, H]` instead of `[B·Q, D]·[D, H]`).
+    /// The normalisation's batch statistics run over all `B·Q` points, as in `logits`.
+    /// Differentiable w.r.t. the parameters, the points and the codes.
+    ///
+    /// ```
+    /// use candle_core::{DType, Device, Tensor};
+    /// use candle_nn::VarMap;
+    /// use neural_fields::nn::build_seeded;
+    /// use neural_fields::occupancy::{onet_decoder, OnetConfig};
+    ///
+    /// let config = OnetConfig { hidden: 16, blocks: 2, code_dim: 8, ..OnetConfig::default() };
+    /// let dec = build_seeded(&VarMap::new(), DType::F64, &Device::Cpu, 0, |vb| onet_decoder(&config, vb))?;
+    /// let points = Tensor::rand(-0.5, 0.5, (2, 5, 3), &Device::Cpu)?;
+    /// let codes = Tensor::rand(-1.0, 1.0, (2, 8), &Device::Cpu)?;
+    /// let grouped = dec.logits_grouped(&points, &codes)?; // [2, 5]
+    /// let repeated = codes.unsqueeze(1)?.broadcast_as((2, 5, 8))?.reshape((10, 8))?;
+    /// let flat = dec.logits(&points.reshape((10, 3))?, &repeated)?.reshape((2, 5))?;
+    /// assert!((grouped - flat)?.abs()?.max_all()?.to_scalar::<f64>()? < 1e-12);
+    /// # Ok::<(), neural_fields::Error>(())
+    /// ```
+    ///
+    /// # Errors
+    /// `points` not `[B, Q, 3]` with `Q ≥ 1`; `codes` not `[B, D]`; dtypes or devices
+    /// unlike.
+    pub fn logits_grouped(&self, points: &Tensor, codes: &Tensor) -> Result<Tensor> {
+        let d = check_shape(
+            points,
+            "points",
+            &[Dim::Any("B"), Dim::Any("Q"), Dim::Is(3)],
+        )?;
+        if d[1] == 0 {
+            return Err(Error::invalid(
+                "points",
+                "at least one point per shape",
+                "Q = 0",
+            ));
+        }
+        let flat = points.reshape((d[0] * d[1], 3))?;
+        Ok(self
+            .run_grouped(&flat, codes, d[1], false)?
+            .0
+            .reshape((d[0], d[1]))?)
     }
 }
 
