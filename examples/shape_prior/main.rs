@@ -40,7 +40,8 @@
 //! `chamfer_l1`, `normal_consistency`, `fscore`, and `baselines.{mean_shape, retrieval,
 //! retrieval_fixed_feature}` with the same keys; `input`, shape counts, steps, seconds),
 //! `curve.csv` (IoU on 32 test shapes against training seconds, every 60 s of training)
-//! and `test_NN.png`: input | reconstruction | truth for four test shapes.
+//! and `test_NN.png`: input | reconstruction | truth for four test shapes. Uses mimalloc
+//! (see `examples/tiny_nerf.rs`).
 
 #[cfg(test)]
 mod tests;
@@ -65,6 +66,9 @@ use neural_fields::occupancy::{
 use neural_fields::rng::SplitMix64;
 use neural_fields::{Error, Result};
 use std::path::{Path, PathBuf};
+
+#[global_allocator]
+static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 /// Code size, query points per shape and step, cloud size and noise, image size.
 const CODE: usize = 128;
