@@ -423,20 +423,34 @@ fn mise_config(dev: &Device) -> Result<MiseConfig> {
     })
 }
 
-/// The network's score on one test shape, given its code `[CODE]`.
-fn network_score(model: &Model, code: &Tensor, s: &ShapeSample, dev: &Device) -> Result<Score> {
-    let surface = Conditioned::new(&model.decoder, code.clone())?;
-    let pts = Tensor::from_slice(&s.uniform_points, (s.uniform_occupancy.len(), 3), dev)?;
+/// The shape's uniform points as a tensor `[N, 3]`.
+fn uniform_points(s: &ShapeSample, dev: &Device) -> Result<Tensor> {
+    Ok(Tensor::from_slice(
+        &s.uniform_points,
+        (s.uniform_occupancy.len(), 3),
+        dev,
+    )?)
+}
+
+/// IoU of `surface` (the decoder with one code) on the shape's uniform points, occupied
+/// at probability ≥ `THRESHOLD`.
+fn network_iou(surface: &dyn ImplicitSurface, s: &ShapeSample, dev: &Device) -> Result<f64> {
     let level = logit_threshold(THRESHOLD)? as f32;
     let pred: Vec<bool> = surface
-        .value(&pts)?
+        .value(&uniform_points(s, dev)?)?
         .to_vec1::<f32>()?
         .iter()
         .map(|&l| l >= level)
         .collect();
+    iou(&pred, &labels(s))
+}
+
+/// The network's score on one test shape, given its code `[CODE]`.
+fn network_score(model: &Model, code: &Tensor, s: &ShapeSample, dev: &Device) -> Result<Score> {
+    let surface = Conditioned::new(&model.decoder, code.clone())?;
     let mesh = mise(&surface, &mise_config(dev)?)?.mesh;
     Ok(Score::from(
-        iou(&pred, &labels(s))?,
+        network_iou(&surface, s, dev)?,
         &surface_score(&mesh, s, s.info.seed)?,
     ))
 }
@@ -461,18 +475,10 @@ fn curve_iou(model: &Model, input: Input, test: &[&ShapeSample], dev: &Device) -
     model.decoder.set_mode(NormMode::Eval);
     let shapes = &test[..test.len().min(CURVE_SHAPES)];
     let codes = encode_all(model, input, shapes, dev)?;
-    let level = logit_threshold(THRESHOLD)? as f32;
     let mut sum = 0.0;
     for (i, s) in shapes.iter().enumerate() {
         let surface = Conditioned::new(&model.decoder, codes.get(i)?)?;
-        let pts = Tensor::from_slice(&s.uniform_points, (s.uniform_occupancy.len(), 3), dev)?;
-        let pred: Vec<bool> = surface
-            .value(&pts)?
-            .to_vec1::<f32>()?
-            .iter()
-            .map(|&l| l >= level)
-            .collect();
-        sum += iou(&pred, &labels(s))?;
+        sum += network_iou(&surface, s, dev)?;
     }
     model.decoder.set_mode(NormMode::Train);
     Ok(sum / shapes.len().max(1) as f64)
@@ -483,8 +489,7 @@ fn curve_iou(model: &Model, input: Input, test: &[&ShapeSample], dev: &Device) -
 fn retrieved_score(found: &ShapeSample, s: &ShapeSample, dev: &Device) -> Result<Score> {
     let shape =
         neural_fields::data::generate_shape(found.info.category, found.info.seed, dev, DType::F32)?;
-    let pts = Tensor::from_slice(&s.uniform_points, (s.uniform_occupancy.len(), 3), dev)?;
-    let (d, _) = shape.distance_and_grad(&pts)?;
+    let (d, _) = shape.distance_and_grad(&uniform_points(s, dev)?)?;
     let pred: Vec<bool> = d.to_vec1::<f32>()?.iter().map(|&v| v < 0.0).collect();
     let gt = points3(&found.surface_points);
     let gn = points3(&found.surface_normals);
