@@ -24,6 +24,24 @@
 //!   tables of 2¹⁵ rows, resolutions 16 to 2048), loss `mean((γ(x)·c)²)` for a fixed
 //!   `c`, Adam (lr 1e-3) on the table. `--reference` runs the reference path (candle's
 //!   gathers) instead of the fused op.
+//! * `onet_points`, `onet_voxels`, `onet_image`: the training step of
+//!   `examples/shape_prior` (the conditional occupancy network) at its batch: B = 16
+//!   shapes × 1024 query points uniform in `[−0.55, 0.55]³`, labelled inside a sphere of
+//!   radius 0.3 about a per-shape centre in `[−0.15, 0.15]³`; code size 128; ONet's CBN
+//!   decoder ([`neural_fields::occupancy::onet_decoder`]: width 128, 5 conditional-batch-
+//!   norm ResNet blocks, batch statistics over all B·1024 points, `logits_grouped`) on
+//!   the code of the shape's input: `points`, a fixed cloud `[16, 300, 3]` (uniform in
+//!   `[−0.5, 0.5]³`, a feature of ones per point) through the PointNet encoder (3 × 128
+//!   ReLU layers, max-pool, the 128-wide mean head; the log-variance head is computed and
+//!   unused, as in the example); `voxels`, the shapes' spheres on a 32³ 0/1 grid through
+//!   the 3-D CNN (3³ convolutions, 16 → 32 → 64 → 128 → 256 channels, 32³ → 2³, a
+//!   2048 → 128 linear map); `image`, fixed uniform images `[16, 3, 64, 64]` through the
+//!   ResNet-18-layout encoder at width 32 (batch norm with batch statistics); loss ONet's
+//!   BCE with logits summed over the points and averaged over the shapes
+//!   ([`neural_fields::occupancy::reconstruction_loss`]), Adam (lr 1e-3) on every
+//!   variable. The inputs are built once, so the example's host-side batch assembly is
+//!   not timed; the example runs with mimalloc, the bench (as for every model here) with
+//!   the system allocator. These need the `occupancy` feature (a default one).
 //!
 //! The optimiser is the crate's [`neural_fields::nn::Adam`] (weight decay 0), whose
 //! update runs as two fused passes per variable wherever the kernels run (the twin uses
@@ -32,9 +50,10 @@
 //! `--phases` reports forward, backward and optimiser medians separately. `--device cuda`
 //! (built with the `cuda` feature) runs on the first GPU, waiting for the device at the
 //! end of every timed phase; there `NEURAL_FIELDS_CUDA_KERNELS=0` measures the candle-op
-//! fallback instead of the crate's CUDA kernels. The output is
-//! one JSON line per run. The global allocator is the system's (glibc's malloc on Linux),
-//! as a user's program has by default.
+//! fallback instead of the crate's CUDA kernels. The output is one JSON line per run, with
+//! `params`, the number of trainable values (variables other than batch norms' running
+//! statistics). The global allocator is the system's (glibc's malloc on Linux), as a
+//! user's program has by default.
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{Optimizer, ParamsAdamW, VarMap};
@@ -73,7 +92,7 @@ fn parse() -> Args {
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
         match flag.as_str() {
-            "--model" => a.model = it.next().expect("--model nerf|occupancy"),
+            "--model" => a.model = it.next().expect("--model NAME"),
             "--steps" => a.steps = it.next().and_then(|s| s.parse().ok()).expect("--steps N"),
             "--warmup" => a.warmup = it.next().and_then(|s| s.parse().ok()).expect("--warmup N"),
             "--reference" => a.reference = true,
@@ -221,8 +240,18 @@ fn main() -> neural_fields::Result<()> {
                 Ok(y.matmul(&c)?.sqr()?.mean_all()?)
             })
         }
+        #[cfg(feature = "occupancy")]
+        name @ ("onet_points" | "onet_voxels" | "onet_image") => onet_step(name, &varmap, &dev)?,
         other => panic!("unknown model {other}"),
     };
+    let params: usize = varmap
+        .data()
+        .lock()
+        .expect("variable map lock")
+        .iter()
+        .filter(|(name, _)| !name.contains("running_"))
+        .map(|(_, v)| v.elem_count())
+        .sum();
     let mut opt = neural_fields::nn::Adam::new(
         varmap.all_vars(),
         ParamsAdamW {
@@ -260,7 +289,7 @@ fn main() -> neural_fields::Result<()> {
         }
     }
     println!(
-        "{{\"impl\": \"candle-{}{}\", \"model\": \"{}\", \"steps\": {}, \"median_s\": {:.5}, \"forward_s\": {:.5}, \"backward_s\": {:.5}, \"update_s\": {:.5}, \"final_loss\": {:.6}}}",
+        "{{\"impl\": \"candle-{}{}\", \"model\": \"{}\", \"steps\": {}, \"median_s\": {:.5}, \"forward_s\": {:.5}, \"backward_s\": {:.5}, \"update_s\": {:.5}, \"final_loss\": {:.6}, \"params\": {}}}",
         if args.reference {
             "reference"
         } else if args.composed {
@@ -281,7 +310,104 @@ fn main() -> neural_fields::Result<()> {
         median(&mut fwd),
         median(&mut bwd),
         median(&mut upd),
-        last
+        last,
+        params
     );
     Ok(())
+}
+
+/// The training step of `examples/shape_prior` for `model` (`onet_points`, `onet_voxels`
+/// or `onet_image`; see the module docs): its encoder and decoder built as the example
+/// builds them (variables `encoder.*`, `decoder.*`), with fixed synthetic shapes.
+#[cfg(feature = "occupancy")]
+fn onet_step(model: &str, varmap: &VarMap, dev: &Device) -> neural_fields::Result<Step<'static>> {
+    use neural_fields::occupancy::{
+        onet_decoder, pointnet_encoder, reconstruction_loss, resnet_encoder, voxel_encoder,
+        NormMode, OnetConfig, PointNetConfig, PointNetEncoder, ResnetEncoder, ResnetEncoderConfig,
+        VoxelEncoder, VoxelEncoderConfig,
+    };
+    /// Shapes per step, query points per shape, code size, cloud size, grid and image side.
+    const B: usize = 16;
+    const Q: usize = 1024;
+    const CODE: usize = 128;
+    const CLOUD: usize = 300;
+    const GRID: usize = 32;
+    const IMAGE: usize = 64;
+    enum Encoder {
+        Points(PointNetEncoder),
+        Voxels(VoxelEncoder),
+        Image(ResnetEncoder),
+    }
+    let (encoder, decoder) = build_seeded(varmap, DType::F32, dev, 0, |vb| {
+        let evb = vb.pp("encoder");
+        let encoder = match model {
+            "onet_points" => Encoder::Points(pointnet_encoder(
+                &PointNetConfig {
+                    latent_dim: CODE,
+                    ..PointNetConfig::default()
+                },
+                evb,
+            )?),
+            "onet_voxels" => Encoder::Voxels(voxel_encoder(
+                &VoxelEncoderConfig {
+                    c_dim: CODE,
+                    ..VoxelEncoderConfig::default()
+                },
+                evb,
+            )?),
+            "onet_image" => Encoder::Image(resnet_encoder(
+                &ResnetEncoderConfig {
+                    c_dim: CODE,
+                    ..ResnetEncoderConfig::default()
+                },
+                evb,
+            )?),
+            other => panic!("unknown model {other}"),
+        };
+        let decoder = onet_decoder(
+            &OnetConfig {
+                hidden: 128,
+                code_dim: CODE,
+                ..OnetConfig::default()
+            },
+            vb.pp("decoder"),
+        )?;
+        Ok((encoder, decoder))
+    })?;
+    decoder.set_mode(NormMode::Train);
+    // The shapes: spheres of radius 0.3 about per-shape centres; labelled query points.
+    let centres = uniform(&[B, 3], -0.15, 0.15, 9, dev).unsqueeze(1)?; // [B, 1, 3]
+    let inside = |p: &Tensor| -> neural_fields::Result<Tensor> {
+        let d2 = p.broadcast_sub(&centres)?.sqr()?.sum(2)?;
+        Ok(d2.le(0.09)?.to_dtype(DType::F32)?)
+    };
+    let points = uniform(&[B, Q, 3], -0.55, 0.55, 10, dev);
+    let labels = inside(&points)?; // [B, Q]
+    let input = match &encoder {
+        Encoder::Points(_) => uniform(&[B, CLOUD, 3], -0.5, 0.5, 11, dev),
+        Encoder::Voxels(_) => {
+            // Cell centres over [−½, ½]³, voxel (i, j, k) at row (i·R + j)·R + k.
+            let c = |i: usize| -0.5 + (i as f32 + 0.5) / GRID as f32;
+            let v: Vec<f32> = (0..GRID * GRID * GRID)
+                .flat_map(|o| [c(o / (GRID * GRID)), c((o / GRID) % GRID), c(o % GRID)])
+                .collect();
+            let cells = Tensor::from_vec(v, (1, GRID * GRID * GRID, 3), dev)?;
+            inside(&cells)?.reshape((B, GRID, GRID, GRID))?
+        }
+        Encoder::Image(_) => uniform(&[B, 3, IMAGE, IMAGE], 0.0, 1.0, 12, dev),
+    };
+    Ok(Box::new(move |_| {
+        // `Model::codes` and `Model::logits` of the example, in training mode.
+        let codes = match &encoder {
+            Encoder::Image(e) => e.forward(&input, true)?,
+            Encoder::Points(e) => {
+                let (b, k) = (input.dim(0)?, input.dim(1)?);
+                let ones = Tensor::ones((b, k, 1), input.dtype(), input.device())?;
+                e.forward_features(&input, &ones)?.0
+            }
+            Encoder::Voxels(e) => e.forward(&input)?,
+        };
+        let logits = decoder.logits_grouped(&points, &codes)?;
+        reconstruction_loss(&logits, &labels)
+    }))
 }

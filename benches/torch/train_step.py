@@ -8,7 +8,12 @@ Threads: torch.set_num_threads(N) with N = --threads (default: the machine's cor
 candle's CPU pool). `--device cuda` builds every tensor on the first GPU and waits for it
 at the end of every timed phase; `--compile` runs the loss through `torch.compile`
 (compiled during the warm-up steps). Prints one JSON line in the format of the Rust
-bench.
+bench, with `params`, the number of trainable values.
+
+The onet_* models (examples/shape_prior's conditional occupancy network) are written
+layer for layer after src/occupancy/{onet,pointnet,voxel,resnet,losses}.rs and
+initialised as candle-nn initialises the crate's layers (candle_init_), not with
+PyTorch's defaults; the random draws differ, the distributions match.
 """
 import argparse
 import json
@@ -137,6 +142,182 @@ class HashGrid(torch.nn.Module):
         return torch.cat(outs, 1)
 
 
+def candle_init_(module):
+    """candle-nn's initialisation, as the crate's layers get it: every linear and
+    convolution weight Kaiming-normal (fan-in, gain sqrt 2), every bias uniform in
+    +-1/sqrt(fan-in); batch norms at gamma = 1, beta = 0 (PyTorch's default already)."""
+    with torch.no_grad():
+        for m in module.modules():
+            if isinstance(m, (torch.nn.Linear, torch.nn.Conv2d, torch.nn.Conv3d)):
+                fan_in = m.weight[0].numel()
+                torch.nn.init.normal_(m.weight, 0.0, math.sqrt(2.0 / fan_in))
+                if m.bias is not None:
+                    bound = 1.0 / math.sqrt(fan_in)
+                    torch.nn.init.uniform_(m.bias, -bound, bound)
+    return module
+
+
+class CBatchNorm(torch.nn.Module):
+    """occupancy::onet's conditional normalisation: gamma(c) * x_hat + beta(c), x_hat the
+    batch norm without affine over all B*Q points (training mode: biased variance in
+    x_hat, running statistics updated with the unbiased one, momentum 0.1, eps 1e-5);
+    gamma, beta linear in the code, starting at gamma = 1, beta = 0."""
+
+    def __init__(self, c_dim, f_dim, momentum=0.1, eps=1e-5):
+        super().__init__()
+        self.gamma = torch.nn.Linear(c_dim, f_dim)
+        self.beta = torch.nn.Linear(c_dim, f_dim)
+        self.register_buffer("running_mean", torch.zeros(f_dim))
+        self.register_buffer("running_var", torch.ones(f_dim))
+        self.momentum, self.eps = momentum, eps
+
+    def reset_(self):
+        with torch.no_grad():
+            for lin, bias in ((self.gamma, 1.0), (self.beta, 0.0)):
+                lin.weight.zero_()
+                lin.bias.fill_(bias)
+
+    def forward(self, x, c):
+        # x: [B, Q, H], c: [B, D]; gamma(c), beta(c) once per shape.
+        b, q, h = x.shape
+        xh = torch.nn.functional.batch_norm(
+            x.reshape(b * q, h), self.running_mean, self.running_var, training=True,
+            momentum=self.momentum, eps=self.eps).reshape(b, q, h)
+        return self.gamma(c)[:, None] * xh + self.beta(c)[:, None]
+
+
+class CBlock(torch.nn.Module):
+    """net + fc1(relu(CN1(fc0(relu(CN0(net, c))), c))), fc1's weight starting at zero."""
+
+    def __init__(self, c_dim, h):
+        super().__init__()
+        self.norm0, self.fc0 = CBatchNorm(c_dim, h), torch.nn.Linear(h, h)
+        self.norm1, self.fc1 = CBatchNorm(c_dim, h), torch.nn.Linear(h, h)
+
+    def forward(self, x, c):
+        a = self.fc0(torch.relu(self.norm0(x, c)))
+        return x + self.fc1(torch.relu(self.norm1(a, c)))
+
+
+class OnetDecoder(torch.nn.Module):
+    """occupancy::onet_decoder (ONet's CBatchNorm decoder) in training mode: fc_p, the
+    blocks, norm_out, ReLU, fc_out; logits [B, Q] of points [B, Q, 3], codes [B, D]."""
+
+    def __init__(self, hidden=128, blocks=5, code_dim=128):
+        super().__init__()
+        self.fc_p = torch.nn.Linear(3, hidden)
+        self.blocks = torch.nn.ModuleList([CBlock(code_dim, hidden) for _ in range(blocks)])
+        self.norm_out = CBatchNorm(code_dim, hidden)
+        self.fc_out = torch.nn.Linear(hidden, 1)
+        candle_init_(self)
+        for m in self.modules():
+            if isinstance(m, CBatchNorm):
+                m.reset_()
+        with torch.no_grad():
+            for blk in self.blocks:
+                blk.fc1.weight.zero_()
+
+    def forward(self, p, c):
+        net = self.fc_p(p)
+        for blk in self.blocks:
+            net = blk(net, c)
+        return self.fc_out(torch.relu(self.norm_out(net, c)))[..., 0]
+
+
+class PointNetEncoder(torch.nn.Module):
+    """occupancy::pointnet_encoder's forward_features: [points, features] through 3 x 128
+    ReLU layers, a max over the points, the mean and log-variance heads."""
+
+    def __init__(self, features=1, hidden=128, layers=3, latent=128):
+        super().__init__()
+        dims = [3 + features] + [hidden] * layers
+        self.layers = torch.nn.ModuleList(
+            [torch.nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:])])
+        self.mean = torch.nn.Linear(hidden, latent)
+        self.logvar = torch.nn.Linear(hidden, latent)
+        candle_init_(self)
+
+    def forward(self, points, features):
+        h = torch.cat([points, features], 2)
+        for lin in self.layers:
+            h = torch.relu(lin(h))
+        g = h.max(1).values
+        return self.mean(g), self.logvar(g)
+
+
+class VoxelEncoder(torch.nn.Module):
+    """occupancy::voxel_encoder at its default width: conv_in (1 -> 16, 3^3, stride 1),
+    then 4 stride-2 3^3 convolutions after a ReLU each (16 -> 32 -> 64 -> 128 -> 256,
+    32^3 -> 2^3), all with padding 1 and a bias; fc of the ReLU of the channel-major
+    flattening (2048 -> c_dim)."""
+
+    def __init__(self, base=16, stages=4, c_dim=128, resolution=32):
+        super().__init__()
+        self.conv_in = torch.nn.Conv3d(1, base, 3, padding=1)
+        self.convs = torch.nn.ModuleList([
+            torch.nn.Conv3d(base << s, base << (s + 1), 3, stride=2, padding=1)
+            for s in range(stages)])
+        side = resolution >> stages
+        self.fc = torch.nn.Linear((base << stages) * side ** 3, c_dim)
+        candle_init_(self)
+
+    def forward(self, x):
+        h = self.conv_in(x[:, None])
+        for conv in self.convs:
+            h = conv(torch.relu(h))
+        return self.fc(torch.relu(h.flatten(1)))
+
+
+class BasicBlock(torch.nn.Module):
+    def __init__(self, cin, cout, stride):
+        super().__init__()
+        bn = lambda c: torch.nn.BatchNorm2d(c, eps=1e-5, momentum=0.1)
+        self.conv1 = torch.nn.Conv2d(cin, cout, 3, stride, 1, bias=False)
+        self.bn1 = bn(cout)
+        self.conv2 = torch.nn.Conv2d(cout, cout, 3, 1, 1, bias=False)
+        self.bn2 = bn(cout)
+        self.downsample = None
+        if stride != 1 or cin != cout:
+            self.downsample = torch.nn.Sequential(
+                torch.nn.Conv2d(cin, cout, 1, stride, 0, bias=False), bn(cout))
+
+    def forward(self, x):
+        h = torch.relu(self.bn1(self.conv1(x)))
+        h = self.bn2(self.conv2(h))
+        return torch.relu(h + (x if self.downsample is None else self.downsample(x)))
+
+
+class ResnetEncoder(torch.nn.Module):
+    """occupancy::resnet_encoder: ResNet-18's layout at width 32 (7x7 stride-2 stem, batch
+    norm, ReLU, 3x3 stride-2 max-pool; stages of 2 basic blocks at 32, 64, 128, 256
+    channels, the first of stages 2-4 with stride 2 and a 1x1 projection shortcut), the
+    mean over the pixels and fc (256 -> c_dim)."""
+
+    def __init__(self, width=32, blocks=(2, 2, 2, 2), c_dim=128):
+        super().__init__()
+        self.conv1 = torch.nn.Conv2d(3, width, 7, 2, 3, bias=False)
+        self.bn1 = torch.nn.BatchNorm2d(width, eps=1e-5, momentum=0.1)
+        layers, cin = [], width
+        for s, count in enumerate(blocks):
+            cout = width << s
+            for i in range(count):
+                layers.append(BasicBlock(cin, cout, 2 if s > 0 and i == 0 else 1))
+                cin = cout
+        self.blocks = torch.nn.Sequential(*layers)
+        self.fc = torch.nn.Linear(cin, c_dim)
+        candle_init_(self)
+
+    def forward(self, x):
+        x = torch.nn.functional.max_pool2d(torch.relu(self.bn1(self.conv1(x))), 3, 2, 1)
+        return self.fc(self.blocks(x).mean((2, 3)))
+
+
+class Onet(torch.nn.Module):
+    def __init__(self, encoder, decoder):
+        super().__init__()
+        self.encoder, self.decoder = encoder, decoder
+
+
 def ray_box(o, d, lo=-0.55, hi=0.55):
     inv = 1.0 / d
     t0, t1 = (lo - o) * inv, (hi - o) * inv
@@ -180,7 +361,8 @@ def composite(sigma, rgb, starts, ends, norms):
 
 def main():
     p = argparse.ArgumentParser()
-    p.add_argument("--model", default="nerf", choices=["nerf", "occupancy", "dvr", "hash_grid"])
+    p.add_argument("--model", default="nerf", choices=[
+        "nerf", "occupancy", "dvr", "hash_grid", "onet_points", "onet_voxels", "onet_image"])
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--threads", type=int, default=os.cpu_count())
@@ -247,6 +429,37 @@ def main():
 
         def forward(step):
             return ((net(points) @ c) ** 2).mean()
+    elif a.model.startswith("onet_"):
+        # examples/shape_prior's step: 16 shapes (spheres of radius 0.3 about centres in
+        # [-0.15, 0.15]^3) x 1024 labelled uniform points, code size 128.
+        b, q, code = 16, 1024, 128
+        centres = (torch.rand(b, 3) * 0.3 - 0.15)[:, None]
+        inside = lambda p: (((p - centres) ** 2).sum(2) <= 0.09).float()
+        points = torch.rand(b, q, 3) * 1.1 - 0.55
+        labels = inside(points)
+        if a.model == "onet_points":
+            encoder = PointNetEncoder(latent=code)
+            x = torch.rand(b, 300, 3) - 0.5
+            # The code is the mean head (features: ones, as the example's).
+            encode = lambda x: encoder(x, torch.ones_like(x[..., :1]))[0]
+        elif a.model == "onet_voxels":
+            encoder = VoxelEncoder(c_dim=code)
+            r = 32
+            c = (torch.arange(r, dtype=torch.float32) + 0.5) / r - 0.5
+            cells = torch.stack(torch.meshgrid(c, c, c, indexing="ij"), -1).reshape(1, -1, 3)
+            x = inside(cells).reshape(b, r, r, r)
+            encode = encoder
+        else:
+            encoder = ResnetEncoder(c_dim=code)
+            x = torch.rand(b, 3, 64, 64)
+            encode = encoder
+        net = Onet(encoder, OnetDecoder(hidden=128, blocks=5, code_dim=code))
+        net.train()
+
+        def forward(step):
+            logits = net.decoder(points, encode(x))
+            return torch.nn.functional.binary_cross_entropy_with_logits(
+                logits, labels, reduction="sum") / logits.shape[0]
     else:
         layers, d = [], 3
         for _ in range(4):
@@ -292,6 +505,7 @@ def main():
         "median_s": round(med(total), 5), "forward_s": round(med(fwd), 5),
         "backward_s": round(med(bwd), 5), "update_s": round(med(upd), 5),
         "final_loss": round(last, 6), "threads": a.threads,
+        "params": sum(p.numel() for p in net.parameters()),
     }))
 
 
