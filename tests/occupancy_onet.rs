@@ -210,3 +210,74 @@ fn grouped_codes_match_codes_repeated_per_point() {
         .logits_grouped(&pts, &codes.narrow(0, 0, 2).unwrap())
         .is_err());
 }
+
+/// A `[D]` code bound by `Conditioned` (a stride-0 broadcast over the points) enters the
+/// decoder once; its logits, spatial gradients and parameter and code gradients equal
+/// those of the same code copied into every row (f32 and f64, both modes).
+#[test]
+fn shared_code_once_equals_code_copied_per_point() {
+    use neural_fields::field::{Conditioned, ImplicitSurface};
+    for dtype in [DType::F32, DType::F64] {
+        let vm = VarMap::new();
+        let net = build_seeded(&vm, dtype, &Device::Cpu, 3, |vb| {
+            onet_decoder(&config(), vb)
+        })
+        .unwrap();
+        let mut rng = SplitMix64::new(9);
+        let n = 33;
+        let pts = rng
+            .uniform_tensor(&[n, 3], -0.5, 0.5, dtype, &Device::Cpu)
+            .unwrap();
+        let code = candle_core::Var::from_tensor(
+            &rng.uniform_tensor(&[8], -1.0, 1.0, dtype, &Device::Cpu)
+                .unwrap(),
+        )
+        .unwrap();
+        let tol = if dtype == DType::F64 { 1e-12 } else { 1e-5 };
+        let diff = |a: &Tensor, c: &Tensor| -> f64 {
+            (a - c)
+                .unwrap()
+                .abs()
+                .unwrap()
+                .max_all()
+                .unwrap()
+                .to_dtype(DType::F64)
+                .unwrap()
+                .to_scalar::<f64>()
+                .unwrap()
+        };
+        for mode in [NormMode::Train, NormMode::Eval] {
+            net.set_mode(mode);
+            let copied = code
+                .unsqueeze(0)
+                .unwrap()
+                .broadcast_as((n, 8))
+                .unwrap()
+                .contiguous()
+                .unwrap();
+            let surface = Conditioned::new(&net, code.as_tensor().clone()).unwrap();
+            let (v_shared, g_shared) = surface.value_and_grad(&pts).unwrap();
+            let (v_copied, g_copied) = net.value_and_grad_with_code(&pts, &copied).unwrap();
+            assert!(diff(&v_shared, &v_copied) < tol, "{mode:?}: values differ");
+            assert!(diff(&g_shared, &g_copied) < tol, "{mode:?}: ∇p differs");
+            let ga = surface
+                .value(&pts)
+                .unwrap()
+                .sum_all()
+                .unwrap()
+                .backward()
+                .unwrap();
+            let gb = net
+                .logits(&pts, &copied)
+                .unwrap()
+                .sum_all()
+                .unwrap()
+                .backward()
+                .unwrap();
+            for v in vm.all_vars().iter().chain([&code]) {
+                let (a, c) = (ga.get(v).unwrap(), gb.get(v).unwrap());
+                assert!(diff(a, c) < 100.0 * tol, "{mode:?}: gradients differ");
+            }
+        }
+    }
+}

@@ -63,30 +63,37 @@ fn run_example(example: &str, args: &[String]) -> Result<String, String> {
     Ok(String::from_utf8_lossy(&out.stdout).into_owned())
 }
 
-/// Minutes of training per run in the curves read from `curve.csv`.
-const CSV_MINUTES: &str = "2";
+/// The flags of the committed-dataset examples' runs read from `curve.csv`: two minutes
+/// of training, no pictures.
+const CSV_FLAGS: &[&str] = &["--minutes", "2", "--pictures", "0"];
 
-/// A training example on the committed dataset, once per variant (`(label, flags)`: the
-/// flags added to `--minutes 2 --pictures 0 --out DIR`, the label naming the series): the
-/// rows of its `curve.csv` (`step, train_seconds, metric…`) as errors against training
-/// seconds, one series per metric column (`(column, name, how it becomes an error)`).
+/// The folder `--out` of one variant's run (a temporary folder named after it).
+fn variant_out(example: &str, label: &str) -> std::path::PathBuf {
+    let dir: String = label
+        .chars()
+        .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
+        .collect();
+    std::env::temp_dir().join(format!("nf_{example}_{dir}"))
+}
+
+/// A training example on `data` (the series' name for its data), once per variant
+/// (`(label, flags)`: the flags added to `common` and `--out DIR`, the label naming the
+/// series): the rows of its `curve.csv` (`step, train_seconds, metric…`) as errors against
+/// training seconds, one series per metric column (`(column, name, how it becomes an
+/// error)`).
 fn csv_curves(
     rows: &mut Vec<Row>,
     notes: &mut Vec<String>,
-    example: &str,
+    (example, data, common): (&str, &str, &[&str]),
     variants: &[(&str, &[&str])],
     metrics: &[(usize, &str, Metric)],
 ) {
     for &(label, flags) in variants {
-        let dir: String = label
-            .chars()
-            .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
-            .collect();
-        let out = std::env::temp_dir().join(format!("nf_{example}_{dir}"));
-        let args: Vec<String> = ["--minutes", CSV_MINUTES]
+        let out = variant_out(example, label);
+        let args: Vec<String> = common
             .iter()
             .chain(flags)
-            .chain(&["--pictures", "0", "--out"])
+            .chain(&["--out"])
             .map(|s| s.to_string())
             .chain([out.to_string_lossy().into_owned()])
             .collect();
@@ -110,7 +117,7 @@ fn csv_curves(
             for &(col, name, metric) in metrics {
                 if let (Some(&step), Some(&seconds), Some(&x)) = (v.first(), v.get(1), v.get(col)) {
                     rows.push(Row {
-                        series: format!("{example} (wuson, {label}): {name}"),
+                        series: format!("{example} ({data}, {label}): {name}"),
                         knob: step,
                         error: metric.error(x),
                         seconds,
@@ -255,7 +262,7 @@ pub fn run(quick: bool) -> Vec<Table> {
     csv_curves(
         &mut rows,
         &mut notes,
-        "nerf",
+        ("nerf", "wuson", CSV_FLAGS),
         &[
             ("grid", &["--sampler", "grid"]),
             ("stratified", &["--sampler", "stratified"]),
@@ -269,7 +276,7 @@ pub fn run(quick: bool) -> Vec<Table> {
     csv_curves(
         &mut rows,
         &mut notes,
-        "dvr_multiview",
+        ("dvr_multiview", "wuson", CSV_FLAGS),
         &[
             ("dvr", &["--model", "dvr"]),
             ("idr", &["--model", "idr"]),
@@ -279,6 +286,35 @@ pub fn run(quick: bool) -> Vec<Table> {
             (2, "held-out 1 − mask IoU", Metric::OneMinus),
             (3, "held-out masked MSE", Metric::MseOfPsnr),
         ],
+    );
+    // The shape prior across a collection of 100 shapes per category, generated (once) by
+    // the first run into its output folder and read by the others.
+    let collection = variant_out("shape_prior", "points").join("collection");
+    let collection = collection.to_string_lossy().into_owned();
+    let with_data =
+        |input: &'static str| -> [&str; 4] { ["--input", input, "--data", &collection] };
+    let (voxels, image) = (with_data("voxels"), with_data("image"));
+    csv_curves(
+        &mut rows,
+        &mut notes,
+        (
+            "shape_prior",
+            "100 shapes per category",
+            &[
+                "--minutes",
+                "3",
+                "--shapes-per-category",
+                "100",
+                "--test-shapes",
+                "32",
+            ],
+        ),
+        &[
+            ("points", &["--input", "points"]),
+            ("voxels", &voxels),
+            ("image", &image),
+        ],
+        &[(2, "1 − test IoU (32 shapes)", Metric::OneMinus)],
     );
     vec![Table {
         title: "End-to-end training: error vs wall time".into(),
@@ -304,7 +340,12 @@ pub fn run(quick: bool) -> Vec<Table> {
              --example dvr_multiview -- --minutes 2` with `--model dvr` (an occupancy network \
              and a texture field), `--model idr` (IDR's SDF and rendering network) and \
              `--encoding hash` (the dvr model on hash grids)), 1 − mask IoU and the MSE inside \
-             the true masks of its `curve.csv` (first 4 test views every 500 steps).{}",
+             the true masks of its `curve.csv` (first 4 test views every 500 steps); 3-D \
+             reconstruction learned across shapes (`cargo run --release --example \
+             shape_prior -- --minutes 3 --shapes-per-category 100 --test-shapes 32 --input \
+             points|voxels|image`, on the collection of seed 0 that the first run generates: \
+             415 training shapes), 1 − IoU on 32 test shapes of its `curve.csv` (every 60 s \
+             of training).{}",
             if notes.is_empty() {
                 String::new()
             } else {

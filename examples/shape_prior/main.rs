@@ -4,7 +4,7 @@
 //! shape and retrieval baselines.
 //!
 //! ```text
-//! cargo run --release --example shape_prior -- --input image|points|voxels \
+//! cargo run --release --example shape_prior -- --input image|points|voxels|latent \
 //!     [--data DIR] [--shapes-per-category N] [--minutes M | --steps N] [--out DIR] [--seed S]
 //! ```
 //!
@@ -20,6 +20,11 @@
 //! random light, random viewpoint; view 0 at test time) through the ResNet-18-layout
 //! encoder; `points`, 300 surface points with Gaussian noise σ = 0.05 through the
 //! PointNet encoder; `voxels`, the 32³ occupancy grid through the 3-D CNN encoder.
+//! `latent` is ONet's variational (generative) model: no observation; the encoder
+//! `q(z | points, labels)` (PointNet with mean and log-variance heads) reads 1 024 of the
+//! shape's own labelled uniform points, training draws `z` from it (reparameterised) and
+//! adds `KL(q ‖ N(0, I))` per shape to the loss, test shapes are decoded from the
+//! posterior mean, and new shapes from codes drawn from `N(0, I)`.
 //!
 //! **Model and training.** Code size 128, ONet's decoder (5 conditional-batch-norm ResNet
 //! blocks, width 128 rather than 256 for two cores). Each step takes `--batch` training
@@ -34,13 +39,16 @@
 //! `mean_shape`, the training voxels' mean occupancy ≥ ½ (one shape for every input);
 //! `retrieval`, the training shape whose code from the trained encoder is nearest (L2);
 //! `retrieval_fixed_feature`, the training shape nearest by a feature nobody trained (the
-//! image at 16 × 16 grey, the voxel grid itself, or the input cloud's 16³ occupancy).
+//! image at 16 × 16 grey, the voxel grid itself, the input cloud's 16³ occupancy, or for
+//! `latent` the 16³ occupancy of its inside-labelled points).
 //!
 //! **Output** (`--out`, default `target/shape_prior`): `metrics.json` (`iou`,
 //! `chamfer_l1`, `normal_consistency`, `fscore`, and `baselines.{mean_shape, retrieval,
 //! retrieval_fixed_feature}` with the same keys; `input`, shape counts, steps, seconds),
 //! `curve.csv` (IoU on 32 test shapes against training seconds, every 60 s of training)
-//! and `test_NN.png`: input | reconstruction | truth for four test shapes. Uses mimalloc
+//! and `test_NN.png`: input | reconstruction | truth for four test shapes; for `latent`
+//! also `kl` (the test posteriors' mean KL) in metrics.json and `samples.png` (eight
+//! shapes decoded from the prior). Uses mimalloc
 //! (see `examples/tiny_nerf.rs`).
 
 #[cfg(test)]
@@ -58,9 +66,9 @@ use neural_fields::field::{Conditioned, ImplicitSurface, Inside, SignedDistance}
 use neural_fields::mesh::Mesh;
 use neural_fields::nn::{adam, build_seeded, Budget, Clock, FiniteGuard};
 use neural_fields::occupancy::{
-    iou, logit_threshold, marching_cubes, mise, onet_decoder, pointnet_encoder,
-    reconstruction_loss, resnet_encoder, surface_metrics, voxel_encoder, Grid, MiseConfig,
-    NormMode, OnetConfig, OnetDecoder, PointNetConfig, PointNetEncoder, ResnetEncoder,
+    iou, kl_standard_normal, logit_threshold, marching_cubes, mise, onet_decoder, pointnet_encoder,
+    reconstruction_loss, reparameterize, resnet_encoder, surface_metrics, voxel_encoder, Grid,
+    MiseConfig, NormMode, OnetConfig, OnetDecoder, PointNetConfig, PointNetEncoder, ResnetEncoder,
     ResnetEncoderConfig, SurfaceMetrics, VoxelEncoder, VoxelEncoderConfig,
 };
 use neural_fields::rng::SplitMix64;
@@ -112,6 +120,14 @@ struct Args {
     /// Score only the first N test shapes (all by default).
     #[arg(long)]
     test_shapes: Option<usize>,
+    /// The split scored as "test": `test`, or `val` to tune settings without looking at
+    /// the test shapes.
+    #[arg(long, value_enum, default_value_t = EvalSplit::Test)]
+    eval_split: EvalSplit,
+    /// Fraction of each shape's training points drawn from its near-surface samples (the
+    /// rest uniform in the cube).
+    #[arg(long, default_value_t = 0.0)]
+    near_fraction: f64,
     /// Output folder.
     #[arg(long, default_value = "target/shape_prior")]
     out: PathBuf,
@@ -121,10 +137,19 @@ struct Args {
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum EvalSplit {
+    Test,
+    Val,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 enum Input {
     Image,
     Points,
     Voxels,
+    /// The variational ONet: no observation; the shape's own labelled points through the
+    /// variational encoder `q(z | points, labels)`, KL to `N(0, I)`.
+    Latent,
 }
 
 impl Input {
@@ -133,6 +158,7 @@ impl Input {
             Input::Image => "image",
             Input::Points => "points",
             Input::Voxels => "voxels",
+            Input::Latent => "latent",
         }
     }
 }
@@ -209,11 +235,12 @@ fn collection(args: &Args, dev: &Device) -> Result<ShapeCollection> {
     Ok(c)
 }
 
-/// The encoders of the three inputs.
+/// The encoders of the four inputs.
 enum Encoder {
     Image(ResnetEncoder),
     Points(PointNetEncoder),
     Voxels(VoxelEncoder),
+    Latent(PointNetEncoder),
 }
 
 struct Model {
@@ -289,20 +316,48 @@ fn inputs(
                 .collect();
             Ok(Tensor::from_vec(data, (b, r, r, r), dev)?)
         }
+        Input::Latent => {
+            // `QUERIES` labelled uniform points per shape: `[B, Q, 4]` (x, y, z, label).
+            let (p, y) = queries(shapes, 0.0, rng, dev)?;
+            Ok(Tensor::cat(&[p, y.unsqueeze(2)?], 2)?)
+        }
     }
 }
 
 impl Model {
-    /// The codes `[B, CODE]` of a batch of inputs.
+    /// The codes `[B, CODE]` of a batch of inputs (the posterior mean for `latent`).
     fn codes(&self, x: &Tensor, train: bool) -> Result<Tensor> {
-        match &self.encoder {
-            Encoder::Image(e) => e.forward(x, train),
+        Ok(self.encode(x, train, None)?.0)
+    }
+
+    /// The codes `[B, CODE]` and, for `latent`, `KL(q(z | x) ‖ N(0, I))` per shape `[B]`;
+    /// with `sample = Some(seed)` the latent codes are drawn from the posterior
+    /// (reparameterised), else they are its mean.
+    fn encode(
+        &self,
+        x: &Tensor,
+        train: bool,
+        sample: Option<u64>,
+    ) -> Result<(Tensor, Option<Tensor>)> {
+        Ok(match &self.encoder {
+            Encoder::Image(e) => (e.forward(x, train)?, None),
             Encoder::Points(e) => {
                 let ones = Tensor::ones((x.dim(0)?, x.dim(1)?, 1), x.dtype(), x.device())?;
-                Ok(e.forward_features(x, &ones)?.0)
+                (e.forward_features(x, &ones)?.0, None)
             }
-            Encoder::Voxels(e) => e.forward(x),
-        }
+            Encoder::Voxels(e) => (e.forward(x)?, None),
+            Encoder::Latent(e) => {
+                let points = x.narrow(2, 0, 3)?.contiguous()?;
+                let labels = x.narrow(2, 3, 1)?.squeeze(2)?.contiguous()?;
+                let (mean, logvar) = e.forward(&points, &labels)?;
+                let kl = kl_standard_normal(&mean, &logvar)?;
+                let z = match sample {
+                    Some(seed) => reparameterize(&mean, &logvar, seed)?,
+                    None => mean,
+                };
+                (z, Some(kl))
+            }
+        })
     }
 
     /// Logits `[B, Q]` at `points: [B, Q, 3]`, one code per shape.
@@ -311,9 +366,11 @@ impl Model {
     }
 }
 
-/// `QUERIES` uniform points of each shape with their labels: `[B, Q, 3]`, `[B, Q]`.
+/// `QUERIES` labelled points of each shape, a fraction `near` of them from its
+/// near-surface samples and the rest uniform: `[B, Q, 3]`, `[B, Q]`.
 fn queries(
     shapes: &[&ShapeSample],
+    near: f64,
     rng: &mut SplitMix64,
     dev: &Device,
 ) -> Result<(Tensor, Tensor)> {
@@ -322,12 +379,17 @@ fn queries(
         Vec::with_capacity(b * QUERIES * 3),
         Vec::with_capacity(b * QUERIES),
     );
+    let n_near = (near * QUERIES as f64).round() as usize;
     for s in shapes {
-        let n = s.uniform_occupancy.len();
-        for _ in 0..QUERIES {
-            let i = rng.below(n as u64) as usize;
-            p.extend_from_slice(&s.uniform_points[3 * i..3 * i + 3]);
-            y.push(f32::from(s.uniform_occupancy[i]));
+        for k in 0..QUERIES {
+            let (points, labels) = if k < n_near && !s.near_occupancy.is_empty() {
+                (&s.near_points, &s.near_occupancy)
+            } else {
+                (&s.uniform_points, &s.uniform_occupancy)
+            };
+            let i = rng.below(labels.len() as u64) as usize;
+            p.extend_from_slice(&points[3 * i..3 * i + 3]);
+            y.push(f32::from(labels[i]));
         }
     }
     Ok((
@@ -503,10 +565,26 @@ fn retrieved_score(found: &ShapeSample, s: &ShapeSample, dev: &Device) -> Result
     Ok(Score::from(iou(&pred, &labels(s))?, &m))
 }
 
-/// Index of the row of `bank: [N, D]` nearest to `q: [D]` (L2).
-fn nearest(bank: &Tensor, q: &Tensor) -> Result<usize> {
-    let d = bank.broadcast_sub(&q.unsqueeze(0)?)?.sqr()?.sum(1)?;
-    Ok(d.argmin(0)?.to_scalar::<u32>()? as usize)
+/// For each row of `queries: [T, D]`, the index of the nearest row of `bank: [N, D]`
+/// (L2), from `‖b‖² − 2 q·b` by one matrix product (the `‖q‖²` term does not change the
+/// argmin).
+fn nearest_rows(bank: &Tensor, queries: &Tensor) -> Result<Vec<usize>> {
+    let b2 = bank.sqr()?.sum(1)?.unsqueeze(0)?;
+    let d = b2.broadcast_sub(&(queries.matmul(&bank.t()?)? * 2.0)?)?;
+    Ok(d.argmin(1)?
+        .to_vec1::<u32>()?
+        .into_iter()
+        .map(|i| i as usize)
+        .collect())
+}
+
+/// The fixed features `[N, D]` of `shapes` (see [`fixed_feature`]).
+fn fixed_features(input: Input, shapes: &[&ShapeSample], dev: &Device) -> Result<Tensor> {
+    let rows = shapes
+        .iter()
+        .map(|s| fixed_feature(input, s, dev))
+        .collect::<Result<Vec<_>>>()?;
+    Ok(Tensor::stack(&rows, 0)?)
 }
 
 /// The fixed feature of a shape's input (no training): the image at 16 × 16 grey, the
@@ -521,9 +599,14 @@ fn fixed_feature(input: Input, s: &ShapeSample, dev: &Device) -> Result<Tensor> 
             .mean(2)?
             .flatten_all()?,
         Input::Voxels => x.flatten_all()?,
-        Input::Points => {
+        Input::Points | Input::Latent => {
+            // Cells holding an input point (`latent`: an inside-labelled one).
+            let width = x.dim(2)?;
             let mut h = vec![0f32; 16 * 16 * 16];
-            for p in x.flatten_all()?.to_vec1::<f32>()?.chunks_exact(3) {
+            for p in x.flatten_all()?.to_vec1::<f32>()?.chunks_exact(width) {
+                if width == 4 && p[3] < 0.5 {
+                    continue;
+                }
                 let c = |v: f32| (((v + 0.5) * 16.0).floor().clamp(0.0, 15.0)) as usize;
                 h[c(p[0]) + 16 * (c(p[1]) + 16 * c(p[2]))] = 1.0;
             }
@@ -537,6 +620,13 @@ fn main() -> Result<()> {
 }
 
 fn run(args: &Args) -> Result<()> {
+    if !(0.0..=1.0).contains(&args.near_fraction) {
+        return Err(Error::InvalidArgument {
+            arg: "near-fraction",
+            expected: "a fraction in [0, 1]".into(),
+            got: args.near_fraction.to_string(),
+        });
+    }
     std::fs::create_dir_all(&args.out).map_err(io_err(&args.out))?;
     let dev = Device::Cpu;
     let data = collection(args, &dev)?;
@@ -544,7 +634,10 @@ fn run(args: &Args) -> Result<()> {
         data.shapes.iter().filter(|s| s.info.split == sp).collect()
     };
     let train = split(Split::Train);
-    let mut test = split(Split::Test);
+    let mut test = split(match args.eval_split {
+        EvalSplit::Test => Split::Test,
+        EvalSplit::Val => Split::Val,
+    });
     if let Some(n) = args.test_shapes {
         test.truncate(n);
     }
@@ -582,6 +675,13 @@ fn run(args: &Args) -> Result<()> {
                 &VoxelEncoderConfig {
                     c_dim: CODE,
                     ..VoxelEncoderConfig::default()
+                },
+                vb.pp("encoder"),
+            )?),
+            Input::Latent => Encoder::Latent(pointnet_encoder(
+                &PointNetConfig {
+                    latent_dim: CODE,
+                    ..PointNetConfig::default()
                 },
                 vb.pp("encoder"),
             )?),
@@ -632,9 +732,14 @@ fn run(args: &Args) -> Result<()> {
             .map(|_| train[rng.below(train.len() as u64) as usize])
             .collect();
         let x = inputs(args.input, &batch, Some(&mut rng), &dev)?;
-        let (q, y) = queries(&batch, &mut rng, &dev)?;
-        let logits = model.logits(&model.codes(&x, true)?, &q)?;
-        let loss = reconstruction_loss(&logits, &y)?;
+        let (q, y) = queries(&batch, args.near_fraction, &mut rng, &dev)?;
+        let (codes, kl) = model.encode(&x, true, Some(args.seed ^ ((step as u64) << 20)))?;
+        let logits = model.logits(&codes, &q)?;
+        let loss = match kl {
+            // The variational ONet's bound: Σ BCE + KL per shape, averaged over shapes.
+            Some(kl) => (reconstruction_loss(&logits, &y)? + kl.mean_all()?)?,
+            None => reconstruction_loss(&logits, &y)?,
+        };
         let grads = loss.backward()?;
         guard.check(step, &loss, (step % 50 == 0).then_some(&grads))?;
         opt.step(&grads)?;
@@ -646,12 +751,10 @@ fn run(args: &Args) -> Result<()> {
     model.decoder.set_mode(NormMode::Eval);
     let test_codes = encode_all(&model, args.input, &test, &dev)?;
     let train_codes = encode_all(&model, args.input, &train, &dev)?;
-    let fixed_bank = Tensor::stack(
-        &train
-            .iter()
-            .map(|s| fixed_feature(args.input, s, &dev))
-            .collect::<Result<Vec<_>>>()?,
-        0,
+    let by_code = nearest_rows(&train_codes, &test_codes)?;
+    let by_feature = nearest_rows(
+        &fixed_features(args.input, &train, &dev)?,
+        &fixed_features(args.input, &test, &dev)?,
     )?;
     let mean_grid = {
         let r = (train[0].voxels.len() as f64).cbrt().round() as usize;
@@ -683,20 +786,34 @@ fn run(args: &Args) -> Result<()> {
             iou(&pred, &labels(s))?,
             &surface_score(&mean_mesh, s, s.info.seed)?,
         ));
-        retr.push(retrieved_score(
-            train[nearest(&train_codes, &code)?],
-            s,
-            &dev,
-        )?);
-        let f = fixed_feature(args.input, s, &dev)?;
-        fixed.push(retrieved_score(train[nearest(&fixed_bank, &f)?], s, &dev)?);
+        retr.push(retrieved_score(train[by_code[i]], s, &dev)?);
+        fixed.push(retrieved_score(train[by_feature[i]], s, &dev)?);
         if i < 4 {
             picture(args, &model, &code, s, i, &dev)?;
         }
     }
+    // The variational run: the test posteriors' mean KL, and shapes from the prior.
+    let kl = if args.input == Input::Latent {
+        let mut sum = 0.0;
+        for chunk in test.chunks(32) {
+            let x = inputs(args.input, chunk, None, &dev)?;
+            if let (_, Some(kl)) = model.encode(&x, false, None)? {
+                sum += kl.sum_all()?.to_scalar::<f32>()? as f64;
+            }
+        }
+        samples(args, &model, &dev)?;
+        format!("\n  \"kl\": {:.4},", sum / test.len() as f64)
+    } else {
+        String::new()
+    };
     let json = format!(
-        "{{\n  \"input\": \"{}\",\n  \"train_shapes\": {},\n  \"test_shapes\": {},\n  \"steps\": {step},\n  \"train_seconds\": {seconds:.1},\n  \"iou\": {},\n  \"chamfer_l1\": {},\n  \"normal_consistency\": {},\n  \"fscore\": {},\n  \"baselines\": {{\n    \"mean_shape\": {},\n    \"retrieval\": {},\n    \"retrieval_fixed_feature\": {}\n  }}\n}}\n",
+        "{{\n  \"input\": \"{}\",{kl}\n  \"eval_split\": \"{}\",\n  \"near_fraction\": {},\n  \"train_shapes\": {},\n  \"test_shapes\": {},\n  \"steps\": {step},\n  \"train_seconds\": {seconds:.1},\n  \"iou\": {},\n  \"chamfer_l1\": {},\n  \"normal_consistency\": {},\n  \"fscore\": {},\n  \"baselines\": {{\n    \"mean_shape\": {},\n    \"retrieval\": {},\n    \"retrieval_fixed_feature\": {}\n  }}\n}}\n",
         args.input.name(),
+        match args.eval_split {
+            EvalSplit::Test => "test",
+            EvalSplit::Val => "val",
+        },
+        args.near_fraction,
         train.len(),
         test.len(),
         mean_of(&net, |s| s.iou),
@@ -729,6 +846,28 @@ fn mean_of(v: &[Score], f: fn(&Score) -> f64) -> f64 {
     v.iter().map(f).sum::<f64>() / v.len().max(1) as f64
 }
 
+/// `samples.png`: eight shapes decoded from codes drawn from the prior `N(0, I)` (the
+/// variational run), seen from one random camera and light, in two rows of four.
+fn samples(args: &Args, model: &Model, dev: &Device) -> Result<()> {
+    // z = 0 + exp(0)·ε with ε ~ N(0, I): draws from the prior.
+    let zero = Tensor::zeros((8, CODE), DType::F32, dev)?;
+    let z = reparameterize(&zero, &zero, args.seed ^ 0x5a3e)?;
+    let mut rng = SplitMix64::new(args.seed ^ 0xca3);
+    let cam = views::random_camera(&mut rng, IMAGE)?;
+    let light = views::random_light(&mut rng, &cam);
+    let mut rows = Vec::with_capacity(2);
+    for r in 0..2 {
+        let row = (0..4)
+            .map(|c| {
+                let surface = Conditioned::new(&model.decoder, z.get(4 * r + c)?)?;
+                views::shade(&surface, &cam, light, dev)
+            })
+            .collect::<Result<Vec<_>>>()?;
+        rows.push(Tensor::cat(&row, 1)?);
+    }
+    write_png(&args.out.join("samples.png"), &Tensor::cat(&rows, 0)?)
+}
+
 /// `test_NN.png`: the input, the network's surface and the true shape from one camera.
 fn picture(
     args: &Args,
@@ -753,6 +892,18 @@ fn picture(
                 .flatten_all()?
                 .to_vec1::<f32>()?;
             views::dots(&x, &cam)?
+        }
+        Input::Latent => {
+            // The encoder's inside-labelled points.
+            let x = inputs(Input::Latent, &[s], None, dev)?
+                .flatten_all()?
+                .to_vec1::<f32>()?;
+            let inside: Vec<f32> = x
+                .chunks_exact(4)
+                .filter(|p| p[3] >= 0.5)
+                .flat_map(|p| p[..3].to_vec())
+                .collect();
+            views::dots(&inside, &cam)?
         }
         Input::Voxels => {
             let r = (s.voxels.len() as f64).cbrt().round() as usize;

@@ -14,7 +14,7 @@ fn shortened_runs_of_every_input_write_the_documented_outputs() {
     let root = std::env::temp_dir().join(format!("shape-prior-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&root);
     let collection = root.join("points").join("collection");
-    for input in ["points", "voxels", "image"] {
+    for input in ["points", "voxels", "image", "latent"] {
         let out = root.join(input);
         let mut argv = vec![
             "shape_prior".to_string(),
@@ -29,12 +29,18 @@ fn shortened_runs_of_every_input_write_the_documented_outputs() {
         if input != "points" {
             argv.push(format!("--data={}", collection.display()));
         }
+        if input == "voxels" {
+            argv.push("--near-fraction=0.5".into());
+        }
         run(&Args::parse_from(argv)).unwrap();
         let m = metrics(&out);
         assert_eq!(m["input"], input);
         assert_eq!(m["steps"], 2);
         assert_eq!(m["train_shapes"], 35, "{m}");
         assert_eq!(m["test_shapes"], 2);
+        assert_eq!(m["eval_split"], "test");
+        let near = if input == "voxels" { 0.5 } else { 0.0 };
+        assert_eq!(m["near_fraction"].as_f64(), Some(near), "{m}");
         for scores in [
             &m,
             &m["baselines"]["mean_shape"],
@@ -51,6 +57,13 @@ fn shortened_runs_of_every_input_write_the_documented_outputs() {
         let curve = std::fs::read_to_string(out.join("curve.csv")).unwrap();
         assert_eq!(curve.lines().next(), Some("step,train_seconds,test_iou"));
         assert!(out.join("test_00.png").is_file() && out.join("test_01.png").is_file());
+        if input == "latent" {
+            assert!(
+                m["kl"].as_f64().is_some_and(|k| k.is_finite() && k >= 0.0),
+                "{m}"
+            );
+            assert!(out.join("samples.png").is_file());
+        }
     }
     // A folder that is not a collection is refused, naming it.
     let err = run(&Args::parse_from([
@@ -62,5 +75,22 @@ fn shortened_runs_of_every_input_write_the_documented_outputs() {
     .unwrap_err()
     .to_string();
     assert!(err.contains("nothing"), "{err}");
+    // A fraction outside [0, 1] is refused naming the flag; so is a split with no shapes
+    // (this collection has no validation shapes).
+    let refused = |flag: &str| -> String {
+        run(&Args::parse_from([
+            "shape_prior",
+            "--steps=1",
+            flag,
+            &format!("--data={}", collection.display()),
+            &format!("--out={}", root.join("bad").display()),
+        ]))
+        .unwrap_err()
+        .to_string()
+    };
+    let err = refused("--near-fraction=1.5");
+    assert!(err.contains("near-fraction"), "{err}");
+    let err = refused("--eval-split=val");
+    assert!(err.contains("data") && err.contains("empty split"), "{err}");
     let _ = std::fs::remove_dir_all(&root);
 }

@@ -318,6 +318,12 @@ impl OnetDecoder {
         codes: &Tensor,
         tangents: bool,
     ) -> Result<(Tensor, Option<Tensor>)> {
+        // A code broadcast from one row (stride 0 along the points, as `Conditioned`
+        // binds a `[D]` code) enters once: γ(c), β(c) from one row, not N equal ones.
+        let n = points.dims().first().copied().unwrap_or(0);
+        if n > 1 && codes.rank() == 2 && codes.dim(0)? == n && codes.stride()[0] == 0 {
+            return self.run_grouped(points, &codes.narrow(0, 0, 1)?, n, tangents);
+        }
         self.run_grouped(points, codes, 1, tangents)
     }
 
