@@ -664,24 +664,23 @@ fn run(args: &Args) -> Result<()> {
                 },
                 vb.pp("encoder"),
             )?),
-            Input::Points => Encoder::Points(pointnet_encoder(
-                &PointNetConfig {
-                    latent_dim: CODE,
-                    ..PointNetConfig::default()
-                },
-                vb.pp("encoder"),
-            )?),
+            Input::Points | Input::Latent => {
+                let e = pointnet_encoder(
+                    &PointNetConfig {
+                        latent_dim: CODE,
+                        ..PointNetConfig::default()
+                    },
+                    vb.pp("encoder"),
+                )?;
+                match args.input {
+                    Input::Points => Encoder::Points(e),
+                    _ => Encoder::Latent(e),
+                }
+            }
             Input::Voxels => Encoder::Voxels(voxel_encoder(
                 &VoxelEncoderConfig {
                     c_dim: CODE,
                     ..VoxelEncoderConfig::default()
-                },
-                vb.pp("encoder"),
-            )?),
-            Input::Latent => Encoder::Latent(pointnet_encoder(
-                &PointNetConfig {
-                    latent_dim: CODE,
-                    ..PointNetConfig::default()
                 },
                 vb.pp("encoder"),
             )?),
