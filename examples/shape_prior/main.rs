@@ -325,11 +325,6 @@ fn inputs(
 }
 
 impl Model {
-    /// The codes `[B, CODE]` of a batch of inputs (the posterior mean for `latent`).
-    fn codes(&self, x: &Tensor, train: bool) -> Result<Tensor> {
-        Ok(self.encode(x, train, None)?.0)
-    }
-
     /// The codes `[B, CODE]` and, for `latent`, `KL(q(z | x) ‖ N(0, I))` per shape `[B]`;
     /// with `sample = Some(seed)` the latent codes are drawn from the posterior
     /// (reparameterised), else they are its mean.
@@ -523,20 +518,24 @@ fn encode_all(
     input: Input,
     shapes: &[&ShapeSample],
     dev: &Device,
-) -> Result<Tensor> {
-    let mut out = Vec::new();
+) -> Result<(Tensor, f64)> {
+    let (mut out, mut kl_sum) = (Vec::new(), 0.0);
     for chunk in shapes.chunks(32) {
         let x = inputs(input, chunk, None, dev)?;
-        out.push(model.codes(&x, false)?.detach());
+        let (codes, kl) = model.encode(&x, false, None)?;
+        if let Some(kl) = kl {
+            kl_sum += f64::from(kl.sum_all()?.to_scalar::<f32>()?);
+        }
+        out.push(codes.detach());
     }
-    Ok(Tensor::cat(&out, 0)?)
+    Ok((Tensor::cat(&out, 0)?, kl_sum))
 }
 
 /// IoU on `n` test shapes (the training curve).
 fn curve_iou(model: &Model, input: Input, test: &[&ShapeSample], dev: &Device) -> Result<f64> {
     model.decoder.set_mode(NormMode::Eval);
     let shapes = &test[..test.len().min(CURVE_SHAPES)];
-    let codes = encode_all(model, input, shapes, dev)?;
+    let (codes, _) = encode_all(model, input, shapes, dev)?;
     let mut sum = 0.0;
     for (i, s) in shapes.iter().enumerate() {
         let surface = Conditioned::new(&model.decoder, codes.get(i)?)?;
@@ -748,8 +747,8 @@ fn run(args: &Args) -> Result<()> {
 
     // Evaluation and baselines.
     model.decoder.set_mode(NormMode::Eval);
-    let test_codes = encode_all(&model, args.input, &test, &dev)?;
-    let train_codes = encode_all(&model, args.input, &train, &dev)?;
+    let (test_codes, test_kl) = encode_all(&model, args.input, &test, &dev)?;
+    let (train_codes, _) = encode_all(&model, args.input, &train, &dev)?;
     let by_code = nearest_rows(&train_codes, &test_codes)?;
     let by_feature = nearest_rows(
         &fixed_features(args.input, &train, &dev)?,
@@ -793,15 +792,8 @@ fn run(args: &Args) -> Result<()> {
     }
     // The variational run: the test posteriors' mean KL, and shapes from the prior.
     let kl = if args.input == Input::Latent {
-        let mut sum = 0.0;
-        for chunk in test.chunks(32) {
-            let x = inputs(args.input, chunk, None, &dev)?;
-            if let (_, Some(kl)) = model.encode(&x, false, None)? {
-                sum += kl.sum_all()?.to_scalar::<f32>()? as f64;
-            }
-        }
         samples(args, &model, &dev)?;
-        format!("\n  \"kl\": {:.4},", sum / test.len() as f64)
+        format!("\n  \"kl\": {:.4},", test_kl / test.len() as f64)
     } else {
         String::new()
     };
