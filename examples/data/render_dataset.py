@@ -15,6 +15,20 @@ Writes
   <dtu-out>/cameras.npz                     world_mat_i / scale_mat_i (numpy.savez)
   <dtu-out>/points.json                     the same 8 points in the DTU world frame
 
+Options for other scenes (the defaults reproduce the committed wuson files byte
+for byte; examples/data/render_suite.sh renders the scene suite with them):
+  --material bands|fine|glossy   the procedural material: bands (default), the same
+                                 bands with a fine checker and noise, or a glossy one
+  --object-radius R              radius of the normalised mesh's bounding sphere
+                                 (default 1; the cameras stay at radius 4)
+  --no-dtu                       skip the DTU copy
+Meshes: .ply, .stl, .obj, and .dae (Collada) and binary .fbx, whose importers
+turn the file to Blender's Z-up themselves (pass --up-axis Z for those, and for
+.obj, which is imported as Y-up).  Imported cameras, lights, armatures and empties
+are dropped; the meshes are baked in their posed, modified world shape and joined.
+(Blender 3.4's X3D/VRML importer fails under Python 3.11 and its glTF importer
+needs numpy inside Blender, so .x3d/.wrl/.gltf/.glb are not offered.)
+
 The DTU part needs numpy.  If Blender's own Python has no numpy, this same
 file is run a second time by an ordinary Python interpreter (``--python``,
 default ``python3``) in ``--dtu-only`` mode, reading what the Blender stage
@@ -64,6 +78,14 @@ DTU_OFFSET = (30.0, -20.0, 500.0)
 DTU_SPHERE = 1.1  # unit sphere of the normalised frame = radius 1.1 in Blender units
 N_POINTS = 8
 
+MATERIALS = ("bands", "fine", "glossy")
+FINE_CHECKER_SCALE = 14.0
+FINE_NOISE_SCALE = 12.0
+GLOSSY_ROUGHNESS = 0.2
+GLOSSY_SPECULAR = 0.7
+GLOSSY_METALLIC = 0.2
+MAX_OBJECT_RADIUS = 3.0  # the cameras sit at CAMERA_RADIUS = 4, clip_start 0.1
+
 
 def set_resolution(n):
     """Render n x n images (the cameras' field of view is unchanged)."""
@@ -94,7 +116,30 @@ def parse_args():
                    help="Cycles' pixel filter width in pixels (default: Blender's, a "
                         "Blackman-Harris filter 1.5 pixels wide; 0.01, Blender's least, "
                         "samples each pixel's centre)")
+    p.add_argument("--material", choices=MATERIALS, default=None,
+                   help="procedural material: bands (default: the committed dataset's), fine "
+                        "(the bands with a checker of scale 14 and value noise) or glossy (the "
+                        "bands, roughness 0.2, specular 0.7, metallic 0.2); recorded in "
+                        "scene.json when given")
+    p.add_argument("--object-radius", type=float, default=None,
+                   help="radius of the normalised mesh's bounding sphere in Blender units "
+                        "(default 1; cameras at radius %g, field of view unchanged: about 1.4 "
+                        "fills the frame); recorded in scene.json when given" % CAMERA_RADIUS)
+    p.add_argument("--no-dtu", action="store_true",
+                   help="do not build the DTU copy")
     a = p.parse_args(argv)
+    if a.object_radius is not None and not (
+            math.isfinite(a.object_radius) and 0.0 < a.object_radius <= MAX_OBJECT_RADIUS):
+        raise SystemExit("--object-radius must lie in (0, %g] (the cameras sit at radius %g), "
+                         "got %r" % (MAX_OBJECT_RADIUS, CAMERA_RADIUS, a.object_radius))
+    if (a.object_radius is not None and a.object_radius > DTU_SPHERE and not a.no_dtu
+            and not a.dtu_only):
+        raise SystemExit("--object-radius %g > %g: the DTU copy's scale_mat would not hold the "
+                         "object in its unit sphere; pass --no-dtu" % (a.object_radius, DTU_SPHERE))
+    if a.no_dtu and a.dtu_only:
+        raise SystemExit("--no-dtu and --dtu-only contradict each other")
+    if a.no_dtu and a.dtu_out is not None:
+        raise SystemExit("--no-dtu and --dtu-out contradict each other")
     if a.resolution < 1:
         raise SystemExit("--resolution must be at least 1")
     if a.samples < 1:
@@ -304,8 +349,13 @@ def reset_scene():
     return bpy.context.scene
 
 
+SCENE_FORMATS = (".dae", ".fbx")
+
+
 def import_mesh(path):
     ext = os.path.splitext(path)[1].lower()
+    if not os.path.isfile(path):
+        raise SystemExit("no such mesh file: %s" % path)
     before = set(bpy.data.objects)
     if ext == ".ply":
         bpy.ops.import_mesh.ply(filepath=path)
@@ -313,8 +363,11 @@ def import_mesh(path):
         bpy.ops.import_mesh.stl(filepath=path)
     elif ext == ".obj":
         bpy.ops.import_scene.obj(filepath=path, axis_forward="-Z", axis_up="Y")
+    elif ext in SCENE_FORMATS:
+        return import_scene_file(path, ext, before)
     else:
-        raise SystemExit("unsupported mesh format: %s" % path)
+        raise SystemExit("unsupported mesh format: %s (.ply, .stl, .obj, %s)"
+                         % (path, ", ".join(SCENE_FORMATS)))
     objs = [o for o in bpy.data.objects if o not in before and o.type == "MESH"]
     if not objs:
         raise SystemExit("no mesh imported from %s" % path)
@@ -327,6 +380,46 @@ def import_mesh(path):
     obj = objs[0]
     obj.data.transform(obj.matrix_world)  # bake any importer transform
     obj.matrix_world.identity()
+    return obj
+
+
+def import_scene_file(path, ext, before):
+    """Import a scene format (Collada, binary FBX) and bake every imported mesh object,
+    as evaluated (parents, armature pose, modifiers, instancing applied), into one new
+    mesh object in world coordinates; every other imported object (cameras, lights,
+    armatures, empties) is removed so that only this script's camera and lights remain."""
+    import bmesh
+
+    try:
+        if ext == ".dae":
+            bpy.ops.wm.collada_import(filepath=path)
+        else:
+            bpy.ops.import_scene.fbx(filepath=path)
+    except RuntimeError as e:
+        raise SystemExit("cannot import %s: %s" % (path, e))
+    new = [o for o in bpy.data.objects if o not in before]
+    meshes = [o for o in new if o.type == "MESH"]
+    if not meshes:
+        raise SystemExit("no mesh imported from %s" % path)
+    dg = bpy.context.evaluated_depsgraph_get()
+    bm = bmesh.new()
+    for o in sorted(meshes, key=lambda o: o.name):
+        me = bpy.data.meshes.new_from_object(o.evaluated_get(dg))
+        me.transform(o.matrix_world)
+        bm.from_mesh(me)  # appends to what bm holds
+        bpy.data.meshes.remove(me)
+    for o in new:
+        bpy.data.objects.remove(o, do_unlink=True)
+    me = bpy.data.meshes.new(os.path.splitext(os.path.basename(path))[0])
+    bm.to_mesh(me)
+    bm.free()
+    me.use_auto_smooth = False  # ignore any custom split normals from the file
+    for p in me.polygons:
+        p.material_index = 0
+    if not me.polygons:
+        raise SystemExit("no faces imported from %s" % path)
+    obj = bpy.data.objects.new(me.name, me)
+    bpy.context.scene.collection.objects.link(obj)
     return obj
 
 
@@ -377,7 +470,13 @@ def normalise_mesh(obj, up_axis):
     }
 
 
-def make_material(obj):
+def make_material(obj, preset="bands"):
+    """The procedural material.  bands: the committed dataset's; fine: the same bands
+    with a checker of scale 14 (cells about 2.5 px wide at object radius 1) whose
+    colours are modulated by value noise; glossy: the bands (checker scale 3) on a
+    low-roughness, slightly metallic principled BSDF (view-dependent highlights)."""
+    if preset not in MATERIALS:
+        raise SystemExit("unknown material %r (%s)" % (preset, ", ".join(MATERIALS)))
     mat = bpy.data.materials.new("ProceduralBands")
     mat.use_nodes = True
     nt = mat.node_tree
@@ -422,6 +521,12 @@ def make_material(obj):
     dark.inputs["Color2"].default_value = (0.3, 0.3, 0.3, 1.0)
     checker = nodes.new("ShaderNodeTexChecker")
     checker.inputs["Scale"].default_value = 3.0
+    if preset == "fine":
+        checker.inputs["Scale"].default_value = FINE_CHECKER_SCALE
+    elif preset == "glossy":
+        bsdf.inputs["Roughness"].default_value = GLOSSY_ROUGHNESS
+        bsdf.inputs["Specular"].default_value = GLOSSY_SPECULAR
+        bsdf.inputs["Metallic"].default_value = GLOSSY_METALLIC
 
     links.new(texco.outputs["Object"], sep.inputs["Vector"])
     links.new(sep.outputs["Y"], tilt.inputs[0])
@@ -432,10 +537,51 @@ def make_material(obj):
     links.new(texco.outputs["Object"], checker.inputs["Vector"])
     links.new(ramp.outputs["Color"], checker.inputs["Color1"])
     links.new(dark.outputs["Color"], checker.inputs["Color2"])
-    links.new(checker.outputs["Color"], bsdf.inputs["Base Color"])
+    if preset == "fine":
+        # value noise on object coordinates: colour * (0.6 + 0.8 * noise), noise in ~[0, 1]
+        noise = nodes.new("ShaderNodeTexNoise")
+        noise.noise_dimensions = "3D"
+        noise.inputs["Scale"].default_value = FINE_NOISE_SCALE
+        noise.inputs["Detail"].default_value = 2.0
+        noise.inputs["Roughness"].default_value = 0.5
+        noise.inputs["Distortion"].default_value = 0.0
+        nmap = nodes.new("ShaderNodeMath")
+        nmap.operation = "MULTIPLY_ADD"
+        nmap.inputs[1].default_value = 0.8
+        nmap.inputs[2].default_value = 0.6
+        shade = nodes.new("ShaderNodeMixRGB")
+        shade.blend_type = "MULTIPLY"
+        shade.inputs["Fac"].default_value = 1.0
+        links.new(texco.outputs["Object"], noise.inputs["Vector"])
+        links.new(noise.outputs["Fac"], nmap.inputs[0])
+        links.new(checker.outputs["Color"], shade.inputs["Color1"])
+        links.new(nmap.outputs["Value"], shade.inputs["Color2"])
+        links.new(shade.outputs["Color"], bsdf.inputs["Base Color"])
+    else:
+        links.new(checker.outputs["Color"], bsdf.inputs["Base Color"])
     links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
     obj.data.materials.clear()
     obj.data.materials.append(mat)
+    if preset == "fine":
+        return {
+            "bsdf": "Principled, roughness 0.9, specular 0.1",
+            "base_color": "checker(object coords, scale %g) of band colour and 0.3 * band colour, "
+                          "times 0.6 + 0.8 * noise (Blender noise texture on object coords, "
+                          "scale %g, detail 2, roughness 0.5, distortion 0); band colour = "
+                          "constant colour ramp of t = 0.5 + 0.5 * z + 0.1 * y (object "
+                          "coordinates) with stops at %s"
+                          % (FINE_CHECKER_SCALE, FINE_NOISE_SCALE, band_stops),
+            "band_colours_linear": [list(c[:3]) for c in band_colours],
+        }
+    if preset == "glossy":
+        return {
+            "bsdf": "Principled, roughness %g, specular %g, metallic %g"
+                    % (GLOSSY_ROUGHNESS, GLOSSY_SPECULAR, GLOSSY_METALLIC),
+            "base_color": "checker(object coords, scale 3) of band colour and 0.3 * band colour; "
+                          "band colour = constant colour ramp of t = 0.5 + 0.5 * z + 0.1 * y "
+                          "(object coordinates) with stops at %s" % (band_stops,),
+            "band_colours_linear": [list(c[:3]) for c in band_colours],
+        }
     return {
         "bsdf": "Principled, roughness 0.9, specular 0.1",
         "base_color": "checker(object coords, scale 3) of band colour and 0.3 * band colour; "
@@ -578,7 +724,15 @@ def blender_stage(args):
     scene = reset_scene()
     obj = import_mesh(args.mesh)
     norm = normalise_mesh(obj, args.up_axis)
-    mat_info = make_material(obj)
+    if args.object_radius is not None:
+        # The object's matrix_world scales the unit-sphere mesh; the material reads object
+        # coordinates, so the texture scales with the object.
+        r = args.object_radius
+        obj.scale = (r, r, r)
+        bpy.context.view_layer.update()
+    mat_info = make_material(obj, args.material or "bands")
+    if args.material is not None:
+        mat_info = dict([("preset", args.material)] + list(mat_info.items()))
     light_info = setup_lighting(scene)
     render_info = setup_render(scene, args.seed, args.samples, args.filter_width)
     if args.filter_width is not None:
@@ -634,7 +788,9 @@ def blender_stage(args):
                        "with bpy_extras.object_utils.world_to_camera_view",
         "width": WIDTH,
         "height": HEIGHT,
-        "world_frame": "Blender world (Z up) after the normalising transform in scene.json",
+        "world_frame": "Blender world (Z up) after the normalising transform in scene.json"
+                       + ("" if args.object_radius is None else
+                          " and the object_radius scale (%g)" % args.object_radius),
         "pixel_convention": "x = column, y = row, continuous, origin at the top-left corner of the "
                             "top-left pixel; the centre of pixel (u, v) is (u + 0.5, v + 0.5); "
                             "x = ndc.x * width, y = (1 - ndc.y) * height",
@@ -654,6 +810,16 @@ def blender_stage(args):
         "mesh_up_axis": args.up_axis,
         "seed": args.seed,
         "normalisation": norm,
+    }
+    if args.object_radius is not None:
+        scene_doc["object_radius"] = args.object_radius
+        scene_doc["object_matrix_world"] = [list(map(float, row)) for row in obj.matrix_world]
+        scene_doc["object_note"] = ("the mesh is normalised to the unit bounding sphere "
+                                    "(normalisation.matrix) and the object's matrix_world "
+                                    "scales it by object_radius: X_world = object_radius * "
+                                    "(normalisation.matrix @ [X_file, 1]); the material reads "
+                                    "the unit-sphere object coordinates")
+    scene_doc.update({
         "material": mat_info,
         "lighting": light_info,
         "render": render_info,
@@ -663,7 +829,7 @@ def blender_stage(args):
                                 "deg, Python random.Random(seed), train drawn before val",
                    "test": "elevation 30 deg, azimuth 360 * i / 20 deg",
                    "orientation": "looks at the origin, camera up towards +Z"},
-    }
+    })
     with open(os.path.join(args.out, "scene.json"), "w") as f:
         json.dump(scene_doc, f, indent=1)
         f.write("\n")
@@ -671,6 +837,8 @@ def blender_stage(args):
     print("rendered %d frames in %.1f s (total %.1f s)"
           % (n_rendered, t_render, time.perf_counter() - t_start))
 
+    if args.no_dtu:
+        return
     try:
         import numpy  # noqa: F401
         have_numpy = True
