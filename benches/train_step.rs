@@ -9,7 +9,7 @@
 //! * `nerf`: 1024 rays × 64 jittered stratified samples in [2, 6], NeRF's frequency
 //!   encodings (L = 10 positions, L = 4 directions, input included), a 4 × 64 ReLU trunk
 //!   with a 64-wide feature, a 64-wide view-dependent colour head, trunc-exp density
-//!   (shift −1), compositing, MSE, Adam (lr 1e-3): [`neural_fields::volume::Nerf::color_loss`],
+//!   (shift −3), compositing, MSE, Adam (lr 1e-3): [`neural_fields::volume::Nerf::color_loss`],
 //!   the whole loss as one fused op; `--composed` forms it from `Nerf::radiance`, the
 //!   fused compositing op and candle's MSE, as before that op existed.
 //! * `occupancy`: 2¹⁶ points, a 4 × 64 ReLU occupancy MLP on raw coordinates, binary

@@ -1,5 +1,4 @@
-//! The crate tour's NeRF step: a whole trainer on the public API. `cargo run --release --example
-//! nerf_tour` trains on the committed scene, renders every test view, prints the mean PSNR.
+//! The crate tour's NeRF: trains at the library's defaults, prints the test PSNR, writes `--out`.
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{Optimizer, VarMap};
 use clap::Parser;
@@ -7,33 +6,35 @@ use neural_fields::data::{load, load_eval, psnr, write_png, LoadConfig, RaySampl
 use neural_fields::nn::{adam, build_seeded};
 use neural_fields::volume::{composite, nerf, render_image, CompositeConfig, GridConfig};
 use neural_fields::volume::{GridMarchConfig, ImageConfig, NerfConfig, OccupancyGrid};
-
 #[derive(Parser)]
 struct Args {
     #[arg(long, default_value = "examples/data/wuson")]
     data: std::path::PathBuf,
-    #[arg(long, default_value_t = 300)]
-    steps: usize,
-    #[arg(long, default_value = "target/nerf_tour")]
+    #[arg(long, default_value_t = 1.0)]
+    minutes: f64,
+    #[arg(long, default_value = "target/nerf_tour.png")]
     out: std::path::PathBuf,
 }
-
 fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let (args, dev, dt) = (Args::parse(), Device::Cpu, DType::F32);
+    let (args, dev, dt, varmap) = (Args::parse(), Device::Cpu, DType::F32, VarMap::new());
     let data = LoadConfig::default(); // white backgrounds; paths inside the dataset folder
     let (train, (test, _)) = (load(&args.data, &data)?, load_eval(&args.data, &data)?);
-    let varmap = VarMap::new();
     let net = build_seeded(&varmap, dt, &dev, 0, |vb| nerf(&NerfConfig::default(), vb))?;
-    let mut adam = adam(&varmap, 1e-3)?;
-    let mut cells = GridConfig::default();
-    (cells.aabb, cells.resolution, cells.decay) = ([-1.5, -1.5, -1.5, 1.5, 1.5, 1.5], 64, 0.7);
+    let mut adam = adam(&varmap, 5e-3)?; // decays to 5e-4 over the run
+    let aabb = train.visual_hull(0.05)?.ok_or("the views have no alpha")?; // the hull + 5 %
+    let side = (0..3).map(|a| aabb[a + 3] - aabb[a]).fold(0.0, f64::max);
+    let (mut cells, mut march) = (GridConfig::default(), GridMarchConfig::default());
+    (cells.aabb, march.step_size) = (aabb, side / 256.0); // a march at half a cell
     let mut grid = OccupancyGrid::new(cells)?;
-    let mut march = GridMarchConfig::default(); // nerfacc's: stop rays at transmittance 1e-4
-    (march.step_size, march.jitter) = (0.04, None); // ~130 steps across the box
     let mut density = |p: &Tensor| net.density(p); // updates the grid, drops hidden samples
     let mut rays = RaySampler::new(&train, 0, &dev, dt)?;
-    let mut config = CompositeConfig::default();
-    for step in 0..args.steps {
+    let (mut config, clock) = (CompositeConfig::default(), std::time::Instant::now());
+    let budget = || clock.elapsed().as_secs_f64() / 60.0 / args.minutes; // its fraction spent
+    for step in (0..).take_while(|_| budget() < 1.0) {
+        let cells = grid.occupied();
+        let occupied = cells.iter().filter(|&&o| o).count() as f64 / cells.len() as f64;
+        (step % 100 == 0).then(|| println!("step {step}: grid {occupied:.3} occupied"));
+        adam.set_learning_rate(5e-3 * 0.1f64.powf(budget())); // to 5e-4
         grid.update(step, 16, &dev, dt, &mut density)?;
         let batch = rays.pixels(1024)?;
         march.jitter = Some(step as u64);
@@ -53,8 +54,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         total += psnr(&color, &view.rgb([1.0; 3], &dev, dt)?, None)?;
         views.push(color);
     }
-    std::fs::create_dir_all(&args.out)?; // one picture: every test view, side by side
-    write_png(&args.out.join("nerf_tour.png"), &Tensor::cat(&views, 1)?)?;
+    write_png(&args.out, &Tensor::cat(&views, 1)?)?; // every test view, side by side
     println!("test PSNR {:.2} dB", total / test.views().len() as f64);
     Ok(())
 }

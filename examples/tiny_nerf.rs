@@ -244,9 +244,8 @@ fn train(
         ..ParamsAdamW::default()
     };
     let mut opt = AdamW::new(varmap.all_vars(), params)?;
-    // nerfacc's decay (0.95 per update) suits its 20 000-step schedules: a cell that saw
-    // the initial density (≈ e⁻¹) needs ~70 updates to fall below the threshold. This
-    // run is 50× shorter, so the grid forgets faster and updates more often.
+    // The grid's default decay (0.8 per update) suits runs of thousands of steps; this
+    // one is a few hundred, so the grid forgets faster and updates more often.
     let mut grid = OccupancyGrid::new(GridConfig {
         aabb: [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0],
         resolution: 32,

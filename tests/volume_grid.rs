@@ -301,9 +301,10 @@ fn cells_of_a_field_that_becomes_empty_are_emptied_by_the_ema() {
     );
     assert!(grid.is_occupied([0.0, 0.0, 0.0]));
     assert!(!grid.is_occupied([0.9, 0.9, 0.9]));
-    // No cell saw more than the field's maximum, BALL_D at the centre (the estimates
-    // reach about 0.9 of it: a jittered point near the centre).
-    let dmax = BALL_D;
+    // No cell saw more than the field's maximum opacity, BALL_D times the cell's edge
+    // 2/16 at the centre (the estimates reach about 0.9 of it: a jittered point near the
+    // centre).
+    let dmax = BALL_D * 2.0 / 16.0;
     // The densest cell drops below the floor after ⌈ln(dmax/floor)/ln(1/decay)⌉ updates.
     let bound = ((dmax / cfg.floor).ln() / (1.0 / cfg.decay).ln()).ceil() as usize;
     let empty = |p: &Tensor| Ok(p.sum(1)?.zeros_like()?);
@@ -328,6 +329,42 @@ fn cells_of_a_field_that_becomes_empty_are_emptied_by_the_ema() {
         "emptied after {k}, bound {bound}"
     );
     assert!(!grid.is_occupied([0.0, 0.0, 0.0]));
+}
+
+/// The grid compared its threshold with the density σ itself, so that nerfacc's 0.01
+/// (an opacity, σ·Δt) kept almost every cell of a trained field occupied and a user's
+/// loop at the defaults never pruned. A constant density σ is occupied at the defaults
+/// iff σ·Δ > 0.01, with Δ the cell's edge (the mean clamp cannot bite: every cell equals
+/// the mean), on every level.
+#[test]
+fn the_threshold_is_an_opacity_per_cell_not_a_density() {
+    let dev = Device::Cpu;
+    for (levels, res, sigma, occupied) in [
+        (1, 16, 0.1, true),   // Δ = 1/8: σ·Δ = 0.0125
+        (1, 16, 0.07, false), // 0.00875 (occupied under the old rule: σ > 0.01)
+        (1, 32, 0.1, false),  // Δ = 1/16: 0.00625
+        (1, 32, 0.2, true),   // 0.0125
+    ] {
+        for dt in [DType::F32, DType::F64] {
+            let mut grid = grid_new([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0], res, levels).unwrap();
+            let field = |p: &Tensor| Ok((p.sum(1)?.zeros_like()? + sigma)?);
+            grid.update(0, 1, &dev, dt, field).unwrap();
+            let f = occupied_fraction(&grid);
+            let want = if occupied { 1.0 } else { 0.0 };
+            assert_eq!(
+                f, want,
+                "res {res}, σ = {sigma}, {dt:?}: occupied fraction {f}"
+            );
+        }
+    }
+    // Two levels: the coarse level's cells are twice as wide, so σ = 0.06 is empty in
+    // the fine level (σ·Δ = 0.0075) and occupied in the coarse one (0.015), up to the
+    // dilation of the coarse level's occupied cells (same level only).
+    let mut grid = grid_new([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0], 16, 2).unwrap();
+    let field = |p: &Tensor| Ok((p.sum(1)?.zeros_like()? + 0.06)?);
+    grid.update(0, 1, &dev, DType::F64, field).unwrap();
+    assert!(!grid.is_occupied([0.0, 0.0, 0.0]));
+    assert!(grid.is_occupied([1.5, 1.5, 1.5]));
 }
 
 #[test]

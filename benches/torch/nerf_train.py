@@ -30,7 +30,7 @@ Evaluation (not timed): every test view on white, the same samples at the bins' 
 Models:
   nerf: train_step.Nerf, the crate's NerfConfig::default() (src/volume/nerf_model.rs):
         frequency encoding L = 10 of the world position, 4 x 64 ReLU trunk to 1 + 64,
-        density trunc_exp(raw - 1), colour head on the L = 4 encoding of the unit
+        density trunc_exp(raw - 3), colour head on the L = 4 encoding of the unit
         direction + the 64 features -> 64 -> 3, sigmoid.
   hash: examples/nerf/main.rs's nerf_config for --encoding hash: train_step.HashGrid over
         the box (each axis mapped to [-1, 1] first, as the crate's per-axis lo/hi) with
@@ -171,7 +171,7 @@ class HashNerf(torch.nn.Module):
     def forward(self, pos, dirs):
         x = (pos - self.lo) / (self.hi - self.lo) * 2.0 - 1.0
         out = self.trunk(self.grid(x))
-        sigma = TruncExp.apply(out[:, 0] - 1.0)
+        sigma = TruncExp.apply(out[:, 0] - 3.0)
         unit = dirs / dirs.norm(dim=1, keepdim=True).clamp_min(1e-12)
         rgb = torch.sigmoid(self.head(torch.cat([freq_encode(unit, 4), out[:, 1:]], 1)))
         return sigma, rgb

@@ -62,7 +62,7 @@ class Nerf(torch.nn.Module):
 
     def forward(self, pos, dirs):
         out = self.trunk(freq_encode(pos, 10))
-        sigma = TruncExp.apply(out[:, 0] - 1.0)
+        sigma = TruncExp.apply(out[:, 0] - 3.0)
         unit = dirs / dirs.norm(dim=1, keepdim=True).clamp_min(1e-12)
         rgb = torch.sigmoid(self.head(torch.cat([freq_encode(unit, 4), out[:, 1:]], 1)))
         return sigma, rgb

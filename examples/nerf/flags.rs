@@ -110,7 +110,7 @@ pub(super) struct Args {
     /// Weights to start from (a previous run's weights.safetensors).
     #[arg(long)]
     pub(super) resume: Option<PathBuf>,
-    /// Learning rate, in (0, 0.1] (default 1e-3, 1e-2 with --encoding hash).
+    /// Learning rate, in (0, 0.1] (default 5e-3; 1e-2 with --encoding hash, 1e-3 with ipe).
     #[arg(long, value_parser = learning_rate)]
     pub(super) lr: Option<f64>,
     #[arg(long, value_enum, default_value = "pe")]

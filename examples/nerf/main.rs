@@ -288,7 +288,8 @@ fn run(args: &Args) -> Result<()> {
         varmap.load(path)?;
     }
     let lr0 = args.lr.unwrap_or(match args.encoding {
-        Encoding::Pe | Encoding::Ipe => 1e-3,
+        Encoding::Pe => 5e-3,
+        Encoding::Ipe => 1e-3,
         Encoding::Hash => 1e-2,
     });
     let mut opt = adam(&varmap, lr0)?;

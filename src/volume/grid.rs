@@ -17,28 +17,31 @@ use rayon::prelude::*;
 pub struct GridConfig {
     /// The level-0 box `[x₀, y₀, z₀, x₁, y₁, z₁]`. Default `[−1, −1, −1, 1, 1, 1]`.
     pub aabb: [f64; 6],
-    /// Cells per axis and level. Default 128 (nerfacc's).
+    /// Cells per axis and level. Default 64: nerfacc's 128 is for the GPU; on a CPU an
+    /// update of 128³ cells (about a million density evaluations every 16 steps after
+    /// warm-up) outweighs the training step, and at the library's defaults 64³ reached
+    /// 3.1–6.7 dB more in two minutes on every scene of the tuning set
+    /// (docs/benchmarks.md, "Defaults across the scene suite").
     pub resolution: usize,
     /// Number of levels; level `l` covers the box scaled by `2^l` about its centre.
     /// Default 1.
     pub levels: usize,
-    /// Value of the update's `sigma_fn` above which a cell is occupied (before the mean
-    /// clamp). Default 0.01, nerfacc's `occ_thre`, which nerfacc compares with what its
-    /// `occ_eval_fn` returns: σ·Δt, the opacity of one march step. For a `sigma_fn` that
-    /// returns the density σ itself, 0.01 keeps a cell occupied down to a density 1/Δt
-    /// times lower (74× at Δt = 0.0135), and a grid may then stay occupied for thousands
-    /// of steps: return σ·Δt from the closure, or set `threshold` to 0.01/Δt.
+    /// Opacity above which a cell is occupied (before the mean clamp): a cell is
+    /// occupied when `σ·Δ`, its density times its mean edge length `Δ` (the opacity
+    /// exponent of a ray crossing it), exceeds this. Default 0.01, nerfacc's `occ_thre`
+    /// in nerfacc's units (nerfacc compares it with σ times its march step, which is
+    /// usually a few times finer than a cell: this grid keeps somewhat more cells).
+    /// In densities, 0.01 is `σ > 0.01/Δ`: 0.32 for 64 cells across a box of side 2.
     pub threshold: f64,
     /// Lower bound of the effective threshold τ. Default 1e-4.
     pub floor: f64,
-    /// Decay of the per-cell density estimate (`dᵢ ← max(decay·dᵢ, σ)`). Default 0.95,
-    /// nerfacc's, for schedules of thousands of steps: a cell that once saw density `D`
-    /// needs `⌈ln(D/τ)/ln(1/decay)⌉` updates that evaluate it to empty (about 70 from
-    /// D = e⁻¹ to τ = 0.01). Short runs want a smaller decay: `examples/tiny_nerf` uses
-    /// 0.6 with an update every 8 steps, where 0.95 every 16 left every cell occupied
-    /// after 300 steps.
+    /// Decay of the per-cell estimate (`dᵢ ← max(decay·dᵢ, σ·Δ)`). Default 0.8: a cell
+    /// that once saw the opacity `D` needs `⌈ln(D/τ)/ln(1/decay)⌉` updates that evaluate
+    /// it to empty (11 from D = 10τ), so that a grid updated every 16 steps prunes within
+    /// the first few hundred steps (nerfacc's 0.95, for GPU schedules of tens of
+    /// thousands of steps, needs 45).
     pub decay: f64,
-    /// Updates at steps below this evaluate every cell. Default 256.
+    /// Updates at steps below this evaluate every cell. Default 128.
     pub warmup_steps: usize,
     /// Points per call of the density function. Default 65 536.
     pub chunk_size: usize,
@@ -58,12 +61,12 @@ impl Default for GridConfig {
     fn default() -> Self {
         GridConfig {
             aabb: [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0],
-            resolution: 128,
+            resolution: 64,
             levels: 1,
             threshold: 0.01,
             floor: 1e-4,
-            decay: 0.95,
-            warmup_steps: 256,
+            decay: 0.8,
+            warmup_steps: 128,
             chunk_size: 65_536,
             seed: 0,
             dilate: true,
@@ -81,15 +84,16 @@ impl Default for GridConfig {
 /// finest level whose box contains it; points outside the last level are empty.
 ///
 /// # Update
-/// Every cell keeps a density estimate `dᵢ` (host f32). An update evaluates the
+/// Every cell keeps an opacity estimate `dᵢ` (host f32). An update evaluates the
 /// field's density σ at one point per chosen cell, jittered uniformly inside the cell,
-/// and sets `dᵢ ← max(decay·dᵢ, σ)` (nerfacc's decayed maximum, `decay = 0.95`). During
+/// and sets `dᵢ ← max(decay·dᵢ, σ·Δ)` with `Δ` the cell's mean edge length at its level
+/// (nerfacc's decayed maximum of the opacity `σ·Δt`, with the cell for the step). During
 /// warm-up every cell is evaluated; after it, per level, a quarter of the cells drawn
 /// uniformly and a quarter drawn from the occupied ones. A cell is then occupied iff
 /// `dᵢ > τ` with `τ = min(threshold, max(mean(d), floor))`: the mean clamp keeps the
 /// densest cells occupied while the field's scale is still small early in training, and
 /// the floor lets a field that has become empty everywhere empty the grid (a cell that
-/// saw density `D` is empty after at most `⌈ln(D/floor)/ln(1/decay)⌉` updates that
+/// saw the opacity `D` is empty after at most `⌈ln(D/floor)/ln(1/decay)⌉` updates that
 /// evaluate it). With [`GridConfig::dilate`], the occupied set is then grown by one
 /// cell in every direction (a conservative grid that does not miss thin slivers of
 /// density at cell corners).
@@ -528,6 +532,8 @@ impl OccupancyGrid {
             chosen
         };
         let (c, h) = self.centre_half();
+        // The mean edge of a level-0 cell: σ·edge is the opacity of one cell's crossing.
+        let edge0 = (0..3).map(|a| 2.0 * h[a] / res as f64).sum::<f64>() / 3.0;
         for chunk in cells.chunks(self.config.chunk_size) {
             let mut pts = Vec::with_capacity(chunk.len() * 3);
             for &cell in chunk {
@@ -567,7 +573,8 @@ impl OccupancyGrid {
             }
             let decay = self.config.decay as f32;
             for (&cell, &v) in chunk.iter().zip(&s) {
-                let v = v.max(0.0) as f32;
+                let edge = edge0 * (1u64 << (cell / per_level)) as f64;
+                let v = (v.max(0.0) * edge) as f32;
                 let d = &mut self.density[cell];
                 *d = (*d * decay).max(v);
             }

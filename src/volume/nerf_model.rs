@@ -47,7 +47,13 @@ pub struct NerfConfig {
     pub skips: Vec<usize>,
     /// Width of the colour head's hidden layer (NeRF: 128; default 64).
     pub color_width: usize,
-    /// The density activation (default `TruncExp { shift: −1 }`).
+    /// The density activation (default `TruncExp { shift: −3 }`: the density starts
+    /// near `e⁻³` ≈ 0.05, so that a ray across a loose scene box starts mostly
+    /// transparent. With instant-NGP's −1 (σ ≈ 0.37) such a ray starts nearly opaque
+    /// in front of a mostly white background, Adam's first steps drive σ down
+    /// everywhere, and at a learning rate of 5e-3 on a box of ±1.5 around an object of
+    /// radius 1 the density never came back; −2 still died on one scene of three
+    /// (docs/benchmarks.md, "Defaults across the scene suite").
     pub density: DensityActivation,
     /// Run both networks through candle's ops instead of the fused MLP op
     /// ([`MlpConfig::force_reference`]). Default `false`.
@@ -70,7 +76,7 @@ impl Default for NerfConfig {
             width: 64,
             skips: Vec::new(),
             color_width: 64,
-            density: DensityActivation::TruncExp { shift: -1.0 },
+            density: DensityActivation::TruncExp { shift: -3.0 },
             force_reference: false,
         }
     }
