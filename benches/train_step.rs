@@ -12,6 +12,11 @@
 //!   (shift −3), compositing, MSE, Adam (lr 1e-3): [`neural_fields::volume::Nerf::color_loss`],
 //!   the whole loss as one fused op; `--composed` forms it from `Nerf::radiance`, the
 //!   fused compositing op and candle's MSE, as before that op existed.
+//! * `nerf_hash`: the same rays, samples, loss and optimiser with the NeRF example's
+//!   `--encoding hash` model: instant-NGP's hash grid ([`HashGridConfig::default`] over
+//!   `[−2, 2]³`, which holds every sample) on a 1 × 64 trunk, the same colour head;
+//!   [`neural_fields::volume::Nerf::color_loss`] composes it from the hash-grid op, the
+//!   networks and the compositing op.
 //! * `occupancy`: 2¹⁶ points, a 4 × 64 ReLU occupancy MLP on raw coordinates, binary
 //!   cross-entropy with logits, Adam (lr 1e-3).
 //! * `dvr`: 2048 rays into the box `[−0.55, 0.55]³` from a sphere of radius 1.5, an SDF
@@ -139,12 +144,31 @@ fn main() -> neural_fields::Result<()> {
     };
     let varmap = VarMap::new();
     let mut forward: Step = match args.model.as_str() {
-        "nerf" => {
-            let config = NerfConfig {
-                force_reference: args.reference,
-                ..NerfConfig::default()
-            };
-            let net = build_seeded(&varmap, DType::F32, &dev, 0, |vb| nerf(&config, vb))?;
+        model @ ("nerf" | "nerf_hash") => {
+            let hash = model == "nerf_hash";
+            let net = build_seeded(&varmap, DType::F32, &dev, 0, |vb| {
+                let config = NerfConfig {
+                    force_reference: args.reference,
+                    ..NerfConfig::default()
+                };
+                if !hash {
+                    return nerf(&config, vb);
+                }
+                // The samples lie within radius 2 of the origin.
+                let grid = HashGridConfig {
+                    lo: vec![-2.0; 3],
+                    hi: vec![2.0; 3],
+                    force_reference: args.reference,
+                    ..HashGridConfig::default()
+                };
+                let config = NerfConfig {
+                    position_encoding: PointEncoding::HashGrid(hash_grid(&grid, vb.pp("grid"))?),
+                    depth: 1,
+                    skips: vec![],
+                    ..config
+                };
+                nerf(&config, vb)
+            })?;
             let rays_n = 1024;
             let target = uniform(&[rays_n, 3], 0.0, 1.0, 1, &dev);
             let aim = uniform(&[rays_n, 3], -0.5, 0.5, 2, &dev);

@@ -152,6 +152,17 @@ fn finite_guard_names_the_step_and_the_first_bad_tensor() -> Result<()> {
     let loss = a.sum_all()?;
     let m = message(guard.check(6, &loss, Some(&loss.backward()?)));
     assert!(m.contains("the weight b at step 6"), "{m}");
+    // Read back at once, still named in order: a bad gradient before a bad weight.
+    let loss = (a.sqrt()?.sum_all()? + b.sum_all()?)?;
+    let m = message(guard.check(7, &loss, Some(&loss.backward()?)));
+    assert!(m.contains("the gradient of a at step 7"), "{m}");
+    // A loss in another dtype than the variables' is checked with them.
+    varmap.set_one("b", Tensor::new(&[1.0f32, 2.0], &DEV)?)?;
+    let loss = a.sum_all()?;
+    let grads = loss.backward()?;
+    guard.check(8, &loss.to_dtype(DType::F64)?, Some(&grads))?;
+    let m = message(guard.check(9, &Tensor::new(f64::INFINITY, &DEV)?, Some(&grads)));
+    assert!(m.contains("the loss at step 9"), "{m}");
     Ok(())
 }
 

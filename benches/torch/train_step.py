@@ -45,9 +45,13 @@ class TruncExp(torch.autograd.Function):
 
 
 class Nerf(torch.nn.Module):
-    def __init__(self, width=64, depth=4, color_width=64):
+    """NeRF's 4 x 64 model on the frequency encoding; with `encoder` (the hash grid of
+    benches/train_step.rs's nerf_hash, whose width is `d_in`) a 1 x 64 trunk on it."""
+
+    def __init__(self, width=64, depth=4, color_width=64, encoder=None, d_in=63):
         super().__init__()
-        layers, d = [], 63
+        self.encoder = encoder
+        layers, d = [], d_in
         for _ in range(depth):
             layers += [torch.nn.Linear(d, width), torch.nn.ReLU()]
             d = width
@@ -61,7 +65,7 @@ class Nerf(torch.nn.Module):
         self.width = width
 
     def forward(self, pos, dirs):
-        out = self.trunk(freq_encode(pos, 10))
+        out = self.trunk(freq_encode(pos, 10) if self.encoder is None else self.encoder(pos))
         sigma = TruncExp.apply(out[:, 0] - 3.0)
         unit = dirs / dirs.norm(dim=1, keepdim=True).clamp_min(1e-12)
         rgb = torch.sigmoid(self.head(torch.cat([freq_encode(unit, 4), out[:, 1:]], 1)))
@@ -362,7 +366,7 @@ def composite(sigma, rgb, starts, ends, norms):
 def main():
     p = argparse.ArgumentParser()
     p.add_argument("--model", default="nerf", choices=[
-        "nerf", "occupancy", "dvr", "hash_grid", "onet_points", "onet_voxels", "onet_image"])
+        "nerf", "nerf_hash", "occupancy", "dvr", "hash_grid", "onet_points", "onet_voxels", "onet_image"])
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--threads", type=int, default=os.cpu_count())
@@ -374,8 +378,12 @@ def main():
     torch.set_default_device(a.device)
     sync = torch.cuda.synchronize if a.device == "cuda" else (lambda: None)
     torch.manual_seed(0)
-    if a.model == "nerf":
-        net = Nerf()
+    if a.model in ("nerf", "nerf_hash"):
+        if a.model == "nerf":
+            net = Nerf()
+        else:
+            grid = HashGrid(lo=-2.0, hi=2.0)
+            net = Nerf(depth=1, encoder=grid, d_in=grid.table.shape[1] * len(grid.levels))
         r, s = 1024, 64
         target = torch.rand(r, 3)
         aim = torch.rand(r, 3) - 0.5

@@ -180,6 +180,45 @@ fn nerf_config(args: &Args, aabb: [f64; 6], finest: f64, vb: &VarBuilder) -> Res
 const DEAD_STEPS: usize = 100;
 const DEAD_OPACITY: f64 = 1e-3;
 
+/// Host seconds of the training steps by phase, summed over the run (evaluations
+/// excluded). On a GPU the host runs ahead of the device until a read-back, so a phase's
+/// time includes the device work that its read-backs waited for.
+#[derive(Default)]
+struct Phases {
+    grid_update: f64,
+    batch: f64,
+    sampling: f64,
+    loss: f64,
+    backward: f64,
+    check: f64,
+    update: f64,
+}
+
+impl Phases {
+    fn json(&self) -> serde_json::Value {
+        serde_json::json!({
+            "grid_update": self.grid_update, "batch": self.batch, "sampling": self.sampling,
+            "loss": self.loss, "backward": self.backward, "check": self.check,
+            "update": self.update,
+        })
+    }
+}
+
+/// A stopwatch that adds the time since its last mark to a phase.
+struct Lap(std::time::Instant);
+
+impl Lap {
+    fn start() -> Self {
+        Lap(std::time::Instant::now())
+    }
+
+    fn mark(&mut self, phase: &mut f64) {
+        let now = std::time::Instant::now();
+        *phase += (now - self.0).as_secs_f64();
+        self.0 = now;
+    }
+}
+
 /// The error of a run whose density collapsed: the steps, and the likely causes.
 fn dead_run(since: usize, step: usize, args: &Args) -> Error {
     Error::InvalidArgument {
@@ -339,7 +378,10 @@ fn run(args: &Args) -> Result<()> {
     };
     let mut curve = String::from("step,train_seconds,psnr\n");
     let (mut samples_total, mut step) = (0usize, 0usize);
+    // The grid's occupied fraction as of its last update (no grid: nothing occupied).
+    let mut occupied_now = 0.0;
     let mut dead_since = None;
+    let mut phases = Phases::default();
     loop {
         // --steps 0 evaluates (e.g. resumed weights) without training.
         let progress = clock.progress(step);
@@ -349,14 +391,20 @@ fn run(args: &Args) -> Result<()> {
         let t = (progress * 10_000.0) as usize;
         opt.set_learning_rate(log_linear_schedule(t, lr0, lr0 / 10.0, 10_000));
         open_windows(&windows, progress, args.coarse_to_fine)?;
+        let mut lap = Lap::start();
         if let Some(grid) = grid.as_mut() {
-            grid.update(step, 16, &device, dtype, |p: &Tensor| {
+            let updated = grid.update(step, 16, &device, dtype, |p: &Tensor| {
                 Ok(grid_density(&net, &aabb, args.encoding == Encoding::Ipe, p)?.detach())
             })?;
+            if updated {
+                occupied_now = occupied(grid);
+            }
         }
-        let step_size = match &grid {
-            Some(g) if occupied(g) > 0.25 => diag / 64.0,
-            _ => diag / 256.0,
+        lap.mark(&mut phases.grid_update);
+        let step_size = if occupied_now > 0.25 {
+            diag / 64.0
+        } else {
+            diag / 256.0
         };
         let anneal = args.regnerf.then_some(step);
         let r = Renderer {
@@ -371,53 +419,79 @@ fn run(args: &Args) -> Result<()> {
         } else {
             sampler.pixels(args.rays)?
         };
+        lap.mark(&mut phases.batch);
         let seed = args.seed ^ step as u64;
-        let (out, n, interlevel) = r.render(&batch.rays, &batch.backgrounds, Some(seed))?;
+        let samples = r.samples(&batch.rays, Some(seed))?;
+        lap.mark(&mut phases.sampling);
+        // The photometric loss, the largest opacity of a training ray and the samples
+        // evaluated: through `Nerf::color_loss` (fused where it can be) for one ray per
+        // pixel in a bounded scene without proposals, else composited here.
+        let (photometric, interlevel, peak, n) = if k == 1 && r.plain() {
+            let n = samples.intervals.starts.elem_count();
+            let config = CompositeConfig {
+                background: Some(batch.backgrounds.clone()),
+                ..CompositeConfig::default()
+            };
+            let out = net.color_loss(&samples.rays, &samples.intervals, &batch.colors, &config)?;
+            (out.loss, None, out.opacity_max, n)
+        } else {
+            let (out, n, interlevel) = r.render_samples(samples, &batch.backgrounds)?;
+            let peak = out
+                .opacity
+                .max_all()?
+                .to_dtype(DType::F64)?
+                .to_scalar::<f64>()?;
+            // With k > 1, each pixel's k² rays averaged (a box filter) against the pixel's
+            // colour, which every one of its rays carries.
+            let (color, target) = if k > 1 {
+                let px = batch.rays.len() / (k * k);
+                let target = batch
+                    .colors
+                    .reshape((px, k * k, 3))?
+                    .narrow(1, 0, 1)?
+                    .squeeze(1)?;
+                (out.color.reshape((px, k * k, 3))?.mean(1)?, target)
+            } else {
+                (out.color, batch.colors.clone())
+            };
+            let photometric = (color - target)?.sqr()?.mean_all()?;
+            (photometric, Some(interlevel), peak, n)
+        };
         samples_total += n;
         // A dead run: no training ray has any opacity for DEAD_STEPS steps in a row.
-        let peak = out
-            .opacity
-            .max_all()?
-            .to_dtype(DType::F64)?
-            .to_scalar::<f64>()?;
         let since = *dead_since.get_or_insert(step);
         if peak >= DEAD_OPACITY {
             dead_since = None;
         } else if step + 1 - since >= DEAD_STEPS {
             return Err(dead_run(since, step, args));
         }
-        // With k > 1, each pixel's k² rays averaged (a box filter) against the pixel's
-        // colour, which every one of its rays carries.
-        let (color, target) = if k > 1 {
-            let px = batch.rays.len() / (k * k);
-            let target = batch
-                .colors
-                .reshape((px, k * k, 3))?
-                .narrow(1, 0, 1)?
-                .squeeze(1)?;
-            (out.color.reshape((px, k * k, 3))?.mean(1)?, target)
-        } else {
-            (out.color, batch.colors.clone())
+        let mut loss = match interlevel {
+            Some(extra) => (&photometric + extra)?,
+            None => photometric.clone(),
         };
-        let photometric = (color - target)?.sqr()?.mean_all()?;
-        let mut loss = (&photometric + interlevel)?;
         if args.regnerf {
             let weight =
                 log_linear_schedule(step, args.regnerf_weight[0], args.regnerf_weight[1], 512);
             let smooth = regnerf_depth_smoothness(&r, &train_cameras, seed)?;
             loss = (loss + (smooth * weight)?)?;
         }
+        lap.mark(&mut phases.loss);
         let grads = loss.backward()?;
+        lap.mark(&mut phases.backward);
         guard.check(step, &loss, Some(&grads))?;
+        lap.mark(&mut phases.check);
         opt.step(&grads)?;
+        lap.mark(&mut phases.update);
         step += 1;
-        let mse = photometric.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+        // Read back only when shown (on a GPU each read-back waits for the device).
+        let mse = || -> Result<f64> { Ok(photometric.to_dtype(DType::F64)?.to_scalar::<f64>()?) };
         bar.set_position(match budget {
             Budget::Steps(_) => step as u64,
             Budget::Minutes(_) => clock.train_seconds() as u64,
         });
         let per_ray = n as f64 / args.rays as f64;
         if step.is_multiple_of(10) {
+            let mse = mse()?;
             let p = -10.0 * mse.log10();
             bar.set_message(format!(
                 "step {step} loss {mse:.5} train PSNR {p:.2} samples/ray {per_ray:.1}"
@@ -425,6 +499,7 @@ fn run(args: &Args) -> Result<()> {
         }
         if step.is_multiple_of(args.eval_every) {
             let seconds = clock.train_seconds();
+            let mse = mse()?;
             let shown = args.eval_views.min(eval.views().len());
             let p = clock.pause(|| {
                 bar.suspend(|| -> Result<f64> {
@@ -497,6 +572,7 @@ fn run(args: &Args) -> Result<()> {
         "proposal_samples": args.proposal_samples,
         "data": args.data.display().to_string(),
         "psnr_per_scale": per_scale,
+        "phase_seconds": phases.json(),
     });
     write(
         &args.out.join("metrics.json"),
@@ -507,6 +583,7 @@ fn run(args: &Args) -> Result<()> {
         eval.views().len(),
         args.out.display()
     );
+    println!("training host seconds by phase: {}", phases.json());
     if per_scale.len() > 1 {
         for scale in &per_scale {
             println!(

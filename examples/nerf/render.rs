@@ -103,21 +103,25 @@ pub(super) fn grid_density(net: &Nerf, aabb: &[f64; 6], ipe: bool, p: &Tensor) -
     net.density(&Tensor::cat(&[p, &var], 1)?)
 }
 
+/// What a renderer's sampler gives for a batch of rays ([`Renderer::render`]).
+pub(super) struct Samples {
+    /// The rays the intervals lie on: the batch's, or in an unbounded scene the same
+    /// rays in the scene's frame.
+    pub(super) rays: Rays,
+    pub(super) intervals: Intervals,
+    /// The proposal networks' levels, for the interlevel loss against the field's weights.
+    levels: Vec<(Intervals, Tensor)>,
+    /// The proposal sampler's near, far and spacing.
+    near_far: Option<(Tensor, Tensor, Spacing)>,
+    /// The interlevel loss the sampler computed itself (a scalar, zero without one).
+    interlevel: Tensor,
+}
+
 impl Renderer<'_> {
-    /// Renders `rays` composited on `background: [R, 3]`; also returns the number of
-    /// samples that went through the full network and the auxiliary loss (interlevel,
-    /// and in an unbounded scene the weighted distortion loss). `seed`: jitter (training)
-    /// or none.
-    pub(super) fn render(
-        &self,
-        rays: &Rays,
-        background: &Tensor,
-        seed: Option<u64>,
-    ) -> Result<(Composite, usize, Tensor)> {
-        let config = CompositeConfig {
-            background: Some(background.clone()),
-            ..CompositeConfig::default()
-        };
+    /// The intervals the sampler places along `rays` (in an unbounded scene, along the
+    /// rays in the scene's frame, which it returns), with the proposal levels, the
+    /// proposal sampler's near/far and spacing, and the interlevel loss.
+    pub(super) fn samples(&self, rays: &Rays, seed: Option<u64>) -> Result<Samples> {
         let mut levels = Vec::new();
         let mut interlevel = Tensor::zeros((), rays.origins().dtype(), rays.origins().device())?;
         let [x0, y0, z0, x1, y1, z1] = self.aabb;
@@ -213,6 +217,59 @@ impl Renderer<'_> {
                     None => (hit.near, hit.far),
                 };
                 stratified(&near, &far, self.args.samples, jitter, seed.unwrap_or(0))?
+            }
+        };
+        Ok(Samples {
+            rays: rays.clone(),
+            intervals,
+            levels,
+            near_far,
+            interlevel,
+        })
+    }
+
+    /// Whether training may take [`Nerf::color_loss`] of the sampler's intervals (one
+    /// fused op where the device and encodings allow): a bounded scene without proposal
+    /// networks, whose loss is the photometric one alone.
+    pub(super) fn plain(&self) -> bool {
+        self.unbounded.is_none() && self.proposals.is_empty()
+    }
+
+    /// Renders `rays` composited on `background: [R, 3]`; also returns the number of
+    /// samples that went through the full network and the auxiliary loss (interlevel,
+    /// and in an unbounded scene the weighted distortion loss). `seed`: jitter (training)
+    /// or none.
+    pub(super) fn render(
+        &self,
+        rays: &Rays,
+        background: &Tensor,
+        seed: Option<u64>,
+    ) -> Result<(Composite, usize, Tensor)> {
+        self.render_samples(self.samples(rays, seed)?, background)
+    }
+
+    /// [`Renderer::render`] of the intervals `samples` that [`Renderer::samples`] placed.
+    pub(super) fn render_samples(
+        &self,
+        samples: Samples,
+        background: &Tensor,
+    ) -> Result<(Composite, usize, Tensor)> {
+        let config = CompositeConfig {
+            background: Some(background.clone()),
+            ..CompositeConfig::default()
+        };
+        let Samples {
+            rays,
+            intervals,
+            levels,
+            near_far,
+            mut interlevel,
+        } = samples;
+        let rays = &rays;
+        let space = |p: &Tensor| -> Result<Tensor> {
+            match self.unbounded {
+                Some(_) => contracted(p),
+                None => Ok(p.clone()),
             }
         };
         // Midpoints, or (--encoding ipe) the intervals' conical frustums.

@@ -155,8 +155,8 @@ impl Optimizer for Adam {
 ///
 /// It holds the variables of a [`VarMap`] with their names, sorted by name (a guard made
 /// after the model is built sees all of its variables). A tensor is finite when
-/// `Σ |x|`, summed in the tensor's dtype and read as f64, is finite; the check reads one
-/// scalar back from the device per tensor, and needs no gradient.
+/// `Σ |x|`, summed in the tensor's dtype and read as f64, is finite; the check reads the
+/// sums of all the tensors back from the device at once, and needs no gradient.
 ///
 /// ```
 /// use candle_core::{DType, Device, Tensor};
@@ -205,36 +205,46 @@ impl FiniteGuard {
     /// loss`, `the gradient of NAME`, `the weight NAME`), at the first tensor that holds a
     /// NaN or an infinity; candle's errors if a tensor cannot be read.
     pub fn check(&self, step: usize, loss: &Tensor, grads: Option<&GradStore>) -> Result<()> {
-        finite(loss, step, || "the loss".into())?;
+        let mut checked: Vec<(Tensor, Box<dyn Fn() -> String + '_>)> =
+            vec![(loss.clone(), Box::new(|| "the loss".into()))];
         if let Some(grads) = grads {
             for (name, var) in &self.vars {
                 if let Some(g) = grads.get(var) {
-                    finite(g, step, || format!("the gradient of {name}"))?;
+                    checked.push((
+                        g.clone(),
+                        Box::new(move || format!("the gradient of {name}")),
+                    ));
                 }
             }
             for (name, var) in &self.vars {
-                finite(var.as_tensor(), step, || format!("the weight {name}"))?;
+                checked.push((
+                    var.as_tensor().clone(),
+                    Box::new(move || format!("the weight {name}")),
+                ));
             }
         }
-        Ok(())
-    }
-}
-
-/// `Ok` if `t` holds no NaN or infinity; else the error naming `what()` and `step`.
-fn finite(t: &Tensor, step: usize, what: impl FnOnce() -> String) -> Result<()> {
-    let s = t
-        .abs()?
-        .sum_all()?
-        .to_dtype(DType::F64)?
-        .to_scalar::<f64>()?;
-    if s.is_finite() {
-        Ok(())
-    } else {
-        Err(Error::invalid(
-            "training",
-            "finite losses, gradients and weights",
-            format!("a NaN or infinity in {} at step {step}", what()),
-        ))
+        // Σ|x| of every tensor, read back at once where all share one device (a GPU
+        // synchronises once per step, not once per tensor).
+        let sums = checked
+            .iter()
+            .map(|(t, _)| Ok(t.abs()?.sum_all()?.to_dtype(DType::F64)?))
+            .collect::<Result<Vec<Tensor>>>()?;
+        let one_device = sums.iter().all(|s| s.device().same_device(loss.device()));
+        let values = if one_device {
+            Tensor::stack(&sums, 0)?.to_vec1::<f64>()?
+        } else {
+            sums.iter()
+                .map(|s| Ok(s.to_scalar::<f64>()?))
+                .collect::<Result<Vec<f64>>>()?
+        };
+        match values.iter().position(|s| !s.is_finite()) {
+            None => Ok(()),
+            Some(i) => Err(Error::invalid(
+                "training",
+                "finite losses, gradients and weights",
+                format!("a NaN or infinity in {} at step {step}", (checked[i].1)()),
+            )),
+        }
     }
 }
 
