@@ -20,11 +20,12 @@ NERF_SECONDS=${NERF_SECONDS:-90}
 # takes the default, 1024, only).
 NERF_RAYS=${NERF_RAYS:-1024}
 # PHASES=0 times whole steps without the synchronisations between forward, backward and
-# update that --phases adds (as a training loop runs); MODELS picks the benched steps.
+# update that --phases adds (as a training loop runs); MODELS picks the benched steps
+# (MODELS= with nothing skips the benches).
 PHASES=${PHASES:-1}
-MODELS=${MODELS:-nerf nerf_hash hash_grid}
+MODELS=${MODELS-nerf nerf_hash hash_grid}
 # The models also timed under torch.compile (its compilation takes a minute or more).
-COMPILE_MODELS=${COMPILE_MODELS:-$MODELS}
+COMPILE_MODELS=${COMPILE_MODELS-$MODELS}
 phases=--phases; [ "$PHASES" = 0 ] && phases=
 mkdir -p "$OUT"
 cd "$(dirname "$0")/.."

@@ -41,7 +41,7 @@ pub(crate) fn from_vec<T: candle_core::WithDType, S: Into<candle_core::Shape>>(
 /// copy from the host and for `Tensor::zeros` alike); off the CPU the empty tensor is
 /// therefore a view of no rows into a one-row allocation. (candle ops whose result is
 /// empty still fail there: the samplers keep their outputs non-empty off the CPU.)
-#[cfg_attr(not(feature = "volume"), allow(dead_code))]
+#[cfg_attr(not(any(feature = "volume", feature = "data")), allow(dead_code))]
 pub(crate) fn empty<S: Into<candle_core::Shape>>(
     shape: S,
     dtype: candle_core::DType,
@@ -57,4 +57,28 @@ pub(crate) fn empty<S: Into<candle_core::Shape>>(
         }
         _ => Tensor::zeros(shape, dtype, device),
     }
+}
+
+/// A tensor of `shape` and `dtype` on `device` from host f64 `values`, rounded on the
+/// host for f32 (one upload, no cast on the device); an empty one through [`empty`].
+#[cfg_attr(not(any(feature = "volume", feature = "data")), allow(dead_code))]
+pub(crate) fn from_host(
+    values: Vec<f64>,
+    shape: &[usize],
+    dtype: candle_core::DType,
+    device: &candle_core::Device,
+) -> Result<Tensor> {
+    if values.is_empty() {
+        return empty(shape, dtype, device);
+    }
+    let t = match dtype {
+        candle_core::DType::F32 => {
+            let v: Vec<f32> = values.into_iter().map(|x| x as f32).collect();
+            Tensor::from_vec(v, shape, device)?
+        }
+        _ => Tensor::from_vec(values, shape, &candle_core::Device::Cpu)?
+            .to_dtype(dtype)?
+            .to_device(device)?,
+    };
+    Ok(t)
 }

@@ -1166,3 +1166,59 @@ fn empty_batches_give_empty_samples_without_calling_the_density() {
         );
     }
 }
+
+/// The dilation grows each occupied cell to the 3 × 3 × 3 block around it within its
+/// level, cut at the level's faces: exactly, for a cell inside, on a corner and at the
+/// second level.
+#[test]
+fn dilation_grows_each_occupied_cell_to_its_cube_of_neighbours() -> Result<()> {
+    let res = 8usize;
+    // One dense cell per case: (level, i, j, k).
+    for (level, ijk) in [(0usize, [3usize, 4, 5]), (0, [0, 0, 7]), (1, [7, 0, 3])] {
+        let mut grid = OccupancyGrid::new(GridConfig {
+            aabb: [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0],
+            resolution: res,
+            // A dense level-0 cell lies inside a level-1 cell, which one jittered point
+            // per cell could find dense too: one level there.
+            levels: level + 1,
+            warmup_steps: 1,
+            ..GridConfig::default()
+        })?;
+        // Level l spans ±2^l; its cells have edge 2·2^l / res.
+        let scale = (1usize << level) as f64;
+        let edge = 2.0 * scale / res as f64;
+        let lo: Vec<f64> = ijk.iter().map(|&i| -scale + i as f64 * edge).collect();
+        let hi: Vec<f64> = lo.iter().map(|&l| l + edge).collect();
+        let dense = |p: &Tensor| -> Result<Tensor> {
+            let lo_t = Tensor::new(lo.as_slice(), p.device())?.to_dtype(p.dtype())?;
+            let hi_t = Tensor::new(hi.as_slice(), p.device())?.to_dtype(p.dtype())?;
+            let inside = p
+                .broadcast_gt(&lo_t)?
+                .mul(&p.broadcast_lt(&hi_t)?)?
+                .min(1)?
+                .to_dtype(p.dtype())?;
+            Ok((inside * 1e4)?)
+        };
+        grid.update(0, 1, &Device::Cpu, DType::F32, dense)?;
+        let occupied = grid.occupied();
+        for l in 0..=level {
+            for i in 0..res {
+                for j in 0..res {
+                    for k in 0..res {
+                        let near = l == level
+                            && [i, j, k]
+                                .iter()
+                                .zip(&ijk)
+                                .all(|(&a, &b)| a.abs_diff(b) <= 1);
+                        let cell = ((l * res + i) * res + j) * res + k;
+                        assert_eq!(
+                            occupied[cell], near,
+                            "dense cell {level} {ijk:?}: cell {l} {i} {j} {k}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+    Ok(())
+}

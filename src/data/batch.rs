@@ -72,7 +72,7 @@ fn gather(
         px.extend_from_slice(&[u as u32, v as u32]);
     }
     let float = |data: Vec<f64>, shape: &[usize]| -> Result<Tensor> {
-        Ok(Tensor::from_vec(data, shape, device)?.to_dtype(dtype)?)
+        Ok(crate::narrow::from_host(data, shape, dtype, device)?)
     };
     let bgs: Vec<f64> = backgrounds.iter().flatten().copied().collect();
     Ok(RayBatch {

@@ -154,9 +154,10 @@ impl Optimizer for Adam {
 /// and the tensor: the loss, the gradient of a variable, or a variable's value.
 ///
 /// It holds the variables of a [`VarMap`] with their names, sorted by name (a guard made
-/// after the model is built sees all of its variables). A tensor is finite when
-/// `Σ |x|`, summed in the tensor's dtype and read as f64, is finite; the check reads the
-/// sums of all the tensors back from the device at once, and needs no gradient.
+/// after the model is built sees all of its variables). A tensor is finite when `Σ 0·x`
+/// is (0 unless an element is NaN or ±∞, whatever the magnitudes); the check
+/// concatenates the tensors and reads one scalar back from the device, tensor by tensor
+/// only to name the first bad one, and needs no gradient.
 ///
 /// ```
 /// use candle_core::{DType, Device, Tensor};
@@ -198,7 +199,7 @@ impl FiniteGuard {
     /// Checks `loss` at training step `step`, and with `grads` also the gradient of
     /// every variable that has one in `grads` and the value of every variable (call it
     /// after `backward`, before the optimiser's step; passing `grads` every k steps
-    /// bounds the cost, one reduction per variable).
+    /// bounds the cost: one copy of every variable and its gradient, and one reduction).
     ///
     /// # Errors
     /// [`Error::InvalidArgument`] naming `training`, with the step and the tensor (`the
@@ -223,28 +224,34 @@ impl FiniteGuard {
                 ));
             }
         }
-        // Σ|x| of every tensor, read back at once where all share one device (a GPU
-        // synchronises once per step, not once per tensor).
-        let sums = checked
+        // Σ 0·x over every tensor (0 for finite x, NaN for NaN and ±∞), concatenated and
+        // read back at once where all share a dtype and a device (a GPU then synchronises
+        // once per step, not once per tensor); only then, tensor by tensor, to name one.
+        let tensors: Vec<Tensor> = checked
             .iter()
-            .map(|(t, _)| Ok(t.abs()?.sum_all()?.to_dtype(DType::F64)?))
-            .collect::<Result<Vec<Tensor>>>()?;
-        let one_device = sums.iter().all(|s| s.device().same_device(loss.device()));
-        let values = if one_device {
-            Tensor::stack(&sums, 0)?.to_vec1::<f64>()?
-        } else {
-            sums.iter()
-                .map(|s| Ok(s.to_scalar::<f64>()?))
-                .collect::<Result<Vec<f64>>>()?
+            .filter(|(t, _)| t.elem_count() > 0)
+            .map(|(t, _)| Ok(t.detach().flatten_all()?))
+            .collect::<Result<_>>()?;
+        let probe = |t: &Tensor| -> Result<bool> {
+            let s = t.affine(0.0, 0.0)?.sum_all()?.to_dtype(DType::F64)?;
+            Ok(s.to_scalar::<f64>()?.is_finite())
         };
-        match values.iter().position(|s| !s.is_finite()) {
-            None => Ok(()),
-            Some(i) => Err(Error::invalid(
-                "training",
-                "finite losses, gradients and weights",
-                format!("a NaN or infinity in {} at step {step}", (checked[i].1)()),
-            )),
+        let alike = tensors
+            .iter()
+            .all(|t| t.dtype() == loss.dtype() && t.device().same_device(loss.device()));
+        if alike && !tensors.is_empty() && probe(&Tensor::cat(&tensors, 0)?)? {
+            return Ok(());
         }
+        for (t, what) in &checked {
+            if t.elem_count() > 0 && !probe(&t.detach().flatten_all()?)? {
+                return Err(Error::invalid(
+                    "training",
+                    "finite losses, gradients and weights",
+                    format!("a NaN or infinity in {} at step {step}", what()),
+                ));
+            }
+        }
+        Ok(())
     }
 }
 

@@ -339,6 +339,20 @@ impl OccupancyGrid {
         )
     }
 
+    /// Cell index → (level, `[i, j, k]`) (x, y, z indices within the level), in 32-bit
+    /// arithmetic (the grid holds at most 2³¹ cells; 64-bit division is slower).
+    fn decode(&self, cell: usize) -> (usize, [usize; 3]) {
+        let res = self.config.resolution as u32;
+        let cell = cell as u32;
+        let per_level = res * res * res;
+        let (level, rest) = (cell / per_level, cell % per_level);
+        let (i, jk) = (rest / (res * res), rest % (res * res));
+        (
+            level as usize,
+            [i as usize, (jk / res) as usize, (jk % res) as usize],
+        )
+    }
+
     /// The cell containing `p`, or `None` outside the last level.
     fn cell_of(&self, p: [f64; 3]) -> Option<usize> {
         let (c, h) = self.centre_half();
@@ -374,20 +388,34 @@ impl OccupancyGrid {
     }
 
     /// Box dilation by one cell within each level, as three separable passes (x, y, z).
+    /// The cells are visited in index order with their coordinates counted alongside
+    /// (no division per cell).
     fn dilate(&mut self) {
         let res = self.config.resolution;
-        let per_level = res * res * res;
         let strides = [res * res, res, 1];
-        for stride in strides {
+        for (axis, stride) in strides.into_iter().enumerate() {
             let src = self.occupied.clone();
+            let mut ijk = [0usize; 3];
             for (i, o) in self.occupied.iter_mut().enumerate() {
-                if *o {
-                    continue;
+                let coord = ijk[axis];
+                if !*o {
+                    let lower = coord > 0 && src[i - stride];
+                    let upper = coord + 1 < res && src[i + stride];
+                    *o = lower || upper;
                 }
-                let coord = (i % per_level) / stride % res;
-                let lower = coord > 0 && src[i - stride];
-                let upper = coord + 1 < res && src[i + stride];
-                *o = lower || upper;
+                // The next cell's (i, j, k) within its level: k fastest.
+                ijk[2] += 1;
+                if ijk[2] == res {
+                    ijk[2] = 0;
+                    ijk[1] += 1;
+                    if ijk[1] == res {
+                        ijk[1] = 0;
+                        ijk[0] += 1;
+                        if ijk[0] == res {
+                            ijk[0] = 0;
+                        }
+                    }
+                }
             }
         }
     }
@@ -406,16 +434,9 @@ impl OccupancyGrid {
     /// `cell`: jumping gives exactly the intervals of the step-by-step march.
     fn skip_empty(&self, cell: usize, k: usize, march: &FixedMarch) -> usize {
         let res = self.config.resolution;
-        let per_level = res * res * res;
-        let level = cell / per_level;
+        let (level, ijk) = self.decode(cell);
         let scale = (1u64 << level) as f64;
         let (c, h) = self.centre_half();
-        let mut rest = cell % per_level;
-        let mut ijk = [0usize; 3];
-        for a in (0..3).rev() {
-            ijk[a] = rest % res;
-            rest /= res;
-        }
         let (m, _) = march.midpoint(k);
         let (o, d) = (&march.o, &march.d);
         let mut t_exit = f64::INFINITY;
@@ -534,20 +555,21 @@ impl OccupancyGrid {
         let (c, h) = self.centre_half();
         // The mean edge of a level-0 cell: σ·edge is the opacity of one cell's crossing.
         let edge0 = (0..3).map(|a| 2.0 * h[a] / res as f64).sum::<f64>() / 3.0;
+        // Each level's lower corner and cell size per axis.
+        let corner_size: Vec<[(f64, f64); 3]> = (0..self.config.levels)
+            .map(|level| {
+                let scale = (1u64 << level) as f64;
+                [0, 1, 2].map(|a| (c[a] - h[a] * scale, 2.0 * h[a] * scale / res as f64))
+            })
+            .collect();
+        let mut levels = Vec::with_capacity(self.config.chunk_size.min(cells.len()));
         for chunk in cells.chunks(self.config.chunk_size) {
             let mut pts = Vec::with_capacity(chunk.len() * 3);
+            levels.clear();
             for &cell in chunk {
-                let level = cell / per_level;
-                let scale = (1u64 << level) as f64;
-                let mut rest = cell % per_level;
-                let mut ijk = [0usize; 3];
-                for a in (0..3).rev() {
-                    ijk[a] = rest % res;
-                    rest /= res;
-                }
-                for a in 0..3 {
-                    let lo = c[a] - h[a] * scale;
-                    let size = 2.0 * h[a] * scale / res as f64;
+                let (level, ijk) = self.decode(cell);
+                levels.push(level);
+                for (a, &(lo, size)) in corner_size[level].iter().enumerate() {
                     pts.push(lo + (ijk[a] as f64 + rng.uniform()) * size);
                 }
             }
@@ -572,8 +594,8 @@ impl OccupancyGrid {
                 ));
             }
             let decay = self.config.decay as f32;
-            for (&cell, &v) in chunk.iter().zip(&s) {
-                let edge = edge0 * (1u64 << (cell / per_level)) as f64;
+            for ((&cell, &level), &v) in chunk.iter().zip(&levels).zip(&s) {
+                let edge = edge0 * (1u64 << level) as f64;
                 let v = (v.max(0.0) * edge) as f32;
                 let d = &mut self.density[cell];
                 *d = (*d * decay).max(v);
@@ -704,8 +726,8 @@ impl OccupancyGrid {
                 return Err(Error::invalid(name, "a number in [0, 1]", format!("{x}")));
             }
         }
-        let o = host_f64(origins)?;
-        let d = host_f64(directions)?;
+        // Origins and directions side by side, `[R, 6]`: one read-back from a GPU.
+        let od = host_f64(&Tensor::cat(&[origins.detach(), directions.detach()], 1)?)?;
         let (c, h) = self.centre_half();
         let outer = (1u64 << (self.config.levels - 1)) as f64;
         let lo = [
@@ -722,8 +744,9 @@ impl OccupancyGrid {
         let per_ray: Vec<RayMarch> = (0..r)
             .into_par_iter()
             .map(|ray| {
-                let oo = [o[3 * ray], o[3 * ray + 1], o[3 * ray + 2]];
-                let dd = [d[3 * ray], d[3 * ray + 1], d[3 * ray + 2]];
+                let row = &od[6 * ray..6 * ray + 6];
+                let oo = [row[0], row[1], row[2]];
+                let dd = [row[3], row[4], row[5]];
                 let (mut t0, mut t1) = (near, far);
                 for a in 0..3 {
                     if dd[a] == 0.0 {

@@ -17,7 +17,7 @@
 use super::layout::{host_f64, Intervals, Layout};
 use crate::error::{check_float, check_same, check_scalar, check_shape, Dim, Error, Result};
 use crate::rng::SplitMix64;
-use candle_core::{DType, Device, Tensor, D};
+use candle_core::{Tensor, D};
 use rayon::prelude::*;
 
 /// An independent-looking stream for item `index` (a ray, a grid cell chunk) of a
@@ -28,28 +28,7 @@ pub(crate) fn stream(seed: u64, index: u64) -> SplitMix64 {
     SplitMix64::new(g.next_u64() ^ index)
 }
 
-/// Builds a tensor of the given dtype on `device` from host f64 values.
-pub(crate) fn from_host(
-    values: Vec<f64>,
-    shape: &[usize],
-    dtype: DType,
-    device: &Device,
-) -> Result<Tensor> {
-    if values.is_empty() {
-        // No allocation of zero bytes on a GPU (see `crate::narrow::empty`).
-        return Ok(crate::narrow::empty(shape, dtype, device)?);
-    }
-    let t = match dtype {
-        DType::F32 => {
-            let v: Vec<f32> = values.into_iter().map(|x| x as f32).collect();
-            Tensor::from_vec(v, shape, device)?
-        }
-        _ => Tensor::from_vec(values, shape, &Device::Cpu)?
-            .to_dtype(dtype)?
-            .to_device(device)?,
-    };
-    Ok(t)
-}
+pub(crate) use crate::narrow::from_host;
 
 /// A density function as [`super::OccupancyGrid::sample`] and [`super::proposal_sample`]
 /// take it: positions `[N, 3]` → densities `[N]` (≥ 0), in the positions' dtype and on
@@ -436,7 +415,7 @@ pub fn sample_pdf(
             *t = (lo + frac * (hi - lo)).clamp(lo, hi);
         }
     });
-    from_host(out, &[r, n], weights.dtype(), weights.device())
+    Ok(from_host(out, &[r, n], weights.dtype(), weights.device())?)
 }
 
 /// Merges two sets of sorted samples per ray into one sorted set:
