@@ -6,6 +6,10 @@
 //! cargo run --release --example sparse_views -- --data DIR --frames 0,10,20 --minutes 5 --out target/sv
 //! ```
 //!
+//! **Training views**: `--frames`, else the three views spread most widely around the
+//! scene: the three whose smallest pairwise angle, seen from the cameras' common focus,
+//! is largest (`spread_views`).
+//!
 //! Both runs train [`Nerf`] (NeRF's defaults) with Adam (learning rate 1e-3 decaying
 //! log-linearly to 1e-4) on `--rays` random pixels of the training views per step, each
 //! ray composited over a random background, with `--samples` (32) jittered stratified
@@ -37,11 +41,12 @@
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
 use clap::Parser;
-use neural_fields::camera::{cameras_around, patch_rays, ray_aabb, Camera, Rays};
+use neural_fields::camera::{cameras_around, patch_rays, ray_aabb, Camera, Convention, Rays};
 use neural_fields::data::{
-    colorize_depth, comparison_strip, load, psnr, write_png, LoadConfig, RaySampler, Split,
+    colorize_depth, comparison_strip, load, psnr, write_png, Dataset, LoadConfig, RaySampler, Split,
 };
 use neural_fields::encoding::{CoarseToFine, PointEncoding};
+use neural_fields::glam::{DMat3, DVec3};
 use neural_fields::nn::build_seeded;
 use neural_fields::volume::{
     anneal_near_far, composite, depth_smoothness, log_linear_schedule, render_image, stratified,
@@ -66,9 +71,10 @@ struct Args {
     /// symlinks to elsewhere), which loading refuses by default.
     #[arg(long)]
     allow_outside_paths: bool,
-    /// Training views.
-    #[arg(long, value_delimiter = ',', default_value = "0,17,34")]
-    frames: Vec<usize>,
+    /// Training views (indices into the training split). Default: the three views spread
+    /// most widely around the scene ([`spread_views`]).
+    #[arg(long, value_delimiter = ',')]
+    frames: Option<Vec<usize>>,
     /// Minutes of training per run (default 3 unless --steps is given).
     #[arg(long, conflicts_with = "steps")]
     minutes: Option<f64>,
@@ -229,6 +235,72 @@ fn patch_smoothness(
     Ok(depth_smoothness(&depth, Some(&opacity))?.mean_all()?)
 }
 
+/// Three views of `data` spread around the scene: seen from the point nearest to every
+/// camera's optical axis (least squares; the cameras' mean position when the axes are
+/// parallel), the three whose smallest pairwise angle is largest (ties: the first in
+/// index order). Returned in increasing order.
+fn spread_views(data: &Dataset) -> Result<Vec<usize>> {
+    let n = data.views().len();
+    if n < 3 {
+        return Err(Error::InvalidArgument {
+            arg: "frames",
+            expected: "a dataset with at least 3 training views".into(),
+            got: format!("{n} views"),
+        });
+    }
+    let axes: Vec<(DVec3, DVec3)> = data
+        .views()
+        .iter()
+        .map(|v| {
+            let pose = v.camera().cam_to_world();
+            let forward = match v.camera().convention() {
+                Convention::OpenCv => DVec3::Z,
+                Convention::OpenGl => -DVec3::Z,
+            };
+            (
+                pose.translation,
+                (pose.matrix3 * forward).normalize_or_zero(),
+            )
+        })
+        .collect();
+    // Σ (I − ddᵀ) p = Σ (I − ddᵀ) o: the point nearest to every axis.
+    let (mut a, mut b) = (DMat3::ZERO, DVec3::ZERO);
+    for &(o, d) in &axes {
+        let m = DMat3::IDENTITY - DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+        a += m;
+        b += m * o;
+    }
+    let mean = axes.iter().map(|&(o, _)| o).sum::<DVec3>() / n as f64;
+    let centre = if a.determinant().abs() > 1e-6 * n.pow(3) as f64 {
+        a.inverse() * b
+    } else {
+        mean
+    };
+    let dirs: Vec<DVec3> = axes
+        .iter()
+        .map(|&(o, _)| (o - centre).normalize_or_zero())
+        .collect();
+    let angle: Vec<f64> = (0..n * n)
+        .map(|ij| dirs[ij / n].dot(dirs[ij % n]).clamp(-1.0, 1.0).acos())
+        .collect();
+    let mut best = ([0, 1, 2], f64::NEG_INFINITY);
+    for i in 0..n {
+        for j in i + 1..n {
+            let ij = angle[i * n + j];
+            if ij <= best.1 {
+                continue;
+            }
+            for k in j + 1..n {
+                let least = ij.min(angle[i * n + k]).min(angle[j * n + k]);
+                if least > best.1 {
+                    best = ([i, j, k], least);
+                }
+            }
+        }
+    }
+    Ok(best.0.to_vec())
+}
+
 /// One run, plain or regularised, written to `OUT/name`.
 fn train(args: &Args, name: &str, regularised: bool) -> Result<Run> {
     let (dev, dt) = (Device::Cpu, DType::F32);
@@ -240,7 +312,7 @@ fn train(args: &Args, name: &str, regularised: bool) -> Result<Run> {
     let train = load(
         &args.data,
         &LoadConfig {
-            frames: Some(args.frames.clone()),
+            frames: args.frames.clone(),
             background: neural_fields::data::Background::Random,
             ..config.clone()
         },
@@ -440,6 +512,25 @@ fn depth_tv(depth: &Tensor) -> Result<f64> {
 
 /// Both runs, and the comparison written to `args.out`.
 fn compare(args: &Args) -> Result<()> {
+    let frames = match &args.frames {
+        Some(frames) => frames.clone(),
+        None => {
+            let all = load(
+                &args.data,
+                &LoadConfig {
+                    downscale: args.downscale,
+                    allow_outside_paths: args.allow_outside_paths,
+                    ..LoadConfig::default()
+                },
+            )?;
+            spread_views(&all)?
+        }
+    };
+    println!("training views {frames:?}");
+    let args = &Args {
+        frames: Some(frames),
+        ..args.clone()
+    };
     let plain = train(args, "plain", false)?;
     let reg = train(args, "regularised", true)?;
     let tv = |run: &Run| -> Result<f64> {
@@ -499,6 +590,49 @@ fn main() -> std::process::ExitCode {
 mod sparse_tests {
     use super::*;
 
+    /// The rule's three views on the committed dataset (cameras around the origin) are
+    /// farther apart than the fixed indices 0, 17, 34 that it replaced, and at least
+    /// 100° apart pairwise; a dataset of two views is an error naming `frames`.
+    #[test]
+    fn spread_views_picks_views_far_apart() {
+        let data = load(
+            Path::new("examples/data/wuson"),
+            &LoadConfig {
+                downscale: 4,
+                ..LoadConfig::default()
+            },
+        )
+        .unwrap();
+        let smallest = |frames: &[usize]| {
+            let dir = |i: usize| {
+                data.views()[i]
+                    .camera()
+                    .cam_to_world()
+                    .translation
+                    .normalize()
+            };
+            let mut least = f64::INFINITY;
+            for (a, &i) in frames.iter().enumerate() {
+                for &j in &frames[a + 1..] {
+                    least = least.min(dir(i).dot(dir(j)).clamp(-1.0, 1.0).acos().to_degrees());
+                }
+            }
+            least
+        };
+        let chosen = spread_views(&data).unwrap();
+        assert_eq!(chosen.len(), 3);
+        let (spread, fixed) = (smallest(&chosen), smallest(&[0, 17, 34]));
+        assert!(
+            spread >= 100.0 && spread > fixed,
+            "{chosen:?}: {spread}° against {fixed}°"
+        );
+        let two = Dataset::new(data.views()[..2].to_vec(), data.background(), None).unwrap();
+        match spread_views(&two) {
+            Err(Error::InvalidArgument { arg, .. }) => assert_eq!(arg, "frames"),
+            other => panic!("{other:?}"),
+        }
+    }
+
     /// Both runs for a few steps at a quarter of the resolution: the comparison files and
     /// both runs' metrics are written.
     #[test]
@@ -528,7 +662,10 @@ mod sparse_tests {
             serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap())
                 .unwrap();
         assert_eq!(m["regularisers"]["view_dependence"], false, "{m}");
-        assert_eq!(m["frames"], serde_json::json!([0, 17, 34]));
+        // Three distinct views, chosen by the rule.
+        let frames = m["frames"].as_array().unwrap();
+        assert_eq!(frames.len(), 3, "{m}");
+        assert!(frames[0].as_u64() < frames[1].as_u64() && frames[1].as_u64() < frames[2].as_u64());
         for run in ["plain", "regularised"] {
             for key in ["psnr", "depth_tv"] {
                 assert!(

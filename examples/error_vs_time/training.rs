@@ -198,7 +198,7 @@ pub fn run(quick: bool) -> Vec<Table> {
         },
         Curve {
             example: "tiny_nerf",
-            args: vec![out("nf_tiny_nerf.png")],
+            args: vec!["--out".into(), out("nf_tiny_nerf")],
             what: "tiny_nerf (fuzzy ball, 4×64 MLP)",
             runs: &["stratified", "grid"],
             columns: 6,

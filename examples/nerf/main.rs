@@ -47,8 +47,10 @@
 //! `train_seconds` without evaluations, `steps`, `samples_per_ray`, `sampler`, `scene`, `encoding`,
 //! `device`, `scene_box`, `eval_split`, `eval_views`, `eval_supersample`, `pixel_filter`, `jitter`,
 //! `train_supersample`, `march_jitter`, `coarse_to_fine`, `view_dependence`,
-//! `alpha_threshold`, `proposal_samples`, `data`, and `psnr_per_scale`: per image size,
-//! largest first, `width`, `height`, `views`, `psnr`, `ssim`); `curve.csv` (`step,train_seconds,psnr`
+//! `alpha_threshold`, `proposal_samples`, `data`, `psnr_per_scale`: per image size,
+//! largest first, `width`, `height`, `views`, `psnr`, `ssim`; and `phase_seconds`: host
+//! seconds of training by phase, `grid_update`, `batch`, `sampling`, `loss`, `backward`,
+//! `check`, `update`); `curve.csv` (`step,train_seconds,psnr`
 //! every `--eval-every` steps on `--eval-views` views, and at the end); `view_{i}.png`
 //! (truth | prediction | error), `depth_{i}.png`, `opacity_{i}.png` for `--pictures`
 //! views; `weights.safetensors`, which `--resume` loads. A NaN or infinity in the loss, a
