@@ -562,7 +562,7 @@ impl OccupancyGrid {
                 [0, 1, 2].map(|a| (c[a] - h[a] * scale, 2.0 * h[a] * scale / res as f64))
             })
             .collect();
-        let mut levels = Vec::with_capacity(self.config.chunk_size.min(cells.len()));
+        let mut levels = Vec::new();
         for chunk in cells.chunks(self.config.chunk_size) {
             let mut pts = Vec::with_capacity(chunk.len() * 3);
             levels.clear();
