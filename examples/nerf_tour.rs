@@ -31,9 +31,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (mut config, clock) = (CompositeConfig::default(), std::time::Instant::now());
     let budget = || clock.elapsed().as_secs_f64() / 60.0 / args.minutes; // its fraction spent
     for step in (0..).take_while(|_| budget() < 1.0) {
-        let cells = grid.occupied();
-        let occupied = cells.iter().filter(|&&o| o).count() as f64 / cells.len() as f64;
-        (step % 100 == 0).then(|| println!("step {step}: grid {occupied:.3} occupied"));
+        let fraction = |c: &[bool]| c.iter().filter(|&&o| o).count() as f64 / c.len() as f64;
+        let occupied = || fraction(grid.occupied()); // counted when printed, every 100 steps
+        (step % 100 == 0).then(|| println!("step {step}: grid {:.3} occupied", occupied()));
         adam.set_learning_rate(5e-3 * 0.1f64.powf(budget())); // to 5e-4
         grid.update(step, 16, &dev, dt, &mut density)?;
         let batch = rays.pixels(1024)?;

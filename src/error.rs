@@ -232,6 +232,18 @@ pub(crate) fn check_same_shape(
     }
 }
 
+/// Whether `t` holds no NaN or ±∞: `Σ 0·x` in f64 (0 for finite `x`, NaN for NaN and
+/// ±∞, whatever the magnitudes), one scalar read back from the device.
+pub(crate) fn all_finite(t: &Tensor) -> Result<bool> {
+    let probe = t
+        .detach()
+        .to_dtype(DType::F64)?
+        .affine(0.0, 0.0)?
+        .sum_all()?
+        .to_scalar::<f64>()?;
+    Ok(probe.is_finite())
+}
+
 /// Checks that every element of `t` is finite (no NaN, no ±∞).
 ///
 /// This reads one scalar back from the device (a reduction), so it synchronises with
@@ -243,14 +255,7 @@ pub(crate) fn check_finite(t: &Tensor, arg: &'static str) -> Result<()> {
     if t.elem_count() == 0 {
         return Ok(());
     }
-    // 0·x is 0 for finite x and NaN for NaN and ±∞, so the sum is NaN iff one is.
-    let probe = t
-        .detach()
-        .to_dtype(DType::F64)?
-        .affine(0.0, 0.0)?
-        .sum_all()?
-        .to_scalar::<f64>()?;
-    if probe.is_finite() {
+    if all_finite(t)? {
         Ok(())
     } else {
         Err(Error::invalid(arg, "finite values", "NaN or infinity"))

@@ -2,7 +2,7 @@
 //! without weight decay, a guard that stops a run at the first NaN or infinity, and a
 //! clock that measures the budget in steps or in training time.
 
-use crate::error::{Error, Result};
+use crate::error::{all_finite, Error, Result};
 use crate::kernels::{AdamMoments, AdamUpdate};
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Tensor, Var};
@@ -206,48 +206,38 @@ impl FiniteGuard {
     /// loss`, `the gradient of NAME`, `the weight NAME`), at the first tensor that holds a
     /// NaN or an infinity; candle's errors if a tensor cannot be read.
     pub fn check(&self, step: usize, loss: &Tensor, grads: Option<&GradStore>) -> Result<()> {
-        let mut checked: Vec<(Tensor, Box<dyn Fn() -> String + '_>)> =
-            vec![(loss.clone(), Box::new(|| "the loss".into()))];
+        // (tensor, what it is, the variable's name)
+        let mut checked = vec![(loss.clone(), "the loss", "")];
         if let Some(grads) = grads {
             for (name, var) in &self.vars {
                 if let Some(g) = grads.get(var) {
-                    checked.push((
-                        g.clone(),
-                        Box::new(move || format!("the gradient of {name}")),
-                    ));
+                    checked.push((g.clone(), "the gradient of ", name.as_str()));
                 }
             }
             for (name, var) in &self.vars {
-                checked.push((
-                    var.as_tensor().clone(),
-                    Box::new(move || format!("the weight {name}")),
-                ));
+                checked.push((var.as_tensor().clone(), "the weight ", name.as_str()));
             }
         }
-        // Σ 0·x over every tensor (0 for finite x, NaN for NaN and ±∞), concatenated and
-        // read back at once where all share a dtype and a device (a GPU then synchronises
-        // once per step, not once per tensor); only then, tensor by tensor, to name one.
+        // Concatenated and probed at once where all share a dtype and a device (a GPU
+        // then synchronises once per step, not once per tensor); only then tensor by
+        // tensor, to name one.
         let tensors: Vec<Tensor> = checked
             .iter()
-            .filter(|(t, _)| t.elem_count() > 0)
-            .map(|(t, _)| Ok(t.detach().flatten_all()?))
+            .filter(|(t, ..)| t.elem_count() > 0)
+            .map(|(t, ..)| Ok(t.flatten_all()?))
             .collect::<Result<_>>()?;
-        let probe = |t: &Tensor| -> Result<bool> {
-            let s = t.affine(0.0, 0.0)?.sum_all()?.to_dtype(DType::F64)?;
-            Ok(s.to_scalar::<f64>()?.is_finite())
-        };
         let alike = tensors
             .iter()
             .all(|t| t.dtype() == loss.dtype() && t.device().same_device(loss.device()));
-        if alike && !tensors.is_empty() && probe(&Tensor::cat(&tensors, 0)?)? {
+        if alike && !tensors.is_empty() && all_finite(&Tensor::cat(&tensors, 0)?)? {
             return Ok(());
         }
-        for (t, what) in &checked {
-            if t.elem_count() > 0 && !probe(&t.detach().flatten_all()?)? {
+        for (t, what, name) in &checked {
+            if t.elem_count() > 0 && !all_finite(t)? {
                 return Err(Error::invalid(
                     "training",
                     "finite losses, gradients and weights",
-                    format!("a NaN or infinity in {} at step {step}", what()),
+                    format!("a NaN or infinity in {what}{name} at step {step}"),
                 ));
             }
         }

@@ -4,10 +4,11 @@
 
 use super::compositing::{visible_mask, DEFAULT_TERMINATION_EPS};
 use super::layout::{host_f64, Intervals, Layout, Packed};
-use super::sampling::{from_host, stream, DensityFn};
+use super::sampling::{stream, DensityFn};
 use crate::camera::Rays;
 use crate::error::{check_finite, check_float, check_same, check_scalar, Error, Result};
 use crate::kernels::X_MAX;
+use crate::narrow::from_host;
 use crate::rng::SplitMix64;
 use candle_core::{DType, Device, Tensor};
 use rayon::prelude::*;
@@ -927,7 +928,11 @@ fn worth_evaluating(
     alpha_threshold: f64,
 ) -> Result<Vec<bool>> {
     let Layout::Packed(packed) = &intervals.layout else {
-        unreachable!("the march emits packed intervals")
+        return Err(Error::invalid(
+            "intervals",
+            "the march's packed intervals",
+            "batched intervals",
+        ));
     };
     let m = packed.ray_indices.dim(0)?;
     let sigma = sigma_fn(&intervals.positions(rays)?)?;

@@ -130,9 +130,13 @@ where
             Ok(all.reshape(shape)?)
         })
         .collect::<Result<Vec<Tensor>>>()?;
-    Ok(images
-        .try_into()
-        .unwrap_or_else(|_: Vec<Tensor>| unreachable!("one image per output")))
+    images.try_into().map_err(|v: Vec<Tensor>| {
+        Error::invalid(
+            "render",
+            format!("{N} outputs"),
+            format!("{} images", v.len()),
+        )
+    })
 }
 
 /// The mean over each run of `per_pixel` rows of one output `[n]` or `[n, C]` of a chunk

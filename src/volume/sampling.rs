@@ -16,6 +16,7 @@
 
 use super::layout::{host_f64, Intervals, Layout};
 use crate::error::{check_float, check_same, check_scalar, check_shape, Dim, Error, Result};
+use crate::narrow::from_host;
 use crate::rng::SplitMix64;
 use candle_core::{Tensor, D};
 use rayon::prelude::*;
@@ -27,8 +28,6 @@ pub(crate) fn stream(seed: u64, index: u64) -> SplitMix64 {
     let mut g = SplitMix64::new(seed ^ index.wrapping_mul(0xD1B5_4A32_D192_ED03));
     SplitMix64::new(g.next_u64() ^ index)
 }
-
-pub(crate) use crate::narrow::from_host;
 
 /// A density function as [`super::OccupancyGrid::sample`] and [`super::proposal_sample`]
 /// take it: positions `[N, 3]` → densities `[N]` (≥ 0), in the positions' dtype and on
