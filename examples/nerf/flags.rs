@@ -22,8 +22,9 @@ pub(super) enum Encoding {
 pub(super) enum Scene {
     /// An object inside the scene box.
     Object,
-    /// Content at every distance (a 360° capture): contraction, proposal sampler,
-    /// disparity spacing, distortion loss.
+    /// Content at every distance (a 360° capture): contraction, and the proposal
+    /// sampler (disparity spacing, distortion loss) or the occupancy grid (cascaded
+    /// levels, cone stepping).
     Unbounded,
 }
 
@@ -67,9 +68,10 @@ pub(super) struct Args {
     /// Where to train and evaluate: `cpu`, or `cuda` (the first GPU; build with `--features cuda`).
     #[arg(long, value_enum, default_value = "cpu")]
     pub(super) device: DeviceFlag,
-    /// The sampler (`--scene unbounded` always uses proposal).
-    #[arg(long, value_enum, default_value = "grid")]
-    pub(super) sampler: Sampler,
+    /// The sampler: `grid` (the default for `--scene object`), `stratified` (bounded
+    /// scenes only) or `proposal` (the default for `--scene unbounded`).
+    #[arg(long, value_enum)]
+    pub(super) sampler: Option<Sampler>,
     /// `object` (in the scene box) or `unbounded` (contracted space).
     #[arg(long, value_enum, default_value = "object")]
     pub(super) scene: Scene,
@@ -110,11 +112,14 @@ pub(super) struct Args {
     /// Weights to start from (a previous run's weights.safetensors).
     #[arg(long)]
     pub(super) resume: Option<PathBuf>,
-    /// Learning rate, in (0, 0.1] (default 5e-3; 1e-2 with --encoding hash, 1e-3 with ipe).
+    /// Learning rate, in (0, 0.1] (default 5e-3; 1e-2 with --encoding hash, 1e-3 with ipe
+    /// and with pe in an unbounded scene).
     #[arg(long, value_parser = learning_rate)]
     pub(super) lr: Option<f64>,
-    #[arg(long, value_enum, default_value = "pe")]
-    pub(super) encoding: Encoding,
+    /// The position encoding: `pe` (the default for `--scene object`), `hash` (the
+    /// default for `--scene unbounded`) or `ipe`.
+    #[arg(long, value_enum)]
+    pub(super) encoding: Option<Encoding>,
     #[arg(long, default_value_t = HashGridConfig::default().log2_table_size)]
     pub(super) hash_log2: u32,
     #[arg(long)]
@@ -139,6 +144,11 @@ pub(super) struct Args {
     /// Proposal sampler: samples per ray of the two proposal levels.
     #[arg(long, value_parser = two_counts, default_value = "16,8")]
     pub(super) proposal_samples: [usize; 2],
+    /// Unbounded scenes: scale each sample's gradients by min(1, t²), t its distance
+    /// from the camera in the frame whose unit ball holds the cameras (against floaters
+    /// in front of the training cameras).
+    #[arg(long, value_parser = on_off, action = clap::ArgAction::Set, default_value = "on")]
+    pub(super) gradient_scaling: bool,
     /// Read image and mask files outside the dataset folder (absolute paths, `../`,
     /// symlinks to elsewhere), which loading refuses by default.
     #[arg(long)]
@@ -240,6 +250,12 @@ impl Args {
                 format!("{self:?}"),
             ));
         }
+        if self.scene == Scene::Unbounded && self.sampler == Some(Sampler::Stratified) {
+            return Err(bad(
+                "--sampler grid or proposal with --scene unbounded (stratified samples need a box)",
+                format!("{self:?}"),
+            ));
+        }
         if !(self.aabb.is_none_or(|a| a > 0.0 && a.is_finite())
             && (0.0..1.0).contains(&self.alpha_threshold))
         {
@@ -271,6 +287,33 @@ impl Args {
                 got: e.to_string(),
             }),
         }
+    }
+
+    /// The encoding of `--encoding`, or the scene's default.
+    pub(super) fn encoding(&self) -> Encoding {
+        self.encoding.unwrap_or(match self.scene {
+            Scene::Object => Encoding::Pe,
+            Scene::Unbounded => Encoding::Hash,
+        })
+    }
+
+    /// `--lr`, or the default of the scene and encoding: 1e-2 for the hash grid, 1e-3
+    /// for mip-NeRF's and for the frequency encoding in an unbounded scene (at 5e-3 its
+    /// density collapses there), 5e-3 for the frequency encoding in a bounded scene.
+    pub(super) fn learning_rate(&self) -> f64 {
+        self.lr.unwrap_or(match (self.encoding(), self.scene) {
+            (Encoding::Hash, _) => 1e-2,
+            (Encoding::Ipe, _) | (Encoding::Pe, Scene::Unbounded) => 1e-3,
+            (Encoding::Pe, Scene::Object) => 5e-3,
+        })
+    }
+
+    /// The sampler of `--sampler`, or the scene's default.
+    pub(super) fn sampler(&self) -> Sampler {
+        self.sampler.unwrap_or(match self.scene {
+            Scene::Object => Sampler::Grid,
+            Scene::Unbounded => Sampler::Proposal,
+        })
     }
 
     pub(super) fn pixel_filter(&self) -> PixelFilter {

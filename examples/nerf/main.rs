@@ -10,13 +10,14 @@
 //! **Data**: any dataset [`neural_fields::data::load`] reads (Blender, nerfstudio,
 //! IDR/DTU); training on the `train` split with a random background per ray, evaluation on
 //! `test` (or `val`) on white. **Model**: [`Nerf`] with its defaults, Adam with a learning
-//! rate decaying log-linearly to a tenth of `--lr`; `--encoding hash` puts instant-NGP's
+//! rate decaying log-linearly to a tenth of `--lr` (default by encoding and scene, see
+//! `--help`); `--encoding hash` (the default in an unbounded scene) puts instant-NGP's
 //! hash grid over the scene box on a 1 × 64 trunk; `--encoding ipe` is mip-NeRF: each
 //! interval is the conical frustum of its ray's pixel footprint, encoded by the integrated
 //! positional encoding ([`Nerf::sample_inputs`]), so one model serves every resolution
 //! (train it on `examples/multiscale.rs`'s data).
 //!
-//! **Samplers** (`--sampler`): `grid` (default), an [`OccupancyGrid`] (64³ cells) updated
+//! **Samplers** (`--sampler`): `grid` (default in a bounded scene), an [`OccupancyGrid`] (64³ cells) updated
 //! every 16 steps, marched at the box diagonal / 64 while more than a quarter of it is
 //! occupied, then / 256, whose sampling lets only the visible samples (transmittance ≥
 //! 1e-4) through to the whole network; `stratified`, `--samples` jittered samples across
@@ -28,9 +29,14 @@
 //! cube ±H; else the box the layout states, else the visual hull of the training
 //! silhouettes grown by 5 % ([`Dataset::visual_hull`]), else ±1.5); `unbounded`, content
 //! at every distance (mip-NeRF 360): the training cameras' frame scaled into the unit
-//! ball, every network on [`contract`] of it, the proposal sampler (whatever `--sampler`
-//! says) spacing samples linearly to 1 and then in disparity to 1e6 ([`Spacing`]), and
-//! the distortion loss in that spacing's `s`.
+//! ball, every network on [`contract`] of it (the hash grid over the contracted ball's
+//! cube ±2 unless `--encoding` says otherwise), and either the proposal sampler (the
+//! default) spacing samples linearly to 1 and then in disparity to 1e6 ([`Spacing`]),
+//! with the distortion loss in that spacing's `s`, or (`--sampler grid`) the occupancy
+//! grid with 5 levels doubling the unit cube to ±16, marched with steps growing as
+//! `t/256` (cone stepping) and updated from the field at the contracted cell points;
+//! `--gradient-scaling on` (default) scales each sample's gradients by `min(1, t²)`
+//! (Philip and Deschaintre's remedy for floaters in front of the cameras).
 //!
 //! **Rays**: `--eval-supersample K` renders `K × K` rays per held-out pixel
 //! ([`render_image`]); `--jitter on` trains on random points of the pixels,
@@ -47,12 +53,13 @@
 //! `train_seconds` without evaluations, `steps`, `samples_per_ray`, `sampler`, `scene`, `encoding`,
 //! `device`, `scene_box`, `eval_split`, `eval_views`, `eval_supersample`, `pixel_filter`, `jitter`,
 //! `train_supersample`, `march_jitter`, `coarse_to_fine`, `view_dependence`,
-//! `alpha_threshold`, `proposal_samples`, `data`, `psnr_per_scale`: per image size,
+//! `alpha_threshold`, `proposal_samples`, `gradient_scaling`, `data`, `psnr_per_scale`: per image size,
 //! largest first, `width`, `height`, `views`, `psnr`, `ssim`; and `phase_seconds`: host
 //! seconds of training by phase, `grid_update`, `batch`, `sampling`, `loss`, `backward`,
 //! `check`, `update`); `curve.csv` (`step,train_seconds,psnr`
 //! every `--eval-every` steps on `--eval-views` views, and at the end); `view_{i}.png`
-//! (truth | prediction | error), `depth_{i}.png`, `opacity_{i}.png` for `--pictures`
+//! (truth | prediction | error), `depth_{i}.png` (turbo, near blue; of the log depth in
+//! an unbounded scene), `opacity_{i}.png` for `--pictures`
 //! views; `weights.safetensors`, which `--resume` loads. A NaN or infinity in the loss, a
 //! gradient or a weight stops the run naming the step and the tensor. Past runs and their
 //! commands: docs/benchmarks.md. Uses mimalloc (see `examples/tiny_nerf.rs`).
@@ -143,7 +150,7 @@ fn write(path: &Path, text: &str) -> Result<()> {
 /// The radiance field for `args.encoding`: NeRF's defaults, or a hash grid over the scene
 /// box `aabb` (its table `grid.table` in the weights) on a 1 × 64 trunk.
 fn nerf_config(args: &Args, aabb: [f64; 6], finest: f64, vb: &VarBuilder) -> Result<NerfConfig> {
-    let mut config = match args.encoding {
+    let mut config = match args.encoding() {
         Encoding::Pe => NerfConfig::default(),
         // Octaves 2⁰ … 2¹¹ (no π): the frequency encoding's band (2⁹π ≈ 2¹⁰·⁶) and one
         // more octave, which the cones' variances damp where a pixel is wider.
@@ -228,9 +235,10 @@ fn dead_run(since: usize, step: usize, args: &Args) -> Error {
         expected: format!("some opacity on the training rays within {DEAD_STEPS} steps"),
         got: format!(
             "every ray's opacity below {DEAD_OPACITY} from step {since} to {step}: the density \
-             collapsed to zero (a learning rate too high for this scene, --lr {:?}), or the \
+             collapsed to zero (a learning rate too high for this scene, --lr {}), or the \
              scene box misses the scene (--aabb {:?})",
-            args.lr, args.aabb
+            args.learning_rate(),
+            args.aabb
         ),
     }
 }
@@ -242,6 +250,20 @@ fn scene_box(train: &Dataset) -> Result<[f64; 6]> {
         return Ok(train.scene_box(1.5));
     }
     Ok(train.visual_hull(0.05)?.unwrap_or(train.scene_box(1.5)))
+}
+
+/// The `lo` and `hi` quantiles of the finite values of `x`, when they differ.
+fn percentiles(x: &Tensor, lo: f64, hi: f64) -> Result<Option<(f64, f64)>> {
+    let mut v: Vec<f64> = x
+        .flatten_all()?
+        .to_dtype(DType::F64)?
+        .to_vec1::<f64>()?
+        .into_iter()
+        .filter(|v| v.is_finite())
+        .collect();
+    v.sort_by(f64::total_cmp);
+    let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
+    Ok((!v.is_empty() && at(lo) < at(hi)).then(|| (at(lo), at(hi))))
 }
 
 fn run(args: &Args) -> Result<()> {
@@ -282,23 +304,26 @@ fn run(args: &Args) -> Result<()> {
         source,
     })?;
     // An unbounded scene: the networks live in the contracted frame of the training
-    // cameras (radius < 2), the proposal sampler spaces samples to far away.
+    // cameras (radius < 2); the proposal sampler spaces samples to far away, the grid's
+    // levels double the unit cube out to UNBOUNDED_GRID_LEVELS.
     let unbounded = (args.scene == Scene::Unbounded).then(|| {
         let cameras: Vec<Camera> = train.views().iter().map(|v| *v.camera()).collect();
         SceneFrame::from_cameras(&cameras)
     });
-    let sampler_kind = if unbounded.is_some() {
-        Sampler::Proposal
-    } else {
-        args.sampler
-    };
+    let sampler_kind = args.sampler();
     let aabb = match (unbounded, args.aabb) {
         (Some(_), _) => [-2.0, -2.0, -2.0, 2.0, 2.0, 2.0],
         (None, Some(half)) => [-half, -half, -half, half, half, half],
         (None, None) => scene_box(&train)?,
     };
+    // The grid's finest level: the scene box, or in an unbounded scene the frame's unit
+    // cube (the cameras' ball).
+    let (grid_box, grid_levels) = match unbounded {
+        Some(_) => ([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0], UNBOUNDED_GRID_LEVELS),
+        None => (aabb, 1),
+    };
     let diag = (0..3)
-        .map(|a| (aabb[a + 3] - aabb[a]).powi(2))
+        .map(|a| (grid_box[a + 3] - grid_box[a]).powi(2))
         .sum::<f64>()
         .sqrt();
     let finest = args.hash_finest.unwrap_or_else(|| train.hash_finest());
@@ -328,16 +353,13 @@ fn run(args: &Args) -> Result<()> {
     if let Some(path) = &args.resume {
         varmap.load(path)?;
     }
-    let lr0 = args.lr.unwrap_or(match args.encoding {
-        Encoding::Pe => 5e-3,
-        Encoding::Ipe => 1e-3,
-        Encoding::Hash => 1e-2,
-    });
+    let lr0 = args.learning_rate();
     let mut opt = adam(&varmap, lr0)?;
     let guard = FiniteGuard::new(&varmap);
     let mut grid = match sampler_kind {
         Sampler::Grid => Some(OccupancyGrid::new(GridConfig {
-            aabb,
+            aabb: grid_box,
+            levels: grid_levels,
             resolution: GRID_RESOLUTION,
             decay: 0.7,
             warmup_steps: 128,
@@ -396,7 +418,7 @@ fn run(args: &Args) -> Result<()> {
         let mut lap = Lap::start();
         if let Some(grid) = grid.as_mut() {
             let updated = grid.update(step, 16, &device, dtype, |p: &Tensor| {
-                Ok(grid_density(&net, &aabb, args.encoding == Encoding::Ipe, p)?.detach())
+                Ok(base.grid_density(p)?.detach())
             })?;
             if updated {
                 occupied_now = occupied(grid);
@@ -541,9 +563,18 @@ fn run(args: &Args) -> Result<()> {
             &args.out.join(format!("view_{i}.png")),
             &comparison_strip(truth, color)?,
         )?;
+        // Unbounded: the log of the depth between its 2nd and 98th percentiles (it runs
+        // from the ground at the cameras' feet to the sky).
+        let (mapped, range) = match unbounded {
+            Some(_) => {
+                let log = depth.log()?;
+                (log.clone(), percentiles(&log, 0.02, 0.98)?)
+            }
+            None => (depth.clone(), None),
+        };
         write_png(
             &args.out.join(format!("depth_{i}.png")),
-            &colorize_depth(depth, None)?.0,
+            &colorize_depth(&mapped, range)?.0,
         )?;
         write_png(&args.out.join(format!("opacity_{i}.png")), opacity)?;
     }
@@ -558,7 +589,7 @@ fn run(args: &Args) -> Result<()> {
         "samples_per_ray": samples_total as f64 / (step.max(1) * args.rays) as f64,
         "sampler": format!("{:?}", sampler_kind).to_lowercase(),
         "scene": format!("{:?}", args.scene).to_lowercase(),
-        "encoding": format!("{:?}", args.encoding).to_lowercase(),
+        "encoding": format!("{:?}", args.encoding()).to_lowercase(),
         "device": format!("{:?}", args.device).to_lowercase(),
         "scene_box": aabb,
         "eval_split": eval_split,
@@ -572,6 +603,7 @@ fn run(args: &Args) -> Result<()> {
         "view_dependence": args.view_dependence,
         "alpha_threshold": args.alpha_threshold,
         "proposal_samples": args.proposal_samples,
+        "gradient_scaling": args.gradient_scaling,
         "data": args.data.display().to_string(),
         "psnr_per_scale": per_scale,
         "phase_seconds": phases.json(),

@@ -25,6 +25,12 @@ pub(super) struct Renderer<'a> {
 /// in the unit ball): sampled linearly to 1, then in disparity ([`Spacing`]).
 const UNBOUNDED_NEAR: f64 = 0.05;
 const UNBOUNDED_FAR: f64 = 1e6;
+/// The occupancy grid's levels in an unbounded scene: level `l` covers the frame's cube
+/// `±2^l`, the last `±16` (the content past it is drawn on its outer cells).
+pub(super) const UNBOUNDED_GRID_LEVELS: usize = 5;
+/// The grid march's cone angle in an unbounded scene: steps of `t/256` once that passes
+/// the base step (instant-NGP's value for large scenes).
+const UNBOUNDED_CONE_ANGLE: f64 = 1.0 / 256.0;
 /// mip-NeRF 360's weight of the distortion loss.
 const DISTORTION_WEIGHT: f64 = 0.01;
 
@@ -86,21 +92,38 @@ fn contracted(rows: &Tensor) -> Result<Tensor> {
 /// The occupancy grid's cells per side.
 pub(super) const GRID_RESOLUTION: usize = 64;
 
-/// The field's density at points `[N, 3]` as the occupancy grid sees it: with the
-/// integrated encoding (`--encoding ipe`), of Gaussians the size of a grid cell (variance
-/// `cell²/12` per axis), since a point reads octaves no cone trained.
-pub(super) fn grid_density(net: &Nerf, aabb: &[f64; 6], ipe: bool, p: &Tensor) -> Result<Tensor> {
-    if !ipe {
-        return net.density(p);
+impl Renderer<'_> {
+    /// The field's density at points `[N, 3]` (in an unbounded scene, frame points,
+    /// contracted first) as the occupancy grid sees it: with the integrated encoding
+    /// (`--encoding ipe`), of Gaussians the size of a grid cell of the network's box
+    /// (variance `cell²/12` per axis), since a point reads octaves no cone trained.
+    pub(super) fn grid_density(&self, p: &Tensor) -> Result<Tensor> {
+        let p = match self.unbounded {
+            Some(_) => contracted(p)?,
+            None => p.clone(),
+        };
+        if self.args.encoding() != Encoding::Ipe {
+            return self.net.density(&p);
+        }
+        let var: Vec<f64> = (0..3)
+            .map(|a| ((self.aabb[a + 3] - self.aabb[a]) / GRID_RESOLUTION as f64).powi(2) / 12.0)
+            .collect();
+        let var = Tensor::new(var.as_slice(), p.device())?
+            .to_dtype(p.dtype())?
+            .unsqueeze(0)?
+            .broadcast_as(p.shape())?;
+        self.net.density(&Tensor::cat(&[&p, &var], 1)?)
     }
-    let var: Vec<f64> = (0..3)
-        .map(|a| ((aabb[a + 3] - aabb[a]) / GRID_RESOLUTION as f64).powi(2) / 12.0)
-        .collect();
-    let var = Tensor::new(var.as_slice(), p.device())?
-        .to_dtype(p.dtype())?
-        .unsqueeze(0)?
-        .broadcast_as(p.shape())?;
-    net.density(&Tensor::cat(&[p, &var], 1)?)
+}
+
+/// `x` forward, its gradient times `s` backward (`s` broadcastable to `x`'s shape, e.g.
+/// `[M, 1]` against colours `[M, 3]`; no gradient reaches `s`): `x·s + x·(1 − s)` with
+/// the second term detached.
+pub(super) fn scale_gradient(x: &Tensor, s: &Tensor) -> Result<Tensor> {
+    let s = s.detach().broadcast_as(x.shape())?;
+    let kept = x.mul(&s)?;
+    let frozen = x.mul(&s.affine(-1.0, 1.0)?)?.detach();
+    Ok((kept + frozen)?)
 }
 
 /// What a renderer's sampler gives for a batch of rays ([`Renderer::render`]).
@@ -145,14 +168,22 @@ impl Renderer<'_> {
             Some(grid) => {
                 // Only the samples in occupied cells that are still visible (T ≥ 1e-4)
                 // reach the whole network; training shifts each ray's step lattice.
+                // In an unbounded scene the march starts near the camera and its steps
+                // grow with the distance (cone stepping) through the grid's levels. (No
+                // opacity threshold: at the initial density every short step is below
+                // one, and a run that drops them all never trains.)
+                let (near, cone_angle) = match self.unbounded {
+                    Some(_) => (UNBOUNDED_NEAR, UNBOUNDED_CONE_ANGLE),
+                    None => (0.0, 0.0),
+                };
                 let march = GridMarchConfig {
+                    near,
                     step_size: self.step_size,
+                    cone_angle,
                     jitter: seed.filter(|_| self.args.march_jitter),
                     ..GridMarchConfig::default()
                 };
-                let mut density = |p: &Tensor| {
-                    grid_density(self.net, &self.aabb, self.args.encoding == Encoding::Ipe, p)
-                };
+                let mut density = |p: &Tensor| self.grid_density(p);
                 grid.sample(rays, &march, Some(&mut density))?.intervals
             }
             None if !self.proposals.is_empty() => {
@@ -283,6 +314,18 @@ impl Renderer<'_> {
                 (sigma.reshape((r, s))?, rgb.reshape((r, s, 3))?)
             }
             Layout::Packed(_) => (sigma, rgb),
+        };
+        // Unbounded, --gradient-scaling on: each sample's gradients scaled by
+        // min(1, t²) (t in frame units), so that density next to a training camera
+        // (a floater that explains that one view) learns slower than the scene.
+        let (sigma, rgb) = match self.unbounded {
+            Some(_) if self.args.gradient_scaling => {
+                let t = ((&intervals.starts + &intervals.ends)? * 0.5)?;
+                let s = t.sqr()?.minimum(1.0)?;
+                let rgb = scale_gradient(&rgb, &s.unsqueeze(s.rank())?)?;
+                (scale_gradient(&sigma, &s)?, rgb)
+            }
+            _ => (sigma, rgb),
         };
         // The proposals learn from the interlevel loss against the field's weights.
         if !levels.is_empty() {

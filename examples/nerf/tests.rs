@@ -58,13 +58,13 @@ fn a_shortened_run_trains_writes_its_outputs_and_resumes() {
     }
     // Resuming from the saved weights, with the stratified sampler.
     args.resume = Some(out.join("weights.safetensors"));
-    args.sampler = Sampler::Stratified;
+    args.sampler = Some(Sampler::Stratified);
     args.steps = Some(2);
     run(&args).unwrap();
     // The proposal sampler from scratch (its networks are not in the saved weights),
     // skipping empty samples (the default) and keeping them all, under a window.
     args.resume = None;
-    args.sampler = Sampler::Proposal;
+    args.sampler = Some(Sampler::Proposal);
     run(&args).unwrap();
     args.alpha_threshold = 0.0;
     args.coarse_to_fine = Some((0.0, 2.0));
@@ -78,8 +78,8 @@ fn a_shortened_run_trains_writes_its_outputs_and_resumes() {
     args.coarse_to_fine = None;
     args.view_dependence = true;
     // The hash-grid encoding, with box-filtered training rays and a jittered march.
-    args.sampler = Sampler::Grid;
-    args.encoding = Encoding::Hash;
+    args.sampler = Some(Sampler::Grid);
+    args.encoding = Some(Encoding::Hash);
     args.train_supersample = 2;
     args.march_jitter = true;
     run(&args).unwrap();
@@ -99,7 +99,7 @@ fn a_shortened_run_trains_writes_its_outputs_and_resumes() {
     assert!(m["psnr"].as_f64().is_some_and(f64::is_finite));
     // mip-NeRF: cone casting with the integrated encoding, jittered sub-pixel rays and
     // 2 × 2 evaluation (rays with a half-pixel radius).
-    args.encoding = Encoding::Ipe;
+    args.encoding = Some(Encoding::Ipe);
     args.eval_supersample = 2;
     run(&args).unwrap();
     let m = metrics(&out);
@@ -108,20 +108,67 @@ fn a_shortened_run_trains_writes_its_outputs_and_resumes() {
     assert_eq!(scales.len(), 1);
     assert_eq!(scales[0]["width"], 25);
     assert!(scales[0]["psnr"].as_f64().is_some_and(f64::is_finite));
-    // An unbounded scene: contracted space and the proposal sampler, whatever --sampler
-    // says, with each encoding.
+    // An unbounded scene: contracted space with the proposal sampler (its default) and
+    // with the cascaded grid, with each encoding; stratified samples are refused.
     args.scene = Scene::Unbounded;
-    for encoding in [Encoding::Ipe, Encoding::Pe, Encoding::Hash] {
-        args.encoding = encoding;
+    for (sampler, encoding) in [
+        (None, Encoding::Ipe),
+        (None, Encoding::Pe),
+        (None, Encoding::Hash),
+        (Some(Sampler::Grid), Encoding::Pe),
+        (Some(Sampler::Grid), Encoding::Ipe),
+    ] {
+        (args.sampler, args.encoding) = (sampler, Some(encoding));
         run(&args).unwrap();
         let m = metrics(&out);
+        let name = if sampler.is_some() {
+            "grid"
+        } else {
+            "proposal"
+        };
         assert_eq!(
             (m["scene"].as_str(), m["sampler"].as_str()),
-            (Some("unbounded"), Some("proposal"))
+            (Some("unbounded"), Some(name))
         );
         assert!(m["psnr"].as_f64().is_some_and(f64::is_finite));
     }
+    args.sampler = Some(Sampler::Stratified);
+    let e = run(&args).unwrap_err().to_string();
+    assert!(e.contains("--scene unbounded"), "{e}");
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// The gradient scaling of unbounded scenes leaves values alone and multiplies each
+/// sample's gradient by its scale, broadcast over the colour channels.
+#[test]
+fn scale_gradient_scales_only_the_gradient() {
+    use candle_core::Var;
+    let dev = Device::Cpu;
+    let x = Var::from_tensor(&Tensor::new(&[[1.0f64, 2.0, 3.0], [4.0, 5.0, 6.0]], &dev).unwrap())
+        .unwrap();
+    let s = Tensor::new(&[0.25f64, 1.0], &dev).unwrap();
+    let y = scale_gradient(x.as_tensor(), &s.unsqueeze(1).unwrap()).unwrap();
+    assert_eq!(y.to_vec2::<f64>().unwrap(), x.to_vec2::<f64>().unwrap());
+    let grads = (y.sqr().unwrap().sum_all().unwrap() * 0.5)
+        .unwrap()
+        .backward()
+        .unwrap();
+    let g = grads.get(&x).unwrap().to_vec2::<f64>().unwrap();
+    assert_eq!(g, vec![vec![0.25, 0.5, 0.75], vec![4.0, 5.0, 6.0]]);
+}
+
+/// The depth pictures' range: quantiles of the finite values only, none when they agree.
+#[test]
+fn percentiles_skip_non_finite_values() {
+    let dev = Device::Cpu;
+    let mut v: Vec<f64> = (1..=100).map(f64::from).collect();
+    v.extend([f64::NAN, f64::INFINITY]);
+    let x = Tensor::new(v.as_slice(), &dev).unwrap();
+    assert_eq!(percentiles(&x, 0.02, 0.98).unwrap(), Some((3.0, 98.0)));
+    let flat = Tensor::new(&[2.0f32, 2.0, f32::NAN], &dev).unwrap();
+    assert_eq!(percentiles(&flat, 0.02, 0.98).unwrap(), None);
+    let empty = Tensor::new(&[f32::NAN], &dev).unwrap();
+    assert_eq!(percentiles(&empty, 0.02, 0.98).unwrap(), None);
 }
 
 /// The command line keeps the flags, spellings and defaults of earlier versions.
@@ -131,15 +178,24 @@ fn flags_parse_as_documented() {
     assert_eq!(a.out, PathBuf::from("target/nerf"));
     let counts = (a.rays, a.samples, a.eval_every, a.eval_views, a.pictures);
     assert_eq!(counts, (1024, 64, 250, 4, 8));
-    assert_eq!((a.sampler, a.encoding), (Sampler::Grid, Encoding::Pe));
+    assert_eq!((a.sampler(), a.encoding()), (Sampler::Grid, Encoding::Pe));
+    assert_eq!(a.learning_rate(), 5e-3);
     assert_eq!(a.scene, Scene::Object);
+    // An unbounded scene's defaults: the hash grid, the proposal sampler, lr 1e-2; the
+    // frequency encoding there at 1e-3 (its density collapsed at 5e-3).
+    let u = Args::parse_from("nerf --scene unbounded".split_whitespace());
+    let defaults = (u.sampler(), u.encoding(), u.learning_rate());
+    assert_eq!(defaults, (Sampler::Proposal, Encoding::Hash, 1e-2));
+    let u = Args::parse_from("nerf --scene unbounded --encoding pe".split_whitespace());
+    assert_eq!(u.learning_rate(), 1e-3);
     let c = Args::parse_from("nerf --scene unbounded --encoding ipe".split_whitespace());
-    assert_eq!((c.scene, c.encoding), (Scene::Unbounded, Encoding::Ipe));
+    assert_eq!((c.scene, c.encoding()), (Scene::Unbounded, Encoding::Ipe));
     assert_eq!(
         (a.regnerf_weight, a.proposal_samples),
         ([400.0, 0.1], [16, 8])
     );
     assert!(a.view_dependence && !a.jitter && !a.march_jitter && !a.regnerf);
+    assert!(a.gradient_scaling);
     assert_eq!(a.budget().unwrap(), Budget::Minutes(10.0));
     let flags = "nerf --sampler proposal --frames 0,17,34 --jitter on --coarse-to-fine 0,3.5 \
         --pixel-filter cycles --background black --proposal-samples 32,16 --steps 7";
@@ -226,7 +282,7 @@ fn a_run_without_opacity_stops_naming_the_cause() {
         downscale: 4,
         rays: 64,
         samples: 8,
-        sampler: Sampler::Stratified,
+        sampler: Some(Sampler::Stratified),
         aabb: Some(1e-4),
         eval_every: 1000,
         // At the default 5e-3 the density inside the tiny box grows fast enough to make
