@@ -568,7 +568,8 @@ fn run(args: &Args) -> Result<()> {
         let (mapped, range) = match unbounded {
             Some(_) => {
                 let log = depth.log()?;
-                (log.clone(), percentiles(&log, 0.02, 0.98)?)
+                let range = percentiles(&log, 0.02, 0.98)?;
+                (log, range)
             }
             None => (depth.clone(), None),
         };

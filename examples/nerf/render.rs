@@ -93,15 +93,21 @@ fn contracted(rows: &Tensor) -> Result<Tensor> {
 pub(super) const GRID_RESOLUTION: usize = 64;
 
 impl Renderer<'_> {
+    /// What the networks see of points `[N, 3]` or Gaussians `[N, 6]`: the rows
+    /// themselves, or in an unbounded scene their contraction ([`contracted`]).
+    fn space(&self, rows: &Tensor) -> Result<Tensor> {
+        match self.unbounded {
+            Some(_) => contracted(rows),
+            None => Ok(rows.clone()),
+        }
+    }
+
     /// The field's density at points `[N, 3]` (in an unbounded scene, frame points,
     /// contracted first) as the occupancy grid sees it: with the integrated encoding
     /// (`--encoding ipe`), of Gaussians the size of a grid cell of the network's box
     /// (variance `cell²/12` per axis), since a point reads octaves no cone trained.
     pub(super) fn grid_density(&self, p: &Tensor) -> Result<Tensor> {
-        let p = match self.unbounded {
-            Some(_) => contracted(p)?,
-            None => p.clone(),
-        };
+        let p = self.space(p)?;
         if self.args.encoding() != Encoding::Ipe {
             return self.net.density(&p);
         }
@@ -156,13 +162,6 @@ impl Renderer<'_> {
             }
             None => rays,
         };
-        // The networks' input: the positions, contracted in an unbounded scene.
-        let space = |p: &Tensor| -> Result<Tensor> {
-            match self.unbounded {
-                Some(_) => contracted(p),
-                None => Ok(p.clone()),
-            }
-        };
         let mut near_far = None;
         let intervals = match self.grid {
             Some(grid) => {
@@ -204,8 +203,8 @@ impl Renderer<'_> {
                         (hit.near, hit.far, Spacing::Linear)
                     }
                 };
-                let mut coarse = |p: &Tensor| proposal_density(&self.proposals[0], &space(p)?);
-                let mut fine = |p: &Tensor| proposal_density(&self.proposals[1], &space(p)?);
+                let mut coarse = |p: &Tensor| proposal_density(&self.proposals[0], &self.space(p)?);
+                let mut fine = |p: &Tensor| proposal_density(&self.proposals[1], &self.space(p)?);
                 let proposal = ProposalConfig {
                     spacing,
                     samples: self.args.proposal_samples.to_vec(),
@@ -216,7 +215,7 @@ impl Renderer<'_> {
                 // With --alpha-threshold > 0 the field's density (no graph) culls the
                 // samples and gives the interlevel loss its target weights. An unbounded
                 // scene keeps every sample: its distortion loss needs whole rays.
-                let mut field = |p: &Tensor| self.net.density(&space(p)?);
+                let mut field = |p: &Tensor| self.net.density(&self.space(p)?);
                 let cull = (self.args.alpha_threshold > 0.0 && self.unbounded.is_none())
                     .then_some(&mut field as _);
                 let mut proposals: [DensityFn; 2] = [&mut coarse, &mut fine];
@@ -297,14 +296,8 @@ impl Renderer<'_> {
             mut interlevel,
         } = samples;
         let rays = &rays;
-        let space = |p: &Tensor| -> Result<Tensor> {
-            match self.unbounded {
-                Some(_) => contracted(p),
-                None => Ok(p.clone()),
-            }
-        };
         // Midpoints, or (--encoding ipe) the intervals' conical frustums.
-        let positions = space(&self.net.sample_inputs(rays, &intervals)?)?;
+        let positions = self.space(&self.net.sample_inputs(rays, &intervals)?)?;
         let dirs = intervals.directions(rays)?.reshape(((), 3))?;
         let n = positions.dim(0)?;
         let (sigma, rgb) = self.net.radiance(&positions, &dirs)?;
