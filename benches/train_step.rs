@@ -51,7 +51,8 @@
 //! The optimiser is the crate's [`neural_fields::nn::Adam`] (weight decay 0), whose
 //! update runs as two fused passes per variable wherever the kernels run (the twin uses
 //! `torch.optim.Adam` at its defaults). `--reference` runs the MLPs through candle's ops
-//! instead of the fused MLP op;
+//! instead of the fused MLP op (and the ONet decoder's conditional batch norm through
+//! candle's ops instead of its fused op);
 //! `--phases` reports forward, backward and optimiser medians separately. `--device cuda`
 //! (built with the `cuda` feature) runs on the first GPU, waiting for the device at the
 //! end of every timed phase; there `NEURAL_FIELDS_CUDA_KERNELS=0` measures the candle-op
@@ -265,7 +266,9 @@ fn main() -> neural_fields::Result<()> {
             })
         }
         #[cfg(feature = "occupancy")]
-        name @ ("onet_points" | "onet_voxels" | "onet_image") => onet_step(name, &varmap, &dev)?,
+        name @ ("onet_points" | "onet_voxels" | "onet_image") => {
+            onet_step(name, &varmap, &dev, args.reference)?
+        }
         other => panic!("unknown model {other}"),
     };
     let params: usize = varmap
@@ -344,7 +347,12 @@ fn main() -> neural_fields::Result<()> {
 /// or `onet_image`; see the module docs): its encoder and decoder built as the example
 /// builds them (variables `encoder.*`, `decoder.*`), with fixed synthetic shapes.
 #[cfg(feature = "occupancy")]
-fn onet_step(model: &str, varmap: &VarMap, dev: &Device) -> neural_fields::Result<Step<'static>> {
+fn onet_step(
+    model: &str,
+    varmap: &VarMap,
+    dev: &Device,
+    reference: bool,
+) -> neural_fields::Result<Step<'static>> {
     use neural_fields::occupancy::{
         onet_decoder, pointnet_encoder, reconstruction_loss, resnet_encoder, voxel_encoder,
         NormMode, OnetConfig, PointNetConfig, PointNetEncoder, ResnetEncoder, ResnetEncoderConfig,
@@ -392,6 +400,7 @@ fn onet_step(model: &str, varmap: &VarMap, dev: &Device) -> neural_fields::Resul
             &OnetConfig {
                 hidden: 128,
                 code_dim: CODE,
+                force_reference: reference,
                 ..OnetConfig::default()
             },
             vb.pp("decoder"),

@@ -475,6 +475,46 @@ const ALLOWED: &[(&str, &str, &str)] = &[
         "data: the output or gradient of a fused op, rows of the input tensor held times a width of the weights held",
     ),
     (
+        "kernels/cond_norm.rs",
+        "vec![_; beta.len()]",
+        "data: the gradient of a fused op, the size of the input tensor held",
+    ),
+    (
+        "kernels/cond_norm.rs",
+        "vec![_; gamma.len()]",
+        "data: the gradient of a fused op, the size of the input tensor held",
+    ),
+    (
+        "kernels/cond_norm.rs",
+        "vec![_; h]",
+        "data: one row of the input tensor held",
+    ),
+    (
+        "kernels/cond_norm.rs",
+        "vec![_; k * h2]",
+        "data: two rows per group a 128-row tile spans, at most 2·128 rows of the input held",
+    ),
+    (
+        "kernels/cond_norm.rs",
+        "vec![_; len]",
+        "data: the gradient of a fused op, the size of an input tensor held",
+    ),
+    (
+        "kernels/cond_norm.rs",
+        "vec![_; n_items * h2]",
+        "data: two rows per 128-row tile of the input tensor held, below its size",
+    ),
+    (
+        "kernels/cond_norm.rs",
+        "vec![_; x.len().div_ceil(ROWS * h.max(1)) * h]",
+        "data: one row per 128-row tile of the input tensor held, below its size",
+    ),
+    (
+        "kernels/cond_norm.rs",
+        "vec![_; x.len()]",
+        "data: the output or gradient of a fused op, the size of the input tensor held",
+    ),
+    (
         "kernels/integrated.rs",
         "vec![_; m]",
         "fixed: 256 rows of scratch times the encoding's octaves and dimension",

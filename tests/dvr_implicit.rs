@@ -156,22 +156,15 @@ fn entry(v: &Var, i: usize) -> f64 {
     v64(v.as_tensor())[i]
 }
 
-fn set_entry(v: &Var, i: usize, x: f64) {
-    let mut data = v64(v.as_tensor());
-    data[i] = x;
-    v.set(&Tensor::from_vec(data, v.dims(), &DEV).unwrap())
-        .unwrap();
-}
-
 /// FD of `loss()` along entry `i` of `v` (restored afterwards).
 fn fd(v: &Var, i: usize, loss: &mut dyn FnMut() -> f64) -> Option<f64> {
     let x0 = entry(v, i);
     let mut f = |x: f64| {
-        set_entry(v, i, x);
+        common::set_entry(v, i, x);
         loss()
     };
     let d = central_diff(&mut f, x0, 1e-5, 1.0);
-    set_entry(v, i, x0);
+    common::set_entry(v, i, x0);
     d
 }
 

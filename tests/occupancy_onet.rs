@@ -4,7 +4,7 @@
 
 mod common;
 
-use candle_core::{DType, Device, Tensor};
+use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarMap;
 use neural_fields::field::ConditionalField;
 use neural_fields::nn::build_seeded;
@@ -280,4 +280,149 @@ fn shared_code_once_equals_code_copied_per_point() {
             }
         }
     }
+}
+
+/// The decoder's `[B, Q]` logits in training mode, its variables and the inputs, for
+/// the fused-against-reference comparison (`force_reference` picks the path).
+fn training_pass(
+    dtype: DType,
+    force_reference: bool,
+    (b, q): (usize, usize),
+) -> (VarMap, neural_fields::occupancy::OnetDecoder, Var, Var) {
+    let config = OnetConfig {
+        force_reference,
+        ..config()
+    };
+    let vm = VarMap::new();
+    let net = build_seeded(&vm, dtype, &Device::Cpu, 3, |vb| onet_decoder(&config, vb)).unwrap();
+    // Scales and shifts away from their (1, 0) start, so every code moves them.
+    common::reseed(&vm, 4, 1.0);
+    let mut rng = SplitMix64::new(6);
+    let p = Var::from_tensor(
+        &rng.uniform_tensor(&[b, q, 3], -0.5, 0.5, dtype, &Device::Cpu)
+            .unwrap(),
+    )
+    .unwrap();
+    let c = Var::from_tensor(
+        &rng.uniform_tensor(&[b, 8], -1.0, 1.0, dtype, &Device::Cpu)
+            .unwrap(),
+    )
+    .unwrap();
+    net.set_mode(NormMode::Train);
+    (vm, net, p, c)
+}
+
+/// The training pass's fused conditional normalisation (one CPU op per layer) gives the
+/// reference candle ops' logits, gradients of every variable, the points and the codes,
+/// and running statistics, in f32 and f64, with one code per shape (groups that straddle
+/// the kernel's row tiles) and one code per point.
+#[test]
+fn fused_conditional_norm_matches_the_reference_ops() {
+    for dtype in [DType::F64, DType::F32] {
+        let tol = if dtype == DType::F64 { 1e-10 } else { 2e-4 };
+        for (b, q, grouped) in [(3, 301, true), (2, 200, false)] {
+            let mut parts: Vec<Vec<Vec<f64>>> = Vec::new();
+            for force_reference in [false, true] {
+                let (vm, net, p, c) = training_pass(dtype, force_reference, (b, q));
+                let logits = if grouped {
+                    net.logits_grouped(&p, &c).unwrap()
+                } else {
+                    let codes = c.unsqueeze(1).unwrap().broadcast_as((b, q, 8)).unwrap();
+                    let codes = codes.reshape((b * q, 8)).unwrap();
+                    net.logits(&p.reshape((b * q, 3)).unwrap(), &codes).unwrap()
+                };
+                let w = SplitMix64::new(7)
+                    .uniform_tensor(logits.dims(), -1.0, 1.0, dtype, &Device::Cpu)
+                    .unwrap();
+                let grads = (&logits * &w)
+                    .unwrap()
+                    .sum_all()
+                    .unwrap()
+                    .backward()
+                    .unwrap();
+                let mut part = vec![common::v64(&logits)];
+                for v in common::sorted_vars(&vm).iter().chain([&p, &c]) {
+                    part.push(common::v64(grads.get(v).unwrap()));
+                }
+                // The running statistics, through inference-mode logits.
+                net.set_mode(NormMode::Eval);
+                part.push(common::v64(&net.logits_grouped(&p, &c).unwrap()));
+                parts.push(part);
+            }
+            let what = format!("{dtype:?}, {b} × {q}, grouped {grouped}");
+            if dtype == DType::F64 {
+                common::assert_parts_close(&parts[0], &parts[1], tol, &what);
+                continue;
+            }
+            // In f32, against the largest entry of all: a bias that feeds a normalisation
+            // has a zero gradient, which f32 round-off leaves at ~1e-6 in either path.
+            let all = parts[1]
+                .iter()
+                .flatten()
+                .fold(0.0f64, |m, v| m.max(v.abs()));
+            for (k, (x, y)) in parts[0].iter().zip(&parts[1]).enumerate() {
+                for (i, (u, v)) in x.iter().zip(y).enumerate() {
+                    assert!(
+                        (u - v).abs() <= tol * all,
+                        "{what}: part {k}[{i}]: {u} vs {v}"
+                    );
+                }
+            }
+        }
+    }
+}
+
+/// The fused training pass's gradients of `Σ w ⊙ logits` against central finite
+/// differences in f64 (entries of every variable, the points and the codes), with the
+/// points at scales from 1e-4 (a batch variance far below `ε`, where the normalisation
+/// divides by about `√ε`) to 1e3.
+#[test]
+fn fused_conditional_norm_gradients_match_finite_differences_in_f64() {
+    let mut tally = common::FdTally::default();
+    for (k, scale) in [1e-4, 1.0, 1e3].into_iter().enumerate() {
+        let (vm, net, p, c) = training_pass(DType::F64, false, (2, 150));
+        p.set(&(p.as_tensor() * scale).unwrap()).unwrap();
+        let w = SplitMix64::new(8 + k as u64)
+            .uniform_tensor(&[2, 150], -1.0, 1.0, DType::F64, &Device::Cpu)
+            .unwrap();
+        let loss = || -> f64 {
+            let l = net.logits_grouped(&p, &c).unwrap();
+            common::v64(&(l * &w).unwrap().sum_all().unwrap())[0]
+        };
+        let grads = (net.logits_grouped(&p, &c).unwrap() * &w)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap();
+        let mut targets = common::sorted_vars(&vm);
+        targets.extend([p.clone(), c.clone()]);
+        for (t, var) in targets.iter().enumerate() {
+            let g = common::v64(grads.get(var).unwrap());
+            let values = common::v64(var.as_tensor());
+            let gscale = g.iter().fold(1e-3f64, |m, v| m.max(v.abs()));
+            let i = (t * 7919 + 13 * k) % values.len();
+            let x0 = values[i];
+            let h = 1e-6
+                * x0.abs()
+                    .max(if var.dims() == p.dims() { scale } else { 1.0 });
+            let mut f = |x: f64| {
+                common::set_entry(var, i, x);
+                loss()
+            };
+            let fd = common::central_diff_bound(&mut f, x0, h, gscale);
+            common::set_entry(var, i, x0);
+            // The tolerance grows by the estimate's own error bar.
+            let bar = fd.map_or(0.0, |(_, bar)| bar);
+            tally.check(g[i], fd.map(|(d, _)| d), 1e-5 * gscale + bar, &|| {
+                format!("scale {scale}, target {t}[{i}]")
+            });
+        }
+    }
+    let common::FdTally { checked, skipped } = tally;
+    println!("{checked} entries checked, {skipped} skipped at kinks");
+    assert!(
+        checked >= 4 * skipped,
+        "{checked} checked, {skipped} at kinks"
+    );
 }

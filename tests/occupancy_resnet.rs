@@ -408,14 +408,6 @@ fn bad_configurations_are_refused_naming_the_field() {
     }
 }
 
-/// One entry of a variable of `varmap`, set to `x`.
-fn set_entry(var: &Var, index: usize, x: f64) {
-    let mut v = v64(var.as_tensor());
-    v[index] = x;
-    var.set(&Tensor::from_vec(v, var.dims(), &Device::Cpu).unwrap())
-        .unwrap();
-}
-
 /// Backpropagated gradients of `Σ R ⊙ c` against central finite differences in f64, for
 /// entries of the stem, a projection shortcut, a second-stage convolution, batch-norm
 /// scales and shifts, `fc`, and the pixels, in training (batch statistics) and in
@@ -450,7 +442,7 @@ fn gradients_match_finite_differences_in_f64() {
         .map(|n| (n.to_string(), data[*n].clone()))
         .collect()
     };
-    let (mut checked, mut skipped) = (0, 0);
+    let mut tally = common::FdTally::default();
     for train in [true, false] {
         let grads = (enc.forward(x.as_tensor(), train).unwrap() * &r)
             .unwrap()
@@ -468,25 +460,18 @@ fn gradients_match_finite_differences_in_f64() {
                 let i = (k * 7919 + 13) % values.len();
                 let x0 = values[i];
                 let mut f = |t: f64| {
-                    set_entry(var, i, t);
+                    common::set_entry(var, i, t);
                     loss(train)
                 };
                 let fd = central_diff(&mut f, x0, 1e-6, scale);
-                set_entry(var, i, x0);
-                match fd {
-                    Some(fd) => {
-                        checked += 1;
-                        assert!(
-                            (g[i] - fd).abs() <= 1e-6 * scale,
-                            "{name}[{i}] train {train}: backprop {} vs finite difference {fd}",
-                            g[i]
-                        );
-                    }
-                    None => skipped += 1,
-                }
+                common::set_entry(var, i, x0);
+                tally.check(g[i], fd, 1e-6 * scale, &|| {
+                    format!("{name}[{i}] train {train}")
+                });
             }
         }
     }
+    let common::FdTally { checked, skipped } = tally;
     println!("{checked} entries checked, {skipped} skipped at kinks");
     assert!(
         checked >= 4 * skipped,

@@ -147,14 +147,6 @@ fn gradients_reach_every_variable_and_the_voxels_and_are_finite() {
     }
 }
 
-/// One entry of a variable, set to `x`.
-fn set_entry(var: &Var, index: usize, x: f64) {
-    let mut v = v64(var.as_tensor());
-    v[index] = x;
-    var.set(&Tensor::from_vec(v, var.dims(), &Device::Cpu).unwrap())
-        .unwrap();
-}
-
 /// Backpropagated gradients of `Σ R ⊙ c` against central finite differences in f64, for
 /// entries of every convolution's weight and bias, `fc`, and voxels (occupancies in
 /// `(0.1, 0.9)`, so that the stencil stays in `[0, 1]`), including voxels on the grid's
@@ -187,7 +179,7 @@ fn gradients_match_finite_differences_in_f64() {
     };
     assert_eq!(targets.len(), 8);
     targets.push(("voxels".to_string(), x.clone()));
-    let (mut checked, mut skipped) = (0, 0);
+    let mut tally = common::FdTally::default();
     for (name, var) in &targets {
         let g = v64(grads.get(var).unwrap());
         let values = v64(var.as_tensor());
@@ -206,24 +198,15 @@ fn gradients_match_finite_differences_in_f64() {
         for i in picks {
             let x0 = values[i];
             let mut f = |t: f64| {
-                set_entry(var, i, t);
+                common::set_entry(var, i, t);
                 loss()
             };
             let fd = central_diff(&mut f, x0, 1e-6, scale);
-            set_entry(var, i, x0);
-            match fd {
-                Some(fd) => {
-                    checked += 1;
-                    assert!(
-                        (g[i] - fd).abs() <= 1e-6 * scale,
-                        "{name}[{i}]: backprop {} vs finite difference {fd}",
-                        g[i]
-                    );
-                }
-                None => skipped += 1,
-            }
+            common::set_entry(var, i, x0);
+            tally.check(g[i], fd, 1e-6 * scale, &|| format!("{name}[{i}]"));
         }
     }
+    let common::FdTally { checked, skipped } = tally;
     println!("{checked} entries checked, {skipped} skipped at kinks");
     assert!(checked >= 30, "{checked} checked, {skipped} at kinks");
 }

@@ -23,23 +23,16 @@ use proptest::prelude::*;
 
 const DEV: Device = Device::Cpu;
 
-fn set_entry(v: &Var, i: usize, x: f64) {
-    let mut data = v64(v.as_tensor());
-    data[i] = x;
-    v.set(&Tensor::from_vec(data, v.dims(), &DEV).unwrap())
-        .unwrap();
-}
-
 /// Central difference of `loss()` along entry `i` of `v` (restored afterwards), with its
 /// error bar ([`common::central_diff_bound`]).
 fn fd(v: &Var, i: usize, h: f64, loss: &mut dyn FnMut() -> f64) -> Option<(f64, f64)> {
     let x0 = v64(v.as_tensor())[i];
     let mut f = |x: f64| {
-        set_entry(v, i, x);
+        common::set_entry(v, i, x);
         loss()
     };
     let d = central_diff_bound(&mut f, x0, h, 1.0);
-    set_entry(v, i, x0);
+    common::set_entry(v, i, x0);
     d
 }
 

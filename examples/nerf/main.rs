@@ -17,10 +17,12 @@
 //! positional encoding ([`Nerf::sample_inputs`]), so one model serves every resolution
 //! (train it on `examples/multiscale.rs`'s data).
 //!
-//! **Samplers** (`--sampler`): `grid` (default in a bounded scene), an [`OccupancyGrid`] (64³ cells) updated
-//! every 16 steps, marched at the box diagonal / 64 while more than a quarter of it is
-//! occupied, then / 256, whose sampling lets only the visible samples (transmittance ≥
-//! 1e-4) through to the whole network; `stratified`, `--samples` jittered samples across
+//! **Samplers** (`--sampler`): `grid` (default in a bounded scene), an [`OccupancyGrid`]
+//! (64³ cells) updated every 16 steps, marched at the box diagonal / 64 while more than a
+//! quarter of it is occupied in the first tenth of the budget, else / 256, whose sampling
+//! lets only the visible samples (transmittance ≥ 1e-4, under the density at the
+//! intervals' cones with `--encoding ipe`) through to the whole network; `stratified`,
+//! `--samples` jittered samples across
 //! the scene box; `proposal`, two proposal networks placing `--proposal-samples`, then
 //! `--samples` intervals ([`proposal_sample`], [`interlevel_loss`]), of which only the
 //! visible ones with opacity ≥ `--alpha-threshold` (nerfacc's `alpha_thre`) go on.
@@ -83,7 +85,7 @@ use neural_fields::volume::{
     log_linear_schedule, nerf, proposal_sample, render_image, render_weights, stratified,
     Composite, CompositeConfig, DensityFn, GridConfig, GridMarchConfig, ImageConfig, Intervals,
     Jitter, Layout, Nerf, NerfConfig, OccupancyGrid, ProposalConfig, Spacing, ANNEAL_MID_RATIO,
-    ANNEAL_P_START,
+    ANNEAL_P_START, DEFAULT_TERMINATION_EPS,
 };
 use neural_fields::{Error, Result};
 use std::path::{Path, PathBuf};
@@ -186,6 +188,22 @@ fn nerf_config(args: &Args, aabb: [f64; 6], finest: f64, vb: &VarBuilder) -> Res
 
 /// Steps in a row with every training ray's opacity below [`DEAD_OPACITY`] that end a
 /// run as dead.
+/// The fraction of the budget during which a mostly occupied grid is marched coarsely.
+const COARSE_MARCH_UNTIL: f64 = 0.1;
+
+/// The training march's step across a box of diagonal `diag`: `diag/64` while more than
+/// a quarter of the grid is occupied in the first [`COARSE_MARCH_UNTIL`] of the budget
+/// (`progress` in `[0, 1]`; the warm-up's nearly full grid), else `diag/256`. Keyed on
+/// the occupied fraction alone, an object that fills a third of its box kept the coarse
+/// step (1.7 cells) for the whole run.
+fn march_step(diag: f64, occupied: f64, progress: f64) -> f64 {
+    if occupied > 0.25 && progress < COARSE_MARCH_UNTIL {
+        diag / 64.0
+    } else {
+        diag / 256.0
+    }
+}
+
 const DEAD_STEPS: usize = 100;
 const DEAD_OPACITY: f64 = 1e-3;
 
@@ -425,11 +443,7 @@ fn run(args: &Args) -> Result<()> {
             }
         }
         lap.mark(&mut phases.grid_update);
-        let step_size = if occupied_now > 0.25 {
-            diag / 64.0
-        } else {
-            diag / 256.0
-        };
+        let step_size = march_step(diag, occupied_now, progress);
         let anneal = args.regnerf.then_some(step);
         let r = Renderer {
             grid: grid.as_ref(),

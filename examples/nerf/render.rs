@@ -122,6 +122,23 @@ impl Renderer<'_> {
     }
 }
 
+impl Renderer<'_> {
+    /// The intervals of `rays` (frame space) that are still visible, transmittance
+    /// `T ≥ 1e-4` ([`DEFAULT_TERMINATION_EPS`]), under the field's density (no graph) at
+    /// the inputs the renderer gives it: the intervals' conical frustums with
+    /// `--encoding ipe`.
+    fn visible(&self, rays: &Rays, intervals: Intervals) -> Result<Intervals> {
+        if intervals.starts.elem_count() == 0 {
+            return Ok(intervals);
+        }
+        let inputs = self.space(&self.net.sample_inputs(rays, &intervals)?)?;
+        let sigma = self.net.density(&inputs)?.detach();
+        let w = render_weights(&sigma, &intervals, Some(rays), &CompositeConfig::default())?;
+        let keep = w.transmittance.ge(DEFAULT_TERMINATION_EPS)?;
+        Ok(intervals.retain(&keep)?.0)
+    }
+}
+
 /// `x` forward, its gradient times `s` backward (`s` broadcastable to `x`'s shape, e.g.
 /// `[M, 1]` against colours `[M, 3]`; no gradient reaches `s`): `x·s + x·(1 − s)` with
 /// the second term detached.
@@ -182,8 +199,16 @@ impl Renderer<'_> {
                     jitter: seed.filter(|_| self.args.march_jitter),
                     ..GridMarchConfig::default()
                 };
-                let mut density = |p: &Tensor| self.grid_density(p);
-                grid.sample(rays, &march, Some(&mut density))?.intervals
+                if self.args.encoding() == Encoding::Ipe {
+                    // The visibility pass on the rays' own cones: the cell-sized Gaussians
+                    // the grid reads blur the surface, and their transmittance dropped
+                    // samples of the surface that the cones resolve.
+                    let all = grid.sample(rays, &march, None)?.intervals;
+                    self.visible(rays, all)?
+                } else {
+                    let mut density = |p: &Tensor| self.grid_density(p);
+                    grid.sample(rays, &march, Some(&mut density))?.intervals
+                }
             }
             None if !self.proposals.is_empty() => {
                 let (near, far, spacing) = match self.unbounded {

@@ -171,6 +171,15 @@ fn percentiles_skip_non_finite_values() {
     assert_eq!(percentiles(&empty, 0.02, 0.98).unwrap(), None);
 }
 
+/// Regression: an object filling a third of its box kept the coarse march all run.
+#[test]
+fn coarse_march_ends_with_the_warm_up_even_in_a_full_grid() {
+    let diag = 2.56;
+    assert_eq!(march_step(diag, 0.9, 0.0), diag / 64.0);
+    assert_eq!(march_step(diag, 0.2, 0.0), diag / 256.0);
+    assert_eq!(march_step(diag, 0.3, 0.5), diag / 256.0);
+}
+
 /// The command line keeps the flags, spellings and defaults of earlier versions.
 #[test]
 fn flags_parse_as_documented() {

@@ -27,6 +27,9 @@
 //!   frequency kernel's vectorised sines;
 //! * `composite`: volume compositing of either sample layout with its O(S)-per-ray
 //!   backward (`FusedComposite`), built for three instruction sets;
+//! * `cond_norm`: conditional batch normalisation and ReLU (`FusedCondNorm`, the ONet
+//!   decoder's training pass on the CPU), with its backward pass through the batch
+//!   statistics;
 //! * `adam`: Adam's update as two in-place passes per variable (`AdamMoments`,
 //!   `AdamUpdate`, what [`crate::nn::Adam`] runs);
 //! * `activation` and `simd`: the vectorised hidden activations (ReLU, softplus with its
@@ -71,6 +74,8 @@ mod activation;
 mod adam;
 #[cfg_attr(not(feature = "volume"), allow(dead_code))]
 mod composite;
+#[cfg_attr(not(feature = "occupancy"), allow(dead_code))]
+mod cond_norm;
 #[cfg(feature = "cuda")]
 pub(crate) mod cuda;
 mod dispatch;
@@ -96,6 +101,8 @@ pub(crate) use adam::{AdamMoments, AdamUpdate};
 pub use composite::X_MAX;
 #[cfg_attr(not(feature = "volume"), allow(unused_imports))]
 pub(crate) use composite::{FusedComposite, Geometry, KernelBuild, Segments};
+#[cfg_attr(not(feature = "occupancy"), allow(unused_imports))]
+pub(crate) use cond_norm::FusedCondNorm;
 #[allow(unused_imports)] // the dispatch helper's whole interface, for every kernel
 pub(crate) use dispatch::{contiguous, cpu_bwd, cpu_fwd, cpu_op, cpu_slice, CpuKernel, Real};
 #[cfg(feature = "cuda")]

@@ -17,11 +17,17 @@
 //!   others. Linear layers are evaluated on fixed blocks of [`ONET_BLOCK`] rows (the last
 //!   one zero-padded), so even the matrix-multiply kernel sees the same shapes; the
 //!   result is bit-identical (tested).
+//!
+//! On the CPU, a training pass without spatial gradients runs each `ReLU(CN(x, c))` as
+//! one fused op (statistics, scale and shift, ReLU; and one backward pass through the
+//! batch statistics), the same function as the candle ops it replaces
+//! ([`OnetConfig::force_reference`] keeps those).
 
 use crate::error::{check_points, check_same, check_shape, Dim, Error, Result};
 use crate::field::{ConditionalField, Inside};
+use crate::kernels::FusedCondNorm;
 use crate::nn::weight_jvp;
-use candle_core::{Tensor, D};
+use candle_core::{DType, Tensor, D};
 use candle_nn::{Init, VarBuilder};
 use std::sync::{Mutex, PoisonError};
 
@@ -41,6 +47,10 @@ pub struct OnetConfig {
     pub momentum: f64,
     /// `ε` of the normalisation (1e-5).
     pub eps: f64,
+    /// Run the training pass's conditional normalisation as candle ops even on the CPU,
+    /// where it otherwise runs as one fused op (the crate's kernel `FusedCondNorm`, the
+    /// same function; tests compare the two). Default `false`.
+    pub force_reference: bool,
 }
 
 impl Default for OnetConfig {
@@ -51,6 +61,7 @@ impl Default for OnetConfig {
             code_dim: 256,
             momentum: 0.1,
             eps: 1e-5,
+            force_reference: false,
         }
     }
 }
@@ -250,30 +261,41 @@ impl OnetDecoder {
         *lock(&self.mode)
     }
 
+    /// The batch mean and (biased) variance `[H]` of rows `x: [N, H]`, and the running
+    /// statistics updated with them (`r ← (1 − m) r + m·stat`, the variance unbiased).
+    fn batch_stats(&self, n: &CondNorm, x: &Tensor) -> Result<(Tensor, Tensor)> {
+        let rows = x.dim(0)?;
+        let mean = x.mean(0)?;
+        let var = x.broadcast_sub(&mean)?.sqr()?.mean(0)?;
+        let m = self.config.momentum;
+        let unbiased = if rows > 1 {
+            (var.detach() * (rows as f64 / (rows - 1) as f64))?
+        } else {
+            var.detach()
+        };
+        let mut rm = lock(&n.running_mean);
+        *rm = ((&*rm * (1.0 - m))? + (mean.detach() * m)?)?;
+        let mut rv = lock(&n.running_var);
+        *rv = ((&*rv * (1.0 - m))? + (unbiased * m)?)?;
+        Ok((mean, var))
+    }
+
     /// `x̂` and the per-feature scale `∂x̂/∂x` (`[H]`) of one normalisation layer.
     fn normalize(&self, n: &CondNorm, x: &Tensor, mode: NormMode) -> Result<(Tensor, Tensor)> {
-        let eps = self.config.eps;
         let (mean, var) = match mode {
             NormMode::Eval => (lock(&n.running_mean).clone(), lock(&n.running_var).clone()),
-            NormMode::Train => {
-                let rows = x.dim(0)?;
-                let mean = x.mean(0)?;
-                let var = x.broadcast_sub(&mean)?.sqr()?.mean(0)?;
-                let m = self.config.momentum;
-                let unbiased = if rows > 1 {
-                    (var.detach() * (rows as f64 / (rows - 1) as f64))?
-                } else {
-                    var.detach()
-                };
-                let mut rm = lock(&n.running_mean);
-                *rm = ((&*rm * (1.0 - m))? + (mean.detach() * m)?)?;
-                let mut rv = lock(&n.running_var);
-                *rv = ((&*rv * (1.0 - m))? + (unbiased * m)?)?;
-                (mean, var)
-            }
+            NormMode::Train => self.batch_stats(n, x)?,
         };
-        let inv = (var + eps)?.sqrt()?.recip()?;
+        let inv = (var + self.config.eps)?.sqrt()?.recip()?;
         Ok((x.broadcast_sub(&mean)?.broadcast_mul(&inv)?, inv))
+    }
+
+    /// Whether the training pass's normalisation of `x` runs as the fused CPU op.
+    fn fused(&self, x: &Tensor, mode: NormMode) -> bool {
+        mode == NormMode::Train
+            && !self.config.force_reference
+            && x.device().is_cpu()
+            && matches!(x.dtype(), DType::F32 | DType::F64)
     }
 
     /// Conditional normalisation and ReLU, with forward-mode tangents `dx: [3, N, H]`.
@@ -286,6 +308,21 @@ impl OnetDecoder {
         mode: NormMode,
         blocked: bool,
     ) -> Result<(Tensor, Option<Tensor>)> {
+        if dx.is_none() && self.fused(x, mode) {
+            // The running statistics from the rows' values (no graph), the layer as one op.
+            self.batch_stats(n, &x.detach())?;
+            let gamma = n.gamma.forward(codes, blocked)?.contiguous()?;
+            let beta = n.beta.forward(codes, blocked)?.contiguous()?;
+            let (rows, width) = x.dims2()?;
+            let op = FusedCondNorm {
+                rows,
+                width,
+                group,
+                eps: self.config.eps,
+                relu: true,
+            };
+            return Ok((x.contiguous()?.apply_op3(&gamma, &beta, op)?, None));
+        }
         let (xh, inv) = self.normalize(n, x, mode)?;
         // γ(c) and β(c) once per code, then repeated over its `group` points.
         let per_point = |t: Tensor| -> Result<Tensor> {

@@ -121,6 +121,44 @@ pub fn central_diff_bound(
     Some((coarse, (coarse - fine).abs() + roundoff))
 }
 
+/// Sets entry `index` of the flattened values of `var` to `x` (in the variable's dtype,
+/// on its device): the finite-difference tests' perturbation.
+pub fn set_entry(var: &Var, index: usize, x: f64) {
+    let mut v = v64(var.as_tensor());
+    v[index] = x;
+    let t = Tensor::from_vec(v, var.dims(), var.device())
+        .unwrap()
+        .to_dtype(var.dtype())
+        .unwrap();
+    var.set(&t).unwrap();
+}
+
+/// The tally of a test that checks backpropagated gradients against finite differences:
+/// entries checked, and entries skipped where the stencil crossed a kink.
+#[derive(Default)]
+pub struct FdTally {
+    pub checked: usize,
+    pub skipped: usize,
+}
+
+impl FdTally {
+    /// Asserts `|backprop − fd| ≤ tol` (`fd = None`: skipped at a kink); `what` names the
+    /// entry in the failure message.
+    pub fn check(&mut self, backprop: f64, fd: Option<f64>, tol: f64, what: &dyn Fn() -> String) {
+        match fd {
+            Some(fd) => {
+                self.checked += 1;
+                assert!(
+                    (backprop - fd).abs() <= tol,
+                    "{}: backprop {backprop} vs finite difference {fd}",
+                    what()
+                );
+            }
+            None => self.skipped += 1,
+        }
+    }
+}
+
 /// `|a − b| ≤ tol·max(|a|, |b|, floor)`.
 pub fn close(a: f64, b: f64, tol: f64, floor: f64) -> bool {
     (a - b).abs() <= tol * a.abs().max(b.abs()).max(floor)
