@@ -8,6 +8,7 @@
 use super::dispatch::{cpu_op, CpuKernel, Real};
 use super::parallel::for_each_init;
 use candle_core::{Shape, WithDType};
+use std::sync::{Mutex, PoisonError};
 
 /// `y = relu(γ_g ⊙ (x − μ)/√(v + ε) + β_g)` for rows `x: [N, H]`, with the batch mean `μ`
 /// and the biased batch variance `v` of each column over all `N` rows, and row `n`'s scale
@@ -19,7 +20,7 @@ use candle_core::{Shape, WithDType};
 /// `∂L/∂x = s ⊙ (u − mean_n(u) − x̂ ⊙ mean_n(u ⊙ x̂))` (the statistics' own dependence on
 /// `x` included). Sums and statistics in f64; the statistics by two passes (mean, then
 /// the squared deviations).
-#[derive(Clone, Debug)]
+#[derive(Debug)]
 pub(crate) struct FusedCondNorm {
     /// Rows `N`.
     pub(crate) rows: usize,
@@ -31,13 +32,17 @@ pub(crate) struct FusedCondNorm {
     pub(crate) eps: f64,
     /// Whether the ReLU follows.
     pub(crate) relu: bool,
+    /// The forward pass's statistics, which the backward pass takes instead of
+    /// recomputing them (the op's input is immutable; without them it recomputes).
+    pub(crate) saved: Mutex<Option<Stats>>,
 }
 
 /// Rows per work item.
 const ROWS: usize = 128;
 
 /// The column means and `1/√(v + ε)` of rows `x: [N, H]`, f64.
-struct Stats {
+#[derive(Debug)]
+pub(crate) struct Stats {
     mean: Vec<f64>,
     scale: Vec<f64>,
 }
@@ -120,14 +125,15 @@ impl FusedCondNorm {
                 for (r, (row, o)) in x.chunks(h).zip(out.chunks_mut(h)).enumerate() {
                     let g = (first + r) / self.group;
                     let (gr, br) = (&gamma[g * h..(g + 1) * h], &beta[g * h..(g + 1) * h]);
-                    for j in 0..h {
-                        let xh = (row[j].to_f64() - st.mean[j]) * st.scale[j];
-                        let y = gr[j].to_f64() * xh + br[j].to_f64();
-                        o[j] = T::from_f64(if self.relu { y.max(0.0) } else { y });
+                    let columns = st.mean.iter().zip(&st.scale).zip(gr.iter().zip(br));
+                    for ((o, x), ((m, sc), (gm, bt))) in o.iter_mut().zip(row).zip(columns) {
+                        let y = gm.to_f64() * ((x.to_f64() - m) * sc) + bt.to_f64();
+                        *o = T::from_f64(if self.relu { y.max(0.0) } else { y });
                     }
                 }
             },
         );
+        *self.saved.lock().unwrap_or_else(PoisonError::into_inner) = Some(st);
         out
     }
 
@@ -139,7 +145,12 @@ impl FusedCondNorm {
         if h == 0 || x.is_empty() {
             return [gx, gg, gb];
         }
-        let st = self.stats(x);
+        let saved = self
+            .saved
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take();
+        let st = saved.unwrap_or_else(|| self.stats(x));
         let masked = |row: usize, j: usize, xh: f64, g: f64| -> f64 {
             let grp = row / self.group;
             let y = gamma[grp * h + j].to_f64() * xh + beta[grp * h + j].to_f64();

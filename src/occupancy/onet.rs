@@ -320,6 +320,7 @@ impl OnetDecoder {
                 group,
                 eps: self.config.eps,
                 relu: true,
+                saved: Default::default(),
             };
             return Ok((x.contiguous()?.apply_op3(&gamma, &beta, op)?, None));
         }
