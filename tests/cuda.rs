@@ -38,7 +38,9 @@ use neural_fields::encoding::{integrated_pe, Encoding, FourierFeatures, Frequenc
 use neural_fields::field::{Cuboid, ImplicitSurface, Inside, Plane, SignedDistance, Sphere, Torus};
 use neural_fields::glam::DVec3;
 use neural_fields::nn::{build_seeded, mlp, Activation, MlpConfig};
-use neural_fields::occupancy::{marching_cubes, mise, Grid, MiseConfig};
+use neural_fields::occupancy::{
+    marching_cubes, mise, onet_decoder, Grid, MiseConfig, NormMode, OnetConfig,
+};
 use neural_fields::rng::SplitMix64;
 use neural_fields::volume::{
     anneal_near_far, composite, distortion_loss, merge_sorted, render_weights, sample_pdf,
@@ -1467,6 +1469,62 @@ fn grid_kernels_case(dev: &Device, dtype: DType) -> Result<Outs> {
 }
 
 /// The gradient tensor of `var` in `grads`.
+/// The ONet decoder's training pass: on the CPU its conditional batch norms run as the
+/// fused op, on CUDA as candle's ops. Logits, the gradients of every variable, the points
+/// and the codes, and (through inference-mode logits) the running statistics, with one
+/// code per shape over groups that straddle the CPU op's row tiles. Tolerance: the CPU op
+/// keeps its statistics in f64, candle's ops in the dtype, so f32 is compared at 1e-3
+/// relative to the largest entry of each output (a bias that feeds a normalisation has a
+/// gradient that is zero up to round-off).
+fn onet_case(dev: &Device, dtype: DType) -> Result<Outs> {
+    let config = OnetConfig {
+        hidden: 32,
+        blocks: 2,
+        code_dim: 8,
+        ..OnetConfig::default()
+    };
+    let vm = VarMap::new();
+    let net = build_seeded(&vm, dtype, dev, 3, |vb| onet_decoder(&config, vb))?;
+    let mut rng = SplitMix64::new(4);
+    // Scales and shifts away from their (1, 0) start, so every code moves them.
+    for (_, var) in sorted_vars(&vm) {
+        let t = var.as_tensor();
+        let noise = uniform(&mut rng, t.dims(), -0.5, 0.5, dtype, dev)?;
+        var.set(&(t + noise)?)?;
+    }
+    let (b, q) = (3, 301);
+    let points = Var::from_tensor(&uniform(&mut rng, &[b, q, 3], -0.5, 0.5, dtype, dev)?)?;
+    let codes = Var::from_tensor(&uniform(&mut rng, &[b, 8], -1.0, 1.0, dtype, dev)?)?;
+    net.set_mode(NormMode::Train);
+    let logits = net.logits_grouped(&points, &codes)?;
+    let grads = probe(&logits, &mut SplitMix64::new(7))?.backward()?;
+    let scaled = |t: Tensor| -> Result<Out> {
+        let top = t
+            .abs()?
+            .flatten_all()?
+            .max(0)?
+            .to_dtype(DType::F64)?
+            .to_scalar::<f64>()?;
+        Ok(Out::Rel((t / top.max(1e-30))?, 1e-3, 1e-10))
+    };
+    let mut out: Outs = vec![("logits".into(), scaled(logits)?)];
+    for (name, var) in sorted_vars(&vm).iter().chain(
+        [
+            ("points".to_string(), points.clone()),
+            ("codes".to_string(), codes.clone()),
+        ]
+        .iter(),
+    ) {
+        out.push((format!("d/d{name}"), scaled(grad_t(&grads, var, name)?)?));
+    }
+    net.set_mode(NormMode::Eval);
+    out.push((
+        "inference logits (running statistics)".into(),
+        scaled(net.logits_grouped(&points, &codes)?)?,
+    ));
+    Ok(out)
+}
+
 fn grad_t(grads: &candle_core::backprop::GradStore, var: &Var, what: &str) -> Result<Tensor> {
     grads.get(var).cloned().ok_or_else(|| {
         candle_core::Error::Msg(format!("grads: expected a gradient for {what}, got none")).into()
@@ -1531,4 +1589,9 @@ fn cuda_adam_matches_the_cpu() {
 #[test]
 fn cuda_hash_grid_grid_sample_and_scatter_kernels() {
     check("grid_kernels", grid_kernels_case);
+}
+
+#[test]
+fn cuda_onet_decoder_training_pass_matches_the_cpu_fused_norm() {
+    check("onet", onet_case);
 }

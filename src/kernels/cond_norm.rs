@@ -1,25 +1,26 @@
 //! Conditional batch normalisation and ReLU as one CPU op (`FusedCondNorm`, what the ONet
-//! decoder's training pass runs on the CPU): the batch statistics, the per-code scale and
-//! shift and the ReLU in two passes over the rows, and a backward pass that gives the
-//! rows', scales' and shifts' gradients in three, where the same layer as candle ops
+//! decoder's training pass runs on the CPU): the batch statistics in two passes over the
+//! rows and the per-code scale and shift and the ReLU in a third, and a backward pass that
+//! gives the rows', scales' and shifts' gradients in two, where the same layer as candle ops
 //! takes about twenty element-wise ops, reductions and broadcasts, each with its own
 //! tensor.
 
 use super::dispatch::{cpu_op, CpuKernel, Real};
-use super::parallel::for_each_init;
+use super::parallel::{for_each_init, wide, Wide};
 use candle_core::{Shape, WithDType};
-use std::sync::{Mutex, PoisonError};
+use std::sync::{Arc, Mutex, PoisonError};
 
 /// `y = relu(γ_g ⊙ (x − μ)/√(v + ε) + β_g)` for rows `x: [N, H]`, with the batch mean `μ`
 /// and the biased batch variance `v` of each column over all `N` rows, and row `n`'s scale
 /// and shift `γ_g, β_g` rows `g = ⌊n / group⌋` of `gamma, beta: [N / group, H]`. Without
 /// `relu` the ReLU is left out.
 ///
-/// Backward, with `x̂ = (x − μ)·s`, `s = 1/√(v + ε)`, `ḡ = ∂L/∂y ⊙ [y > 0]` and
+/// Backward, with `x̂ = (x − μ)·s`, `s = 1/√(v + ε)`, `ḡ = ∂L/∂y ⊙ [y ≥ 0]` and
 /// `u = ḡ ⊙ γ_g` (per row): `∂L/∂β_g = Σ_{n ∈ g} ḡ`, `∂L/∂γ_g = Σ_{n ∈ g} ḡ ⊙ x̂`,
 /// `∂L/∂x = s ⊙ (u − mean_n(u) − x̂ ⊙ mean_n(u ⊙ x̂))` (the statistics' own dependence on
-/// `x` included). Sums and statistics in f64; the statistics by two passes (mean, then
-/// the squared deviations).
+/// `x` included). Statistics and sums in f64 (the statistics by two passes: mean, then
+/// the squared deviations); each value's own arithmetic in the dtype, as
+/// `(x − μ)·(γ_g s) + β_g`, the difference taken first as the reference ops take it.
 #[derive(Debug)]
 pub(crate) struct FusedCondNorm {
     /// Rows `N`.
@@ -32,18 +33,20 @@ pub(crate) struct FusedCondNorm {
     pub(crate) eps: f64,
     /// Whether the ReLU follows.
     pub(crate) relu: bool,
-    /// The forward pass's statistics, which the backward pass takes instead of
-    /// recomputing them (the op's input is immutable; without them it recomputes).
-    pub(crate) saved: Mutex<Option<Stats>>,
+    /// The forward pass's statistics, shared with the caller (which updates its running
+    /// statistics from them) and read by the backward pass instead of recomputing them
+    /// (the op's input is immutable; without them it recomputes).
+    pub(crate) saved: Arc<Mutex<Option<Stats>>>,
 }
 
 /// Rows per work item.
 const ROWS: usize = 128;
 
-/// The column means and `1/√(v + ε)` of rows `x: [N, H]`, f64.
-#[derive(Debug)]
+/// The column means, biased variances and `1/√(v + ε)` of rows `x: [N, H]`, f64.
+#[derive(Clone, Debug)]
 pub(crate) struct Stats {
-    mean: Vec<f64>,
+    pub(crate) mean: Vec<f64>,
+    pub(crate) var: Vec<f64>,
     scale: Vec<f64>,
 }
 
@@ -60,7 +63,7 @@ impl FusedCondNorm {
             return partial;
         }
         let items: Vec<_> = x.chunks(ROWS * h).zip(partial.chunks_mut(h)).collect();
-        for_each_init(items, || (), |_, (x, acc)| f(x, acc));
+        for_each_init(items, || (), |_, (x, acc)| wide(|| f(x, acc)));
         let mut sum = vec![0.0; h];
         for p in partial.chunks(h) {
             for (s, v) in sum.iter_mut().zip(p) {
@@ -84,7 +87,7 @@ impl FusedCondNorm {
             .into_iter()
             .map(|s| s / n)
             .collect();
-        let scale = self
+        let var: Vec<f64> = self
             .column_sums(x, |x, acc| {
                 for row in x.chunks(h) {
                     for ((a, v), m) in acc.iter_mut().zip(row).zip(&mean) {
@@ -94,9 +97,10 @@ impl FusedCondNorm {
                 }
             })
             .into_iter()
-            .map(|s| 1.0 / (s / n + self.eps).sqrt())
+            .map(|s| s / n)
             .collect();
-        Stats { mean, scale }
+        let scale = var.iter().map(|v| 1.0 / (v + self.eps).sqrt()).collect();
+        Stats { mean, var, scale }
     }
 
     /// Row items of `ROWS` rows: each item's first row, its rows of `x`, and the same
@@ -110,6 +114,20 @@ impl FusedCondNorm {
             .collect()
     }
 
+    /// The column means in `T` and the per-group slopes `γ_g ⊙ s` (`[N / group, H]`), so
+    /// that a row's output is `(x − μ)·slope + β` (the difference first, as the
+    /// reference ops take it, then one multiply-add per value).
+    fn slopes<T: WithDType>(&self, st: &Stats, gamma: &[T]) -> (Vec<T>, Vec<T>) {
+        let h = self.width.max(1);
+        let mean = st.mean.iter().map(|&m| T::from_f64(m)).collect();
+        let slope = gamma
+            .chunks(h)
+            .flat_map(|g| g.iter().zip(&st.scale))
+            .map(|(g, s)| T::from_f64(g.to_f64() * s))
+            .collect();
+        (mean, slope)
+    }
+
     fn run<T: WithDType>(&self, x: &[T], gamma: &[T], beta: &[T]) -> Vec<T> {
         let h = self.width;
         let mut out = vec![T::from_f64(0.0); x.len()];
@@ -117,27 +135,35 @@ impl FusedCondNorm {
             return out;
         }
         let st = self.stats(x);
+        let (mean, slope) = self.slopes(&st, gamma);
+        let cols = Columns {
+            width: h,
+            group: self.group,
+            relu: self.relu,
+            mean: &mean,
+            slope: &slope,
+            beta,
+            scale: &[],
+            c: &[],
+            e: &[],
+        };
         let items = self.items(x, &mut out);
         for_each_init(
             items,
             || (),
-            |_, (first, x, out)| {
-                for (r, (row, o)) in x.chunks(h).zip(out.chunks_mut(h)).enumerate() {
-                    let g = (first + r) / self.group;
-                    let (gr, br) = (&gamma[g * h..(g + 1) * h], &beta[g * h..(g + 1) * h]);
-                    let columns = st.mean.iter().zip(&st.scale).zip(gr.iter().zip(br));
-                    for ((o, x), ((m, sc), (gm, bt))) in o.iter_mut().zip(row).zip(columns) {
-                        let y = gm.to_f64() * ((x.to_f64() - m) * sc) + bt.to_f64();
-                        *o = T::from_f64(if self.relu { y.max(0.0) } else { y });
-                    }
-                }
-            },
+            |_, (first, x, out)| wide(Pass(&cols, Rows::Forward { first, x, out })),
         );
         *self.saved.lock().unwrap_or_else(PoisonError::into_inner) = Some(st);
         out
     }
 
     /// The gradients of `x`, `gamma` and `beta` given the output's `grad`.
+    ///
+    /// With `d = x − μ` and `ḡ` the gradient masked by the ReLU, one pass sums each
+    /// group's `Σ ḡ` (`∂L/∂β_g`) and `Σ ḡ ⊙ x̂` (`∂L/∂γ_g`); since `γ` is constant
+    /// within a group, the column means the rows' gradient needs follow from them:
+    /// `mean_n(u) = Σ_g γ_g ⊙ ∂L/∂β_g / N`, `mean_n(u ⊙ x̂) = Σ_g γ_g ⊙ ∂L/∂γ_g / N`. A
+    /// second pass writes `∂L/∂x = ḡ ⊙ γ_g s − s ⊙ mean_n(u) − d ⊙ s² ⊙ mean_n(u ⊙ x̂)`.
     fn grad<T: WithDType>(&self, x: &[T], gamma: &[T], beta: &[T], grad: &[T]) -> [Vec<T>; 3] {
         let h = self.width;
         let zeros = |len: usize| vec![T::from_f64(0.0); len];
@@ -149,22 +175,25 @@ impl FusedCondNorm {
             .saved
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
-            .take();
+            .clone();
         let st = saved.unwrap_or_else(|| self.stats(x));
-        let masked = |row: usize, j: usize, xh: f64, g: f64| -> f64 {
-            let grp = row / self.group;
-            let y = gamma[grp * h + j].to_f64() * xh + beta[grp * h + j].to_f64();
-            if !self.relu || y > 0.0 {
-                g
-            } else {
-                0.0
-            }
+        let (mean, slope) = self.slopes(&st, gamma);
+        let scale: Vec<T> = st.scale.iter().map(|&s| T::from_f64(s)).collect();
+        let mut cols = Columns {
+            width: h,
+            group: self.group,
+            relu: self.relu,
+            mean: &mean,
+            slope: &slope,
+            beta,
+            scale: &scale,
+            c: &[],
+            e: &[],
         };
-        // Pass 1, per item: Σu and Σu·x̂ (columns), and the scale's and shift's sums of the
-        // groups the item's rows belong to (`[groups spanned, 2H]`, from its first group).
+        // Pass 1, per item: the scale's and shift's sums of the groups its rows belong to
+        // (`[groups spanned, 2H]`, from its first group).
         let h2 = 2 * h;
         let n_items = self.rows.div_ceil(ROWS);
-        let mut sums = vec![0.0; n_items * h2];
         let spans: Vec<(usize, usize)> = (0..n_items)
             .map(|i| {
                 let (a, b) = (i * ROWS, ((i + 1) * ROWS).min(self.rows) - 1);
@@ -175,40 +204,25 @@ impl FusedCondNorm {
         let items: Vec<_> = x
             .chunks(ROWS * h)
             .zip(grad.chunks(ROWS * h))
-            .zip(sums.chunks_mut(h2))
             .zip(affine.iter_mut())
             .enumerate()
             .collect();
         for_each_init(
             items,
             || (),
-            |_, (i, (((x, g), s), aff))| {
-                let first = i * ROWS;
-                let g0 = spans[i].0;
-                for (r, (row, grow)) in x.chunks(h).zip(g.chunks(h)).enumerate() {
-                    let n = first + r;
-                    let grp = n / self.group;
-                    let a = &mut aff[(grp - g0) * h2..(grp - g0 + 1) * h2];
-                    for j in 0..h {
-                        let xh = (row[j].to_f64() - st.mean[j]) * st.scale[j];
-                        let gy = masked(n, j, xh, grow[j].to_f64());
-                        let u = gy * gamma[grp * h + j].to_f64();
-                        s[j] += u;
-                        s[h + j] += u * xh;
-                        a[j] += gy * xh;
-                        a[h + j] += gy;
-                    }
-                }
+            |_, (i, ((x, g), aff))| {
+                wide(Pass(
+                    &cols,
+                    Rows::Sums {
+                        first: i * ROWS,
+                        g0: spans[i].0,
+                        x,
+                        g,
+                        aff,
+                    },
+                ))
             },
         );
-        let n = self.rows as f64;
-        let (mut su, mut sux) = (vec![0.0; h], vec![0.0; h]);
-        for s in sums.chunks(h2) {
-            for j in 0..h {
-                su[j] += s[j] / n;
-                sux[j] += s[h + j] / n;
-            }
-        }
         let (mut dg, mut db) = (vec![0.0; gamma.len()], vec![0.0; beta.len()]);
         for (&(g0, _), aff) in spans.iter().zip(&affine) {
             for (k, a) in aff.chunks(h2).enumerate() {
@@ -219,13 +233,32 @@ impl FusedCondNorm {
                 }
             }
         }
+        // Pass 2: the rows' gradient, `ḡ ⊙ slope − c − d ⊙ e`.
+        let n = self.rows as f64;
+        let (mut su, mut sux) = (vec![0.0; h], vec![0.0; h]);
+        for ((gm, dg), db) in gamma.chunks(h).zip(dg.chunks(h)).zip(db.chunks(h)) {
+            for j in 0..h {
+                su[j] += gm[j].to_f64() * db[j] / n;
+                sux[j] += gm[j].to_f64() * dg[j] / n;
+            }
+        }
+        let c: Vec<T> = su
+            .iter()
+            .zip(&st.scale)
+            .map(|(u, s)| T::from_f64(s * u))
+            .collect();
+        let e: Vec<T> = sux
+            .iter()
+            .zip(&st.scale)
+            .map(|(u, s)| T::from_f64(s * s * u))
+            .collect();
         for (o, v) in gg.iter_mut().zip(&dg) {
             *o = T::from_f64(*v);
         }
         for (o, v) in gb.iter_mut().zip(&db) {
             *o = T::from_f64(*v);
         }
-        // Pass 2: the rows' gradient.
+        (cols.c, cols.e) = (&c, &e);
         let items: Vec<_> = self
             .items(x, &mut gx)
             .into_iter()
@@ -234,22 +267,7 @@ impl FusedCondNorm {
         for_each_init(
             items,
             || (),
-            |_, ((first, x, out), g)| {
-                for (r, ((row, o), grow)) in x
-                    .chunks(h)
-                    .zip(out.chunks_mut(h))
-                    .zip(g.chunks(h))
-                    .enumerate()
-                {
-                    let n = first + r;
-                    let grp = n / self.group;
-                    for j in 0..h {
-                        let xh = (row[j].to_f64() - st.mean[j]) * st.scale[j];
-                        let u = masked(n, j, xh, grow[j].to_f64()) * gamma[grp * h + j].to_f64();
-                        o[j] = T::from_f64(st.scale[j] * (u - su[j] - xh * sux[j]));
-                    }
-                }
-            },
+            |_, ((first, x, out), g)| wide(Pass(&cols, Rows::Grad { first, x, g, out })),
         );
         [gx, gg, gb]
     }
@@ -279,6 +297,146 @@ impl FusedCondNorm {
             }
         }
         Ok(())
+    }
+}
+
+/// What the row loops of one layer read: the column means, the per-group slopes and
+/// shifts (`[N / group, H]`), and for the backward pass the scales `s` and the rows'
+/// gradient's column terms `c = s ⊙ mean_n(u)`, `e = s² ⊙ mean_n(u ⊙ x̂)`. Each loop runs
+/// inside [`wide`], into which these `#[inline(always)]` methods are inlined.
+struct Columns<'a, T> {
+    width: usize,
+    group: usize,
+    relu: bool,
+    mean: &'a [T],
+    slope: &'a [T],
+    beta: &'a [T],
+    scale: &'a [T],
+    c: &'a [T],
+    e: &'a [T],
+}
+
+impl<T: WithDType> Columns<'_, T> {
+    /// Row `n`'s group's slopes and shifts.
+    #[inline(always)]
+    fn affine(&self, n: usize) -> (&[T], &[T]) {
+        let (h, g) = (self.width, n / self.group);
+        (
+            &self.slope[g * h..(g + 1) * h],
+            &self.beta[g * h..(g + 1) * h],
+        )
+    }
+
+    /// `g` where the ReLU passes `y = (x − μ)·slope + β`, `y ≥ 0` as candle's ReLU
+    /// derivative (every `g` without the ReLU).
+    #[inline(always)]
+    fn masked(&self, (x, m, a, b): (T, T, T, T), g: T) -> T {
+        let zero = T::from_f64(0.0);
+        if self.relu && (x - m) * a + b < zero {
+            zero
+        } else {
+            g
+        }
+    }
+
+    /// The output rows `out` of rows `x` from row `first` on.
+    #[inline(always)]
+    fn forward(&self, first: usize, x: &[T], out: &mut [T]) {
+        let (h, zero) = (self.width, T::from_f64(0.0));
+        for (r, (row, o)) in x.chunks(h).zip(out.chunks_mut(h)).enumerate() {
+            let (a, b) = self.affine(first + r);
+            let columns = self.mean.iter().zip(a).zip(b);
+            for ((o, &x), ((&m, &a), &b)) in o.iter_mut().zip(row).zip(columns) {
+                let y = (x - m) * a + b;
+                *o = if self.relu && y < zero { zero } else { y };
+            }
+        }
+    }
+
+    /// Adds rows `x` (from row `first` on, with gradients `g`) into their groups' sums
+    /// `aff` (`[groups spanned, 2H]` from group `g0`): `Σ ḡ ⊙ x̂`, then `Σ ḡ`.
+    #[inline(always)]
+    fn sums(&self, first: usize, g0: usize, (x, g): (&[T], &[T]), aff: &mut [f64]) {
+        let h = self.width;
+        for (r, (row, grow)) in x.chunks(h).zip(g.chunks(h)).enumerate() {
+            let grp = (first + r) / self.group;
+            let (dg, db) = aff[(grp - g0) * 2 * h..(grp - g0 + 1) * 2 * h].split_at_mut(h);
+            let (a, b) = self.affine(first + r);
+            let columns = self.mean.iter().zip(self.scale).zip(a.iter().zip(b));
+            let sums = dg.iter_mut().zip(db.iter_mut());
+            for (((&x, &gy), ((&m, &s), (&a, &b))), (dg, db)) in
+                row.iter().zip(grow).zip(columns).zip(sums)
+            {
+                let gy = self.masked((x, m, a, b), gy);
+                *dg += (gy * ((x - m) * s)).to_f64();
+                *db += gy.to_f64();
+            }
+        }
+    }
+
+    /// The rows' gradient `ḡ ⊙ slope − c − (x − μ) ⊙ e` into `out`.
+    #[inline(always)]
+    fn grad(&self, first: usize, (x, g): (&[T], &[T]), out: &mut [T]) {
+        let h = self.width;
+        let rows = x.chunks(h).zip(out.chunks_mut(h)).zip(g.chunks(h));
+        for (r, ((row, o), grow)) in rows.enumerate() {
+            let (a, b) = self.affine(first + r);
+            let columns = self.mean.iter().zip(a.iter().zip(b));
+            let terms = columns.zip(self.c.iter().zip(self.e));
+            for (((o, &x), &gy), ((&m, (&a, &b)), (&c, &e))) in
+                o.iter_mut().zip(row).zip(grow).zip(terms)
+            {
+                let gy = self.masked((x, m, a, b), gy);
+                *o = gy * a - c - (x - m) * e;
+            }
+        }
+    }
+}
+
+/// One work item of one of the row passes.
+enum Rows<'a, T> {
+    /// [`Columns::forward`].
+    Forward {
+        first: usize,
+        x: &'a [T],
+        out: &'a mut [T],
+    },
+    /// [`Columns::sums`].
+    Sums {
+        first: usize,
+        g0: usize,
+        x: &'a [T],
+        g: &'a [T],
+        aff: &'a mut [f64],
+    },
+    /// [`Columns::grad`].
+    Grad {
+        first: usize,
+        x: &'a [T],
+        g: &'a [T],
+        out: &'a mut [T],
+    },
+}
+
+/// A pass's item with the columns it reads, run by [`wide`].
+struct Pass<'a, 'b, T>(&'a Columns<'b, T>, Rows<'a, T>);
+
+impl<T: WithDType> Wide for Pass<'_, '_, T> {
+    type Out = ();
+    #[inline(always)]
+    fn run(self) {
+        let Pass(cols, rows) = self;
+        match rows {
+            Rows::Forward { first, x, out } => cols.forward(first, x, out),
+            Rows::Sums {
+                first,
+                g0,
+                x,
+                g,
+                aff,
+            } => cols.sums(first, g0, (x, g), aff),
+            Rows::Grad { first, x, g, out } => cols.grad(first, (x, g), out),
+        }
     }
 }
 

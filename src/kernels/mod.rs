@@ -34,7 +34,8 @@
 //!   `AdamUpdate`, what [`crate::nn::Adam`] runs);
 //! * `activation` and `simd`: the vectorised hidden activations (ReLU, softplus with its
 //!   slope and curvature) and the AVX-512 f32 matrix product of the MLP tiles;
-//! * `parallel`: [`for_each_init`], which runs a kernel's items on candle's own CPU pool;
+//! * `parallel`: [`for_each_init`], which runs a kernel's items on candle's own CPU pool,
+//!   and `wide`, which runs a loop compiled for AVX-512 or AVX2 where the CPU has them;
 //! * `dispatch`: the candle side of every op, written once (below).
 //!
 //! Each kernel's reference path, made of candle ops and running on any device, stays

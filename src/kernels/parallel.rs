@@ -38,3 +38,55 @@ pub(crate) fn for_each_init<I: Send, S>(
         }
     });
 }
+
+/// Work that [`wide`] runs: a closure, or a kernel's own type whose `run` is
+/// `#[inline(always)]` (a closure cannot be marked so, and a large one is not inlined
+/// into the function compiled for the wider instructions).
+pub(crate) trait Wide {
+    /// What the work returns.
+    type Out;
+    /// Does the work.
+    fn run(self) -> Self::Out;
+}
+
+impl<R, F: FnOnce() -> R> Wide for F {
+    type Out = R;
+    #[inline(always)]
+    fn run(self) -> R {
+        self()
+    }
+}
+
+/// Runs `w` inside a function compiled for AVX-512 (or AVX2 with FMA) where the CPU has
+/// them, so that the loops of `w`, inlined there, are vectorised at that width (the
+/// crate builds for baseline x86-64, SSE2). No floating-point contraction or
+/// reassociation is enabled, so the results are the same bits as without.
+#[inline]
+pub(crate) fn wide<W: Wide>(w: W) -> W::Out {
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx512bw,fma")]
+        fn avx512<W: Wide>(w: W) -> W::Out {
+            w.run()
+        }
+        #[target_feature(enable = "avx2,fma")]
+        fn avx2<W: Wide>(w: W) -> W::Out {
+            w.run()
+        }
+        use std::arch::is_x86_feature_detected as has;
+        if has!("avx512f")
+            && has!("avx512dq")
+            && has!("avx512vl")
+            && has!("avx512bw")
+            && has!("fma")
+        {
+            // SAFETY: the CPU has the features the function was compiled for.
+            return unsafe { avx512(w) };
+        }
+        if has!("avx2") && has!("fma") {
+            // SAFETY: as above.
+            return unsafe { avx2(w) };
+        }
+    }
+    w.run()
+}

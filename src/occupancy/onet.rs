@@ -29,7 +29,7 @@ use crate::kernels::FusedCondNorm;
 use crate::nn::weight_jvp;
 use candle_core::{DType, Tensor, D};
 use candle_nn::{Init, VarBuilder};
-use std::sync::{Mutex, PoisonError};
+use std::sync::{Arc, Mutex, PoisonError};
 
 /// Rows per matrix-multiply block in [`NormMode::Eval`].
 pub const ONET_BLOCK: usize = 256;
@@ -264,20 +264,26 @@ impl OnetDecoder {
     /// The batch mean and (biased) variance `[H]` of rows `x: [N, H]`, and the running
     /// statistics updated with them (`r ← (1 − m) r + m·stat`, the variance unbiased).
     fn batch_stats(&self, n: &CondNorm, x: &Tensor) -> Result<(Tensor, Tensor)> {
-        let rows = x.dim(0)?;
         let mean = x.mean(0)?;
         let var = x.broadcast_sub(&mean)?.sqr()?.mean(0)?;
+        self.update_running(n, &mean.detach(), &var.detach(), x.dim(0)?)?;
+        Ok((mean, var))
+    }
+
+    /// `r ← (1 − m) r + m·stat` for the batch `mean` and biased `var` (`[H]`) of `rows`
+    /// rows, the variance made unbiased.
+    fn update_running(&self, n: &CondNorm, mean: &Tensor, var: &Tensor, rows: usize) -> Result<()> {
         let m = self.config.momentum;
         let unbiased = if rows > 1 {
-            (var.detach() * (rows as f64 / (rows - 1) as f64))?
+            (var * (rows as f64 / (rows - 1) as f64))?
         } else {
-            var.detach()
+            var.clone()
         };
         let mut rm = lock(&n.running_mean);
-        *rm = ((&*rm * (1.0 - m))? + (mean.detach() * m)?)?;
+        *rm = ((&*rm * (1.0 - m))? + (mean * m)?)?;
         let mut rv = lock(&n.running_var);
         *rv = ((&*rv * (1.0 - m))? + (unbiased * m)?)?;
-        Ok((mean, var))
+        Ok(())
     }
 
     /// `x̂` and the per-feature scale `∂x̂/∂x` (`[H]`) of one normalisation layer.
@@ -309,20 +315,28 @@ impl OnetDecoder {
         blocked: bool,
     ) -> Result<(Tensor, Option<Tensor>)> {
         if dx.is_none() && self.fused(x, mode) {
-            // The running statistics from the rows' values (no graph), the layer as one op.
-            self.batch_stats(n, &x.detach())?;
+            // The layer as one op, whose batch statistics then update the running ones.
             let gamma = n.gamma.forward(codes, blocked)?.contiguous()?;
             let beta = n.beta.forward(codes, blocked)?.contiguous()?;
             let (rows, width) = x.dims2()?;
+            let saved = Arc::new(Mutex::new(None));
             let op = FusedCondNorm {
                 rows,
                 width,
                 group,
                 eps: self.config.eps,
                 relu: true,
-                saved: Default::default(),
+                saved: Arc::clone(&saved),
             };
-            return Ok((x.contiguous()?.apply_op3(&gamma, &beta, op)?, None));
+            let out = x.contiguous()?.apply_op3(&gamma, &beta, op)?;
+            let stats = lock(&saved).clone();
+            if let Some(st) = stats {
+                let column = |v: Vec<f64>| -> Result<Tensor> {
+                    Ok(Tensor::from_vec(v, width, x.device())?.to_dtype(x.dtype())?)
+                };
+                self.update_running(n, &column(st.mean)?, &column(st.var)?, rows)?;
+            }
+            return Ok((out, None));
         }
         let (xh, inv) = self.normalize(n, x, mode)?;
         // γ(c) and β(c) once per code, then repeated over its `group` points.
