@@ -53,7 +53,15 @@ done
 # A libcuda.so link stub: candle links cudarc with dynamic linking, and the wheels carry
 # no driver. Empty functions named after every cu* symbol cudarc declares; soname
 # libcuda.so.1, so the real driver is loaded at run time.
+# cudarc's sources must be in cargo's registry: fetch them (with the rest of Cargo.lock)
+# first, and refuse to write an empty stub (binaries would then fail to link with
+# undefined `cu*` symbols).
+(cd "$(dirname "$0")/.." && cargo fetch -q)
 syms=$(grep -rhoE '\bcu[A-Z][A-Za-z0-9_]+\b' "${CARGO_HOME:-$HOME/.cargo}"/registry/src/*/cudarc-*/src/driver/sys/ 2>/dev/null | sort -u || true)
+if [ -z "$syms" ]; then
+  echo "cuda-toolchain.sh: no cudarc sources under ${CARGO_HOME:-$HOME/.cargo}/registry/src; cannot write the libcuda stub" >&2
+  exit 1
+fi
 {
   for s in $syms; do echo "void $s(void) {}"; done
 } > "$work/stub.c"

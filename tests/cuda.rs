@@ -1474,8 +1474,9 @@ fn grid_kernels_case(dev: &Device, dtype: DType) -> Result<Outs> {
 /// and the codes, and (through inference-mode logits) the running statistics, with one
 /// code per shape over groups that straddle the CPU op's row tiles. Tolerance: the CPU op
 /// keeps its statistics in f64, candle's ops in the dtype, so f32 is compared at 1e-3
-/// relative to the largest entry of each output (a bias that feeds a normalisation has a
-/// gradient that is zero up to round-off).
+/// (f64 at 1e-10) relative to the largest entry of the logits, and every gradient relative
+/// to the largest gradient entry of all (a bias that feeds a normalisation has a gradient
+/// that is zero up to round-off).
 fn onet_case(dev: &Device, dtype: DType) -> Result<Outs> {
     let config = OnetConfig {
         hidden: 32,
@@ -1498,29 +1499,44 @@ fn onet_case(dev: &Device, dtype: DType) -> Result<Outs> {
     net.set_mode(NormMode::Train);
     let logits = net.logits_grouped(&points, &codes)?;
     let grads = probe(&logits, &mut SplitMix64::new(7))?.backward()?;
-    let scaled = |t: Tensor| -> Result<Out> {
-        let top = t
-            .abs()?
+    let largest = |t: &Tensor| -> Result<f64> {
+        Ok(t.abs()?
             .flatten_all()?
             .max(0)?
             .to_dtype(DType::F64)?
-            .to_scalar::<f64>()?;
-        Ok(Out::Rel((t / top.max(1e-30))?, 1e-3, 1e-10))
+            .to_scalar::<f64>()?)
     };
-    let mut out: Outs = vec![("logits".into(), scaled(logits)?)];
-    for (name, var) in sorted_vars(&vm).iter().chain(
-        [
-            ("points".to_string(), points.clone()),
-            ("codes".to_string(), codes.clone()),
-        ]
-        .iter(),
-    ) {
-        out.push((format!("d/d{name}"), scaled(grad_t(&grads, var, name)?)?));
+    let mut named: Vec<(String, Tensor)> = sorted_vars(&vm)
+        .iter()
+        .chain(
+            [
+                ("points".to_string(), points.clone()),
+                ("codes".to_string(), codes.clone()),
+            ]
+            .iter(),
+        )
+        .map(|(name, var)| Ok((format!("d/d{name}"), grad_t(&grads, var, name)?)))
+        .collect::<Result<_>>()?;
+    // One scale for every gradient: the biases that feed a normalisation have gradients
+    // that are zero up to round-off, compared against the largest gradient of all.
+    let mut top = 0f64;
+    for (_, g) in &named {
+        top = top.max(largest(g)?);
+    }
+    let rel = |t: Tensor, scale: f64| -> Result<Out> {
+        Ok(Out::Rel((t / scale.max(1e-30))?, 1e-3, 1e-10))
+    };
+    let scale = largest(&logits)?;
+    let mut out: Outs = vec![("logits".into(), rel(logits, scale)?)];
+    for (what, g) in named.drain(..) {
+        out.push((what, rel(g, top)?));
     }
     net.set_mode(NormMode::Eval);
+    let inference = net.logits_grouped(&points, &codes)?;
+    let scale = largest(&inference)?;
     out.push((
         "inference logits (running statistics)".into(),
-        scaled(net.logits_grouped(&points, &codes)?)?,
+        rel(inference, scale)?,
     ));
     Ok(out)
 }
