@@ -128,6 +128,28 @@ impl FusedCondNorm {
         (mean, slope)
     }
 
+    /// The [`Columns`] of this layer over `mean`, `slope`, `beta` and `scale` (empty in
+    /// the forward pass), without the backward pass's column terms.
+    fn columns<'a, T>(
+        &self,
+        mean: &'a [T],
+        slope: &'a [T],
+        beta: &'a [T],
+        scale: &'a [T],
+    ) -> Columns<'a, T> {
+        Columns {
+            width: self.width,
+            group: self.group,
+            relu: self.relu,
+            mean,
+            slope,
+            beta,
+            scale,
+            c: &[],
+            e: &[],
+        }
+    }
+
     fn run<T: WithDType>(&self, x: &[T], gamma: &[T], beta: &[T]) -> Vec<T> {
         let h = self.width;
         let mut out = vec![T::from_f64(0.0); x.len()];
@@ -136,17 +158,7 @@ impl FusedCondNorm {
         }
         let st = self.stats(x);
         let (mean, slope) = self.slopes(&st, gamma);
-        let cols = Columns {
-            width: h,
-            group: self.group,
-            relu: self.relu,
-            mean: &mean,
-            slope: &slope,
-            beta,
-            scale: &[],
-            c: &[],
-            e: &[],
-        };
+        let cols = self.columns(&mean, &slope, beta, &[]);
         let items = self.items(x, &mut out);
         for_each_init(
             items,
@@ -179,17 +191,7 @@ impl FusedCondNorm {
         let st = saved.unwrap_or_else(|| self.stats(x));
         let (mean, slope) = self.slopes(&st, gamma);
         let scale: Vec<T> = st.scale.iter().map(|&s| T::from_f64(s)).collect();
-        let mut cols = Columns {
-            width: h,
-            group: self.group,
-            relu: self.relu,
-            mean: &mean,
-            slope: &slope,
-            beta,
-            scale: &scale,
-            c: &[],
-            e: &[],
-        };
+        let mut cols = self.columns(&mean, &slope, beta, &scale);
         // Pass 1, per item: the scale's and shift's sums of the groups its rows belong to
         // (`[groups spanned, 2H]`, from its first group).
         let h2 = 2 * h;
