@@ -383,6 +383,7 @@ fn onet_step(
             "onet_voxels" => Encoder::Voxels(voxel_encoder(
                 &VoxelEncoderConfig {
                     c_dim: CODE,
+                    force_reference: reference,
                     ..VoxelEncoderConfig::default()
                 },
                 evb,

@@ -510,6 +510,36 @@ const ALLOWED: &[(&str, &str, &str)] = &[
         "data: the output or gradient of a fused op, the size of the input tensor held",
     ),
     (
+        "kernels/conv3.rs",
+        "vec![_; len]",
+        "data: at most 256 output voxels' windows, 27 times the input channels of the weight held",
+    ),
+    (
+        "kernels/conv3.rs",
+        "vec![_; k * co]",
+        "data: the weight tensor held, in another layout",
+    ),
+    (
+        "kernels/conv3.rs",
+        "vec![_; co * k]",
+        "data: the weight tensor held, in another layout",
+    ),
+    (
+        "kernels/conv3.rs",
+        "vec![_; self.batch * n3 * co]",
+        "checked: VoxelEncoder::forward checks B·R³·max(27, 4w) values, which bound every convolution's output, with limits::check_bytes first",
+    ),
+    (
+        "kernels/conv3.rs",
+        "vec![_; items_n * (co * k + co)]",
+        "data: at most 8 copies of the weight and bias tensors held",
+    ),
+    (
+        "kernels/conv3.rs",
+        "vec![_; x.len()]",
+        "data: the gradient of a fused op, the size of the input tensor held",
+    ),
+    (
         "kernels/integrated.rs",
         "vec![_; m]",
         "fixed: 256 rows of scratch times the encoding's octaves and dimension",

@@ -20,6 +20,7 @@ fn tiny(c_dim: usize) -> VoxelEncoderConfig {
         stages: 2,
         c_dim,
         resolution: 8,
+        force_reference: false,
     }
 }
 
@@ -84,6 +85,7 @@ fn codes_are_b_by_c_dim_for_both_layouts_in_f32_and_f64() {
                 stages,
                 c_dim: 5,
                 resolution: 16,
+                force_reference: false,
             };
             let (_vm, enc) = build(&config, dtype, 3);
             let c = enc.forward(&binary(&mut rng, 2, 16, dtype)).unwrap();
@@ -221,6 +223,7 @@ fn translating_a_blob_changes_the_code() {
         stages: 3,
         c_dim: 16,
         resolution: 16,
+        force_reference: false,
     };
     let (_vm, enc) = build(&config, DType::F64, 9);
     let mut grids = vec![vec![0.0; 16 * 16 * 16]];
@@ -265,6 +268,7 @@ fn adam_steps_learn_the_filled_fraction_of_boxes() {
         stages: 3,
         c_dim: 1,
         resolution: 16,
+        force_reference: false,
     };
     let (varmap, enc) = build(&config, dtype, 10);
     let mut rng = SplitMix64::new(11);

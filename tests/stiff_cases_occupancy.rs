@@ -839,6 +839,7 @@ fn sweep_voxel(s: &mut Suite) {
         stages: 3,
         c_dim: 3,
         resolution: 8,
+        force_reference: false,
     };
     let n = 2 * 512;
     for dtype in DTYPES {

@@ -30,6 +30,9 @@
 //! * `cond_norm`: conditional batch normalisation and ReLU (`FusedCondNorm`, the ONet
 //!   decoder's training pass on the CPU), with its backward pass through the batch
 //!   statistics;
+//! * `conv3`: a 3×3×3 convolution of channels-last grids with its bias and an optional
+//!   ReLU on its input (`FusedConv3`, the voxel encoder's convolutions on the CPU), tile by
+//!   tile without the full window matrix;
 //! * `adam`: Adam's update as two in-place passes per variable (`AdamMoments`,
 //!   `AdamUpdate`, what [`crate::nn::Adam`] runs);
 //! * `activation` and `simd`: the vectorised hidden activations (ReLU, softplus with its
@@ -77,6 +80,8 @@ mod adam;
 mod composite;
 #[cfg_attr(not(feature = "occupancy"), allow(dead_code))]
 mod cond_norm;
+#[cfg_attr(not(feature = "occupancy"), allow(dead_code))]
+mod conv3;
 #[cfg(feature = "cuda")]
 pub(crate) mod cuda;
 mod dispatch;
@@ -104,6 +109,8 @@ pub use composite::X_MAX;
 pub(crate) use composite::{FusedComposite, Geometry, KernelBuild, Segments};
 #[cfg_attr(not(feature = "occupancy"), allow(unused_imports))]
 pub(crate) use cond_norm::FusedCondNorm;
+#[cfg_attr(not(feature = "occupancy"), allow(unused_imports))]
+pub(crate) use conv3::FusedConv3;
 #[allow(unused_imports)] // the dispatch helper's whole interface, for every kernel
 pub(crate) use dispatch::{contiguous, cpu_bwd, cpu_fwd, cpu_op, cpu_slice, CpuKernel, Real};
 #[cfg(feature = "cuda")]

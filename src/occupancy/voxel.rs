@@ -3,22 +3,29 @@
 //! to the code `c` that conditions the [`OnetDecoder`](super::OnetDecoder).
 //!
 //! The convolutions run on channels-last grids (`[B, R³, C]`, voxel `(i, j, k)` at row
-//! `(i·R + j)·R + k`) as one gather and one matrix product each: the `27·C` inputs of
-//! every output voxel are gathered with `index_select` (im2col; voxels outside the grid
-//! read an appended zero row), and multiplied by the weight as a `[27·C, C']` matrix. A
-//! stride-2 convolution gathers only the windows of the voxels it keeps, so it is exactly
-//! the stride-1 convolution followed by keeping every other voxel of each axis (tested
-//! against the crate's `conv3d` so subsampled, values and gradients) at an eighth of its
-//! multiply-adds and memory. The gradient is two matrix products and one `index_add`.
-//! (The crate's `conv3d`, candle's 2-D convolution over stacked depth windows, takes
-//! about 2.4 times as long here: candle's CPU gradient of a 2-D convolution w.r.t. its
-//! input is a direct loop, `conv_transpose2d`, not a matrix product.)
+//! `(i·R + j)·R + k`) as a gather and a matrix product each: the `27·C` inputs of every
+//! output voxel are gathered (im2col; voxels outside the grid read zero) and multiplied
+//! by the weight as a `[27·C, C']` matrix. A stride-2 convolution gathers only the windows
+//! of the voxels it keeps, so it is exactly the stride-1 convolution followed by keeping
+//! every other voxel of each axis (tested against the crate's `conv3d` so subsampled,
+//! values and gradients) at an eighth of its multiply-adds and memory.
 //!
-//! Cost: forward and backward of a batch of 32 grids of 32³ take about 2.5 s at the
-//! default width 16 and 5.3 s at ONet's 32 on one core of a 2-core AMD EPYC (release build,
-//! `RAYON_NUM_THREADS=1`; `cargo bench --bench occupancy -- voxel`).
+//! On the CPU each convolution, with its bias and the ReLU before it, is one fused op
+//! that gathers and multiplies tile by tile and scatters the input gradient straight into
+//! its grid; elsewhere (and with [`VoxelEncoderConfig::force_reference`]) the same
+//! function runs as candle's ops: `index_select` of the whole window matrix, a matrix
+//! product, and `index_add` for the gradient. (The crate's `conv3d`, candle's 2-D
+//! convolution over stacked depth windows, takes about 2.4 times as long as the candle-op
+//! path here: candle's CPU gradient of a 2-D convolution w.r.t. its input is a direct
+//! loop, `conv_transpose2d`, not a matrix product.)
+//!
+//! Cost: `cargo bench --bench train_step -- --model onet_voxels` (this encoder at the
+//! default width 16, 16 grids of 32³, with the ONet decoder on 16 × 1 024 points) takes
+//! about 1.15 s per training step on a 2-core Intel Xeon with the fused op, 2.0 s with
+//! candle's ops (docs/benchmarks.md).
 
 use crate::error::{check_finite, check_float, check_same, Error, Result};
+use crate::kernels::FusedConv3;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{init::Init, linear, Linear, Module, VarBuilder};
 
@@ -37,15 +44,18 @@ pub struct VoxelEncoderConfig {
     pub c_dim: usize,
     /// Side `R` of the input grids, a power of two with `R ≥ 2^S` (ONet: 32).
     pub resolution: usize,
+    /// Run the convolutions as candle ops even on the CPU, where each otherwise runs,
+    /// with its bias and the ReLU before it, as one fused op (the crate's kernel
+    /// `FusedConv3`, the same function; tests compare the two). Default `false`.
+    pub force_reference: bool,
 }
 
 impl Default for VoxelEncoderConfig {
     /// ONet's network at half its width: `w = 16` (16 → 32 → 64 → 128 → 256 channels,
     /// about 1.7 M parameters instead of 5.8 M), `S = 4`, `c_dim = 256`, `R = 32`. ONet's
-    /// `w = 32` doubles the cost of a training pass (about 5.3 s instead of 2.5 s for 32
-    /// grids on one core, see the module docs), seven times the image encoder's, which
-    /// would leave a 30-minute CPU run a few hundred steps; set `base_channels: 32` for
-    /// ONet's exact layout. `c_dim = 256` is ONet's and the default `code_dim` of
+    /// `w = 32` about doubles the encoder's training cost (its largest convolutions have
+    /// four times the multiply-adds), which would cut a 30-minute CPU run's steps; set
+    /// `base_channels: 32` for ONet's exact layout. `c_dim = 256` is ONet's and the default `code_dim` of
     /// [`OnetConfig`](super::OnetConfig), so the two defaults plug together.
     fn default() -> Self {
         Self {
@@ -53,6 +63,7 @@ impl Default for VoxelEncoderConfig {
             stages: 4,
             c_dim: 256,
             resolution: 32,
+            force_reference: false,
         }
     }
 }
@@ -67,6 +78,8 @@ struct Conv3 {
     /// `u32[n³·27]`: for output voxel `o` and tap `t = (a·3 + b)·3 + c`, the row of its
     /// input voxel, or `side³` (the zero row) where the tap falls in the padding.
     index: Tensor,
+    /// Side of the input grid.
+    side: usize,
     /// Side of the output grid `n = side / stride`.
     out_side: usize,
 }
@@ -93,19 +106,41 @@ impl Conv3 {
             weight,
             bias,
             index: gather_index(side, stride, vb.device())?,
+            side,
             out_side: side / stride,
         })
     }
 
     /// `x: [B, side³, Cᵢ]` → `[B, n³, Cₒ]`:
-    /// `y[b, o, j] = bias[j] + Σ_{t, i} w[j, i, t] · x_pad[b, s·o + t − 1, i]`.
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let (b, _, ci) = x.dims3()?;
+    /// `y[b, o, j] = bias[j] + Σ_{t, i} w[j, i, t] · a(x_pad)[b, s·o + t − 1, i]`, with `a`
+    /// the ReLU when `relu_input` (else the identity). On the CPU (unless `reference`) one
+    /// fused op; else candle's ops.
+    fn forward(&self, x: &Tensor, relu_input: bool, reference: bool) -> Result<Tensor> {
+        let (b, side3, ci) = x.dims3()?;
+        if !reference && x.device().is_cpu() && matches!(x.dtype(), DType::F32 | DType::F64) {
+            if side3 != self.side.pow(3) {
+                return Err(Error::invalid(
+                    "x",
+                    format!("{} voxels per grid", self.side.pow(3)),
+                    format!("{side3}"),
+                ));
+            }
+            let op = FusedConv3 {
+                batch: b,
+                side: self.side,
+                stride: self.side / self.out_side,
+                c_in: ci,
+                c_out: self.weight.dim(0)?,
+                relu_input,
+            };
+            return Ok(x.contiguous()?.apply_op3(&self.weight, &self.bias, op)?);
+        }
+        let x = if relu_input { x.relu()? } else { x.clone() };
         let co = self.weight.dim(0)?;
         let taps = KERNEL.pow(3);
         let n3 = self.out_side.pow(3);
         let zero = Tensor::zeros((b, 1, ci), x.dtype(), x.device())?;
-        let cols = Tensor::cat(&[x, &zero], 1)?
+        let cols = Tensor::cat(&[&x, &zero], 1)?
             .index_select(&self.index, 1)? // [B, n³·27, Cᵢ]
             .reshape((b * n3, taps * ci))?;
         // Column t·Cᵢ + i of the weight matrix is tap t of input channel i.
@@ -294,7 +329,7 @@ impl VoxelEncoder {
     /// use neural_fields::occupancy::{voxel_encoder, VoxelEncoderConfig};
     ///
     /// // A small network on 8³ grids: 4 → 8 → 16 channels at 8³ → 4³ → 2³.
-    /// let config = VoxelEncoderConfig { base_channels: 4, stages: 2, c_dim: 3, resolution: 8 };
+    /// let config = VoxelEncoderConfig { base_channels: 4, stages: 2, c_dim: 3, resolution: 8, force_reference: false };
     /// let varmap = VarMap::new();
     /// let dev = Device::Cpu;
     /// let enc = build_seeded(&varmap, DType::F64, &dev, 1, |vb| voxel_encoder(&config, vb))?;
@@ -360,9 +395,10 @@ impl VoxelEncoder {
             ));
         }
         let x = voxels.reshape((b, r * r * r, 1))?; // channels last
-        let mut h = self.conv_in.forward(&x)?;
+        let reference = self.config.force_reference;
+        let mut h = self.conv_in.forward(&x, false, reference)?;
         for conv in &self.stages {
-            h = conv.forward(&h.relu()?)?;
+            h = conv.forward(&h, true, reference)?;
         }
         // [B, n³, C] → PyTorch's channel-major flattening of [B, C, n, n, n].
         let hidden = h
@@ -383,12 +419,13 @@ mod tests {
         Ok((a - b)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f64>()?)
     }
 
-    /// The gathered convolution equals the crate's `conv3d` (candle's 2-D convolution
-    /// over depth windows; an independent formulation, itself tested against the direct
-    /// sum) at stride 1, and `conv3d` at every other voxel of each axis at stride 2: the
-    /// same values and, for the same cotangent on the kept voxels, the same gradients
-    /// w.r.t. the input, the weight and the bias; at the grid's faces and corners (the
-    /// padding) as well as inside.
+    /// The gathered convolution, both the fused op and candle's ops, equals the crate's
+    /// `conv3d` (candle's 2-D convolution over depth windows; an independent formulation,
+    /// itself tested against the direct sum) at stride 1, and `conv3d` at every other voxel
+    /// of each axis at stride 2: the same values and, for the same cotangent on the kept
+    /// voxels, the same gradients w.r.t. the input, the weight and the bias; at the grid's
+    /// faces and corners (the padding) as well as inside; with and without the ReLU on the
+    /// input; over batches that span several of the fused op's tiles and work items.
     #[test]
     fn gathered_convolution_is_conv3d_at_stride_1_and_conv3d_subsampled_at_stride_2() -> Result<()>
     {
@@ -400,6 +437,8 @@ mod tests {
             (2, 3, 4, 8, 2),
             (1, 2, 3, 4, 2),
             (1, 2, 2, 2, 2),
+            (10, 2, 3, 8, 1),
+            (9, 40, 5, 4, 2),
         ] {
             let mut random = |shape: &[usize]| -> Result<Var> {
                 let v: Vec<f64> = (0..shape.iter().product())
@@ -414,6 +453,7 @@ mod tests {
                 weight: weight.as_tensor().clone(),
                 bias: bias.as_tensor().clone(),
                 index: gather_index(side, stride, &d)?,
+                side,
                 out_side: side / stride,
             };
             let rows = x
@@ -422,32 +462,90 @@ mod tests {
                 .transpose(1, 2)?
                 .contiguous()?;
             let n = side / stride;
-            let got = conv
-                .forward(&rows)?
-                .transpose(1, 2)?
-                .reshape((b, co, n, n, n))?;
-            let mut want = conv3d(x.as_tensor(), weight.as_tensor(), 1)?
-                .broadcast_add(&bias.as_tensor().reshape((1, co, 1, 1, 1))?)?;
-            for axis in 2..5 {
-                let kept: Vec<u32> = (0..side).step_by(stride).map(|i| i as u32).collect();
-                let kept = Tensor::new(kept.as_slice(), &d)?;
-                want = want.contiguous()?.index_select(&kept, axis)?;
-            }
-            let label = format!("B {b}, {ci} → {co}, side {side}, stride {stride}");
-            assert_eq!(got.dims(), want.dims(), "{label}");
-            assert!(gap(&got, &want)? < 1e-13, "{label}");
-            let g: Vec<f64> = (0..got.elem_count()).map(|_| rng.uniform() - 0.5).collect();
-            let g = Tensor::from_vec(g, got.dims(), &d)?;
-            let ga = (got * &g)?.sum_all()?.backward()?;
-            let gb = (want * &g)?.sum_all()?.backward()?;
-            for (name, v) in [("input", &x), ("weight", &weight), ("bias", &bias)] {
-                let (a, b) = (ga.get(v.as_tensor()), gb.get(v.as_tensor()));
-                let (Some(a), Some(b)) = (a, b) else {
-                    panic!("{label}: no gradient for the {name}");
+            let g: Vec<f64> = (0..b * co * n.pow(3))
+                .map(|_| rng.uniform() - 0.5)
+                .collect();
+            let g = Tensor::from_vec(g, (b, co, n, n, n), &d)?;
+            for relu in [false, true] {
+                let input = if relu {
+                    x.as_tensor().relu()?
+                } else {
+                    x.as_tensor().clone()
                 };
-                assert!(gap(a, b)? < 1e-12, "{label}: gradient w.r.t. the {name}");
+                let mut want = conv3d(&input, weight.as_tensor(), 1)?
+                    .broadcast_add(&bias.as_tensor().reshape((1, co, 1, 1, 1))?)?;
+                for axis in 2..5 {
+                    let kept: Vec<u32> = (0..side).step_by(stride).map(|i| i as u32).collect();
+                    let kept = Tensor::new(kept.as_slice(), &d)?;
+                    want = want.contiguous()?.index_select(&kept, axis)?;
+                }
+                let gb = (&want * &g)?.sum_all()?.backward()?;
+                for reference in [true, false] {
+                    let got = conv
+                        .forward(&rows, relu, reference)?
+                        .transpose(1, 2)?
+                        .reshape((b, co, n, n, n))?;
+                    let label = format!(
+                        "B {b}, {ci} → {co}, side {side}, stride {stride}, relu {relu}, reference {reference}"
+                    );
+                    assert_eq!(got.dims(), want.dims(), "{label}");
+                    assert!(gap(&got, &want)? < 1e-13, "{label}");
+                    let ga = (got * &g)?.sum_all()?.backward()?;
+                    for (name, v) in [("input", &x), ("weight", &weight), ("bias", &bias)] {
+                        let (a, b) = (ga.get(v.as_tensor()), gb.get(v.as_tensor()));
+                        let (Some(a), Some(b)) = (a, b) else {
+                            panic!("{label}: no gradient for the {name}");
+                        };
+                        assert!(gap(a, b)? < 1e-12, "{label}: gradient w.r.t. the {name}");
+                    }
+                }
             }
         }
+        Ok(())
+    }
+
+    /// In f32 the fused op and candle's ops agree to round-off, values and gradients, on
+    /// the default encoder's first stage shape (16 → 32 channels, 32³ → 16³, with the
+    /// ReLU), and the fused op leaves the input's gradient out when the input is not part
+    /// of the graph.
+    #[test]
+    fn fused_convolution_matches_the_reference_in_f32() -> Result<()> {
+        let d = Device::Cpu;
+        let (b, ci, co, side) = (2usize, 16usize, 32usize, 32usize);
+        let x = Var::from_tensor(&Tensor::randn(0f32, 1.0, (b, side.pow(3), ci), &d)?)?;
+        let weight = Var::from_tensor(&Tensor::randn(0f32, 0.1, (co, ci, 3, 3, 3), &d)?)?;
+        let bias = Var::from_tensor(&Tensor::randn(0f32, 0.1, co, &d)?)?;
+        let conv = Conv3 {
+            weight: weight.as_tensor().clone(),
+            bias: bias.as_tensor().clone(),
+            index: gather_index(side, 2, &d)?,
+            side,
+            out_side: side / 2,
+        };
+        let g = Tensor::randn(0f32, 1.0, (b, (side / 2).pow(3), co), &d)?;
+        let run = |reference: bool| -> Result<(Tensor, candle_core::backprop::GradStore)> {
+            let y = conv.forward(x.as_tensor(), true, reference)?;
+            let grads = (&y * &g)?.sum_all()?.backward()?;
+            Ok((y, grads))
+        };
+        let ((ya, ga), (yb, gb)) = (run(false)?, run(true)?);
+        let rel = |a: &Tensor, b: &Tensor| -> Result<f64> {
+            let a = a.to_dtype(DType::F64)?;
+            let b = b.to_dtype(DType::F64)?;
+            let scale = b.abs()?.flatten_all()?.max(0)?.to_scalar::<f64>()?;
+            Ok(gap(&a, &b)? / scale.max(1e-30))
+        };
+        assert!(rel(&ya, &yb)? < 1e-5);
+        for v in [&x, &weight, &bias] {
+            let (Some(a), Some(b)) = (ga.get(v.as_tensor()), gb.get(v.as_tensor())) else {
+                panic!("a gradient is missing");
+            };
+            assert!(rel(a, b)? < 1e-5);
+        }
+        let detached = conv.forward(&x.as_tensor().detach(), true, false)?;
+        let grads = (&detached * &g)?.sum_all()?.backward()?;
+        assert!(grads.get(weight.as_tensor()).is_some());
+        assert!(grads.get(x.as_tensor()).is_none());
         Ok(())
     }
 
