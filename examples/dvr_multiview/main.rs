@@ -11,7 +11,9 @@
 //!
 //! **Data.** `--data DIR` is any dataset [`neural_fields::data::load`] reads whose views
 //! have masks (default `examples/data/wuson`). The `train` split trains; the `test` split
-//! (`val` if there is none) is held out, composited on white.
+//! (`val` if there is none) is held out, composited on white. The scene box is the one
+//! the layout states, else the visual hull of the training silhouettes grown by 5 %
+//! ([`Dataset::visual_hull`]); `--aabb H` sets the cube ±H instead.
 //!
 //! **Model.** `--model dvr`, `dvr-joint` or `idr` ([`SurfaceKind`]; `--render-inputs`
 //! IDR's ablations), `--encoding hash` instant-NGP's hash grid under the networks: the
@@ -39,7 +41,7 @@
 //! `mask_iou`, `psnr_masked`, `psnr_interior`, `chamfer_l1` and `chamfer_l1_icp` against
 //! the source mesh (`--mesh`, or the one `scene.json` names; `null` without),
 //! `train_seconds`, `steps`, `model`, `encoding`, `render_inputs`, `eval_split`,
-//! `eval_views`, `data`; with cameras moved or refined also `pose_rotation_error_deg`,
+//! `eval_views`, `data`, `scene_box`; with cameras moved or refined also `pose_rotation_error_deg`,
 //! `pose_centre_error_fraction` ([`pose_error`]: `before`, `after`, `after_aligned`),
 //! `pose_reprojection_px` ([`reprojection_error`]), `pose_solver`, and with refinement
 //! `unaligned`, `aligned`, `alignment`, `alignment_centres`, `chamfer_l1_centres`,
@@ -184,9 +186,10 @@ pub struct Args {
     /// Rays per step (at least 4).
     #[arg(long, default_value_t = 1024)]
     pub rays: usize,
-    /// Half the side of the scene box for layouts that state no bounds.
-    #[arg(long, default_value_t = 1.1)]
-    pub aabb: f64,
+    /// Half-side of the scene cube. Without it: the box the layout states, else the
+    /// visual hull of the training silhouettes grown by 5 % (`Dataset::visual_hull`).
+    #[arg(long)]
+    pub aabb: Option<f64>,
     #[arg(long, default_value_t = 500)]
     pub eval_every: usize,
     /// Held-out views of the periodic evaluations.
@@ -318,7 +321,7 @@ impl Args {
                     .into(),
             );
         }
-        if !(self.aabb > 0.0 && self.aabb.is_finite()) {
+        if self.aabb.is_some_and(|h| !(h > 0.0 && h.is_finite())) {
             return Err("--aabb must be positive".into());
         }
         // A rate of 0 freezes what it drives (`--pose-lr 0`: the poses); above 0.1 Adam
@@ -330,6 +333,17 @@ impl Args {
         Ok(self)
     }
 }
+/// The scene box: the cube ±`half` when given, else the box the layout states, else the
+/// visual hull of the training silhouettes grown by 5 % of its largest side (else ±1.1,
+/// for views without masks, which `run` refuses before).
+fn scene_box(train: &Dataset, half: Option<f64>) -> Result<[f64; 6]> {
+    Ok(match half {
+        Some(h) => [-h, -h, -h, h, h, h],
+        None if train.bounds().is_some() => train.scene_box(1.1),
+        None => train.visual_hull(0.05)?.unwrap_or(train.scene_box(1.1)),
+    })
+}
+
 /// Builds the model of `args` in `varmap` (CPU, f32, initialised from `--seed`) over the
 /// scene box `aabb`, hash grids up to the resolution `finest`.
 fn build(args: &Args, aabb: [f64; 6], finest: f64, varmap: &VarMap) -> Result<SurfaceModel> {
@@ -468,8 +482,10 @@ fn format_error(path: &Path, field: &str, expected: &str) -> Error {
 }
 
 /// The source mesh in the dataset's world frame: `--mesh`, or `scene.json`'s `mesh` with
-/// its `normalisation.matrix` (as the committed dataset's render script writes them);
-/// `None` when neither is there.
+/// its `normalisation.matrix` and `object_radius` scale (as the render script writes
+/// them); `None` when neither is there or the file is of a format the crate does not
+/// read (the suite's Collada meshes). Read before training, so that a bad file stops the
+/// run at once.
 fn source_mesh(args: &Args) -> Result<Option<Mesh>> {
     if let Some(path) = &args.mesh {
         return Ok(Some(Mesh::load(path)?));
@@ -487,15 +503,33 @@ fn source_mesh(args: &Args) -> Result<Option<Mesh>> {
         println!("source mesh {path} not found: no Chamfer distance");
         return Ok(None);
     }
+    let readable = Path::new(path)
+        .extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| ["ply", "obj", "stl", "off"].contains(&e.to_ascii_lowercase().as_str()));
+    if !readable {
+        println!("source mesh {path} is not a .ply, .obj, .stl or .off file: no Chamfer distance");
+        return Ok(None);
+    }
     let m: Vec<Vec<f64>> = serde_json::from_value(json["normalisation"]["matrix"].clone())
         .map_err(|_| bad("normalisation.matrix"))?;
     if m.len() < 3 || m.iter().take(3).any(|r| r.len() != 4) {
         return Err(bad("normalisation.matrix"));
     }
+    // The render script scales the normalised mesh by `object_radius` when it states one.
+    let radius = match json.get("object_radius") {
+        None => 1.0,
+        Some(r) => r
+            .as_f64()
+            .filter(|r| r.is_finite() && *r > 0.0)
+            .ok_or_else(|| bad("object_radius"))?,
+    };
     let mut mesh = Mesh::load(path)?;
     for v in &mut mesh.vertices {
         let p = *v;
-        *v = std::array::from_fn(|r| m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3]);
+        *v = std::array::from_fn(|r| {
+            radius * (m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3])
+        });
     }
     mesh.normals = None;
     Ok(Some(mesh))
@@ -609,7 +643,8 @@ pub fn run(args: &Args) -> Result<Summary> {
         path: args.out.display().to_string(),
         source,
     })?;
-    let aabb = train.scene_box(args.aabb);
+    let aabb = scene_box(&train, args.aabb)?;
+    let gt = source_mesh(args)?;
     let mut varmap = VarMap::new();
     let net = build(args, aabb, train.hash_finest(), &varmap)?;
     let guard = FiniteGuard::new(&varmap);
@@ -624,11 +659,21 @@ pub fn run(args: &Args) -> Result<Summary> {
     if let Some(path) = &args.resume {
         varmap.load(path)?;
     } else if args.model != Model::Idr {
-        // Start from a ball of radius 0.5 so that the first marches find a surface.
-        let ball = Sphere::new([0.0; 3], 0.5, &device, dtype)?.occupancy(10.0);
+        // Start from a ball at the box's centre, of radius 0.45 of its smallest half-side
+        // (0.5 in the cube ±1.1), so that the first marches find a surface.
+        let (lo, hi) = (
+            Tensor::new(&aabb[..3], &device)?.to_dtype(dtype)?,
+            Tensor::new(&aabb[3..], &device)?.to_dtype(dtype)?,
+        );
+        let centre = [0, 1, 2].map(|i| 0.5 * (aabb[i] + aabb[i + 3]));
+        let half = (0..3)
+            .map(|i| 0.5 * (aabb[i + 3] - aabb[i]))
+            .fold(f64::INFINITY, f64::min);
+        let ball = Sphere::new(centre, 0.5 / 1.1 * half, &device, dtype)?.occupancy(10.0);
         let mut rng = SplitMix64::new(args.seed ^ 0xBA11);
         for _ in 0..150 {
-            let p = rng.uniform_tensor(&[4096, 3], aabb[0], aabb[3], dtype, &device)?;
+            let u = rng.uniform_tensor(&[4096, 3], 0.0, 1.0, dtype, &device)?;
+            let p = u.broadcast_mul(&(&hi - &lo)?)?.broadcast_add(&lo)?;
             let y = ball.value(&p)?.gt(0.0)?.to_dtype(dtype)?;
             opt.backward_step(&bce_with_logits(&net.value(&p)?, &y)?.mean_all()?)?;
         }
@@ -789,7 +834,6 @@ pub fn run(args: &Args) -> Result<Summary> {
         ),
     };
     // Chamfer distances to the source mesh, where there are one and a surface.
-    let gt = source_mesh(args)?;
     let gt_for = |m: &Mesh| gt.as_ref().filter(|_| !m.faces.is_empty());
     let chamfer_of = |m: &Mesh| gt_for(m).map(|gt| chamfer(m, gt, args.seed)).transpose();
     let chamfer_l1 = chamfer_of(&mesh)?;
@@ -806,6 +850,7 @@ pub fn run(args: &Args) -> Result<Summary> {
         "chamfer_l1": chamfer_l1, "chamfer_l1_icp": chamfer_l1_icp, "train_seconds": train_seconds,
         "steps": step, "model": model, "encoding": encoding, "render_inputs": inputs,
         "eval_split": eval_split, "eval_views": eval.views().len(), "data": args.data.display().to_string(),
+        "scene_box": aabb,
     });
     if args.perturb.is_some() || args.refine_poses {
         let moved: Vec<DAffine3> = refined.iter().map(|p| centres_frame.apply(*p)).collect();
