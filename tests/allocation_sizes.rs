@@ -522,7 +522,7 @@ const ALLOWED: &[(&str, &str, &str)] = &[
     (
         "kernels/conv3.rs",
         "vec![_; co * k]",
-        "data: the weight tensor held, in another layout",
+        "data: the weight's gradient, the size of the weight tensor held",
     ),
     (
         "kernels/conv3.rs",

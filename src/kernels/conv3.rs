@@ -143,22 +143,24 @@ impl FusedConv3 {
         }
     }
 
-    /// The weight as `[27·Cᵢ, Cₒ]` (row `t·Cᵢ + i`, column `j`) and as `[Cₒ, 27·Cᵢ]`, both
-    /// row-major.
-    fn weight_matrices<T: Real>(&self, w: &[T]) -> (Vec<T>, Vec<T>) {
+    /// The weight as `[27·Cᵢ, Cₒ]` (row `t·Cᵢ + i`, column `j`; the forward pass's), or
+    /// with `by_output` as `[Cₒ, 27·Cᵢ]` (the backward pass's), row-major.
+    fn weight_matrix<T: Real>(&self, w: &[T], by_output: bool) -> Vec<T> {
         let (ci, co, k) = (self.c_in, self.c_out, self.k());
-        let mut wk = vec![T::from_f64(0.0); k * co];
-        let mut wj = vec![T::from_f64(0.0); co * k];
+        let mut m = vec![T::from_f64(0.0); k * co];
         for j in 0..co {
             for i in 0..ci {
                 for t in 0..TAPS {
-                    let v = w[(j * ci + i) * TAPS + t];
-                    wk[(t * ci + i) * co + j] = v;
-                    wj[j * k + t * ci + i] = v;
+                    let at = if by_output {
+                        j * k + t * ci + i
+                    } else {
+                        (t * ci + i) * co + j
+                    };
+                    m[at] = w[(j * ci + i) * TAPS + t];
                 }
             }
         }
-        (wk, wj)
+        m
     }
 
     fn check<T>(&self, [x, w, b]: [&[T]; 3]) -> candle_core::Result<()> {
@@ -183,7 +185,7 @@ impl FusedConv3 {
     fn forward<T: Real>(&self, x: &[T], w: &[T], bias: &[T]) -> Vec<T> {
         let (co, k) = (self.c_out, self.k());
         let (n3, grid_len) = (self.out_side().pow(3), self.side.pow(3) * self.c_in);
-        let (wk, _) = self.weight_matrices(w);
+        let wk = self.weight_matrix(w, false);
         let tile = self.tile_rows();
         let mut y = vec![T::from_f64(0.0); self.batch * n3 * co];
         // Tiles never straddle two grids: each grid's rows are cut on their own.
@@ -230,7 +232,7 @@ impl FusedConv3 {
     ) -> [Option<Vec<T>>; 3] {
         let (ci, co, k) = (self.c_in, self.c_out, self.k());
         let (n3, grid_len) = (self.out_side().pow(3), self.side.pow(3) * self.c_in);
-        let (_, wj) = self.weight_matrices(w);
+        let wj = self.weight_matrix(w, true);
         let tile = self.tile_rows();
         let per_item = self.batch.div_ceil(MAX_ITEMS).max(1);
         let items_n = self.batch.div_ceil(per_item);
