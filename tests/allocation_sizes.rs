@@ -475,6 +475,66 @@ const ALLOWED: &[(&str, &str, &str)] = &[
         "data: the output or gradient of a fused op, rows of the input tensor held times a width of the weights held",
     ),
     (
+        "kernels/onet.rs",
+        "vec![_; chunks * per]",
+        "data: one weight-and-bias gradient per 2048-row chunk of the rows held, each the size of a layer's parameters held",
+    ),
+    (
+        "kernels/onet.rs",
+        "vec![_; cond.len()]",
+        "data: the gradient of a fused op, the size of the input tensor held",
+    ),
+    (
+        "kernels/onet.rs",
+        "vec![_; len]",
+        "data: a row buffer of the fused decoder, the rows held times the width of the weights held",
+    ),
+    (
+        "kernels/onet.rs",
+        "vec![_; p.len()]",
+        "data: the gradient of a fused op, the size of the input tensor held",
+    ),
+    (
+        "kernels/onet.rs",
+        "vec![_; params.len()]",
+        "data: the gradient of a fused op, the size of the input tensor held",
+    ),
+    (
+        "kernels/onet.rs",
+        "vec![_; self.rows]",
+        "data: the output of a fused op, one value per row of the points held (checked against their length)",
+    ),
+    (
+        "kernels/onet.rs",
+        "vec![_; y.len().div_ceil(TILE * out)]",
+        "data: one slot per 128-row tile of an output buffer held",
+    ),
+    (
+        "kernels/onet.rs",
+        "with_capacity(2 * self.blocks + 1)",
+        "data: one entry per layer of the decoder, whose weights are held",
+    ),
+    (
+        "kernels/onet.rs",
+        "with_capacity(self.blocks + 1)",
+        "data: one entry per layer of the decoder, whose weights are held",
+    ),
+    (
+        "kernels/onet.rs",
+        "with_capacity(self.blocks)",
+        "data: one entry per layer of the decoder, whose weights are held",
+    ),
+    (
+        "kernels/onet.rs",
+        "with_capacity(w.len())",
+        "data: the transpose of a weight held",
+    ),
+    (
+        "occupancy/onet.rs",
+        "with_capacity(2 * norms.len())",
+        "data: two tensors per normalisation layer of the decoder, whose weights are held",
+    ),
+    (
         "kernels/cond_norm.rs",
         "vec![_; beta.len()]",
         "data: the gradient of a fused op, the size of the input tensor held",
@@ -503,11 +563,6 @@ const ALLOWED: &[(&str, &str, &str)] = &[
         "kernels/cond_norm.rs",
         "vec![_; x.len().div_ceil(ROWS * h.max(1)) * h]",
         "data: one row per 128-row tile of the input tensor held, below its size",
-    ),
-    (
-        "kernels/cond_norm.rs",
-        "vec![_; x.len()]",
-        "data: the output or gradient of a fused op, the size of the input tensor held",
     ),
     (
         "kernels/conv3.rs",

@@ -1,13 +1,12 @@
-//! Conditional batch normalisation and ReLU as one CPU op (`FusedCondNorm`, what the ONet
-//! decoder's training pass runs on the CPU): the batch statistics in two passes over the
-//! rows and the per-code scale and shift and the ReLU in a third, and a backward pass that
-//! gives the rows', scales' and shifts' gradients in two, where the same layer as candle ops
+//! Conditional batch normalisation and ReLU over rows (`FusedCondNorm`, a layer of the
+//! fused ONet decoder, [`super::onet`]): the batch statistics in two passes over the rows
+//! and the per-code scale and shift and the ReLU in a third, and a backward pass that gives
+//! the rows', scales' and shifts' gradients in two, where the same layer as candle ops
 //! takes about twenty element-wise ops, reductions and broadcasts, each with its own
 //! tensor.
 
-use super::dispatch::{cpu_op, CpuKernel, Real};
 use super::parallel::{for_each_init, wide, Wide};
-use candle_core::{Shape, WithDType};
+use candle_core::WithDType;
 use std::sync::{Arc, Mutex, PoisonError};
 
 /// `y = relu(γ_g ⊙ (x − μ)/√(v + ε) + β_g)` for rows `x: [N, H]`, with the batch mean `μ`
@@ -150,38 +149,46 @@ impl FusedCondNorm {
         }
     }
 
-    fn run<T: WithDType>(&self, x: &[T], gamma: &[T], beta: &[T]) -> Vec<T> {
+    /// The layer's output rows into `out` (`x`'s length; every value written); the
+    /// statistics into `saved`. `gamma`, `beta`: `[N / group, H]`.
+    pub(super) fn run<T: WithDType>(&self, x: &[T], gamma: &[T], beta: &[T], out: &mut [T]) {
         let h = self.width;
-        let mut out = vec![T::from_f64(0.0); x.len()];
         if h == 0 || x.is_empty() {
-            return out;
+            out.fill(T::from_f64(0.0));
+            return;
         }
         let st = self.stats(x);
         let (mean, slope) = self.slopes(&st, gamma);
         let cols = self.columns(&mean, &slope, beta, &[]);
-        let items = self.items(x, &mut out);
+        let items = self.items(x, out);
         for_each_init(
             items,
             || (),
             |_, (first, x, out)| wide(Pass(&cols, Rows::Forward { first, x, out })),
         );
         *self.saved.lock().unwrap_or_else(PoisonError::into_inner) = Some(st);
-        out
     }
 
-    /// The gradients of `x`, `gamma` and `beta` given the output's `grad`.
+    /// The gradients of `gamma` and `beta` given the output's `grad`, and `x`'s into `gx`
+    /// (`x`'s length; every value written).
     ///
     /// With `d = x − μ` and `ḡ` the gradient masked by the ReLU, one pass sums each
     /// group's `Σ ḡ` (`∂L/∂β_g`) and `Σ ḡ ⊙ x̂` (`∂L/∂γ_g`); since `γ` is constant
     /// within a group, the column means the rows' gradient needs follow from them:
     /// `mean_n(u) = Σ_g γ_g ⊙ ∂L/∂β_g / N`, `mean_n(u ⊙ x̂) = Σ_g γ_g ⊙ ∂L/∂γ_g / N`. A
     /// second pass writes `∂L/∂x = ḡ ⊙ γ_g s − s ⊙ mean_n(u) − d ⊙ s² ⊙ mean_n(u ⊙ x̂)`.
-    fn grad<T: WithDType>(&self, x: &[T], gamma: &[T], beta: &[T], grad: &[T]) -> [Vec<T>; 3] {
+    pub(super) fn grad<T: WithDType>(
+        &self,
+        (x, gamma, beta): (&[T], &[T], &[T]),
+        grad: &[T],
+        gx: &mut [T],
+    ) -> [Vec<T>; 2] {
         let h = self.width;
         let zeros = |len: usize| vec![T::from_f64(0.0); len];
-        let (mut gx, mut gg, mut gb) = (zeros(x.len()), zeros(gamma.len()), zeros(beta.len()));
+        let (mut gg, mut gb) = (zeros(gamma.len()), zeros(beta.len()));
         if h == 0 || x.is_empty() {
-            return [gx, gg, gb];
+            gx.fill(T::from_f64(0.0));
+            return [gg, gb];
         }
         let saved = self
             .saved
@@ -262,7 +269,7 @@ impl FusedCondNorm {
         }
         (cols.c, cols.e) = (&c, &e);
         let items: Vec<_> = self
-            .items(x, &mut gx)
+            .items(x, gx)
             .into_iter()
             .zip(grad.chunks(ROWS * h))
             .collect();
@@ -271,34 +278,7 @@ impl FusedCondNorm {
             || (),
             |_, ((first, x, out), g)| wide(Pass(&cols, Rows::Grad { first, x, g, out })),
         );
-        [gx, gg, gb]
-    }
-
-    fn check<T>(&self, x: &[T], gamma: &[T], beta: &[T]) -> candle_core::Result<()> {
-        let groups = if self.group == 0 || !self.rows.is_multiple_of(self.group) {
-            candle_core::bail!(
-                "{}: {} rows are not groups of {}",
-                Self::NAME,
-                self.rows,
-                self.group
-            )
-        } else {
-            self.rows / self.group
-        };
-        let want = [
-            ("x", x.len(), self.rows * self.width),
-            ("gamma", gamma.len(), groups * self.width),
-            ("beta", beta.len(), groups * self.width),
-        ];
-        for (name, got, expected) in want {
-            if got != expected {
-                candle_core::bail!(
-                    "{}: {name} has {got} values, expected {expected}",
-                    Self::NAME
-                )
-            }
-        }
-        Ok(())
+        [gg, gb]
     }
 }
 
@@ -441,31 +421,3 @@ impl<T: WithDType> Wide for Pass<'_, '_, T> {
         }
     }
 }
-
-impl CpuKernel<3> for FusedCondNorm {
-    const NAME: &'static str = "conditional batch norm";
-
-    fn forward<T: Real>(
-        &self,
-        [x, gamma, beta]: [&[T]; 3],
-    ) -> candle_core::Result<(Vec<T>, Shape)> {
-        self.check(x, gamma, beta)?;
-        Ok((
-            self.run(x, gamma, beta),
-            Shape::from((self.rows, self.width)),
-        ))
-    }
-
-    fn backward<T: Real>(
-        &self,
-        [x, gamma, beta]: [&[T]; 3],
-        grad: &[T],
-        _: [bool; 3],
-    ) -> candle_core::Result<[Option<Vec<T>>; 3]> {
-        self.check(x, gamma, beta)?;
-        let [gx, gg, gb] = self.grad(x, gamma, beta, grad);
-        Ok([Some(gx), Some(gg), Some(gb)])
-    }
-}
-
-cpu_op!(FusedCondNorm, 3, "nf-cond-norm");

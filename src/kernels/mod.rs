@@ -27,8 +27,10 @@
 //!   frequency kernel's vectorised sines;
 //! * `composite`: volume compositing of either sample layout with its O(S)-per-ray
 //!   backward (`FusedComposite`), built for three instruction sets;
-//! * `cond_norm`: conditional batch normalisation and ReLU (`FusedCondNorm`, the ONet
-//!   decoder's training pass on the CPU), with its backward pass through the batch
+//! * `onet` and `cond_norm`: the ONet decoder's whole training pass (`FusedOnet`: every
+//!   layer's product, bias, conditional batch norm, ReLU and residual sum, what
+//!   [`crate::occupancy::OnetDecoder`] runs on the CPU in training) and its conditional
+//!   batch norm with ReLU (`FusedCondNorm`), with the backward pass through the batch
 //!   statistics;
 //! * `conv3`: a 3×3×3 convolution of channels-last grids with its bias and an optional
 //!   ReLU on its input (`FusedConv3`, the voxel encoder's convolutions on the CPU), tile by
@@ -95,6 +97,8 @@ mod mlp_tangents;
 mod nerf;
 #[cfg_attr(not(feature = "volume"), allow(dead_code))]
 mod nerf_loss;
+#[cfg_attr(not(feature = "occupancy"), allow(dead_code))]
+mod onet;
 mod parallel;
 mod scatter;
 #[cfg(target_arch = "x86_64")]
@@ -107,8 +111,6 @@ pub(crate) use adam::{AdamMoments, AdamUpdate};
 pub use composite::X_MAX;
 #[cfg_attr(not(feature = "volume"), allow(unused_imports))]
 pub(crate) use composite::{FusedComposite, Geometry, KernelBuild, Segments};
-#[cfg_attr(not(feature = "occupancy"), allow(unused_imports))]
-pub(crate) use cond_norm::FusedCondNorm;
 #[cfg_attr(not(feature = "occupancy"), allow(unused_imports))]
 pub(crate) use conv3::FusedConv3;
 #[allow(unused_imports)] // the dispatch helper's whole interface, for every kernel
@@ -125,6 +127,8 @@ pub(crate) use mlp_tangents::FusedMlpJvp;
 pub(crate) use nerf::FusedNerf;
 #[cfg_attr(not(feature = "volume"), allow(unused_imports))]
 pub(crate) use nerf_loss::{Density, FusedNerfLoss, RowEncode};
+#[cfg_attr(not(feature = "occupancy"), allow(unused_imports))]
+pub(crate) use onet::{FusedOnet, OnetScratch};
 // Outside the kernels, only `volume` runs its own items on the pool.
 #[cfg_attr(not(feature = "volume"), allow(unused_imports))]
 pub(crate) use parallel::for_each_init;

@@ -18,14 +18,14 @@
 //!   one zero-padded), so even the matrix-multiply kernel sees the same shapes; the
 //!   result is bit-identical (tested).
 //!
-//! On the CPU, a training pass without spatial gradients runs each `ReLU(CN(x, c))` as
-//! one fused op (statistics, scale and shift, ReLU; and one backward pass through the
-//! batch statistics), the same function as the candle ops it replaces
-//! ([`OnetConfig::force_reference`] keeps those).
+//! On the CPU, a training pass without spatial gradients runs the whole decoder as one
+//! fused op (every layer's product, bias, normalisation, ReLU and residual sum, and one
+//! backward pass through them and the batch statistics), the same function as the candle
+//! ops it replaces ([`OnetConfig::force_reference`] keeps those).
 
 use crate::error::{check_points, check_same, check_shape, Dim, Error, Result};
 use crate::field::{ConditionalField, Inside};
-use crate::kernels::FusedCondNorm;
+use crate::kernels::{FusedOnet, OnetScratch};
 use crate::nn::weight_jvp;
 use candle_core::{DType, Tensor, D};
 use candle_nn::{Init, VarBuilder};
@@ -47,9 +47,9 @@ pub struct OnetConfig {
     pub momentum: f64,
     /// `ε` of the normalisation (1e-5).
     pub eps: f64,
-    /// Run the training pass's conditional normalisation as candle ops even on the CPU,
-    /// where it otherwise runs as one fused op (the crate's kernel `FusedCondNorm`, the
-    /// same function; tests compare the two). Default `false`.
+    /// Run the training pass as candle ops even on the CPU, where it otherwise runs as
+    /// one fused op (the crate's kernel `FusedOnet`, the same function; tests compare the
+    /// two). Default `false`.
     pub force_reference: bool,
 }
 
@@ -162,6 +162,8 @@ pub struct OnetDecoder {
     fc_out: Linear,
     config: OnetConfig,
     mode: Mutex<NormMode>,
+    /// The fused training pass's row buffers, kept between steps.
+    scratch: Arc<OnetScratch>,
 }
 
 /// Builds an [`OnetDecoder`] from `vb` (variables `fc_p`, `block{i}.{fc0,fc1,norm0,norm1}`,
@@ -243,6 +245,7 @@ pub fn onet_decoder(config: &OnetConfig, vb: VarBuilder) -> Result<OnetDecoder> 
         fc_out: Linear::new(&vb, "fc_out", h, 1, false)?,
         config: config.clone(),
         mode: Mutex::new(NormMode::Eval),
+        scratch: Arc::default(),
     })
 }
 
@@ -296,12 +299,65 @@ impl OnetDecoder {
         Ok((x.broadcast_sub(&mean)?.broadcast_mul(&inv)?, inv))
     }
 
-    /// Whether the training pass's normalisation of `x` runs as the fused CPU op.
-    fn fused(&self, x: &Tensor, mode: NormMode) -> bool {
+    /// Whether the training pass on `points` runs as the fused CPU op.
+    fn fused(&self, points: &Tensor, mode: NormMode) -> bool {
         mode == NormMode::Train
             && !self.config.force_reference
-            && x.device().is_cpu()
-            && matches!(x.dtype(), DType::F32 | DType::F64)
+            && points.device().is_cpu()
+            && matches!(points.dtype(), DType::F32 | DType::F64)
+            && points.dim(0).is_ok_and(|n| n > 0)
+    }
+
+    /// The normalisation layers in the fused op's order: each block's two, then the
+    /// output's.
+    fn norms(&self) -> Vec<&CondNorm> {
+        self.blocks
+            .iter()
+            .flat_map(|b| [&b.norm0, &b.norm1])
+            .chain([&self.norm_out])
+            .collect()
+    }
+
+    /// The training pass's logits `[N]` as the fused op ([`FusedOnet`]), one code per
+    /// `group` points; the batch statistics then update the running ones.
+    fn fused_logits(&self, points: &Tensor, codes: &Tensor, group: usize) -> Result<Tensor> {
+        let n = points.dim(0)?;
+        let norms = self.norms();
+        let mut cond = Vec::with_capacity(2 * norms.len());
+        for nm in &norms {
+            cond.push(nm.gamma.forward(codes, false)?);
+            cond.push(nm.beta.forward(codes, false)?);
+        }
+        let cond = Tensor::cat(&cond, 0)?.contiguous()?;
+        let linears = [&self.fc_p]
+            .into_iter()
+            .chain(self.blocks.iter().flat_map(|b| [&b.fc0, &b.fc1]))
+            .chain([&self.fc_out]);
+        let mut params = Vec::new();
+        for l in linears {
+            params.push(l.weight.flatten_all()?);
+            params.push(l.bias.clone());
+        }
+        let params = Tensor::cat(&params, 0)?.contiguous()?;
+        let op = FusedOnet::new(
+            (n, self.config.hidden, self.config.blocks),
+            group,
+            self.config.eps,
+            Arc::clone(&self.scratch),
+        );
+        let saved = op.saved();
+        let logits = points.contiguous()?.apply_op3(&cond, &params, op)?;
+        let column = |v: Vec<f64>| -> Result<Tensor> {
+            Ok(Tensor::from_vec(v, self.config.hidden, points.device())?
+                .to_dtype(points.dtype())?)
+        };
+        for (nm, st) in norms.into_iter().zip(saved) {
+            let stats = lock(&st).clone();
+            if let Some(st) = stats {
+                self.update_running(nm, &column(st.mean)?, &column(st.var)?, n)?;
+            }
+        }
+        Ok(logits)
     }
 
     /// Conditional normalisation and ReLU, with forward-mode tangents `dx: [3, N, H]`.
@@ -314,30 +370,6 @@ impl OnetDecoder {
         mode: NormMode,
         blocked: bool,
     ) -> Result<(Tensor, Option<Tensor>)> {
-        if dx.is_none() && self.fused(x, mode) {
-            // The layer as one op, whose batch statistics then update the running ones.
-            let gamma = n.gamma.forward(codes, blocked)?.contiguous()?;
-            let beta = n.beta.forward(codes, blocked)?.contiguous()?;
-            let (rows, width) = x.dims2()?;
-            let saved = Arc::new(Mutex::new(None));
-            let op = FusedCondNorm {
-                rows,
-                width,
-                group,
-                eps: self.config.eps,
-                relu: true,
-                saved: Arc::clone(&saved),
-            };
-            let out = x.contiguous()?.apply_op3(&gamma, &beta, op)?;
-            let stats = lock(&saved).clone();
-            if let Some(st) = stats {
-                let column = |v: Vec<f64>| -> Result<Tensor> {
-                    Ok(Tensor::from_vec(v, width, x.device())?.to_dtype(x.dtype())?)
-                };
-                self.update_running(n, &column(st.mean)?, &column(st.var)?, rows)?;
-            }
-            return Ok((out, None));
-        }
         let (xh, inv) = self.normalize(n, x, mode)?;
         // γ(c) and β(c) once per code, then repeated over its `group` points.
         let per_point = |t: Tensor| -> Result<Tensor> {
@@ -403,6 +435,9 @@ impl OnetDecoder {
             &[Dim::Is(n / group), Dim::Is(self.config.code_dim)],
         )?;
         let mode = self.mode();
+        if !tangents && self.fused(points, mode) {
+            return Ok((self.fused_logits(points, codes, group)?, None));
+        }
         let blocked = mode == NormMode::Eval;
         let lin_t = |l: &Linear, d: &Tensor| weight_jvp(&l.weight, d);
         let mut net = self.fc_p.forward(points, blocked)?;
