@@ -21,7 +21,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (train, (test, _)) = (load(&args.data, &data)?, load_eval(&args.data, &data)?);
     let net = build_seeded(&varmap, dt, &dev, 0, |vb| nerf(&NerfConfig::default(), vb))?;
     let mut adam = adam(&varmap, 5e-3)?; // decays to 5e-4 over the run
-    let aabb = train.visual_hull(0.05)?.ok_or("the views have no alpha")?; // the hull + 5 %
+    let aabb = train.scene_box(1.5); // here the silhouettes' visual hull + 5 %
     let side = (0..3).map(|a| aabb[a + 3] - aabb[a]).fold(0.0, f64::max);
     let (mut cells, mut march) = (GridConfig::default(), GridMarchConfig::default());
     (cells.aabb, march.step_size) = (aabb, side / 256.0); // a march at half a cell

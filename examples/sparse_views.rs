@@ -345,9 +345,8 @@ fn train(args: &Args, name: &str, regularised: bool) -> Result<Run> {
     })?;
     let scene = match args.aabb {
         Some(h) => [-h, -h, -h, h, h, h],
-        None if train.bounds().is_some() => train.scene_box(1.5),
-        // The training silhouettes' hull, else nerfacc's cube.
-        None => train.visual_hull(0.05)?.unwrap_or(train.scene_box(1.5)),
+        // The layout's box, else the training silhouettes' hull, else nerfacc's cube.
+        None => train.scene_box(1.5),
     };
     let span = regularised.then_some(args.coarse_to_fine.0).flatten();
     let varmap = VarMap::new();

@@ -707,7 +707,7 @@ fn held_out_split_falls_back_to_val_only_where_the_layout_has_no_test_split() {
 }
 
 #[test]
-fn scene_box_is_the_stated_bounds_or_the_given_cube() {
+fn scene_box_is_the_stated_bounds_or_without_masks_the_given_cube() {
     let cube = analytic_dataset(Convention::OpenGl, 3);
     assert_eq!(cube.bounds(), None);
     assert_eq!(cube.scene_box(1.5), [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5]);

@@ -130,3 +130,22 @@ fn three_views_from_one_side_still_bound_the_object() {
         assert!(b[a + 3] - b[a] < 4.4, "{b:?}: within the cameras' reach");
     }
 }
+
+/// `Dataset::scene_box` of a layout without stated bounds is the silhouettes' hull + 5 %
+/// where the views have alpha, else the given cube (what the examples take without
+/// `--aabb`).
+#[test]
+fn scene_box_without_stated_bounds_is_the_hull_else_the_cube() {
+    let masked = ball_dataset(12, 48, DVec3::new(0.1, 0.0, -0.1), 0.3, true);
+    let hull = masked
+        .visual_hull(0.05)
+        .expect("valid margin")
+        .expect("masks");
+    assert_eq!(masked.scene_box(1.5), hull);
+    assert!(hull.iter().all(|v| v.abs() < 0.6), "{hull:?}");
+    let plain = ball_dataset(12, 48, DVec3::ZERO, 0.3, false);
+    assert_eq!(plain.scene_box(1.5), [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5]);
+    // Silhouettes without any foreground: no hull, the cube.
+    let empty = ball_dataset(8, 32, DVec3::new(40.0, 0.0, 0.0), 0.3, true);
+    assert_eq!(empty.scene_box(1.5), [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5]);
+}

@@ -13,7 +13,7 @@
 //! have masks (default `examples/data/wuson`). The `train` split trains; the `test` split
 //! (`val` if there is none) is held out, composited on white. The scene box is the one
 //! the layout states, else the visual hull of the training silhouettes grown by 5 %
-//! ([`Dataset::visual_hull`]); `--aabb H` sets the cube ±H instead.
+//! ([`Dataset::scene_box`]); `--aabb H` sets the cube ±H instead.
 //!
 //! **Model.** `--model dvr`, `dvr-joint` or `idr` ([`SurfaceKind`]; `--render-inputs`
 //! IDR's ablations), `--encoding hash` instant-NGP's hash grid under the networks: the
@@ -187,7 +187,7 @@ pub struct Args {
     #[arg(long, default_value_t = 1024)]
     pub rays: usize,
     /// Half-side of the scene cube. Without it: the box the layout states, else the
-    /// visual hull of the training silhouettes grown by 5 % (`Dataset::visual_hull`).
+    /// visual hull of the training silhouettes grown by 5 % (`Dataset::scene_box`).
     #[arg(long)]
     pub aabb: Option<f64>,
     #[arg(long, default_value_t = 500)]
@@ -332,16 +332,6 @@ impl Args {
         }
         Ok(self)
     }
-}
-/// The scene box: the cube ±`half` when given, else the box the layout states, else the
-/// visual hull of the training silhouettes grown by 5 % of its largest side (else ±1.1,
-/// for views without masks, which `run` refuses before).
-fn scene_box(train: &Dataset, half: Option<f64>) -> Result<[f64; 6]> {
-    Ok(match half {
-        Some(h) => [-h, -h, -h, h, h, h],
-        None if train.bounds().is_some() => train.scene_box(1.1),
-        None => train.visual_hull(0.05)?.unwrap_or(train.scene_box(1.1)),
-    })
 }
 
 /// Builds the model of `args` in `varmap` (CPU, f32, initialised from `--seed`) over the
@@ -643,7 +633,13 @@ pub fn run(args: &Args) -> Result<Summary> {
         path: args.out.display().to_string(),
         source,
     })?;
-    let aabb = scene_box(&train, args.aabb)?;
+    // The cube ±`--aabb` when given, else `Dataset::scene_box`: the box the layout
+    // states, else the training silhouettes' hull + 5 % (else ±1.1, for views without
+    // masks, which `run` refuses before).
+    let aabb = match args.aabb {
+        Some(h) => [-h, -h, -h, h, h, h],
+        None => train.scene_box(1.1),
+    };
     let gt = source_mesh(args)?;
     let mut varmap = VarMap::new();
     let net = build(args, aabb, train.hash_finest(), &varmap)?;

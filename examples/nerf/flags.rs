@@ -85,7 +85,7 @@ pub(super) struct Args {
     #[arg(long, default_value_t = 64)]
     pub(super) samples: usize,
     /// Half-side of the scene cube. Without it: the box the layout states, else the
-    /// visual hull of the training silhouettes grown by 5 % (`Dataset::visual_hull`),
+    /// visual hull of the training silhouettes grown by 5 % (`Dataset::scene_box`),
     /// else ±1.5.
     #[arg(long)]
     pub(super) aabb: Option<f64>,

@@ -29,7 +29,7 @@
 //!
 //! **Scenes** (`--scene`): `object` (default), inside the scene box (`--aabb H` for the
 //! cube ±H; else the box the layout states, else the visual hull of the training
-//! silhouettes grown by 5 % ([`Dataset::visual_hull`]), else ±1.5); `unbounded`, content
+//! silhouettes grown by 5 %, else ±1.5: [`Dataset::scene_box`]); `unbounded`, content
 //! at every distance (mip-NeRF 360): the training cameras' frame scaled into the unit
 //! ball, every network on [`contract`] of it (the hash grid over the contracted ball's
 //! cube ±2 unless `--encoding` says otherwise), and either the proposal sampler (the
@@ -261,15 +261,6 @@ fn dead_run(since: usize, step: usize, args: &Args) -> Error {
     }
 }
 
-/// The scene box when `--aabb` is not given: the layout's own bounds, else the visual
-/// hull of the training silhouettes grown by 5 % of its largest side, else ±1.5.
-fn scene_box(train: &Dataset) -> Result<[f64; 6]> {
-    if train.bounds().is_some() {
-        return Ok(train.scene_box(1.5));
-    }
-    Ok(train.visual_hull(0.05)?.unwrap_or(train.scene_box(1.5)))
-}
-
 /// The `lo` and `hi` quantiles of the finite values of `x`, when they differ.
 fn percentiles(x: &Tensor, lo: f64, hi: f64) -> Result<Option<(f64, f64)>> {
     let mut v: Vec<f64> = x
@@ -332,7 +323,7 @@ fn run(args: &Args) -> Result<()> {
     let aabb = match (unbounded, args.aabb) {
         (Some(_), _) => [-2.0, -2.0, -2.0, 2.0, 2.0, 2.0],
         (None, Some(half)) => [-half, -half, -half, half, half, half],
-        (None, None) => scene_box(&train)?,
+        (None, None) => train.scene_box(1.5),
     };
     // The grid's finest level: the scene box, or in an unbounded scene the frame's unit
     // cube (the cameras' ball).

@@ -43,7 +43,19 @@ pub fn load_eval(dir: &Path, config: &LoadConfig) -> Result<(Dataset, Split)> {
 impl Dataset {
     /// The scene box `[x0, y0, z0, x1, y1, z1]`: the box the layout states (nerfstudio's
     /// `aabb_scale`), the box around the sphere it states (IDR/DTU's unit sphere after
-    /// `scale_mat`), or, for layouts that state none (Blender), the cube `[−half, half]³`.
+    /// `scale_mat`); for layouts that state none (Blender), the box of the training
+    /// silhouettes' visual hull grown by 5 % of its largest side on every side
+    /// ([`Dataset::visual_hull`]`(0.05)`, when the views have alpha or masks with some
+    /// foreground), else the cube `[−half, half]³`. Without stated bounds the call carves
+    /// the hull (host f64, `O(48³ · views)`): call it once per dataset.
+    ///
+    /// ```
+    /// use neural_fields::data::{load, LoadConfig};
+    /// let train = load("examples/data/wuson".as_ref(), &LoadConfig::default())?;
+    /// // A Blender layout states no bounds and its views have alpha: the hull + 5 %.
+    /// assert_eq!(Some(train.scene_box(1.5)), train.visual_hull(0.05)?);
+    /// # Ok::<(), neural_fields::Error>(())
+    /// ```
     #[must_use]
     pub fn scene_box(&self, half: f64) -> [f64; 6] {
         match self.bounds() {
@@ -56,7 +68,11 @@ impl Dataset {
                 c[1] + radius,
                 c[2] + radius,
             ],
-            None => [-half, -half, -half, half, half, half],
+            None => {
+                let cube = [-half, -half, -half, half, half, half];
+                // The margin is valid, so the hull's only error cannot occur.
+                self.visual_hull(0.05).ok().flatten().unwrap_or(cube)
+            }
         }
     }
 
