@@ -198,10 +198,7 @@ impl Encoding for FrequencyEncoding {
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         check_input(x, self.in_dim)?;
-        if self.use_pi
-            && crate::kernels::fused_on(x.device())
-            && matches!(x.dtype(), DType::F32 | DType::F64)
-        {
+        if self.use_pi && crate::kernels::fused_for(x) {
             return Ok(x.contiguous()?.apply_op1(self.kernel())?);
         }
         self.forward_reference(x)
@@ -633,7 +630,7 @@ fn integrated_rows(x: &Tensor, d: usize, min_deg: usize, max_deg: usize) -> Resu
         &[rows, 2 * d, max_deg - min_deg],
         x.dtype().size_in_bytes(),
     )?;
-    if crate::kernels::fused_on(x.device()) && matches!(x.dtype(), DType::F32 | DType::F64) {
+    if crate::kernels::fused_for(x) {
         let op = FusedIntegrated {
             dim: d,
             min_deg,

@@ -165,9 +165,7 @@ pub fn grid_sample(
     coords: &Tensor,
     config: &GridSampleConfig,
 ) -> Result<Tensor> {
-    let fused = !config.force_reference
-        && crate::kernels::fused_on(features.device())
-        && matches!(features.dtype(), DType::F32 | DType::F64);
+    let fused = !config.force_reference && crate::kernels::fused_for(features);
     if !fused {
         return grid_sample_reference(features, coords);
     }
@@ -373,9 +371,7 @@ pub fn scatter(
     match config.pooling {
         Pooling::Mean => scatter_mean(values, index, cells),
         Pooling::Max => {
-            let fused = !config.force_reference
-                && crate::kernels::fused_on(values.device())
-                && matches!(values.dtype(), DType::F32 | DType::F64);
+            let fused = !config.force_reference && crate::kernels::fused_for(values);
             if !fused {
                 return scatter_max_reference(values, index, cells);
             }

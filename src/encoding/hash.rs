@@ -319,10 +319,9 @@ impl HashGrid {
 
     fn fused(&self, x: &Tensor) -> bool {
         !self.config.force_reference
-            && crate::kernels::fused_on(x.device())
+            && crate::kernels::fused_for(x)
             && crate::kernels::fused_on(self.table.device())
             && x.dtype() == self.table.dtype()
-            && matches!(x.dtype(), DType::F32 | DType::F64)
     }
 
     /// The encoding by candle ops (any device): `x: [N, D]` → `[N, L·F]`, differentiable

@@ -583,7 +583,7 @@ impl FusedMlp {
         let chunks = n.div_ceil(CHUNK);
         let mut gp = vec![T::from_f64(0.0); chunks.max(1) * self.n_params];
         let mut ga0 = want_a0.then(|| vec![T::from_f64(0.0); n * self.a0]);
-        let ga0_chunks = chunk_rows(ga0.as_mut(), self.a0, chunks);
+        let ga0_chunks = chunk_rows(ga0.as_deref_mut(), self.a0, chunks);
         let items: Vec<_> = gp
             .chunks_mut(self.n_params)
             .zip(a0.chunks(CHUNK * self.a0))
@@ -636,11 +636,7 @@ impl FusedMlp {
 }
 
 /// Per-chunk row blocks of a per-point gradient buffer of width `w` (or `chunks` Nones).
-pub(super) fn chunk_rows<T>(
-    g: Option<&mut Vec<T>>,
-    w: usize,
-    chunks: usize,
-) -> Vec<Option<&mut [T]>> {
+pub(super) fn chunk_rows<T>(g: Option<&mut [T]>, w: usize, chunks: usize) -> Vec<Option<&mut [T]>> {
     match g {
         Some(g) => g.chunks_mut(CHUNK * w).map(Some).collect(),
         None => (0..chunks).map(|_| None).collect(),

@@ -142,9 +142,9 @@ impl FusedMlpJvp {
             .zip(da0.chunks(CHUNK * k * a))
             .zip(gy.chunks(CHUNK * self.width()))
             .zip(
-                chunk_rows(ga0.as_mut(), a, chunks)
+                chunk_rows(ga0.as_deref_mut(), a, chunks)
                     .into_iter()
-                    .zip(chunk_rows(gda0.as_mut(), k * a, chunks)),
+                    .zip(chunk_rows(gda0.as_deref_mut(), k * a, chunks)),
             )
             .collect();
         let need_x = want.0 || want.1;

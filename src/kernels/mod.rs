@@ -143,3 +143,19 @@ pub(crate) fn fused_on(device: &candle_core::Device) -> bool {
     }
     device.is_cpu()
 }
+
+/// Whether the fused kernels take `t`: f32 or f64, on a device they run on
+/// ([`fused_on`]).
+pub(crate) fn fused_for(t: &candle_core::Tensor) -> bool {
+    fused_on(t.device()) && is_real(t)
+}
+
+/// Whether a kernel that exists only for the CPU takes `t`: f32 or f64 on the CPU.
+#[cfg_attr(not(feature = "occupancy"), allow(dead_code))]
+pub(crate) fn cpu_fused_for(t: &candle_core::Tensor) -> bool {
+    t.device().is_cpu() && is_real(t)
+}
+
+fn is_real(t: &candle_core::Tensor) -> bool {
+    matches!(t.dtype(), candle_core::DType::F32 | candle_core::DType::F64)
+}

@@ -151,9 +151,9 @@ impl FusedNerf {
             .zip(ed.chunks(CHUNK * dd))
             .zip(gy.chunks(CHUNK * 4))
             .zip(
-                chunk_rows(gep.as_mut(), a0p, chunks)
+                chunk_rows(gep.as_deref_mut(), a0p, chunks)
                     .into_iter()
-                    .zip(chunk_rows(ged.as_mut(), dd, chunks)),
+                    .zip(chunk_rows(ged.as_deref_mut(), dd, chunks)),
             )
             .collect();
         for_each_init(

@@ -35,7 +35,7 @@
 
 use super::cond_norm::{FusedCondNorm, Stats};
 use super::dispatch::{cpu_op, CpuKernel, Real};
-use super::mlp::{matmul, sum_chunks, View, CHUNK, TILE};
+use super::mlp::{chunk_rows, matmul, sum_chunks, View, CHUNK, TILE};
 use super::parallel::{for_each_init, wide};
 use candle_core::Shape;
 use std::any::Any;
@@ -437,15 +437,11 @@ fn linear_grad<T: Real>(
     let per = out * input + out;
     let chunks = n.div_ceil(CHUNK).max(1);
     let mut part = vec![T::from_f64(0.0); chunks * per];
-    let gx_chunks: Vec<Option<&mut [T]>> = match gx {
-        Some(g) => g.chunks_mut(CHUNK * input).map(Some).collect(),
-        None => (0..chunks).map(|_| None).collect(),
-    };
     let items: Vec<_> = part
         .chunks_mut(per)
         .zip(x.chunks(CHUNK * input))
         .zip(gy.chunks(CHUNK * out))
-        .zip(gx_chunks)
+        .zip(chunk_rows(gx, input, chunks))
         .collect();
     for_each_init(
         items,

@@ -27,7 +27,7 @@ use crate::error::{check_points, check_same, check_shape, Dim, Error, Result};
 use crate::field::{ConditionalField, Inside};
 use crate::kernels::{FusedOnet, OnetScratch};
 use crate::nn::weight_jvp;
-use candle_core::{DType, Tensor, D};
+use candle_core::{Tensor, D};
 use candle_nn::{Init, VarBuilder};
 use std::sync::{Arc, Mutex, PoisonError};
 
@@ -303,8 +303,7 @@ impl OnetDecoder {
     fn fused(&self, points: &Tensor, mode: NormMode) -> bool {
         mode == NormMode::Train
             && !self.config.force_reference
-            && points.device().is_cpu()
-            && matches!(points.dtype(), DType::F32 | DType::F64)
+            && crate::kernels::cpu_fused_for(points)
             && points.dim(0).is_ok_and(|n| n > 0)
     }
 

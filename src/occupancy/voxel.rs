@@ -117,7 +117,7 @@ impl Conv3 {
     /// fused op; else candle's ops.
     fn forward(&self, x: &Tensor, relu_input: bool, reference: bool) -> Result<Tensor> {
         let (b, side3, ci) = x.dims3()?;
-        if !reference && x.device().is_cpu() && matches!(x.dtype(), DType::F32 | DType::F64) {
+        if !reference && crate::kernels::cpu_fused_for(x) {
             if side3 != self.side.pow(3) {
                 return Err(Error::invalid(
                     "x",
