@@ -525,11 +525,6 @@ const ALLOWED: &[(&str, &str, &str)] = &[
         "data: one entry per layer of the decoder, whose weights are held",
     ),
     (
-        "kernels/onet.rs",
-        "with_capacity(w.len())",
-        "data: the transpose of a weight held",
-    ),
-    (
         "occupancy/onet.rs",
         "with_capacity(2 * norms.len())",
         "data: two tensors per normalisation layer of the decoder, whose weights are held",

@@ -11,8 +11,7 @@ use std::sync::{Arc, Mutex, PoisonError};
 
 /// `y = relu(γ_g ⊙ (x − μ)/√(v + ε) + β_g)` for rows `x: [N, H]`, with the batch mean `μ`
 /// and the biased batch variance `v` of each column over all `N` rows, and row `n`'s scale
-/// and shift `γ_g, β_g` rows `g = ⌊n / group⌋` of `gamma, beta: [N / group, H]`. Without
-/// `relu` the ReLU is left out.
+/// and shift `γ_g, β_g` rows `g = ⌊n / group⌋` of `gamma, beta: [N / group, H]`.
 ///
 /// Backward, with `x̂ = (x − μ)·s`, `s = 1/√(v + ε)`, `ḡ = ∂L/∂y ⊙ [y ≥ 0]` and
 /// `u = ḡ ⊙ γ_g` (per row): `∂L/∂β_g = Σ_{n ∈ g} ḡ`, `∂L/∂γ_g = Σ_{n ∈ g} ḡ ⊙ x̂`,
@@ -30,8 +29,6 @@ pub(crate) struct FusedCondNorm {
     pub(crate) group: usize,
     /// `ε > 0`.
     pub(crate) eps: f64,
-    /// Whether the ReLU follows.
-    pub(crate) relu: bool,
     /// The forward pass's statistics, shared with the caller (which updates its running
     /// statistics from them) and read by the backward pass instead of recomputing them
     /// (the op's input is immutable; without them it recomputes).
@@ -139,7 +136,6 @@ impl FusedCondNorm {
         Columns {
             width: self.width,
             group: self.group,
-            relu: self.relu,
             mean,
             slope,
             beta,
@@ -289,7 +285,6 @@ impl FusedCondNorm {
 struct Columns<'a, T> {
     width: usize,
     group: usize,
-    relu: bool,
     mean: &'a [T],
     slope: &'a [T],
     beta: &'a [T],
@@ -310,11 +305,11 @@ impl<T: WithDType> Columns<'_, T> {
     }
 
     /// `g` where the ReLU passes `y = (x − μ)·slope + β`, `y ≥ 0` as candle's ReLU
-    /// derivative (every `g` without the ReLU).
+    /// derivative.
     #[inline(always)]
     fn masked(&self, (x, m, a, b): (T, T, T, T), g: T) -> T {
         let zero = T::from_f64(0.0);
-        if self.relu && (x - m) * a + b < zero {
+        if (x - m) * a + b < zero {
             zero
         } else {
             g
@@ -330,7 +325,7 @@ impl<T: WithDType> Columns<'_, T> {
             let columns = self.mean.iter().zip(a).zip(b);
             for ((o, &x), ((&m, &a), &b)) in o.iter_mut().zip(row).zip(columns) {
                 let y = (x - m) * a + b;
-                *o = if self.relu && y < zero { zero } else { y };
+                *o = if y < zero { zero } else { y };
             }
         }
     }

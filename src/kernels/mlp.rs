@@ -539,11 +539,8 @@ impl FusedMlp {
     pub(super) fn transposed<T: Real>(&self, p: &[T]) -> Vec<T> {
         let mut wt = p.to_vec();
         for (layer, &(w, _)) in self.layers.iter().zip(&self.offsets) {
-            for o in 0..layer.out {
-                for i in 0..layer.input {
-                    wt[w + i * layer.out + o] = p[w + o * layer.input + i];
-                }
-            }
+            let len = layer.out * layer.input;
+            transpose(&p[w..w + len], layer.out, &mut wt[w..w + len]);
         }
         wt
     }
@@ -632,6 +629,17 @@ impl FusedMlp {
             )
         }
         Ok(n_a0 / self.a0)
+    }
+}
+
+/// `dst = wᵀ` for a row-major `w` of `rows` rows (`dst` as long as `w`, row-major with
+/// `w.len() / rows` rows).
+pub(super) fn transpose<T: Copy>(w: &[T], rows: usize, dst: &mut [T]) {
+    let cols = w.len() / rows.max(1);
+    for (r, row) in w.chunks(cols.max(1)).enumerate().take(rows) {
+        for (c, &v) in row.iter().enumerate() {
+            dst[c * rows + r] = v;
+        }
     }
 }
 

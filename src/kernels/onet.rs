@@ -35,7 +35,7 @@
 
 use super::cond_norm::{FusedCondNorm, Stats};
 use super::dispatch::{cpu_op, CpuKernel, Real};
-use super::mlp::{chunk_rows, matmul, sum_chunks, View, CHUNK, TILE};
+use super::mlp::{chunk_rows, matmul, sum_chunks, transpose, View, CHUNK, TILE};
 use super::parallel::{for_each_init, wide};
 use candle_core::Shape;
 use std::any::Any;
@@ -101,6 +101,8 @@ pub(crate) struct FusedOnet {
     /// One fused normalisation per layer (`2B + 1`), whose `saved` statistics the caller
     /// reads after the forward pass.
     norms: Vec<FusedCondNorm>,
+    /// The linear layers in `params`: `fc_p`, each block's `fc0` and `fc1`, `fc_out`.
+    lin: Vec<Lin>,
     /// The forward pass's activations ([`Acts`] of the dtype), for the backward pass.
     acts: Mutex<Option<Box<dyn Any + Send>>>,
     scratch: Arc<OnetScratch>,
@@ -136,10 +138,8 @@ impl Lin {
     /// `W` transposed, `[in, out]` row-major.
     fn transposed<T: Copy>(&self, p: &[T]) -> Vec<T> {
         let w = self.weight(p);
-        let mut wt = Vec::with_capacity(w.len());
-        for i in 0..self.input {
-            wt.extend((0..self.out).map(|o| w[o * self.input + i]));
-        }
+        let mut wt = w.to_vec();
+        transpose(w, self.out, &mut wt);
         wt
     }
 }
@@ -160,7 +160,6 @@ impl FusedOnet {
                 width: hidden,
                 group,
                 eps,
-                relu: true,
                 saved: Arc::new(Mutex::new(None)),
             })
             .collect();
@@ -170,6 +169,7 @@ impl FusedOnet {
             blocks,
             group,
             norms,
+            lin: layers(hidden, blocks),
             acts: Mutex::new(None),
             scratch,
         }
@@ -180,32 +180,8 @@ impl FusedOnet {
         self.norms.iter().map(|n| Arc::clone(&n.saved)).collect()
     }
 
-    /// The linear layers: `fc_p`, then each block's `fc0` and `fc1`, then `fc_out`.
-    fn layers(&self) -> Vec<Lin> {
-        let h = self.hidden;
-        let mut shapes = vec![(3, h)];
-        for _ in 0..self.blocks {
-            shapes.extend([(h, h), (h, h)]);
-        }
-        shapes.push((h, 1));
-        let mut at = 0;
-        shapes
-            .into_iter()
-            .map(|(input, out)| {
-                let l = Lin {
-                    w: at,
-                    b: at + out * input,
-                    input,
-                    out,
-                };
-                at = l.b + out;
-                l
-            })
-            .collect()
-    }
-
     fn n_params(&self) -> usize {
-        self.layers().last().map_or(0, |l| l.b + l.out)
+        self.lin.last().map_or(0, |l| l.b + l.out)
     }
 
     /// Normalisation `j`'s scales and shifts in `cond`.
@@ -256,7 +232,7 @@ impl FusedOnet {
     }
 
     fn run<T: Real>(&self, [p, cond, params]: [&[T]; 3]) -> (Vec<T>, Acts<T>) {
-        let lin = self.layers();
+        let lin = &self.lin;
         let mut net = self.linear(p, lin[0], params, None);
         let mut acts = Acts {
             nets: Vec::with_capacity(self.blocks + 1),
@@ -293,7 +269,7 @@ impl FusedOnet {
         [p, cond, params]: [&[T]; 3],
         gl: &[T],
         want_points: bool,
-    ) -> [Vec<T>; 3] {
+    ) -> (Option<Vec<T>>, Vec<T>, Vec<T>) {
         let taken = self
             .acts
             .lock()
@@ -304,7 +280,7 @@ impl FusedOnet {
             Some(a) => *a,
             None => self.run([p, cond, params]).1,
         };
-        let lin = self.layers();
+        let lin = &self.lin;
         let mut gp = vec![T::from_f64(0.0); params.len()];
         let mut gc = vec![T::from_f64(0.0); cond.len()];
         let gh = self.rows / self.group * self.hidden;
@@ -337,13 +313,36 @@ impl FusedOnet {
             add_assign(&mut gnet, &gin);
             self.scratch.give(gin);
         }
-        let mut gpts = vec![T::from_f64(0.0); p.len()];
-        linear_grad(p, lin[0], params, &gnet, want_points.then_some(&mut gpts))
-            .write(lin[0], &mut gp);
+        let mut gpts = want_points.then(|| vec![T::from_f64(0.0); p.len()]);
+        linear_grad(p, lin[0], params, &gnet, gpts.as_deref_mut()).write(lin[0], &mut gp);
         self.scratch.give(gnet);
         self.give_back(acts);
-        [gpts, gc, gp]
+        (gpts, gc, gp)
     }
+}
+
+/// The linear layers of a decoder of width `h` with `blocks` blocks at their offsets in
+/// the flat parameters: `fc_p`, then each block's `fc0` and `fc1`, then `fc_out`.
+fn layers(h: usize, blocks: usize) -> Vec<Lin> {
+    let mut shapes = vec![(3, h)];
+    for _ in 0..blocks {
+        shapes.extend([(h, h), (h, h)]);
+    }
+    shapes.push((h, 1));
+    let mut at = 0;
+    shapes
+        .into_iter()
+        .map(|(input, out)| {
+            let l = Lin {
+                w: at,
+                b: at + out * input,
+                input,
+                out,
+            };
+            at = l.b + out;
+            l
+        })
+        .collect()
 }
 
 /// `a += b`, elementwise, in parallel.
@@ -517,8 +516,8 @@ impl CpuKernel<3> for FusedOnet {
                 self.rows
             )
         }
-        let [gp, gc, gw] = self.grad(inputs, grad, want_points);
-        Ok([Some(gp), Some(gc), Some(gw)])
+        let (gp, gc, gw) = self.grad(inputs, grad, want_points);
+        Ok([gp, Some(gc), Some(gw)])
     }
 }
 
