@@ -32,9 +32,9 @@
 //!   [`crate::occupancy::OnetDecoder`] runs on the CPU in training) and its conditional
 //!   batch norm with ReLU (`FusedCondNorm`), with the backward pass through the batch
 //!   statistics;
-//! * `conv3`: a 3×3×3 convolution of channels-last grids with its bias and an optional
-//!   ReLU on its input (`FusedConv3`, the voxel encoder's convolutions on the CPU), tile by
-//!   tile without the full window matrix;
+//! * `conv`: a convolution of channels-last 3-D grids or 2-D images with its bias and an
+//!   optional ReLU on its input (`FusedConv`, the voxel and image encoders' convolutions
+//!   on the CPU), tile by tile without the full window matrix;
 //! * `adam`: Adam's update as two in-place passes per variable (`AdamMoments`,
 //!   `AdamUpdate`, what [`crate::nn::Adam`] runs);
 //! * `activation` and `simd`: the vectorised hidden activations (ReLU, softplus with its
@@ -83,7 +83,7 @@ mod composite;
 #[cfg_attr(not(feature = "occupancy"), allow(dead_code))]
 mod cond_norm;
 #[cfg_attr(not(feature = "occupancy"), allow(dead_code))]
-mod conv3;
+mod conv;
 #[cfg(feature = "cuda")]
 pub(crate) mod cuda;
 mod dispatch;
@@ -112,7 +112,7 @@ pub use composite::X_MAX;
 #[cfg_attr(not(feature = "volume"), allow(unused_imports))]
 pub(crate) use composite::{FusedComposite, Geometry, KernelBuild, Segments};
 #[cfg_attr(not(feature = "occupancy"), allow(unused_imports))]
-pub(crate) use conv3::FusedConv3;
+pub(crate) use conv::FusedConv;
 #[allow(unused_imports)] // the dispatch helper's whole interface, for every kernel
 pub(crate) use dispatch::{contiguous, cpu_bwd, cpu_fwd, cpu_op, cpu_slice, CpuKernel, Real};
 #[cfg(feature = "cuda")]

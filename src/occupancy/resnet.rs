@@ -2,14 +2,15 @@
 //! ResNet-18's layout (He et al. 2016) at a reduced width, ending in a linear map to the
 //! code `c` that conditions the [`OnetDecoder`](super::OnetDecoder).
 //!
-//! Cost: forward and backward of a batch of 32 images at 64 × 64 in training mode take
-//! about 0.75 s at the default width 32 (0.53 s at width 16) on one core of a 2-core AMD
-//! EPYC (release build, `RAYON_NUM_THREADS=1`; `cargo bench --bench occupancy --
-//! resnet`). Most of it is candle's convolution gradients, each 3–5 times its forward
-//! pass; the stem's includes the gradient w.r.t. the images, computed even where they are
-//! constant.
+//! On the CPU (f32/f64) the convolutions run on channels-last activations (`[B, h·w, C]`)
+//! as one fused op each, which gathers each tile's windows and multiplies them by the
+//! weight with the crate's matrix product, forward and backward, and computes no gradient
+//! w.r.t. constant images; elsewhere, and with [`ResnetEncoderConfig::force_reference`],
+//! they are candle-nn's `Conv2d` on `[B, C, H, W]`. Both compute the same function (the
+//! tests compare them); docs/benchmarks.md has the cost of a training step.
 
 use crate::error::{check_finite, check_float, check_same, check_shape, Dim, Error, Result};
+use crate::kernels::FusedConv;
 use candle_core::Tensor;
 use candle_nn::{
     batch_norm, conv2d_no_bias, linear, BatchNorm, BatchNormConfig, Conv2d, Conv2dConfig, Linear,
@@ -36,6 +37,10 @@ pub struct ResnetEncoderConfig {
     pub momentum: f64,
     /// `ε` of the batch normalisation (1e-5).
     pub eps: f64,
+    /// Run the convolutions as candle-nn's `Conv2d` on `[B, C, H, W]` tensors even where
+    /// the fused channels-last convolution applies (f32/f64 on the CPU; the same
+    /// function, tests compare the two). Default `false`.
+    pub force_reference: bool,
 }
 
 impl Default for ResnetEncoderConfig {
@@ -53,6 +58,7 @@ impl Default for ResnetEncoderConfig {
             c_dim: 256,
             momentum: 0.1,
             eps: 1e-5,
+            force_reference: false,
         }
     }
 }
@@ -85,6 +91,54 @@ impl BasicBlock {
         };
         Ok((h + shortcut)?.relu()?)
     }
+
+    /// [`BasicBlock::forward`] on channels-last images `x: [B, h·w, C]` of `h × w` pixels,
+    /// with the fused convolution: `([B, h'·w', C'], [h', w'])`.
+    fn forward_cl(&self, x: &Tensor, hw: [usize; 2], train: bool) -> Result<(Tensor, [usize; 2])> {
+        let (h, out) = conv_cl(&self.conv1, x, hw, self.stride, false)?;
+        let h = bn_cl(&self.bn1, &h, train)?;
+        let (h, _) = conv_cl(&self.conv2, &h, out, 1, true)?;
+        let h = bn_cl(&self.bn2, &h, train)?;
+        let shortcut = match &self.downsample {
+            Some((conv, bn)) => bn_cl(bn, &conv_cl(conv, x, hw, self.stride, false)?.0, train)?,
+            None => x.clone(),
+        };
+        Ok(((h + shortcut)?.relu()?, out))
+    }
+}
+
+/// A convolution of `conv`'s weight (no bias, padding `⌊k/2⌋`, stride `stride`) of
+/// channels-last images `x: [B, h·w, Cᵢ]` of `h × w` pixels, as the fused op, with a ReLU
+/// on its input where `relu_input`: `([B, h'·w', Cₒ], [h', w'])`.
+fn conv_cl(
+    conv: &Conv2d,
+    x: &Tensor,
+    [h, w]: [usize; 2],
+    stride: usize,
+    relu_input: bool,
+) -> Result<(Tensor, [usize; 2])> {
+    let weight = conv.weight();
+    let (co, ci, k, _) = weight.dims4()?;
+    let op = FusedConv::square(x.dim(0)?, [h, w], k, stride, [ci, co], relu_input);
+    let out = op.out_size().ok_or_else(|| {
+        Error::invalid(
+            "images",
+            "a side of at least the kernel",
+            format!("{h} × {w}"),
+        )
+    })?;
+    let bias = Tensor::zeros(co, x.dtype(), x.device())?;
+    let y = x.contiguous()?.apply_op3(weight, &bias, op)?;
+    Ok((y, [out[1], out[2]]))
+}
+
+/// `bn` on channels-last images `x: [B, n, C]`: the statistics per channel over the batch
+/// and the pixels, as on `[B, C, H, W]`.
+fn bn_cl(bn: &BatchNorm, x: &Tensor, train: bool) -> Result<Tensor> {
+    let (b, n, c) = x.dims3()?;
+    Ok(bn
+        .forward_t(&x.reshape((b * n, c))?, train)?
+        .reshape((b, n, c))?)
 }
 
 /// The image encoder; build it with [`resnet_encoder`].
@@ -352,15 +406,36 @@ impl ResnetEncoder {
             images.dtype().size_in_bytes(),
         )?;
         check_finite(images, "images")?;
+        if !self.config.force_reference && crate::kernels::cpu_fused_for(images) {
+            return self.forward_cl(images, train);
+        }
         let x = self
             .bn1
             .forward_t(&self.conv1.forward(&even(images)?)?, train)?;
-        let mut x = max_pool_3x3_stride_2(&x.relu()?)?;
+        let mut x = max_pool_3x3_stride_2(&x.relu()?, [2, 3])?;
         for block in &self.blocks {
             x = block.forward(&x, train)?;
         }
         let pooled = x.mean(3)?.mean(2)?;
         Ok(self.fc.forward(&pooled)?)
+    }
+
+    /// [`ResnetEncoder::forward`] on channels-last activations (`[B, h·w, C]`) with the
+    /// fused convolution, for checked `images`.
+    fn forward_cl(&self, images: &Tensor, train: bool) -> Result<Tensor> {
+        let (b, c, h, w) = images.dims4()?;
+        let x = images.permute((0, 2, 3, 1))?.reshape((b, h * w, c))?;
+        let (x, [h, w]) = conv_cl(&self.conv1, &x, [h, w], 2, false)?;
+        let x = bn_cl(&self.bn1, &x, train)?.relu()?;
+        let channels = x.dim(2)?;
+        let x = max_pool_3x3_stride_2(&x.reshape((b, h, w, channels))?, [1, 2])?;
+        let (h, w) = (x.dim(1)?, x.dim(2)?);
+        let mut x = x.reshape((b, h * w, channels))?;
+        let mut hw = [h, w];
+        for block in &self.blocks {
+            (x, hw) = block.forward_cl(&x, hw, train)?;
+        }
+        Ok(self.fc.forward(&x.mean(1)?)?)
     }
 }
 
@@ -384,11 +459,12 @@ fn even(x: &Tensor) -> Result<Tensor> {
     })
 }
 
-/// ResNet's 3×3 max-pool with stride 2 and padding 1 of `x: [B, C, h, w]` with `x ≥ 0`
-/// (it follows a ReLU, so zero padding is the same as −∞ padding): `[B, C, ⌈h/2⌉,
-/// ⌈w/2⌉]`. candle's max-pool has no padding, and no gradient where the window is
+/// ResNet's 3×3 max-pool with stride 2 and padding 1 over the two pixel axes `axes` of
+/// `x` (`[2, 3]` of `[B, C, h, w]`, `[1, 2]` of channels-last `[B, h, w, C]`) with `x ≥ 0`
+/// (it follows a ReLU, so zero padding is the same as −∞ padding): each axis of `n`
+/// pixels becomes `⌈n/2⌉`. candle's max-pool has no padding, and no gradient where the window is
 /// larger than the stride, so it is composed of strided views and `maximum`, per axis.
-fn max_pool_3x3_stride_2(x: &Tensor) -> Result<Tensor> {
+fn max_pool_3x3_stride_2(x: &Tensor, [ax, ay]: [usize; 2]) -> Result<Tensor> {
     let along = |x: &Tensor, axis: usize| -> Result<Tensor> {
         let n = x.dim(axis)?;
         let out = n.div_ceil(2);
@@ -407,7 +483,7 @@ fn max_pool_3x3_stride_2(x: &Tensor) -> Result<Tensor> {
         };
         Ok(take(0)?.maximum(&take(1)?)?.maximum(&take(2)?)?)
     };
-    along(&along(x, 2)?, 3)
+    along(&along(x, ax)?, ay)
 }
 
 #[cfg(test)]
@@ -422,7 +498,7 @@ mod tests {
         let d = Device::Cpu;
         for (h, w) in [(6, 6), (7, 5), (5, 8), (1, 2)] {
             let x = Tensor::rand(0.0f64, 1.0, (2, 3, h, w), &d)?;
-            let got = max_pool_3x3_stride_2(&x)?;
+            let got = max_pool_3x3_stride_2(&x, [2, 3])?;
             let (ho, wo) = (h.div_ceil(2), w.div_ceil(2));
             assert_eq!(got.dims(), &[2, 3, ho, wo]);
             let xv = x.flatten_all()?.to_vec1::<f64>()?;

@@ -26,7 +26,7 @@
 //! the step took 0.75 s longer (docs/benchmarks.md).
 
 use crate::error::{check_finite, check_float, check_same, Error, Result};
-use crate::kernels::FusedConv3;
+use crate::kernels::FusedConv;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{init::Init, linear, Linear, Module, VarBuilder};
 
@@ -47,7 +47,7 @@ pub struct VoxelEncoderConfig {
     pub resolution: usize,
     /// Run the convolutions as candle ops even on the CPU, where each otherwise runs,
     /// with its bias and the ReLU before it, as one fused op (the crate's kernel
-    /// `FusedConv3`, the same function; tests compare the two). Default `false`.
+    /// `FusedConv`, the same function; tests compare the two). Default `false`.
     pub force_reference: bool,
 }
 
@@ -126,14 +126,13 @@ impl Conv3 {
                     format!("{side3}"),
                 ));
             }
-            let op = FusedConv3 {
-                batch: b,
-                side: self.side,
-                stride: self.side / self.out_side,
-                c_in: ci,
-                c_out: self.weight.dim(0)?,
+            let op = FusedConv::cubic(
+                b,
+                self.side,
+                self.side / self.out_side,
+                [ci, self.weight.dim(0)?],
                 relu_input,
-            };
+            );
             return Ok(x.contiguous()?.apply_op3(&self.weight, &self.bias, op)?);
         }
         let x = if relu_input { x.relu()? } else { x.clone() };

@@ -1,0 +1,449 @@
+//! A convolution with zero padding of channels-last 3-D grids or 2-D images, with its bias
+//! and an optional ReLU on its input, as one CPU op (`FusedConv`: the voxel encoder's
+//! 3×3×3 convolutions and the image encoder's k×k ones on the CPU). Each tile of output
+//! cells gathers its `taps·Cᵢ` inputs into a per-worker buffer and multiplies it by the
+//! weight; the backward pass regathers the same tiles, so neither pass holds the
+//! `[B·cells, taps·Cᵢ]` window matrix that a reference path (candle's `index_select` or
+//! `conv2d`, matrix product, bias and ReLU ops) allocates, and the input gradient is
+//! scattered straight into its grid instead of through `index_add` or a transposed
+//! convolution.
+
+use super::dispatch::{cpu_op, CpuKernel, Real};
+use super::mlp::{matmul, View};
+use super::parallel::for_each_init;
+use candle_core::Shape;
+
+/// A tap's input row when the tap falls in the padding.
+const OUTSIDE: usize = usize::MAX;
+/// Elements of a tile's gathered windows (rows × `taps·Cᵢ`) that the tile size aims at.
+const TILE_ELEMS: usize = 32_768;
+/// Grids per backward work item are chosen so that there are at most this many items:
+/// the items keep one weight gradient each (a count that does not depend on the machine,
+/// so neither do the sums).
+const MAX_ITEMS: usize = 8;
+/// Output rows per backward work item, at least (fewer items for small outputs, so that
+/// a late stage does not zero and sum eight copies of a large weight for a few rows).
+const ITEM_ROWS: usize = 128;
+
+/// `y[b, o, j] = bias[j] + Σ_{t, i} w[j, i, t] · a(x)[b, s·o + t − p, i]` for grids
+/// `x: [B, D·H·W, Cᵢ]` (cell `(d, h, w)` at row `(d·H + h)·W + w`; an image has `D = 1`),
+/// weight `w: [Cₒ, Cᵢ, k_D, k_H, k_W]` (PyTorch's `Conv3d`/`Conv2d` layout, tap
+/// `t = (a·k_H + b)·k_W + c`), bias `[Cₒ]`; output `[B, D'·H'·W', Cₒ]` with
+/// `n' = ⌊(n + 2p − k)/s⌋ + 1` per axis (PyTorch's sizes); `a = ReLU` when `relu_input`,
+/// else the identity; taps outside the grid read zero.
+///
+/// Backward: `∂L/∂bias = Σ_{b,o} g`, `∂L/∂w[j, i, t] = Σ_{b,o} g[b, o, j] · a(x)[b, s·o + t − p, i]`,
+/// `∂L/∂x[b, v, i] = a'(x[b, v, i]) · Σ_{(o, t) → v} Σ_j g[b, o, j] · w[j, i, t]`, with
+/// `a'(x) = [x ≥ 0]` for the ReLU (candle's subgradient at 0).
+#[derive(Clone, Debug)]
+pub(crate) struct FusedConv {
+    pub(crate) batch: usize,
+    /// Input extent per axis, `[D, H, W]` (an image: `[1, H, W]`).
+    pub(crate) size: [usize; 3],
+    /// Kernel extent per axis (`[3, 3, 3]`; an image's `[1, k, k]`).
+    pub(crate) kernel: [usize; 3],
+    /// Zero padding per axis (an image's `[0, p, p]`).
+    pub(crate) pad: [usize; 3],
+    /// The stride, the same on every axis (an axis of extent 1 with kernel 1 and no padding
+    /// keeps extent 1 at any stride).
+    pub(crate) stride: usize,
+    pub(crate) c_in: usize,
+    pub(crate) c_out: usize,
+    pub(crate) relu_input: bool,
+}
+
+/// Per-worker scratch: one tile's gathered windows, its window gradients and one row's
+/// tap rows.
+struct Scratch<T> {
+    cols: Vec<T>,
+    dcols: Vec<T>,
+    taps: Vec<usize>,
+}
+
+impl FusedConv {
+    /// A 3×3×3 convolution with padding 1 of cubic grids of side `side`.
+    pub(crate) fn cubic(
+        batch: usize,
+        side: usize,
+        stride: usize,
+        [c_in, c_out]: [usize; 2],
+        relu_input: bool,
+    ) -> Self {
+        Self {
+            batch,
+            size: [side; 3],
+            kernel: [3; 3],
+            pad: [1; 3],
+            stride,
+            c_in,
+            c_out,
+            relu_input,
+        }
+    }
+
+    /// A `k × k` convolution with padding `⌊k/2⌋` of `h × w` images.
+    pub(crate) fn square(
+        batch: usize,
+        [h, w]: [usize; 2],
+        k: usize,
+        stride: usize,
+        [c_in, c_out]: [usize; 2],
+        relu_input: bool,
+    ) -> Self {
+        Self {
+            batch,
+            size: [1, h, w],
+            kernel: [1, k, k],
+            pad: [0, k / 2, k / 2],
+            stride,
+            c_in,
+            c_out,
+            relu_input,
+        }
+    }
+
+    /// Output extent per axis; `None` where an axis is too small for its kernel or the
+    /// stride is zero.
+    pub(crate) fn out_size(&self) -> Option<[usize; 3]> {
+        let mut out = [0; 3];
+        for (o, ((&n, &p), &k)) in out
+            .iter_mut()
+            .zip(self.size.iter().zip(&self.pad).zip(&self.kernel))
+        {
+            *o = (n + 2 * p).checked_sub(k)?.checked_div(self.stride)? + 1;
+        }
+        Some(out)
+    }
+
+    /// Output cells per grid.
+    fn out_cells(&self) -> usize {
+        self.out_size().map_or(0, |o| o.iter().product())
+    }
+
+    /// Taps of the kernel.
+    fn taps(&self) -> usize {
+        self.kernel.iter().product()
+    }
+
+    /// Columns of the window matrix, `taps·Cᵢ`.
+    fn k(&self) -> usize {
+        self.taps() * self.c_in
+    }
+
+    /// Output cells per tile.
+    fn tile_rows(&self) -> usize {
+        (TILE_ELEMS / self.k().max(1)).clamp(6, 256)
+    }
+
+    fn scratch<T: Real>(&self, dcols: bool) -> Scratch<T> {
+        let len = self.tile_rows() * self.k();
+        Scratch {
+            cols: vec![T::from_f64(0.0); len],
+            dcols: if dcols {
+                vec![T::from_f64(0.0); len]
+            } else {
+                Vec::new()
+            },
+            taps: vec![OUTSIDE; self.taps()],
+        }
+    }
+
+    /// The input rows (within its grid) of output cell `o`'s taps, [`OUTSIDE`] for a tap
+    /// in the padding, into `taps`.
+    #[inline(always)]
+    fn window(&self, o: usize, out: [usize; 3], taps: &mut [usize]) {
+        let (size, k, s) = (self.size, self.kernel, self.stride);
+        let at = [o / (out[1] * out[2]), (o / out[2]) % out[1], o % out[2]];
+        // The input coordinate of offset `a` on axis `axis`, if inside.
+        let coord = |axis: usize, a: usize| {
+            (s * at[axis] + a)
+                .checked_sub(self.pad[axis])
+                .filter(|&p| p < size[axis])
+        };
+        let mut t = 0;
+        for a in 0..k[0] {
+            let p = coord(0, a);
+            for b in 0..k[1] {
+                let q = coord(1, b);
+                for c in 0..k[2] {
+                    taps[t] = match (p, q, coord(2, c)) {
+                        (Some(p), Some(q), Some(r)) => (p * size[1] + q) * size[2] + r,
+                        _ => OUTSIDE,
+                    };
+                    t += 1;
+                }
+            }
+        }
+    }
+
+    /// Gathers the windows of output rows `r0 .. r0 + rows` of the batch (row `g·cells + o`
+    /// is cell `o` of grid `g`; a tile may span grids) from `x: [B, D·H·W, Cᵢ]` into
+    /// `cols: [rows, taps·Cᵢ]`, through the input activation.
+    fn gather<T: Real>(&self, x: &[T], r0: usize, rows: usize, sc: &mut Scratch<T>) {
+        let (ci, k) = (self.c_in, self.k());
+        let Some(out) = self.out_size() else { return };
+        let (cells, grid_len) = (self.out_cells(), self.size.iter().product::<usize>() * ci);
+        let zero = T::from_f64(0.0);
+        let relu = self.relu_input;
+        for (r, row) in sc.cols[..rows * k].chunks_mut(k).enumerate() {
+            let (g, o) = ((r0 + r) / cells, (r0 + r) % cells);
+            let grid = &x[g * grid_len..(g + 1) * grid_len];
+            self.window(o, out, &mut sc.taps);
+            if ci == 1 {
+                // One channel (the voxel encoder's first convolution): one value per tap.
+                for (&v, d) in sc.taps.iter().zip(row) {
+                    *d = if v == OUTSIDE || (relu && grid[v] <= zero) {
+                        zero
+                    } else {
+                        grid[v]
+                    };
+                }
+                continue;
+            }
+            for (&v, dst) in sc.taps.iter().zip(row.chunks_mut(ci)) {
+                if v == OUTSIDE {
+                    dst.fill(zero);
+                    continue;
+                }
+                let src = &grid[v * ci..(v + 1) * ci];
+                if relu {
+                    for (d, &x) in dst.iter_mut().zip(src) {
+                        *d = if x > zero { x } else { zero };
+                    }
+                } else {
+                    dst.copy_from_slice(src);
+                }
+            }
+        }
+    }
+
+    /// The weight as `[taps·Cᵢ, Cₒ]` (row `t·Cᵢ + i`, column `j`; the forward pass's), or
+    /// with `by_output` as `[Cₒ, taps·Cᵢ]` (the backward pass's), row-major.
+    fn weight_matrix<T: Real>(&self, w: &[T], by_output: bool) -> Vec<T> {
+        let (ci, co, k, taps) = (self.c_in, self.c_out, self.k(), self.taps());
+        let mut m = vec![T::from_f64(0.0); k * co];
+        for j in 0..co {
+            for i in 0..ci {
+                for t in 0..taps {
+                    let at = if by_output {
+                        j * k + t * ci + i
+                    } else {
+                        (t * ci + i) * co + j
+                    };
+                    m[at] = w[(j * ci + i) * taps + t];
+                }
+            }
+        }
+        m
+    }
+
+    fn check<T>(&self, [x, w, b]: [&[T]; 3]) -> candle_core::Result<()> {
+        if self.out_size().is_none() {
+            candle_core::bail!(
+                "fused conv: input {:?} with kernel {:?}, padding {:?} and stride {}",
+                self.size,
+                self.kernel,
+                self.pad,
+                self.stride
+            )
+        }
+        let want = [
+            self.batch * self.size.iter().product::<usize>() * self.c_in,
+            self.c_out * self.k(),
+            self.c_out,
+        ];
+        if [x.len(), w.len(), b.len()] != want {
+            candle_core::bail!(
+                "fused conv: input lengths {:?}, expected {want:?}",
+                [x.len(), w.len(), b.len()]
+            )
+        }
+        Ok(())
+    }
+
+    fn forward<T: Real>(&self, x: &[T], w: &[T], bias: &[T]) -> Vec<T> {
+        let (co, k) = (self.c_out, self.k());
+        let wk = self.weight_matrix(w, false);
+        let tile = self.tile_rows();
+        let mut y = vec![T::from_f64(0.0); self.batch * self.out_cells() * co];
+        let items: Vec<(usize, &mut [T])> = y
+            .chunks_mut(tile * co)
+            .enumerate()
+            .map(|(i, y)| (i * tile, y))
+            .collect();
+        for_each_init(
+            items,
+            || self.scratch::<T>(false),
+            |sc, (r0, y)| {
+                let rows = y.len() / co;
+                self.gather(x, r0, rows, sc);
+                for row in y.chunks_mut(co) {
+                    row.copy_from_slice(bias);
+                }
+                matmul(
+                    (rows, co, k),
+                    y,
+                    View::rows(0, co),
+                    true,
+                    &sc.cols,
+                    View::rows(0, k),
+                    &wk,
+                    View::rows(0, co),
+                    T::from_f64(1.0),
+                );
+            },
+        );
+        y
+    }
+
+    /// `[∂L/∂x if wanted, ∂L/∂w, ∂L/∂bias]`.
+    fn backward<T: Real>(
+        &self,
+        [x, w, _]: [&[T]; 3],
+        g: &[T],
+        want_x: bool,
+    ) -> [Option<Vec<T>>; 3] {
+        let (ci, co, k, taps) = (self.c_in, self.c_out, self.k(), self.taps());
+        let Some(out) = self.out_size() else {
+            return [None, None, None];
+        };
+        let (cells, grid_len) = (self.out_cells(), self.size.iter().product::<usize>() * ci);
+        let wj = self.weight_matrix(w, true);
+        let tile = self.tile_rows();
+        // Whole grids per item (each item scatters into its own grids only).
+        let items_n = (self.batch * cells)
+            .div_ceil(ITEM_ROWS)
+            .clamp(1, MAX_ITEMS.min(self.batch.max(1)));
+        let per_item = self.batch.div_ceil(items_n).max(1);
+        let items_n = self.batch.div_ceil(per_item);
+        // Per item: the weight gradient as `[Cₒ, taps·Cᵢ]`, then the bias gradient.
+        let mut partial = vec![T::from_f64(0.0); items_n * (co * k + co)];
+        let mut gx = want_x.then(|| vec![T::from_f64(0.0); x.len()]);
+        let gx_items: Vec<Option<&mut [T]>> = match gx.as_mut() {
+            Some(v) => v.chunks_mut(per_item * grid_len).map(Some).collect(),
+            None => (0..items_n).map(|_| None).collect(),
+        };
+        let items: Vec<_> = partial
+            .chunks_mut(co * k + co)
+            .zip(gx_items)
+            .enumerate()
+            .collect();
+        for_each_init(
+            items,
+            || self.scratch::<T>(want_x),
+            |sc, (item, (acc, mut gx))| {
+                let (gw, gb) = acc.split_at_mut(co * k);
+                let first = item * per_item;
+                let last = (first + per_item).min(self.batch);
+                let end = last * cells;
+                for r0 in (first * cells..end).step_by(tile) {
+                    let rows = tile.min(end - r0);
+                    let gt = &g[r0 * co..(r0 + rows) * co];
+                    self.gather(x, r0, rows, sc);
+                    // ∂L/∂W [Cₒ, taps·Cᵢ] += gᵀ · cols.
+                    matmul(
+                        (co, k, rows),
+                        gw,
+                        View::rows(0, k),
+                        true,
+                        gt,
+                        View::transposed(0, co),
+                        &sc.cols,
+                        View::rows(0, k),
+                        T::from_f64(1.0),
+                    );
+                    for row in gt.chunks(co) {
+                        for (b, &v) in gb.iter_mut().zip(row) {
+                            *b += v;
+                        }
+                    }
+                    let Some(gx) = gx.as_deref_mut() else {
+                        continue;
+                    };
+                    // ∂L/∂cols [rows, taps·Cᵢ] = g · W, scattered onto the taps' cells.
+                    matmul(
+                        (rows, k, co),
+                        &mut sc.dcols,
+                        View::rows(0, k),
+                        false,
+                        gt,
+                        View::rows(0, co),
+                        &wj,
+                        View::rows(0, k),
+                        T::from_f64(1.0),
+                    );
+                    for (r, row) in sc.dcols[..rows * k].chunks(k).enumerate() {
+                        let (grid, o) = ((r0 + r) / cells, (r0 + r) % cells);
+                        let local = grid - first;
+                        let gxg = &mut gx[local * grid_len..(local + 1) * grid_len];
+                        self.window(o, out, &mut sc.taps);
+                        for (&v, src) in sc.taps.iter().zip(row.chunks(ci)) {
+                            if v == OUTSIDE {
+                                continue;
+                            }
+                            for (d, &s) in gxg[v * ci..(v + 1) * ci].iter_mut().zip(src) {
+                                *d += s;
+                            }
+                        }
+                    }
+                }
+                if self.relu_input {
+                    if let Some(gx) = gx.as_deref_mut() {
+                        let xs = &x[first * grid_len..last * grid_len];
+                        for (d, &v) in gx.iter_mut().zip(xs) {
+                            if v < T::from_f64(0.0) {
+                                *d = T::from_f64(0.0);
+                            }
+                        }
+                    }
+                }
+            },
+        );
+        // Sum the items' gradients in item order, then back to `[Cₒ, Cᵢ, taps]`.
+        let (first, rest) = partial.split_at_mut(co * k + co);
+        for p in rest.chunks(co * k + co) {
+            for (a, &b) in first.iter_mut().zip(p) {
+                *a += b;
+            }
+        }
+        let mut gw = vec![T::from_f64(0.0); co * k];
+        for j in 0..co {
+            for i in 0..ci {
+                for t in 0..taps {
+                    gw[(j * ci + i) * taps + t] = first[j * k + t * ci + i];
+                }
+            }
+        }
+        let gb = first[co * k..].to_vec();
+        [gx, Some(gw), Some(gb)]
+    }
+}
+
+impl CpuKernel<3> for FusedConv {
+    const NAME: &'static str = "fused conv";
+
+    /// Inputs `(x [B, D·H·W, Cᵢ], w [Cₒ, Cᵢ, k_D, k_H, k_W], bias [Cₒ])` (any shape of
+    /// these lengths); output `[B, D'·H'·W', Cₒ]`.
+    fn forward<T: Real>(&self, inputs: [&[T]; 3]) -> candle_core::Result<(Vec<T>, Shape)> {
+        self.check(inputs)?;
+        let [x, w, b] = inputs;
+        Ok((
+            FusedConv::forward(self, x, w, b),
+            Shape::from((self.batch, self.out_cells(), self.c_out)),
+        ))
+    }
+
+    fn backward<T: Real>(
+        &self,
+        inputs: [&[T]; 3],
+        g: &[T],
+        [want_x, _, _]: [bool; 3],
+    ) -> candle_core::Result<[Option<Vec<T>>; 3]> {
+        self.check(inputs)?;
+        if g.len() != self.batch * self.out_cells() * self.c_out {
+            candle_core::bail!("fused conv: gradient of {} elements", g.len())
+        }
+        Ok(FusedConv::backward(self, inputs, g, want_x))
+    }
+}
+cpu_op!(FusedConv, 3, "nf-fused-conv");
