@@ -551,6 +551,11 @@ const ALLOWED: &[(&str, &str, &str)] = &[
     ),
     (
         "kernels/cond_norm.rs",
+        "vec![_; x.len()]",
+        "data: the output or the input gradient of the fused batch norm, the size of the input tensor held",
+    ),
+    (
+        "kernels/cond_norm.rs",
         "vec![_; len]",
         "data: the gradient of a fused op, the size of an input tensor held",
     ),
@@ -578,11 +583,6 @@ const ALLOWED: &[(&str, &str, &str)] = &[
         "kernels/conv.rs",
         "vec![_; self.batch * self.out_cells() * co]",
         "checked: VoxelEncoder::forward checks B·R³·max(27, 4w) values and ResnetEncoder::forward B·⌈H/2⌉·⌈W/2⌉·max(49·C, 9·w), which bound every convolution's output, with limits::check_bytes first",
-    ),
-    (
-        "kernels/conv.rs",
-        "vec![_; self.taps()]",
-        "data: one entry per element of one output channel's weight for one input channel, below the weight tensor held",
     ),
     (
         "occupancy/resnet.rs",

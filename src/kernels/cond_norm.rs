@@ -3,17 +3,22 @@
 //! and the per-code scale and shift and the ReLU in a third, and a backward pass that gives
 //! the rows', scales' and shifts' gradients in two, where the same layer as candle ops
 //! takes about twenty element-wise ops, reductions and broadcasts, each with its own
-//! tensor.
+//! tensor. With one scale and shift for all rows and the ReLU optional it is plain batch
+//! normalisation, an op of its own (`FusedBatchNorm`, the image encoder's on the CPU).
 
+use super::dispatch::{cpu_op, CpuKernel, Real};
 use super::parallel::{for_each_init, wide, Wide};
+use candle_core::Shape;
 use candle_core::WithDType;
 use std::sync::{Arc, Mutex, PoisonError};
 
-/// `y = relu(γ_g ⊙ (x − μ)/√(v + ε) + β_g)` for rows `x: [N, H]`, with the batch mean `μ`
+/// `y = a(γ_g ⊙ (x − μ)/√(v + ε) + β_g)`, `a` the ReLU (or the identity without `relu`),
+/// for rows `x: [N, H]`, with the batch mean `μ`
 /// and the biased batch variance `v` of each column over all `N` rows, and row `n`'s scale
 /// and shift `γ_g, β_g` rows `g = ⌊n / group⌋` of `gamma, beta: [N / group, H]`.
 ///
-/// Backward, with `x̂ = (x − μ)·s`, `s = 1/√(v + ε)`, `ḡ = ∂L/∂y ⊙ [y ≥ 0]` and
+/// Backward, with `x̂ = (x − μ)·s`, `s = 1/√(v + ε)`, `ḡ = ∂L/∂y ⊙ [y ≥ 0]` (`∂L/∂y`
+/// without `relu`) and
 /// `u = ḡ ⊙ γ_g` (per row): `∂L/∂β_g = Σ_{n ∈ g} ḡ`, `∂L/∂γ_g = Σ_{n ∈ g} ḡ ⊙ x̂`,
 /// `∂L/∂x = s ⊙ (u − mean_n(u) − x̂ ⊙ mean_n(u ⊙ x̂))` (the statistics' own dependence on
 /// `x` included). Statistics and sums in f64 (the statistics by two passes: mean, then
@@ -29,6 +34,8 @@ pub(crate) struct FusedCondNorm {
     pub(crate) group: usize,
     /// `ε > 0`.
     pub(crate) eps: f64,
+    /// The ReLU after the affine map.
+    pub(crate) relu: bool,
     /// The forward pass's statistics, shared with the caller (which updates its running
     /// statistics from them) and read by the backward pass instead of recomputing them
     /// (the op's input is immutable; without them it recomputes).
@@ -126,7 +133,7 @@ impl FusedCondNorm {
 
     /// The [`Columns`] of this layer over `mean`, `slope`, `beta` and `scale` (empty in
     /// the forward pass), without the backward pass's column terms.
-    fn columns<'a, T>(
+    fn columns<'a, T: WithDType>(
         &self,
         mean: &'a [T],
         slope: &'a [T],
@@ -142,6 +149,7 @@ impl FusedCondNorm {
             scale,
             c: &[],
             e: &[],
+            lo: T::from_f64(if self.relu { 0.0 } else { f64::NEG_INFINITY }),
         }
     }
 
@@ -291,6 +299,8 @@ struct Columns<'a, T> {
     scale: &'a [T],
     c: &'a [T],
     e: &'a [T],
+    /// The ReLU's cut, 0, or −∞ without the ReLU (no value is below it).
+    lo: T,
 }
 
 impl<T: WithDType> Columns<'_, T> {
@@ -305,12 +315,11 @@ impl<T: WithDType> Columns<'_, T> {
     }
 
     /// `g` where the ReLU passes `y = (x − μ)·slope + β`, `y ≥ 0` as candle's ReLU
-    /// derivative.
+    /// derivative (everywhere without the ReLU).
     #[inline(always)]
     fn masked(&self, (x, m, a, b): (T, T, T, T), g: T) -> T {
-        let zero = T::from_f64(0.0);
-        if (x - m) * a + b < zero {
-            zero
+        if (x - m) * a + b < self.lo {
+            T::from_f64(0.0)
         } else {
             g
         }
@@ -319,13 +328,13 @@ impl<T: WithDType> Columns<'_, T> {
     /// The output rows `out` of rows `x` from row `first` on.
     #[inline(always)]
     fn forward(&self, first: usize, x: &[T], out: &mut [T]) {
-        let (h, zero) = (self.width, T::from_f64(0.0));
+        let (h, lo) = (self.width, self.lo);
         for (r, (row, o)) in x.chunks(h).zip(out.chunks_mut(h)).enumerate() {
             let (a, b) = self.affine(first + r);
             let columns = self.mean.iter().zip(a).zip(b);
             for ((o, &x), ((&m, &a), &b)) in o.iter_mut().zip(row).zip(columns) {
                 let y = (x - m) * a + b;
-                *o = if y < zero { zero } else { y };
+                *o = if y < lo { lo } else { y };
             }
         }
     }
@@ -416,3 +425,57 @@ impl<T: WithDType> Wide for Pass<'_, '_, T> {
         }
     }
 }
+
+/// Batch normalisation of rows `x: [N, H]` with scale and shift `gamma, beta: [H]` and an
+/// optional ReLU, as one op: [`FusedCondNorm`] with one group of all `N` rows (its
+/// `group = rows`). The forward pass's statistics are left in the layer's `saved` for the
+/// caller's running statistics.
+#[derive(Debug)]
+pub(crate) struct FusedBatchNorm(pub(crate) FusedCondNorm);
+
+impl FusedBatchNorm {
+    fn check<T>(&self, [x, g, b]: [&[T]; 3]) -> candle_core::Result<()> {
+        let n = &self.0;
+        if n.group != n.rows || n.rows == 0 {
+            candle_core::bail!("fused batch norm: {} rows in groups of {}", n.rows, n.group)
+        }
+        let want = [n.rows * n.width, n.width, n.width];
+        if [x.len(), g.len(), b.len()] != want {
+            candle_core::bail!(
+                "fused batch norm: input lengths {:?}, expected {want:?}",
+                [x.len(), g.len(), b.len()]
+            )
+        }
+        Ok(())
+    }
+}
+
+impl CpuKernel<3> for FusedBatchNorm {
+    const NAME: &'static str = "fused batch norm";
+
+    /// Inputs `(x [N, H], gamma [H], beta [H])`; output `[N, H]`.
+    fn forward<T: Real>(&self, inputs: [&[T]; 3]) -> candle_core::Result<(Vec<T>, Shape)> {
+        self.check(inputs)?;
+        let [x, g, b] = inputs;
+        let mut out = vec![T::from_f64(0.0); x.len()];
+        self.0.run(x, g, b, &mut out);
+        Ok((out, Shape::from((self.0.rows, self.0.width))))
+    }
+
+    fn backward<T: Real>(
+        &self,
+        inputs: [&[T]; 3],
+        grad: &[T],
+        [want_x, _, _]: [bool; 3],
+    ) -> candle_core::Result<[Option<Vec<T>>; 3]> {
+        self.check(inputs)?;
+        if grad.len() != inputs[0].len() {
+            candle_core::bail!("fused batch norm: gradient of {} elements", grad.len())
+        }
+        let [x, g, b] = inputs;
+        let mut gx = vec![T::from_f64(0.0); x.len()];
+        let [gg, gb] = self.0.grad((x, g, b), grad, &mut gx);
+        Ok([want_x.then_some(gx), Some(gg), Some(gb)])
+    }
+}
+cpu_op!(FusedBatchNorm, 3, "nf-fused-batch-norm");

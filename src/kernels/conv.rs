@@ -13,8 +13,6 @@ use super::mlp::{matmul, View};
 use super::parallel::for_each_init;
 use candle_core::Shape;
 
-/// A tap's input row when the tap falls in the padding.
-const OUTSIDE: usize = usize::MAX;
 /// Elements of a tile's gathered windows (rows × `taps·Cᵢ`) that the tile size aims at.
 const TILE_ELEMS: usize = 32_768;
 /// Grids per backward work item are chosen so that there are at most this many items:
@@ -52,12 +50,10 @@ pub(crate) struct FusedConv {
     pub(crate) relu_input: bool,
 }
 
-/// Per-worker scratch: one tile's gathered windows, its window gradients and one row's
-/// tap rows.
+/// Per-worker scratch: one tile's gathered windows and its window gradients.
 struct Scratch<T> {
     cols: Vec<T>,
     dcols: Vec<T>,
-    taps: Vec<usize>,
 }
 
 impl FusedConv {
@@ -144,15 +140,23 @@ impl FusedConv {
             } else {
                 Vec::new()
             },
-            taps: vec![OUTSIDE; self.taps()],
         }
     }
 
-    /// The input rows (within its grid) of output cell `o`'s taps, [`OUTSIDE`] for a tap
-    /// in the padding, into `taps`.
+    /// Calls `f(d, run)` for each row `(a, b)` of output cell `o`'s window (taps
+    /// `(a, b, 0 … k_W − 1)`, columns `d … d + k_W·Cᵢ` of its window row): `run` is
+    /// `Some((src, c0, c1))` where taps `c0 … c1 − 1` are inside the grid, their `(c1 −
+    /// c0)·Cᵢ` inputs contiguous from element `src` of the grid (channels-last, so the
+    /// taps along the last axis are one run), and the other taps of the row read zero;
+    /// `None` where the whole row is outside.
     #[inline(always)]
-    fn window(&self, o: usize, out: [usize; 3], taps: &mut [usize]) {
-        let (size, k, s) = (self.size, self.kernel, self.stride);
+    fn runs(
+        &self,
+        o: usize,
+        out: [usize; 3],
+        mut f: impl FnMut(usize, Option<(usize, usize, usize)>),
+    ) {
+        let (size, k, s, ci) = (self.size, self.kernel, self.stride, self.c_in);
         let at = [o / (out[1] * out[2]), (o / out[2]) % out[1], o % out[2]];
         // The input coordinate of offset `a` on axis `axis`, if inside.
         let coord = |axis: usize, a: usize| {
@@ -160,18 +164,26 @@ impl FusedConv {
                 .checked_sub(self.pad[axis])
                 .filter(|&p| p < size[axis])
         };
-        let mut t = 0;
+        // The taps along the last axis that fall inside: `c0 … c1 − 1`.
+        let first = s * at[2];
+        let c0 = self.pad[2].saturating_sub(first).min(k[2]);
+        let c1 = (size[2] + self.pad[2])
+            .saturating_sub(first)
+            .clamp(c0, k[2]);
+        let run = k[2] * ci;
+        let mut d = 0;
         for a in 0..k[0] {
             let p = coord(0, a);
             for b in 0..k[1] {
-                let q = coord(1, b);
-                for c in 0..k[2] {
-                    taps[t] = match (p, q, coord(2, c)) {
-                        (Some(p), Some(q), Some(r)) => (p * size[1] + q) * size[2] + r,
-                        _ => OUTSIDE,
-                    };
-                    t += 1;
-                }
+                let row = match (p, coord(1, b)) {
+                    (Some(p), Some(q)) if c1 > c0 => {
+                        let r = first + c0 - self.pad[2];
+                        Some((((p * size[1] + q) * size[2] + r) * ci, c0, c1))
+                    }
+                    _ => None,
+                };
+                f(d, row);
+                d += run;
             }
         }
     }
@@ -184,28 +196,19 @@ impl FusedConv {
         let Some(out) = self.out_size() else { return };
         let (cells, grid_len) = (self.out_cells(), self.size.iter().product::<usize>() * ci);
         let zero = T::from_f64(0.0);
-        let relu = self.relu_input;
+        let (relu, run) = (self.relu_input, self.kernel[2] * ci);
         for (r, row) in sc.cols[..rows * k].chunks_mut(k).enumerate() {
             let (g, o) = ((r0 + r) / cells, (r0 + r) % cells);
             let grid = &x[g * grid_len..(g + 1) * grid_len];
-            self.window(o, out, &mut sc.taps);
-            if ci == 1 {
-                // One channel (the voxel encoder's first convolution): one value per tap.
-                for (&v, d) in sc.taps.iter().zip(row) {
-                    *d = if v == OUTSIDE || (relu && grid[v] <= zero) {
-                        zero
-                    } else {
-                        grid[v]
-                    };
-                }
-                continue;
-            }
-            for (&v, dst) in sc.taps.iter().zip(row.chunks_mut(ci)) {
-                if v == OUTSIDE {
+            self.runs(o, out, |d, taps| {
+                let dst = &mut row[d..d + run];
+                let Some((src, c0, c1)) = taps else {
                     dst.fill(zero);
-                    continue;
-                }
-                let src = &grid[v * ci..(v + 1) * ci];
+                    return;
+                };
+                dst[..c0 * ci].fill(zero);
+                dst[c1 * ci..].fill(zero);
+                let (dst, src) = (&mut dst[c0 * ci..c1 * ci], &grid[src..src + (c1 - c0) * ci]);
                 if relu {
                     for (d, &x) in dst.iter_mut().zip(src) {
                         *d = if x > zero { x } else { zero };
@@ -213,7 +216,7 @@ impl FusedConv {
                 } else {
                     dst.copy_from_slice(src);
                 }
-            }
+            });
         }
     }
 
@@ -222,15 +225,27 @@ impl FusedConv {
     fn weight_matrix<T: Real>(&self, w: &[T], by_output: bool) -> Vec<T> {
         let (ci, co, k, taps) = (self.c_in, self.c_out, self.k(), self.taps());
         let mut m = vec![T::from_f64(0.0); k * co];
-        for j in 0..co {
+        if by_output {
+            // Row `j` is a transpose of `w`'s `[Cᵢ, taps]` block `j`.
+            for (row, wj) in m.chunks_mut(k.max(1)).zip(w.chunks(k.max(1))) {
+                for (i, wi) in wj.chunks(taps.max(1)).enumerate() {
+                    for (t, &v) in wi.iter().enumerate() {
+                        row[t * ci + i] = v;
+                    }
+                }
+            }
+            return m;
+        }
+        // Sixteen output channels at a time: each destination run is one cache line and
+        // the sixteen source rows stay in the L1 cache.
+        for j0 in (0..co).step_by(16) {
+            let jn = (j0 + 16).min(co);
             for i in 0..ci {
                 for t in 0..taps {
-                    let at = if by_output {
-                        j * k + t * ci + i
-                    } else {
-                        (t * ci + i) * co + j
-                    };
-                    m[at] = w[(j * ci + i) * taps + t];
+                    let at = (t * ci + i) * co;
+                    for (jj, d) in m[at + j0..at + jn].iter_mut().enumerate() {
+                        *d = w[((j0 + jj) * ci + i) * taps + t];
+                    }
                 }
             }
         }
@@ -376,15 +391,15 @@ impl FusedConv {
                         let (grid, o) = ((r0 + r) / cells, (r0 + r) % cells);
                         let local = grid - first;
                         let gxg = &mut gx[local * grid_len..(local + 1) * grid_len];
-                        self.window(o, out, &mut sc.taps);
-                        for (&v, src) in sc.taps.iter().zip(row.chunks(ci)) {
-                            if v == OUTSIDE {
-                                continue;
+                        self.runs(o, out, |d, taps| {
+                            if let Some((dst, c0, c1)) = taps {
+                                let src = &row[d + c0 * ci..d + c1 * ci];
+                                let dst = &mut gxg[dst..dst + (c1 - c0) * ci];
+                                for (d, &s) in dst.iter_mut().zip(src) {
+                                    *d += s;
+                                }
                             }
-                            for (d, &s) in gxg[v * ci..(v + 1) * ci].iter_mut().zip(src) {
-                                *d += s;
-                            }
-                        }
+                        });
                     }
                 }
                 if self.relu_input {

@@ -31,7 +31,8 @@
 //!   layer's product, bias, conditional batch norm, ReLU and residual sum, what
 //!   [`crate::occupancy::OnetDecoder`] runs on the CPU in training) and its conditional
 //!   batch norm with ReLU (`FusedCondNorm`), with the backward pass through the batch
-//!   statistics;
+//!   statistics, which with one group is plain batch norm (`FusedBatchNorm`, the image
+//!   encoder's on the CPU);
 //! * `conv`: a convolution of channels-last 3-D grids or 2-D images with its bias and an
 //!   optional ReLU on its input (`FusedConv`, the voxel and image encoders' convolutions
 //!   on the CPU), tile by tile without the full window matrix;
@@ -111,6 +112,8 @@ pub(crate) use adam::{AdamMoments, AdamUpdate};
 pub use composite::X_MAX;
 #[cfg_attr(not(feature = "volume"), allow(unused_imports))]
 pub(crate) use composite::{FusedComposite, Geometry, KernelBuild, Segments};
+#[cfg_attr(not(feature = "occupancy"), allow(unused_imports))]
+pub(crate) use cond_norm::{FusedBatchNorm, FusedCondNorm};
 #[cfg_attr(not(feature = "occupancy"), allow(unused_imports))]
 pub(crate) use conv::FusedConv;
 #[allow(unused_imports)] // the dispatch helper's whole interface, for every kernel

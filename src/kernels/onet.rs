@@ -160,6 +160,7 @@ impl FusedOnet {
                 width: hidden,
                 group,
                 eps,
+                relu: true,
                 saved: Arc::new(Mutex::new(None)),
             })
             .collect();

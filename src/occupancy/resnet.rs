@@ -10,12 +10,14 @@
 //! tests compare them); docs/benchmarks.md has the cost of a training step.
 
 use crate::error::{check_finite, check_float, check_same, check_shape, Dim, Error, Result};
-use crate::kernels::FusedConv;
+use crate::kernels::{FusedBatchNorm, FusedCondNorm, FusedConv};
 use candle_core::Tensor;
+use candle_core::Var;
 use candle_nn::{
     batch_norm, conv2d_no_bias, linear, BatchNorm, BatchNormConfig, Conv2d, Conv2dConfig, Linear,
     Module, ModuleT, VarBuilder,
 };
+use std::sync::{Arc, Mutex, PoisonError};
 
 /// The smallest image side [`ResnetEncoder::forward`] accepts: the network's total
 /// stride, so that the last stage sees at least one cell of image.
@@ -95,12 +97,12 @@ impl BasicBlock {
     /// [`BasicBlock::forward`] on channels-last images `x: [B, h·w, C]` of `h × w` pixels,
     /// with the fused convolution: `([B, h'·w', C'], [h', w'])`.
     fn forward_cl(&self, x: &Tensor, hw: [usize; 2], train: bool) -> Result<(Tensor, [usize; 2])> {
-        let (h, out) = conv_cl(&self.conv1, x, hw, self.stride, false)?;
-        let h = bn_cl(&self.bn1, &h, train)?;
-        let (h, _) = conv_cl(&self.conv2, &h, out, 1, true)?;
-        let h = bn_cl(&self.bn2, &h, train)?;
+        let (h, out) = conv_cl(&self.conv1, x, hw, self.stride)?;
+        let h = bn_cl(&self.bn1, &h, train, true)?;
+        let (h, _) = conv_cl(&self.conv2, &h, out, 1)?;
+        let h = bn_cl(&self.bn2, &h, train, false)?;
         let shortcut = match &self.downsample {
-            Some((conv, bn)) => bn_cl(bn, &conv_cl(conv, x, hw, self.stride, false)?.0, train)?,
+            Some((conv, bn)) => bn_cl(bn, &conv_cl(conv, x, hw, self.stride)?.0, train, false)?,
             None => x.clone(),
         };
         Ok(((h + shortcut)?.relu()?, out))
@@ -108,18 +110,17 @@ impl BasicBlock {
 }
 
 /// A convolution of `conv`'s weight (no bias, padding `⌊k/2⌋`, stride `stride`) of
-/// channels-last images `x: [B, h·w, Cᵢ]` of `h × w` pixels, as the fused op, with a ReLU
-/// on its input where `relu_input`: `([B, h'·w', Cₒ], [h', w'])`.
+/// channels-last images `x: [B, h·w, Cᵢ]` of `h × w` pixels, as the fused op:
+/// `([B, h'·w', Cₒ], [h', w'])`.
 fn conv_cl(
     conv: &Conv2d,
     x: &Tensor,
     [h, w]: [usize; 2],
     stride: usize,
-    relu_input: bool,
 ) -> Result<(Tensor, [usize; 2])> {
     let weight = conv.weight();
     let (co, ci, k, _) = weight.dims4()?;
-    let op = FusedConv::square(x.dim(0)?, [h, w], k, stride, [ci, co], relu_input);
+    let op = FusedConv::square(x.dim(0)?, [h, w], k, stride, [ci, co], false);
     let out = op.out_size().ok_or_else(|| {
         Error::invalid(
             "images",
@@ -132,13 +133,49 @@ fn conv_cl(
     Ok((y, [out[1], out[2]]))
 }
 
-/// `bn` on channels-last images `x: [B, n, C]`: the statistics per channel over the batch
-/// and the pixels, as on `[B, C, H, W]`.
-fn bn_cl(bn: &BatchNorm, x: &Tensor, train: bool) -> Result<Tensor> {
+/// `bn` on channels-last images `x: [B, n, C]`, followed by a ReLU where `relu`: the
+/// statistics per channel over the batch and the pixels, as on `[B, C, H, W]`. In
+/// training one fused op on the `B·n` rows, whose batch statistics then update `bn`'s
+/// running ones as candle-nn's `BatchNorm` does (`r ← (1 − m)·r + m·stat`, the variance
+/// unbiased); in inference candle-nn's.
+fn bn_cl(bn: &BatchNorm, x: &Tensor, train: bool, relu: bool) -> Result<Tensor> {
     let (b, n, c) = x.dims3()?;
-    Ok(bn
-        .forward_t(&x.reshape((b * n, c))?, train)?
-        .reshape((b, n, c))?)
+    let rows = x.reshape((b * n, c))?;
+    let Some((gamma, beta)) = bn.weight_and_bias().filter(|_| train) else {
+        let y = bn.forward_t(&rows, train)?.reshape((b, n, c))?;
+        return Ok(if relu { y.relu()? } else { y });
+    };
+    // The op's batch statistics, kept for its backward pass and read here.
+    let saved = Arc::new(Mutex::new(None));
+    let op = FusedBatchNorm(FusedCondNorm {
+        rows: b * n,
+        width: c,
+        group: b * n,
+        eps: bn.eps(),
+        relu,
+        saved: Arc::clone(&saved),
+    });
+    let y = rows.contiguous()?.apply_op3(gamma, beta, op)?;
+    let stats = saved
+        .lock()
+        .unwrap_or_else(PoisonError::into_inner)
+        .clone()
+        .ok_or_else(|| Error::invalid("images", "a batch-norm pass with statistics", "none"))?;
+    let m = bn.momentum();
+    let unbiased = if b * n > 1 {
+        (b * n) as f64 / (b * n - 1) as f64
+    } else {
+        1.0
+    };
+    for (running, stat, factor) in [
+        (bn.running_mean(), stats.mean, 1.0),
+        (bn.running_var(), stats.var, unbiased),
+    ] {
+        let stat = Tensor::from_vec(stat, c, running.device())?.to_dtype(running.dtype())?;
+        let next = ((running * (1.0 - m))? + (stat * (m * factor))?)?;
+        Var::from_tensor(running)?.set(&next)?;
+    }
+    Ok(y.reshape((b, n, c))?)
 }
 
 /// The image encoder; build it with [`resnet_encoder`].
@@ -425,8 +462,8 @@ impl ResnetEncoder {
     fn forward_cl(&self, images: &Tensor, train: bool) -> Result<Tensor> {
         let (b, c, h, w) = images.dims4()?;
         let x = images.permute((0, 2, 3, 1))?.reshape((b, h * w, c))?;
-        let (x, [h, w]) = conv_cl(&self.conv1, &x, [h, w], 2, false)?;
-        let x = bn_cl(&self.bn1, &x, train)?.relu()?;
+        let (x, [h, w]) = conv_cl(&self.conv1, &x, [h, w], 2)?;
+        let x = bn_cl(&self.bn1, &x, train, true)?;
         let channels = x.dim(2)?;
         let x = max_pool_3x3_stride_2(&x.reshape((b, h, w, channels))?, [1, 2])?;
         let (h, w) = (x.dim(1)?, x.dim(2)?);
