@@ -47,9 +47,9 @@ pub struct ResnetEncoderConfig {
 
 impl Default for ResnetEncoderConfig {
     /// RGB input; ResNet-18's blocks `[2, 2, 2, 2]` at half its width, `w = 32` (about
-    /// 2.8 M parameters instead of 11 M and a quarter of the multiply-adds, so that a
-    /// training pass of 32 images at 64 × 64 takes about 0.75 s on one CPU core; width 16
-    /// saves only a further 30 %); `c_dim = 256`, ONet's code size for images and the
+    /// 2.8 M parameters instead of 11 M and a quarter of the multiply-adds: a training
+    /// pass of 32 images at 64 × 64 takes about 0.6 s on one CPU core, 0.17 s at width 16;
+    /// docs/benchmarks.md); `c_dim = 256`, ONet's code size for images and the
     /// default `code_dim` of [`OnetConfig`](super::OnetConfig), so the two defaults plug
     /// together.
     fn default() -> Self {
