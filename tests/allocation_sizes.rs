@@ -485,9 +485,9 @@ const ALLOWED: &[(&str, &str, &str)] = &[
         "data: the gradient of a fused op, the size of the input tensor held",
     ),
     (
-        "kernels/onet.rs",
+        "kernels/pool.rs",
         "vec![_; len]",
-        "data: a row buffer of the fused decoder, the rows held times the width of the weights held",
+        "data: a buffer of a fused op's callers: the decoder's rows (the rows held times the width of the weights held) or a convolution's grid (checked by VoxelEncoder::forward, B·R³·max(27, 4w) values)",
     ),
     (
         "kernels/onet.rs",
@@ -581,7 +581,7 @@ const ALLOWED: &[(&str, &str, &str)] = &[
     ),
     (
         "kernels/conv.rs",
-        "vec![_; self.batch * self.out_cells() * co]",
+        "vec![_; self.out_len()]",
         "checked: VoxelEncoder::forward checks B·R³·max(27, 4w) values and ResnetEncoder::forward B·⌈H/2⌉·⌈W/2⌉·max(49·C, 9·w), which bound every convolution's output, with limits::check_bytes first",
     ),
     (
@@ -593,6 +593,26 @@ const ALLOWED: &[(&str, &str, &str)] = &[
         "kernels/conv.rs",
         "vec![_; items_n * (co * k + co)]",
         "data: at most 8 copies of the weight and bias tensors held",
+    ),
+    (
+        "kernels/conv.rs",
+        "vec![_; self.layers[last].out_len()]",
+        "checked: VoxelEncoder::forward checks B·R³·max(27, 4w) values, which bound every convolution's output, with limits::check_bytes first",
+    ),
+    (
+        "kernels/conv.rs",
+        "vec![_; params.len()]",
+        "data: the gradient of the parameters tensor held",
+    ),
+    (
+        "kernels/conv.rs",
+        "with_capacity(last)",
+        "data: one buffer per layer of the op, each layer's weights held",
+    ),
+    (
+        "kernels/conv.rs",
+        "with_capacity(self.layers.len())",
+        "data: one range per layer of the op, each layer's weights held",
     ),
     (
         "kernels/conv.rs",

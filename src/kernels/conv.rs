@@ -11,7 +11,10 @@
 use super::dispatch::{cpu_op, CpuKernel, Real};
 use super::mlp::{matmul, View};
 use super::parallel::for_each_init;
+use super::pool::BufferPool;
 use candle_core::Shape;
+use std::any::Any;
+use std::sync::{Arc, Mutex, PoisonError};
 
 /// Elements of a tile's gathered windows (rows × `taps·Cᵢ`) that the tile size aims at.
 const TILE_ELEMS: usize = 32_768;
@@ -276,11 +279,21 @@ impl FusedConv {
         Ok(())
     }
 
-    fn forward<T: Real>(&self, x: &[T], w: &[T], bias: &[T]) -> Vec<T> {
+    /// Output elements, `B·cells'·Cₒ`.
+    fn out_len(&self) -> usize {
+        self.batch * self.out_cells() * self.c_out
+    }
+
+    /// Input elements, `B·D·H·W·Cᵢ`.
+    fn in_len(&self) -> usize {
+        self.batch * self.size.iter().product::<usize>() * self.c_in
+    }
+
+    /// The output into `y` (`out_len` values, every one written).
+    fn forward_into<T: Real>(&self, x: &[T], w: &[T], bias: &[T], y: &mut [T]) {
         let (co, k) = (self.c_out, self.k());
         let wk = self.weight_matrix(w, false);
         let tile = self.tile_rows();
-        let mut y = vec![T::from_f64(0.0); self.batch * self.out_cells() * co];
         let items: Vec<(usize, &mut [T])> = y
             .chunks_mut(tile * co)
             .enumerate()
@@ -308,19 +321,19 @@ impl FusedConv {
                 );
             },
         );
-        y
     }
 
-    /// `[∂L/∂x if wanted, ∂L/∂w, ∂L/∂bias]`.
-    fn backward<T: Real>(
+    /// `(∂L/∂w, ∂L/∂bias)`, and `∂L/∂x` into `gx` where given (`x`'s length; every value
+    /// written).
+    fn backward_into<T: Real>(
         &self,
-        [x, w, _]: [&[T]; 3],
+        [x, w]: [&[T]; 2],
         g: &[T],
-        want_x: bool,
-    ) -> [Option<Vec<T>>; 3] {
+        gx: Option<&mut [T]>,
+    ) -> (Vec<T>, Vec<T>) {
         let (ci, co, k, taps) = (self.c_in, self.c_out, self.k(), self.taps());
         let Some(out) = self.out_size() else {
-            return [None, None, None];
+            return (Vec::new(), Vec::new());
         };
         let (cells, grid_len) = (self.out_cells(), self.size.iter().product::<usize>() * ci);
         let wj = self.weight_matrix(w, true);
@@ -333,9 +346,12 @@ impl FusedConv {
         let items_n = self.batch.div_ceil(per_item);
         // Per item: the weight gradient as `[Cₒ, taps·Cᵢ]`, then the bias gradient.
         let mut partial = vec![T::from_f64(0.0); items_n * (co * k + co)];
-        let mut gx = want_x.then(|| vec![T::from_f64(0.0); x.len()]);
-        let gx_items: Vec<Option<&mut [T]>> = match gx.as_mut() {
-            Some(v) => v.chunks_mut(per_item * grid_len).map(Some).collect(),
+        let want_x = gx.is_some();
+        let gx_items: Vec<Option<&mut [T]>> = match gx {
+            Some(v) => {
+                v.fill(T::from_f64(0.0));
+                v.chunks_mut(per_item * grid_len).map(Some).collect()
+            }
             None => (0..items_n).map(|_| None).collect(),
         };
         let items: Vec<_> = partial
@@ -430,7 +446,7 @@ impl FusedConv {
             }
         }
         let gb = first[co * k..].to_vec();
-        [gx, Some(gw), Some(gb)]
+        (gw, gb)
     }
 }
 
@@ -442,10 +458,9 @@ impl CpuKernel<3> for FusedConv {
     fn forward<T: Real>(&self, inputs: [&[T]; 3]) -> candle_core::Result<(Vec<T>, Shape)> {
         self.check(inputs)?;
         let [x, w, b] = inputs;
-        Ok((
-            FusedConv::forward(self, x, w, b),
-            Shape::from((self.batch, self.out_cells(), self.c_out)),
-        ))
+        let mut y = vec![T::from_f64(0.0); self.out_len()];
+        self.forward_into(x, w, b, &mut y);
+        Ok((y, Shape::from((self.batch, self.out_cells(), self.c_out))))
     }
 
     fn backward<T: Real>(
@@ -455,10 +470,180 @@ impl CpuKernel<3> for FusedConv {
         [want_x, _, _]: [bool; 3],
     ) -> candle_core::Result<[Option<Vec<T>>; 3]> {
         self.check(inputs)?;
-        if g.len() != self.batch * self.out_cells() * self.c_out {
+        if g.len() != self.out_len() {
             candle_core::bail!("fused conv: gradient of {} elements", g.len())
         }
-        Ok(FusedConv::backward(self, inputs, g, want_x))
+        let [x, w, _] = inputs;
+        let mut gx = want_x.then(|| vec![T::from_f64(0.0); x.len()]);
+        let (gw, gb) = self.backward_into([x, w], g, gx.as_deref_mut());
+        Ok([gx, Some(gw), Some(gb)])
     }
 }
 cpu_op!(FusedConv, 3, "nf-fused-conv");
+
+/// A chain of [`FusedConv`] layers as one op, layer `l`'s input the output of layer
+/// `l − 1` (each layer's `relu_input` applying the ReLU between them): inputs `(x, params)`
+/// with `x` the first layer's input and `params` every layer's weight (`[Cₒ, Cᵢ, k…]`)
+/// then bias (`[Cₒ]`), layer by layer; output the last layer's. The intermediate outputs
+/// and their gradients live in buffers of `pool`, kept between calls, and the forward
+/// pass's outputs in the op for its backward pass: a chain whose first layer writes a
+/// large grid (the voxel encoder's) holds no fresh buffer of that size in either pass.
+/// The same function as the layers applied one by one, and the same gradients.
+#[derive(Debug)]
+pub(crate) struct FusedConvStack {
+    layers: Vec<FusedConv>,
+    pool: Arc<BufferPool>,
+    /// The forward pass's intermediate outputs (a `Vec<Vec<T>>` of the dtype).
+    saved: Mutex<Option<Box<dyn Any + Send>>>,
+}
+
+impl FusedConvStack {
+    /// The op over `layers` (each layer's input length the previous one's output length;
+    /// checked when it runs), with buffers from `pool`.
+    pub(crate) fn new(layers: Vec<FusedConv>, pool: Arc<BufferPool>) -> Self {
+        Self {
+            layers,
+            pool,
+            saved: Mutex::new(None),
+        }
+    }
+
+    /// The output shape `[B, cells, Cₒ]` of the last layer.
+    fn out_shape(&self) -> Shape {
+        match self.layers.last() {
+            Some(l) => Shape::from((l.batch, l.out_cells(), l.c_out)),
+            None => Shape::from(0),
+        }
+    }
+
+    /// Each layer's `(weight, bias)` ranges in `params`, after checking the chain.
+    fn check<T>(&self, [x, params]: [&[T]; 2]) -> candle_core::Result<Vec<(usize, usize, usize)>> {
+        let Some(first) = self.layers.first() else {
+            candle_core::bail!("fused conv stack: no layers")
+        };
+        if x.len() != first.in_len() {
+            candle_core::bail!(
+                "fused conv stack: input of {} elements, expected {}",
+                x.len(),
+                first.in_len()
+            )
+        }
+        let mut at = 0;
+        let mut ranges = Vec::with_capacity(self.layers.len());
+        for (l, layer) in self.layers.iter().enumerate() {
+            if layer.out_size().is_none() {
+                candle_core::bail!("fused conv stack: layer {l} has no output")
+            }
+            if l > 0 && layer.in_len() != self.layers[l - 1].out_len() {
+                candle_core::bail!(
+                    "fused conv stack: layer {l}'s input is not layer {}'s output",
+                    l - 1
+                )
+            }
+            let w = layer.c_out * layer.k();
+            ranges.push((at, at + w, at + w + layer.c_out));
+            at += w + layer.c_out;
+        }
+        if params.len() != at {
+            candle_core::bail!(
+                "fused conv stack: {} parameters, expected {at}",
+                params.len()
+            )
+        }
+        Ok(ranges)
+    }
+}
+
+impl CpuKernel<2> for FusedConvStack {
+    const NAME: &'static str = "fused conv stack";
+
+    fn forward<T: Real>(&self, inputs: [&[T]; 2]) -> candle_core::Result<(Vec<T>, Shape)> {
+        let ranges = self.check(inputs)?;
+        let [x, params] = inputs;
+        let last = self.layers.len() - 1;
+        let mut outs: Vec<Vec<T>> = Vec::with_capacity(last);
+        let mut y = vec![T::from_f64(0.0); self.layers[last].out_len()];
+        for (l, (layer, &(w0, b0, b1))) in self.layers.iter().zip(&ranges).enumerate() {
+            let input = if l == 0 { x } else { &outs[l - 1] };
+            let (w, b) = (&params[w0..b0], &params[b0..b1]);
+            if l == last {
+                layer.forward_into(input, w, b, &mut y);
+            } else {
+                let mut out = self.pool.take::<T>(layer.out_len());
+                layer.forward_into(input, w, b, &mut out);
+                outs.push(out);
+            }
+        }
+        if let Some(old) = self
+            .saved
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .replace(Box::new(outs))
+        {
+            if let Ok(old) = old.downcast::<Vec<Vec<T>>>() {
+                old.into_iter().for_each(|v| self.pool.give(v));
+            }
+        }
+        Ok((y, self.out_shape()))
+    }
+
+    fn backward<T: Real>(
+        &self,
+        inputs: [&[T]; 2],
+        g: &[T],
+        [want_x, _]: [bool; 2],
+    ) -> candle_core::Result<[Option<Vec<T>>; 2]> {
+        let ranges = self.check(inputs)?;
+        let [x, params] = inputs;
+        let last = self.layers.len() - 1;
+        if g.len() != self.layers[last].out_len() {
+            candle_core::bail!("fused conv stack: gradient of {} elements", g.len())
+        }
+        let saved = self
+            .saved
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take();
+        let outs = match saved.map(|b| b.downcast::<Vec<Vec<T>>>()) {
+            Some(Ok(outs)) if outs.len() == last => *outs,
+            // Not kept (another dtype, or a second backward pass): run the forward again.
+            _ => {
+                let mut outs: Vec<Vec<T>> = Vec::with_capacity(last);
+                for (l, (layer, &(w0, b0, b1))) in
+                    self.layers[..last].iter().zip(&ranges).enumerate()
+                {
+                    let input = if l == 0 { x } else { &outs[l - 1] };
+                    let mut out = self.pool.take::<T>(layer.out_len());
+                    layer.forward_into(input, &params[w0..b0], &params[b0..b1], &mut out);
+                    outs.push(out);
+                }
+                outs
+            }
+        };
+        let mut gp = vec![T::from_f64(0.0); params.len()];
+        let mut gx = want_x.then(|| vec![T::from_f64(0.0); x.len()]);
+        // The gradient w.r.t. the current layer's output (`g` for the last).
+        let mut grad: Option<Vec<T>> = None;
+        for (l, (layer, &(w0, b0, b1))) in self.layers.iter().zip(&ranges).enumerate().rev() {
+            let input = if l == 0 { x } else { &outs[l - 1] };
+            let mut g_in = (l > 0).then(|| self.pool.take::<T>(layer.in_len()));
+            let gin = match g_in.as_deref_mut() {
+                Some(b) => Some(b),
+                None => gx.as_deref_mut(),
+            };
+            let (gw, gb) =
+                layer.backward_into([input, &params[w0..b0]], grad.as_deref().unwrap_or(g), gin);
+            gp[w0..b0].copy_from_slice(&gw);
+            gp[b0..b1].copy_from_slice(&gb);
+            if let Some(old) = std::mem::replace(&mut grad, g_in) {
+                self.pool.give(old);
+            }
+        }
+        if let Some(old) = grad {
+            self.pool.give(old);
+        }
+        outs.into_iter().for_each(|v| self.pool.give(v));
+        Ok([gx, Some(gp)])
+    }
+}
+cpu_op!(FusedConvStack, 2, "nf-fused-conv-stack");

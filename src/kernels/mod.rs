@@ -34,8 +34,11 @@
 //!   statistics, which with one group is plain batch norm (`FusedBatchNorm`, the image
 //!   encoder's on the CPU);
 //! * `conv`: a convolution of channels-last 3-D grids or 2-D images with its bias and an
-//!   optional ReLU on its input (`FusedConv`, the voxel and image encoders' convolutions
-//!   on the CPU), tile by tile without the full window matrix;
+//!   optional ReLU on its input (`FusedConv`, the image encoder's convolutions on the
+//!   CPU), tile by tile without the full window matrix, and a chain of them as one op
+//!   (`FusedConvStack`, the voxel encoder's);
+//! * `pool`: `BufferPool`, the buffers a fused op's caller keeps between calls (the ONet
+//!   decoder's rows, the voxel encoder's grids) so that no step faults them in afresh;
 //! * `adam`: Adam's update as two in-place passes per variable (`AdamMoments`,
 //!   `AdamUpdate`, what [`crate::nn::Adam`] runs);
 //! * `activation` and `simd`: the vectorised hidden activations (ReLU, softplus with its
@@ -101,6 +104,8 @@ mod nerf_loss;
 #[cfg_attr(not(feature = "occupancy"), allow(dead_code))]
 mod onet;
 mod parallel;
+#[cfg_attr(not(feature = "occupancy"), allow(dead_code))]
+mod pool;
 mod scatter;
 #[cfg(target_arch = "x86_64")]
 mod simd;
@@ -115,7 +120,7 @@ pub(crate) use composite::{FusedComposite, Geometry, KernelBuild, Segments};
 #[cfg_attr(not(feature = "occupancy"), allow(unused_imports))]
 pub(crate) use cond_norm::{FusedBatchNorm, FusedCondNorm};
 #[cfg_attr(not(feature = "occupancy"), allow(unused_imports))]
-pub(crate) use conv::FusedConv;
+pub(crate) use conv::{FusedConv, FusedConvStack};
 #[allow(unused_imports)] // the dispatch helper's whole interface, for every kernel
 pub(crate) use dispatch::{contiguous, cpu_bwd, cpu_fwd, cpu_op, cpu_slice, CpuKernel, Real};
 #[cfg(feature = "cuda")]
@@ -131,7 +136,9 @@ pub(crate) use nerf::FusedNerf;
 #[cfg_attr(not(feature = "volume"), allow(unused_imports))]
 pub(crate) use nerf_loss::{Density, FusedNerfLoss, RowEncode};
 #[cfg_attr(not(feature = "occupancy"), allow(unused_imports))]
-pub(crate) use onet::{FusedOnet, OnetScratch};
+pub(crate) use onet::FusedOnet;
+#[cfg_attr(not(feature = "occupancy"), allow(unused_imports))]
+pub(crate) use pool::BufferPool;
 // Outside the kernels, only `volume` runs its own items on the pool.
 #[cfg_attr(not(feature = "volume"), allow(unused_imports))]
 pub(crate) use parallel::for_each_init;

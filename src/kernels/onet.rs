@@ -28,7 +28,7 @@
 //! are summed per chunk of [`CHUNK`] rows and the chunks in their order, so the result
 //! does not depend on the thread count.
 //!
-//! Every `[N, H]` buffer of both passes comes from and returns to an [`OnetScratch`] that
+//! Every `[N, H]` buffer of both passes comes from and returns to a [`BufferPool`] that
 //! the decoder keeps between steps: a fresh buffer of that size is a fresh mapping of
 //! zero pages, whose page faults took about half of the step's time with the system
 //! allocator.
@@ -37,54 +37,10 @@ use super::cond_norm::{FusedCondNorm, Stats};
 use super::dispatch::{cpu_op, CpuKernel, Real};
 use super::mlp::{chunk_rows, matmul, sum_chunks, transpose, View, CHUNK, TILE};
 use super::parallel::{for_each_init, wide};
+use super::pool::BufferPool;
 use candle_core::Shape;
 use std::any::Any;
-use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
-
-/// Buffers an [`OnetScratch`] holds at most.
-const HELD: usize = 64;
-
-/// Row buffers of the fused decoder kept between its steps (each `Vec<f32>` or
-/// `Vec<f64>`, at most [`HELD`]); the decoder owns one and hands it to every [`FusedOnet`].
-#[derive(Debug, Default)]
-pub(crate) struct OnetScratch(Mutex<Vec<Box<dyn Any + Send>>>);
-
-impl OnetScratch {
-    fn lock(&self) -> MutexGuard<'_, Vec<Box<dyn Any + Send>>> {
-        self.0.lock().unwrap_or_else(PoisonError::into_inner)
-    }
-
-    /// A buffer of `len` values: the smallest held one of capacity `≥ len`, its values
-    /// those of its last use (every caller writes each value before reading it), or a
-    /// new one of zeros.
-    fn take<T: Real>(&self, len: usize) -> Vec<T> {
-        let mut held = self.lock();
-        let fit = held
-            .iter()
-            .enumerate()
-            .filter_map(|(i, b)| {
-                let c = b.downcast_ref::<Vec<T>>()?.capacity();
-                (c >= len).then_some((c, i))
-            })
-            .min();
-        match fit.map(|(_, i)| held.swap_remove(i).downcast::<Vec<T>>()) {
-            Some(Ok(v)) => {
-                let mut v = *v;
-                v.resize(len, T::from_f64(0.0));
-                v
-            }
-            _ => vec![T::from_f64(0.0); len],
-        }
-    }
-
-    /// Returns `v` for a later [`OnetScratch::take`] (dropped when [`HELD`] are held).
-    fn give<T: Real>(&self, v: Vec<T>) {
-        let mut held = self.lock();
-        if held.len() < HELD {
-            held.push(Box::new(v));
-        }
-    }
-}
+use std::sync::{Arc, Mutex, PoisonError};
 
 /// The ONet decoder's training pass on `points: [N, 3]`, with the normalisations' scales
 /// and shifts `cond` (norm-major: for normalisation `j` in the order block 0's two, block
@@ -105,7 +61,7 @@ pub(crate) struct FusedOnet {
     lin: Vec<Lin>,
     /// The forward pass's activations ([`Acts`] of the dtype), for the backward pass.
     acts: Mutex<Option<Box<dyn Any + Send>>>,
-    scratch: Arc<OnetScratch>,
+    scratch: Arc<BufferPool>,
 }
 
 /// What the forward pass keeps: `nets[k]` (block `k`'s input, `B + 1` with the output
@@ -152,7 +108,7 @@ impl FusedOnet {
         (rows, hidden, blocks): (usize, usize, usize),
         group: usize,
         eps: f64,
-        scratch: Arc<OnetScratch>,
+        scratch: Arc<BufferPool>,
     ) -> Self {
         let norms = (0..2 * blocks + 1)
             .map(|_| FusedCondNorm {

@@ -25,7 +25,7 @@
 
 use crate::error::{check_points, check_same, check_shape, Dim, Error, Result};
 use crate::field::{ConditionalField, Inside};
-use crate::kernels::{FusedOnet, OnetScratch};
+use crate::kernels::{BufferPool, FusedOnet};
 use crate::nn::weight_jvp;
 use candle_core::{Tensor, D};
 use candle_nn::{Init, VarBuilder};
@@ -168,7 +168,7 @@ pub struct OnetDecoder {
     config: OnetConfig,
     mode: Mutex<NormMode>,
     /// The fused training pass's row buffers, kept between steps.
-    scratch: Arc<OnetScratch>,
+    scratch: Arc<BufferPool>,
 }
 
 /// Builds an [`OnetDecoder`] from `vb` (variables `fc_p`, `block{i}.{fc0,fc1,norm0,norm1}`,

@@ -26,9 +26,10 @@
 //! the step took 0.75 s longer (docs/benchmarks.md).
 
 use crate::error::{check_finite, check_float, check_same, Error, Result};
-use crate::kernels::FusedConv;
+use crate::kernels::{BufferPool, FusedConv, FusedConvStack};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{init::Init, linear, Linear, Module, VarBuilder};
+use std::sync::Arc;
 
 /// The kernel size of every convolution (ONet's 3, padding 1).
 const KERNEL: usize = 3;
@@ -201,6 +202,8 @@ pub struct VoxelEncoder {
     stages: Vec<Conv3>,
     fc: Linear,
     config: VoxelEncoderConfig,
+    /// The fused convolutions' grids and gradients, kept between calls.
+    pool: Arc<BufferPool>,
 }
 
 /// Builds a [`VoxelEncoder`] from `vb`, with ONet's variable names: `conv_in`,
@@ -275,6 +278,7 @@ pub fn voxel_encoder(config: &VoxelEncoderConfig, vb: VarBuilder) -> Result<Voxe
         stages,
         fc: linear(features, config.c_dim, vb.pp("fc"))?,
         config: config.clone(),
+        pool: Arc::default(),
     })
 }
 
@@ -396,10 +400,29 @@ impl VoxelEncoder {
         }
         let x = voxels.reshape((b, r * r * r, 1))?; // channels last
         let reference = self.config.force_reference;
-        let mut h = self.conv_in.forward(&x, false, reference)?;
-        for conv in &self.stages {
-            h = conv.forward(&h, true, reference)?;
-        }
+        let h = if !reference && crate::kernels::cpu_fused_for(&x) {
+            // The whole chain as one op: its grids and their gradients in kept buffers.
+            let (mut layers, mut params, mut ci) = (Vec::new(), Vec::new(), 1);
+            for (i, conv) in std::iter::once(&self.conv_in)
+                .chain(&self.stages)
+                .enumerate()
+            {
+                let co = conv.weight.dim(0)?;
+                let stride = conv.side / conv.out_side;
+                layers.push(FusedConv::cubic(b, conv.side, stride, [ci, co], i > 0));
+                params.push(conv.weight.flatten_all()?);
+                params.push(conv.bias.clone());
+                ci = co;
+            }
+            let op = FusedConvStack::new(layers, Arc::clone(&self.pool));
+            x.contiguous()?.apply_op2(&Tensor::cat(&params, 0)?, op)?
+        } else {
+            let mut h = self.conv_in.forward(&x, false, reference)?;
+            for conv in &self.stages {
+                h = conv.forward(&h, true, reference)?;
+            }
+            h
+        };
         // [B, n³, C] → PyTorch's channel-major flattening of [B, C, n, n, n].
         let hidden = h
             .transpose(1, 2)?
