@@ -191,6 +191,27 @@ impl FusedConv {
         }
     }
 
+    /// The grid row of output cell `o`'s first tap where its whole window lies inside
+    /// the grid (no padding read), else `None`.
+    #[inline(always)]
+    fn inside(&self, o: usize, out: [usize; 3]) -> Option<usize> {
+        let (size, k, s) = (self.size, self.kernel, self.stride);
+        let at = [o / (out[1] * out[2]), (o / out[2]) % out[1], o % out[2]];
+        let mut lo = [0; 3];
+        for (((lo, at), (&p, &k)), &n) in lo
+            .iter_mut()
+            .zip(at)
+            .zip(self.pad.iter().zip(&k))
+            .zip(&size)
+        {
+            *lo = (s * at).checked_sub(p)?;
+            if *lo + k > n {
+                return None;
+            }
+        }
+        Some(((lo[0] * size[1] + lo[1]) * size[2] + lo[2]) * self.c_in)
+    }
+
     /// Gathers the windows of output rows `r0 .. r0 + rows` of the batch (row `g·cells + o`
     /// is cell `o` of grid `g`; a tile may span grids) from `x: [B, D·H·W, Cᵢ]` into
     /// `cols: [rows, taps·Cᵢ]`, through the input activation.
@@ -200,9 +221,23 @@ impl FusedConv {
         let (cells, grid_len) = (self.out_cells(), self.size.iter().product::<usize>() * ci);
         let zero = T::from_f64(0.0);
         let (relu, run) = (self.relu_input, self.kernel[2] * ci);
+        let ([k0, k1, _], [_, s1, s2]) = (self.kernel, self.size);
         for (r, row) in sc.cols[..rows * k].chunks_mut(k).enumerate() {
             let (g, o) = ((r0 + r) / cells, (r0 + r) % cells);
             let grid = &x[g * grid_len..(g + 1) * grid_len];
+            if ci == 1 && run == 3 && !relu {
+                // Three values per window row (one input channel, the voxel encoder's
+                // first convolution): inside the grid, fixed-size moves instead of a
+                // call per row.
+                if let Some(first) = self.inside(o, out) {
+                    for (ab, dst) in row.chunks_exact_mut(3).enumerate() {
+                        let src = first + ((ab / k1) * s1 + ab % k1) * s2;
+                        dst.copy_from_slice(&grid[src..src + 3]);
+                    }
+                    debug_assert_eq!(row.len(), 3 * k0 * k1);
+                    continue;
+                }
+            }
             self.runs(o, out, |d, taps| {
                 let dst = &mut row[d..d + run];
                 let Some((src, c0, c1)) = taps else {
