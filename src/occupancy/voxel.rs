@@ -10,9 +10,10 @@
 //! every other voxel of each axis (tested against the crate's `conv3d` so subsampled,
 //! values and gradients) at an eighth of its multiply-adds and memory.
 //!
-//! On the CPU each convolution, with its bias and the ReLU before it, is one fused op
-//! that gathers and multiplies tile by tile and scatters the input gradient straight into
-//! its grid; elsewhere (and with [`VoxelEncoderConfig::force_reference`]) the same
+//! On the CPU the whole chain of convolutions, each with its bias and the ReLU before it,
+//! is one fused op that gathers and multiplies tile by tile and scatters each input
+//! gradient straight into its grid, the intermediate grids and their gradients in buffers
+//! the encoder keeps between calls; elsewhere (and with [`VoxelEncoderConfig::force_reference`]) the same
 //! function runs as candle's ops: `index_select` of the whole window matrix, a matrix
 //! product, and `index_add` for the gradient. (The crate's `conv3d`, candle's 2-D
 //! convolution over stacked depth windows, takes about 2.4 times as long as the candle-op
@@ -21,9 +22,9 @@
 //!
 //! Cost: `cargo bench --bench train_step -- --model onet_voxels` (this encoder at the
 //! default width 16, 16 grids of 32³, with the ONet decoder on 16 × 1 024 points) takes
-//! about 0.5 s per training step on a 2-core Intel Xeon with the fused convolutions and
-//! the fused decoder, of which about 0.25 s is the encoder's; with candle's convolutions
-//! the step took 0.75 s longer (docs/benchmarks.md).
+//! about 0.35–0.45 s per training step on a 2-core Intel Xeon with the fused
+//! convolutions and the fused decoder, of which about 0.15 s is the encoder's; with
+//! candle's convolutions the step took 0.75 s longer (docs/benchmarks.md).
 
 use crate::error::{check_finite, check_float, check_same, Error, Result};
 use crate::kernels::{BufferPool, FusedConv, FusedConvStack};
