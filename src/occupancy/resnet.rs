@@ -195,8 +195,9 @@ fn bn_cl(bn: &BatchNorm, x: &Tensor, train: bool, relu: bool) -> Result<Tensor> 
 /// is what makes a 64 × 64 batch affordable on a CPU — a stride-1 stem would run the first
 /// stage on 16 times as many pixels. At 64 × 64 the last stage still sees 2 × 2 cells.
 ///
-/// Batch normalisation is candle-nn's [`BatchNorm`]. With `train = true` it normalises
-/// each channel by the mean and biased variance over the batch and the pixels, and
+/// Batch normalisation is candle-nn's [`BatchNorm`] (its variables and its function; in
+/// training on the CPU one fused op per layer computes it). With `train = true` it
+/// normalises each channel by the mean and biased variance over the batch and the pixels, and
 /// updates its running statistics in place, `r ← (1 − m)·r + m·stat` (the variance
 /// unbiased, as PyTorch); with `train = false` it uses the running statistics only, so
 /// an image's code does not depend on the other images of the batch. The running
