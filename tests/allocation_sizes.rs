@@ -596,7 +596,7 @@ const ALLOWED: &[(&str, &str, &str)] = &[
     ),
     (
         "kernels/conv.rs",
-        "vec![_; self.layers[last].out_len()]",
+        "vec![_; layer.out_len()]",
         "checked: VoxelEncoder::forward checks B·R³·max(27, 4w) values, which bound every convolution's output, with limits::check_bytes first",
     ),
     (

@@ -8,7 +8,7 @@ mod common;
 
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
-use common::{central_diff, normal_tensor, v64};
+use common::{assert_parts_close, central_diff, normal_tensor, v64};
 use neural_fields::nn::build_seeded;
 use neural_fields::occupancy::{voxel_encoder, VoxelEncoder, VoxelEncoderConfig};
 use neural_fields::rng::SplitMix64;
@@ -523,16 +523,8 @@ fn fused_convolution_chain_matches_the_reference_encoder() {
             let (cf, gf) = run(&fused);
             let (cr, gr) = run(&plain);
             let close = |what: &str, a: &[f64], e: &[f64]| {
-                assert_eq!(a.len(), e.len(), "{what}");
-                let scale = e.iter().fold(1.0f64, |m, v| m.max(v.abs()));
-                let gap = a
-                    .iter()
-                    .zip(e)
-                    .fold(0.0f64, |m, (a, e)| m.max((a - e).abs()));
-                assert!(
-                    gap <= tol * scale,
-                    "{what} ({dtype:?}, B = {b}): gap {gap:e}"
-                );
+                let what = format!("{what} ({dtype:?}, B = {b})");
+                assert_parts_close(&[a.to_vec()], &[e.to_vec()], tol, &what);
             };
             close("codes", &cf, &cr);
             close(

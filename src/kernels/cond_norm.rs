@@ -427,17 +427,34 @@ impl<T: WithDType> Wide for Pass<'_, '_, T> {
 }
 
 /// Batch normalisation of rows `x: [N, H]` with scale and shift `gamma, beta: [H]` and an
-/// optional ReLU, as one op: [`FusedCondNorm`] with one group of all `N` rows (its
-/// `group = rows`). The forward pass's statistics are left in the layer's `saved` for the
-/// caller's running statistics.
+/// optional ReLU, as one op: [`FusedCondNorm`] with one group of all `N` rows. The forward
+/// pass's statistics are left in [`FusedBatchNorm::saved`] for the caller's running
+/// statistics.
 #[derive(Debug)]
-pub(crate) struct FusedBatchNorm(pub(crate) FusedCondNorm);
+pub(crate) struct FusedBatchNorm(FusedCondNorm);
 
 impl FusedBatchNorm {
+    /// The op over `rows × width` rows with `ε = eps`, the ReLU after it where `relu`.
+    pub(crate) fn new(rows: usize, width: usize, eps: f64, relu: bool) -> Self {
+        Self(FusedCondNorm {
+            rows,
+            width,
+            group: rows.max(1),
+            eps,
+            relu,
+            saved: Arc::new(Mutex::new(None)),
+        })
+    }
+
+    /// Where the forward pass leaves its batch statistics (read by the backward pass too).
+    pub(crate) fn saved(&self) -> Arc<Mutex<Option<Stats>>> {
+        Arc::clone(&self.0.saved)
+    }
+
     fn check<T>(&self, [x, g, b]: [&[T]; 3]) -> candle_core::Result<()> {
         let n = &self.0;
-        if n.group != n.rows || n.rows == 0 {
-            candle_core::bail!("fused batch norm: {} rows in groups of {}", n.rows, n.group)
+        if n.rows == 0 {
+            candle_core::bail!("fused batch norm: no rows")
         }
         let want = [n.rows * n.width, n.width, n.width];
         if [x.len(), g.len(), b.len()] != want {

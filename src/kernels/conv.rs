@@ -53,6 +53,13 @@ pub(crate) struct FusedConv {
     pub(crate) relu_input: bool,
 }
 
+/// The coordinates of cell `o` of a grid of extents `out` (row-major, the last axis
+/// fastest).
+#[inline(always)]
+fn cell(o: usize, out: [usize; 3]) -> [usize; 3] {
+    [o / (out[1] * out[2]), (o / out[2]) % out[1], o % out[2]]
+}
+
 /// Per-worker scratch: one tile's gathered windows and its window gradients.
 struct Scratch<T> {
     cols: Vec<T>,
@@ -80,14 +87,14 @@ impl FusedConv {
         }
     }
 
-    /// A `k × k` convolution with padding `⌊k/2⌋` of `h × w` images.
+    /// A `k × k` convolution with padding `⌊k/2⌋` of `h × w` images, its input taken as
+    /// it is (no ReLU).
     pub(crate) fn square(
         batch: usize,
         [h, w]: [usize; 2],
         k: usize,
         stride: usize,
         [c_in, c_out]: [usize; 2],
-        relu_input: bool,
     ) -> Self {
         Self {
             batch,
@@ -97,7 +104,7 @@ impl FusedConv {
             stride,
             c_in,
             c_out,
-            relu_input,
+            relu_input: false,
         }
     }
 
@@ -160,7 +167,7 @@ impl FusedConv {
         mut f: impl FnMut(usize, Option<(usize, usize, usize)>),
     ) {
         let (size, k, s, ci) = (self.size, self.kernel, self.stride, self.c_in);
-        let at = [o / (out[1] * out[2]), (o / out[2]) % out[1], o % out[2]];
+        let at = cell(o, out);
         // The input coordinate of offset `a` on axis `axis`, if inside.
         let coord = |axis: usize, a: usize| {
             (s * at[axis] + a)
@@ -196,7 +203,7 @@ impl FusedConv {
     #[inline(always)]
     fn inside(&self, o: usize, out: [usize; 3]) -> Option<usize> {
         let (size, k, s) = (self.size, self.kernel, self.stride);
-        let at = [o / (out[1] * out[2]), (o / out[2]) % out[1], o % out[2]];
+        let at = cell(o, out);
         let mut lo = [0; 3];
         for (((lo, at), (&p, &k)), &n) in lo
             .iter_mut()
@@ -543,6 +550,25 @@ impl FusedConvStack {
         }
     }
 
+    /// The outputs of every layer but the last, in buffers of the pool, for the first
+    /// layer's input `x` and the layers' `ranges` in `params` (from [`Self::check`]).
+    fn intermediates<T: Real>(
+        &self,
+        x: &[T],
+        params: &[T],
+        ranges: &[(usize, usize, usize)],
+    ) -> Vec<Vec<T>> {
+        let last = self.layers.len().saturating_sub(1);
+        let mut outs: Vec<Vec<T>> = Vec::with_capacity(last);
+        for (layer, &(w0, b0, b1)) in self.layers[..last].iter().zip(ranges) {
+            let input = outs.last().map_or(x, |o| o.as_slice());
+            let mut out = self.pool.take::<T>(layer.out_len());
+            layer.forward_into(input, &params[w0..b0], &params[b0..b1], &mut out);
+            outs.push(out);
+        }
+        outs
+    }
+
     /// The output shape `[B, cells, Cₒ]` of the last layer.
     fn out_shape(&self) -> Shape {
         match self.layers.last() {
@@ -595,30 +621,12 @@ impl CpuKernel<2> for FusedConvStack {
     fn forward<T: Real>(&self, inputs: [&[T]; 2]) -> candle_core::Result<(Vec<T>, Shape)> {
         let ranges = self.check(inputs)?;
         let [x, params] = inputs;
-        let last = self.layers.len() - 1;
-        let mut outs: Vec<Vec<T>> = Vec::with_capacity(last);
-        let mut y = vec![T::from_f64(0.0); self.layers[last].out_len()];
-        for (l, (layer, &(w0, b0, b1))) in self.layers.iter().zip(&ranges).enumerate() {
-            let input = if l == 0 { x } else { &outs[l - 1] };
-            let (w, b) = (&params[w0..b0], &params[b0..b1]);
-            if l == last {
-                layer.forward_into(input, w, b, &mut y);
-            } else {
-                let mut out = self.pool.take::<T>(layer.out_len());
-                layer.forward_into(input, w, b, &mut out);
-                outs.push(out);
-            }
-        }
-        if let Some(old) = self
-            .saved
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .replace(Box::new(outs))
-        {
-            if let Ok(old) = old.downcast::<Vec<Vec<T>>>() {
-                old.into_iter().for_each(|v| self.pool.give(v));
-            }
-        }
+        let outs = self.intermediates(x, params, &ranges);
+        let (layer, &(w0, b0, b1)) = (&self.layers[outs.len()], &ranges[outs.len()]);
+        let mut y = vec![T::from_f64(0.0); layer.out_len()];
+        let input = outs.last().map_or(x, |o| o.as_slice());
+        layer.forward_into(input, &params[w0..b0], &params[b0..b1], &mut y);
+        *self.saved.lock().unwrap_or_else(PoisonError::into_inner) = Some(Box::new(outs));
         Ok((y, self.out_shape()))
     }
 
@@ -641,19 +649,8 @@ impl CpuKernel<2> for FusedConvStack {
             .take();
         let outs = match saved.map(|b| b.downcast::<Vec<Vec<T>>>()) {
             Some(Ok(outs)) if outs.len() == last => *outs,
-            // Not kept (another dtype, or a second backward pass): run the forward again.
-            _ => {
-                let mut outs: Vec<Vec<T>> = Vec::with_capacity(last);
-                for (l, (layer, &(w0, b0, b1))) in
-                    self.layers[..last].iter().zip(&ranges).enumerate()
-                {
-                    let input = if l == 0 { x } else { &outs[l - 1] };
-                    let mut out = self.pool.take::<T>(layer.out_len());
-                    layer.forward_into(input, &params[w0..b0], &params[b0..b1], &mut out);
-                    outs.push(out);
-                }
-                outs
-            }
+            // Not kept (a second backward pass): run the layers again.
+            _ => self.intermediates(x, params, &ranges),
         };
         let mut gp = vec![T::from_f64(0.0); params.len()];
         let mut gx = want_x.then(|| vec![T::from_f64(0.0); x.len()]);

@@ -118,7 +118,7 @@ pub use composite::X_MAX;
 #[cfg_attr(not(feature = "volume"), allow(unused_imports))]
 pub(crate) use composite::{FusedComposite, Geometry, KernelBuild, Segments};
 #[cfg_attr(not(feature = "occupancy"), allow(unused_imports))]
-pub(crate) use cond_norm::{FusedBatchNorm, FusedCondNorm};
+pub(crate) use cond_norm::FusedBatchNorm;
 #[cfg_attr(not(feature = "occupancy"), allow(unused_imports))]
 pub(crate) use conv::{FusedConv, FusedConvStack};
 #[allow(unused_imports)] // the dispatch helper's whole interface, for every kernel

@@ -281,16 +281,8 @@ impl OnetDecoder {
     /// `r ← (1 − m) r + m·stat` for the batch `mean` and biased `var` (`[H]`) of `rows`
     /// rows, the variance made unbiased.
     fn update_running(&self, n: &CondNorm, mean: &Tensor, var: &Tensor, rows: usize) -> Result<()> {
-        let m = self.config.momentum;
-        let unbiased = if rows > 1 {
-            (var * (rows as f64 / (rows - 1) as f64))?
-        } else {
-            var.clone()
-        };
-        let mut rm = lock(&n.running_mean);
-        *rm = ((&*rm * (1.0 - m))? + (mean * m)?)?;
-        let mut rv = lock(&n.running_var);
-        *rv = ((&*rv * (1.0 - m))? + (unbiased * m)?)?;
+        let (mut rm, mut rv) = (lock(&n.running_mean), lock(&n.running_var));
+        (*rm, *rv) = running_update((&rm, &rv), (mean, var), rows, self.config.momentum)?;
         Ok(())
     }
 
@@ -735,3 +727,25 @@ impl SimpleDecoder {
 }
 
 logit_decoder_field!(SimpleDecoder);
+
+/// Running statistics `(mean, var)` (`[H]` each) after one batch of `rows` rows:
+/// `r ← (1 − m)·r + m·stat` for the batch `mean` and the biased batch `var` made
+/// unbiased (times `rows/(rows − 1)` where `rows > 1`), as PyTorch's and candle-nn's batch
+/// norms update theirs. Shared by the decoder's conditional norms and the image encoder's
+/// fused batch norms.
+pub(crate) fn running_update(
+    (running_mean, running_var): (&Tensor, &Tensor),
+    (mean, var): (&Tensor, &Tensor),
+    rows: usize,
+    m: f64,
+) -> Result<(Tensor, Tensor)> {
+    let unbiased = if rows > 1 {
+        rows as f64 / (rows - 1) as f64
+    } else {
+        1.0
+    };
+    Ok((
+        ((running_mean * (1.0 - m))? + (mean * m)?)?,
+        ((running_var * (1.0 - m))? + (var * (m * unbiased))?)?,
+    ))
+}

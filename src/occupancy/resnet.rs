@@ -9,15 +9,16 @@
 //! they are candle-nn's `Conv2d` on `[B, C, H, W]`. Both compute the same function (the
 //! tests compare them); docs/benchmarks.md has the cost of a training step.
 
+use super::onet::running_update;
 use crate::error::{check_finite, check_float, check_same, check_shape, Dim, Error, Result};
-use crate::kernels::{FusedBatchNorm, FusedCondNorm, FusedConv};
+use crate::kernels::{FusedBatchNorm, FusedConv};
 use candle_core::Tensor;
 use candle_core::Var;
 use candle_nn::{
     batch_norm, conv2d_no_bias, linear, BatchNorm, BatchNormConfig, Conv2d, Conv2dConfig, Linear,
     Module, ModuleT, VarBuilder,
 };
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::PoisonError;
 
 /// The smallest image side [`ResnetEncoder::forward`] accepts: the network's total
 /// stride, so that the last stage sees at least one cell of image.
@@ -120,7 +121,7 @@ fn conv_cl(
 ) -> Result<(Tensor, [usize; 2])> {
     let weight = conv.weight();
     let (co, ci, k, _) = weight.dims4()?;
-    let op = FusedConv::square(x.dim(0)?, [h, w], k, stride, [ci, co], false);
+    let op = FusedConv::square(x.dim(0)?, [h, w], k, stride, [ci, co]);
     let out = op.out_size().ok_or_else(|| {
         Error::invalid(
             "images",
@@ -145,36 +146,23 @@ fn bn_cl(bn: &BatchNorm, x: &Tensor, train: bool, relu: bool) -> Result<Tensor> 
         let y = bn.forward_t(&rows, train)?.reshape((b, n, c))?;
         return Ok(if relu { y.relu()? } else { y });
     };
+    let op = FusedBatchNorm::new(b * n, c, bn.eps(), relu);
     // The op's batch statistics, kept for its backward pass and read here.
-    let saved = Arc::new(Mutex::new(None));
-    let op = FusedBatchNorm(FusedCondNorm {
-        rows: b * n,
-        width: c,
-        group: b * n,
-        eps: bn.eps(),
-        relu,
-        saved: Arc::clone(&saved),
-    });
+    let saved = op.saved();
     let y = rows.contiguous()?.apply_op3(gamma, beta, op)?;
     let stats = saved
         .lock()
         .unwrap_or_else(PoisonError::into_inner)
         .clone()
         .ok_or_else(|| Error::invalid("images", "a batch-norm pass with statistics", "none"))?;
-    let m = bn.momentum();
-    let unbiased = if b * n > 1 {
-        (b * n) as f64 / (b * n - 1) as f64
-    } else {
-        1.0
+    let (rm, rv) = (bn.running_mean(), bn.running_var());
+    let column = |v: Vec<f64>| -> Result<Tensor> {
+        Ok(Tensor::from_vec(v, c, rm.device())?.to_dtype(rm.dtype())?)
     };
-    for (running, stat, factor) in [
-        (bn.running_mean(), stats.mean, 1.0),
-        (bn.running_var(), stats.var, unbiased),
-    ] {
-        let stat = Tensor::from_vec(stat, c, running.device())?.to_dtype(running.dtype())?;
-        let next = ((running * (1.0 - m))? + (stat * (m * factor))?)?;
-        Var::from_tensor(running)?.set(&next)?;
-    }
+    let batch = (&column(stats.mean)?, &column(stats.var)?);
+    let (mean, var) = running_update((rm, rv), batch, b * n, bn.momentum())?;
+    Var::from_tensor(rm)?.set(&mean)?;
+    Var::from_tensor(rv)?.set(&var)?;
     Ok(y.reshape((b, n, c))?)
 }
 
