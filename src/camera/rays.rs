@@ -112,7 +112,8 @@ impl Rays {
     /// .with_radii(Tensor::new(&[0.01f32], &Device::Cpu)?)?;
     /// // Unit directions halve t, so the radius per unit t doubles.
     /// let unit = rays.normalized()?;
-    /// assert_eq!(unit.radii().unwrap().to_vec1::<f32>()?, vec![0.005]);
+    /// let radii = unit.radii().map(|r| r.to_vec1::<f32>()).transpose()?;
+    /// assert_eq!(radii, Some(vec![0.005]));
     /// # Ok::<(), neural_fields::Error>(())
     /// ```
     ///

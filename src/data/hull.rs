@@ -121,10 +121,10 @@ impl Dataset {
     /// ```
     /// use neural_fields::data::{load, LoadConfig};
     /// let train = load("examples/data/wuson".as_ref(), &LoadConfig::default())?;
-    /// let b = train.visual_hull(0.0)?.expect("the views have alpha");
+    /// let hull = train.visual_hull(0.0)?; // `Some`: the views have alpha
     /// // The mesh was scaled into the unit ball (examples/data/README.md): the hull's box
     /// // is far tighter than the ±1.5 cube of layouts that state no bounds.
-    /// assert!(b[..3].iter().all(|&v| v > -1.06) && b[3..].iter().all(|&v| v < 1.06));
+    /// assert!(hull.is_some_and(|b| b[..3].iter().all(|&v| v > -1.06) && b[3..].iter().all(|&v| v < 1.06)));
     /// # Ok::<(), neural_fields::Error>(())
     /// ```
     ///

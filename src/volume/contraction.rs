@@ -108,7 +108,7 @@ fn parts(x: &Tensor) -> Result<Parts> {
 /// let variances = Tensor::new(&[[1.0f64, 1.0, 1.0], [1.0, 1.0, 1.0]], &dev)?;
 /// let (m, v) = contract(&means, Some(&variances))?;
 /// assert_eq!(m.to_vec2::<f64>()?[1], [0.0, 0.0, 1.5]);
-/// let v = v.expect("covariances in, covariances out").to_vec2::<f64>()?;
+/// let v = v.map(|v| v.to_vec2::<f64>()).transpose()?.unwrap_or_default(); // covariances in, out
 /// assert_eq!(v[0], [1.0, 1.0, 1.0]);        // unchanged inside the unit ball
 /// // at r = 2: a = 0.75 across, 1/r² = 0.25 along the mean's direction
 /// assert!((v[1][0] - 0.5625).abs() < 1e-12 && (v[1][2] - 0.0625).abs() < 1e-12);
