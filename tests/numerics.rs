@@ -4,7 +4,7 @@
 mod common;
 
 use candle_core::{DType, Device, Tensor, Var};
-use common::{central_diff, v64};
+use common::{central_diff, central_diff_bound, v64};
 use neural_fields::numerics::{bce_with_logits, safe_sin_cos, sigmoid, sin_cos_pi, softplus};
 use proptest::prelude::*;
 
@@ -129,4 +129,27 @@ fn bad_inputs_name_the_argument() {
         e.to_string().starts_with("targets: expected dtype F32"),
         "{e}"
     );
+}
+
+/// The finite-difference helper every gradient test relies on: a kink anywhere inside
+/// its stencil, however close to `x`, is either refused or covered by its error bar
+/// (the failure it pins: a kink 1e-7 from `x` in tests/nerf_color_loss.rs passed both
+/// earlier checks with a bias of half its slope jump).
+#[test]
+fn fd_bound_covers_a_kink_close_to_the_point() {
+    let h = 1e-5;
+    for jump in [1e-9, 3e-8, 1e-6, 1e-3] {
+        for k in 0..=400 {
+            let offset = h * (-1.0 + k as f64 / 200.0) * 1.01;
+            // Slope 2e-3 left of the kink and 2e-3 + jump right of it; x = 0.3.
+            let mut f = |x: f64| 0.1 + 2e-3 * (x - 0.3) + jump * (x - 0.3 - offset).max(0.0);
+            let slope = if offset < 0.0 { 2e-3 + jump } else { 2e-3 };
+            if let Some((d, bar)) = central_diff_bound(&mut f, 0.3, h, 1.0) {
+                assert!(
+                    (d - slope).abs() <= bar,
+                    "jump {jump:e} at offset {offset:e}: {d} vs {slope} ± {bar:e}"
+                );
+            }
+        }
+    }
 }
