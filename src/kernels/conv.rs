@@ -6,11 +6,16 @@
 //! `[B·cells, taps·Cᵢ]` window matrix that a reference path (candle's `index_select` or
 //! `conv2d`, matrix product, bias and ReLU ops) allocates, and the input gradient is
 //! scattered straight into its grid instead of through `index_add` or a transposed
-//! convolution.
+//! convolution. A one-channel input (the voxel encoder's first convolution, three values
+//! per window row) is computed by lines of output cells straight from the grid instead
+//! ([`Lines`]): its window matrix would be 27 times the grid for a 27-deep product. The
+//! weight matrices and the backward pass's per-item partial sums come from a
+//! [`BufferPool`] (the chain's, kept between steps), so a large layer's are not faulted in
+//! afresh on every call.
 
 use super::dispatch::{cpu_op, CpuKernel, Real};
 use super::mlp::{matmul, View};
-use super::parallel::for_each_init;
+use super::parallel::{for_each_init, wide, Wide};
 use super::pool::BufferPool;
 use candle_core::Shape;
 use std::any::Any;
@@ -18,13 +23,21 @@ use std::sync::{Arc, Mutex, PoisonError};
 
 /// Elements of a tile's gathered windows (rows × `taps·Cᵢ`) that the tile size aims at.
 const TILE_ELEMS: usize = 32_768;
+/// Output rows per tile of the backward pass, at least.
+const DEPTH_ROWS: usize = 128;
 /// Grids per backward work item are chosen so that there are at most this many items:
 /// the items keep one weight gradient each (a count that does not depend on the machine,
 /// so neither do the sums).
 const MAX_ITEMS: usize = 8;
 /// Output rows per backward work item, at least (fewer items for small outputs, so that
 /// a late stage does not zero and sum eight copies of a large weight for a few rows).
-const ITEM_ROWS: usize = 128;
+const ITEM_ROWS: usize = 64;
+/// Outputs per register group of a one-channel convolution (16 f32 values fill one
+/// AVX-512 register).
+const LANES: usize = 16;
+/// Forward work items of a one-channel convolution (lines of output cells split into
+/// about this many).
+const LINE_ITEMS: usize = 64;
 
 /// `y[b, o, j] = bias[j] + Σ_{t, i} w[j, i, t] · a(x)[b, s·o + t − p, i]` for grids
 /// `x: [B, D·H·W, Cᵢ]` (cell `(d, h, w)` at row `(d·H + h)·W + w`; an image has `D = 1`),
@@ -136,13 +149,22 @@ impl FusedConv {
         self.taps() * self.c_in
     }
 
-    /// Output cells per tile.
-    fn tile_rows(&self) -> usize {
-        (TILE_ELEMS / self.k().max(1)).clamp(6, 256)
+    /// Output cells per tile: about [`TILE_ELEMS`] gathered values, and in the backward
+    /// pass at least [`DEPTH_ROWS`] (each tile adds its rows' products to the whole
+    /// `Cₒ × taps·Cᵢ` weight gradient, so a shallow tile rereads it for few products).
+    fn tile_rows(&self, backward: bool) -> usize {
+        let rows = (TILE_ELEMS / self.k().max(1)).clamp(6, 256);
+        if backward {
+            rows.max(DEPTH_ROWS)
+        } else {
+            rows
+        }
     }
 
-    fn scratch<T: Real>(&self, dcols: bool) -> Scratch<T> {
-        let len = self.tile_rows() * self.k();
+    /// A worker's tile buffers for the forward or the backward pass (`dcols`: with the
+    /// window gradient's).
+    fn scratch<T: Real>(&self, backward: bool, dcols: bool) -> Scratch<T> {
+        let len = self.tile_rows(backward) * self.k();
         Scratch {
             cols: vec![T::from_f64(0.0); len],
             dcols: if dcols {
@@ -266,10 +288,11 @@ impl FusedConv {
     }
 
     /// The weight as `[taps·Cᵢ, Cₒ]` (row `t·Cᵢ + i`, column `j`; the forward pass's), or
-    /// with `by_output` as `[Cₒ, taps·Cᵢ]` (the backward pass's), row-major.
-    fn weight_matrix<T: Real>(&self, w: &[T], by_output: bool) -> Vec<T> {
+    /// with `by_output` as `[Cₒ, taps·Cᵢ]` (the backward pass's), row-major, in a buffer of
+    /// `pool` (every value written).
+    fn weight_matrix<T: Real>(&self, w: &[T], by_output: bool, pool: &BufferPool) -> Vec<T> {
         let (ci, co, k, taps) = (self.c_in, self.c_out, self.k(), self.taps());
-        let mut m = vec![T::from_f64(0.0); k * co];
+        let mut m = pool.take::<T>(k * co);
         if by_output {
             // Row `j` is a transpose of `w`'s `[Cᵢ, taps]` block `j`.
             for (row, wj) in m.chunks_mut(k.max(1)).zip(w.chunks(k.max(1))) {
@@ -295,6 +318,12 @@ impl FusedConv {
             }
         }
         m
+    }
+
+    /// Whether the op runs by lines of output cells ([`Lines`]): one input channel and
+    /// whole register groups of outputs. Otherwise by gathered tiles.
+    fn by_lines(&self) -> bool {
+        self.c_in == 1 && self.c_out.is_multiple_of(LANES)
     }
 
     fn check<T>(&self, [x, w, b]: [&[T]; 3]) -> candle_core::Result<()> {
@@ -331,11 +360,17 @@ impl FusedConv {
         self.batch * self.size.iter().product::<usize>() * self.c_in
     }
 
-    /// The output into `y` (`out_len` values, every one written).
-    fn forward_into<T: Real>(&self, x: &[T], w: &[T], bias: &[T], y: &mut [T]) {
+    /// The output into `y` (`out_len` values, every one written); the weight matrix in a
+    /// buffer of `pool`.
+    fn forward_into<T: Real>(&self, x: &[T], w: &[T], bias: &[T], y: &mut [T], pool: &BufferPool) {
         let (co, k) = (self.c_out, self.k());
-        let wk = self.weight_matrix(w, false);
-        let tile = self.tile_rows();
+        let wk = self.weight_matrix(w, false, pool);
+        if self.by_lines() {
+            self.forward_lines(x, &wk, bias, y);
+            pool.give(wk);
+            return;
+        }
+        let tile = self.tile_rows(false);
         let items: Vec<(usize, &mut [T])> = y
             .chunks_mut(tile * co)
             .enumerate()
@@ -343,7 +378,7 @@ impl FusedConv {
             .collect();
         for_each_init(
             items,
-            || self.scratch::<T>(false),
+            || self.scratch::<T>(false, false),
             |sc, (r0, y)| {
                 let rows = y.len() / co;
                 self.gather(x, r0, rows, sc);
@@ -363,31 +398,38 @@ impl FusedConv {
                 );
             },
         );
+        pool.give(wk);
     }
 
-    /// `(∂L/∂w, ∂L/∂bias)`, and `∂L/∂x` into `gx` where given (`x`'s length; every value
-    /// written).
+    /// `∂L/∂w` into `gw` (`[Cₒ, Cᵢ, k…]`), `∂L/∂bias` into `gb`, and `∂L/∂x` into `gx`
+    /// where given (`x`'s length); every value of each written. The weight matrix and the
+    /// work items' partial sums in buffers of `pool`.
     fn backward_into<T: Real>(
         &self,
         [x, w]: [&[T]; 2],
         g: &[T],
         gx: Option<&mut [T]>,
-    ) -> (Vec<T>, Vec<T>) {
+        [gw, gb]: [&mut [T]; 2],
+        pool: &BufferPool,
+    ) {
         let (ci, co, k, taps) = (self.c_in, self.c_out, self.k(), self.taps());
         let Some(out) = self.out_size() else {
-            return (Vec::new(), Vec::new());
+            return;
         };
         let (cells, grid_len) = (self.out_cells(), self.size.iter().product::<usize>() * ci);
-        let wj = self.weight_matrix(w, true);
-        let tile = self.tile_rows();
+        // The one-channel path reads the weight by taps (`[taps, Cₒ]`), the other by outputs.
+        let lines = self.by_lines();
+        let wj = self.weight_matrix(w, !lines, pool);
         // Whole grids per item (each item scatters into its own grids only).
         let items_n = (self.batch * cells)
             .div_ceil(ITEM_ROWS)
             .clamp(1, MAX_ITEMS.min(self.batch.max(1)));
         let per_item = self.batch.div_ceil(items_n).max(1);
         let items_n = self.batch.div_ceil(per_item);
-        // Per item: the weight gradient as `[Cₒ, taps·Cᵢ]`, then the bias gradient.
-        let mut partial = vec![T::from_f64(0.0); items_n * (co * k + co)];
+        // Per item: the weight gradient as `[Cₒ, taps·Cᵢ]` (the one-channel path's as
+        // `[taps, Cₒ]`), then the bias gradient.
+        let mut partial = pool.take::<T>(items_n * (co * k + co));
+        partial.fill(T::from_f64(0.0));
         let want_x = gx.is_some();
         let gx_items: Vec<Option<&mut [T]>> = match gx {
             Some(v) => {
@@ -401,9 +443,76 @@ impl FusedConv {
             .zip(gx_items)
             .enumerate()
             .collect();
+        if lines {
+            let lines_per_grid = cells / out[2].max(1);
+            for_each_init(
+                items,
+                || (),
+                |_, (item, (acc, gx))| {
+                    let first = item * per_item;
+                    let last = (first + per_item).min(self.batch);
+                    let pass = LinePass::Backward {
+                        g: &g[first * cells * co..last * cells * co],
+                        acc,
+                        gx,
+                    };
+                    wide(Lines {
+                        conv: self,
+                        x,
+                        wk: &wj,
+                        first: first * lines_per_grid,
+                        pass,
+                    });
+                },
+            );
+        } else {
+            self.backward_tiles(x, &wj, g, items, per_item, want_x);
+        }
+        // Sum the items' gradients in item order, then back to `[Cₒ, Cᵢ, taps]`.
+        let (first, rest) = partial.split_at_mut(co * k + co);
+        for p in rest.chunks(co * k + co) {
+            for (a, &b) in first.iter_mut().zip(p) {
+                *a += b;
+            }
+        }
+        for j in 0..co {
+            for i in 0..ci {
+                for t in 0..taps {
+                    gw[(j * ci + i) * taps + t] = if lines {
+                        first[t * co + j]
+                    } else {
+                        first[j * k + t * ci + i]
+                    };
+                }
+            }
+        }
+        gb.copy_from_slice(&first[co * k..]);
+        pool.give(partial);
+        pool.give(wj);
+    }
+
+    /// The backward pass's work items on gathered tiles (inputs of more than one channel):
+    /// per item, `acc` (`[Cₒ, taps·Cᵢ]` then `[Cₒ]`) accumulates the weight's and the
+    /// bias's gradients over the item's grids, and `gx` where given (the item's grids,
+    /// zeroed) receives `∂L/∂x`.
+    fn backward_tiles<T: Real>(
+        &self,
+        x: &[T],
+        wj: &[T],
+        g: &[T],
+        items: Vec<WorkItem<'_, T>>,
+        per_item: usize,
+        want_x: bool,
+    ) {
+        let (ci, co, k) = (self.c_in, self.c_out, self.k());
+        let Some(out) = self.out_size() else {
+            return;
+        };
+        let (cells, grid_len) = (self.out_cells(), self.size.iter().product::<usize>() * ci);
+        let tile = self.tile_rows(true);
         for_each_init(
             items,
-            || self.scratch::<T>(want_x),
+            || self.scratch::<T>(true, want_x),
             |sc, (item, (acc, mut gx))| {
                 let (gw, gb) = acc.split_at_mut(co * k);
                 let first = item * per_item;
@@ -441,7 +550,7 @@ impl FusedConv {
                         false,
                         gt,
                         View::rows(0, co),
-                        &wj,
+                        wj,
                         View::rows(0, k),
                         T::from_f64(1.0),
                     );
@@ -472,23 +581,207 @@ impl FusedConv {
                 }
             },
         );
-        // Sum the items' gradients in item order, then back to `[Cₒ, Cᵢ, taps]`.
-        let (first, rest) = partial.split_at_mut(co * k + co);
-        for p in rest.chunks(co * k + co) {
-            for (a, &b) in first.iter_mut().zip(p) {
-                *a += b;
+    }
+
+    /// The output of a one-channel convolution into `y` (every value written), by lines
+    /// of output cells straight from the grid ([`Lines`]); `wk` as `[taps, Cₒ]`.
+    fn forward_lines<T: Real>(&self, x: &[T], wk: &[T], bias: &[T], y: &mut [T]) {
+        let Some(out) = self.out_size() else {
+            return;
+        };
+        let line = out[2] * self.c_out;
+        let lines = y.len() / line.max(1);
+        let per = lines.div_ceil(LINE_ITEMS).max(1);
+        let items: Vec<(usize, &mut [T])> = y
+            .chunks_mut(per * line)
+            .enumerate()
+            .map(|(i, y)| (i * per, y))
+            .collect();
+        for_each_init(
+            items,
+            || (),
+            |_, (first, y)| {
+                wide(Lines {
+                    conv: self,
+                    x,
+                    wk,
+                    first,
+                    pass: LinePass::Forward { bias, y },
+                })
+            },
+        );
+    }
+}
+
+/// A backward work item: its index, its partial sums (`[Cₒ, taps·Cᵢ]` then `[Cₒ]`) and
+/// its grids' input gradient where asked.
+type WorkItem<'a, T> = (usize, (&'a mut [T], Option<&'a mut [T]>));
+
+/// Lines of output cells of a one-channel convolution (`Cᵢ = 1`; line `(g, d', h')` is
+/// the `W'` cells of grid `g` at `(d', h')`, lines numbered from `first` in that order),
+/// computed straight from the grid: each tap adds its input times its weight row
+/// `wk[t]` (`wk: [taps, Cₒ]`), [`LANES`] outputs at a time in registers, so no window
+/// matrix is gathered. `Cₒ` is a multiple of [`LANES`]. Run by [`wide`].
+struct Lines<'a, T> {
+    conv: &'a FusedConv,
+    x: &'a [T],
+    wk: &'a [T],
+    first: usize,
+    pass: LinePass<'a, T>,
+}
+
+enum LinePass<'a, T> {
+    /// `y`: the lines' outputs (`W'·Cₒ` values each), every value written.
+    Forward { bias: &'a [T], y: &'a mut [T] },
+    /// `g`: the lines' cotangents, whole grids; `acc` accumulates `∂L/∂w` as `[taps, Cₒ]`
+    /// then `∂L/∂bias`; `gx` (those grids, zeroed) receives `∂L/∂x`.
+    Backward {
+        g: &'a [T],
+        acc: &'a mut [T],
+        gx: Option<&'a mut [T]>,
+    },
+}
+
+impl<T: Real> Wide for Lines<'_, T> {
+    type Out = ();
+    #[inline(always)]
+    fn run(self) {
+        let Lines {
+            conv,
+            x,
+            wk,
+            first,
+            mut pass,
+        } = self;
+        let Some([_, oh_n, ow_n]) = conv.out_size() else {
+            return;
+        };
+        let (co, zero) = (conv.c_out, T::from_f64(0.0));
+        let groups = co / LANES;
+        let wl = wk.as_chunks::<LANES>().0;
+        let ([dn, hn, wn], [kd, kh, kw], [pd, ph, pw]) = (conv.size, conv.kernel, conv.pad);
+        let (s, relu, grid_len) = (conv.stride, conv.relu_input, dn * hn * wn);
+        let act = |v: T| {
+            if relu && v.partial_cmp(&zero) != Some(std::cmp::Ordering::Greater) {
+                zero
+            } else {
+                v
             }
-        }
-        let mut gw = vec![T::from_f64(0.0); co * k];
-        for j in 0..co {
-            for i in 0..ci {
-                for t in 0..taps {
-                    gw[(j * ci + i) * taps + t] = first[j * k + t * ci + i];
+        };
+        let lines_per_grid = conv.out_cells() / ow_n.max(1);
+        let line_len = ow_n * co;
+        let n_lines = match &pass {
+            LinePass::Forward { y, .. } => y.len(),
+            LinePass::Backward { g, .. } => g.len(),
+        } / line_len.max(1);
+        let first_grid = first / lines_per_grid.max(1);
+        // The window rows `(a, b)` inside the grid for the current line: the grid offset
+        // of the row's first cell and the tap index of `(a, b, 0)`.
+        let mut rows: Vec<(usize, usize)> = Vec::with_capacity(kd * kh);
+        for l in 0..n_lines {
+            let line = first + l;
+            let (gi, rem) = (line / lines_per_grid, line % lines_per_grid);
+            let (od, oh) = (rem / oh_n, rem % oh_n);
+            let grid = &x[gi * grid_len..(gi + 1) * grid_len];
+            rows.clear();
+            for a in 0..kd {
+                let Some(id) = (s * od + a).checked_sub(pd).filter(|&p| p < dn) else {
+                    continue;
+                };
+                for b in 0..kh {
+                    if let Some(ih) = (s * oh + b).checked_sub(ph).filter(|&p| p < hn) {
+                        rows.push(((id * hn + ih) * wn, (a * kh + b) * kw));
+                    }
+                }
+            }
+            let ys = l * line_len..(l + 1) * line_len;
+            match &mut pass {
+                LinePass::Forward { bias, y } => {
+                    // Per cell and group of `LANES` outputs, every tap into one register.
+                    let bias = bias.as_chunks::<LANES>().0;
+                    let cells = y[ys].as_chunks_mut::<LANES>().0.chunks_exact_mut(groups);
+                    for (ow, cell) in cells.enumerate() {
+                        // Taps `c0 … c1 − 1` along the row read inside it.
+                        let c0 = pw.saturating_sub(s * ow).min(kw);
+                        let c1 = (wn + pw).saturating_sub(s * ow).clamp(c0, kw);
+                        for (q, (out, &b)) in cell.iter_mut().zip(bias).enumerate() {
+                            let mut acc = b;
+                            for &(r0, t0) in &rows {
+                                for c in c0..c1 {
+                                    let v = act(grid[r0 + s * ow + c - pw]);
+                                    let w = &wl[(t0 + c) * groups + q];
+                                    for i in 0..LANES {
+                                        acc[i] += v * w[i];
+                                    }
+                                }
+                            }
+                            *out = acc;
+                        }
+                    }
+                }
+                LinePass::Backward { g, acc, gx } => {
+                    let gl = &g[ys];
+                    let gc = gl.as_chunks::<LANES>().0;
+                    // Per tap and group of `LANES` outputs, the line's cells into one
+                    // register: `∂L/∂w[t] += Σ_{w'} a(x[tap]) · g[w']`.
+                    for &(r0, t0) in &rows {
+                        for c in 0..kw {
+                            let t = t0 + c;
+                            // Cells whose tap `c` reads inside the row: `0 ≤ s·w' + c − p < W`.
+                            let lo = pw.saturating_sub(c).div_ceil(s);
+                            let hi = match (wn + pw).checked_sub(c + 1) {
+                                Some(v) => (v / s + 1).min(ow_n),
+                                None => 0,
+                            };
+                            let at = acc[t * co..(t + 1) * co].as_chunks_mut::<LANES>().0;
+                            for (q, at) in at.iter_mut().enumerate() {
+                                let mut sum = [zero; LANES];
+                                for ow in lo..hi {
+                                    let v = act(grid[r0 + s * ow + c - pw]);
+                                    let gv = &gc[ow * groups + q];
+                                    for i in 0..LANES {
+                                        sum[i] += v * gv[i];
+                                    }
+                                }
+                                for i in 0..LANES {
+                                    at[i] += sum[i];
+                                }
+                            }
+                            // ∂L/∂x[tap] += Σ_j g[w', j] · w[j, t] (only when asked).
+                            let Some(gx) = gx.as_deref_mut() else {
+                                continue;
+                            };
+                            let gxg = &mut gx[(gi - first_grid) * grid_len..][..grid_len];
+                            for ow in lo..hi {
+                                let mut dot = zero;
+                                for (&g, &w) in gl[ow * co..(ow + 1) * co].iter().zip(&wk[t * co..])
+                                {
+                                    dot += g * w;
+                                }
+                                gxg[r0 + s * ow + c - pw] += dot;
+                            }
+                        }
+                    }
+                    let taps = kd * kh * kw;
+                    for gc in gl.chunks_exact(co) {
+                        for (b, &v) in acc[taps * co..(taps + 1) * co].iter_mut().zip(gc) {
+                            *b += v;
+                        }
+                    }
                 }
             }
         }
-        let gb = first[co * k..].to_vec();
-        (gw, gb)
+        // ∂L/∂x through the input ReLU: zero where the input is negative.
+        if let LinePass::Backward { gx: Some(gx), .. } = pass {
+            if relu {
+                let xs = &x[first_grid * grid_len..first_grid * grid_len + gx.len()];
+                for (d, &v) in gx.iter_mut().zip(xs) {
+                    if v < zero {
+                        *d = zero;
+                    }
+                }
+            }
+        }
     }
 }
 
@@ -501,7 +794,7 @@ impl CpuKernel<3> for FusedConv {
         self.check(inputs)?;
         let [x, w, b] = inputs;
         let mut y = vec![T::from_f64(0.0); self.out_len()];
-        self.forward_into(x, w, b, &mut y);
+        self.forward_into(x, w, b, &mut y, &BufferPool::default());
         Ok((y, Shape::from((self.batch, self.out_cells(), self.c_out))))
     }
 
@@ -517,7 +810,12 @@ impl CpuKernel<3> for FusedConv {
         }
         let [x, w, _] = inputs;
         let mut gx = want_x.then(|| vec![T::from_f64(0.0); x.len()]);
-        let (gw, gb) = self.backward_into([x, w], g, gx.as_deref_mut());
+        let (mut gw, mut gb) = (
+            vec![T::from_f64(0.0); w.len()],
+            vec![T::from_f64(0.0); self.c_out],
+        );
+        let pool = BufferPool::default();
+        self.backward_into([x, w], g, gx.as_deref_mut(), [&mut gw, &mut gb], &pool);
         Ok([gx, Some(gw), Some(gb)])
     }
 }
@@ -563,7 +861,13 @@ impl FusedConvStack {
         for (layer, &(w0, b0, b1)) in self.layers[..last].iter().zip(ranges) {
             let input = outs.last().map_or(x, |o| o.as_slice());
             let mut out = self.pool.take::<T>(layer.out_len());
-            layer.forward_into(input, &params[w0..b0], &params[b0..b1], &mut out);
+            layer.forward_into(
+                input,
+                &params[w0..b0],
+                &params[b0..b1],
+                &mut out,
+                &self.pool,
+            );
             outs.push(out);
         }
         outs
@@ -625,7 +929,7 @@ impl CpuKernel<2> for FusedConvStack {
         let (layer, &(w0, b0, b1)) = (&self.layers[outs.len()], &ranges[outs.len()]);
         let mut y = vec![T::from_f64(0.0); layer.out_len()];
         let input = outs.last().map_or(x, |o| o.as_slice());
-        layer.forward_into(input, &params[w0..b0], &params[b0..b1], &mut y);
+        layer.forward_into(input, &params[w0..b0], &params[b0..b1], &mut y, &self.pool);
         *self.saved.lock().unwrap_or_else(PoisonError::into_inner) = Some(Box::new(outs));
         Ok((y, self.out_shape()))
     }
@@ -663,10 +967,14 @@ impl CpuKernel<2> for FusedConvStack {
                 Some(b) => Some(b),
                 None => gx.as_deref_mut(),
             };
-            let (gw, gb) =
-                layer.backward_into([input, &params[w0..b0]], grad.as_deref().unwrap_or(g), gin);
-            gp[w0..b0].copy_from_slice(&gw);
-            gp[b0..b1].copy_from_slice(&gb);
+            let (gw, gb) = gp[w0..b1].split_at_mut(b0 - w0);
+            layer.backward_into(
+                [input, &params[w0..b0]],
+                grad.as_deref().unwrap_or(g),
+                gin,
+                [gw, gb],
+                &self.pool,
+            );
             if let Some(old) = std::mem::replace(&mut grad, g_in) {
                 self.pool.give(old);
             }

@@ -449,7 +449,8 @@ mod tests {
     /// of each axis at stride 2: the same values and, for the same cotangent on the kept
     /// voxels, the same gradients w.r.t. the input, the weight and the bias; at the grid's
     /// faces and corners (the padding) as well as inside; with and without the ReLU on the
-    /// input; over batches that span several of the fused op's tiles and work items.
+    /// input; over batches that span several of the fused op's tiles and work items; with
+    /// one input channel (computed by lines, without the window matrix) and with several.
     #[test]
     fn gathered_convolution_is_conv3d_at_stride_1_and_conv3d_subsampled_at_stride_2() -> Result<()>
     {
@@ -463,6 +464,12 @@ mod tests {
             (1, 2, 2, 2, 2),
             (10, 2, 3, 8, 1),
             (9, 40, 5, 4, 2),
+            // One input channel (the fused op's line path): strides 1 and 2, output
+            // channels not a multiple of the vector width, several work items.
+            (3, 1, 5, 8, 2),
+            (2, 1, 17, 4, 1),
+            (10, 1, 3, 8, 1),
+            (2, 1, 32, 4, 2),
         ] {
             let mut random = |shape: &[usize]| -> Result<Var> {
                 let v: Vec<f64> = (0..shape.iter().product())
