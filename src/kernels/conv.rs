@@ -196,12 +196,8 @@ impl FusedConv {
                 .checked_sub(self.pad[axis])
                 .filter(|&p| p < size[axis])
         };
-        // The taps along the last axis that fall inside: `c0 … c1 − 1`.
         let first = s * at[2];
-        let c0 = self.pad[2].saturating_sub(first).min(k[2]);
-        let c1 = (size[2] + self.pad[2])
-            .saturating_sub(first)
-            .clamp(c0, k[2]);
+        let (c0, c1) = self.row_taps(first);
         let run = k[2] * ci;
         let mut d = 0;
         for a in 0..k[0] {
@@ -218,6 +214,15 @@ impl FusedConv {
                 d += run;
             }
         }
+    }
+
+    /// The taps `c0 … c1 − 1` along the last axis that read inside the grid for an output
+    /// cell whose window starts at padded column `first` (`s·w'`).
+    #[inline(always)]
+    fn row_taps(&self, first: usize) -> (usize, usize) {
+        let (n, k, p) = (self.size[2], self.kernel[2], self.pad[2]);
+        let c0 = p.saturating_sub(first).min(k);
+        (c0, (n + p).saturating_sub(first).clamp(c0, k))
     }
 
     /// The grid row of output cell `o`'s first tap where its whole window lies inside
@@ -701,9 +706,7 @@ impl<T: Real> Wide for Lines<'_, T> {
                     let bias = bias.as_chunks::<LANES>().0;
                     let cells = y[ys].as_chunks_mut::<LANES>().0.chunks_exact_mut(groups);
                     for (ow, cell) in cells.enumerate() {
-                        // Taps `c0 … c1 − 1` along the row read inside it.
-                        let c0 = pw.saturating_sub(s * ow).min(kw);
-                        let c1 = (wn + pw).saturating_sub(s * ow).clamp(c0, kw);
+                        let (c0, c1) = conv.row_taps(s * ow);
                         for (q, (out, &b)) in cell.iter_mut().zip(bias).enumerate() {
                             let mut acc = b;
                             for &(r0, t0) in &rows {
