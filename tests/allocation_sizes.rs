@@ -586,6 +586,11 @@ const ALLOWED: &[(&str, &str, &str)] = &[
     ),
     (
         "kernels/conv.rs",
+        "with_capacity(kd * kh * plen)",
+        "data: kd·kh window rows of about one input row each (s·W' rounded up to 8 cells, plus kw), the kernel and the input grid held",
+    ),
+    (
+        "kernels/conv.rs",
         "vec![_; self.out_len()]",
         "checked: VoxelEncoder::forward checks B·R³·max(27, 4w) values and ResnetEncoder::forward B·⌈H/2⌉·⌈W/2⌉·max(49·C, 9·w), which bound every convolution's output, with limits::check_bytes first",
     ),

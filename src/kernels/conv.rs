@@ -38,6 +38,10 @@ const LANES: usize = 16;
 /// Forward work items of a one-channel convolution (lines of output cells split into
 /// about this many).
 const LINE_ITEMS: usize = 64;
+/// Output cells of a line that the one-channel path computes together, each in its own
+/// registers (independent sums, so the additions overlap instead of waiting on one
+/// another).
+const LINE_BLOCK: usize = 8;
 
 /// `y[b, o, j] = bias[j] + Σ_{t, i} w[j, i, t] · a(x)[b, s·o + t − p, i]` for grids
 /// `x: [B, D·H·W, Cᵢ]` (cell `(d, h, w)` at row `(d·H + h)·W + w`; an image has `D = 1`),
@@ -624,9 +628,10 @@ type WorkItem<'a, T> = (usize, (&'a mut [T], Option<&'a mut [T]>));
 
 /// Lines of output cells of a one-channel convolution (`Cᵢ = 1`; line `(g, d', h')` is
 /// the `W'` cells of grid `g` at `(d', h')`, lines numbered from `first` in that order),
-/// computed straight from the grid: each tap adds its input times its weight row
-/// `wk[t]` (`wk: [taps, Cₒ]`), [`LANES`] outputs at a time in registers, so no window
-/// matrix is gathered. `Cₒ` is a multiple of [`LANES`]. Run by [`wide`].
+/// computed straight from the grid: each window row's inputs along the line are copied
+/// once, zero-padded, and each tap adds its input times its weight row `wk[t]`
+/// (`wk: [taps, Cₒ]`), [`LANES`] outputs of [`LINE_BLOCK`] cells at a time in registers,
+/// so no window matrix is gathered. `Cₒ` is a multiple of [`LANES`]. Run by [`wide`].
 struct Lines<'a, T> {
     conv: &'a FusedConv,
     x: &'a [T],
@@ -680,6 +685,11 @@ impl<T: Real> Wide for Lines<'_, T> {
             LinePass::Backward { g, .. } => g.len(),
         } / line_len.max(1);
         let first_grid = first / lines_per_grid.max(1);
+        // Each window row's inputs along the line, the activation applied and zeros
+        // outside the grid: `pad[i] = a(x[s·w' + c − p])` at `i = s·w' + c`, long enough
+        // for whole blocks of `LINE_BLOCK` cells.
+        let plen = s * (ow_n.div_ceil(LINE_BLOCK) * LINE_BLOCK).saturating_sub(1) + kw;
+        let mut pad: Vec<T> = Vec::with_capacity(kd * kh * plen);
         // The window rows `(a, b)` inside the grid for the current line: the grid offset
         // of the row's first cell and the tap index of `(a, b, 0)`.
         let mut rows: Vec<(usize, usize)> = Vec::with_capacity(kd * kh);
@@ -689,36 +699,49 @@ impl<T: Real> Wide for Lines<'_, T> {
             let (od, oh) = (rem / oh_n, rem % oh_n);
             let grid = &x[gi * grid_len..(gi + 1) * grid_len];
             rows.clear();
+            pad.clear();
             for a in 0..kd {
                 let Some(id) = (s * od + a).checked_sub(pd).filter(|&p| p < dn) else {
                     continue;
                 };
                 for b in 0..kh {
                     if let Some(ih) = (s * oh + b).checked_sub(ph).filter(|&p| p < hn) {
-                        rows.push(((id * hn + ih) * wn, (a * kh + b) * kw));
+                        let r0 = (id * hn + ih) * wn;
+                        rows.push((r0, (a * kh + b) * kw));
+                        let at = pad.len();
+                        pad.resize(at + plen, zero);
+                        let inside = pad[at..at + plen].iter_mut().skip(pw);
+                        for (d, &v) in inside.zip(&grid[r0..r0 + wn]) {
+                            *d = act(v);
+                        }
                     }
                 }
             }
             let ys = l * line_len..(l + 1) * line_len;
             match &mut pass {
                 LinePass::Forward { bias, y } => {
-                    // Per cell and group of `LANES` outputs, every tap into one register.
+                    // Per block of cells and group of `LANES` outputs, every tap into one
+                    // register per cell.
                     let bias = bias.as_chunks::<LANES>().0;
-                    let cells = y[ys].as_chunks_mut::<LANES>().0.chunks_exact_mut(groups);
-                    for (ow, cell) in cells.enumerate() {
-                        let (c0, c1) = conv.row_taps(s * ow);
-                        for (q, (out, &b)) in cell.iter_mut().zip(bias).enumerate() {
-                            let mut acc = b;
-                            for &(r0, t0) in &rows {
-                                for c in c0..c1 {
-                                    let v = act(grid[r0 + s * ow + c - pw]);
+                    let cells = y[ys].as_chunks_mut::<LANES>().0;
+                    for (q, &b) in bias.iter().enumerate() {
+                        for ow in (0..ow_n).step_by(LINE_BLOCK) {
+                            let mut acc = [b; LINE_BLOCK];
+                            for (prow, &(_, t0)) in pad.chunks_exact(plen).zip(&rows) {
+                                for c in 0..kw {
                                     let w = &wl[(t0 + c) * groups + q];
-                                    for i in 0..LANES {
-                                        acc[i] += v * w[i];
+                                    let xs = &prow[s * ow + c..];
+                                    for (k, acc) in acc.iter_mut().enumerate() {
+                                        let v = xs[s * k];
+                                        for i in 0..LANES {
+                                            acc[i] += v * w[i];
+                                        }
                                     }
                                 }
                             }
-                            *out = acc;
+                            for (k, acc) in acc.iter().enumerate().take(ow_n - ow) {
+                                cells[(ow + k) * groups + q] = *acc;
+                            }
                         }
                     }
                 }
@@ -726,22 +749,16 @@ impl<T: Real> Wide for Lines<'_, T> {
                     let gl = &g[ys];
                     let gc = gl.as_chunks::<LANES>().0;
                     // Per tap and group of `LANES` outputs, the line's cells into one
-                    // register: `∂L/∂w[t] += Σ_{w'} a(x[tap]) · g[w']`.
-                    for &(r0, t0) in &rows {
+                    // register: `∂L/∂w[t] += Σ_{w'} a(x[tap]) · g[w']` (the padding's
+                    // zeros add nothing).
+                    let taps = kd * kh * kw;
+                    for (prow, &(_, t0)) in pad.chunks_exact(plen).zip(&rows) {
                         for c in 0..kw {
-                            let t = t0 + c;
-                            // Cells whose tap `c` reads inside the row: `0 ≤ s·w' + c − p < W`.
-                            let lo = pw.saturating_sub(c).div_ceil(s);
-                            let hi = match (wn + pw).checked_sub(c + 1) {
-                                Some(v) => (v / s + 1).min(ow_n),
-                                None => 0,
-                            };
-                            let at = acc[t * co..(t + 1) * co].as_chunks_mut::<LANES>().0;
-                            for (q, at) in at.iter_mut().enumerate() {
+                            let at = &mut acc[(t0 + c) * co..(t0 + c + 1) * co];
+                            for (q, at) in at.as_chunks_mut::<LANES>().0.iter_mut().enumerate() {
                                 let mut sum = [zero; LANES];
-                                for ow in lo..hi {
-                                    let v = act(grid[r0 + s * ow + c - pw]);
-                                    let gv = &gc[ow * groups + q];
+                                for ow in 0..ow_n {
+                                    let (v, gv) = (prow[s * ow + c], &gc[ow * groups + q]);
                                     for i in 0..LANES {
                                         sum[i] += v * gv[i];
                                     }
@@ -750,22 +767,32 @@ impl<T: Real> Wide for Lines<'_, T> {
                                     at[i] += sum[i];
                                 }
                             }
-                            // ∂L/∂x[tap] += Σ_j g[w', j] · w[j, t] (only when asked).
-                            let Some(gx) = gx.as_deref_mut() else {
-                                continue;
-                            };
-                            let gxg = &mut gx[(gi - first_grid) * grid_len..][..grid_len];
-                            for ow in lo..hi {
-                                let mut dot = zero;
-                                for (&g, &w) in gl[ow * co..(ow + 1) * co].iter().zip(&wk[t * co..])
-                                {
-                                    dot += g * w;
+                        }
+                    }
+                    if let Some(gx) = gx.as_deref_mut() {
+                        let gxg = &mut gx[(gi - first_grid) * grid_len..][..grid_len];
+                        for &(r0, t0) in &rows {
+                            for c in 0..kw {
+                                let t = t0 + c;
+                                // ∂L/∂x[tap] += Σ_j g[w', j] · w[j, t] (only when asked),
+                                // for the cells whose tap `c` reads inside the row:
+                                // `0 ≤ s·w' + c − p < W`.
+                                let lo = pw.saturating_sub(c).div_ceil(s);
+                                let hi = match (wn + pw).checked_sub(c + 1) {
+                                    Some(v) => (v / s + 1).min(ow_n),
+                                    None => 0,
+                                };
+                                for ow in lo..hi {
+                                    let g = &gl[ow * co..(ow + 1) * co];
+                                    let mut dot = zero;
+                                    for (&g, &w) in g.iter().zip(&wk[t * co..]) {
+                                        dot += g * w;
+                                    }
+                                    gxg[r0 + s * ow + c - pw] += dot;
                                 }
-                                gxg[r0 + s * ow + c - pw] += dot;
                             }
                         }
                     }
-                    let taps = kd * kh * kw;
                     for gc in gl.chunks_exact(co) {
                         for (b, &v) in acc[taps * co..(taps + 1) * co].iter_mut().zip(gc) {
                             *b += v;

@@ -450,7 +450,9 @@ mod tests {
     /// voxels, the same gradients w.r.t. the input, the weight and the bias; at the grid's
     /// faces and corners (the padding) as well as inside; with and without the ReLU on the
     /// input; over batches that span several of the fused op's tiles and work items; with
-    /// one input channel (computed by lines, without the window matrix) and with several.
+    /// one input channel (computed by lines, without the window matrix, in blocks of
+    /// cells: lines shorter than a block, of whole blocks and of a partial one) and with
+    /// several.
     #[test]
     fn gathered_convolution_is_conv3d_at_stride_1_and_conv3d_subsampled_at_stride_2() -> Result<()>
     {
@@ -470,6 +472,9 @@ mod tests {
             (2, 1, 17, 4, 1),
             (10, 1, 3, 8, 1),
             (2, 1, 32, 4, 2),
+            // Lines of whole blocks of cells and a partial one (10 and 9 outputs).
+            (2, 1, 16, 10, 1),
+            (1, 1, 16, 18, 2),
         ] {
             let mut random = |shape: &[usize]| -> Result<Var> {
                 let v: Vec<f64> = (0..shape.iter().product())
