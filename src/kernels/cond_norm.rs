@@ -57,50 +57,57 @@ pub(crate) struct Stats {
 type Item<'a, T, U> = (usize, &'a [T], U);
 
 impl FusedCondNorm {
-    /// Column sums of `f(row index, row)` over the items of `x`, in parallel, added in
-    /// item order (so the result does not depend on the scheduling).
-    fn column_sums<T: WithDType>(&self, x: &[T], f: impl Fn(&[T], &mut [f64]) + Sync) -> Vec<f64> {
-        let h = self.width;
-        let mut partial = vec![0.0; x.len().div_ceil(ROWS * h.max(1)) * h];
-        if h == 0 {
-            return partial;
-        }
-        let items: Vec<_> = x.chunks(ROWS * h).zip(partial.chunks_mut(h)).collect();
-        for_each_init(items, || (), |_, (x, acc)| wide(|| f(x, acc)));
-        let mut sum = vec![0.0; h];
-        for p in partial.chunks(h) {
-            for (s, v) in sum.iter_mut().zip(p) {
-                *s += v;
-            }
-        }
-        sum
-    }
-
+    /// The column statistics of rows `x` in one pass over memory: with each column
+    /// shifted by its first row's value `K`, the per-item sums of `d = x − K` and `d²` in
+    /// parallel, added in item order (so the result does not depend on the scheduling),
+    /// then `μ = K + Σd/N`, `v = Σd²/N − (Σd/N)²`. Since `K` is one of the values,
+    /// `(μ − K)² ≤ N·v`, so the subtraction loses at most a factor `N` of the sums'
+    /// relative precision (f64), however large the mean is against the spread.
     fn stats<T: WithDType>(&self, x: &[T]) -> Stats {
         let h = self.width;
-        let n = self.rows.max(1) as f64;
-        let mean: Vec<f64> = self
-            .column_sums(x, |x, acc| {
-                for row in x.chunks(h) {
-                    for (a, v) in acc.iter_mut().zip(row) {
-                        *a += v.to_f64();
+        if h == 0 || x.len() < h {
+            let zeros = vec![0.0; h];
+            let scale = vec![1.0 / self.eps.sqrt(); h];
+            return Stats {
+                mean: zeros.clone(),
+                var: zeros,
+                scale,
+            };
+        }
+        let shift: Vec<f64> = x[..h].iter().map(|v| v.to_f64()).collect();
+        // Per item: its columns' `Σd`, then their `Σd²`.
+        let mut partial = vec![0.0; x.len().div_ceil(ROWS * h) * 2 * h];
+        let items: Vec<_> = x.chunks(ROWS * h).zip(partial.chunks_mut(2 * h)).collect();
+        for_each_init(
+            items,
+            || (),
+            |_, (x, acc)| {
+                wide(|| {
+                    let (s1, s2) = acc.split_at_mut(h);
+                    for row in x.chunks(h) {
+                        let cols = row.iter().zip(&shift).zip(s1.iter_mut().zip(s2.iter_mut()));
+                        for ((v, k), (s1, s2)) in cols {
+                            let d = v.to_f64() - k;
+                            *s1 += d;
+                            *s2 += d * d;
+                        }
                     }
-                }
-            })
-            .into_iter()
-            .map(|s| s / n)
-            .collect();
-        let var: Vec<f64> = self
-            .column_sums(x, |x, acc| {
-                for row in x.chunks(h) {
-                    for ((a, v), m) in acc.iter_mut().zip(row).zip(&mean) {
-                        let d = v.to_f64() - m;
-                        *a += d * d;
-                    }
-                }
-            })
-            .into_iter()
-            .map(|s| s / n)
+                })
+            },
+        );
+        let (mut s1, mut s2) = (vec![0.0; h], vec![0.0; h]);
+        for p in partial.chunks(2 * h) {
+            for j in 0..h {
+                s1[j] += p[j];
+                s2[j] += p[h + j];
+            }
+        }
+        let n = (x.len() / h) as f64;
+        let mean = s1.iter().zip(&shift).map(|(s, k)| k + s / n).collect();
+        let var: Vec<f64> = s1
+            .iter()
+            .zip(&s2)
+            .map(|(s1, s2)| (s2 / n - (s1 / n) * (s1 / n)).max(0.0))
             .collect();
         let scale = var.iter().map(|v| 1.0 / (v + self.eps).sqrt()).collect();
         Stats { mean, var, scale }
@@ -496,3 +503,58 @@ impl CpuKernel<3> for FusedBatchNorm {
     }
 }
 cpu_op!(FusedBatchNorm, 3, "nf-fused-batch-norm");
+
+#[cfg(test)]
+mod tests {
+    use super::{FusedCondNorm, ROWS};
+    use std::sync::{Arc, Mutex};
+
+    /// The one-pass shifted statistics equal a plain two-pass mean and variance over all
+    /// rows, in f32 and f64, for row counts of whole and partial items, with the mean far
+    /// above the spread (where a sum of squares would cancel).
+    #[test]
+    fn one_pass_statistics_equal_two_pass_ones_with_a_large_mean() {
+        fn check<T: candle_core::WithDType>(rows: usize, width: usize, offset: f64) {
+            let x: Vec<T> = (0..rows * width)
+                .map(|i| {
+                    let u = ((i as u64).wrapping_mul(2654435761) % 1000) as f64 / 1000.0;
+                    T::from_f64(offset * (1.0 + (i % width) as f64) + (u - 0.5) * 0.02)
+                })
+                .collect();
+            let norm = FusedCondNorm {
+                rows,
+                width,
+                group: rows,
+                eps: 1e-5,
+                relu: false,
+                saved: Arc::new(Mutex::new(None)),
+            };
+            let st = norm.stats(&x);
+            for j in 0..width {
+                let col: Vec<f64> = x
+                    .iter()
+                    .skip(j)
+                    .step_by(width)
+                    .map(|v| v.to_f64())
+                    .collect();
+                let mean = col.iter().sum::<f64>() / rows as f64;
+                let var = col.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / rows as f64;
+                assert!(
+                    (st.mean[j] - mean).abs() <= 1e-12 * mean.abs().max(1.0),
+                    "{rows}x{width} column {j}: mean {} vs {mean}",
+                    st.mean[j]
+                );
+                assert!(
+                    (st.var[j] - var).abs() <= 1e-9 * var,
+                    "{rows}x{width} column {j}: variance {} vs {var}",
+                    st.var[j]
+                );
+            }
+        }
+        for (rows, width) in [(1, 3), (ROWS, 4), (3 * ROWS + 17, 5), (1000, 16)] {
+            check::<f32>(rows, width, 1e4);
+            check::<f64>(rows, width, 1e6);
+            check::<f64>(rows, width, 0.0);
+        }
+    }
+}
