@@ -68,6 +68,10 @@ pub(crate) struct FusedConv {
     pub(crate) c_in: usize,
     pub(crate) c_out: usize,
     pub(crate) relu_input: bool,
+    /// Where the op, run on its own, takes its weight matrix and partial sums from
+    /// between calls (a fresh pool per call without one; a [`FusedConvStack`] passes its
+    /// own).
+    pub(crate) pool: Option<Arc<BufferPool>>,
 }
 
 /// The coordinates of cell `o` of a grid of extents `out` (row-major, the last axis
@@ -101,6 +105,7 @@ impl FusedConv {
             c_in,
             c_out,
             relu_input,
+            pool: None,
         }
     }
 
@@ -122,7 +127,21 @@ impl FusedConv {
             c_in,
             c_out,
             relu_input: false,
+            pool: None,
         }
+    }
+
+    /// The op with its buffers kept in `pool` between calls.
+    pub(crate) fn with_pool(self, pool: Arc<BufferPool>) -> Self {
+        Self {
+            pool: Some(pool),
+            ..self
+        }
+    }
+
+    /// `pool`, or `local` where the op has none.
+    fn pool_or<'a>(&'a self, local: &'a BufferPool) -> &'a BufferPool {
+        self.pool.as_deref().unwrap_or(local)
     }
 
     /// Output extent per axis; `None` where an axis is too small for its kernel or the
@@ -824,7 +843,8 @@ impl CpuKernel<3> for FusedConv {
         self.check(inputs)?;
         let [x, w, b] = inputs;
         let mut y = vec![T::from_f64(0.0); self.out_len()];
-        self.forward_into(x, w, b, &mut y, &BufferPool::default());
+        let local = BufferPool::default();
+        self.forward_into(x, w, b, &mut y, self.pool_or(&local));
         Ok((y, Shape::from((self.batch, self.out_cells(), self.c_out))))
     }
 
@@ -844,8 +864,9 @@ impl CpuKernel<3> for FusedConv {
             vec![T::from_f64(0.0); w.len()],
             vec![T::from_f64(0.0); self.c_out],
         );
-        let pool = BufferPool::default();
-        self.backward_into([x, w], g, gx.as_deref_mut(), [&mut gw, &mut gb], &pool);
+        let local = BufferPool::default();
+        let pool = self.pool_or(&local);
+        self.backward_into([x, w], g, gx.as_deref_mut(), [&mut gw, &mut gb], pool);
         Ok([gx, Some(gw), Some(gb)])
     }
 }

@@ -38,7 +38,8 @@
 //!   CPU), tile by tile without the full window matrix, and a chain of them as one op
 //!   (`FusedConvStack`, the voxel encoder's);
 //! * `pool`: `BufferPool`, the buffers a fused op's caller keeps between calls (the ONet
-//!   decoder's rows, the voxel encoder's grids) so that no step faults them in afresh;
+//!   decoder's rows, the voxel encoder's grids, the image encoder's weight matrices) so
+//!   that no step faults them in afresh;
 //! * `adam`: Adam's update as two in-place passes per variable (`AdamMoments`,
 //!   `AdamUpdate`, what [`crate::nn::Adam`] runs);
 //! * `activation` and `simd`: the vectorised hidden activations (ReLU, softplus with its

@@ -10,7 +10,7 @@ use std::sync::{Mutex, MutexGuard, PoisonError};
 const HELD: usize = 64;
 
 /// Buffers kept between a fused op's calls (each `Vec<f32>` or `Vec<f64>`, at most
-/// [`HELD`]): the ONet decoder and the voxel encoder each own one and hand it to every
+/// [`HELD`]): the ONet decoder and the voxel and image encoders each own one and hand it to every
 /// op they build (`FusedOnet`, `FusedConvStack`).
 #[derive(Debug, Default)]
 pub(crate) struct BufferPool(Mutex<Vec<Box<dyn Any + Send>>>);

@@ -11,14 +11,14 @@
 
 use super::onet::running_update;
 use crate::error::{check_finite, check_float, check_same, check_shape, Dim, Error, Result};
-use crate::kernels::{FusedBatchNorm, FusedConv};
+use crate::kernels::{BufferPool, FusedBatchNorm, FusedConv};
 use candle_core::Tensor;
 use candle_core::Var;
 use candle_nn::{
     batch_norm, conv2d_no_bias, linear, BatchNorm, BatchNormConfig, Conv2d, Conv2dConfig, Linear,
     Module, ModuleT, VarBuilder,
 };
-use std::sync::PoisonError;
+use std::sync::{Arc, PoisonError};
 
 /// The smallest image side [`ResnetEncoder::forward`] accepts: the network's total
 /// stride, so that the last stage sees at least one cell of image.
@@ -97,13 +97,22 @@ impl BasicBlock {
 
     /// [`BasicBlock::forward`] on channels-last images `x: [B, h·w, C]` of `h × w` pixels,
     /// with the fused convolution: `([B, h'·w', C'], [h', w'])`.
-    fn forward_cl(&self, x: &Tensor, hw: [usize; 2], train: bool) -> Result<(Tensor, [usize; 2])> {
-        let (h, out) = conv_cl(&self.conv1, x, hw, self.stride)?;
+    fn forward_cl(
+        &self,
+        x: &Tensor,
+        hw: [usize; 2],
+        train: bool,
+        pool: &Arc<BufferPool>,
+    ) -> Result<(Tensor, [usize; 2])> {
+        let (h, out) = conv_cl(&self.conv1, x, hw, self.stride, pool)?;
         let h = bn_cl(&self.bn1, &h, train, true)?;
-        let (h, _) = conv_cl(&self.conv2, &h, out, 1)?;
+        let (h, _) = conv_cl(&self.conv2, &h, out, 1, pool)?;
         let h = bn_cl(&self.bn2, &h, train, false)?;
         let shortcut = match &self.downsample {
-            Some((conv, bn)) => bn_cl(bn, &conv_cl(conv, x, hw, self.stride)?.0, train, false)?,
+            Some((conv, bn)) => {
+                let (y, _) = conv_cl(conv, x, hw, self.stride, pool)?;
+                bn_cl(bn, &y, train, false)?
+            }
             None => x.clone(),
         };
         Ok(((h + shortcut)?.relu()?, out))
@@ -111,17 +120,18 @@ impl BasicBlock {
 }
 
 /// A convolution of `conv`'s weight (no bias, padding `⌊k/2⌋`, stride `stride`) of
-/// channels-last images `x: [B, h·w, Cᵢ]` of `h × w` pixels, as the fused op:
-/// `([B, h'·w', Cₒ], [h', w'])`.
+/// channels-last images `x: [B, h·w, Cᵢ]` of `h × w` pixels, as the fused op with its
+/// buffers in `pool`: `([B, h'·w', Cₒ], [h', w'])`.
 fn conv_cl(
     conv: &Conv2d,
     x: &Tensor,
     [h, w]: [usize; 2],
     stride: usize,
+    pool: &Arc<BufferPool>,
 ) -> Result<(Tensor, [usize; 2])> {
     let weight = conv.weight();
     let (co, ci, k, _) = weight.dims4()?;
-    let op = FusedConv::square(x.dim(0)?, [h, w], k, stride, [ci, co]);
+    let op = FusedConv::square(x.dim(0)?, [h, w], k, stride, [ci, co]).with_pool(Arc::clone(pool));
     let out = op.out_size().ok_or_else(|| {
         Error::invalid(
             "images",
@@ -199,6 +209,8 @@ pub struct ResnetEncoder {
     blocks: Vec<BasicBlock>,
     fc: Linear,
     config: ResnetEncoderConfig,
+    /// The fused convolutions' weight matrices and partial sums between calls.
+    scratch: Arc<BufferPool>,
 }
 
 /// Builds a [`ResnetEncoder`] from `vb`, with torchvision's variable names: `conv1`,
@@ -309,6 +321,7 @@ pub fn resnet_encoder(config: &ResnetEncoderConfig, vb: VarBuilder) -> Result<Re
         blocks,
         fc: linear(channels, config.c_dim, vb.pp("fc"))?,
         config: config.clone(),
+        scratch: Arc::default(),
     })
 }
 
@@ -451,7 +464,7 @@ impl ResnetEncoder {
     fn forward_cl(&self, images: &Tensor, train: bool) -> Result<Tensor> {
         let (b, c, h, w) = images.dims4()?;
         let x = images.permute((0, 2, 3, 1))?.reshape((b, h * w, c))?;
-        let (x, [h, w]) = conv_cl(&self.conv1, &x, [h, w], 2)?;
+        let (x, [h, w]) = conv_cl(&self.conv1, &x, [h, w], 2, &self.scratch)?;
         let x = bn_cl(&self.bn1, &x, train, true)?;
         let channels = x.dim(2)?;
         let x = max_pool_3x3_stride_2(&x.reshape((b, h, w, channels))?, [1, 2])?;
@@ -459,7 +472,7 @@ impl ResnetEncoder {
         let mut x = x.reshape((b, h * w, channels))?;
         let mut hw = [h, w];
         for block in &self.blocks {
-            (x, hw) = block.forward_cl(&x, hw, train)?;
+            (x, hw) = block.forward_cl(&x, hw, train, &self.scratch)?;
         }
         Ok(self.fc.forward(&x.mean(1)?)?)
     }
