@@ -87,7 +87,7 @@ fn spatial_gradient_matches_finite_differences_and_reaches_the_code() {
     .unwrap();
     let mut rng = SplitMix64::new(9);
     // Non-trivial fc1 and γ/β: perturb every variable.
-    for v in vm.all_vars() {
+    for v in common::sorted_vars(&vm) {
         let noise =
             common::normal_tensor(&mut rng, v.dims(), 0.0, 0.3, DType::F64, &Device::Cpu).unwrap();
         v.set(&(v.as_tensor() + noise).unwrap()).unwrap();

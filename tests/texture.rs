@@ -355,7 +355,7 @@ fn geometry(seed: u64, features: usize) -> (VarMap, neural_fields::nn::Mlp) {
     })
     .unwrap();
     let mut rng = SplitMix64::new(seed ^ 99);
-    for v in varmap.all_vars() {
+    for v in common::sorted_vars(&varmap) {
         let noise = common::normal_tensor(&mut rng, v.dims(), 0.0, 0.05, DType::F64, &DEV).unwrap();
         v.set(&(v.as_tensor() + noise).unwrap()).unwrap();
     }
@@ -464,7 +464,7 @@ mod idr {
             let grads = loss.unwrap().backward().unwrap();
             let cut = colour_loss(&geo, &tex, &rays, &range, &c, true).unwrap().backward().unwrap();
             let mut rng = SplitMix64::new(seed ^ 5);
-            let vars = geo_vars.all_vars();
+            let vars = common::sorted_vars(&geo_vars);
             let (mut checked, mut normal_matters) = (0, 0);
             for _ in 0..8 {
                 let v = &vars[rng.below(vars.len() as u64) as usize];
