@@ -511,11 +511,6 @@ const ALLOWED: &[(&str, &str, &str)] = &[
     ),
     (
         "kernels/onet.rs",
-        "with_capacity(2 * self.blocks + 1)",
-        "data: one entry per layer of the decoder, whose weights are held",
-    ),
-    (
-        "kernels/onet.rs",
         "with_capacity(self.blocks + 1)",
         "data: one entry per layer of the decoder, whose weights are held",
     ),

@@ -315,13 +315,14 @@ fn training_pass(
 /// The fused training pass (the whole decoder as one CPU op) gives the reference candle
 /// ops' logits, gradients of every variable, the points and the codes, and running
 /// statistics, in f32 and f64, with one code per shape (groups that straddle the kernel's
-/// row tiles) and one code per point, after a first pass on a larger batch (whose row
-/// buffers the compared pass reuses, holding that pass's values).
+/// row tiles, and batches of more than one gradient chunk of rows) and one code per point,
+/// after a first pass on a larger batch (whose row buffers the compared pass reuses,
+/// holding that pass's values).
 #[test]
 fn fused_training_pass_matches_the_reference_ops() {
     for dtype in [DType::F64, DType::F32] {
         let tol = if dtype == DType::F64 { 1e-10 } else { 2e-4 };
-        for (b, q, grouped) in [(3, 301, true), (2, 200, false)] {
+        for (b, q, grouped) in [(3, 301, true), (2, 200, false), (2, 1100, true)] {
             let mut parts: Vec<Vec<Vec<f64>>> = Vec::new();
             for force_reference in [false, true] {
                 let (vm, net, p, c) = training_pass(dtype, force_reference, (b, q));

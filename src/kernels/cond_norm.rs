@@ -163,21 +163,63 @@ impl FusedCondNorm {
     /// The layer's output rows into `out` (`x`'s length; every value written); the
     /// statistics into `saved`. `gamma`, `beta`: `[N / group, H]`.
     pub(super) fn run<T: WithDType>(&self, x: &[T], gamma: &[T], beta: &[T], out: &mut [T]) {
-        let h = self.width;
-        if h == 0 || x.is_empty() {
+        if self.width == 0 || x.is_empty() {
             out.fill(T::from_f64(0.0));
             return;
         }
-        let st = self.stats(x);
-        let (mean, slope) = self.slopes(&st, gamma);
-        let cols = self.columns(&mean, &slope, beta, &[]);
+        let ready = self.prepare(x, gamma, beta);
         let items = self.items(x, out);
         for_each_init(
             items,
             || (),
-            |_, (first, x, out)| wide(Pass(&cols, Rows::Forward { first, x, out })),
+            |_, (first, x, out)| ready.apply(first, x, out),
         );
+    }
+
+    /// The layer over rows `x` ready to apply to any of its rows ([`Ready::apply`]):
+    /// the batch statistics of `x`, computed here and left in `saved`.
+    pub(super) fn prepare<'a, T: WithDType>(
+        &'a self,
+        x: &[T],
+        gamma: &[T],
+        beta: &'a [T],
+    ) -> Ready<'a, T> {
+        let st = self.stats(x);
+        let ready = self.ready_from(&st, gamma, beta);
         *self.saved.lock().unwrap_or_else(PoisonError::into_inner) = Some(st);
+        ready
+    }
+
+    /// As [`FusedCondNorm::prepare`] from the statistics in `saved` (recomputed from `x`
+    /// where none are), for the backward pass.
+    pub(super) fn ready<'a, T: WithDType>(
+        &'a self,
+        x: &[T],
+        gamma: &[T],
+        beta: &'a [T],
+    ) -> Ready<'a, T> {
+        let saved = self
+            .saved
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone();
+        let st = saved.unwrap_or_else(|| self.stats(x));
+        self.ready_from(&st, gamma, beta)
+    }
+
+    fn ready_from<'a, T: WithDType>(
+        &'a self,
+        st: &Stats,
+        gamma: &[T],
+        beta: &'a [T],
+    ) -> Ready<'a, T> {
+        let (mean, slope) = self.slopes(st, gamma);
+        Ready {
+            norm: self,
+            mean,
+            slope,
+            beta,
+        }
     }
 
     /// The gradients of `gamma` and `beta` given the output's `grad`, and `x`'s into `gx`
@@ -383,6 +425,24 @@ impl<T: WithDType> Columns<'_, T> {
                 *o = gy * a - c - (x - m) * e;
             }
         }
+    }
+}
+
+/// A layer with its statistics, ready to apply to any of its rows: the column means and
+/// the per-group slopes in `T` ([`FusedCondNorm::slopes`]) and the shifts.
+pub(super) struct Ready<'a, T> {
+    norm: &'a FusedCondNorm,
+    mean: Vec<T>,
+    slope: Vec<T>,
+    beta: &'a [T],
+}
+
+impl<T: WithDType> Ready<'_, T> {
+    /// The layer's output rows for rows `x` from row `first` on, into `out` (`x`'s
+    /// length; every value written).
+    pub(super) fn apply(&self, first: usize, x: &[T], out: &mut [T]) {
+        let cols = self.norm.columns(&self.mean, &self.slope, self.beta, &[]);
+        wide(Pass(&cols, Rows::Forward { first, x, out }));
     }
 }
 

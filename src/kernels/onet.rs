@@ -22,9 +22,11 @@
 //! ## Execution
 //! Layer by layer over all rows (each normalisation needs the statistics of the whole
 //! batch before its first row), each product over row tiles of [`TILE`] on candle's CPU
-//! pool with the crate's matrix product. The forward pass keeps every block's input,
-//! normalised activations and hidden rows for the backward pass (the op's own slot,
-//! taken by the first backward pass; a second recomputes them). The parameter gradients
+//! pool with the crate's matrix product. A normalisation's output is never stored: each
+//! product tile normalises its rows of the layer's input into a buffer of its own (in
+//! cache) before multiplying, in both passes. The forward pass keeps every block's input
+//! and hidden rows for the backward pass (the op's own slot, taken by the first backward
+//! pass; a second recomputes them). The parameter gradients
 //! are summed per chunk of [`CHUNK`] rows and the chunks in their order, so the result
 //! does not depend on the thread count.
 //!
@@ -33,7 +35,7 @@
 //! zero pages, whose page faults took about half of the step's time with the system
 //! allocator.
 
-use super::cond_norm::{FusedCondNorm, Stats};
+use super::cond_norm::{FusedCondNorm, Ready, Stats};
 use super::dispatch::{cpu_op, CpuKernel, Real};
 use super::mlp::{chunk_rows, matmul, sum_chunks, transpose, View, CHUNK, TILE};
 use super::parallel::{for_each_init, wide};
@@ -65,11 +67,10 @@ pub(crate) struct FusedOnet {
 }
 
 /// What the forward pass keeps: `nets[k]` (block `k`'s input, `B + 1` with the output
-/// normalisation's), `a[j]` (normalisation `j`'s output, `2B + 1`), `hid[k]` (block
-/// `k`'s hidden rows).
+/// normalisation's) and `hid[k]` (block `k`'s hidden rows); the normalisations' outputs
+/// are computed tile by tile where a product reads them, and again in the backward pass.
 struct Acts<T> {
     nets: Vec<Vec<T>>,
-    a: Vec<Vec<T>>,
     hid: Vec<Vec<T>>,
 }
 
@@ -173,50 +174,57 @@ impl FusedOnet {
         Ok(())
     }
 
-    /// Normalisation `j` of rows `x` into a new buffer.
-    fn norm<T: Real>(&self, j: usize, cond: &[T], x: &[T]) -> Vec<T> {
+    /// Normalisation `j` over rows `x`, ready to apply: its statistics computed (and
+    /// saved) in the forward pass, read from `saved` in the backward pass.
+    fn ready<'a, T: Real>(&'a self, j: usize, cond: &'a [T], x: &[T], fwd: bool) -> Ready<'a, T> {
         let (g, b) = self.affine(cond, j);
-        let mut out = self.scratch.take(x.len());
-        self.norms[j].run(x, g, b, &mut out);
-        out
+        if fwd {
+            self.norms[j].prepare(x, g, b)
+        } else {
+            self.norms[j].ready(x, g, b)
+        }
     }
 
-    /// `y = (res or 0) + b + x Wᵀ` for rows `x: [N, in]` of layer `l`, into a new buffer.
-    fn linear<T: Real>(&self, x: &[T], l: Lin, params: &[T], res: Option<&[T]>) -> Vec<T> {
+    /// `y = (res or 0) + b + a Wᵀ` for rows `a = norm(x)` (or `x`), `x: [N, in]`, of
+    /// layer `l`, into a new buffer.
+    fn linear<T: Real>(
+        &self,
+        (x, norm): (&[T], Option<&Ready<'_, T>>),
+        l: Lin,
+        params: &[T],
+        res: Option<&[T]>,
+    ) -> Vec<T> {
         let mut y = self.scratch.take(x.len() / l.input * l.out);
-        linear(x, l, params, res, &mut y);
+        linear((x, norm), l, params, res, &mut y);
         y
     }
 
     fn run<T: Real>(&self, [p, cond, params]: [&[T]; 3]) -> (Vec<T>, Acts<T>) {
         let lin = &self.lin;
-        let mut net = self.linear(p, lin[0], params, None);
+        let mut net = self.linear((p, None), lin[0], params, None);
         let mut acts = Acts {
             nets: Vec::with_capacity(self.blocks + 1),
-            a: Vec::with_capacity(2 * self.blocks + 1),
             hid: Vec::with_capacity(self.blocks),
         };
         for k in 0..self.blocks {
-            let a = self.norm(2 * k, cond, &net);
-            let hid = self.linear(&a, lin[1 + 2 * k], params, None);
-            let a1 = self.norm(2 * k + 1, cond, &hid);
-            let next = self.linear(&a1, lin[2 + 2 * k], params, Some(&net));
+            let n0 = self.ready(2 * k, cond, &net, true);
+            let hid = self.linear((&net, Some(&n0)), lin[1 + 2 * k], params, None);
+            let n1 = self.ready(2 * k + 1, cond, &hid, true);
+            let next = self.linear((&hid, Some(&n1)), lin[2 + 2 * k], params, Some(&net));
             acts.nets.push(std::mem::replace(&mut net, next));
-            acts.a.extend([a, a1]);
             acts.hid.push(hid);
         }
         let j = 2 * self.blocks;
-        let a = self.norm(j, cond, &net);
+        let nj = self.ready(j, cond, &net, true);
         let mut logits = vec![T::from_f64(0.0); self.rows];
-        linear(&a, lin[j + 1], params, None, &mut logits);
+        linear((&net, Some(&nj)), lin[j + 1], params, None, &mut logits);
         acts.nets.push(net);
-        acts.a.push(a);
         (logits, acts)
     }
 
     /// Returns the activations' buffers to the scratch.
     fn give_back<T: Real>(&self, acts: Acts<T>) {
-        for v in acts.nets.into_iter().chain(acts.a).chain(acts.hid) {
+        for v in acts.nets.into_iter().chain(acts.hid) {
             self.scratch.give(v);
         }
     }
@@ -252,26 +260,28 @@ impl FusedOnet {
             self.scratch.give(g);
             gx
         };
-        // A hidden layer's input gradient (into a new buffer) and parameter gradients.
-        let mut back = |x: &[T], l: Lin, g: &[T]| {
+        // A hidden layer's input gradient (into a new buffer) and parameter gradients, its
+        // input the output of normalisation `j` over rows `x`.
+        let mut back = |(j, x): (usize, &[T]), l: Lin, g: &[T]| {
             let mut gx = self.scratch.take(x.len());
-            linear_grad(x, l, params, g, Some(&mut gx)).write(l, &mut gp);
+            let norm = self.ready(j, cond, x, false);
+            linear_grad((x, Some(&norm)), l, params, g, Some(&mut gx)).write(l, &mut gp);
             gx
         };
         let j = 2 * self.blocks;
-        let ga = back(&acts.a[j], lin[j + 1], gl);
+        let ga = back((j, &acts.nets[self.blocks]), lin[j + 1], gl);
         let mut gnet = norm_back(j, &acts.nets[self.blocks], ga);
         for k in (0..self.blocks).rev() {
-            let ga1 = back(&acts.a[2 * k + 1], lin[2 + 2 * k], &gnet);
+            let ga1 = back((2 * k + 1, &acts.hid[k]), lin[2 + 2 * k], &gnet);
             let ghid = norm_back(2 * k + 1, &acts.hid[k], ga1);
-            let ga0 = back(&acts.a[2 * k], lin[1 + 2 * k], &ghid);
+            let ga0 = back((2 * k, &acts.nets[k]), lin[1 + 2 * k], &ghid);
             self.scratch.give(ghid);
             let gin = norm_back(2 * k, &acts.nets[k], ga0);
             add_assign(&mut gnet, &gin);
             self.scratch.give(gin);
         }
         let mut gpts = want_points.then(|| vec![T::from_f64(0.0); p.len()]);
-        linear_grad(p, lin[0], params, &gnet, gpts.as_deref_mut()).write(lin[0], &mut gp);
+        linear_grad((p, None), lin[0], params, &gnet, gpts.as_deref_mut()).write(lin[0], &mut gp);
         self.scratch.give(gnet);
         self.give_back(acts);
         (gpts, gc, gp)
@@ -318,9 +328,16 @@ fn add_assign<T: Real>(a: &mut [T], b: &[T]) {
     );
 }
 
-/// `y = (res or 0) + b + x Wᵀ` for rows `x: [N, in]` of linear layer `l` in `params`, into
-/// `y: [N, out]` (every value written).
-fn linear<T: Real>(x: &[T], l: Lin, params: &[T], res: Option<&[T]>, y: &mut [T]) {
+/// `y = (res or 0) + b + a Wᵀ` for rows `a = norm(x)` (or `x` without a normalisation),
+/// `x: [N, in]`, of linear layer `l` in `params`, into `y: [N, out]` (every value
+/// written); each tile's normalised rows in a buffer of its own.
+fn linear<T: Real>(
+    (x, norm): (&[T], Option<&Ready<'_, T>>),
+    l: Lin,
+    params: &[T],
+    res: Option<&[T]>,
+    y: &mut [T],
+) {
     let (input, out) = (l.input, l.out);
     let wt = l.transposed(params);
     let bias = l.bias(params);
@@ -332,37 +349,52 @@ fn linear<T: Real>(x: &[T], l: Lin, params: &[T], res: Option<&[T]>, y: &mut [T]
         .chunks_mut(TILE * out)
         .zip(x.chunks(TILE * input))
         .zip(res_tiles)
+        .enumerate()
         .collect();
-    for_each_init(
-        items,
-        || (),
-        |_, ((y, x), res)| {
-            wide(|| {
-                for (k, row) in y.chunks_mut(out).enumerate() {
-                    match res {
-                        Some(r) => {
-                            for ((v, &b), &r) in row.iter_mut().zip(bias).zip(&r[k * out..]) {
-                                *v = r + b;
-                            }
+    for_each_init(items, Vec::new, |buf, (t, ((y, x), res))| {
+        let x = normalised(norm, (t * TILE, x), buf);
+        wide(|| {
+            for (k, row) in y.chunks_mut(out).enumerate() {
+                match res {
+                    Some(r) => {
+                        for ((v, &b), &r) in row.iter_mut().zip(bias).zip(&r[k * out..]) {
+                            *v = r + b;
                         }
-                        None => row.copy_from_slice(bias),
                     }
+                    None => row.copy_from_slice(bias),
                 }
-            });
-            let r = x.len() / input;
-            matmul(
-                (r, out, input),
-                y,
-                View::rows(0, out),
-                true,
-                x,
-                View::rows(0, input),
-                &wt,
-                View::rows(0, out),
-                T::from_f64(1.0),
-            );
-        },
-    );
+            }
+        });
+        let r = x.len() / input;
+        matmul(
+            (r, out, input),
+            y,
+            View::rows(0, out),
+            true,
+            x,
+            View::rows(0, input),
+            &wt,
+            View::rows(0, out),
+            T::from_f64(1.0),
+        );
+    });
+}
+
+/// Rows `x` from row `first` on, normalised by `norm` into `buf` (resized to them), or
+/// `x` itself without a normalisation.
+fn normalised<'a, T: Real>(
+    norm: Option<&Ready<'_, T>>,
+    (first, x): (usize, &'a [T]),
+    buf: &'a mut Vec<T>,
+) -> &'a [T] {
+    match norm {
+        Some(n) => {
+            buf.resize(x.len(), T::from_f64(0.0));
+            n.apply(first, x, buf);
+            buf
+        }
+        None => x,
+    }
 }
 
 /// A linear layer's weight and bias gradients.
@@ -378,10 +410,12 @@ impl<T: Real> LinGrads<T> {
     }
 }
 
-/// `(∂L/∂W = ḡᵀ x, ∂L/∂b = Σ_rows ḡ)` of `y = x Wᵀ + b` (layer `l`) for rows `x: [N, in]`
-/// and `ḡ = gy: [N, out]`, and `∂L/∂x = ḡ W` into `gx` (every value written) when given.
+/// `(∂L/∂W = ḡᵀ a, ∂L/∂b = Σ_rows ḡ)` of `y = a Wᵀ + b` (layer `l`) for rows
+/// `a = norm(x)` (or `x`), `x: [N, in]`, and `ḡ = gy: [N, out]`, and `∂L/∂a = ḡ W` into
+/// `gx` (every value written) when given; each tile's normalised rows recomputed in a
+/// buffer of its own.
 fn linear_grad<T: Real>(
-    x: &[T],
+    (x, norm): (&[T], Option<&Ready<'_, T>>),
     l: Lin,
     params: &[T],
     gy: &[T],
@@ -398,51 +432,49 @@ fn linear_grad<T: Real>(
         .zip(x.chunks(CHUNK * input))
         .zip(gy.chunks(CHUNK * out))
         .zip(chunk_rows(gx, input, chunks))
+        .enumerate()
         .collect();
-    for_each_init(
-        items,
-        || (),
-        |_, (((part, x), gy), gx)| {
-            let (pw, pb) = part.split_at_mut(out * input);
-            let rows = gy.len() / out;
-            for t in (0..rows).step_by(TILE) {
-                let r = TILE.min(rows - t);
-                let (xt, gt) = (&x[t * input..(t + r) * input], &gy[t * out..(t + r) * out]);
-                // ∂L/∂W += ḡᵀ x over the tile's rows.
-                matmul(
-                    (out, input, r),
-                    pw,
-                    View::rows(0, input),
-                    true,
-                    gt,
-                    View::transposed(0, out),
-                    xt,
-                    View::rows(0, input),
-                    T::from_f64(1.0),
-                );
-            }
-            wide(|| {
-                for row in gy.chunks(out) {
-                    for (s, &g) in pb.iter_mut().zip(row) {
-                        *s += g;
-                    }
+    for_each_init(items, Vec::new, |buf, (c, (((part, x), gy), gx))| {
+        let (pw, pb) = part.split_at_mut(out * input);
+        let rows = gy.len() / out;
+        for t in (0..rows).step_by(TILE) {
+            let r = TILE.min(rows - t);
+            let xt = (c * CHUNK + t, &x[t * input..(t + r) * input]);
+            let (xt, gt) = (normalised(norm, xt, buf), &gy[t * out..(t + r) * out]);
+            // ∂L/∂W += ḡᵀ x over the tile's rows.
+            matmul(
+                (out, input, r),
+                pw,
+                View::rows(0, input),
+                true,
+                gt,
+                View::transposed(0, out),
+                xt,
+                View::rows(0, input),
+                T::from_f64(1.0),
+            );
+        }
+        wide(|| {
+            for row in gy.chunks(out) {
+                for (s, &g) in pb.iter_mut().zip(row) {
+                    *s += g;
                 }
-            });
-            if let Some(gx) = gx {
-                matmul(
-                    (rows, input, out),
-                    gx,
-                    View::rows(0, input),
-                    false,
-                    gy,
-                    View::rows(0, out),
-                    w,
-                    View::rows(0, input),
-                    T::from_f64(1.0),
-                );
             }
-        },
-    );
+        });
+        if let Some(gx) = gx {
+            matmul(
+                (rows, input, out),
+                gx,
+                View::rows(0, input),
+                false,
+                gy,
+                View::rows(0, out),
+                w,
+                View::rows(0, input),
+                T::from_f64(1.0),
+            );
+        }
+    });
     sum_chunks(&mut part, per);
     let b = part.split_off(out * input);
     LinGrads { w: part, b }

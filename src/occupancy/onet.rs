@@ -155,10 +155,11 @@ struct Block {
 /// positive) and spatial gradients by forward-mode tangents; in [`NormMode::Train`] the
 /// batch statistics are treated as constants of that propagation.
 ///
-/// Memory: a fused training pass on the CPU keeps about `4·blocks + 5` row buffers of
-/// `N × hidden` values (its activations and gradients; 200 MB in f32 at the shape
-/// prior's 16 384 points, width 128, 5 blocks), and the decoder holds them between
-/// calls for the next pass instead of returning them to the allocator.
+/// Memory: a fused training pass on the CPU keeps about `2·blocks + 4` row buffers of
+/// `N × hidden` values (each block's input and hidden rows, and the gradients in flight;
+/// about 120 MB in f32 at the shape prior's 16 384 points, width 128, 5 blocks), and the
+/// decoder holds them between calls for the next pass instead of returning them to the
+/// allocator.
 #[derive(Debug)]
 pub struct OnetDecoder {
     fc_p: Linear,
