@@ -1,6 +1,7 @@
 //! Conditional batch normalisation and ReLU over rows (`FusedCondNorm`, a layer of the
-//! fused ONet decoder, [`super::onet`]): the batch statistics in two passes over the rows
-//! and the per-code scale and shift and the ReLU in a third, and a backward pass that gives
+//! fused ONet decoder, [`super::onet`]): the batch statistics in one pass over the rows
+//! and the per-code scale and shift and the ReLU in a second (or tile by tile where a
+//! product reads them, [`Ready::apply`]), and a backward pass that gives
 //! the rows', scales' and shifts' gradients in two, where the same layer as candle ops
 //! takes about twenty element-wise ops, reductions and broadcasts, each with its own
 //! tensor. With one scale and shift for all rows and the ReLU optional it is plain batch
@@ -21,8 +22,8 @@ use std::sync::{Arc, Mutex, PoisonError};
 /// without `relu`) and
 /// `u = ḡ ⊙ γ_g` (per row): `∂L/∂β_g = Σ_{n ∈ g} ḡ`, `∂L/∂γ_g = Σ_{n ∈ g} ḡ ⊙ x̂`,
 /// `∂L/∂x = s ⊙ (u − mean_n(u) − x̂ ⊙ mean_n(u ⊙ x̂))` (the statistics' own dependence on
-/// `x` included). Statistics and sums in f64 (the statistics by two passes: mean, then
-/// the squared deviations); each value's own arithmetic in the dtype, as
+/// `x` included). Statistics and sums in f64 (the statistics by one pass of shifted sums,
+/// [`FusedCondNorm::stats`]); each value's own arithmetic in the dtype, as
 /// `(x − μ)·(γ_g s) + β_g`, the difference taken first as the reference ops take it.
 #[derive(Debug)]
 pub(crate) struct FusedCondNorm {
