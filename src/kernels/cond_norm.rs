@@ -168,7 +168,7 @@ impl FusedCondNorm {
             out.fill(T::from_f64(0.0));
             return;
         }
-        let ready = self.prepare(x, gamma, beta);
+        let ready = self.ready(x, (gamma, beta), true);
         let items = self.items(x, out);
         for_each_init(
             items,
@@ -177,50 +177,39 @@ impl FusedCondNorm {
         );
     }
 
-    /// The layer over rows `x` ready to apply to any of its rows ([`Ready::apply`]):
-    /// the batch statistics of `x`, computed here and left in `saved`.
-    pub(super) fn prepare<'a, T: WithDType>(
-        &'a self,
-        x: &[T],
-        gamma: &[T],
-        beta: &'a [T],
-    ) -> Ready<'a, T> {
-        let st = self.stats(x);
-        let ready = self.ready_from(&st, gamma, beta);
-        *self.saved.lock().unwrap_or_else(PoisonError::into_inner) = Some(st);
-        ready
-    }
-
-    /// As [`FusedCondNorm::prepare`] from the statistics in `saved` (recomputed from `x`
-    /// where none are), for the backward pass.
+    /// The layer over rows `x` ready to apply to any of its rows ([`Ready::apply`]). With
+    /// `fresh` (the forward pass) the batch statistics of `x` are computed here and left
+    /// in `saved`; without, they are `saved`'s ([`FusedCondNorm::saved_stats`]).
     pub(super) fn ready<'a, T: WithDType>(
         &'a self,
         x: &[T],
-        gamma: &[T],
-        beta: &'a [T],
+        (gamma, beta): (&[T], &'a [T]),
+        fresh: bool,
     ) -> Ready<'a, T> {
-        let saved = self
-            .saved
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .clone();
-        let st = saved.unwrap_or_else(|| self.stats(x));
-        self.ready_from(&st, gamma, beta)
-    }
-
-    fn ready_from<'a, T: WithDType>(
-        &'a self,
-        st: &Stats,
-        gamma: &[T],
-        beta: &'a [T],
-    ) -> Ready<'a, T> {
-        let (mean, slope) = self.slopes(st, gamma);
+        let st = if fresh {
+            let st = self.stats(x);
+            *self.saved.lock().unwrap_or_else(PoisonError::into_inner) = Some(st.clone());
+            st
+        } else {
+            self.saved_stats(x)
+        };
+        let (mean, slope) = self.slopes(&st, gamma);
         Ready {
             norm: self,
             mean,
             slope,
             beta,
         }
+    }
+
+    /// The statistics in `saved`, or those of `x` where none are (a second backward pass).
+    fn saved_stats<T: WithDType>(&self, x: &[T]) -> Stats {
+        let saved = self
+            .saved
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone();
+        saved.unwrap_or_else(|| self.stats(x))
     }
 
     /// The gradients of `gamma` and `beta` given the output's `grad`, and `x`'s into `gx`
@@ -244,12 +233,7 @@ impl FusedCondNorm {
             gx.fill(T::from_f64(0.0));
             return [gg, gb];
         }
-        let saved = self
-            .saved
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .clone();
-        let st = saved.unwrap_or_else(|| self.stats(x));
+        let st = self.saved_stats(x);
         let (mean, slope) = self.slopes(&st, gamma);
         let scale: Vec<T> = st.scale.iter().map(|&s| T::from_f64(s)).collect();
         let mut cols = self.columns(&mean, &slope, beta, &scale);

@@ -177,12 +177,7 @@ impl FusedOnet {
     /// Normalisation `j` over rows `x`, ready to apply: its statistics computed (and
     /// saved) in the forward pass, read from `saved` in the backward pass.
     fn ready<'a, T: Real>(&'a self, j: usize, cond: &'a [T], x: &[T], fwd: bool) -> Ready<'a, T> {
-        let (g, b) = self.affine(cond, j);
-        if fwd {
-            self.norms[j].prepare(x, g, b)
-        } else {
-            self.norms[j].ready(x, g, b)
-        }
+        self.norms[j].ready(x, self.affine(cond, j), fwd)
     }
 
     /// `y = (res or 0) + b + a Wᵀ` for rows `a = norm(x)` (or `x`), `x: [N, in]`, of
