@@ -7,17 +7,37 @@ fn metrics(out: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap()
 }
 
-/// A few steps on the committed dataset at a quarter of its resolution: the whole
-/// pipeline runs, writes every output with the documented keys, and resumes.
+/// The committed dataset at a quarter of its resolution, its test split cut to its first
+/// two views, written in the Blender layout to `dir`: a run's final evaluation renders
+/// every test view, which at twenty views took most of these runs' time.
+fn quarter_scene_two_test_views(dir: &Path) -> PathBuf {
+    use neural_fields::data::{write_blender, Dataset};
+    for (split, keep) in [(Split::Train, usize::MAX), (Split::Test, 2)] {
+        let config = LoadConfig {
+            split,
+            downscale: 4,
+            ..LoadConfig::default()
+        };
+        let source = load(Path::new("examples/data/wuson"), &config).unwrap();
+        let views = source.views().iter().take(keep).cloned().collect();
+        let cut = Dataset::new(views, source.background(), source.bounds()).unwrap();
+        write_blender(dir, split, &cut).unwrap();
+    }
+    dir.to_path_buf()
+}
+
+/// A few steps on the committed dataset at a quarter of its resolution (two test views):
+/// the whole pipeline runs, writes every output with the documented keys, and resumes.
 #[test]
 fn a_shortened_run_trains_writes_its_outputs_and_resumes() {
-    let out = std::env::temp_dir().join(format!("nerf-example-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let root = std::env::temp_dir().join(format!("nerf-example-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    let out = root.join("run");
     let mut args = Args {
+        data: quarter_scene_two_test_views(&root.join("data")),
         steps: Some(4),
         out: out.clone(),
         seed: 1,
-        downscale: 4,
         rays: 128,
         samples: 16,
         eval_every: 2,
@@ -34,14 +54,7 @@ fn a_shortened_run_trains_writes_its_outputs_and_resumes() {
     // The Blender layout states no bounds: the box is the silhouettes' visual hull (the
     // mesh lies in the unit ball), not the ±1.5 cube.
     let scene_box: Vec<f64> = serde_json::from_value(m["scene_box"].clone()).unwrap();
-    let train = load(
-        &args.data,
-        &LoadConfig {
-            downscale: 4,
-            ..LoadConfig::default()
-        },
-    )
-    .unwrap();
+    let train = load(&args.data, &LoadConfig::default()).unwrap();
     let hull = train.visual_hull(0.05).unwrap().unwrap();
     assert_eq!(scene_box, hull);
     assert!(hull.iter().all(|v| v.abs() < 1.2), "{hull:?}");
@@ -135,7 +148,7 @@ fn a_shortened_run_trains_writes_its_outputs_and_resumes() {
     args.sampler = Some(Sampler::Stratified);
     let e = run(&args).unwrap_err().to_string();
     assert!(e.contains("--scene unbounded"), "{e}");
-    let _ = std::fs::remove_dir_all(&out);
+    let _ = std::fs::remove_dir_all(&root);
 }
 
 /// The gradient scaling of unbounded scenes leaves values alone and multiplies each
