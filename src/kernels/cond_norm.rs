@@ -183,7 +183,7 @@ impl FusedCondNorm {
     pub(super) fn ready<'a, T: WithDType>(
         &'a self,
         x: &[T],
-        (gamma, beta): (&[T], &'a [T]),
+        (gamma, beta): (&'a [T], &'a [T]),
         fresh: bool,
     ) -> Ready<'a, T> {
         let st = if fresh {
@@ -198,6 +198,8 @@ impl FusedCondNorm {
             norm: self,
             mean,
             slope,
+            scale: st.scale,
+            gamma,
             beta,
         }
     }
@@ -210,113 +212,6 @@ impl FusedCondNorm {
             .unwrap_or_else(PoisonError::into_inner)
             .clone();
         saved.unwrap_or_else(|| self.stats(x))
-    }
-
-    /// The gradients of `gamma` and `beta` given the output's `grad`, and `x`'s into `gx`
-    /// (`x`'s length; every value written).
-    ///
-    /// With `d = x − μ` and `ḡ` the gradient masked by the ReLU, one pass sums each
-    /// group's `Σ ḡ` (`∂L/∂β_g`) and `Σ ḡ ⊙ x̂` (`∂L/∂γ_g`); since `γ` is constant
-    /// within a group, the column means the rows' gradient needs follow from them:
-    /// `mean_n(u) = Σ_g γ_g ⊙ ∂L/∂β_g / N`, `mean_n(u ⊙ x̂) = Σ_g γ_g ⊙ ∂L/∂γ_g / N`. A
-    /// second pass writes `∂L/∂x = ḡ ⊙ γ_g s − s ⊙ mean_n(u) − d ⊙ s² ⊙ mean_n(u ⊙ x̂)`.
-    pub(super) fn grad<T: WithDType>(
-        &self,
-        (x, gamma, beta): (&[T], &[T], &[T]),
-        grad: &[T],
-        gx: &mut [T],
-    ) -> [Vec<T>; 2] {
-        let h = self.width;
-        let zeros = |len: usize| vec![T::from_f64(0.0); len];
-        let (mut gg, mut gb) = (zeros(gamma.len()), zeros(beta.len()));
-        if h == 0 || x.is_empty() {
-            gx.fill(T::from_f64(0.0));
-            return [gg, gb];
-        }
-        let st = self.saved_stats(x);
-        let (mean, slope) = self.slopes(&st, gamma);
-        let scale: Vec<T> = st.scale.iter().map(|&s| T::from_f64(s)).collect();
-        let mut cols = self.columns(&mean, &slope, beta, &scale);
-        // Pass 1, per item: the scale's and shift's sums of the groups its rows belong to
-        // (`[groups spanned, 2H]`, from its first group).
-        let h2 = 2 * h;
-        let n_items = self.rows.div_ceil(ROWS);
-        let spans: Vec<(usize, usize)> = (0..n_items)
-            .map(|i| {
-                let (a, b) = (i * ROWS, ((i + 1) * ROWS).min(self.rows) - 1);
-                (a / self.group, b / self.group - a / self.group + 1)
-            })
-            .collect();
-        let mut affine: Vec<Vec<f64>> = spans.iter().map(|&(_, k)| vec![0.0; k * h2]).collect();
-        let items: Vec<_> = x
-            .chunks(ROWS * h)
-            .zip(grad.chunks(ROWS * h))
-            .zip(affine.iter_mut())
-            .enumerate()
-            .collect();
-        for_each_init(
-            items,
-            || (),
-            |_, (i, ((x, g), aff))| {
-                wide(Pass(
-                    &cols,
-                    Rows::Sums {
-                        first: i * ROWS,
-                        g0: spans[i].0,
-                        x,
-                        g,
-                        aff,
-                    },
-                ))
-            },
-        );
-        let (mut dg, mut db) = (vec![0.0; gamma.len()], vec![0.0; beta.len()]);
-        for (&(g0, _), aff) in spans.iter().zip(&affine) {
-            for (k, a) in aff.chunks(h2).enumerate() {
-                let at = (g0 + k) * h;
-                for j in 0..h {
-                    dg[at + j] += a[j];
-                    db[at + j] += a[h + j];
-                }
-            }
-        }
-        // Pass 2: the rows' gradient, `ḡ ⊙ slope − c − d ⊙ e`.
-        let n = self.rows as f64;
-        let (mut su, mut sux) = (vec![0.0; h], vec![0.0; h]);
-        for ((gm, dg), db) in gamma.chunks(h).zip(dg.chunks(h)).zip(db.chunks(h)) {
-            for j in 0..h {
-                su[j] += gm[j].to_f64() * db[j] / n;
-                sux[j] += gm[j].to_f64() * dg[j] / n;
-            }
-        }
-        let c: Vec<T> = su
-            .iter()
-            .zip(&st.scale)
-            .map(|(u, s)| T::from_f64(s * u))
-            .collect();
-        let e: Vec<T> = sux
-            .iter()
-            .zip(&st.scale)
-            .map(|(u, s)| T::from_f64(s * s * u))
-            .collect();
-        for (o, v) in gg.iter_mut().zip(&dg) {
-            *o = T::from_f64(*v);
-        }
-        for (o, v) in gb.iter_mut().zip(&db) {
-            *o = T::from_f64(*v);
-        }
-        (cols.c, cols.e) = (&c, &e);
-        let items: Vec<_> = self
-            .items(x, gx)
-            .into_iter()
-            .zip(grad.chunks(ROWS * h))
-            .collect();
-        for_each_init(
-            items,
-            || (),
-            |_, ((first, x, out), g)| wide(Pass(&cols, Rows::Grad { first, x, g, out })),
-        );
-        [gg, gb]
     }
 }
 
@@ -413,12 +308,16 @@ impl<T: WithDType> Columns<'_, T> {
     }
 }
 
-/// A layer with its statistics, ready to apply to any of its rows: the column means and
-/// the per-group slopes in `T` ([`FusedCondNorm::slopes`]) and the shifts.
+/// A layer with its statistics, ready to apply to any of its rows and to take its
+/// gradients: the column means and the per-group slopes in `T`
+/// ([`FusedCondNorm::slopes`]), the statistics' scales `s = 1/√(σ² + ε)`, and the
+/// per-group scales and shifts.
 pub(super) struct Ready<'a, T> {
     norm: &'a FusedCondNorm,
     mean: Vec<T>,
     slope: Vec<T>,
+    scale: Vec<f64>,
+    gamma: &'a [T],
     beta: &'a [T],
 }
 
@@ -428,6 +327,107 @@ impl<T: WithDType> Ready<'_, T> {
     pub(super) fn apply(&self, first: usize, x: &[T], out: &mut [T]) {
         let cols = self.norm.columns(&self.mean, &self.slope, self.beta, &[]);
         wide(Pass(&cols, Rows::Forward { first, x, out }));
+    }
+
+    /// The gradients of `gamma` and `beta` given the output's `grad`, and `x`'s into `gx`
+    /// (`x`'s length; every value written).
+    ///
+    /// With `d = x − μ` and `ḡ` the gradient masked by the ReLU, one pass sums each
+    /// group's `Σ ḡ` (`∂L/∂β_g`) and `Σ ḡ ⊙ x̂` (`∂L/∂γ_g`); since `γ` is constant
+    /// within a group, the column means the rows' gradient needs follow from them:
+    /// `mean_n(u) = Σ_g γ_g ⊙ ∂L/∂β_g / N`, `mean_n(u ⊙ x̂) = Σ_g γ_g ⊙ ∂L/∂γ_g / N`. A
+    /// second pass writes `∂L/∂x = ḡ ⊙ γ_g s − s ⊙ mean_n(u) − d ⊙ s² ⊙ mean_n(u ⊙ x̂)`.
+    pub(super) fn grad(&self, x: &[T], grad: &[T], gx: &mut [T]) -> [Vec<T>; 2] {
+        let (norm, gamma, beta) = (self.norm, self.gamma, self.beta);
+        let h = norm.width;
+        let zeros = |len: usize| vec![T::from_f64(0.0); len];
+        let (mut gg, mut gb) = (zeros(gamma.len()), zeros(beta.len()));
+        if h == 0 || x.is_empty() {
+            gx.fill(T::from_f64(0.0));
+            return [gg, gb];
+        }
+        let scale: Vec<T> = self.scale.iter().map(|&s| T::from_f64(s)).collect();
+        let mut cols = norm.columns(&self.mean, &self.slope, beta, &scale);
+        // Pass 1, per item: the scale's and shift's sums of the groups its rows belong to
+        // (`[groups spanned, 2H]`, from its first group).
+        let h2 = 2 * h;
+        let n_items = norm.rows.div_ceil(ROWS);
+        let spans: Vec<(usize, usize)> = (0..n_items)
+            .map(|i| {
+                let (a, b) = (i * ROWS, ((i + 1) * ROWS).min(norm.rows) - 1);
+                (a / norm.group, b / norm.group - a / norm.group + 1)
+            })
+            .collect();
+        let mut affine: Vec<Vec<f64>> = spans.iter().map(|&(_, k)| vec![0.0; k * h2]).collect();
+        let items: Vec<_> = x
+            .chunks(ROWS * h)
+            .zip(grad.chunks(ROWS * h))
+            .zip(affine.iter_mut())
+            .enumerate()
+            .collect();
+        for_each_init(
+            items,
+            || (),
+            |_, (i, ((x, g), aff))| {
+                wide(Pass(
+                    &cols,
+                    Rows::Sums {
+                        first: i * ROWS,
+                        g0: spans[i].0,
+                        x,
+                        g,
+                        aff,
+                    },
+                ))
+            },
+        );
+        let (mut dg, mut db) = (vec![0.0; gamma.len()], vec![0.0; beta.len()]);
+        for (&(g0, _), aff) in spans.iter().zip(&affine) {
+            for (k, a) in aff.chunks(h2).enumerate() {
+                let at = (g0 + k) * h;
+                for j in 0..h {
+                    dg[at + j] += a[j];
+                    db[at + j] += a[h + j];
+                }
+            }
+        }
+        // Pass 2: the rows' gradient, `ḡ ⊙ slope − c − d ⊙ e`.
+        let n = norm.rows as f64;
+        let (mut su, mut sux) = (vec![0.0; h], vec![0.0; h]);
+        for ((gm, dg), db) in gamma.chunks(h).zip(dg.chunks(h)).zip(db.chunks(h)) {
+            for j in 0..h {
+                su[j] += gm[j].to_f64() * db[j] / n;
+                sux[j] += gm[j].to_f64() * dg[j] / n;
+            }
+        }
+        let c: Vec<T> = su
+            .iter()
+            .zip(&self.scale)
+            .map(|(u, s)| T::from_f64(s * u))
+            .collect();
+        let e: Vec<T> = sux
+            .iter()
+            .zip(&self.scale)
+            .map(|(u, s)| T::from_f64(s * s * u))
+            .collect();
+        for (o, v) in gg.iter_mut().zip(&dg) {
+            *o = T::from_f64(*v);
+        }
+        for (o, v) in gb.iter_mut().zip(&db) {
+            *o = T::from_f64(*v);
+        }
+        (cols.c, cols.e) = (&c, &e);
+        let items: Vec<_> = norm
+            .items(x, gx)
+            .into_iter()
+            .zip(grad.chunks(ROWS * h))
+            .collect();
+        for_each_init(
+            items,
+            || (),
+            |_, ((first, x, out), g)| wide(Pass(&cols, Rows::Grad { first, x, g, out })),
+        );
+        [gg, gb]
     }
 }
 
@@ -543,7 +543,7 @@ impl CpuKernel<3> for FusedBatchNorm {
         }
         let [x, g, b] = inputs;
         let mut gx = vec![T::from_f64(0.0); x.len()];
-        let [gg, gb] = self.0.grad((x, g, b), grad, &mut gx);
+        let [gg, gb] = self.0.ready(x, (g, b), false).grad(x, grad, &mut gx);
         Ok([want_x.then_some(gx), Some(gg), Some(gb)])
     }
 }

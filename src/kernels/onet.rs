@@ -176,8 +176,8 @@ impl FusedOnet {
 
     /// Normalisation `j` over rows `x`, ready to apply: its statistics computed (and
     /// saved) in the forward pass, read from `saved` in the backward pass.
-    fn ready<'a, T: Real>(&'a self, j: usize, cond: &'a [T], x: &[T], fwd: bool) -> Ready<'a, T> {
-        self.norms[j].ready(x, self.affine(cond, j), fwd)
+    fn ready<'a, T: Real>(&'a self, j: usize, cond: &'a [T], x: &[T], fresh: bool) -> Ready<'a, T> {
+        self.norms[j].ready(x, self.affine(cond, j), fresh)
     }
 
     /// `y = (res or 0) + b + a Wᵀ` for rows `a = norm(x)` (or `x`), `x: [N, in]`, of
@@ -244,23 +244,23 @@ impl FusedOnet {
         let mut gp = vec![T::from_f64(0.0); params.len()];
         let mut gc = vec![T::from_f64(0.0); cond.len()];
         let gh = self.rows / self.group * self.hidden;
-        // Normalisation `j`'s backward pass: its scales' and shifts' gradients into `gc`,
-        // its rows' into a new buffer; `g` returns to the scratch.
-        let mut norm_back = |j: usize, x: &[T], g: Vec<T>| {
-            let (gamma, beta) = self.affine(cond, j);
-            let mut gx = self.scratch.take(x.len());
-            let [gg, gb] = self.norms[j].grad((x, gamma, beta), &g, &mut gx);
-            gc[2 * j * gh..(2 * j + 1) * gh].copy_from_slice(&gg);
-            gc[(2 * j + 1) * gh..(2 * j + 2) * gh].copy_from_slice(&gb);
-            self.scratch.give(g);
-            gx
-        };
         // A hidden layer's input gradient (into a new buffer) and parameter gradients, its
-        // input the output of normalisation `j` over rows `x`.
+        // input the output of normalisation `j` over rows `x`; with the normalisation,
+        // ready for its own backward pass.
         let mut back = |(j, x): (usize, &[T]), l: Lin, g: &[T]| {
             let mut gx = self.scratch.take(x.len());
             let norm = self.ready(j, cond, x, false);
             linear_grad((x, Some(&norm)), l, params, g, Some(&mut gx)).write(l, &mut gp);
+            (gx, norm)
+        };
+        // Normalisation `j`'s backward pass: its scales' and shifts' gradients into `gc`,
+        // its rows' into a new buffer; `g` returns to the scratch.
+        let mut norm_back = |j: usize, x: &[T], (g, norm): (Vec<T>, Ready<'_, T>)| {
+            let mut gx = self.scratch.take(x.len());
+            let [gg, gb] = norm.grad(x, &g, &mut gx);
+            gc[2 * j * gh..(2 * j + 1) * gh].copy_from_slice(&gg);
+            gc[(2 * j + 1) * gh..(2 * j + 2) * gh].copy_from_slice(&gb);
+            self.scratch.give(g);
             gx
         };
         let j = 2 * self.blocks;
