@@ -10,20 +10,39 @@ use neural_fields::glam::DVec3;
 /// each with an RGBA image of `size`² whose alpha is the silhouette of the ball
 /// (`centre`, `radius`) — or no alpha at all when `alpha` is false.
 fn ball_dataset(n: usize, size: usize, centre: DVec3, radius: f64, alpha: bool) -> Dataset {
-    let k = Intrinsics::from_fov_y(size, size, 0.7).expect("intrinsics");
-    let views = (0..n)
+    let eyes: Vec<DVec3> = (0..n)
         .map(|i| {
             let a = i as f64 * std::f64::consts::TAU / n as f64;
-            let eye = DVec3::new(
+            DVec3::new(
                 2.2 * a.cos(),
                 2.2 * a.sin(),
                 if i % 2 == 0 { 0.6 } else { -0.6 },
-            );
+            )
+        })
+        .collect();
+    ellipsoid_dataset(&eyes, size, centre, DVec3::splat(radius), alpha)
+}
+
+/// Cameras at `eyes` looking at the origin (vertical field of view 0.7 rad), each with
+/// an image of `size`² whose alpha (when `alpha`) is the silhouette of the ellipsoid
+/// about `centre` with semi-axes `axes`.
+fn ellipsoid_dataset(
+    eyes: &[DVec3],
+    size: usize,
+    centre: DVec3,
+    axes: DVec3,
+    alpha: bool,
+) -> Dataset {
+    let k = Intrinsics::from_fov_y(size, size, 0.7).expect("intrinsics");
+    let views = eyes
+        .iter()
+        .enumerate()
+        .map(|(i, &eye)| {
             let cam =
                 Camera::look_at(k, eye, DVec3::ZERO, DVec3::Z, Convention::OpenCv).expect("camera");
             let pose = cam.cam_to_world();
-            let (to_c, dist) = ((centre - eye).normalize(), (centre - eye).length());
-            let cos_max = (1.0 - (radius / dist).powi(2)).sqrt();
+            // The ray eye + t·d in the ellipsoid's unit-sphere coordinates.
+            let o = (eye - centre) / axes;
             let channels = if alpha { 4 } else { 3 };
             let mut px = Vec::with_capacity(size * size * channels);
             for v in 0..size {
@@ -33,8 +52,9 @@ fn ball_dataset(n: usize, size: usize, centre: DVec3, radius: f64, alpha: bool) 
                         (v as f64 + 0.5 - k.cy) / k.fy,
                         1.0,
                     );
-                    let d = (pose.matrix3 * d).normalize();
-                    let inside = d.dot(to_c) >= cos_max;
+                    let d = (pose.matrix3 * d) / axes;
+                    let (b, c) = (o.dot(d), o.length_squared() - 1.0);
+                    let inside = b < 0.0 && b * b >= d.length_squared() * c;
                     px.extend_from_slice(&[128, 128, 128]);
                     if alpha {
                         px.push(if inside { 255 } else { 0 });
@@ -148,4 +168,35 @@ fn scene_box_without_stated_bounds_is_the_hull_else_the_cube() {
     // Silhouettes without any foreground: no hull, the cube.
     let empty = ball_dataset(8, 32, DVec3::new(40.0, 0.0, 0.0), 0.3, true);
     assert_eq!(empty.scene_box(1.5), [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5]);
+}
+
+/// An object that fills the near views' frames, seen only from above, once left its hull
+/// reaching far below it (z from −5.8 under a disc 0.4 thick): the near views' frames do
+/// not reach that column, and the far views see it behind the object. Its silhouettes
+/// in the low near views are cut by the frame's sides but do not touch the bottom edge,
+/// so the object does not lie beyond that edge, and those views carve the column.
+#[test]
+fn an_object_that_fills_the_frame_is_bounded_below() {
+    let (centre, axes) = (DVec3::ZERO, DVec3::new(2.0, 2.0, 0.4));
+    // Camera `i` of `n` around the z axis at `radius` and elevation `e`, the ring turned
+    // by `turn`.
+    let around = |n: usize, i: usize, radius: f64, e: f64, turn: f64| {
+        let a = i as f64 * std::f64::consts::TAU / n as f64 + turn;
+        radius * DVec3::new(e.cos() * a.cos(), e.cos() * a.sin(), e.sin())
+    };
+    // 24 near views at elevations 0.3 and 0.9 rad (the disc wider than every frame),
+    // 4 far views at 1.0 rad that hold it whole.
+    let near = (0..24).map(|i| around(24, i, 4.0, if i % 2 == 0 { 0.3 } else { 0.9 }, 0.0));
+    let eyes: Vec<DVec3> = near
+        .chain((0..4).map(|i| around(4, i, 9.0, 1.0, 0.4)))
+        .collect();
+    let data = ellipsoid_dataset(&eyes, 64, centre, axes, true);
+    let b = data.visual_hull(0.0).expect("valid").expect("masks");
+    for a in 0..3 {
+        assert!(
+            b[a] <= centre[a] - axes[a] + 1e-9 && b[a + 3] >= centre[a] + axes[a] - 1e-9,
+            "{b:?} must contain the disc"
+        );
+    }
+    assert!(b[2] > -2.5, "{b:?}: the column under the disc is carved");
 }

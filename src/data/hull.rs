@@ -8,13 +8,16 @@ use crate::glam::DVec3;
 /// Cells per axis of each carving pass.
 const CELLS: usize = 48;
 
-/// A view's foreground (mask ≥ ½) as a summed-area table `[(h + 1)·(w + 1)]`, and
-/// whether it shows the whole object (some foreground, none on the image's border).
+/// A view's foreground (mask ≥ ½) as a summed-area table `[(h + 1)·(w + 1)]`, which of
+/// the image's edges it touches, and whether it shows the whole object (some
+/// foreground, none on the image's border).
 struct Silhouette<'a> {
     view: &'a View,
     w: usize,
     h: usize,
     sum: Vec<u32>,
+    /// Foreground in the first column, the last column, the first row, the last row.
+    touches: [bool; 4],
     whole: bool,
 }
 
@@ -31,17 +34,27 @@ impl<'a> Silhouette<'a> {
         }
         let total = sum[(w + 1) * (h + 1) - 1];
         let s = |u: usize, v: usize| sum[v * (w + 1) + u];
-        let inner = if w > 2 && h > 2 {
-            s(w - 1, h - 1) + s(1, 1) - s(1, h - 1) - s(w - 1, 1)
-        } else {
-            0
+        // Foreground pixels in columns u0..u1 of rows v0..v1.
+        let rect = |u0: usize, u1: usize, v0: usize, v1: usize| {
+            s(u1, v1) + s(u0, v0) - s(u0, v1) - s(u1, v0)
         };
-        let whole = total > 0 && inner == total;
+        let touches = if w > 0 && h > 0 {
+            [
+                rect(0, 1, 0, h) > 0,
+                rect(w - 1, w, 0, h) > 0,
+                rect(0, w, 0, 1) > 0,
+                rect(0, w, h - 1, h) > 0,
+            ]
+        } else {
+            [false; 4]
+        };
+        let whole = total > 0 && !touches.contains(&true);
         Self {
             view,
             w,
             h,
             sum,
+            touches,
             whole,
         }
     }
@@ -55,7 +68,10 @@ impl<'a> Silhouette<'a> {
     /// ball is in front of the camera and its projected square holds no foreground pixel,
     /// where the square lies inside the image — or, for a view that shows the whole
     /// object, wherever the square meets the image (the object lies inside that view's
-    /// frustum, so space outside it is empty).
+    /// frustum, so space outside it is empty) — or, for a view with some foreground, the
+    /// square lies wholly beyond an image edge the foreground does not touch, within
+    /// that edge's span (the object leaves the frame only across the edges its
+    /// silhouette touches).
     fn carves(&self, p: DVec3, radius: f64) -> bool {
         let cam = self.view.camera();
         let Some(q) = cam.project(p) else {
@@ -72,7 +88,7 @@ impl<'a> Silhouette<'a> {
         let inside = x0 >= 0.0 && y0 >= 0.0 && x1 <= self.w as f64 && y1 <= self.h as f64;
         if !inside {
             if !self.whole {
-                return false;
+                return self.beyond_free_edge(x0, x1, y0, y1);
             }
             (x0, y0) = (x0.max(0.0), y0.max(0.0));
             (x1, y1) = (x1.min(self.w as f64), y1.min(self.h as f64));
@@ -96,6 +112,20 @@ impl<'a> Silhouette<'a> {
         s(u1 + 1, v1 + 1) + s(u0, v0) == s(u0, v1 + 1) + s(u1 + 1, v0)
     }
 
+    /// Whether the square `[x0, x1] × [y0, y1]` (pixels) lies wholly beyond an edge of
+    /// the image that the foreground does not touch, within that edge's span; never for
+    /// a view without foreground.
+    fn beyond_free_edge(&self, x0: f64, x1: f64, y0: f64, y1: f64) -> bool {
+        let (w, h) = (self.w as f64, self.h as f64);
+        let [left, right, top, bottom] = self.touches;
+        let (across, down) = (x0 >= 0.0 && x1 <= w, y0 >= 0.0 && y1 <= h);
+        self.count() > 0
+            && ((!left && x1 <= 0.0 && down)
+                || (!right && x0 >= w && down)
+                || (!top && y1 <= 0.0 && across)
+                || (!bottom && y0 >= h && across))
+    }
+
     /// Whether the whole ball about `p` lies behind the camera's image plane.
     fn behind(&self, p: DVec3, radius: f64) -> bool {
         let cam = self.view.camera();
@@ -112,8 +142,14 @@ impl Dataset {
     /// to every optical axis, as far out as the farthest camera), then the box the first
     /// pass kept, each cut into 48³ cells. A
     /// cell is carved when some view sees the ball around it whole (in front of the camera
-    /// and inside the image) and no foreground pixel in the ball's projected square; a
-    /// cell no view sees whole is kept. The test is conservative (a cell that holds any of
+    /// and inside the image) and no foreground pixel in the ball's projected square; when
+    /// a view whose silhouette touches no image edge (it holds the whole object) sees the
+    /// ball outside its frame or behind it; or when the ball projects wholly beyond an
+    /// image edge that the view's silhouette does not touch, within that edge's span (an
+    /// object that fills the frame and is cut by its left and right edges is not below
+    /// the bottom edge). A cell no view carves is kept. For an object whose parts outside
+    /// a frame join its visible part across the edges its silhouette touches (not only
+    /// around a corner of the frame), the test is conservative (a cell that holds any of
     /// the object is never carved), so the hull's box contains the object's box; it is
     /// within about two cells of the silhouettes' own hull. Host f64; O(48³ · views) per
     /// pass with one summed-area table per view.
