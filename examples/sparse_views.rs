@@ -14,8 +14,12 @@
 //! log-linearly to 1e-4) on `--rays` random pixels of the training views per step, each
 //! ray composited over a random background, with `--samples` (32) jittered stratified
 //! samples across the scene box (`--aabb H`: the cube ±H; else the box the layout states,
-//! else the visual hull of the training silhouettes grown by 5 %, else ±1.5) and the
-//! fused [`Nerf::color_loss`]; the same seed. The
+//! else the visual hull of the whole training split's silhouettes grown by 5 %, else
+//! ±1.5: [`Dataset::scene_box`]) and the fused [`Nerf::color_loss`]; the same seed. The
+//! box is the scene's bounds, as a layout may state them: only the three views' pixels
+//! train, but three silhouettes of an object that leaves the frame bound little of it (a
+//! box as wide as the cameras' cube, whose far side lets a field explain each view by a
+//! picture behind the object). The
 //! regularised run adds, by default:
 //! - a **frequency window** (FreeNeRF, Yang et al. 2023: BARF's coarse-to-fine window used
 //!   as a regulariser) that opens the position encoding's octaves linearly over training
@@ -36,7 +40,8 @@
 //! `compare_{i}.png` (truth | plain | regularised), `depth_{i}.png` (plain depth |
 //! regularised depth, on one colour scale) and `metrics.json` with both runs' `psnr` and
 //! `depth_tv` (the mean absolute difference of neighbouring depths where both pixels are
-//! opaque, lower is smoother) and the regularisers used.
+//! opaque, lower is smoother), the regularisers used, the training `frames` and the
+//! `scene_box` (`[x0, y0, z0, x1, y1, z1]`).
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
@@ -302,7 +307,7 @@ fn spread_views(data: &Dataset) -> Result<Vec<usize>> {
 }
 
 /// One run, plain or regularised, written to `OUT/name`.
-fn train(args: &Args, name: &str, regularised: bool) -> Result<Run> {
+fn train(args: &Args, scene: [f64; 6], name: &str, regularised: bool) -> Result<Run> {
     let (dev, dt) = (Device::Cpu, DType::F32);
     let config = LoadConfig {
         downscale: args.downscale,
@@ -343,11 +348,6 @@ fn train(args: &Args, name: &str, regularised: bool) -> Result<Run> {
             },
         )
     })?;
-    let scene = match args.aabb {
-        Some(h) => [-h, -h, -h, h, h, h],
-        // The layout's box, else the training silhouettes' hull, else nerfacc's cube.
-        None => train.scene_box(1.5),
-    };
     let span = regularised.then_some(args.coarse_to_fine.0).flatten();
     let varmap = VarMap::new();
     let windows = std::cell::RefCell::new(Vec::new());
@@ -511,27 +511,31 @@ fn depth_tv(depth: &Tensor) -> Result<f64> {
 
 /// Both runs, and the comparison written to `args.out`.
 fn compare(args: &Args) -> Result<()> {
+    let all = load(
+        &args.data,
+        &LoadConfig {
+            downscale: args.downscale,
+            allow_outside_paths: args.allow_outside_paths,
+            ..LoadConfig::default()
+        },
+    )?;
     let frames = match &args.frames {
         Some(frames) => frames.clone(),
-        None => {
-            let all = load(
-                &args.data,
-                &LoadConfig {
-                    downscale: args.downscale,
-                    allow_outside_paths: args.allow_outside_paths,
-                    ..LoadConfig::default()
-                },
-            )?;
-            spread_views(&all)?
-        }
+        None => spread_views(&all)?,
     };
-    println!("training views {frames:?}");
+    let scene = match args.aabb {
+        Some(h) => [-h, -h, -h, h, h, h],
+        // The scene's bounds: the layout's box, else the hull of the whole training
+        // split's silhouettes, else nerfacc's cube. Only the chosen views' pixels train.
+        None => all.scene_box(1.5),
+    };
+    println!("training views {frames:?}, scene box {scene:.2?}");
     let args = &Args {
         frames: Some(frames),
         ..args.clone()
     };
-    let plain = train(args, "plain", false)?;
-    let reg = train(args, "regularised", true)?;
+    let plain = train(args, scene, "plain", false)?;
+    let reg = train(args, scene, "regularised", true)?;
     let tv = |run: &Run| -> Result<f64> {
         let v = run
             .renders
@@ -564,6 +568,7 @@ fn compare(args: &Args) -> Result<()> {
             "regnerf_weight": args.regnerf.then_some(args.regnerf_weight),
         },
         "frames": args.frames,
+        "scene_box": scene,
         "minutes_per_run": args.steps.is_none().then(|| args.minutes.unwrap_or(3.0)),
         "steps_per_run": args.steps,
     });
@@ -674,6 +679,28 @@ mod sparse_tests {
             }
             assert!(out.join(run).join("metrics.json").is_file());
         }
+        // The scene's bounds come from the whole training split, not the three views.
+        let quarter = LoadConfig {
+            downscale: 4,
+            ..LoadConfig::default()
+        };
+        let whole = load(Path::new("examples/data/wuson"), &quarter).unwrap();
+        let three = load(
+            Path::new("examples/data/wuson"),
+            &LoadConfig {
+                frames: Some(spread_views(&whole).unwrap()),
+                ..quarter
+            },
+        )
+        .unwrap();
+        let written: Vec<f64> = m["scene_box"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        assert_eq!(written, whole.scene_box(1.5).to_vec(), "{m}");
+        assert_ne!(written, three.scene_box(1.5).to_vec(), "{m}");
         assert!(out.join("compare_0.png").is_file() && out.join("depth_0.png").is_file());
         let _ = std::fs::remove_dir_all(&out);
     }
