@@ -232,16 +232,22 @@ pub(crate) fn check_same_shape(
     }
 }
 
-/// Whether `t` holds no NaN or ±∞: `Σ 0·x` in f64 (0 for finite `x`, NaN for NaN and
-/// ±∞, whatever the magnitudes), one scalar read back from the device.
+/// Whether `t` holds no NaN or ±∞: [`finite_probe`] read back from the device as one
+/// scalar. An integer tensor is finite.
 pub(crate) fn all_finite(t: &Tensor) -> Result<bool> {
-    let probe = t
-        .detach()
-        .to_dtype(DType::F64)?
-        .affine(0.0, 0.0)?
-        .sum_all()?
-        .to_scalar::<f64>()?;
+    if !t.dtype().is_float() {
+        return Ok(true);
+    }
+    let probe = finite_probe(t)?.to_dtype(DType::F64)?.to_scalar::<f64>()?;
     Ok(probe.is_finite())
+}
+
+/// `Σ 0·x` over a float tensor `t`, a scalar tensor of `t`'s dtype on its device: every
+/// term is 0 for a finite `x` whatever its magnitude and NaN for NaN or ±∞, so the sum is
+/// exact in any float dtype and finite exactly when `t` is. One pass over `t`, no copy in
+/// another dtype.
+pub(crate) fn finite_probe(t: &Tensor) -> Result<Tensor> {
+    Ok(t.detach().affine(0.0, 0.0)?.sum_all()?)
 }
 
 /// Checks that every element of `t` is finite (no NaN, no ±∞).

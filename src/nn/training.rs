@@ -2,7 +2,7 @@
 //! without weight decay, a guard that stops a run at the first NaN or infinity, and a
 //! clock that measures the budget in steps or in training time.
 
-use crate::error::{all_finite, Error, Result};
+use crate::error::{all_finite, finite_probe, Error, Result};
 use crate::kernels::{AdamMoments, AdamUpdate};
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Tensor, Var};
@@ -155,9 +155,9 @@ impl Optimizer for Adam {
 ///
 /// It holds the variables of a [`VarMap`] with their names, sorted by name (a guard made
 /// after the model is built sees all of its variables). A tensor is finite when `Σ 0·x`
-/// is (0 unless an element is NaN or ±∞, whatever the magnitudes); the check
-/// concatenates the tensors and reads one scalar back from the device, tensor by tensor
-/// only to name the first bad one, and needs no gradient.
+/// is (0 unless an element is NaN or ±∞, whatever the magnitudes); the check sums each
+/// tensor so in its own dtype, reads the sums back from the device as one vector, tensor
+/// by tensor only to name the first bad one, and needs no gradient.
 ///
 /// ```
 /// use candle_core::{DType, Device, Tensor};
@@ -218,19 +218,25 @@ impl FiniteGuard {
                 checked.push((var.as_tensor().clone(), "the weight ", name.as_str()));
             }
         }
-        // Concatenated and probed at once where all share a dtype and a device (a GPU
-        // then synchronises once per step, not once per tensor); only then tensor by
-        // tensor, to name one.
-        let tensors: Vec<Tensor> = checked
+        // Where all share a dtype and a device, each tensor's probe is stacked and read
+        // back at once (a GPU then synchronises once per step, not once per tensor, and
+        // nothing is copied whole); only then tensor by tensor, to name one.
+        let tensors: Vec<&Tensor> = checked
             .iter()
-            .filter(|(t, ..)| t.elem_count() > 0)
-            .map(|(t, ..)| Ok(t.flatten_all()?))
-            .collect::<Result<_>>()?;
+            .map(|(t, ..)| t)
+            .filter(|t| t.elem_count() > 0)
+            .collect();
         let alike = tensors
             .iter()
             .all(|t| t.dtype() == loss.dtype() && t.device().same_device(loss.device()));
-        if alike && !tensors.is_empty() && all_finite(&Tensor::cat(&tensors, 0)?)? {
-            return Ok(());
+        if alike && loss.dtype().is_float() && !tensors.is_empty() {
+            let probes: Vec<Tensor> = tensors
+                .iter()
+                .map(|t| finite_probe(t))
+                .collect::<Result<_>>()?;
+            if all_finite(&Tensor::stack(&probes, 0)?)? {
+                return Ok(());
+            }
         }
         for (t, what, name) in &checked {
             if t.elem_count() > 0 && !all_finite(t)? {
