@@ -244,8 +244,8 @@ pub(crate) fn all_finite(t: &Tensor) -> Result<bool> {
 
 /// `Σ 0·x` over a float tensor `t`, a scalar tensor of `t`'s dtype on its device: every
 /// term is 0 for a finite `x` whatever its magnitude and NaN for NaN or ±∞, so the sum is
-/// exact in any float dtype and finite exactly when `t` is. One pass over `t`, no copy in
-/// another dtype.
+/// exact in any float dtype and finite exactly when `t` is. No copy of `t` in another
+/// dtype.
 pub(crate) fn finite_probe(t: &Tensor) -> Result<Tensor> {
     Ok(t.detach().affine(0.0, 0.0)?.sum_all()?)
 }

@@ -155,9 +155,9 @@ impl Optimizer for Adam {
 ///
 /// It holds the variables of a [`VarMap`] with their names, sorted by name (a guard made
 /// after the model is built sees all of its variables). A tensor is finite when `Σ 0·x`
-/// is (0 unless an element is NaN or ±∞, whatever the magnitudes); the check sums each
-/// tensor so in its own dtype, reads the sums back from the device as one vector, tensor
-/// by tensor only to name the first bad one, and needs no gradient.
+/// is (0 unless an element is NaN or ±∞, whatever the magnitudes); the check sums `0·x`
+/// over each tensor in its own dtype, reads the sums back from the device as one vector,
+/// tensor by tensor only to name the first bad one, and needs no gradient.
 ///
 /// ```
 /// use candle_core::{DType, Device, Tensor};
@@ -220,7 +220,7 @@ impl FiniteGuard {
         }
         // Where all share a dtype and a device, each tensor's probe is stacked and read
         // back at once (a GPU then synchronises once per step, not once per tensor, and
-        // nothing is copied whole); only then tensor by tensor, to name one.
+        // no tensor is concatenated or converted); only then tensor by tensor, to name one.
         let tensors: Vec<&Tensor> = checked
             .iter()
             .map(|(t, ..)| t)
