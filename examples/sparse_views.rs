@@ -306,14 +306,17 @@ fn spread_views(data: &Dataset) -> Result<Vec<usize>> {
     Ok(best.0.to_vec())
 }
 
-/// One run, plain or regularised, written to `OUT/name`.
-fn train(args: &Args, scene: [f64; 6], name: &str, regularised: bool) -> Result<Run> {
-    let (dev, dt) = (Device::Cpu, DType::F32);
-    let config = LoadConfig {
-        downscale: args.downscale,
-        allow_outside_paths: args.allow_outside_paths,
-        ..LoadConfig::default()
-    };
+/// What both runs share: the training views, the held-out views and the scene box.
+struct Views {
+    train: Dataset,
+    eval: Dataset,
+    scene: [f64; 6],
+}
+
+/// The views `args.frames` of the training split (random backgrounds) and the test
+/// split (else the validation split), loaded once for both runs; refuses training views
+/// without foreground.
+fn load_views(args: &Args, config: &LoadConfig, scene: [f64; 6]) -> Result<Views> {
     let train = load(
         &args.data,
         &LoadConfig {
@@ -344,10 +347,18 @@ fn train(args: &Args, scene: [f64; 6], name: &str, regularised: bool) -> Result<
             &args.data,
             &LoadConfig {
                 split: Split::Val,
-                ..config
+                ..config.clone()
             },
         )
     })?;
+    Ok(Views { train, eval, scene })
+}
+
+/// One run, plain or regularised, on `views`, written to `OUT/name`.
+fn train(args: &Args, views: &Views, name: &str, regularised: bool) -> Result<Run> {
+    let (dev, dt) = (Device::Cpu, DType::F32);
+    let Views { train, eval, scene } = views;
+    let scene = *scene;
     let span = regularised.then_some(args.coarse_to_fine.0).flatten();
     let varmap = VarMap::new();
     let windows = std::cell::RefCell::new(Vec::new());
@@ -370,7 +381,7 @@ fn train(args: &Args, scene: [f64; 6], name: &str, regularised: bool) -> Result<
         ..ParamsAdamW::default()
     };
     let mut adam = AdamW::new(varmap.all_vars(), params)?;
-    let mut rays = RaySampler::new(&train, args.seed, &dev, dt)?;
+    let mut rays = RaySampler::new(train, args.seed, &dev, dt)?;
     let cameras: Vec<Camera> = train.views().iter().map(|v| *v.camera()).collect();
     let regnerf = regularised && args.regnerf;
     let seconds = args.minutes.unwrap_or(3.0) * 60.0;
@@ -511,14 +522,12 @@ fn depth_tv(depth: &Tensor) -> Result<f64> {
 
 /// Both runs, and the comparison written to `args.out`.
 fn compare(args: &Args) -> Result<()> {
-    let all = load(
-        &args.data,
-        &LoadConfig {
-            downscale: args.downscale,
-            allow_outside_paths: args.allow_outside_paths,
-            ..LoadConfig::default()
-        },
-    )?;
+    let config = LoadConfig {
+        downscale: args.downscale,
+        allow_outside_paths: args.allow_outside_paths,
+        ..LoadConfig::default()
+    };
+    let all = load(&args.data, &config)?;
     let frames = match &args.frames {
         Some(frames) => frames.clone(),
         None => spread_views(&all)?,
@@ -534,8 +543,9 @@ fn compare(args: &Args) -> Result<()> {
         frames: Some(frames),
         ..args.clone()
     };
-    let plain = train(args, scene, "plain", false)?;
-    let reg = train(args, scene, "regularised", true)?;
+    let views = load_views(args, &config, scene)?;
+    let plain = train(args, &views, "plain", false)?;
+    let reg = train(args, &views, "regularised", true)?;
     let tv = |run: &Run| -> Result<f64> {
         let v = run
             .renders
