@@ -102,8 +102,10 @@ pub(super) struct Args {
     /// Rays per pixel side in training, 1 to 8.
     #[arg(long, default_value_t = 1)]
     pub(super) train_supersample: usize,
-    #[arg(long, value_parser = on_off, action = clap::ArgAction::Set, default_value = "off")]
-    pub(super) march_jitter: bool,
+    /// Shift each training ray's march lattice at random every step (default: on with
+    /// `--encoding hash` in an object scene, off otherwise).
+    #[arg(long, value_parser = on_off, action = clap::ArgAction::Set)]
+    pub(super) march_jitter: Option<bool>,
     #[arg(long, value_enum, default_value = "box")]
     pub(super) pixel_filter: Filter,
     /// Held-out views written as pictures.
@@ -306,6 +308,15 @@ impl Args {
             (Encoding::Ipe, _) | (Encoding::Pe, Scene::Unbounded) => 1e-3,
             (Encoding::Pe, Scene::Object) => 5e-3,
         })
+    }
+
+    /// `--march-jitter`, or the default: on for the hash grid in an object scene, whose
+    /// table otherwise fits the fixed points a pixel's march visits every step (chosen
+    /// on the tuning set, docs/benchmarks.md), off for the frequency encodings and for
+    /// the cascaded grid of an unbounded scene.
+    pub(super) fn march_jitter(&self) -> bool {
+        let hash_object = self.encoding() == Encoding::Hash && self.scene == Scene::Object;
+        self.march_jitter.unwrap_or(hash_object)
     }
 
     /// The sampler of `--sampler`, or the scene's default.

@@ -43,11 +43,12 @@
 //! **Rays**: `--eval-supersample K` renders `K × K` rays per held-out pixel
 //! ([`render_image`]); `--jitter on` trains on random points of the pixels,
 //! `--train-supersample K` on the mean of `K × K` rays per pixel, `--march-jitter on` on
-//! shifted march lattices; `--pixel-filter cycles` makes all three sample Cycles'
-//! Blackman–Harris filter ([`PixelFilter::CYCLES`]). **Regularisers**: `--coarse-to-fine
-//! START,END` opens the encoding's octaves over that fraction of training
-//! ([`CoarseToFine`]), `--view-dependence off` drops the view direction, `--regnerf on`
-//! adds RegNeRF's depth smoothness on patches from unseen cameras and its annealed range.
+//! shifted march lattices (the default with `--encoding hash` in an object scene);
+//! `--pixel-filter cycles` makes all three sample Cycles' Blackman–Harris filter
+//! ([`PixelFilter::CYCLES`]). **Regularisers**: `--coarse-to-fine START,END` opens the
+//! encoding's octaves over that fraction of training ([`CoarseToFine`]),
+//! `--view-dependence off` drops the view direction, `--regnerf on` adds RegNeRF's depth
+//! smoothness on patches from unseen cameras and its annealed range.
 //!
 //! **Device**: `--device cuda` trains and evaluates on the first GPU (build with `--features cuda`).
 //!
@@ -604,7 +605,7 @@ fn run(args: &Args) -> Result<()> {
         "pixel_filter": format!("{:?}", args.pixel_filter).to_lowercase(),
         "jitter": args.jitter,
         "train_supersample": args.train_supersample,
-        "march_jitter": args.march_jitter,
+        "march_jitter": args.march_jitter(),
         "coarse_to_fine": args.coarse_to_fine.map(|(s, e)| [s, e]),
         "view_dependence": args.view_dependence,
         "alpha_threshold": args.alpha_threshold,

@@ -196,7 +196,7 @@ impl Renderer<'_> {
                     near,
                     step_size: self.step_size,
                     cone_angle,
-                    jitter: seed.filter(|_| self.args.march_jitter),
+                    jitter: seed.filter(|_| self.args.march_jitter()),
                     ..GridMarchConfig::default()
                 };
                 if self.args.encoding() == Encoding::Ipe {

@@ -90,11 +90,11 @@ fn a_shortened_run_trains_writes_its_outputs_and_resumes() {
     assert_eq!(m["proposal_samples"], serde_json::json!([16, 8]));
     args.coarse_to_fine = None;
     args.view_dependence = true;
-    // The hash-grid encoding, with box-filtered training rays and a jittered march.
+    // The hash-grid encoding, with box-filtered training rays and (its default) a
+    // jittered march.
     args.sampler = Some(Sampler::Grid);
     args.encoding = Some(Encoding::Hash);
     args.train_supersample = 2;
-    args.march_jitter = true;
     run(&args).unwrap();
     let m = metrics(&out);
     assert_eq!(m["encoding"], "hash");
@@ -208,6 +208,15 @@ fn flags_parse_as_documented() {
     let u = Args::parse_from("nerf --scene unbounded".split_whitespace());
     let defaults = (u.sampler(), u.encoding(), u.learning_rate());
     assert_eq!(defaults, (Sampler::Proposal, Encoding::Hash, 1e-2));
+    // The hash grid marches jittered lattices unless told otherwise.
+    let h = Args::parse_from("nerf --encoding hash".split_whitespace());
+    assert!(h.march_jitter());
+    let h = Args::parse_from("nerf --encoding hash --march-jitter off".split_whitespace());
+    assert!(!h.march_jitter());
+    assert!(
+        !u.march_jitter(),
+        "the unbounded scene's cascaded grid keeps its fixed march"
+    );
     let u = Args::parse_from("nerf --scene unbounded --encoding pe".split_whitespace());
     assert_eq!(u.learning_rate(), 1e-3);
     let c = Args::parse_from("nerf --scene unbounded --encoding ipe".split_whitespace());
@@ -216,7 +225,7 @@ fn flags_parse_as_documented() {
         (a.regnerf_weight, a.proposal_samples),
         ([400.0, 0.1], [16, 8])
     );
-    assert!(a.view_dependence && !a.jitter && !a.march_jitter && !a.regnerf);
+    assert!(a.view_dependence && !a.jitter && !a.march_jitter() && !a.regnerf);
     assert!(a.gradient_scaling);
     assert_eq!(a.budget().unwrap(), Budget::Minutes(10.0));
     let flags = "nerf --sampler proposal --frames 0,17,34 --jitter on --coarse-to-fine 0,3.5 \
