@@ -55,7 +55,9 @@
 //! **Output** in `--out` (default `target/nerf`): `metrics.json` (`psnr`, `ssim`,
 //! `train_seconds` without evaluations, `steps`, `samples_per_ray`, `sampler`, `scene`, `encoding`,
 //! `device`, `scene_box`, `eval_split`, `eval_views`, `eval_supersample`, `pixel_filter`, `jitter`,
-//! `train_supersample`, `march_jitter`, `coarse_to_fine`, `view_dependence`,
+//! `train_supersample`, `march_jitter`, `adam_eps`, `empty_psnr` (the held-out PSNR of
+//! the background alone), `stalled_until` (the last evaluation from step 1000 on whose
+//! PSNR was within 5 dB of `empty_psnr` in an object scene, or null), `coarse_to_fine`, `view_dependence`,
 //! `alpha_threshold`, `proposal_samples`, `gradient_scaling`, `data`, `psnr_per_scale`: per image size,
 //! largest first, `width`, `height`, `views`, `psnr`, `ssim`; and `phase_seconds`: host
 //! seconds of training by phase, `grid_update`, `batch`, `sampling`, `loss`, `backward`,
@@ -68,7 +70,7 @@
 //! commands: docs/benchmarks.md. Uses mimalloc (see `examples/tiny_nerf.rs`).
 
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{Optimizer, VarBuilder, VarMap};
+use candle_nn::{Optimizer, ParamsAdamW, VarBuilder, VarMap};
 use clap::{Parser, ValueEnum};
 use neural_fields::camera::{cameras_around, patch_rays, ray_aabb, Camera, PixelFilter, Rays};
 use neural_fields::data::{
@@ -79,7 +81,7 @@ use neural_fields::encoding::{
     hash_grid, CoarseToFine, FrequencyEncoding, HashGridConfig, PointEncoding,
 };
 use neural_fields::glam;
-use neural_fields::nn::{adam, build_seeded, mlp, Budget, Clock, FiniteGuard, Mlp, MlpConfig};
+use neural_fields::nn::{build_seeded, mlp, Adam, Budget, Clock, FiniteGuard, Mlp, MlpConfig};
 use neural_fields::numerics::trunc_exp;
 use neural_fields::volume::{
     anneal_near_far, composite, contract, depth_smoothness, distortion_loss, interlevel_loss,
@@ -187,8 +189,6 @@ fn nerf_config(args: &Args, aabb: [f64; 6], finest: f64, vb: &VarBuilder) -> Res
     Ok(config)
 }
 
-/// Steps in a row with every training ray's opacity below [`DEAD_OPACITY`] that end a
-/// run as dead.
 /// The fraction of the budget during which a mostly occupied grid is marched coarsely.
 const COARSE_MARCH_UNTIL: f64 = 0.1;
 
@@ -205,8 +205,32 @@ fn march_step(diag: f64, occupied: f64, progress: f64) -> f64 {
     }
 }
 
+/// Steps in a row with every training ray's opacity below [`DEAD_OPACITY`] that end a
+/// run as dead.
 const DEAD_STEPS: usize = 100;
 const DEAD_OPACITY: f64 = 1e-3;
+
+/// Steps after which, in an object scene, a held-out PSNR within [`STALL_DB`] of an
+/// empty scene's is reported as a stalled run (a warning and metrics.json's
+/// `stalled_until`). A stalled hash-grid run rendered the plate's silhouette in one
+/// uniform colour for 15 000 steps, 3.1 dB above the empty scene; at step 1 000 the
+/// healthy runs of the scene suite are 15 to 23 dB above it.
+const STALL_STEPS: usize = 1000;
+const STALL_DB: f64 = 5.0;
+
+/// The warning of a run whose held-out PSNR at `step` is still within [`STALL_DB`] of an
+/// empty scene's.
+fn stall_warning(step: usize, psnr: f64, empty: f64, args: &Args) -> String {
+    format!(
+        "warning: after {step} steps the held-out PSNR ({psnr:.2} dB) is within {STALL_DB} dB \
+         of an empty scene's ({empty:.2} dB): the field has not learned the scene; likely \
+         causes: Adam's epsilon (--adam-eps {:e}; 1e-15 suits hash grids), the learning rate \
+         (--lr {}), the scene box (--aabb {:?})",
+        args.adam_eps(),
+        args.learning_rate(),
+        args.aabb
+    )
+}
 
 /// Host seconds of the training steps by phase, summed over the run (evaluations
 /// excluded). On a GPU the host runs ahead of the device until a read-back, so a phase's
@@ -364,7 +388,15 @@ fn run(args: &Args) -> Result<()> {
         varmap.load(path)?;
     }
     let lr0 = args.learning_rate();
-    let mut opt = adam(&varmap, lr0)?;
+    let mut opt = Adam::new(
+        varmap.all_vars(),
+        ParamsAdamW {
+            lr: lr0,
+            weight_decay: 0.0,
+            eps: args.adam_eps(),
+            ..ParamsAdamW::default()
+        },
+    )?;
     let guard = FiniteGuard::new(&varmap);
     let mut grid = match sampler_kind {
         Sampler::Grid => Some(OccupancyGrid::new(GridConfig {
@@ -415,6 +447,8 @@ fn run(args: &Args) -> Result<()> {
     // The grid's occupied fraction as of its last update (no grid: nothing occupied).
     let mut occupied_now = 0.0;
     let mut dead_since = None;
+    let empty = empty_psnr(&eval, args.eval_views)?;
+    let mut stalled_until = None;
     let mut phases = Phases::default();
     loop {
         // --steps 0 evaluates (e.g. resumed weights) without training.
@@ -538,6 +572,12 @@ fn run(args: &Args) -> Result<()> {
                         format!(", {:.1} % of the grid occupied", 100.0 * occupied(g))
                     });
                     println!("step {step}: loss {mse:.5}, held-out PSNR {p:.2} dB ({shown} views), {per_ray:.1} samples/ray{grid_note}");
+                    if args.scene == Scene::Object && step >= STALL_STEPS && p < empty + STALL_DB {
+                        if stalled_until.is_none() {
+                            eprintln!("{}", stall_warning(step, p, empty, args));
+                        }
+                        stalled_until = Some(step);
+                    }
                     Ok(p)
                 })
             })?;
@@ -606,6 +646,9 @@ fn run(args: &Args) -> Result<()> {
         "jitter": args.jitter,
         "train_supersample": args.train_supersample,
         "march_jitter": args.march_jitter(),
+        "adam_eps": args.adam_eps(),
+        "empty_psnr": empty,
+        "stalled_until": stalled_until,
         "coarse_to_fine": args.coarse_to_fine.map(|(s, e)| [s, e]),
         "view_dependence": args.view_dependence,
         "alpha_threshold": args.alpha_threshold,

@@ -443,6 +443,21 @@ pub(super) fn regnerf_depth_smoothness(
 
 /// PSNR and SSIM of the first `n` views of `eval` (means), and the renders
 /// `[truth, colour, depth, opacity]`.
+/// The mean held-out PSNR of an empty scene over the first `n` views of `eval`: each
+/// view's truth against its background colour alone, what a field that has learned
+/// nothing visible renders.
+pub(super) fn empty_psnr(eval: &Dataset, n: usize) -> Result<f64> {
+    let n = n.min(eval.views().len());
+    let bg = eval.background().eval_color();
+    let color = Tensor::new(&bg.map(|c| c as f32), &Device::Cpu)?;
+    let mut p = 0.0;
+    for view in &eval.views()[..n] {
+        let truth = view.rgb(bg, &Device::Cpu, DType::F32)?;
+        p += psnr(&color.broadcast_as(truth.shape())?, &truth, None)?;
+    }
+    Ok(p / n.max(1) as f64)
+}
+
 pub(super) fn evaluate(
     r: &Renderer,
     eval: &Dataset,

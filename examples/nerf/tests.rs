@@ -51,6 +51,7 @@ fn a_shortened_run_trains_writes_its_outputs_and_resumes() {
         assert!(m[key].as_f64().is_some_and(f64::is_finite), "{key}: {m}");
     }
     assert_eq!(m["steps"], 4);
+    assert!(m["stalled_until"].is_null(), "{m}");
     // The Blender layout states no bounds: the box is the silhouettes' visual hull (the
     // mesh lies in the unit ball), not the ±1.5 cube.
     let scene_box: Vec<f64> = serde_json::from_value(m["scene_box"].clone()).unwrap();
@@ -101,6 +102,7 @@ fn a_shortened_run_trains_writes_its_outputs_and_resumes() {
     assert_eq!(m["sampler"], "grid");
     assert_eq!(m["train_supersample"], 2);
     assert_eq!(m["march_jitter"], true);
+    assert_eq!(m["adam_eps"], 1e-15);
     // Cycles' pixel filter in training (jittered rays) and in a 3 × 3 evaluation.
     args.train_supersample = 1;
     args.jitter = true;
@@ -217,6 +219,20 @@ fn flags_parse_as_documented() {
         !u.march_jitter(),
         "the unbounded scene's cascaded grid keeps its fixed march"
     );
+    // Adam's ε: 1e-15 for the hash grid in an object scene (at 1e-8 its table stalled
+    // over a tight box), 1e-8 elsewhere; the flag overrides it, within (0, 1e-4].
+    assert_eq!(
+        (h.adam_eps(), u.adam_eps(), a.adam_eps()),
+        (1e-15, 1e-8, 1e-8)
+    );
+    let e = Args::parse_from("nerf --encoding hash --adam-eps 1e-8".split_whitespace());
+    assert_eq!(e.adam_eps(), 1e-8);
+    for bad in ["0", "-1e-8", "1e-3", "nan"] {
+        assert!(
+            Args::try_parse_from(["nerf", "--adam-eps", bad]).is_err(),
+            "{bad}"
+        );
+    }
     let u = Args::parse_from("nerf --scene unbounded --encoding pe".split_whitespace());
     assert_eq!(u.learning_rate(), 1e-3);
     let c = Args::parse_from("nerf --scene unbounded --encoding ipe".split_whitespace());
@@ -297,6 +313,34 @@ fn a_transparent_dataset_is_refused_before_training() {
     };
     let e = run(&args).unwrap_err().to_string();
     assert!(e.contains("transparent"), "{e}");
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// Regression (a hash run stalled for 15 000 steps unreported): a run whose held-out
+/// PSNR is still within `STALL_DB` of an empty scene's after `STALL_STEPS` steps (here a
+/// learning rate too small to move the weights) says so in metrics.json's `stalled_until`,
+/// and finishes.
+#[test]
+fn a_run_that_learns_nothing_reports_its_stall() {
+    let out = std::env::temp_dir().join(format!("nerf-stall-{}", std::process::id()));
+    let every = STALL_STEPS / 2;
+    let args = Args {
+        steps: Some(STALL_STEPS + every),
+        out: out.clone(),
+        downscale: 4,
+        rays: 16,
+        samples: 8,
+        sampler: Some(Sampler::Stratified),
+        eval_every: every,
+        eval_views: 1,
+        pictures: 0,
+        lr: Some(1e-12),
+        ..Args::default()
+    };
+    run(&args).unwrap();
+    let m = metrics(&out);
+    assert!(m["empty_psnr"].as_f64().is_some_and(f64::is_finite), "{m}");
+    assert_eq!(m["stalled_until"], STALL_STEPS + every, "{m}");
     let _ = std::fs::remove_dir_all(&out);
 }
 
