@@ -20,12 +20,16 @@
 //! train, but three silhouettes of an object that leaves the frame bound little of it (a
 //! box as wide as the cameras' cube, whose far side lets a field explain each view by a
 //! picture behind the object). The
-//! regularised run adds, by default:
-//! - a **frequency window** (FreeNeRF, Yang et al. 2023: BARF's coarse-to-fine window used
-//!   as a regulariser) that opens the position encoding's octaves linearly over training
-//!   and stops at 3 of its 10 (`--coarse-to-fine 0,3.3333`; `off` to drop it);
-//! - a **view-independent colour** (`--view-dependence off`): from three views a colour
-//!   head that sees the view direction explains wrong geometry by view-dependent colour;
+//! regularised run has:
+//! - a **view-independent colour** (`--view-dependence off`, the default): from three
+//!   views a colour head that sees the view direction explains wrong geometry by
+//!   view-dependent colour;
+//! - with `--coarse-to-fine START,END`, a **frequency window** (FreeNeRF, Yang et al.
+//!   2023: BARF's coarse-to-fine window used as a regulariser) that opens the position
+//!   encoding's octaves linearly from START to END (fractions of training; END > 1 leaves
+//!   it partly closed: `0,3.3333` stops at 3 of its 10 octaves). Off by default: on the
+//!   tuning scenes it lost to the view-independent colour alone (docs/benchmarks.md,
+//!   "Sparse views: the window dropped");
 //! - with `--regnerf on`, RegNeRF's regularisers (Niemeyer et al. 2022): the depth
 //!   smoothness of 16 patches of 8 × 8 pixels rendered from random cameras around the
 //!   training cameras ([`cameras_around`]), weighted log-linearly over the first 512 steps
@@ -106,8 +110,9 @@ struct Args {
     /// Held-out views written as pictures.
     #[arg(long, default_value_t = 4)]
     pictures: usize,
-    /// Regularised run: START,END of the encoding's window, or `off`.
-    #[arg(long, value_parser = window, default_value = "0,3.3333")]
+    /// Regularised run: START,END of the encoding's window (e.g. 0,3.3333: opened to 3
+    /// of its 10 octaves), or `off`.
+    #[arg(long, value_parser = window, default_value = "off")]
     coarse_to_fine: Window,
     /// Regularised run: whether the colour depends on the view direction.
     #[arg(long, value_parser = on_off, action = clap::ArgAction::Set, default_value = "off")]
@@ -670,12 +675,21 @@ mod sparse_tests {
             "1",
             "--regnerf",
             "on",
+            "--coarse-to-fine",
+            "0,3.3333",
         ]);
+        // The defaults: a view-independent colour, no window, no RegNeRF.
+        let d = Args::parse_from(["sparse_views"]);
+        assert!(d.coarse_to_fine.0.is_none() && !d.view_dependence && !d.regnerf);
         compare(&args).unwrap();
         let m: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap())
                 .unwrap();
         assert_eq!(m["regularisers"]["view_dependence"], false, "{m}");
+        assert_eq!(
+            m["regularisers"]["coarse_to_fine"],
+            serde_json::json!([0.0, 3.3333])
+        );
         // Three distinct views, chosen by the rule.
         let frames = m["frames"].as_array().unwrap();
         assert_eq!(frames.len(), 3, "{m}");
