@@ -426,6 +426,7 @@ fn run(args: &Args) -> Result<()> {
         eval.views().len(),
         sampler_kind
     );
+    let empty = empty_psnr(&eval, args.eval_views)?;
     let mut clock = Clock::start(budget)?;
     let bar = indicatif::ProgressBar::new(match budget {
         Budget::Steps(n) => n as u64,
@@ -447,7 +448,6 @@ fn run(args: &Args) -> Result<()> {
     // The grid's occupied fraction as of its last update (no grid: nothing occupied).
     let mut occupied_now = 0.0;
     let mut dead_since = None;
-    let empty = empty_psnr(&eval, args.eval_views)?;
     let mut stalled_until = None;
     let mut phases = Phases::default();
     loop {

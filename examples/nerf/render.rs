@@ -441,8 +441,6 @@ pub(super) fn regnerf_depth_smoothness(
     Ok(depth_smoothness(&depth, Some(&opacity))?.mean_all()?)
 }
 
-/// PSNR and SSIM of the first `n` views of `eval` (means), and the renders
-/// `[truth, colour, depth, opacity]`.
 /// The mean held-out PSNR of an empty scene over the first `n` views of `eval`: each
 /// view's truth against its background colour alone, what a field that has learned
 /// nothing visible renders.
@@ -458,6 +456,8 @@ pub(super) fn empty_psnr(eval: &Dataset, n: usize) -> Result<f64> {
     Ok(p / n.max(1) as f64)
 }
 
+/// PSNR and SSIM of the first `n` views of `eval` (means), and the renders
+/// `[truth, colour, depth, opacity]`.
 pub(super) fn evaluate(
     r: &Renderer,
     eval: &Dataset,
