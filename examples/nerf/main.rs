@@ -214,7 +214,7 @@ const DEAD_OPACITY: f64 = 1e-3;
 /// empty scene's is reported as a stalled run (a warning and metrics.json's
 /// `stalled_until`). A stalled hash-grid run rendered the plate's silhouette in one
 /// uniform colour for 15 000 steps, 3.1 dB above the empty scene; at step 1 000 the
-/// healthy runs of the scene suite are 15 to 23 dB above it.
+/// healthy hash runs of the scene suite are 15.3 to 22.6 dB above it.
 const STALL_STEPS: usize = 1000;
 const STALL_DB: f64 = 5.0;
 

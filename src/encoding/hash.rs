@@ -143,11 +143,12 @@ pub struct HashGrid {
 /// Builds a [`HashGrid`] whose table (`table`, `[Σ_l T_l, F]`) comes from `vb`, uniform in
 /// `[−init_scale, init_scale]`, in `vb`'s dtype and device.
 ///
-/// Train the table with Adam at ε = 1e-15 (instant-NGP's; [`crate::nn::Adam`] with
-/// `ParamsAdamW { eps: 1e-15, .. }`): where a table entry's gradients are below about
-/// ε, ε instead of their scale sets Adam's step, and a NeRF's table over a tight scene
-/// box stalled for 15 000 steps at the usual 1e-8 (docs/benchmarks.md, "Adam's ε and
-/// the hash grid").
+/// Over an object's scene box, train the table with Adam at ε = 1e-15 (instant-NGP's;
+/// [`crate::nn::Adam`] with `ParamsAdamW { eps: 1e-15, .. }`): where a table entry's
+/// gradients are below about ε, ε instead of their scale sets Adam's step, and a NeRF's
+/// table over a tight scene box stalled for 15 000 steps at the usual 1e-8. Over a
+/// contracted unbounded scene 1e-8 did better on the report capture (docs/benchmarks.md,
+/// "Adam's ε and the hash grid" and "ε in an unbounded scene, probed").
 ///
 /// # Errors
 /// `config.in_dim` outside 1..=4; zero `levels` or `features`; `log2_table_size`

@@ -12,8 +12,8 @@ use std::time::Instant;
 /// Adam (Kingma & Ba) at learning rate `lr` over every variable of `varmap`, without
 /// weight decay (candle-nn's `AdamW` default of 0.01 would shrink every weight by
 /// `lr · 0.01` per step) and with the default moments (β₁ = 0.9, β₂ = 0.999, ε = 1e-8):
-/// an [`Adam`] with those [`ParamsAdamW`]. For a hash grid's table build [`Adam`] with
-/// ε = 1e-15 instead ([`crate::encoding::hash_grid`] says why).
+/// an [`Adam`] with those [`ParamsAdamW`]. For a hash grid's table over an object's box,
+/// build [`Adam`] with ε = 1e-15 instead ([`crate::encoding::hash_grid`] says why).
 ///
 /// Works for variables of any device and dtype; the variables present in `varmap` when it
 /// is called are the ones it trains.
