@@ -337,8 +337,8 @@ impl Args {
     /// `--adam-eps`, or the default: 1e-15 (instant-NGP's) for the hash grid in an
     /// object scene, whose table over a tight scene box can otherwise stall for thousands
     /// of steps at Adam's usual 1e-8 (docs/benchmarks.md, "Adam's ε and the hash grid");
-    /// 1e-8 for the frequency encodings and for an unbounded scene's cascaded grid, the
-    /// settings their figures were measured with.
+    /// 1e-8 for the frequency encodings and in an unbounded scene, where 1e-15 lost on
+    /// the report capture ("ε in an unbounded scene, probed").
     pub(super) fn adam_eps(&self) -> f64 {
         let hash_object = self.encoding() == Encoding::Hash && self.scene == Scene::Object;
         self.adam_eps
