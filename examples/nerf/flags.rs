@@ -330,8 +330,13 @@ impl Args {
     /// on the tuning set, docs/benchmarks.md), off for the frequency encodings and for
     /// the cascaded grid of an unbounded scene.
     pub(super) fn march_jitter(&self) -> bool {
-        let hash_object = self.encoding() == Encoding::Hash && self.scene == Scene::Object;
-        self.march_jitter.unwrap_or(hash_object)
+        self.march_jitter.unwrap_or(self.hash_object())
+    }
+
+    /// Whether this is the hash grid in an object scene, the setting whose defaults for
+    /// `--march-jitter` and `--adam-eps` were tuned apart from the others'.
+    fn hash_object(&self) -> bool {
+        self.encoding() == Encoding::Hash && self.scene == Scene::Object
     }
 
     /// `--adam-eps`, or the default: 1e-15 (instant-NGP's) for the hash grid in an
@@ -340,9 +345,8 @@ impl Args {
     /// 1e-8 for the frequency encodings and in an unbounded scene, where 1e-15 lost on
     /// the report capture ("ε in an unbounded scene, probed").
     pub(super) fn adam_eps(&self) -> f64 {
-        let hash_object = self.encoding() == Encoding::Hash && self.scene == Scene::Object;
         self.adam_eps
-            .unwrap_or(if hash_object { 1e-15 } else { 1e-8 })
+            .unwrap_or(if self.hash_object() { 1e-15 } else { 1e-8 })
     }
 
     /// The sampler of `--sampler`, or the scene's default.
