@@ -34,7 +34,7 @@
 //!   shapes × 1024 query points uniform in `[−0.55, 0.55]³`, labelled inside a sphere of
 //!   radius 0.3 about a per-shape centre in `[−0.15, 0.15]³`; code size 128; ONet's CBN
 //!   decoder ([`neural_fields::occupancy::onet_decoder`]: width 128, 5 conditional-batch-
-//!   norm ResNet blocks, batch statistics over all B·1024 points, `logits_grouped`) on
+//!   norm ResNet blocks, batch statistics over all B·1024 points, one code per shape) on
 //!   the code of the shape's input: `points`, a fixed cloud `[16, 300, 3]` (uniform in
 //!   `[−0.5, 0.5]³`, a feature of ones per point) through the PointNet encoder (3 × 128
 //!   ReLU layers, max-pool, the 128-wide mean head; the log-variance head is computed and
@@ -437,11 +437,11 @@ fn onet_step(
             Encoder::Points(e) => {
                 let (b, k) = (input.dim(0)?, input.dim(1)?);
                 let ones = Tensor::ones((b, k, 1), input.dtype(), input.device())?;
-                e.forward_features(&input, &ones)?.0
+                e.forward(&input, &ones)?.0
             }
             Encoder::Voxels(e) => e.forward(&input)?,
         };
-        let logits = decoder.logits_grouped(&points, &codes)?;
+        let logits = decoder.logits(&points, &codes)?;
         reconstruction_loss(&logits, &labels)
     }))
 }

@@ -421,7 +421,7 @@ struct Global {
 impl Global {
     fn code(&self, cloud: &Tensor) -> Result<Tensor> {
         let ones = Tensor::ones((1, cloud.dim(1)?, 1), cloud.dtype(), cloud.device())?;
-        Ok(self.encoder.forward_features(cloud, &ones)?.0) // [1, D]
+        Ok(self.encoder.forward(cloud, &ones)?.0) // [1, D]
     }
 }
 

@@ -48,7 +48,7 @@
 //! `scene_box` (`[x0, y0, z0, x1, y1, z1]`).
 
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
+use candle_nn::{Optimizer, VarMap};
 use clap::Parser;
 use neural_fields::camera::{cameras_around, patch_rays, ray_aabb, Camera, Convention, Rays};
 use neural_fields::data::{
@@ -56,7 +56,7 @@ use neural_fields::data::{
 };
 use neural_fields::encoding::{CoarseToFine, PointEncoding};
 use neural_fields::glam::{DMat3, DVec3};
-use neural_fields::nn::build_seeded;
+use neural_fields::nn::{adam, build_seeded};
 use neural_fields::volume::{
     anneal_near_far, composite, depth_smoothness, log_linear_schedule, render_image, stratified,
     Composite, CompositeConfig, ImageConfig, Intervals, Jitter, ANNEAL_MID_RATIO, ANNEAL_P_START,
@@ -380,12 +380,7 @@ fn train(args: &Args, views: &Views, name: &str, regularised: bool) -> Result<Ru
         }
         nerf(&config, vb)
     })?;
-    let params = ParamsAdamW {
-        lr: 1e-3,
-        weight_decay: 0.0,
-        ..ParamsAdamW::default()
-    };
-    let mut adam = AdamW::new(varmap.all_vars(), params)?;
+    let mut adam = adam(&varmap, 1e-3)?;
     let mut rays = RaySampler::new(train, args.seed, &dev, dt)?;
     let cameras: Vec<Camera> = train.views().iter().map(|v| *v.camera()).collect();
     let regnerf = regularised && args.regnerf;

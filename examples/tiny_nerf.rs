@@ -36,14 +36,14 @@
 //! do the same, or set `GLIBC_TUNABLES` as docs/benchmarks.md describes.
 
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
+use candle_nn::{Optimizer, VarMap};
 use clap::Parser;
 use neural_fields::camera::{ray_sphere, Camera, Convention, Intrinsics, Rays};
 use neural_fields::data::{psnr, write_png};
 use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
 use neural_fields::field::Field;
 use neural_fields::glam::DVec3;
-use neural_fields::nn::{build_seeded, mlp, Activation, Mlp, MlpConfig};
+use neural_fields::nn::{adam, build_seeded, mlp, Activation, Mlp, MlpConfig};
 use neural_fields::numerics::trunc_exp;
 use neural_fields::rng::SplitMix64;
 use neural_fields::volume::{
@@ -238,12 +238,7 @@ fn train(
     };
     let varmap = VarMap::new();
     let net = build_seeded(&varmap, dtype, device, 0, |vb| mlp(&config, vb))?;
-    let params = ParamsAdamW {
-        lr: 5e-3,
-        weight_decay: 0.0,
-        ..ParamsAdamW::default()
-    };
-    let mut opt = AdamW::new(varmap.all_vars(), params)?;
+    let mut opt = adam(&varmap, 5e-3)?;
     // The grid's default decay (0.8 per update) suits runs of thousands of steps; this
     // one is a few hundred, so the grid forgets faster and updates more often.
     let mut grid = OccupancyGrid::new(GridConfig {

@@ -1497,7 +1497,7 @@ fn onet_case(dev: &Device, dtype: DType) -> Result<Outs> {
     let points = Var::from_tensor(&uniform(&mut rng, &[b, q, 3], -0.5, 0.5, dtype, dev)?)?;
     let codes = Var::from_tensor(&uniform(&mut rng, &[b, 8], -1.0, 1.0, dtype, dev)?)?;
     net.set_mode(NormMode::Train);
-    let logits = net.logits_grouped(&points, &codes)?;
+    let logits = net.logits(&points, &codes)?;
     let grads = probe(&logits, &mut SplitMix64::new(7))?.backward()?;
     let largest = |t: &Tensor| -> Result<f64> {
         Ok(t.abs()?
@@ -1532,7 +1532,7 @@ fn onet_case(dev: &Device, dtype: DType) -> Result<Outs> {
         out.push((what, rel(g, top)?));
     }
     net.set_mode(NormMode::Eval);
-    let inference = net.logits_grouped(&points, &codes)?;
+    let inference = net.logits(&points, &codes)?;
     let scale = largest(&inference)?;
     out.push((
         "inference logits (running statistics)".into(),

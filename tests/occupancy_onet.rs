@@ -140,8 +140,9 @@ fn spatial_gradient_matches_finite_differences_and_reaches_the_code() {
     assert!(e.starts_with("codes"), "{e}");
 }
 
-/// One code per shape (`logits_grouped`) is `logits` with the code repeated per point:
-/// values, parameter, code and point gradients, in both normalisation modes (f64).
+/// `logits` with one code per shape (`[B, Q, 3]`, `[B, D]`) is `logits` with the code
+/// repeated per point: values, parameter, code and point gradients, in both
+/// normalisation modes (f64).
 #[test]
 fn grouped_codes_match_codes_repeated_per_point() {
     let vm = VarMap::new();
@@ -166,7 +167,7 @@ fn grouped_codes_match_codes_repeated_per_point() {
         .unwrap();
     for mode in [NormMode::Train, NormMode::Eval] {
         net.set_mode(mode);
-        let grouped = net.logits_grouped(&pts, &codes).unwrap();
+        let grouped = net.logits(&pts, &codes).unwrap();
         let repeated = codes
             .unsqueeze(1)
             .unwrap()
@@ -205,10 +206,8 @@ fn grouped_codes_match_codes_repeated_per_point() {
     }
     // A batch that does not split into the codes' shapes is refused naming it.
     let bad = Tensor::zeros((2, 0, 3), DType::F64, &Device::Cpu).unwrap();
-    assert!(net.logits_grouped(&bad, &codes).is_err());
-    assert!(net
-        .logits_grouped(&pts, &codes.narrow(0, 0, 2).unwrap())
-        .is_err());
+    assert!(net.logits(&bad, &codes).is_err());
+    assert!(net.logits(&pts, &codes.narrow(0, 0, 2).unwrap()).is_err());
 }
 
 /// A `[D]` code bound by `Conditioned` (a stride-0 broadcast over the points) enters the
@@ -334,10 +333,10 @@ fn fused_training_pass_matches_the_reference_ops() {
                         .uniform_tensor(&[b + 1, 8], -1.0, 1.0, dtype, &Device::Cpu)
                         .unwrap(),
                 );
-                let warm = net.logits_grouped(&pw, &cw).unwrap();
+                let warm = net.logits(&pw, &cw).unwrap();
                 warm.sqr().unwrap().sum_all().unwrap().backward().unwrap();
                 let logits = if grouped {
-                    net.logits_grouped(&p, &c).unwrap()
+                    net.logits(&p, &c).unwrap()
                 } else {
                     let codes = c.unsqueeze(1).unwrap().broadcast_as((b, q, 8)).unwrap();
                     let codes = codes.reshape((b * q, 8)).unwrap();
@@ -358,7 +357,7 @@ fn fused_training_pass_matches_the_reference_ops() {
                 }
                 // The running statistics, through inference-mode logits.
                 net.set_mode(NormMode::Eval);
-                part.push(common::v64(&net.logits_grouped(&p, &c).unwrap()));
+                part.push(common::v64(&net.logits(&p, &c).unwrap()));
                 parts.push(part);
             }
             let what = format!("{dtype:?}, {b} × {q}, grouped {grouped}");
@@ -398,10 +397,10 @@ fn fused_training_pass_gradients_match_finite_differences_in_f64() {
             .uniform_tensor(&[2, 150], -1.0, 1.0, DType::F64, &Device::Cpu)
             .unwrap();
         let loss = || -> f64 {
-            let l = net.logits_grouped(&p, &c).unwrap();
+            let l = net.logits(&p, &c).unwrap();
             common::v64(&(l * &w).unwrap().sum_all().unwrap())[0]
         };
-        let grads = (net.logits_grouped(&p, &c).unwrap() * &w)
+        let grads = (net.logits(&p, &c).unwrap() * &w)
             .unwrap()
             .sum_all()
             .unwrap()

@@ -102,11 +102,9 @@ const OCCUPANCY: &[&str] = &[
 const ONET: &[&str] = &[
     "occupancy::OnetDecoder::forward_with_code",
     "occupancy::OnetDecoder::logits",
-    "occupancy::OnetDecoder::logits_grouped",
     "occupancy::OnetDecoder::set_mode",
     "occupancy::OnetDecoder::value_and_grad_with_code",
     "occupancy::PointNetEncoder::forward",
-    "occupancy::PointNetEncoder::forward_features",
     "occupancy::SimpleDecoder::forward_with_code",
     "occupancy::SimpleDecoder::logits",
     "occupancy::SimpleDecoder::value_and_grad_with_code",
@@ -599,12 +597,12 @@ fn sweep_onet_networks(s: &mut Suite) {
                 dtype,
             );
             s.case(
-                "occupancy::PointNetEncoder::forward_features",
-                &el,
+                "occupancy::PointNetEncoder::forward",
+                format!("{el}, F = 3 features up to {big:e}"),
                 Expect::Finite,
                 &[&p, &nrm],
                 || {
-                    let (m, l) = enc3.forward_features(p.as_tensor(), nrm.as_tensor())?;
+                    let (m, l) = enc3.forward(p.as_tensor(), nrm.as_tensor())?;
                     Ok(vec![m, l])
                 },
             );
@@ -717,14 +715,14 @@ fn sweep_onet_networks(s: &mut Suite) {
                 || Ok(vec![net.logits(pts.as_tensor(), codes.as_tensor())?]),
             );
             s.case(
-                "occupancy::OnetDecoder::logits_grouped",
-                &ol,
+                "occupancy::OnetDecoder::logits",
+                format!("{ol}, one code per shape"),
                 Expect::Finite,
                 &[&pts, &codes],
                 || {
                     let p = pts.as_tensor().unsqueeze(0)?;
                     let c = codes.as_tensor().narrow(0, 0, 1)?;
-                    Ok(vec![net.logits_grouped(&p, &c)?])
+                    Ok(vec![net.logits(&p, &c)?])
                 },
             );
             s.case(

@@ -571,16 +571,29 @@ fn pointnet_encodes_points_with_normals_order_independently() -> neural_fields::
     let mut rng = SplitMix64::new(6);
     let p = uniform(&mut rng, 10, 3, -1.0, 1.0, DType::F64).reshape((1, 10, 3))?;
     let n = uniform(&mut rng, 10, 3, -1.0, 1.0, DType::F64).reshape((1, 10, 3))?;
-    let (mu, logvar) = enc.forward_features(&p, &n)?;
+    let (mu, logvar) = enc.forward(&p, &n)?;
     assert_eq!((mu.dims(), logvar.dims()), (&[1, 8][..], &[1, 8][..]));
     let perm = Tensor::new(&[3u32, 7, 0, 1, 9, 2, 8, 4, 6, 5], &DEV)?;
-    let (mu2, _) = enc.forward_features(&p.index_select(&perm, 1)?, &n.index_select(&perm, 1)?)?;
+    let (mu2, _) = enc.forward(&p.index_select(&perm, 1)?, &n.index_select(&perm, 1)?)?;
     assert_eq!(v64(&mu), v64(&mu2));
-    let e = enc.forward_features(&p, &n.narrow(2, 0, 2)?).unwrap_err();
+    let e = enc.forward(&p, &n.narrow(2, 0, 2)?).unwrap_err();
     assert!(e.to_string().starts_with("features"), "{e}");
+    // `[B, K]` labels are read as one feature: refused with three.
     let occ = Tensor::ones((1, 10), DType::F64, &DEV)?;
     let e = enc.forward(&p, &occ).unwrap_err();
-    assert!(e.to_string().starts_with("occupancies"), "{e}");
+    assert!(e.to_string().starts_with("features"), "{e}");
+    // With one feature per point, `[B, K]` and `[B, K, 1]` are the same input.
+    let one = PointNetConfig {
+        point_features: 1,
+        ..config
+    };
+    let enc1 = build_seeded(&VarMap::new(), DType::F64, &DEV, 5, |vb| {
+        pointnet_encoder(&one, vb)
+    })?;
+    let labels = uniform(&mut rng, 10, 1, 0.0, 1.0, DType::F64).reshape((1, 10))?;
+    let (flat, _) = enc1.forward(&p, &labels)?;
+    let (column, _) = enc1.forward(&p, &labels.unsqueeze(2)?)?;
+    assert_eq!(v64(&flat), v64(&column));
     Ok(())
 }
 

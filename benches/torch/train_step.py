@@ -229,7 +229,7 @@ class OnetDecoder(torch.nn.Module):
 
 
 class PointNetEncoder(torch.nn.Module):
-    """occupancy::pointnet_encoder's forward_features: [points, features] through 3 x 128
+    """occupancy::pointnet_encoder's forward with F features: [points, features] through 3 x 128
     ReLU layers, a max over the points, the mean and log-variance heads."""
 
     def __init__(self, features=1, hidden=128, layers=3, latent=128):

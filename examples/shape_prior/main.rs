@@ -338,7 +338,7 @@ impl Model {
             Encoder::Image(e) => (e.forward(x, train)?, None),
             Encoder::Points(e) => {
                 let ones = Tensor::ones((x.dim(0)?, x.dim(1)?, 1), x.dtype(), x.device())?;
-                (e.forward_features(x, &ones)?.0, None)
+                (e.forward(x, &ones)?.0, None)
             }
             Encoder::Voxels(e) => (e.forward(x)?, None),
             Encoder::Latent(e) => {
@@ -357,7 +357,7 @@ impl Model {
 
     /// Logits `[B, Q]` at `points: [B, Q, 3]`, one code per shape.
     fn logits(&self, codes: &Tensor, points: &Tensor) -> Result<Tensor> {
-        self.decoder.logits_grouped(points, codes)
+        self.decoder.logits(points, codes)
     }
 }
 

@@ -481,22 +481,17 @@ impl OnetDecoder {
         Ok((logit, grad))
     }
 
-    /// Occupancy logits `[N]` at `points: [N, 3]` with per-point `codes: [N, D]` (same
-    /// dtype and device). Differentiable w.r.t. the parameters, the points and the
-    /// codes. In [`NormMode::Train`] the call updates the running statistics.
+    /// Occupancy logits in either layout, same dtype (f32/f64) and device throughout:
+    /// - **per point**: `points: [N, 3]` with `codes: [N, D]`, logits `[N]`;
+    /// - **per shape**: `points: [B, Q, 3]` with one code per shape, `codes: [B, D]`,
+    ///   logits `[B, Q]`: the per-point logits of the points with each shape's code
+    ///   repeated, but the conditional normalisation's `γ(c)`, `β(c)` computed once per
+    ///   shape (ONet's batches: `2·(2·blocks + 1)` products of `[B, D]·[D, H]` instead of
+    ///   `[B·Q, D]·[D, H]`).
     ///
-    /// # Errors
-    /// Wrong shapes, dtypes or devices.
-    pub fn logits(&self, points: &Tensor, codes: &Tensor) -> Result<Tensor> {
-        Ok(self.run(points, codes, false)?.0)
-    }
-
-    /// Occupancy logits `[B, Q]` at `points: [B, Q, 3]` with one code per shape, `codes:
-    /// [B, D]`: [`OnetDecoder::logits`] of the points with each shape's code repeated, but
-    /// the conditional normalisation's `γ(c)`, `β(c)` computed once per shape (ONet's
-    /// batches: `2·(2·blocks + 1)` products of `[B, D]·[D, H]` instead of `[B·Q, D]·[D, H]`).
-    /// The normalisation's batch statistics run over all `B·Q` points, as in `logits`.
-    /// Differentiable w.r.t. the parameters, the points and the codes.
+    /// The normalisation's batch statistics run over all the points (`N`, or `B·Q`); in
+    /// [`NormMode::Train`] the call updates the running statistics. Differentiable w.r.t.
+    /// the parameters, the points and the codes.
     ///
     /// ```
     /// use candle_core::{DType, Device, Tensor};
@@ -508,17 +503,20 @@ impl OnetDecoder {
     /// let dec = build_seeded(&VarMap::new(), DType::F64, &Device::Cpu, 0, |vb| onet_decoder(&config, vb))?;
     /// let points = Tensor::rand(-0.5, 0.5, (2, 5, 3), &Device::Cpu)?;
     /// let codes = Tensor::rand(-1.0, 1.0, (2, 8), &Device::Cpu)?;
-    /// let grouped = dec.logits_grouped(&points, &codes)?; // [2, 5]
+    /// let per_shape = dec.logits(&points, &codes)?; // [2, 5]
     /// let repeated = codes.unsqueeze(1)?.broadcast_as((2, 5, 8))?.reshape((10, 8))?;
-    /// let flat = dec.logits(&points.reshape((10, 3))?, &repeated)?.reshape((2, 5))?;
-    /// assert!((grouped - flat)?.abs()?.max_all()?.to_scalar::<f64>()? < 1e-12);
+    /// let per_point = dec.logits(&points.reshape((10, 3))?, &repeated)?.reshape((2, 5))?;
+    /// assert!((per_shape - per_point)?.abs()?.max_all()?.to_scalar::<f64>()? < 1e-12);
     /// # Ok::<(), neural_fields::Error>(())
     /// ```
     ///
     /// # Errors
-    /// `points` not `[B, Q, 3]` with `Q ≥ 1`; `codes` not `[B, D]`; dtypes or devices
-    /// unlike.
-    pub fn logits_grouped(&self, points: &Tensor, codes: &Tensor) -> Result<Tensor> {
+    /// `points` neither `[N, 3]` nor `[B, Q, 3]` with `Q ≥ 1`; `codes` not `[N, D]`
+    /// (respectively `[B, D]`); dtypes or devices unlike.
+    pub fn logits(&self, points: &Tensor, codes: &Tensor) -> Result<Tensor> {
+        if points.rank() != 3 {
+            return Ok(self.run(points, codes, false)?.0);
+        }
         let d = check_shape(
             points,
             "points",

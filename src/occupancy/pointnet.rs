@@ -9,7 +9,7 @@
 //! `z = μ + σ ⊙ ε`, loss `Σ BCE(f(p, z), o) + KL(q ‖ N(0, I))`.
 //!
 //! The same network encodes points with other per-point features
-//! ([`PointNetEncoder::forward_features`]): Texture Fields' shape code `c` is the mean
+//! ([`PointNetEncoder::forward`] with `F` features per point): Texture Fields' shape code `c` is the mean
 //! head `μ` of a PointNet over surface points with their normals (`point_features: 3`,
 //! `h⁰ₖ = [pₖ, nₖ] ∈ ℝ⁶`).
 
@@ -100,43 +100,31 @@ pub fn pointnet_encoder(config: &PointNetConfig, vb: VarBuilder) -> Result<Point
 }
 
 impl PointNetEncoder {
-    /// The posterior parameters `(μ, log σ²)`, each `[B, D]`, of `B` shapes given
-    /// `points: [B, K, 3]` and `occupancies: [B, K]` (labels in `[0, 1]`), f32 or f64:
-    /// [`forward_features`](Self::forward_features) with the labels as the one feature.
+    /// The posterior parameters `(μ, log σ²)`, each `[B, D]`, of `B` point sets
+    /// `points: [B, K, 3]` with per-point `features: [B, K, F]` (`F = point_features`: e.g.
+    /// unit normals for Texture Fields' shape encoder), f32 or f64. With `F = 1` the
+    /// features may also be `[B, K]`, ONet's occupancy labels in `[0, 1]` (read as
+    /// `[B, K, 1]`). Each point's `[x, features]` goes through the shared layers; the
+    /// max over the `K` points gives the set's feature, and two linear heads `μ`, `log σ²`.
     ///
-    /// Differentiable w.r.t. the encoder's weights, the points and the occupancies (the
+    /// Differentiable w.r.t. the encoder's weights, the points and the features (the
     /// max-pool passes gradients to the maximising point of each channel).
     ///
     /// # Errors
-    /// `points` not `[B, K, 3]` float with `K ≥ 1`; `occupancies` not `[B, K]` of the same
-    /// dtype and device; a configuration with `point_features` other than 1.
-    pub fn forward(&self, points: &Tensor, occupancies: &Tensor) -> Result<(Tensor, Tensor)> {
-        let (b, k) = check_point_sets(points)?;
-        check_same(occupancies, "occupancies", points, "points")?;
-        check_shape(occupancies, "occupancies", &[Dim::Is(b), Dim::Is(k)])?;
-        if self.config.point_features != 1 {
-            return Err(Error::invalid(
-                "occupancies",
-                "an encoder with point_features = 1 (use forward_features)",
-                format!("point_features = {}", self.config.point_features),
-            ));
-        }
-        self.forward_features(points, &occupancies.unsqueeze(2)?)
-    }
-
-    /// `(μ, log σ²)`, each `[B, D]`, of `B` point sets `points: [B, K, 3]` with per-point
-    /// `features: [B, K, F]` (`F = point_features`, e.g. unit normals), f32 or f64.
-    /// Differentiable w.r.t. the weights, the points and the features.
-    ///
-    /// # Errors
-    /// `points` not `[B, K, 3]` float with `K ≥ 1`; `features` not `[B, K, F]` of the
-    /// same dtype and device.
-    pub fn forward_features(&self, points: &Tensor, features: &Tensor) -> Result<(Tensor, Tensor)> {
+    /// `points` not `[B, K, 3]` float with `K ≥ 1`; `features` not `[B, K, F]` (or `[B, K]`
+    /// when `F = 1`) of the same dtype and device.
+    pub fn forward(&self, points: &Tensor, features: &Tensor) -> Result<(Tensor, Tensor)> {
         let (b, k) = check_point_sets(points)?;
         let f = self.config.point_features;
         check_same(features, "features", points, "points")?;
-        check_shape(features, "features", &[Dim::Is(b), Dim::Is(k), Dim::Is(f)])?;
-        let mut h = Tensor::cat(&[points, features], 2)?.reshape((b * k, 3 + f))?;
+        let features = if features.rank() == 2 && f == 1 {
+            check_shape(features, "features", &[Dim::Is(b), Dim::Is(k)])?;
+            features.unsqueeze(2)?
+        } else {
+            check_shape(features, "features", &[Dim::Is(b), Dim::Is(k), Dim::Is(f)])?;
+            features.clone()
+        };
+        let mut h = Tensor::cat(&[points, &features], 2)?.reshape((b * k, 3 + f))?;
         for layer in &self.layers {
             h = layer.forward(&h)?.relu()?;
         }
