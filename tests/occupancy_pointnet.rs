@@ -157,14 +157,14 @@ fn bad_inputs_name_the_argument() {
                 &p,
                 &Tensor::zeros((2, 4), DType::F32, &Device::Cpu).unwrap(),
             ),
-            "occupancies: expected shape [2, 5]",
+            "features: expected shape [2, 5]",
         ),
         (
             enc.forward(
                 &p,
                 &Tensor::zeros((2, 5), DType::F64, &Device::Cpu).unwrap(),
             ),
-            "occupancies: expected dtype F32",
+            "features: expected dtype F32",
         ),
     ];
     for (r, msg) in cases {
