@@ -9,9 +9,9 @@
 //! `z = μ + σ ⊙ ε`, loss `Σ BCE(f(p, z), o) + KL(q ‖ N(0, I))`.
 //!
 //! The same network encodes points with other per-point features
-//! ([`PointNetEncoder::forward`] with `F` features per point): Texture Fields' shape code `c` is the mean
-//! head `μ` of a PointNet over surface points with their normals (`point_features: 3`,
-//! `h⁰ₖ = [pₖ, nₖ] ∈ ℝ⁶`).
+//! ([`PointNetEncoder::forward`] with `F` features per point): Texture Fields' shape code
+//! `c` is the mean head `μ` of a PointNet over surface points with their normals
+//! (`point_features: 3`, `h⁰ₖ = [pₖ, nₖ] ∈ ℝ⁶`).
 
 use crate::error::{check_float, check_same, check_shape, Dim, Error, Result};
 use candle_core::Tensor;
