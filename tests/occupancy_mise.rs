@@ -132,9 +132,9 @@ fn mise_256_against_dense_256_on_a_torus() {
 #[test]
 #[ignore = "timing: run in release, cargo test --release --test occupancy_mise -- --ignored"]
 fn mise_256_against_dense_256_on_a_trained_mlp() {
-    use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
+    use candle_nn::{Optimizer, VarMap};
     use neural_fields::encoding::{FrequencyEncoding, PointEncoding};
-    use neural_fields::nn::{build_seeded, mlp, MlpConfig};
+    use neural_fields::nn::{adam, build_seeded, mlp, MlpConfig};
     use neural_fields::numerics::bce_with_logits;
     use neural_fields::rng::SplitMix64;
     let dev = Device::Cpu;
@@ -150,15 +150,7 @@ fn mise_256_against_dense_256_on_a_trained_mlp() {
     };
     let vm = VarMap::new();
     let net = build_seeded(&vm, dtype, &dev, 0, |vb| mlp(&config, vb)).unwrap();
-    let mut opt = AdamW::new(
-        vm.all_vars(),
-        ParamsAdamW {
-            lr: 2e-3,
-            weight_decay: 0.0,
-            ..Default::default()
-        },
-    )
-    .unwrap();
+    let mut opt = adam(&vm, 2e-3).unwrap();
     let mut rng = SplitMix64::new(1);
     for _ in 0..300 {
         let p = rng

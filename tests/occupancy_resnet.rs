@@ -8,9 +8,9 @@
 mod common;
 
 use candle_core::{DType, Device, Tensor, Var};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+use candle_nn::{Optimizer, VarBuilder, VarMap};
 use common::{assert_parts_close, central_diff, normal_tensor, v64};
-use neural_fields::nn::build_seeded;
+use neural_fields::nn::{adam, build_seeded};
 use neural_fields::occupancy::{resnet_encoder, ResnetEncoder, ResnetEncoderConfig};
 use neural_fields::rng::SplitMix64;
 
@@ -251,12 +251,7 @@ fn adam_steps_learn_the_mean_colour_of_images() {
     };
     calibrate(&mut batch);
     let untrained = error();
-    let params = ParamsAdamW {
-        lr: 1e-2,
-        weight_decay: 0.0,
-        ..ParamsAdamW::default()
-    };
-    let mut opt = AdamW::new(varmap.all_vars(), params).unwrap();
+    let mut opt = adam(&varmap, 1e-2).unwrap();
     let mut losses = Vec::new();
     for _ in 0..30 {
         let (x, t) = batch(16);

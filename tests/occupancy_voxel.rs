@@ -7,9 +7,9 @@
 mod common;
 
 use candle_core::{DType, Device, Tensor, Var};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+use candle_nn::{Optimizer, VarBuilder, VarMap};
 use common::{assert_parts_close, central_diff, normal_tensor, v64};
-use neural_fields::nn::build_seeded;
+use neural_fields::nn::{adam, build_seeded};
 use neural_fields::occupancy::{voxel_encoder, VoxelEncoder, VoxelEncoderConfig};
 use neural_fields::rng::SplitMix64;
 
@@ -314,12 +314,7 @@ fn adam_steps_learn_the_filled_fraction_of_boxes() {
         .mean_all()
         .unwrap())[0];
     let untrained = error();
-    let params = ParamsAdamW {
-        lr: 3e-3,
-        weight_decay: 0.0,
-        ..ParamsAdamW::default()
-    };
-    let mut opt = AdamW::new(varmap.all_vars(), params).unwrap();
+    let mut opt = adam(&varmap, 3e-3).unwrap();
     let mut losses = Vec::new();
     for step in 0..100 {
         let at = (step * 16) % 256;

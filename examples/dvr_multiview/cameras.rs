@@ -8,6 +8,7 @@ use neural_fields::camera::{
     align_cameras, align_similarity, pose_rays, register_poses, Camera, Rays, RegistrationConfig,
 };
 use neural_fields::glam::{DMat3, DMat4};
+use neural_fields::nn::Adam;
 
 /// The camera-to-world poses of `data`'s views.
 pub(super) fn poses_of(data: &Dataset) -> Vec<DAffine3> {
@@ -127,14 +128,15 @@ pub(super) fn batch_rays(poses: &[PoseParam], data: &Dataset, batch: &RayBatch) 
     pose_rays(poses, &cameras, &batch.views, &pixels)
 }
 
-/// Adam on the pose variables `vars` at `lr` (0 freezes them; no weight decay).
-pub(super) fn pose_adam(vars: Vec<Var>, lr: f64) -> Result<candle_nn::AdamW> {
+/// The crate's [`Adam`] on the pose variables `vars` at `lr` (0 freezes them, which
+/// `nn::adam` refuses; no weight decay).
+pub(super) fn pose_adam(vars: Vec<Var>, lr: f64) -> Result<Adam> {
     let params = candle_nn::ParamsAdamW {
         lr,
         weight_decay: 0.0,
         ..Default::default()
     };
-    Ok(candle_nn::AdamW::new(vars, params)?)
+    Ok(Adam::new(vars, params)?)
 }
 
 /// BARF's test-time refinement: each camera of `eval` (already in the learnt frame) is
