@@ -93,7 +93,8 @@ const SUPERSAMPLE: usize = 2;
 /// The model.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum Model {
-    /// An occupancy network and a texture field (Texture Fields' decoder).
+    /// An occupancy network and a texture field (Texture Fields' decoder): one colour
+    /// per surface point, whatever the view.
     Dvr,
     /// DVR's joint decoder: one trunk for occupancy and colour.
     DvrJoint,

@@ -36,8 +36,10 @@ const RAY_SAMPLES: usize = 64;
 pub enum SurfaceKind {
     /// DVR (Niemeyer et al. 2020): an occupancy network (logits, inside positive; 5 × 128
     /// with a skip at layer 3 on frequencies, 2 × 64 on a hash grid) and a Texture Fields
-    /// decoder for the colour ([`TextureDecoder`]). Variables under `geometry` and
-    /// `texture`.
+    /// decoder for the colour ([`TextureDecoder`]) on the surface point alone: one
+    /// colour per point whatever the view (Lambertian, as in DVR), so a specular
+    /// highlight is out of its reach ([`SurfaceKind::Idr`]'s rendering network reads the
+    /// view direction). Variables under `geometry` and `texture`.
     #[default]
     Dvr,
     /// DVR's joint decoder ([`JointDecoder`]): one trunk (as [`SurfaceKind::Dvr`]'s
