@@ -62,7 +62,7 @@
 //! user's program has by default.
 
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{Optimizer, ParamsAdamW, VarMap};
+use candle_nn::{Optimizer, VarMap};
 use neural_fields::camera::Rays;
 use neural_fields::camera::{ray_aabb, ray_sphere};
 use neural_fields::dvr::{depth_loss, implicit_surface, march, ImplicitConfig, MarchConfig};
@@ -70,7 +70,7 @@ use neural_fields::encoding::{
     hash_grid, Encoding, FrequencyEncoding, HashGridConfig, PointEncoding,
 };
 use neural_fields::field::Field;
-use neural_fields::nn::{build_seeded, mlp, MlpConfig};
+use neural_fields::nn::{adam, build_seeded, mlp, MlpConfig};
 use neural_fields::volume::{composite, stratified, CompositeConfig, Jitter};
 use neural_fields::volume::{nerf, NerfConfig};
 use std::time::Instant;
@@ -279,14 +279,7 @@ fn main() -> neural_fields::Result<()> {
         .filter(|(name, _)| !name.contains("running_"))
         .map(|(_, v)| v.elem_count())
         .sum();
-    let mut opt = neural_fields::nn::Adam::new(
-        varmap.all_vars(),
-        ParamsAdamW {
-            lr: 1e-3,
-            weight_decay: 0.0,
-            ..Default::default()
-        },
-    )?;
+    let mut opt = adam(&varmap, 1e-3)?;
     let (mut total, mut fwd, mut bwd, mut upd) = (vec![], vec![], vec![], vec![]);
     let mut last = 0.0;
     for step in 0..args.warmup + args.steps {
